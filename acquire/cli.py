@@ -1,0 +1,45 @@
+"""The one command-line interface, ``mls`` (DESIGN §2).
+
+Each command group lives in its own module under :mod:`acquire.commands`; this file only
+assembles them. Command modules import their heavy dependencies inside the commands so that
+``mls --help`` stays fast.
+"""
+
+from __future__ import annotations
+
+import typer
+
+from acquire.commands import calib_cmd, decode_cmd
+from acquire.commands import assess_cmd  # noqa: F401  (adds calib c2c, history, compare)
+from acquire.commands import demo_cmd
+
+app = typer.Typer(
+    name="mls",
+    help=(
+        "marine-mls: acquisition, synchronization and boresight calibration for a marine "
+        "mobile LiDAR system (iXblue Hydrins INS + Z+F Profiler 9012)."
+    ),
+    no_args_is_help=True,
+    add_completion=False,
+    pretty_exceptions_enable=False,
+)
+
+app.add_typer(calib_cmd.app, name="calib")
+app.command("decode")(decode_cmd.decode)
+app.command("demo", help=demo_cmd.HELP)(demo_cmd.demo)
+
+
+@app.command("version")
+def version() -> None:
+    """Print the software version."""
+    from acquire import __version__
+
+    typer.echo(__version__)
+
+
+def main() -> None:  # console entry point
+    app()
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,1 @@
+"""iXblue Hydrins INS protocols: NMEA (PHINS standard) and STDBIN, and the canonical NavRecord."""

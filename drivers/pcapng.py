@@ -1,0 +1,246 @@
+"""A small reader for packet captures (pcapng and classic pcap) and their UDP payloads.
+
+Enough of the formats to replay device traffic captured with Wireshark/dumpcap/tcpdump: the
+section header (either byte order), interface descriptions (link type, ``if_tsresol``,
+``if_tsoffset``), enhanced, simple and obsolete packet blocks; classic pcap with micro- or
+nanosecond stamps. Link types: Ethernet (with 802.1Q/802.1ad tags), raw IPv4/IPv6, BSD
+loopback (NULL/LOOP), Linux cooked capture v1 and v2. UDP over IPv4 (unfragmented) and IPv6
+(no extension headers).
+
+Capture stamps are kept as ``timestamp_ns`` (ns since the Unix epoch, the capture host's
+clock). A file that is not a capture raises :class:`PcapError` naming the file offset; a capture
+cut short (the last block incomplete) ends the iteration and is counted in
+``reader.stats.rejected['truncated']``; packets that are not UDP are counted by reason.
+"""
+
+from __future__ import annotations
+
+import ipaddress
+import struct
+from collections.abc import Iterable, Iterator
+from dataclasses import dataclass
+from pathlib import Path
+
+from drivers.base import DecoderStats, DriverError
+
+SHB = 0x0A0D0D0A
+IDB, PB, SPB, EPB = 1, 2, 3, 6
+BYTE_ORDER_MAGIC = 0x1A2B3C4D
+LINKTYPE_NULL, LINKTYPE_ETHERNET, LINKTYPE_RAW = 0, 1, 101
+LINKTYPE_LOOP, LINKTYPE_LINUX_SLL, LINKTYPE_IPV4, LINKTYPE_IPV6, LINKTYPE_LINUX_SLL2 = 108, 113, 228, 229, 276
+
+
+class PcapError(DriverError):
+    """The bytes are not a packet capture this reader understands."""
+
+
+@dataclass(slots=True)
+class CapturedPacket:
+    timestamp_ns: int  # capture host clock, ns since the Unix epoch
+    interface: int
+    linktype: int
+    data: bytes
+
+
+@dataclass(slots=True)
+class UdpDatagram:
+    timestamp_ns: int
+    src: tuple[str, int]
+    dst: tuple[str, int]
+    payload: bytes
+
+
+class CaptureReader:
+    """Iterate the packets of a pcapng or pcap capture: ``for pkt in CaptureReader(path)``."""
+
+    def __init__(self, source: str | Path | bytes) -> None:
+        if isinstance(source, (bytes, bytearray, memoryview)):
+            self.name, self.data = "<bytes>", bytes(source)
+        else:
+            self.name, self.data = str(source), Path(source).read_bytes()
+        self.stats = DecoderStats(bytes_in=len(self.data))
+
+    def __iter__(self) -> Iterator[CapturedPacket]:
+        d = self.data
+        if len(d) < 4:
+            raise PcapError(f"{self.name}: {len(d)} bytes is too short for a packet capture")
+        magic = d[:4]
+        if magic == b"\x0a\x0d\x0d\x0a":
+            yield from self._pcapng()
+        elif magic in (b"\xd4\xc3\xb2\xa1", b"\xa1\xb2\xc3\xd4", b"\x4d\x3c\xb2\xa1", b"\xa1\xb2\x3c\x4d"):
+            yield from self._pcap()
+        else:
+            raise PcapError(f"{self.name}: offset 0: magic {magic.hex()} is neither pcapng nor pcap")
+
+    # -- pcapng --------------------------------------------------------------------------------
+    def _pcapng(self) -> Iterator[CapturedPacket]:
+        d, pos, e = self.data, 0, "<"
+        interfaces: list[tuple[int, int, int]] = []  # (linktype, units per second, offset_s)
+        while pos + 12 <= len(d):
+            if d[pos : pos + 4] == b"\x0a\x0d\x0d\x0a":
+                bom = d[pos + 8 : pos + 12]
+                if bom == b"\x4d\x3c\x2b\x1a":
+                    e = "<"
+                elif bom == b"\x1a\x2b\x3c\x4d":
+                    e = ">"
+                else:
+                    raise PcapError(f"{self.name}: offset {pos}: bad byte-order magic {bom.hex()}")
+                interfaces = []  # interface ids restart in each section
+            btype, blen = struct.unpack_from(e + "II", d, pos)
+            if blen < 12 or blen % 4:
+                raise PcapError(f"{self.name}: offset {pos}: block length {blen} (expected a multiple of 4, >= 12)")
+            if pos + blen > len(d):
+                self.stats.rejected["truncated"] += 1
+                self.stats.skipped_bytes += len(d) - pos
+                return
+            body = d[pos + 8 : pos + blen - 4]
+            pos += blen
+            if btype == IDB:
+                linktype = struct.unpack_from(e + "H", body, 0)[0]
+                units, offset = 1_000_000, 0
+                for code, value in _options(body[8:], e):
+                    if code == 9 and value:
+                        v = value[0]
+                        units = 2 ** (v & 0x7F) if v & 0x80 else 10**v
+                    elif code == 14 and len(value) == 8:
+                        offset = struct.unpack(e + "q", value)[0]
+                interfaces.append((linktype, units, offset))
+            elif btype in (EPB, PB):
+                if btype == EPB:
+                    iface, hi, lo, caplen = struct.unpack_from(e + "IIII", body, 0)
+                    start = 20
+                else:
+                    iface, _drops, hi, lo, caplen = struct.unpack_from(e + "HHIII", body, 0)
+                    start = 20
+                if iface >= len(interfaces):
+                    self.stats.rejected["unknown_interface"] += 1
+                    continue
+                linktype, units, offset = interfaces[iface]
+                ticks = (hi << 32) | lo
+                ts_ns = ticks * 1_000_000_000 // units + offset * 1_000_000_000
+                self.stats.records += 1
+                yield CapturedPacket(ts_ns, iface, linktype, body[start : start + caplen])
+            elif btype == SPB:
+                if not interfaces:
+                    self.stats.rejected["unknown_interface"] += 1
+                    continue
+                self.stats.events["no_timestamp"] += 1
+                snap = interfaces[0]
+                self.stats.records += 1
+                yield CapturedPacket(0, 0, snap[0], body[4:])
+        if pos != len(d):
+            self.stats.rejected["truncated"] += 1
+            self.stats.skipped_bytes += len(d) - pos
+
+    # -- classic pcap --------------------------------------------------------------------------
+    def _pcap(self) -> Iterator[CapturedPacket]:
+        d = self.data
+        if len(d) < 24:
+            raise PcapError(f"{self.name}: pcap header needs 24 bytes, file has {len(d)}")
+        magic = d[:4]
+        e = "<" if magic in (b"\xd4\xc3\xb2\xa1", b"\x4d\x3c\xb2\xa1") else ">"
+        nano = magic in (b"\x4d\x3c\xb2\xa1", b"\xa1\xb2\x3c\x4d")
+        linktype = struct.unpack_from(e + "I", d, 20)[0] & 0x0FFFFFFF
+        pos = 24
+        while pos + 16 <= len(d):
+            sec, frac, caplen, _orig = struct.unpack_from(e + "IIII", d, pos)
+            if pos + 16 + caplen > len(d):
+                break
+            ts = sec * 1_000_000_000 + (frac if nano else frac * 1000)
+            self.stats.records += 1
+            yield CapturedPacket(ts, 0, linktype, d[pos + 16 : pos + 16 + caplen])
+            pos += 16 + caplen
+        if pos != len(d):
+            self.stats.rejected["truncated"] += 1
+            self.stats.skipped_bytes += len(d) - pos
+
+
+def _options(raw: bytes, e: str) -> Iterator[tuple[int, bytes]]:
+    pos = 0
+    while pos + 4 <= len(raw):
+        code, length = struct.unpack_from(e + "HH", raw, pos)
+        if code == 0:
+            return
+        yield code, raw[pos + 4 : pos + 4 + length]
+        pos += 4 + ((length + 3) & ~3)
+
+
+def _ip_payload(pkt: CapturedPacket) -> tuple[int, bytes] | str:
+    """(IP version, IP packet) or a reason string."""
+    d, lt = pkt.data, pkt.linktype
+    if lt == LINKTYPE_ETHERNET:
+        if len(d) < 14:
+            return "short_frame"
+        etype, pos = struct.unpack_from(">H", d, 12)[0], 14
+        while etype in (0x8100, 0x88A8) and len(d) >= pos + 4:
+            etype, pos = struct.unpack_from(">H", d, pos + 2)[0], pos + 4
+    elif lt in (LINKTYPE_NULL, LINKTYPE_LOOP):
+        if len(d) < 4:
+            return "short_frame"
+        fam = struct.unpack_from("<I" if lt == LINKTYPE_NULL and d[0] else ">I", d, 0)[0]
+        etype, pos = (0x0800 if fam == 2 else 0x86DD if fam in (10, 24, 28, 30) else 0), 4
+    elif lt == LINKTYPE_LINUX_SLL:
+        if len(d) < 16:
+            return "short_frame"
+        etype, pos = struct.unpack_from(">H", d, 14)[0], 16
+    elif lt == LINKTYPE_LINUX_SLL2:
+        if len(d) < 20:
+            return "short_frame"
+        etype, pos = struct.unpack_from(">H", d, 0)[0], 20
+    elif lt in (LINKTYPE_RAW, LINKTYPE_IPV4, LINKTYPE_IPV6):
+        etype, pos = (0x0800 if d[:1] and d[0] >> 4 == 4 else 0x86DD), 0
+    else:
+        return f"linktype_{lt}"
+    if etype == 0x0800:
+        return 4, d[pos:]
+    if etype == 0x86DD:
+        return 6, d[pos:]
+    return "not_ip"
+
+
+def udp_datagrams(
+    packets: Iterable[CapturedPacket], port: int | None = None, stats: DecoderStats | None = None
+) -> Iterator[UdpDatagram]:
+    """The UDP datagrams among ``packets`` (to or from ``port`` when given), capture stamps kept.
+
+    Packets that are not UDP are counted in ``stats.events`` by reason.
+    """
+    stats = stats if stats is not None else DecoderStats()
+    for pkt in packets:
+        ip = _ip_payload(pkt)
+        if isinstance(ip, str):
+            stats.events[ip] += 1
+            continue
+        version, d = ip
+        if version == 4:
+            if len(d) < 20:
+                stats.events["short_ip"] += 1
+                continue
+            ihl = (d[0] & 0x0F) * 4
+            total, frag, proto = struct.unpack_from(">H", d, 2)[0], struct.unpack_from(">H", d, 6)[0], d[9]
+            if frag & 0x3FFF:  # more-fragments flag or a fragment offset
+                stats.events["ip_fragment"] += 1
+                continue
+            src, dst = str(ipaddress.IPv4Address(d[12:16])), str(ipaddress.IPv4Address(d[16:20]))
+            udp = d[ihl:total] if total else d[ihl:]
+        else:
+            if len(d) < 40:
+                stats.events["short_ip"] += 1
+                continue
+            proto = d[6]
+            src, dst = str(ipaddress.IPv6Address(d[8:24])), str(ipaddress.IPv6Address(d[24:40]))
+            plen = struct.unpack_from(">H", d, 4)[0]
+            udp = d[40 : 40 + plen]
+        if proto != 17:
+            stats.events["not_udp"] += 1
+            continue
+        if len(udp) < 8:
+            stats.events["short_udp"] += 1
+            continue
+        sport, dport, ulen = struct.unpack_from(">HHH", udp, 0)
+        if port is not None and port not in (sport, dport):
+            stats.events["other_port"] += 1
+            continue
+        payload = udp[8:ulen] if 8 <= ulen <= len(udp) else udp[8:]
+        stats.records += 1
+        yield UdpDatagram(pkt.timestamp_ns, (src, sport), (dst, dport), payload)

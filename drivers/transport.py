@@ -1,0 +1,405 @@
+"""Async byte transports: serial, UDP, TCP — they move bytes and stamp the host receive time.
+
+Every transport yields :class:`Chunk` ``(data, host_ns)`` tuples, ``host_ns`` being
+``time.monotonic_ns()`` taken when the event loop saw the bytes ready (before the read), and
+is used the same way (aiomqtt style)::
+
+    async with create_transport({"kind": "serial", "port": "/run/mls/ins", "baudrate": 115200}) as t:
+        async for data, host_ns in t:
+            records = decoder.feed(data, host_ns)
+
+The registry (:data:`TRANSPORTS`, :func:`register_transport`, :func:`create_transport`) is keyed
+by the config's ``kind``, after python-can's interface registry; a new transport is one class
+with ``@register_transport("name")``.
+
+- ``serial`` (:class:`SerialTransport`): pyserial opens and configures the port; its fd is
+  non-blocking and read from the event loop (``loop.add_reader``), no thread. When the port
+  vanishes (EIO/EOF: a USB adapter unplugged, an emulator's pty closed) the transport reports
+  ``disconnected``, backs off (``reconnect_min_s`` doubling to ``reconnect_max_s``) and reopens
+  the same path — a stable symlink such as ``/dev/serial/by-id/...`` or an emulator's
+  ``<run dir>/ins`` then reaches the new device — and reports ``connected``. A slow consumer
+  pauses reading (the kernel buffers) instead of losing bytes.
+- ``udp`` (:class:`UdpTransport`): one datagram per chunk; a large ``SO_RCVBUF`` (asked
+  ``rcvbuf_bytes``, granted ``rcvbuf_bytes_granted``); optional multicast ``group`` joined on
+  ``interface``; when the consumer lags, datagrams are dropped and counted (``stats``).
+- ``tcp`` (:class:`TcpTransport`): a client that reconnects with the same back-off.
+
+State changes are reported as :class:`TransportEvent` to the ``on_event`` callback and kept in
+``transport.events``; ``transport.connected`` and ``transport.reconnects`` give the state.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import os
+import socket
+import struct
+import time
+from collections import deque
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any, ClassVar, NamedTuple
+
+from drivers.base import DecoderStats, DriverError, Registry
+
+
+class Chunk(NamedTuple):
+    data: bytes
+    host_ns: int
+
+
+@dataclass(frozen=True, slots=True)
+class TransportEvent:
+    transport: str  # the transport's name
+    kind: str  # 'connected' | 'disconnected' | 'reconnect_failed'
+    detail: str
+    host_ns: int
+
+
+TRANSPORTS = Registry("transport")
+register_transport = TRANSPORTS.register
+
+
+def create_transport(config: dict[str, Any], on_event: Callable[[TransportEvent], None] | None = None) -> Transport:
+    """A config mapping with ``kind`` and that transport's keyword arguments → a transport."""
+    return TRANSPORTS.create(config, on_event=on_event)
+
+
+class Transport:
+    """Base class (python-can ``BusABC`` style): subclasses implement ``_connect``/``_disconnect``."""
+
+    kind: ClassVar[str] = ""
+
+    def __init__(
+        self,
+        name: str | None = None,
+        on_event: Callable[[TransportEvent], None] | None = None,
+        max_chunks: int = 1024,
+        reconnect_min_s: float = 0.1,
+        reconnect_max_s: float = 5.0,
+    ) -> None:
+        self.name = name or self.kind
+        self.on_event = on_event
+        self.max_chunks = max_chunks
+        self.reconnect_min_s = reconnect_min_s
+        self.reconnect_max_s = reconnect_max_s
+        self.stats = DecoderStats()
+        self.events: deque[TransportEvent] = deque(maxlen=100)
+        self.connected = False
+        self.reconnects = 0
+        self._chunks: deque[Chunk] = deque()
+        self._ready: asyncio.Event | None = None
+        self._closing = False
+        self._reconnect_task: asyncio.Task | None = None
+        self._loop: asyncio.AbstractEventLoop | None = None
+
+    # -- lifecycle -----------------------------------------------------------------------------
+    async def open(self) -> None:
+        """Connect; if the device is not there yet, report it and keep trying in the background."""
+        self._loop = asyncio.get_running_loop()
+        self._ready = asyncio.Event()
+        self._closing = False
+        try:
+            await self._connect()
+        except OSError as exc:
+            self._report("disconnected", f"cannot open: {exc}")
+            self._schedule_reconnect()
+            return
+        self._set_connected(first=True)
+
+    async def close(self) -> None:
+        self._closing = True
+        if self._reconnect_task is not None:
+            self._reconnect_task.cancel()
+            try:
+                await self._reconnect_task
+            except (asyncio.CancelledError, Exception):
+                pass
+            self._reconnect_task = None
+        await self._disconnect()
+        self.connected = False
+        if self._ready is not None:
+            self._ready.set()
+
+    async def __aenter__(self):
+        await self.open()
+        return self
+
+    async def __aexit__(self, *exc) -> None:
+        await self.close()
+
+    # -- reading -------------------------------------------------------------------------------
+    async def read(self) -> Chunk:
+        """The next chunk; raises EOFError once the transport is closed and drained."""
+        while not self._chunks:
+            if self._closing:
+                raise EOFError(f"transport {self.name} closed")
+            self._ready.clear()
+            await self._ready.wait()
+        chunk = self._chunks.popleft()
+        if len(self._chunks) < self.max_chunks // 2:
+            self._resume()
+        return chunk
+
+    def __aiter__(self):
+        return self._iter()
+
+    async def _iter(self):
+        while True:
+            try:
+                yield await self.read()
+            except EOFError:
+                return
+
+    def _push(self, data: bytes, host_ns: int) -> bool:
+        """Queue a chunk; returns False when the queue is full (caller pauses or drops)."""
+        self._chunks.append(Chunk(data, host_ns))
+        self.stats.bytes_in += len(data)
+        self.stats.records += 1
+        self._ready.set()
+        return len(self._chunks) < self.max_chunks
+
+    def _resume(self) -> None:  # override where reading can be paused
+        pass
+
+    # -- connection state ----------------------------------------------------------------------
+    def _report(self, kind: str, detail: str) -> None:
+        event = TransportEvent(self.name, kind, detail, time.monotonic_ns())
+        self.events.append(event)
+        if self.on_event is not None:
+            self.on_event(event)
+
+    def _set_connected(self, first: bool = False) -> None:
+        self.connected = True
+        if not first:
+            self.reconnects += 1
+        self._report("connected", self.describe())
+
+    def _lost(self, reason: str) -> None:
+        """The device went away: report, release, and reconnect in the background."""
+        if not self.connected or self._closing:
+            return
+        self.connected = False
+        self._report("disconnected", reason)
+        self._loop.create_task(self._disconnect())
+        self._schedule_reconnect()
+
+    def _schedule_reconnect(self) -> None:
+        if self._closing or (self._reconnect_task is not None and not self._reconnect_task.done()):
+            return
+        self._reconnect_task = self._loop.create_task(self._reconnect())
+
+    async def _reconnect(self) -> None:
+        delay = self.reconnect_min_s
+        failures = 0
+        while not self._closing:
+            await asyncio.sleep(delay)
+            try:
+                await self._connect()
+            except OSError as exc:
+                failures += 1
+                if failures in (1, 10) or failures % 100 == 0:
+                    self._report("reconnect_failed", f"attempt {failures}: {exc}")
+                delay = min(delay * 2.0, self.reconnect_max_s)
+                continue
+            self._set_connected()
+            return
+
+    def describe(self) -> str:
+        return self.kind
+
+    async def _connect(self) -> None:
+        raise NotImplementedError
+
+    async def _disconnect(self) -> None:
+        raise NotImplementedError
+
+
+@register_transport("serial")
+class SerialTransport(Transport):
+    """A serial port (or pty) read from the event loop; reopens the same path after a loss."""
+
+    def __init__(
+        self,
+        port: str,
+        baudrate: int = 115200,
+        bytesize: int = 8,
+        parity: str = "N",
+        stopbits: float = 1,
+        name: str | None = None,
+        **kwargs,
+    ) -> None:
+        super().__init__(name or port, **kwargs)
+        self.port = port
+        self.settings = {"baudrate": baudrate, "bytesize": bytesize, "parity": parity, "stopbits": stopbits}
+        self._serial = None
+        self._fd: int | None = None
+        self._paused = False
+
+    def describe(self) -> str:
+        s = self.settings
+        return f"serial {self.port} {s['baudrate']} {s['bytesize']}{s['parity']}{s['stopbits']}"
+
+    async def _connect(self) -> None:
+        import serial  # pyserial
+
+        try:
+            ser = serial.Serial(self.port, timeout=0, exclusive=True, **self.settings)
+        except serial.SerialException as exc:
+            raise OSError(str(exc)) from exc
+        except ValueError as exc:  # a bad setting is a configuration error, not a missing device
+            raise DriverError(f"serial {self.port}: {exc}") from exc
+        self._serial, self._fd = ser, ser.fileno()
+        os.set_blocking(self._fd, False)
+        self._paused = False
+        self._loop.add_reader(self._fd, self._on_readable)
+
+    async def _disconnect(self) -> None:
+        ser, fd = self._serial, self._fd
+        self._serial = self._fd = None
+        if fd is not None:
+            try:
+                self._loop.remove_reader(fd)
+            except (ValueError, OSError):
+                pass
+        if ser is not None:
+            try:
+                ser.close()
+            except Exception:  # the device is gone; closing it can fail, that is fine
+                pass
+
+    def _on_readable(self) -> None:
+        host_ns = time.monotonic_ns()
+        fd = self._fd
+        if fd is None:
+            return
+        try:
+            data = os.read(fd, 65536)
+        except BlockingIOError:
+            return
+        except OSError as exc:
+            self._loop.remove_reader(fd)
+            self._lost(f"read failed: {exc.strerror or exc}")
+            return
+        if not data:
+            self._loop.remove_reader(fd)
+            self._lost("end of file (port closed by the other side)")
+            return
+        if not self._push(data, host_ns) and not self._paused:
+            self._paused = True
+            self._loop.remove_reader(fd)
+
+    def _resume(self) -> None:
+        if self._paused and self._fd is not None:
+            self._paused = False
+            self._loop.add_reader(self._fd, self._on_readable)
+
+
+@register_transport("udp")
+class UdpTransport(Transport):
+    """Datagrams on a UDP port (optionally a multicast group), one chunk per datagram."""
+
+    def __init__(
+        self,
+        port: int,
+        host: str = "0.0.0.0",
+        group: str | None = None,
+        interface: str = "0.0.0.0",
+        rcvbuf_bytes: int = 8 * 1024 * 1024,
+        name: str | None = None,
+        **kwargs,
+    ) -> None:
+        super().__init__(name or f"udp:{port}", **kwargs)
+        self.host, self.port, self.group, self.interface = host, port, group, interface
+        self.rcvbuf_bytes = rcvbuf_bytes
+        self.rcvbuf_bytes_granted = 0
+        self._transport = None
+
+    def describe(self) -> str:
+        where = f"{self.group} on {self.interface}" if self.group else self.host
+        return f"udp {where}:{self.port} (SO_RCVBUF {self.rcvbuf_bytes_granted} bytes)"
+
+    async def _connect(self) -> None:
+        sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        try:
+            sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, self.rcvbuf_bytes)
+            self.rcvbuf_bytes_granted = sock.getsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF)
+            if self.group:
+                sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+                sock.bind(("", self.port))
+                mreq = struct.pack("4s4s", socket.inet_aton(self.group), socket.inet_aton(self.interface))
+                sock.setsockopt(socket.IPPROTO_IP, socket.IP_ADD_MEMBERSHIP, mreq)
+            else:
+                sock.bind((self.host, self.port))
+            self.port = sock.getsockname()[1]
+        except OSError:
+            sock.close()
+            raise
+        owner = self
+
+        class _Proto(asyncio.DatagramProtocol):
+            def datagram_received(self, data, addr):
+                host_ns = time.monotonic_ns()
+                if len(owner._chunks) >= owner.max_chunks:
+                    owner.stats.events["dropped_datagrams"] += 1
+                    return
+                owner._push(data, host_ns)
+
+            def error_received(self, exc):
+                owner.stats.events["socket_errors"] += 1
+
+        self._transport, _ = await self._loop.create_datagram_endpoint(_Proto, sock=sock)
+
+    async def _disconnect(self) -> None:
+        if self._transport is not None:
+            self._transport.close()
+            self._transport = None
+
+
+@register_transport("tcp")
+class TcpTransport(Transport):
+    """A TCP client (e.g. an INS Ethernet output); reconnects after the peer goes away."""
+
+    def __init__(self, host: str, port: int, name: str | None = None, **kwargs) -> None:
+        super().__init__(name or f"tcp:{host}:{port}", **kwargs)
+        self.host, self.port = host, port
+        self._writer = None
+        self._task: asyncio.Task | None = None
+        self._drained = asyncio.Event()
+
+    def describe(self) -> str:
+        return f"tcp {self.host}:{self.port}"
+
+    def _resume(self) -> None:
+        self._drained.set()
+
+    async def _connect(self) -> None:
+        reader, self._writer = await asyncio.open_connection(self.host, self.port)
+        self._task = self._loop.create_task(self._pump(reader))
+
+    async def _pump(self, reader: asyncio.StreamReader) -> None:
+        while True:
+            try:
+                data = await reader.read(65536)
+            except (ConnectionError, OSError) as exc:
+                self._lost(f"read failed: {exc}")
+                return
+            host_ns = time.monotonic_ns()
+            if not data:
+                self._lost("connection closed by the peer")
+                return
+            if not self._push(data, host_ns):  # slow consumer: stop reading, TCP pushes back
+                self._drained.clear()
+                await self._drained.wait()
+
+    async def _disconnect(self) -> None:
+        task, writer = self._task, self._writer
+        self._task = self._writer = None
+        if task is not None and task is not asyncio.current_task():
+            task.cancel()
+        if writer is not None:
+            writer.close()
+            try:
+                await writer.wait_closed()
+            except (ConnectionError, OSError):
+                pass

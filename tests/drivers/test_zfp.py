@@ -1,0 +1,190 @@
+"""ZFP1 packets and profile reassembly: layout, splitting, loss/reorder/duplicate counters, the codec seam."""
+
+from __future__ import annotations
+
+import struct
+import zlib
+
+import numpy as np
+import pytest
+from hypothesis import given
+from hypothesis import strategies as st
+
+from drivers.base import DriverError
+from drivers.zf.assembler import ProfileAssembler
+from drivers.zf.codec import Packet, Profile
+from drivers.zf.zfp1 import (
+    HEADER_SIZE,
+    ZFP1,
+    ZfpError,
+    decode_packet,
+    encode_profile,
+    points_per_packet,
+)
+from tests.drivers.helpers import PROPERTY
+
+N = 5080  # points per profile of the Z+F 9012 (1.016 Mpts/s at 200 profiles/s)
+DT = 984  # ns between points
+DANGLE = 70866  # µdeg per point (360° / 5080)
+
+
+def profile_datagrams(counter: int, seed: int = 0, n: int = N) -> tuple[list[bytes], np.ndarray, np.ndarray]:
+    rng = np.random.default_rng(seed + counter)
+    ranges = rng.integers(0, 3_000_000, n).astype(np.uint32)
+    ranges[rng.random(n) < 0.1] = 0  # no return
+    inten = rng.integers(0, 65536, n).astype(np.uint16)
+    t0 = 1_400_000_000_000_000_000 + counter * 5_000_000
+    return encode_profile(counter, t0, DT, -1_000_000, DANGLE, ranges, inten), ranges, inten
+
+
+def test_header_layout_is_the_documented_one():
+    (dg,) = encode_profile(7, 123456789, 1000, -5, 10, np.array([1, 0], np.uint32), np.array([9, 8], np.uint16))
+    assert len(dg) == HEADER_SIZE + 2 * 6 + 4 == 56
+    magic, hsize, flags, counter, idx, count, t0, dt, a0, da, n, res = struct.unpack_from("<4sHHIHHqIiiHH", dg)
+    assert (magic, hsize, flags, counter, idx, count, t0, dt, a0, da, n, res) == (
+        b"ZFP1", 40, 0b111, 7, 0, 1, 123456789, 1000, -5, 10, 2, 0)  # fmt: skip
+    assert struct.unpack_from("<IHIH", dg, 40) == (1, 9, 0, 8)
+    assert int.from_bytes(dg[-4:], "little") == zlib.crc32(dg[:-4])
+
+
+def test_profile_splits_into_datagrams_that_fit_the_payload():
+    dgs, ranges, inten = profile_datagrams(3)
+    assert len(dgs) == -(-N // points_per_packet(1400)) == 23
+    assert all(len(d) <= 1400 for d in dgs)
+    packets = [decode_packet(d) for d in dgs]
+    assert [p.packet_index for p in packets] == list(range(23)) and all(p.packet_count == 23 for p in packets)
+    assert [p.last for p in packets] == [False] * 22 + [True]
+    assert np.array_equal(np.concatenate([p.range_01mm for p in packets]), ranges)
+    per = points_per_packet(1400)
+    assert packets[1].t0_ns == packets[0].t0_ns + per * DT and packets[1].angle0_udeg == -1_000_000 + per * DANGLE
+
+
+def test_assembled_profile_has_per_point_time_angle_range():
+    dgs, ranges, inten = profile_datagrams(5)
+    asm = ProfileAssembler()
+    out = [p for d in dgs for p in asm.feed(d, host_ns=99)]
+    (prof,) = out
+    assert prof.complete and prof.n_points == N and prof.host_ns == 99
+    t0 = 1_400_000_000_000_000_000 + 5 * 5_000_000
+    assert np.array_equal(prof.gps_ns, t0 + np.arange(N) * DT)
+    assert np.allclose(np.degrees(prof.scan_angle_rad), (-1_000_000 + np.arange(N) * DANGLE) * 1e-6)
+    assert np.array_equal(np.isnan(prof.range_m), ranges == 0)
+    assert np.allclose(prof.range_m[ranges > 0], ranges[ranges > 0] * 1e-4)
+    assert np.array_equal(prof.intensity, inten)
+    assert asm.stats.records == 1 and not asm.stats.events and not asm.stats.rejected
+
+
+def test_loss_reorder_duplicate_and_lost_profiles_are_counted():
+    streams = [profile_datagrams(c, n=1000)[0] for c in range(6)]  # 5 packets each
+    seq = []
+    seq += streams[0]
+    p1 = streams[1]
+    seq += [p1[0], p1[2], p1[1], p1[3], p1[3], p1[4]]  # reordered + duplicate
+    seq += streams[2][:2] + streams[2][3:]  # one packet lost
+    # profile 3 never arrives
+    seq += streams[4]
+    seq += [streams[2][2]]  # the lost one arrives too late
+    seq += streams[5]
+    asm = ProfileAssembler()
+    out = [p for d in seq for p in asm.feed(d)] + asm.flush()
+    assert [p.profile_counter for p in out] == [0, 1, 2, 4, 5]
+    assert [p.complete for p in out] == [True, True, False, True, True]
+    assert out[2].packets_received == 4 and out[2].n_points == 1000 - points_per_packet(1400)
+    ev = asm.stats.events
+    assert ev["reordered"] == 1 and ev["duplicate"] == 1 and ev["packets_lost"] == 1
+    assert ev["profiles_lost"] == 1 and ev["late"] == 1
+
+
+def test_reorder_across_profile_boundary_within_window():
+    a, b = profile_datagrams(10, n=500)[0], profile_datagrams(11, n=500)[0]
+    seq = a[:-1] + b[:1] + a[-1:] + b[1:]
+    asm = ProfileAssembler(window=2)
+    out = [p for d in seq for p in asm.feed(d)]
+    assert [(p.profile_counter, p.complete) for p in out] == [(10, True), (11, True)]
+    assert asm.stats.events["reordered"] == 0  # in-order within each profile; 10 was still open
+
+
+def test_counter_wraps_and_resets():
+    asm = ProfileAssembler()
+    out = []
+    for c in (0xFFFFFFFE, 0xFFFFFFFF, 0, 1):
+        out += [p for d in profile_datagrams(c, n=300)[0] for p in asm.feed(d)]
+    assert [p.profile_counter for p in out] == [0xFFFFFFFE, 0xFFFFFFFF, 0, 1]
+    assert not asm.stats.events
+    out = [p for d in profile_datagrams(5000, n=300)[0] + profile_datagrams(2, n=300)[0] for p in asm.feed(d)]
+    assert [p.profile_counter for p in out] == [5000, 2] and asm.stats.events["counter_reset"] == 1
+
+
+@pytest.mark.parametrize(
+    "mutate, reason",
+    [
+        (lambda d: d[:30], "short"),
+        (lambda d: b"XFP1" + d[4:], "bad_magic"),
+        (lambda d: d[:4] + struct.pack("<H", 41) + d[6:], "bad_header_size"),
+        (lambda d: d[:-10], "size_mismatch"),
+        (lambda d: d[:50] + bytes([d[50] ^ 1]) + d[51:], "bad_crc"),
+    ],
+)
+def test_invalid_datagrams_are_rejected_by_reason(mutate, reason):
+    dg = profile_datagrams(1, n=200)[0][0]
+    with pytest.raises(ZfpError) as exc:
+        decode_packet(mutate(dg))
+    assert exc.value.reason == reason
+    asm = ProfileAssembler()
+    assert asm.feed(mutate(dg)) == [] and asm.stats.rejected[reason] == 1
+
+
+def test_codec_round_trip_from_a_profile_and_uniformity_check():
+    dgs, _, _ = profile_datagrams(8, n=700)
+    asm = ProfileAssembler()
+    (prof,) = [p for d in dgs for p in asm.feed(d)]
+    assert ZFP1.encode_profile(prof) == dgs
+    bent = Profile(1, prof.gps_ns.copy(), prof.scan_angle_rad, prof.range_m, prof.intensity)
+    bent.gps_ns[5] += 1000
+    with pytest.raises(DriverError, match="not evenly spaced"):
+        ZFP1.encode_profile(bent)
+
+
+def test_the_assembler_takes_another_codec():
+    """The seam: a vendor codec only has to produce Packets."""
+
+    class TinyCodec:
+        name = "tiny"
+
+        def decode_packet(self, data: bytes) -> Packet:
+            counter, index, count = data[0], data[1], data[2]
+            r = np.frombuffer(data, dtype="<u4", offset=4)
+            return Packet(3, counter, index, count, 1000 * counter + 10 * index * r.size, 10, 0, 1, r, np.zeros(r.size, np.uint16))
+
+        def encode_profile(self, profile, max_payload=1400):
+            raise NotImplementedError
+
+    asm = ProfileAssembler(codec=TinyCodec())
+    out = asm.feed(bytes([4, 0, 2, 0]) + np.arange(1, 4, dtype="<u4").tobytes())
+    out += asm.feed(bytes([4, 1, 2, 0]) + np.arange(4, 7, dtype="<u4").tobytes())
+    (prof,) = out
+    assert prof.profile_counter == 4 and np.array_equal(prof.gps_ns, 4000 + 10 * np.arange(6))
+    assert np.allclose(prof.range_m, np.arange(1, 7) * 1e-4)
+
+
+@PROPERTY
+@given(
+    n=st.integers(0, 3000),
+    max_payload=st.integers(50, 9000),
+    t0=st.integers(0, 2**62),
+    dt=st.integers(0, 2**32 - 1),
+    a0=st.integers(-(2**30), 2**30),
+    da=st.integers(-1000, 1000),
+)
+def test_encode_decode_round_trip_any_split(n, max_payload, t0, dt, a0, da):
+    rng = np.random.default_rng(n)
+    ranges = rng.integers(0, 2**32, n, dtype=np.uint32)
+    inten = rng.integers(0, 2**16, n, dtype=np.uint16)
+    dgs = encode_profile(77, t0, dt, a0, da, ranges, inten, max_payload=max_payload)
+    assert all(len(d) <= max(max_payload, 50) for d in dgs)
+    asm = ProfileAssembler()
+    (prof,) = [p for d in dgs for p in asm.feed(d)]
+    assert prof.complete and prof.n_points == n
+    assert np.array_equal(prof.gps_ns, t0 + np.arange(n, dtype=np.int64) * dt)
+    assert np.array_equal(np.nan_to_num(prof.range_m / 1e-4).round().astype(np.uint64), ranges.astype(np.uint64))
+    assert np.array_equal(prof.intensity, inten)
