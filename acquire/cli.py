@@ -12,6 +12,7 @@ import typer
 from acquire.commands import calib_cmd, decode_cmd
 from acquire.commands import assess_cmd  # noqa: F401  (adds calib c2c, history, compare)
 from acquire.commands import demo_cmd
+from acquire.commands import sim_cmd
 
 app = typer.Typer(
     name="mls",
@@ -27,6 +28,7 @@ app = typer.Typer(
 app.add_typer(calib_cmd.app, name="calib")
 app.command("decode")(decode_cmd.decode)
 app.command("demo", help=demo_cmd.HELP)(demo_cmd.demo)
+app.add_typer(sim_cmd.app, name="sim")
 
 
 @app.command("version")

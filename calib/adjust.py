@@ -150,19 +150,28 @@ class ErrorModel:
     """How POS errors are correlated, for ``sigma_realistic`` and predictions.
 
     ``kind``: ``"white"`` (independent per point: the formal model), ``"gauss_markov"``
-    (exponential correlation with ``correlation_time_s``, across passes too) or
-    ``"pass_bias"`` (constant within a pass, independent between passes).
+    (exponential correlation across all points, passes included, with ``correlation_time_s``:
+    one value, or six for north, east, down, roll, pitch, heading) or ``"pass_bias"`` (constant
+    within a pass, independent between passes).
     """
 
     kind: str = "gauss_markov"
-    correlation_time_s: float = DEFAULT_POS_CORRELATION_S
+    correlation_time_s: float | tuple[float, ...] = DEFAULT_POS_CORRELATION_S
 
     def __post_init__(self):
         if self.kind not in ("white", "gauss_markov", "pass_bias"):
             raise ValueError(f"ErrorModel.kind {self.kind!r}: expected white, gauss_markov or "
                              f"pass_bias")  # fmt: skip
-        if self.kind == "gauss_markov" and not self.correlation_time_s > 0:
-            raise ValueError("ErrorModel.correlation_time_s must be > 0")
+        tau = np.atleast_1d(np.asarray(self.correlation_time_s, float))
+        if tau.size not in (1, 6) or not np.all(tau > 0):
+            raise ValueError("ErrorModel.correlation_time_s: one or six positive values (s)")
+        object.__setattr__(self, "correlation_time_s",
+                           float(tau[0]) if tau.size == 1 else tuple(float(x) for x in tau))
+
+    def tau_s(self, channel: int) -> float:
+        """Correlation time of POS channel 0–5 (N, E, D, roll, pitch, heading)."""
+        tau = self.correlation_time_s
+        return tau if isinstance(tau, float) else tau[channel]
 
 
 @dataclass(frozen=True)
@@ -548,8 +557,8 @@ def _decayed_cumsum(t: np.ndarray, h: np.ndarray, tau: float) -> np.ndarray:
     return out
 
 
-def _correlated_sum(t, q, model: ErrorModel, pass_index) -> np.ndarray:
-    """Σ_i Σ_j q_i q_jᵀ ρ(i, j) for one error channel."""
+def _correlated_sum(t, q, model: ErrorModel, pass_index, tau_s: float) -> np.ndarray:
+    """Σ_i Σ_j q_i q_jᵀ ρ(i, j) for one error channel with correlation time ``tau_s``."""
     if model.kind == "white":
         return q.T @ q
     if model.kind == "pass_bias":
@@ -560,8 +569,8 @@ def _correlated_sum(t, q, model: ErrorModel, pass_index) -> np.ndarray:
         return out
     order = np.argsort(t, kind="stable")
     ts, qs = t[order], q[order]
-    fwd = _decayed_cumsum(ts, qs, model.correlation_time_s)
-    bwd = _decayed_cumsum(-ts[::-1], qs[::-1], model.correlation_time_s)[::-1]
+    fwd = _decayed_cumsum(ts, qs, tau_s)
+    bwd = _decayed_cumsum(-ts[::-1], qs[::-1], tau_s)[::-1]
     s = qs.T @ (fwd + bwd - qs)
     return 0.5 * (s + s.T)
 
@@ -583,7 +592,7 @@ def propagated_covariance(sol: _Solution, obs: Observations, model: ErrorModel,
     for c in range(8):
         q = G * (sol.lin.B[:, c] * obs.sigma_l[:, c])[:, None]
         if c < 6:
-            cov += _correlated_sum(obs.t_gps_s, q, model, obs.pass_index)
+            cov += _correlated_sum(obs.t_gps_s, q, model, obs.pass_index, model.tau_s(c))
         else:
             cov += q.T @ q
     return cov

@@ -41,7 +41,10 @@ def result_to_dict(res: AdjustmentResult, apriori_rad, software_version: str,
         else _angles_deg(np.sqrt(np.diag(res.cov_jackknife))),
         "realistic_error_model": {
             "kind": res.error_model.kind,
-            "correlation_time_s": res.error_model.correlation_time_s
+            "correlation_time_s": (
+                res.error_model.correlation_time_s if isinstance(
+                    res.error_model.correlation_time_s, float)
+                else list(res.error_model.correlation_time_s))
             if res.error_model.kind == "gauss_markov" else None,
         },
         "correlation": [[float(x) for x in row] for row in res.correlation],

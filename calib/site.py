@@ -5,7 +5,10 @@ Readers accept exactly the documented keys; an unknown key, a missing key or a b
 is SI and radians; degrees exist only in the YAML.
 
 Beyond DESIGN §4 a pass entry may carry ``length_m`` and ``speed_mps`` (the pass-plan generator
-and ``mls plan`` use them; defaults below).
+and ``mls plan`` use them; defaults below), and ``pos_sigmas`` may carry ``correlation_time_s``,
+the correlation time of the POS errors that ``sigma_realistic`` assumes (first-order
+Gauss–Markov; one number, ``[position, attitude]`` or six values for north, east, down, roll,
+pitch, heading; when absent the calibration assumes 60 s and says so).
 """
 
 from __future__ import annotations
@@ -52,11 +55,12 @@ class Target:
     def to_yaml(self) -> dict:
         return {
             "name": self.name,
-            "center": {"lat_deg": self.lat_deg, "lon_deg": self.lon_deg, "height_m": self.height_m},
-            "size_m": [self.width_m, self.height_along_slope_m],
+            "center": {"lat_deg": float(self.lat_deg), "lon_deg": float(self.lon_deg),
+                       "height_m": float(self.height_m)},
+            "size_m": [float(self.width_m), float(self.height_along_slope_m)],
             "inclination_deg": float(np.degrees(self.inclination_rad)),
             "facing_azimuth_deg": float(np.degrees(self.facing_azimuth_rad)),
-            "reflectivity": self.reflectivity,
+            "reflectivity": float(self.reflectivity),
         }
 
 
@@ -69,10 +73,10 @@ class PassSpec:
 
     def to_yaml(self) -> dict:
         return {
-            "id": self.id,
+            "id": int(self.id),
             "relative_heading_deg": float(np.degrees(self.relative_heading_rad)),
-            "length_m": self.length_m,
-            "speed_mps": self.speed_mps,
+            "length_m": float(self.length_m),
+            "speed_mps": float(self.speed_mps),
         }
 
 
@@ -96,6 +100,9 @@ class Site:
     sigma_attitude_rad: np.ndarray = field(
         default_factory=lambda: np.radians([0.012, 0.012, 0.012])
     )
+    #: correlation times (s) of the POS errors (first-order Gauss–Markov) for north, east,
+    #: down, roll, pitch, heading; None: not configured
+    pos_correlation_time_s: np.ndarray | None = None
     wall_azimuth_rad: float = 0.0
     standoff_m: float = 15.0
     passes: tuple[PassSpec, ...] = field(default_factory=six_fold_passes)
@@ -122,24 +129,27 @@ class Site:
 
     def to_yaml(self) -> dict:
         m = self.mount
-        d: dict = {"vessel": self.vessel}
+        d: dict = {"vessel": str(self.vessel)}
         if self.reference is not None:
-            d["reference"] = self.reference.as_dict()
+            d["reference"] = {k: float(v) for k, v in self.reference.as_dict().items()}
         d["mount"] = {
             "lever_arm_m": [float(x) for x in m.lever_arm_m],
             "nominal_deg": [float(x) for x in np.degrees(m.nominal_rad)],
             "boresight_apriori_deg": [float(x) for x in np.degrees(m.boresight_rad)],
         }
         d["scanner"] = {
-            "sigma_range_m": self.sigma_range_m,
+            "sigma_range_m": float(self.sigma_range_m),
             "sigma_scan_angle_deg": float(np.degrees(self.sigma_scan_angle_rad)),
         }
         d["pos_sigmas"] = {
             "position_m": [float(x) for x in self.sigma_position_m],
             "attitude_deg": [float(x) for x in np.degrees(self.sigma_attitude_rad)],
         }
+        if self.pos_correlation_time_s is not None:
+            tau = [float(x) for x in self.pos_correlation_time_s]
+            d["pos_sigmas"]["correlation_time_s"] = tau[0] if len(set(tau)) == 1 else tau
         d["wall_azimuth_deg"] = float(np.degrees(self.wall_azimuth_rad))
-        d["standoff_m"] = self.standoff_m
+        d["standoff_m"] = float(self.standoff_m)
         d["targets"] = [t.to_yaml() for t in self.targets]
         d["passes"] = [p.to_yaml() for p in self.passes]
         d["validation_planes"] = [t.to_yaml() for t in self.validation_planes]
@@ -158,6 +168,16 @@ def _geodetic(node: Node) -> tuple[float, float, float]:
     lon = m["lon_deg"].number(-180.0, 360.0)
     h = m["height_m"].number() if "height_m" in m else 0.0
     return lat, lon, h
+
+
+def _correlation_times(node: Node) -> np.ndarray:
+    """One number (all channels), [position, attitude] or six values (N, E, D, r, p, h)."""
+    if isinstance(node.value, list):
+        if len(node.value) not in (2, 6):
+            raise node.fail("a positive number, [position, attitude] or 6 positive numbers")
+        v = np.array([it.number(0.0, exclusive_minimum=True) for it in node.value])
+        return np.repeat(v, 3) if v.size == 2 else v
+    return np.full(6, node.number(0.0, exclusive_minimum=True))
 
 
 def _target(node: Node) -> Target:
@@ -218,7 +238,10 @@ def site_from_node(root: Node) -> Site:
             kw["sigma_scan_angle_rad"] = float(np.radians(
                 sm["sigma_scan_angle_deg"].number(0.0, exclusive_minimum=True)))  # fmt: skip
     if "pos_sigmas" in top:
-        pm = top["pos_sigmas"].mapping(optional={"position_m", "attitude_deg"})
+        pm = top["pos_sigmas"].mapping(optional={"position_m", "attitude_deg",
+                                                  "correlation_time_s"})  # fmt: skip
+        if "correlation_time_s" in pm:
+            kw["pos_correlation_time_s"] = _correlation_times(pm["correlation_time_s"])
         for key, attr, conv in (("position_m", "sigma_position_m", lambda v: v),
                                 ("attitude_deg", "sigma_attitude_rad", np.radians)):  # fmt: skip
             if key in pm:
