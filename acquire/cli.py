@@ -13,6 +13,7 @@ from acquire.commands import calib_cmd, decode_cmd
 from acquire.commands import assess_cmd  # noqa: F401  (adds calib c2c, history, compare)
 from acquire.commands import demo_cmd
 from acquire.commands import sim_cmd
+from acquire.commands import logs_cmd, status_cmd
 
 app = typer.Typer(
     name="mls",
@@ -29,6 +30,8 @@ app.add_typer(calib_cmd.app, name="calib")
 app.command("decode")(decode_cmd.decode)
 app.command("demo", help=demo_cmd.HELP)(demo_cmd.demo)
 app.add_typer(sim_cmd.app, name="sim")
+app.add_typer(logs_cmd.app, name="logs")
+app.command("status")(status_cmd.status)
 
 
 @app.command("version")

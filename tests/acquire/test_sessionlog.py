@@ -1,0 +1,290 @@
+"""Session logs: encodings, rotation, flush period, queue overflow, scan/salvage of torn files."""
+
+from __future__ import annotations
+
+import math
+import os
+import re
+import shutil
+import threading
+import time
+from pathlib import Path
+
+import pytest
+from mcap.reader import make_reader
+
+from acquire.alarms import AlarmBook
+from acquire.clock import ClockState, GpsEstimate
+from acquire.logrecover import (
+    SegmentScan,
+    is_locked,
+    recover_segment,
+    salvage_root,
+    salvage_session,
+    scan_segment,
+    segment_closed,
+    segment_paths,
+    session_info,
+)
+from acquire.mcap_schema import FormatError, channel_kind, decode
+from acquire.sessionlog import LogError, SegmentIO, SessionOptions, SessionWriter
+from tests.acquire.logutil import payload, read_session
+
+NS = 1_000_000_000
+GPS_OFFSET_NS = 1_400_000_000 * NS
+
+
+class FixedClock:
+    def __init__(self, state=ClockState.LOCKED):
+        self.state = state
+
+    def to_gps(self, host_ns):
+        return GpsEstimate(host_ns + GPS_OFFSET_NS, self.state, 1000)
+
+
+def test_round_trip_keeps_exact_bytes_times_sequence_and_clock_flags(tmp_path):
+    clock = FixedClock()
+    w = SessionWriter(tmp_path, "survey-1", SessionOptions(flush_s=0.2),
+                      clock=clock, channel_metadata={"/ins/raw": {"protocol": "nmea"}})
+    sd = w.start()
+    assert re.fullmatch(r"\d{8}T\d{6}Z_survey-1", sd.name)
+    host = 10 * NS
+    for i in range(1, 51):
+        w.submit("/ins/raw", payload(i, 100 + i), host_ns=host + i, device_ns=GPS_OFFSET_NS + i)
+        w.submit("/lidar/raw", payload(i, 1400), host_ns=host + i)
+        w.submit("/ins/nav", {"i": i, "roll_rad": math.nan, "v": [1, 2.5]}, host_ns=host + i)
+    clock.state = ClockState.HOLDOVER
+    w.submit("/can/events", b"\x00\x01\x02", host_ns=host + 100)
+    w.submit("/events", {"event": "mark", "text": "T1"}, host_ns=host + 101,
+             log_time_ns=123, clock_state="UNLOCKED")
+    w.close()
+    msgs = read_session(sd)
+    by_topic = {}
+    for m in msgs:
+        by_topic.setdefault(m.topic, []).append(m)
+    assert {t: len(v) for t, v in by_topic.items()} == {
+        "/ins/raw": 50, "/lidar/raw": 50, "/ins/nav": 50, "/can/events": 1, "/events": 1}
+    for i, m in enumerate(by_topic["/ins/raw"], start=1):
+        assert m.payload == payload(i, 100 + i) and m.seq == i and m.host_ns == host + i
+        assert m.device_ns == GPS_OFFSET_NS + i == m.publish_time_ns
+        assert m.log_time_ns == host + i + GPS_OFFSET_NS and m.clock == "LOCKED"
+    lidar = by_topic["/lidar/raw"][7]
+    assert lidar.device_ns is None and lidar.publish_time_ns == lidar.log_time_ns
+    nav = by_topic["/ins/nav"][0]
+    assert nav.payload == {"i": 1, "roll_rad": None, "v": [1, 2.5]}  # NaN → null
+    assert by_topic["/can/events"][0].clock == "HOLDOVER"
+    ev = by_topic["/events"][0]
+    assert ev.log_time_ns == 123 and ev.clock == "UNLOCKED" and ev.payload["text"] == "T1"
+    # the standard MCAP reader agrees (indexed, readable by any MCAP tool)
+    with open(segment_paths(sd)[0], "rb") as f:
+        reader = make_reader(f)
+        summary = reader.get_summary()
+        assert summary.statistics.message_count == 152
+        topics = {c.topic: c for c in summary.channels.values()}
+        assert topics["/ins/raw"].metadata["protocol"] == "nmea"
+        assert topics["/ins/nav"].message_encoding == "json"
+        assert summary.schemas[topics["/ins/nav"].schema_id].encoding == "jsonschema"
+        assert len(list(reader.iter_messages())) == 152
+    assert not is_locked(sd)
+
+
+def test_rotation_by_size_and_time_keeps_sequences_contiguous(tmp_path):
+    w = SessionWriter(tmp_path, "v", SessionOptions(rotate_bytes=60_000, rotate_s=0.4, flush_s=0.1,
+                                                    compression="none"))
+    sd = w.start()
+    for i in range(400):
+        w.submit("/lidar/raw", payload(i, 500), host_ns=NS + i * 1_000_000)
+        if i % 100 == 0:
+            time.sleep(0.25)
+    time.sleep(0.5)  # an idle stretch longer than rotate_s: rotation by time
+    w.submit("/status", {"state": "running"}, host_ns=2 * NS)
+    w.close()
+    info = session_info(sd)
+    assert len(info.segments) >= 4
+    assert all(s.state == "complete" for s in info.segments)
+    reasons = [s.end_reason for s in info.segments]
+    assert reasons[-1] == "shutdown" and set(reasons[:-1]) == {"rotation"}
+    assert any(s.bytes > 60_000 for s in info.segments)  # some closed by size
+    lidar = info.channels["/lidar/raw"]
+    assert (lidar.messages, lidar.seq_first, lidar.seq_last) == (400, 1, 400)
+    assert lidar.missing == lidar.duplicates == lidar.backwards == 0
+
+
+def test_records_reach_the_file_within_the_flush_period(tmp_path):
+    w = SessionWriter(tmp_path, "v", SessionOptions(flush_s=0.3, fsync_s=5.0))
+    sd = w.start()
+    w.submit("/ins/raw", b"$PIXSE,HEAVE_,0.0,0.0,0.0*2A\r\n", host_ns=5)
+    time.sleep(0.3 + 0.15)  # flush period plus scheduling slack
+    seg = segment_paths(sd)[0]
+    assert not segment_closed(seg)  # still open ...
+    scan = SegmentScan(seg, 0)
+    msgs = [r for r in scan_segment(seg, scan) if type(r).__name__ == "Message"]
+    assert len(msgs) == 1 and msgs[0].data.endswith(b"*2A\r\n")  # ... and the record is there
+    assert scan.problem is None and not scan.footer
+    ok, why = w.health()
+    assert ok, why
+    w.close()
+    assert w.health() == (False, "log writer thread is not running")
+
+
+def test_full_queue_drops_with_count_alarm_and_a_visible_sequence_gap(tmp_path):
+    alarms = AlarmBook()
+    w = SessionWriter(tmp_path, "v", SessionOptions(queue_size=10), alarms=alarms)
+    accepted = [w.submit("/ins/raw", b"x", host_ns=i) for i in range(25)]  # thread not started
+    assert accepted == [True] * 10 + [False] * 15
+    assert w.stats().dropped == {"/ins/raw": 15}
+    a = alarms.get("log_queue_overflow", "log")
+    assert a.active and "15 records dropped" in a.message
+    sd = w.start()
+    w.submit("/ins/raw", b"y", host_ns=100)
+    w.close()
+    ch = session_info(sd).channels["/ins/raw"]
+    assert (ch.messages, ch.missing, ch.missing_ranges) == (11, 15, [(11, 25)])
+
+
+def test_bad_topics_and_payloads_are_refused():
+    w = SessionWriter("/nonexistent-not-started", "v")
+    with pytest.raises(ValueError, match="/lidar/xyz"):
+        w.submit("/lidar/xyz", b"", host_ns=0)
+    with pytest.raises(TypeError, match="raw channel"):
+        w.submit("/ins/raw", {"a": 1}, host_ns=0)
+    with pytest.raises(TypeError, match="JSON channel"):
+        w.submit("/status", b"x", host_ns=0)
+    assert channel_kind("/can/aux") == "raw"
+    with pytest.raises(ValueError, match="vessel name"):
+        SessionWriter("/tmp", "bad/name")
+    with pytest.raises(ValueError, match="flush_s"):
+        SessionOptions(flush_s=2.0)
+    with pytest.raises(FormatError, match="shorter than its header"):
+        decode("/ins/raw", "mls.raw.v1", 0, 0, b"\x01")
+
+
+def _segment_with_chunks(tmp_path) -> tuple[Path, list[int]]:
+    """A complete segment of 5 chunks of 40 messages; returns it and each chunk's end offset."""
+    w = SessionWriter(tmp_path, "v", SessionOptions(flush_s=0.05, compression="lz4"))
+    sd = w.start()
+    for c in range(5):
+        for i in range(40):
+            seq = c * 40 + i + 1
+            w.submit("/ins/raw", payload(seq, 64), host_ns=seq)
+        time.sleep(0.1)  # one flush (one chunk) per group
+    w.close()
+    seg = segment_paths(sd)[0]
+    ends, pos = [], None
+    scan = SegmentScan(seg, 0)
+    for rec in scan_segment(seg, scan):
+        if type(rec).__name__ == "Message" and rec.sequence % 40 == 0:
+            ends.append(scan.good_bytes)  # the chunk holding it ended here
+    assert len(ends) == 5, ends
+    return seg, ends
+
+
+def test_salvage_of_a_file_torn_anywhere_keeps_exactly_the_complete_chunks(tmp_path):
+    seg, chunk_ends = _segment_with_chunks(tmp_path / "src")
+    size = seg.stat().st_size
+    cuts = sorted({9, 50, *range(chunk_ends[0] - 3, chunk_ends[0] + 4), chunk_ends[2] + 1,
+                   (chunk_ends[3] + chunk_ends[4]) // 2, chunk_ends[4] + 5, size - 1})
+    for cut in cuts:
+        d = tmp_path / f"cut{cut}"
+        d.mkdir()
+        torn = d / "seg-000001.mcap"
+        torn.write_bytes(seg.read_bytes()[:cut])
+        assert not segment_closed(torn)
+        report = salvage_session(d)[0]
+        expected = 40 * sum(1 for e in chunk_ends if e <= cut)
+        assert report.messages == expected, (cut, report)
+        assert report.good_bytes + report.torn_bytes == cut
+        assert report.torn_bytes < chunk_ends[0]  # never more than one record lost
+        if cut not in chunk_ends and cut > 8:
+            assert report.problem and "torn" in report.problem
+        assert Path(report.original).read_bytes() == seg.read_bytes()[:cut]  # original kept
+        info = session_info(d)
+        assert info.segments[0].state == "complete"
+        assert info.segments[0].recovery["torn_bytes"] == str(report.torn_bytes)
+        ch = info.channels.get("/ins/raw")
+        if expected:
+            assert (ch.messages, ch.seq_first, ch.seq_last, ch.missing) == (expected, 1, expected, 0)
+        msgs = read_session(d)
+        assert [m.payload for m in msgs] == [payload(s, 64) for s in range(1, expected + 1)]
+        assert salvage_session(d) == []  # nothing left to do
+
+
+def test_salvage_stops_at_a_corrupt_chunk_and_reports_it(tmp_path):
+    seg, chunk_ends = _segment_with_chunks(tmp_path / "src")
+    data = bytearray(seg.read_bytes())
+    data[chunk_ends[2] - 100] ^= 0xFF  # inside the third chunk's compressed data
+    d = tmp_path / "bad"
+    d.mkdir()
+    (d / "seg-000001.mcap").write_bytes(bytes(data[: chunk_ends[4] + 10]))
+    report = recover_segment(d / "seg-000001.mcap", keep_original=False)
+    assert report.messages == 80
+    assert "corrupt chunk record" in report.problem and report.original is None
+    assert not (d / "seg-000001.mcap.torn").exists()
+
+
+def test_an_interrupted_recovery_is_completed(tmp_path):
+    seg, chunk_ends = _segment_with_chunks(tmp_path / "src")
+    d = tmp_path / "s"
+    d.mkdir()
+    # crash between the two renames: only the .torn original and a stale .recovering exist
+    (d / "seg-000001.mcap.torn").write_bytes(seg.read_bytes()[: chunk_ends[1] + 3])
+    (d / "seg-000001.mcap.recovering").write_bytes(b"half")
+    (report,) = salvage_session(d)
+    assert report.messages == 80
+    assert sorted(p.name for p in d.iterdir()) == ["seg-000001.mcap", "seg-000001.mcap.torn"]
+
+
+def test_a_session_held_by_a_writer_is_not_salvaged(tmp_path):
+    w = SessionWriter(tmp_path, "v")
+    sd = w.start()
+    assert is_locked(sd)
+    with pytest.raises(LogError, match=f"running daemon \\(pid {os.getpid()}\\)"):
+        salvage_session(sd)
+    w.close()
+    assert salvage_session(sd) == []
+    shutil.rmtree(sd)
+
+
+def test_salvage_root_recovers_idle_sessions_and_leaves_a_live_one_alone(tmp_path):
+    seg, chunk_ends = _segment_with_chunks(tmp_path / "src")
+    root = tmp_path / "root"
+    crashed = root / "20250101T000000Z_v"
+    crashed.mkdir(parents=True)
+    (crashed / "seg-000001.mcap").write_bytes(seg.read_bytes()[: chunk_ends[2] + 7])
+    (root / "not-a-session").mkdir()
+    live = SessionWriter(root, "v")
+    live_dir = live.start()
+    try:
+        reports = salvage_root(root)
+        assert list(reports) == [crashed.name]
+        assert reports[crashed.name][0].messages == 120
+        assert not segment_closed(segment_paths(live_dir)[0])  # the live segment untouched
+    finally:
+        live.close()
+
+
+def test_a_hung_fsync_makes_the_writer_unhealthy(tmp_path):
+    release = threading.Event()
+
+    class HangingFsync(SegmentIO):
+        def fsync(self):
+            if self.pos > 2000:  # (not the segment's creation)
+                release.wait(10)
+            super().fsync()
+
+    w = SessionWriter(tmp_path, "v", SessionOptions(flush_s=0.05, fsync_s=0.1, stall_s=0.3,
+                                                    compression="none"),
+                      io_factory=HangingFsync)  # fmt: skip
+    w.start()
+    try:
+        w.submit("/ins/raw", payload(1, 3000), host_ns=1)
+        deadline = time.monotonic() + 10
+        while w.health()[0] and time.monotonic() < deadline:
+            time.sleep(0.05)
+        ok, why = w.health()
+        assert not ok and why.startswith("log writer stalled for")
+    finally:
+        release.set()
+    time.sleep(0.3)
+    assert w.health() == (True, "log writer ok")
+    w.close()
