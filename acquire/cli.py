@@ -11,6 +11,8 @@ import typer
 
 from acquire.commands import calib_cmd, decode_cmd
 from acquire.commands import assess_cmd  # noqa: F401  (adds calib c2c, history, compare)
+from acquire.commands import assess_run_cmd  # noqa: F401  (adds calib assess)
+from acquire.commands import run_cmd  # noqa: F401  (adds calib run)
 from acquire.commands import demo_cmd
 from acquire.commands import sim_cmd
 from acquire.commands import logs_cmd, status_cmd

@@ -179,6 +179,8 @@ class AdjustOptions:
     estimate: tuple[str, ...] = ()
     tol_angle_rad: float = 1e-9  # ≈ 6e-8°
     tol_m: float = 1e-7
+    #: also converged when every step is below this fraction of its formal σ (0: off)
+    rel_tol: float = 1e-3
     max_iterations: int = 20
     outliers: str = "snooping"  # or "none"
     outlier_alpha: float = 0.05  # family-wise error rate of the data-snooping tests
@@ -502,6 +504,13 @@ def _solve(obs: Observations, state: State, r_nom: np.ndarray, options: AdjustOp
         if angle_step < options.tol_angle_rad and metric_step < options.tol_m:
             converged = True
             break
+        if options.rel_tol > 0 and it > 1:
+            # steps that no longer matter against the unknowns' own σ (noisy data converge
+            # only linearly in the last digits: see the iteration scheme above)
+            sd = np.sqrt(np.diag(np.linalg.inv(N)))
+            if np.all(np.abs(dx) <= options.rel_tol * sd):
+                converged = True
+                break
     vtpv = float(np.sum(v**2 / Q))
     df = len(obs) - layout.n
     if layout.offsets:
@@ -604,14 +613,14 @@ def propagated_covariance(sol: _Solution, obs: Observations, model: ErrorModel,
 
 #: Which reciprocal/crossing pass pairs (headings relative to the wall, degrees) observe which
 #: boresight angle on a vertical target (thesis §4.4.1.1).
-_OBSERVING_PAIRS = {
+OBSERVING_PAIRS = {
     0: ("the reciprocal parallel pair 0°/180°", ((0, 180),)),
     1: ("a side-looking reciprocal pair 45°/225° or 315°/135°", ((45, 225), (315, 135))),
     2: ("a crossing pair 45°/135° or 315°/225°", ((45, 135), (315, 225))),
 }
 
 
-def _sailed_headings(obs: Observations) -> set[int]:
+def sailed_headings(obs: Observations) -> set[int]:
     """Relative headings of the passes, snapped to the 45° grid when within 15°."""
     out = set()
     for pid in obs.pass_ids:
@@ -636,15 +645,15 @@ def check_observability(cov_bs: np.ndarray, obs: Observations, max_sigma_rad: fl
         return
     weak = sorted({int(np.argmax(np.abs(v))) for v in weak_dirs} |
                   {i for i in range(3) if sig[i] > max_sigma_rad})  # fmt: skip
-    sailed = _sailed_headings(obs)
+    sailed = sailed_headings(obs)
     passes = ", ".join(
-        f"{pid}" + (f" ({np.degrees(obs.pass_headings_rad[pid]) % 360:.0f}°)"
+        f"{pid}" + (f" ({round(float(np.degrees(obs.pass_headings_rad[pid]))) % 360}°)"
                     if pid in obs.pass_headings_rad else "")
         for pid in obs.pass_ids
     )  # fmt: skip
     advice = []
     for i in weak:
-        label, pairs = _OBSERVING_PAIRS[i]
+        label, pairs = OBSERVING_PAIRS[i]
         if sailed and not any(a in sailed and b in sailed for a, b in pairs):
             advice.append(f"for {ANGLE_NAMES[i]} sail {label}")
     if not advice:

@@ -59,6 +59,16 @@ def test_registry_has_the_three_kinds_and_names_bad_configs():
         create_transport({"kind": "udp", "prot": 1})
 
 
+async def until(condition, timeout_s: float = 10.0) -> bool:
+    """Poll ``condition`` until it holds or the deadline passes (generous: CI is loaded)."""
+    deadline = time.monotonic() + timeout_s
+    while not condition():
+        if time.monotonic() > deadline:
+            return False
+        await asyncio.sleep(0.01)
+    return True
+
+
 def test_serial_pty_bytes_are_stamped_and_survive_unplug_replug(tmp_path):
     pty = Pty(tmp_path / "ins")
     events = []
@@ -74,18 +84,11 @@ def test_serial_pty_bytes_are_stamped_and_survive_unplug_replug(tmp_path):
             pty.write(b"$HEHDT,1.0,T*00\r\n")
             first = await read_until(t, 17)
             pty.unplug()  # the emulator closes the pty: the slave reads EIO
-            for _ in range(100):
-                if not t.connected:
-                    break
-                await asyncio.sleep(0.01)
-            assert not t.connected
+            assert await until(lambda: not t.connected), "unplug not noticed within 10 s"
             await asyncio.sleep(0.15)  # a few reconnect attempts fail: the old pty is gone
             pty.plug()  # a new pty behind the same symlink
-            for _ in range(200):
-                if t.connected:
-                    break
-                await asyncio.sleep(0.01)
-            assert t.connected and t.reconnects == 1
+            assert await until(lambda: t.connected), "no reconnect within 10 s"
+            assert t.reconnects == 1
             pty.write(b"after replug\n")
             second = await read_until(t, 13)
             return before, first, second
@@ -109,10 +112,7 @@ def test_serial_port_missing_at_start_is_reported_then_opened(tmp_path):
         async with t:
             assert not t.connected
             pty = Pty(link)
-            for _ in range(200):
-                if t.connected:
-                    break
-                await asyncio.sleep(0.01)
+            assert await until(lambda: t.connected), "port not opened within 10 s"
             pty.write(b"hello")
             (chunk,) = await read_until(t, 5)
             pty.unplug()
