@@ -30,24 +30,26 @@ import numpy as np
 from scipy import stats
 
 from calib import frames
+from calib.errormodel import (  # noqa: F401  (re-exported: part of the adjustment's API)
+    DEFAULT_POS_CORRELATION_S,
+    ErrorModel,
+    correlated_sum,
+)
 from calib.ghmodel import EXTRA_NAMES, State, linearize, tangent_basis
+from calib.observability import (  # noqa: F401  (re-exported)
+    ANGLE_NAMES,
+    OBSERVING_PAIRS,
+    AdjustmentError,
+    ObservabilityError,
+    check_observability,
+    sailed_headings,
+)
 from calib.trajectory import Trajectory, TrajectoryError
 
-ANGLE_NAMES = ("roll", "pitch", "yaw")
 ESTIMABLE = EXTRA_NAMES + ("pass_offsets",)
-#: Default correlation time of the POS errors for ``sigma_realistic`` when none is configured.
-DEFAULT_POS_CORRELATION_S = 60.0
 MIN_POINTS_PER_PLANE = 10
 #: Boresight steps above this linearize at the observations (see _solve).
 _FAR_RAD = 1e-4
-
-
-class AdjustmentError(ValueError):
-    """The adjustment cannot run on this input (the message says why and what to do)."""
-
-
-class ObservabilityError(AdjustmentError):
-    """The boresight (or a combination of angles) is not determined by the passes and targets."""
 
 
 # ---------------------------------------------------------------------------------------------
@@ -143,35 +145,6 @@ def build_observations(
 # ---------------------------------------------------------------------------------------------
 # Options and results
 # ---------------------------------------------------------------------------------------------
-
-
-@dataclass(frozen=True)
-class ErrorModel:
-    """How POS errors are correlated, for ``sigma_realistic`` and predictions.
-
-    ``kind``: ``"white"`` (independent per point: the formal model), ``"gauss_markov"``
-    (exponential correlation across all points, passes included, with ``correlation_time_s``:
-    one value, or six for north, east, down, roll, pitch, heading) or ``"pass_bias"`` (constant
-    within a pass, independent between passes).
-    """
-
-    kind: str = "gauss_markov"
-    correlation_time_s: float | tuple[float, ...] = DEFAULT_POS_CORRELATION_S
-
-    def __post_init__(self):
-        if self.kind not in ("white", "gauss_markov", "pass_bias"):
-            raise ValueError(f"ErrorModel.kind {self.kind!r}: expected white, gauss_markov or "
-                             f"pass_bias")  # fmt: skip
-        tau = np.atleast_1d(np.asarray(self.correlation_time_s, float))
-        if tau.size not in (1, 6) or not np.all(tau > 0):
-            raise ValueError("ErrorModel.correlation_time_s: one or six positive values (s)")
-        object.__setattr__(self, "correlation_time_s",
-                           float(tau[0]) if tau.size == 1 else tuple(float(x) for x in tau))
-
-    def tau_s(self, channel: int) -> float:
-        """Correlation time of POS channel 0–5 (N, E, D, roll, pitch, heading)."""
-        tau = self.correlation_time_s
-        return tau if isinstance(tau, float) else tau[channel]
 
 
 @dataclass(frozen=True)
@@ -547,43 +520,6 @@ def _singular_message(N, obs, layout) -> str:
 # ---------------------------------------------------------------------------------------------
 
 
-def _decayed_cumsum(t: np.ndarray, h: np.ndarray, tau: float) -> np.ndarray:
-    """F_i = Σ_{j ≤ i} h_j · exp(−(t_i − t_j)/τ) for sorted t, in O(n), overflow-safe."""
-    n = t.shape[0]
-    out = np.empty_like(h)
-    carry = np.zeros(h.shape[1:])
-    t_prev = t[0]
-    start = 0
-    while start < n:
-        t0 = t[start]
-        end = max(int(np.searchsorted(t, t0 + 600.0 * tau, side="right")), start + 1)
-        e = np.exp((t[start:end] - t0) / tau)
-        cs = np.cumsum(h[start:end] * e[:, None], axis=0) / e[:, None]
-        out[start:end] = cs + carry * np.exp(-(t[start:end] - t_prev) / tau)[:, None]
-        carry = out[end - 1]
-        t_prev = t[end - 1]
-        start = end
-    return out
-
-
-def _correlated_sum(t, q, model: ErrorModel, pass_index, tau_s: float) -> np.ndarray:
-    """Σ_i Σ_j q_i q_jᵀ ρ(i, j) for one error channel with correlation time ``tau_s``."""
-    if model.kind == "white":
-        return q.T @ q
-    if model.kind == "pass_bias":
-        out = np.zeros((q.shape[1], q.shape[1]))
-        for k in np.unique(pass_index):
-            s = q[pass_index == k].sum(axis=0)
-            out += np.outer(s, s)
-        return out
-    order = np.argsort(t, kind="stable")
-    ts, qs = t[order], q[order]
-    fwd = _decayed_cumsum(ts, qs, tau_s)
-    bwd = _decayed_cumsum(-ts[::-1], qs[::-1], tau_s)[::-1]
-    s = qs.T @ (fwd + bwd - qs)
-    return 0.5 * (s + s.T)
-
-
 def propagated_covariance(sol: _Solution, obs: Observations, model: ErrorModel,
                           rows: slice = slice(0, 3)) -> np.ndarray:  # fmt: skip
     """Covariance of the unknowns in ``rows`` when the POS channels (0–5) follow ``model`` and
@@ -601,7 +537,7 @@ def propagated_covariance(sol: _Solution, obs: Observations, model: ErrorModel,
     for c in range(8):
         q = G * (sol.lin.B[:, c] * obs.sigma_l[:, c])[:, None]
         if c < 6:
-            cov += _correlated_sum(obs.t_gps_s, q, model, obs.pass_index, model.tau_s(c))
+            cov += correlated_sum(obs.t_gps_s, q, model, obs.pass_index, model.tau_s(c))
         else:
             cov += q.T @ q
     return cov
@@ -610,70 +546,6 @@ def propagated_covariance(sol: _Solution, obs: Observations, model: ErrorModel,
 # ---------------------------------------------------------------------------------------------
 # Observability
 # ---------------------------------------------------------------------------------------------
-
-#: Which reciprocal/crossing pass pairs (headings relative to the wall, degrees) observe which
-#: boresight angle on a vertical target (thesis §4.4.1.1).
-OBSERVING_PAIRS = {
-    0: ("the reciprocal parallel pair 0°/180°", ((0, 180),)),
-    1: ("a side-looking reciprocal pair 45°/225° or 315°/135°", ((45, 225), (315, 135))),
-    2: ("a crossing pair 45°/135° or 315°/225°", ((45, 135), (315, 225))),
-}
-
-
-def sailed_headings(obs: Observations) -> set[int]:
-    """Relative headings of the passes, snapped to the 45° grid when within 15°."""
-    out = set()
-    for pid in obs.pass_ids:
-        h = obs.pass_headings_rad.get(pid)
-        if h is None:
-            continue
-        deg = np.degrees(h) % 360.0
-        snap = int(round(deg / 45.0)) * 45 % 360
-        if abs((deg - snap + 180.0) % 360.0 - 180.0) <= 15.0:
-            out.add(snap)
-    return out
-
-
-def check_observability(cov_bs: np.ndarray, obs: Observations, max_sigma_rad: float,
-                        estimate: tuple[str, ...] = ()) -> None:  # fmt: skip
-    """Raise :class:`ObservabilityError` when a boresight angle (or a combination) is weak,
-    naming the angle(s) and what would observe them."""
-    sig = np.sqrt(np.clip(np.diag(cov_bs), 0, None))
-    vals, vecs = np.linalg.eigh(cov_bs)
-    weak_dirs = [vecs[:, i] for i in range(3) if np.sqrt(max(vals[i], 0)) > max_sigma_rad]
-    if not weak_dirs:
-        return
-    weak = sorted({int(np.argmax(np.abs(v))) for v in weak_dirs} |
-                  {i for i in range(3) if sig[i] > max_sigma_rad})  # fmt: skip
-    sailed = sailed_headings(obs)
-    passes = ", ".join(
-        f"{pid}" + (f" ({round(float(np.degrees(obs.pass_headings_rad[pid]))) % 360}°)"
-                    if pid in obs.pass_headings_rad else "")
-        for pid in obs.pass_ids
-    )  # fmt: skip
-    advice = []
-    for i in weak:
-        label, pairs = OBSERVING_PAIRS[i]
-        if sailed and not any(a in sailed and b in sailed for a, b in pairs):
-            advice.append(f"for {ANGLE_NAMES[i]} sail {label}")
-    if not advice:
-        cause = ("the per-pass trajectory offsets look like a boresight rotation with these "
-                 "targets: spread targets in range, height and along the wall, or do not "
-                 "estimate pass_offsets") if "pass_offsets" in estimate else (
-                 "the targets do not separate the angles: use at least two targets with "
-                 "different inclinations (vertical and 45°), spread along the wall")  # fmt: skip
-        extra = [e for e in estimate if e != "pass_offsets"]
-        if extra:
-            cause += f"; the extra unknowns {', '.join(extra)} may also absorb the boresight"
-        advice.append(cause)
-    angles = " and ".join(ANGLE_NAMES[i] for i in weak)
-    detail = ", ".join(f"{ANGLE_NAMES[i]} σ = {np.degrees(sig[i]):.3g}°" for i in weak)
-    raise ObservabilityError(
-        f"boresight {angles} {'is' if len(weak) == 1 else 'are'} not observable with passes "
-        f"{passes} and planes {', '.join(obs.plane_names)} ({detail}, limit "
-        f"{np.degrees(max_sigma_rad):.3g}°): {'; '.join(advice)} (thesis §4.4.1.1)."
-    )
-
 
 def validate_input(obs: Observations) -> None:
     counts = np.bincount(obs.plane_index, minlength=len(obs.plane_names))
