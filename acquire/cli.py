@@ -15,7 +15,9 @@ from acquire.commands import assess_run_cmd  # noqa: F401  (adds calib assess)
 from acquire.commands import run_cmd  # noqa: F401  (adds calib run)
 from acquire.commands import demo_cmd
 from acquire.commands import sim_cmd
+from acquire.commands import sim_devices_cmd  # noqa: F401  (adds sim devices, sim replay)
 from acquire.commands import logs_cmd, status_cmd
+from acquire.commands import design_cmd
 
 app = typer.Typer(
     name="mls",
@@ -34,6 +36,7 @@ app.command("demo", help=demo_cmd.HELP)(demo_cmd.demo)
 app.add_typer(sim_cmd.app, name="sim")
 app.add_typer(logs_cmd.app, name="logs")
 app.command("status")(status_cmd.status)
+app.command("design", help=design_cmd.HELP)(design_cmd.design)
 
 
 @app.command("version")

@@ -528,12 +528,9 @@ def propagated_covariance(sol: _Solution, obs: Observations, model: ErrorModel,
     G = _rows_of_inverse(sol.lin, sol.layout, obs, Ninv_rows, sol.M)  # (n, r)
     r = G.shape[1]
     cov = np.zeros((r, r))
-    # the prior on the pass offsets is an observation too (white)
-    if sol.layout.offsets:
-        prior = _offset_prior_sigma(obs, AdjustOptions(estimate=("pass_offsets",)))
-        idx = np.arange(sol.layout.i_offset, sol.layout.n)
-        Pr = Ninv_rows[:, idx] / prior.reshape(-1)[None, :]
-        cov += Pr @ Pr.T
+    # The prior on the pass offsets (offset = 0 ± σ) shapes N but adds no error of its own
+    # here: under this model a pass's translation IS its POS position error, which the
+    # position channels below already carry; counting it again would double it.
     for c in range(8):
         q = G * (sol.lin.B[:, c] * obs.sigma_l[:, c])[:, None]
         if c < 6:
