@@ -452,7 +452,8 @@ class StdbinDecoder:
                 j = buf.find(b"AN", pos)
             start = i if j < 0 or 0 <= i < j else j
             if start < 0:
-                keep = n - 1 if n and buf[-1:] in (b"I", b"A") else n
+                # a lone trailing "I"/"A" may start the next frame (only if not yet consumed)
+                keep = n - 1 if n > pos and buf[-1:] in (b"I", b"A") else n
                 stats.skipped_bytes += keep - pos
                 pos = keep
                 break

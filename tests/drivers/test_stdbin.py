@@ -177,3 +177,20 @@ def test_encode_nav_decode_round_trip(nav, version, counter):
     assert back.lat_deg == nav.lat_deg and abs(back.lon_deg - nav.lon_deg) < 1e-9
     assert (back.algorithm_status, back.system_status, back.user_status) == (
         nav.algorithm_status, nav.system_status, nav.user_status)  # fmt: skip
+
+
+@pytest.mark.parametrize("last", [b"I", b"A"])
+def test_a_frame_ending_in_a_sync_letter_counts_no_negative_skip(last):
+    """A frame whose checksum ends in 'I' or 'A' at the end of a chunk is consumed; nothing is
+    held back as a possible frame start and the skip count never goes negative."""
+    algo, system = status_words(navigation=True, utc_detected=True, pps_detected=True)
+    nav = NavRecord("stdbin", gps_ns=utc_fields_to_gps_ns(2023, 11, 30, 0), lat_deg=45.5,
+                    lon_deg=-73.5, heading_rad=1.0, algorithm_status=(algo[0], algo[1], 0, 0),
+                    system_status=(system[0], system[1], 0))  # fmt: skip
+    frame = next(f for c in range(100_000)
+                 if (f := encode_nav(nav, version=3, counter=c))[-1:] == last)  # fmt: skip
+    dec = StdbinDecoder()
+    (out,) = dec.feed(frame)
+    assert dec.stats.skipped_bytes == 0 and dec._buf == b""
+    (again,) = dec.feed(b"\x00" + frame)  # the next chunk: one garbage byte, then a frame
+    assert again.counter == out.counter and dec.stats.skipped_bytes == 1
