@@ -17,6 +17,8 @@ from acquire.commands import demo_cmd
 from acquire.commands import sim_cmd
 from acquire.commands import sim_devices_cmd  # noqa: F401  (adds sim devices, sim replay)
 from acquire.commands import logs_cmd, status_cmd
+from acquire.commands import acquire_cmd, export_cmd
+from acquire.commands import checklist_cmd, plan_cmd
 from acquire.commands import design_cmd
 
 app = typer.Typer(
@@ -36,6 +38,10 @@ app.command("demo", help=demo_cmd.HELP)(demo_cmd.demo)
 app.add_typer(sim_cmd.app, name="sim")
 app.add_typer(logs_cmd.app, name="logs")
 app.command("status")(status_cmd.status)
+app.command("acquire", help=acquire_cmd.HELP)(acquire_cmd.acquire)
+app.command("export", help=export_cmd.HELP)(export_cmd.export)
+app.command("plan", help=plan_cmd.HELP)(plan_cmd.plan)
+app.command("checklist", help=checklist_cmd.HELP)(checklist_cmd.checklist)
 app.command("design", help=design_cmd.HELP)(design_cmd.design)
 
 

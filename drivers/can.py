@@ -220,3 +220,31 @@ class CanReader:
     async def _iter(self):
         while True:
             yield await self._queue.get()
+
+
+# ---------------------------------------------------------------------------------------------
+# SocketCAN frame layout: how a frame is kept as bytes (the session's /can/<name> channels).
+# ---------------------------------------------------------------------------------------------
+
+_CAN_FRAME = struct.Struct("<IB3x8s")
+_CANFD_FRAME = struct.Struct("<IBB2x64s")
+CAN_EFF_FLAG = 0x80000000
+
+
+def can_frame_bytes(arbitration_id: int, data: bytes, extended: bool = False) -> bytes:
+    """SocketCAN ``struct can_frame`` (or ``canfd_frame`` beyond 8 data bytes), little-endian."""
+    can_id = arbitration_id | (CAN_EFF_FLAG if extended else 0)
+    if len(data) <= 8:
+        return _CAN_FRAME.pack(can_id, len(data), bytes(data))
+    return _CANFD_FRAME.pack(can_id, len(data), 0, bytes(data))
+
+
+def parse_can_frame(raw: bytes) -> tuple[int, bytes, bool]:
+    """(arbitration id, data, extended) of :func:`can_frame_bytes`' output."""
+    if len(raw) == _CAN_FRAME.size:
+        can_id, n, data = _CAN_FRAME.unpack(raw)
+    elif len(raw) == _CANFD_FRAME.size:
+        can_id, n, _, data = _CANFD_FRAME.unpack(raw)
+    else:
+        raise DriverError(f"CAN frame record of {len(raw)} bytes: expected 16 or 72")
+    return can_id & 0x1FFFFFFF, data[:n], bool(can_id & CAN_EFF_FLAG)

@@ -11,8 +11,8 @@ channels). What goes where:
 - ``/pps`` (a JSON channel: one message per pulse) → PPS1 datagrams stamped with the pulse's
   replay instant (the pulse's host stamp is ``data["host_ns"]`` when the record has it, else
   the message's host stamp);
-- ``/can/<name>`` → CAN frames on the emulators' bus, with the arbitration id from the channel
-  metadata ``arbitration_id`` (int or hex text), else 0x6E0 (the event markers).
+- ``/can/<name>`` → CAN frames on the emulators' bus; each record is a SocketCAN frame
+  (:func:`drivers.can.parse_can_frame`) as the daemon logs it.
 
 Timing: a message received at host time h in the recording is emitted at
 ``start + (h − h₀)/speed`` (h₀ = the first message of the session). When the session's clock
@@ -26,7 +26,7 @@ from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from drivers.can import EVENT_MARKER_ID, open_can_bus
+from drivers.can import open_can_bus, parse_can_frame
 from drivers.base import DriverError
 from drivers.pps import encode_pps_datagram
 from drivers.zf.zfp1 import parse_header
@@ -148,18 +148,12 @@ class UdpReplayer(_Replayer):
         return {**self.counts, **(self.link.stats if self.link else {})}
 
 
-def _arbitration_id(meta: dict) -> int:
-    value = meta.get("arbitration_id", EVENT_MARKER_ID)
-    return int(value, 0) if isinstance(value, str) else int(value)
-
-
 class CanReplayer(_Replayer):
     def __init__(self, session, speed, settings: CanSettings) -> None:
         topics = {t for t in session.channels if t.startswith("/can/")}
         super().__init__("can", session, topics, speed)
         self.settings = settings
         self.bus = None
-        self.ids = {t: _arbitration_id(session.channels[t]) for t in topics}
 
     def prepare(self) -> dict:
         self.bus = open_can_bus(self.settings.bus_config())
@@ -168,7 +162,9 @@ class CanReplayer(_Replayer):
     def emit(self, msg, host_ns) -> None:
         import can
 
-        self.bus.send(can.Message(arbitration_id=self.ids[msg.topic], data=bytes(msg.payload), is_extended_id=False))
+        arbitration_id, data, extended = parse_can_frame(bytes(msg.payload))
+        self.bus.send(can.Message(arbitration_id=arbitration_id, data=data, is_extended_id=extended,
+                                  is_fd=len(data) > 8))
 
     def close(self) -> None:
         if self.bus is not None:

@@ -15,7 +15,7 @@ import pytest
 from acquire.commands.sim_devices_cmd import read_session
 from acquire.config import load_vessel_config
 from acquire.sessionlog import SessionOptions, SessionWriter
-from drivers.can import encode_event_marker
+from drivers.can import EVENT_MARKER_ID, can_frame_bytes, encode_event_marker, parse_can_frame
 from drivers.hydrins.timeofday import utc_time_of_day_ns
 from sim_devices.clock import TruthClock
 from sim_devices.feed import make_feed
@@ -50,7 +50,9 @@ def session(short_sim, tmp_path_factory):
     events = [(int(g) - offset + 3_000_000, "/ins/raw", ins.nav_bytes(k)) for k, g in enumerate(feed.ins.gps_ns)]
     events += [(h, "/lidar/raw", d) for h, _, d in prof.packets(TruthClock(HOST0, feed.start_gps_ns))]
     events += [(HOST0 + s * NS, "/pps", {"host_ns": HOST0 + s * NS, "sequence": s + 1}) for s in range(2)]
-    events += [(HOST0 + 700_000_000 + i * 100_000_000, "/can/marks", encode_event_marker("mark", 1, i)) for i in range(3)]
+    # the daemon logs CAN as SocketCAN frames (drivers.can.can_frame_bytes)
+    events += [(HOST0 + 700_000_000 + i * 100_000_000, "/can/marks",
+                can_frame_bytes(EVENT_MARKER_ID, encode_event_marker("mark", 1, i))) for i in range(3)]
     for host, topic, payload in sorted(events, key=lambda e: e[0]):
         put(topic, payload, host)
     w.close()
@@ -96,7 +98,9 @@ def test_replay_re_emits_every_channel_with_its_timing(session, tmp_path):
     # PPS pulses re-stamped with their replay instant
     assert [(e.sequence, e.host_ns) for _, e in cap.pps] == [(i + 1, due(h)) for i, (h, _) in enumerate(records["/pps"])]
     # CAN frames with the recorded payloads on 0x6E0
-    assert [(f.arbitration_id, f.data) for f in cap.markers] == [(0x6E0, p) for _, p in records["/can/marks"]]
+    assert [(f.arbitration_id, f.data) for f in cap.markers] == \
+        [parse_can_frame(p)[:2] for _, p in records["/can/marks"]]  # fmt: skip
+    assert all(f.arbitration_id == 0x6E0 for f in cap.markers)
     for f, (host, _) in zip(cap.markers, records["/can/marks"]):
         assert 0 <= f.host_ns - due(host) <= slack
 
