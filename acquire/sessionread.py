@@ -61,12 +61,9 @@ def channel_metadata(session_dir: str | Path) -> dict[str, dict[str, str]]:
     """topic → channel metadata, over every segment (the first seen wins)."""
     out: dict[str, dict[str, str]] = {}
     for path in _segments(Path(session_dir)):
-        for rec in scan_segment(path):
-            kind = type(rec).__name__
-            if kind == "Channel":
+        for rec in scan_segment(path):  # the writer registers a channel at its first message,
+            if type(rec).__name__ == "Channel":  # anywhere in a segment: read it all
                 out.setdefault(rec.topic, dict(rec.metadata))
-            elif kind == "Message":
-                break  # channels are registered before their first message; enough for a segment
     return out
 
 

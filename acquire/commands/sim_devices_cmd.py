@@ -264,39 +264,24 @@ def read_session(session_dir: Path):
     """A recorded session (MCAP segments) as a :class:`sim_devices.replay.RecordedSession`."""
     import numpy as np
 
-    from acquire.logrecover import scan_segment, segment_paths
-    from acquire.mcap_schema import decode
+    from acquire.logrecover import segment_paths
     from acquire.sessionlog import LogError
+    from acquire.sessionread import channel_metadata, iter_messages
     from sim_devices.replay import RecordedMessage, RecordedSession
 
     session_dir = Path(session_dir)
-    paths = segment_paths(session_dir) if session_dir.is_dir() else []
-    if not paths:
+    if not (session_dir.is_dir() and segment_paths(session_dir)):
         raise LogError(f"{session_dir}: no session segments (seg-NNNNNN.mcap) there")
     replayed = lambda topic: topic in ("/ins/raw", "/lidar/raw", "/pps") or topic.startswith("/can/")  # noqa: E731
-
-    def records(topics=None):
-        for path in paths:
-            channels = {}
-            for rec in scan_segment(path):
-                kind = type(rec).__name__
-                if kind == "Channel":
-                    channels[rec.id] = rec
-                elif kind == "Message":
-                    ch = channels.get(rec.channel_id)
-                    if ch is not None and (topics is None or ch.topic in topics):
-                        yield ch, rec
-
-    channels: dict[str, dict] = {}
+    metadata = channel_metadata(session_dir)
+    channels = {t: m for t, m in metadata.items() if replayed(t)}
     counts: dict[str, int] = {}
     first = last = None
     pairs_host, pairs_gps = [], []
-    for ch, rec in records():
-        counts[ch.topic] = counts.get(ch.topic, 0) + 1
-        if not replayed(ch.topic):
+    for env in iter_messages(session_dir):
+        counts[env.topic] = counts.get(env.topic, 0) + 1
+        if not replayed(env.topic):
             continue
-        env = decode(ch.topic, ch.message_encoding, rec.log_time, rec.publish_time, rec.data)
-        channels.setdefault(ch.topic, dict(ch.metadata))
         first = env.host_ns if first is None else min(first, env.host_ns)
         last = env.host_ns if last is None else max(last, env.host_ns)
         if env.clock == "LOCKED" and len(pairs_host) < 100_000:
@@ -312,9 +297,8 @@ def read_session(session_dir: Path):
         gps_fit = (int(g[0]) + round(intercept * 1e9), float(slope))
 
     def messages(topics):
-        for ch, rec in records(set(topics)):
-            env = decode(ch.topic, ch.message_encoding, rec.log_time, rec.publish_time, rec.data)
-            yield RecordedMessage(ch.topic, env.host_ns, env.payload)
+        for env in iter_messages(session_dir, topics):
+            yield RecordedMessage(env.topic, env.host_ns, env.payload)
 
     return RecordedSession(session_dir.name, channels, counts, first, last, messages, gps_fit)
 
