@@ -4,8 +4,9 @@
 
 - ``trajectory.csv`` from ``/ins/nav``: one row per INS epoch at its GPS time (the INS time tag
   when it was synced, else the clock model's — ``time_source`` of the record), canonical
-  attitude, and the per-epoch sigmas (STDHRP/STDPOS, or the STDBIN deviation blocks) when every
-  epoch carries them. Epochs without position or attitude are dropped, repeated times kept once.
+  attitude, and the per-epoch sigmas (STDHRP/STDPOS, or the STDBIN deviation blocks) when at
+  least half the epochs carry them (the others interpolated in time, with a warning). Epochs
+  without position or attitude are dropped, repeated times kept once.
 - ``points.csv`` from ``/lidar/raw``, every datagram decoded again with the codec named by the
   channel's ``protocol``: point i of a packet at ``t0 + i·dt`` (the packet's own time tag when
   it says PPS-locked and time-valid; otherwise the packet's last point is put at the clock
@@ -165,11 +166,27 @@ def _time_events(raw: list, host: np.ndarray, t: np.ndarray) -> list:
     return out
 
 
-def _trajectory(nav: _Nav, frame, max_gap_s: float):
+def _fill_sigmas(t_ns: np.ndarray, sig: np.ndarray) -> tuple[np.ndarray | None, int]:
+    """The per-epoch sigmas with the epochs that lack some (a lost STDPOS/STDHRP sentence, the
+    first epoch after start-up) interpolated in time from the epochs that have all six; None
+    when fewer than half the epochs have them. Returns (sigmas, epochs filled)."""
+    good = np.all(np.isfinite(sig) & (sig > 0), axis=1)
+    if good.all():
+        return sig, 0
+    if good.sum() < max(2, 0.5 * good.size):
+        return None, 0
+    t = (t_ns - t_ns[0]).astype(np.float64)
+    filled = sig.copy()
+    for j in range(sig.shape[1]):
+        filled[~good, j] = np.interp(t[~good], t[good], sig[good, j])
+    return filled, int((~good).sum())
+
+
+def _trajectory(nav: _Nav, sig: np.ndarray | None, frame, max_gap_s: float):
+    """The trajectory of the INS epochs, with ``sig`` (:func:`_fill_sigmas`) when not None."""
     from calib.trajectory import Trajectory
 
-    sig = nav.sig
-    with_sig = bool(np.all(np.isfinite(sig)) and np.all(sig > 0))
+    with_sig = sig is not None
     return Trajectory.from_geodetic(
         frames.gps_ns_to_seconds(nav.t_ns), nav.lat, nav.lon, nav.h, np.radians(nav.rpy_deg), frame,
         sigma_p_m=sig[:, :3] if with_sig else None,
@@ -361,8 +378,9 @@ def export_session(session_dir: str | Path, bundle_dir: str | Path,
         nav, events = _read_nav_and_events(session, step("reading navigation and events"))
     except SessionReadError as e:
         raise ExportError(str(e)) from None
+    sig, filled = _fill_sigmas(nav.t_ns, nav.sig)
     try:
-        traj = _trajectory(nav, site.reference, options.max_gap_s)
+        traj = _trajectory(nav, sig, site.reference, options.max_gap_s)
     except TrajectoryError as e:
         raise ExportError(f"{session}: /ins/nav: {e}") from None
     warnings: list[str] = []
@@ -394,6 +412,12 @@ def export_session(session_dir: str | Path, bundle_dir: str | Path,
     if unsynced:
         warnings.append(f"{unsynced} profiler packets had no PPS-locked time tag: their points "
                         f"were timed by the clock model (receipt time)")  # fmt: skip
+    if filled:
+        warnings.append(f"{filled} of {nav.t_ns.size} INS epochs had no sigmas: interpolated "
+                        f"from the neighbouring epochs")  # fmt: skip
+    elif sig is None:
+        warnings.append("the INS epochs carry no sigmas (or fewer than half do): the trajectory "
+                        "is written without them and the calibration uses the site's pos_sigmas")  # fmt: skip
     if nav.from_clock:
         warnings.append(f"{nav.from_clock} INS epochs were timed by the clock model (INS not on "
                         f"UTC + PPS)")  # fmt: skip

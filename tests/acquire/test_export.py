@@ -11,7 +11,7 @@ import textwrap
 import numpy as np
 import pytest
 
-from acquire.export import ExportError, ExportOptions, export_session, passes_from_events
+from acquire.export import ExportError, ExportOptions, _fill_sigmas, export_session, passes_from_events
 from acquire.sessionlog import SessionOptions, SessionWriter
 from calib import frames
 from calib.bundle import read_bundle
@@ -78,6 +78,8 @@ def _write_session(tmp, marks: bool):
                "sigma_north_m": 0.02, "sigma_east_m": 0.02, "sigma_down_m": 0.03,
                "sigma_roll_deg": 0.01, "sigma_pitch_deg": 0.01, "sigma_heading_deg": 0.02,
                "time_gps_ns": int(t[k]), "time_source": "device"}  # fmt: skip
+        if k == 10:  # an epoch whose STDPOS/STDHRP were lost
+            nav = {key: v for key, v in nav.items() if not key.startswith("sigma_")}
         w.submit("/ins/nav", nav, host_ns=host, device_ns=int(t[k]), log_time_ns=int(t[k]),
                  clock_state="LOCKED")  # fmt: skip
         r = np.full(20, 100_000, np.uint32)
@@ -118,6 +120,8 @@ def test_export_takes_passes_from_marks_or_the_plan_and_decodes_every_return(tmp
     assert np.allclose(np.degrees(b.site.mount.boresight_rad), [0.1, 0.2, 0.3])  # session.json
     assert np.allclose(b.site.mount.lever_arm_m, [0.35, 0.85, -1.65])
     assert len(b.trajectory.t_gps_s) == len(t) and b.trajectory.has_sigmas
+    assert f"1 of {len(t)} INS epochs had no sigmas: interpolated from the neighbouring epochs" in res.warnings
+    assert np.allclose(b.trajectory.sigma_p_m, [0.02, 0.02, 0.03])
     # expected: 16 returns per profile whose points fall inside a pass, no duplicate
     exp_t, exp_pid = [], []
     for k, t0, log_time, locked in sent:
@@ -183,3 +187,16 @@ def test_export_refusals_name_the_problem(tmp_path):
         ExportOptions(passes="marks")
     with pytest.raises(ExportError, match="no such session directory"):
         export_session(tmp_path / "nope", tmp_path / "b")
+
+
+def test_missing_sigmas_are_interpolated_unless_most_are_missing():
+    t_ns = np.arange(6, dtype=np.int64) * 100_000_000
+    sig = np.tile(np.arange(6.0)[:, None] + 1.0, (1, 6))  # 1 … 6, growing with time
+    sig[2, 0] = np.nan  # a lost sentence
+    sig[5] = np.nan  # the last epoch: held at its neighbour's
+    filled, n = _fill_sigmas(t_ns, sig)
+    assert n == 2 and filled[2, 0] == 3.0 and np.all(filled[5] == 5.0)
+    assert np.array_equal(filled[[0, 1, 3, 4]], sig[[0, 1, 3, 4]])
+    assert _fill_sigmas(t_ns, np.full((6, 6), 0.1)) == (pytest.approx(np.full((6, 6), 0.1)), 0)
+    sig[:4] = np.nan  # two epochs of six carry sigmas: none is written
+    assert _fill_sigmas(t_ns, sig) == (None, 0)

@@ -198,7 +198,9 @@ def nav_records(draw):
 
 
 def _close(a: float, b: float, tol: float) -> bool:
-    return (math.isnan(a) and math.isnan(b)) or abs(a - b) <= tol
+    """Equal within ``tol`` (half the sentence's last digit: a value exactly half-way, such as
+    0.125 written with two decimals, is off by ``tol`` plus the float's own rounding)."""
+    return (math.isnan(a) and math.isnan(b)) or abs(a - b) <= tol * (1 + 1e-9)
 
 
 @PROPERTY
