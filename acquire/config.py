@@ -17,7 +17,15 @@ default shown in the example):
   ``time_messages`` that label the pulses; ``latency`` thresholds;
 - ``session`` (log directory, rotation, flush, fsync, queue), ``clock`` (fit window, gates,
   holdover), ``status`` (socket), ``mqtt`` (optional: host, port, credentials file, topic
-  prefix, commands), ``mount`` (lever arm, nominal mount, a-priori boresight), ``site_file``.
+  prefix, commands), ``mount`` (lever arm, nominal mount, a-priori boresight), ``site_file``;
+- ``guidance`` (optional; needs ``site_file``): the line guidance the daemon runs when the config
+  names a site file (:mod:`acquire.daemon_guidance`) — the pass acceptance tolerances
+  (``max_xte_m``, ``max_heading_error_deg``, ``max_speed_error_mps``, ``min_points_per_target``,
+  ``max_gap_s``), the profiler's settings the σ prediction of the passes still to sail assumes
+  (``profile_rate_hz``, ``points_per_360``), the publication period ``period_s`` and
+  ``enabled``. The tolerances live here rather than in the site file: they describe how this
+  vessel is steered and how densely its profiler scans, not the site (whose keys DESIGN §4
+  fixes).
 """
 
 from __future__ import annotations
@@ -116,6 +124,22 @@ class MountConfig:
 
 
 @dataclass(frozen=True)
+class GuidanceConfig:
+    """The ``guidance`` section (defaults = :class:`acquire.guidance.AcceptanceTolerances`'s and
+    the Z+F Profiler 9012 at its full rate)."""
+
+    enabled: bool = True
+    max_xte_m: float = 2.0  # |cross-track error| over the capture window
+    max_heading_error_deg: float = 5.0
+    max_speed_error_mps: float = 0.5  # |speed over ground − the line's planned speed|
+    min_points_per_target: int = 100  # live hits on every target
+    max_gap_s: float = 0.5  # longest gap in the INS records or between profiles
+    profile_rate_hz: float = 200.0  # the profiler's settings, for the predicted σ of the
+    points_per_360: int = 5080  # passes still to sail
+    period_s: float = 0.5  # guidance update and publication period
+
+
+@dataclass(frozen=True)
 class VesselConfig:
     source: Path
     vessel: str
@@ -127,6 +151,7 @@ class VesselConfig:
     mqtt: MqttSettings | None
     mount: MountConfig | None
     site_file: Path | None
+    guidance: GuidanceConfig = GuidanceConfig()
 
     def device(self, name: str) -> DeviceConfig:
         for d in self.devices:
@@ -445,6 +470,33 @@ def _status(node: Node, errs: _Errors, base: Path) -> StatusSettings:
     )
 
 
+def _guidance(node: Node, errs: _Errors) -> GuidanceConfig:
+    m = _keys(node, errs, optional={"enabled", "max_xte_m", "max_heading_error_deg",
+                                     "max_speed_error_mps", "min_points_per_target", "max_gap_s",
+                                     "profile_rate_hz", "points_per_360", "period_s"})  # fmt: skip
+    d = GuidanceConfig()
+
+    def positive(n: Node) -> float:
+        return n.number(0.0, exclusive_minimum=True)
+
+    return GuidanceConfig(
+        enabled=_opt(m, "enabled", errs, Node.boolean, d.enabled),
+        max_xte_m=_opt(m, "max_xte_m", errs, positive, d.max_xte_m),
+        max_heading_error_deg=_opt(m, "max_heading_error_deg", errs,
+                                   lambda n: n.number(0.0, 90.0, exclusive_minimum=True),
+                                   d.max_heading_error_deg),
+        max_speed_error_mps=_opt(m, "max_speed_error_mps", errs, positive, d.max_speed_error_mps),
+        min_points_per_target=_opt(m, "min_points_per_target", errs, lambda n: _int(n, 1, 10**7),
+                                   d.min_points_per_target),
+        max_gap_s=_opt(m, "max_gap_s", errs, lambda n: n.number(0.01, 60.0), d.max_gap_s),
+        profile_rate_hz=_opt(m, "profile_rate_hz", errs, lambda n: n.number(0.1, 10_000.0),
+                             d.profile_rate_hz),
+        points_per_360=_opt(m, "points_per_360", errs, lambda n: _int(n, 4, 1_000_000),
+                            d.points_per_360),
+        period_s=_opt(m, "period_s", errs, lambda n: n.number(0.1, 10.0), d.period_s),
+    )  # fmt: skip
+
+
 def _cross_checks(devices: list[DeviceConfig], dev_nodes: dict[str, Node], errs: _Errors) -> None:
     seen = {d.name: d for d in devices}
     pps = [d for d in devices if d.kind == "pps"]
@@ -472,7 +524,7 @@ def vessel_config_from_node(root: Node, base_dir: Path) -> VesselConfig:
     """Validate a loaded YAML tree; raise :class:`VesselConfigError` with every error."""
     errs = _Errors()
     top = _keys(root, errs, required={"vessel", "devices", "session"},
-                optional={"clock", "status", "mqtt", "mount", "site_file"})  # fmt: skip
+                optional={"clock", "status", "mqtt", "mount", "site_file", "guidance"})  # fmt: skip
     vessel = errs.get(lambda: _name(top["vessel"])) if "vessel" in top else None
     devices: list[DeviceConfig] = []
     dev_nodes: dict[str, Node] = {}
@@ -512,11 +564,15 @@ def vessel_config_from_node(root: Node, base_dir: Path) -> VesselConfig:
                 errs.add(str(top["site_file"].fail(f"an existing site file ({site_file} not found)")))
             else:
                 errs.get(lambda: load_site(site_file))
+    guidance = _guidance(top["guidance"], errs) if "guidance" in top else GuidanceConfig()
+    if "guidance" in top and "site_file" not in top and guidance.enabled:
+        errs.add(f"{top['guidance'].where()}: the guidance needs the site's targets and pass "
+                 f"plan: add site_file (or set guidance.enabled: false)")  # fmt: skip
     if errs.items:
         raise VesselConfigError(root.source, sorted(errs.items, key=_position))
     assert vessel is not None and session_dir is not None
     return VesselConfig(Path(root.source), vessel, tuple(devices), session_dir, session, clock,
-                        status, mqtt, mount, site_file)  # fmt: skip
+                        status, mqtt, mount, site_file, guidance)  # fmt: skip
 
 
 def _position(error: str) -> tuple[int, int]:

@@ -31,6 +31,8 @@ import contextlib
 import json
 import os
 import socket
+import threading
+import time
 from pathlib import Path
 from typing import Protocol
 
@@ -83,7 +85,7 @@ class StatusBus:
 class _Client:
     def __init__(self, writer: asyncio.StreamWriter, maxsize: int):
         self.writer = writer
-        self.queue: asyncio.Queue[bytes] = asyncio.Queue(maxsize)
+        self.queue: asyncio.Queue[bytes | None] = asyncio.Queue(maxsize)
         self.task: asyncio.Task | None = None
 
 
@@ -109,9 +111,21 @@ class StatusServer:
         self._server = await asyncio.start_unix_server(self._handle, path=str(self.path))
         os.chmod(self.path, self.mode)
 
-    async def close(self) -> None:
+    async def close(self, flush_s: float = 1.0) -> None:
+        """Stop serving. Each client first gets up to ``flush_s`` to receive what is queued for
+        it (the daemon's final status), then the rest are disconnected."""
         if self._server is not None:
             self._server.close()
+        tasks = []
+        for c in list(self._clients):
+            try:
+                c.queue.put_nowait(None)  # the end of its stream
+                tasks.append(c.task)
+            except asyncio.QueueFull:
+                self._drop(c, counted=False)
+        tasks = [t for t in tasks if t is not None and t is not asyncio.current_task()]
+        if tasks:
+            await asyncio.wait(tasks, timeout=flush_s)
         for c in list(self._clients):
             self._drop(c, counted=False)
         if self._server is not None:
@@ -164,6 +178,11 @@ class StatusServer:
         try:
             while True:
                 line = await c.queue.get()
+                if line is None:  # the server closes: flush what was written, then hang up
+                    self._clients.discard(c)
+                    writer.close()
+                    await writer.wait_closed()
+                    return
                 writer.write(line)
                 await writer.drain()
         except (ConnectionError, asyncio.CancelledError):
@@ -207,3 +226,63 @@ def read_snapshot(path: str | Path, timeout_s: float = 3.0) -> dict[str, dict]:
                 out[msg["topic"]] = msg["data"]
     finally:
         s.close()
+
+
+class StatusListener(threading.Thread):
+    """A background thread reading every JSON line of a status socket, reconnecting while the
+    daemon is away. :meth:`handle` gets each message (by default it keeps the latest message
+    of each topic, :meth:`latest`); lines that are not a status message are skipped."""
+
+    def __init__(self, path: str | Path, retry_s: float = 0.1):
+        super().__init__(daemon=True, name="status-listener")
+        self.path, self.retry_s = Path(path), retry_s
+        self.connects = 0
+        self._latest: dict[str, dict] = {}
+        self._lock = threading.Lock()
+        self._halt = threading.Event()
+
+    def handle(self, received_ns: int, topic: str, data) -> None:
+        """One message, ``received_ns`` its arrival (CLOCK_MONOTONIC)."""
+        with self._lock:
+            self._latest[topic] = data
+
+    def latest(self, topic: str) -> dict | None:
+        with self._lock:
+            return self._latest.get(topic)
+
+    def run(self) -> None:
+        while not self._halt.is_set():
+            s = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+            try:
+                s.connect(str(self.path))
+            except OSError:
+                s.close()
+                self._halt.wait(self.retry_s)
+                continue
+            self.connects += 1
+            s.settimeout(0.2)
+            buf = b""
+            while not self._halt.is_set():
+                try:
+                    chunk = s.recv(1 << 20)
+                except socket.timeout:
+                    continue
+                except OSError:
+                    break
+                if not chunk:
+                    break
+                now = time.monotonic_ns()
+                *lines, buf = (buf + chunk).split(b"\n")
+                for ln in lines:
+                    try:
+                        msg = json.loads(ln)
+                        topic, data = str(msg["topic"]), msg["data"]
+                    except (ValueError, KeyError, TypeError):
+                        continue
+                    self.handle(now, topic, data)
+            s.close()
+
+    def stop(self) -> None:
+        self._halt.set()
+        if self.is_alive():
+            self.join(5.0)

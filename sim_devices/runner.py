@@ -342,7 +342,8 @@ class DeviceRun(EmulatorRun):
         return write_vessel_config(
             path, what=f"the emulators of scenario {f.name} (seed {f.sim.seed})", vessel=f.sim.scenario.vessel,
             run_dir=self.run_dir, locations=self.locations, speed=s.speed, ins=s.ins,
-            profiler_rate_hz=f.grid.profile_rate_hz, profiler_latency_s=s.profiler.latency_s, site=f.sim.site,
+            profiler_rate_hz=f.grid.profile_rate_hz, profiler_latency_s=s.profiler.latency_s,
+            profiler_points_per_360=f.grid.points_per_360, site=f.sim.site,
         )  # fmt: skip
 
     def elapsed_s(self) -> float:

@@ -6,9 +6,12 @@
 needs ~600 kbit/s on a real line; the profiler and PPS UDP addresses; the CAN event markers on
 ``udp_multicast``), latency thresholds matched to the emulated latencies, the session
 directory ``<run dir>/sessions``, the status socket ``<run dir>/status.sock`` (the default
-``/run/mls`` needs root) and, for a scenario, its a-priori mount and its site file (written
-beside the config as ``<stem>.site.yaml``). The PPS device is written only with an INS (its
-pulses are labelled by the INS's time messages). Rates are per host second (× ``speed``).
+``/run/mls`` needs root) and, for a scenario, its a-priori mount, its site file (written
+beside the config as ``<stem>.site.yaml``) and the ``guidance`` section matched to the emulated
+profiler: its profile rate and points per 360° (what the σ prediction of the passes still to
+sail assumes) and a minimum of target points per pass scaled from the full Z+F rate's 100 (at
+least :data:`MIN_TARGET_POINTS`). The PPS device is written only with an INS (its pulses are
+labelled by the INS's time messages). Rates are per host second (× ``speed``).
 """
 
 from __future__ import annotations
@@ -22,10 +25,13 @@ import yaml
 from sim_devices.canbus import DEFAULT_PORT
 from sim_devices.ins import InsSettings
 
+FULL_RATE_PTS_S = 200.0 * 5080  # the Z+F Profiler 9012 at its full rate
+MIN_TARGET_POINTS = 20  # the guidance's floor of hits per target and pass
 
 def vessel_config(*, vessel: str, run_dir: Path, locations: dict[str, dict], speed: float = 1.0,
                   ins: InsSettings | None = None, profiler_rate_hz: float = 200.0,
-                  profiler_latency_s: float = 0.0005, site=None, site_file: str | None = None) -> dict:  # fmt: skip
+                  profiler_latency_s: float = 0.0005, profiler_points_per_360: int | None = None,
+                  site=None, site_file: str | None = None) -> dict:  # fmt: skip
     run_dir = Path(run_dir)
     ins = ins or InsSettings(protocol=locations.get("ins", {}).get("protocol") or "nmea")
     devices = []
@@ -71,6 +77,13 @@ def vessel_config(*, vessel: str, run_dir: Path, locations: dict[str, dict], spe
         }
     if site_file is not None:
         cfg["site_file"] = site_file
+        if profiler_points_per_360 is not None:
+            pts_s = profiler_rate_hz * profiler_points_per_360
+            cfg["guidance"] = {
+                "min_points_per_target": max(MIN_TARGET_POINTS, round(100 * pts_s / FULL_RATE_PTS_S)),
+                "profile_rate_hz": round(float(profiler_rate_hz), 4),
+                "points_per_360": int(profiler_points_per_360),
+            }
     return cfg
 
 

@@ -17,6 +17,10 @@ HELP = (
     "every driver is alive and the log writer progresses.\n\n"
     "Exit status: 0 after an orderly stop, 1 when it cannot start (session directory, status "
     "socket), 2 when the config is invalid (every error printed, one per line).\n\n"
+    "When the config names a site_file, the daemon also runs the line guidance of the six-fold "
+    "pattern (pass acceptance with the tolerances of the config's guidance section, predicted "
+    "boresight σ, pre-survey checks) and publishes it on the checklist topic that mls checklist "
+    "shows.\n\n"
     "Example: mls acquire --config /etc/mls/vessel.yaml"
 )
 
@@ -49,13 +53,17 @@ def acquire(
         print(f"mls acquire: {e}", file=sys.stderr)
         raise typer.Exit(EXIT_CONFIG) from None
 
+    from acquire.daemon_guidance import GuidanceSetupError, guidance_consumer
     from acquire.supervisor import StartupError, Supervisor
 
     try:
         sup = Supervisor(cfg)
-    except StartupError as e:  # the config asks for something the daemon cannot do
+        guidance = guidance_consumer(cfg, sup)
+    except (StartupError, GuidanceSetupError) as e:  # the config asks for what cannot be done
         print(f"mls acquire: {e}", file=sys.stderr)
         raise typer.Exit(EXIT_CONFIG) from None
+    if guidance is not None:
+        sup.consumers.append(guidance)
     if check:
         from rich.console import Console
         from rich.table import Table
@@ -67,6 +75,13 @@ def acquire(
             where = d.transport or d.source
             t.add_row(d.name, d.kind, d.protocol or "-", _describe(where))
         Console().print(t)
+        if guidance is not None:
+            g, tol = guidance.guidance, cfg.guidance
+            print(f"guidance: {len(g.plan.passes)} passes around {len(g.target_names)} targets "
+                  f"({', '.join(g.target_names)}) of {cfg.site_file}; accepted within "
+                  f"{tol.max_xte_m:g} m XTE, {tol.max_heading_error_deg:g}° heading, "
+                  f"±{tol.max_speed_error_mps:g} m/s, ≥ {tol.min_points_per_target} points per "
+                  f"target, gaps ≤ {tol.max_gap_s:g} s")  # fmt: skip
         raise typer.Exit(EXIT_OK)
 
     logging.basicConfig(level=getattr(logging, log_level.upper(), logging.INFO), stream=sys.stderr,

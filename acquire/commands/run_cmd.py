@@ -34,9 +34,10 @@ def _fail(message: str, code: int = 1) -> None:
 
 
 def _is_session(path: Path) -> bool:
-    """An acquisition session directory (MCAP segments) rather than a bundle."""
-    return path.is_dir() and not (path / "site.yaml").exists() and \
-        any(path.glob("*.mcap"))  # fmt: skip
+    """An acquisition session directory (MCAP segments; the daemon also keeps a copy of the
+    site file there) rather than a bundle (points.csv)."""
+    return path.is_dir() and any(path.glob("*.mcap")) and \
+        not any((path / n).exists() for n in ("points.csv", "points.csv.gz"))  # fmt: skip
 
 
 def _progress_callback(progress):

@@ -164,6 +164,9 @@ def devices(
     realtime: bool = typer.Option(False, "--realtime",
                                   help="Run the emulators SCHED_FIFO where permitted (root or RLIMIT_RTPRIO): "
                                        "sub-millisecond timing on a busy machine."),
+    lead_s: float = typer.Option(0.25, "--lead-s", min=0.05, max=60.0,
+                                 help="Seconds between the emulators being ready (and the vessel config written) "
+                                      "and the first byte of the run: time for a daemon to start."),
     time_base: str = typer.Option("now", "--time", metavar="now|scenario",
                                   help="Devices send today's date and time (now: the scenario moved by whole "
                                        "seconds, recorded in truth_clock.json) or the scenario's own."),
@@ -204,7 +207,7 @@ def devices(
                                 alignment_s=ins_alignment_s),
                 profiler=ProfilerSettings(host=profiler_host, port=profiler_port),
                 pps=PpsSettings(port=pps_port, jitter_s=pps_jitter_us / 1e6),
-                can=CanSettings(channel=can_channel, port=can_port), realtime=realtime,
+                can=CanSettings(channel=can_channel, port=can_port), realtime=realtime, lead_s=lead_s,
             )  # fmt: skip
             plan = load_faults(faults) if faults is not None else FaultPlan()
             with Progress(TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(),

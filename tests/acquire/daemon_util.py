@@ -17,6 +17,8 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from acquire.statusbus import StatusListener
+
 MLS = [sys.executable, "-m", "acquire.cli"]
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -88,49 +90,15 @@ class Received:
     data: object
 
 
-class SocketCollector(threading.Thread):
+class SocketCollector(StatusListener):
     """Every JSON line of the daemon's status socket (reconnecting when the daemon restarts)."""
 
     def __init__(self, path: Path):
-        super().__init__(daemon=True)
-        self.path = path
+        super().__init__(path, retry_s=0.05)
         self.lines: list[Received] = []
-        self.connects = 0
-        self._halt = threading.Event()
 
-    def run(self) -> None:
-        while not self._halt.is_set():
-            s = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
-            try:
-                s.connect(str(self.path))
-            except OSError:
-                s.close()
-                time.sleep(0.05)
-                continue
-            self.connects += 1
-            s.settimeout(0.2)
-            buf = b""
-            while not self._halt.is_set():
-                try:
-                    chunk = s.recv(1 << 20)
-                except socket.timeout:
-                    continue
-                except OSError:
-                    break
-                if not chunk:
-                    break
-                now = time.monotonic_ns()
-                buf += chunk
-                *lines, buf = buf.split(b"\n")
-                for ln in lines:
-                    msg = json.loads(ln)
-                    self.lines.append(Received(now, msg["topic"], msg["data"]))
-            s.close()
-
-    def stop(self) -> None:
-        self._halt.set()
-        if self.is_alive():
-            self.join(5)
+    def handle(self, received_ns: int, topic: str, data) -> None:
+        self.lines.append(Received(received_ns, topic, data))
 
     def topic(self, name: str) -> list[Received]:
         return [r for r in list(self.lines) if r.topic == name]

@@ -189,7 +189,9 @@ def test_checklist_app_through_a_simulated_survey(survey, tmp_path):
             # 4. calibrate now
             await pilot.press("c")
             await _until(pilot, lambda: app.calibration is not None, "the calibration")
-            await _until(pilot, lambda: len(app.screen_stack) > 1, "the result screen")
+            await _until(pilot, lambda: len(app.screen_stack) > 1 and app.screen.query("#modal-body")
+                         and app.screen.query_one("#modal-body").region.height > 0, "the result screen")
+            await pilot.pause(0.2)  # laid out: let it paint before the screenshot
             assert calls == [str(tmp_path / "20190709T140000Z_sim-montreal")]
             res = app.calibration.result
             table = app.screen.query_one("#modal-body").content

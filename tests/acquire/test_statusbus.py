@@ -10,7 +10,8 @@ import pytest
 from typer.testing import CliRunner
 
 from acquire.cli import app
-from acquire.statusbus import SNAPSHOT_END, StatusBus, StatusServer, read_snapshot, topic_policy
+from acquire.statusbus import (SNAPSHOT_END, StatusBus, StatusListener, StatusServer, read_snapshot,
+                              topic_policy)  # fmt: skip
 
 pytestmark = pytest.mark.integration  # real Unix sockets
 
@@ -155,3 +156,63 @@ def test_mls_status_prints_the_snapshot_and_sets_the_exit_code(tmp_path):
         assert runner.invoke(app, ["status", "--socket", str(path)]).exit_code == 2
     r = runner.invoke(app, ["status", "--socket", str(tmp_path / "none.sock")])
     assert r.exit_code == 1 and "is mls-acquire running?" in r.output
+
+
+def test_a_client_receives_what_was_published_just_before_the_server_closes(tmp_path):
+    """The daemon's final status ("stopped") reaches the clients before the socket goes."""
+
+    async def main():
+        server = StatusServer(tmp_path / "status.sock")
+        bus = StatusBus([server])
+        await server.start()
+        bus.publish("status", {"state": "running"})
+        reader, writer = await asyncio.open_unix_connection(str(server.path))
+        await _read_lines(reader, 2)  # the snapshot
+        await until(lambda: server.clients == 1)
+        for i in range(50):
+            bus.publish("metrics", {"n": i, "pad": "x" * 4000})  # ~200 kB still queued at close
+        bus.publish("status", {"state": "stopped"})
+        await server.close()
+        rest = [json.loads(ln) for ln in (await asyncio.wait_for(reader.read(), 5)).splitlines()]
+        writer.close()
+        return rest, server.path.exists()
+
+    rest, still_there = asyncio.run(main())
+    assert [m["data"]["n"] for m in rest[:-1]] == list(range(50))
+    assert rest[-1] == {"topic": "status", "data": {"state": "stopped"}} and not still_there
+
+
+def test_the_listener_waits_for_the_daemon_skips_garbage_and_reconnects(tmp_path):
+    """What mls demo follows the survey with: the latest message per topic, across a daemon
+    restart; a line that is not a status message is skipped."""
+    import socket
+    import time
+
+    path = tmp_path / "status.sock"
+    listener = StatusListener(path, retry_s=0.02)
+    listener.start()
+
+    def until(cond):
+        deadline = time.monotonic() + 5
+        while not cond():
+            assert time.monotonic() < deadline, "timed out"
+            time.sleep(0.01)
+
+    try:
+        for state in ("running", "restarted"):
+            srv = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+            path.unlink(missing_ok=True)
+            srv.bind(str(path))
+            srv.listen(1)
+            conn, _ = srv.accept()
+            conn.sendall(b'not json\n{"topic": "status"}\n{"topic": "status", "data": {"state": "'
+                         + state.encode() + b'"}}\n{"topic": "clock", "data": {"state": "LO')  # fmt: skip
+            conn.sendall(b'CKED"}}\n')
+            until(lambda: (listener.latest("clock") or {}).get("state") == "LOCKED"
+                  and listener.latest("status") == {"state": state})  # fmt: skip
+            conn.close()
+            srv.close()
+        assert listener.connects == 2 and listener.latest("gossip") is None
+    finally:
+        listener.stop()
+    assert not listener.is_alive()

@@ -205,6 +205,7 @@ def test_a_session_is_exported_then_calibrated(tmp_path, monkeypatch, bundle):
     session = tmp_path / "20190709T140000Z_boat"
     session.mkdir()
     (session / "seg-000001.mcap").write_bytes(b"")
+    (session / "site.yaml").write_text("")  # the daemon's copy of the site file
     line = one_line_error(calib_run(session))  # the real export: an empty session
     assert line.startswith(f"error: {session} is a recorded session and could not be exported")
     assert f"run 'mls export {session} --bundle DIR' with its options" in line
