@@ -69,7 +69,7 @@ class DaemonContext:
 
 def transport_config(t: SerialTransport | NetTransport, name: str, high_rate: bool = False) -> dict:
     """A vessel-config transport → the mapping :func:`drivers.transport.create_transport` takes
-    (``high_rate``: UDP through :mod:`acquire.udpbatch`, the profiler's thousands of datagrams
+    (``high_rate``: UDP through :mod:`drivers.udpbatch`, the profiler's thousands of datagrams
     per second)."""
     if isinstance(t, SerialTransport):
         return {"kind": "serial", "port": t.port, "baudrate": t.baud, "name": name}
@@ -156,7 +156,6 @@ class _StreamDevice(Device):
         self.transport = None
 
     async def open(self) -> None:
-        import acquire.udpbatch  # noqa: F401  (files the udp-batch transport)
         from drivers.transport import create_transport
 
         self.transport = create_transport(transport_config(self.cfg.transport, self.name, self.high_rate),

@@ -23,6 +23,8 @@ with ``@register_transport("name")``.
   ``rcvbuf_bytes``, granted ``rcvbuf_bytes_granted``); optional multicast ``group`` joined on
   ``interface``; when the consumer lags, datagrams are dropped and counted (``stats``).
 - ``tcp`` (:class:`TcpTransport`): a client that reconnects with the same back-off.
+- ``udp-batch`` (:mod:`drivers.udpbatch`): UDP for high datagram rates (the profiler at the
+  full Z+F rate): kernel receive stamps, every waiting datagram drained per wake-up.
 
 State changes are reported as :class:`TransportEvent` to the ``on_event`` callback and kept in
 ``transport.events``; ``transport.connected`` and ``transport.reconnects`` give the state.
@@ -403,3 +405,6 @@ class TcpTransport(Transport):
                 await writer.wait_closed()
             except (ConnectionError, OSError):
                 pass
+
+
+from drivers import udpbatch  # noqa: E402,F401  (files the udp-batch transport; it imports this module)

@@ -22,8 +22,11 @@ Three layers:
    sentence of the PHINS block), when a sentence id repeats (the next epoch has begun), or at
    :meth:`flush`. ``TIME__`` (or GGA/ZDA time when there is no ``TIME__``) gives the time of
    day; the date comes from the last ZDA (``date_source='zda'``) or else from the host's UTC
-   date (``'host'``), nearest day within ±12 h. ``gps_ns`` stays None when the INS says it is
-   not on UTC (system status 2 bit 9 clear), because ``TIME__`` is then the INS system time.
+   date (``'host'``), nearest day within ±12 h. Once the stream has carried ``TIME__``, an
+   epoch that lost its own (a line dropping bytes) is rejected
+   (``rejected['epoch_without_time']``) rather than dated by a ZDA or GGA of another instant.
+   ``gps_ns`` stays None when the INS says it is not on UTC (system status 2 bit 9 clear),
+   because ``TIME__`` is then the INS system time.
 
 3. Encoders for the emulators: :func:`encode_sentence`, :func:`encode_epoch` (a canonical
    NavRecord → the PHINS standard block, in the order HEHDT, ATITUD, POSITI, SPEED_, HEAVE_,
@@ -478,6 +481,7 @@ class NmeaNavAssembler:
         self._zda_utc_ns: int | None = None
         self._zda_host_ns: int | None = None
         self._hint: int | None = None
+        self._time_sentences = False  # the stream carries TIME__: every epoch must have its own
 
     @property
     def stats(self) -> DecoderStats:
@@ -502,6 +506,8 @@ class NmeaNavAssembler:
         if isinstance(rec, Sentence):
             return out
         kind = type(rec)
+        if kind is PixseTime:
+            self._time_sentences = True
         if kind in self._epoch:
             out.extend(self._close())
         self._epoch[kind] = rec
@@ -561,6 +567,12 @@ class NmeaNavAssembler:
                         nav.height_m, nav.height_ref = r.altitude_msl_m + r.geoid_separation_m, "ellipsoid"
                     elif not math.isnan(r.altitude_msl_m):
                         nav.height_m, nav.height_ref = r.altitude_msl_m, "geoid"
+        if tod is None and self._time_sentences and any(
+                isinstance(r, (Hdt, PixseAtitud, PixsePositi)) for r in epoch.values()):
+            # the stream has TIME__ but this epoch lost its own (bytes lost on the line): a ZDA
+            # or GGA next to it belongs to another instant, so its time is unknown
+            self.decoder.stats.rejected["epoch_without_time"] += 1
+            return []
         if tod is None:
             for cls in (Gga, Zda, Rmc):
                 tod = next((r.time_of_day_ns for r in epoch.values() if isinstance(r, cls)), None)

@@ -210,8 +210,8 @@ def test_the_listener_waits_for_the_daemon_skips_garbage_and_reconnects(tmp_path
             conn.sendall(b'CKED"}}\n')
             until(lambda: (listener.latest("clock") or {}).get("state") == "LOCKED"
                   and listener.latest("status") == {"state": state})  # fmt: skip
+            srv.close()  # no longer listening: the listener's next connection reaches the next one
             conn.close()
-            srv.close()
         assert listener.connects == 2 and listener.latest("gossip") is None
     finally:
         listener.stop()

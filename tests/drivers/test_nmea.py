@@ -222,3 +222,57 @@ def test_encode_epoch_decode_round_trip(nav):
     assert (back.algorithm_status, back.system_status, back.user_status) == (
         nav.algorithm_status, nav.system_status, nav.user_status)  # fmt: skip
     assert (back.navigation, back.fine_alignment, back.pps_detected) == (nav.navigation, nav.fine_alignment, nav.pps_detected)
+
+
+def _epoch_at(k: int) -> NavRecord:
+    """Epoch k of a 200 Hz stream on UTC, roll a function of k."""
+    n = NavRecord("nmea")
+    n.gps_ns = 1_400_000_000 * 10**9 + k * 5_000_000
+    n.lat_deg, n.lon_deg, n.height_m = 45.5, -73.55, 10.0
+    n.roll_rad, n.pitch_rad, n.heading_rad = math.radians(0.01 * k), 0.01, 1.0
+    n.system_status = (0, 1 << 9)
+    return n
+
+
+def test_an_epoch_that_lost_its_time_is_not_dated_by_a_zda_of_another_instant():
+    """A line dropping bytes (a reader stalled behind a full pty): epoch 0 loses its tail with
+    TIME__, then epochs 1–9 are lost, and the ZDA of the next second follows."""
+    zda_ns = _epoch_at(200).gps_ns
+    stream = (encode_zda(_epoch_at(-200).gps_ns) + encode_epoch(_epoch_at(-1))
+              + encode_epoch(_epoch_at(0))[:120] + encode_zda(zda_ns) + encode_epoch(_epoch_at(200)))  # fmt: skip
+    asm = NmeaNavAssembler(utc_clock=None)
+    out = asm.feed(stream) + asm.flush()
+    assert [n.gps_ns for n in out] == [_epoch_at(-1).gps_ns, zda_ns]
+    assert asm.stats.rejected == {"epoch_without_time": 1}
+    # a stream without TIME__ is still dated by its ZDA (the time of last resort)
+    asm = NmeaNavAssembler(utc_clock=None)
+    (nav,) = asm.feed(encode_zda(zda_ns) + encode_sentence("HEHDT,57.3,T")) + asm.flush()
+    assert nav.gps_ns == zda_ns and asm.stats.rejected == {}
+
+
+@PROPERTY
+@given(st.lists(st.tuples(st.floats(0, 1), st.integers(0, 12)), min_size=1, max_size=30))
+def test_a_stream_losing_bytes_never_mixes_epochs(cuts):
+    """Whatever byte ranges are lost (a partial write, then whole writes dropped), every record
+    is one epoch's: its attitude is the attitude of the epoch at its time."""
+    writes, k = [], 0
+    while k < 400:
+        if k % 200 == 0:
+            writes.append(encode_zda(_epoch_at(k).gps_ns))
+        writes.append(encode_epoch(_epoch_at(k)))
+        k += 1
+    stream, i = b"", 0
+    for j, w in enumerate(writes):
+        cut = cuts[j % len(cuts)]
+        if j % 7 == 3 and i <= j:  # a partial write; the next `skip` writes are lost
+            stream += w[: int(cut[0] * len(w))]
+            i = j + 1 + cut[1]
+        elif j >= i:
+            stream += w
+    asm = NmeaNavAssembler(utc_clock=None)
+    out = [n for n in asm.feed(stream) + asm.flush() if n.gps_ns is not None]
+    assert out
+    for n in out:
+        k, rest = divmod(n.gps_ns - _epoch_at(0).gps_ns, 5_000_000)
+        assert rest == 0
+        assert math.isnan(n.roll_rad) or abs(math.degrees(n.roll_rad) - 0.01 * k) < 1e-6, k

@@ -19,8 +19,9 @@ daemon's CPU at the full Z+F rate. This transport instead:
 
 When ``max_chunks`` datagrams wait for the consumer, reading pauses (they wait in the socket
 buffer; the kernel drops what overflows it, counted in ``/proc/net/udp``) until the consumer has
-taken half of them. Truncated datagrams are counted (``rejected['truncated']``). (A candidate for :mod:`drivers.transport`: kept here,
-in the daemon's own files, until the drivers take it over.)
+taken half of them. Truncated datagrams are counted (``rejected['truncated']``).
+:mod:`drivers.transport` imports this module, so ``create_transport({"kind": "udp-batch", ...})``
+works wherever the transports do.
 """
 
 from __future__ import annotations

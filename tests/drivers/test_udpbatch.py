@@ -9,7 +9,6 @@ import time
 
 import pytest
 
-import acquire.udpbatch  # noqa: F401  (files the transport)
 from drivers.transport import create_transport
 
 pytestmark = pytest.mark.integration
