@@ -434,6 +434,8 @@ class ChecklistApp(App):
     # -- drawing ----------------------------------------------------------------------------
 
     def refresh_view(self) -> None:
+        if not self.is_running:  # shutting down: the widgets are being removed
+            return
         st = self.state
         self.query_one("#header", Static).update(render_header(st))
         pre = self.query_one("#prechecks", Static)

@@ -48,6 +48,7 @@ from drivers.zf.zfp1 import HEADER_SIZE as _ZFP1_HEADER_SIZE
 from drivers.zf.zfp1 import MAGIC as _ZFP1_MAGIC
 
 NS_PER_S = 1_000_000_000
+STATUS_HOLD_NS = NS_PER_S  # how long an INS status stands for epochs that lost theirs
 DEVICES = Registry("devices")
 _ZFP1_FLAGS_T0 = struct.Struct("<H")  # ZFP1 header: flags at byte 6, t0_ns at byte 16
 _ZFP1_T0 = struct.Struct("<q")
@@ -200,6 +201,7 @@ class InsDevice(_StreamDevice):
         self.synced_records = 0
         self.last_nav: dict | None = None
         self._zda_utc_ns: int | None = None  # date of the last ZDA (dates GGA time messages)
+        self._status_nav = None  # the last epoch that carried the system status words
 
     def channel_metadata(self) -> dict[str, dict[str, str]]:
         return {"/ins/raw": {"protocol": self.cfg.protocol or "nmea", "device": self.name}}
@@ -264,22 +266,37 @@ class InsDevice(_StreamDevice):
         except ValueError:
             return None
 
+    def _sync_flags(self, nav, host_ns: int | None) -> tuple[bool | None, bool | None]:
+        """(UTC detected, PPS detected) as the INS says. An epoch that lost its STATUS sentence
+        (bytes dropped on the line) keeps the status of the last epoch that had one, up to
+        :data:`STATUS_HOLD_NS` old: the INS does not leave UTC for one epoch, and timing that
+        epoch by an unlocked clock model instead would misplace it in the trajectory."""
+        if nav.system_status is not None:
+            self._status_nav = nav
+        else:
+            held = self._status_nav
+            if held is not None and host_ns is not None and held.host_ns is not None \
+                    and host_ns - held.host_ns <= STATUS_HOLD_NS:
+                nav = held
+        return nav.utc_detected, nav.pps_detected
+
     def _nav(self, nav) -> None:
         ctx = self.ctx
         host_ns = nav.host_ns
         self.records += 1
         self.seen(host_ns)
-        synced = nav.gps_ns is not None and bool(nav.utc_detected) and bool(nav.pps_detected)
+        utc, pps = self._sync_flags(nav, host_ns)
+        synced = nav.gps_ns is not None and bool(utc) and bool(pps)
         if synced:
             gps_ns, source = nav.gps_ns, "device"
             self.synced_records += 1
         else:
             gps_ns, source = ctx.gps_ns(host_ns), "clock"
-        if self._nav_labels and nav.gps_ns is not None and nav.utc_detected:
+        if self._nav_labels and nav.gps_ns is not None and utc:
             ctx.timekeeper.on_time(nav.gps_ns // NS_PER_S, host_ns)
         # the INS says it is on UTC: its time tags are checked against the clock even without PPS
-        tag = nav.gps_ns if nav.utc_detected else None
-        ctx.monitor.observe(self.name, host_ns, tag, pps_flag=nav.pps_detected)
+        tag = nav.gps_ns if utc else None
+        ctx.monitor.observe(self.name, host_ns, tag, pps_flag=pps)
         data = nav.to_dict()
         data["time_gps_ns"], data["time_source"] = gps_ns, source
         self.last_nav = {k: data[k] for k in ("lat_deg", "lon_deg", "heading_deg", "navigation",

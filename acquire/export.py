@@ -101,6 +101,7 @@ class _Nav:
     rpy_deg: np.ndarray
     sig: np.ndarray  # (n, 6) north, east, down m, roll, pitch, heading deg (NaN when absent)
     from_clock: int
+    retimed: int  # of those, logged while the clock was unlocked: timed by the INS tags around
 
 
 _SIGMAS = ("sigma_north_m", "sigma_east_m", "sigma_down_m", "sigma_roll_deg", "sigma_pitch_deg",
@@ -110,8 +111,11 @@ _SIGMAS = ("sigma_north_m", "sigma_east_m", "sigma_down_m", "sigma_roll_deg", "s
 def _read_nav_and_events(session: Path, progress) -> tuple[_Nav, list]:
     """The INS epochs, and the events as ``(gps_ns, how, data)``: the event's log time when
     the clock model was locked (or holding over), else its receipt mapped to GPS time through
-    the INS time tags around it (``how``: ``clock`` / ``ins`` / ``system``)."""
-    rows, raw_events, sync_host, sync_t = [], [], [], []
+    the INS time tags around it (``how``: ``clock`` / ``ins`` / ``system``). An INS epoch timed
+    by the clock model while it was unlocked (the INS not synced for that epoch, e.g. one that
+    lost its STATUS sentence) is re-timed the same way, so it does not land where the
+    free-running clock put it."""
+    rows, raw_events, sync_host, sync_t, unlocked = [], [], [], [], []
     for env in iter_messages(session, {"/ins/nav", "/events"}, progress):
         d = env.payload
         if env.topic == "/events":
@@ -122,16 +126,26 @@ def _read_nav_and_events(session: Path, progress) -> tuple[_Nav, list]:
                                    "heading_deg")]  # fmt: skip
         if t is None:
             continue
-        if d.get("time_source") == "device":
+        from_clock = d.get("time_source") == "clock"
+        if not from_clock:
             sync_host.append(env.host_ns)
             sync_t.append(int(t))
         if any(v is None for v in vals):
             continue
+        if from_clock and env.clock == "UNLOCKED":
+            unlocked.append((len(rows), env.host_ns))
         sig = [np.nan if d.get(k) is None else d[k] for k in _SIGMAS]
-        rows.append((int(t), *vals, *sig, d.get("time_source") == "clock"))
+        rows.append([int(t), *vals, *sig, from_clock])
     if len(rows) < 2:
         raise ExportError(f"{session}: {len(rows)} INS epochs with position and attitude in "
                           f"/ins/nav; a trajectory needs at least 2")  # fmt: skip
+    ins_time = _InsTime(np.array(sync_host, np.int64), np.array(sync_t, np.int64))
+    retimed = 0
+    for i, host_ns in unlocked:
+        t_ins = ins_time.gps_ns(host_ns)
+        if t_ins is not None:
+            rows[i][0] = t_ins
+            retimed += 1
     t = np.array([r[0] for r in rows], dtype=np.int64)
     a = np.array([r[1:13] for r in rows], dtype=np.float64)
     clock = np.array([r[13] for r in rows], dtype=bool)
@@ -139,31 +153,39 @@ def _read_nav_and_events(session: Path, progress) -> tuple[_Nav, list]:
     t, a, clock = t[order], a[order], clock[order]
     keep = np.concatenate([[True], np.diff(t) > 0])
     t, a, clock = t[keep], a[keep], clock[keep]
-    nav = _Nav(t, a[:, 0], a[:, 1], a[:, 2], a[:, 3:6], a[:, 6:12], int(clock.sum()))
-    return nav, _time_events(raw_events, np.array(sync_host, np.int64), np.array(sync_t, np.int64))
+    nav = _Nav(t, a[:, 0], a[:, 1], a[:, 2], a[:, 3:6], a[:, 6:12], int(clock.sum()), retimed)
+    events = []
+    for log_ns, host_ns, state, d in raw_events:
+        if state != "UNLOCKED":
+            events.append((log_ns, "clock", d))
+        elif (t_ins := ins_time.gps_ns(host_ns)) is not None:
+            events.append((t_ins, "ins", d))
+        else:
+            events.append((log_ns, "system", d))
+    return nav, events
 
 
-def _time_events(raw: list, host: np.ndarray, t: np.ndarray) -> list:
-    out = []
-    order = np.argsort(host, kind="stable")
-    host, t = host[order], t[order]
-    for log_ns, host_ns, clock, d in raw:
-        if clock != "UNLOCKED":
-            out.append((log_ns, "clock", d))
-            continue
+class _InsTime:
+    """Host receive time → GPS time through the synced INS epochs received around it (their
+    time tags against their receive stamps), for what the clock model could not time."""
+
+    def __init__(self, host_ns: np.ndarray, gps_ns: np.ndarray) -> None:
+        order = np.argsort(host_ns, kind="stable")
+        self.host, self.t = host_ns[order], gps_ns[order]
+
+    def gps_ns(self, host_ns: int) -> int | None:
+        """None when no synced epoch was received within 1 s of ``host_ns``."""
+        host, t = self.host, self.t
         k = int(np.searchsorted(host, host_ns))
         near = [j for j in (k - 1, k) if 0 <= j < host.size and abs(int(host[j]) - host_ns) < NS_PER_S]
         if not near:
-            out.append((log_ns, "system", d))
-            continue
+            return None
         if len(near) == 2 and host[near[1]] > host[near[0]]:
             a, b = near
             w = (host_ns - int(host[a])) / (int(host[b]) - int(host[a]))
-            out.append((int(t[a]) + round(w * (int(t[b]) - int(t[a]))), "ins", d))
-        else:
-            j = near[0]
-            out.append((int(t[j]) + host_ns - int(host[j]), "ins", d))
-    return out
+            return int(t[a]) + round(w * (int(t[b]) - int(t[a])))
+        j = near[0]
+        return int(t[j]) + host_ns - int(host[j])
 
 
 def _fill_sigmas(t_ns: np.ndarray, sig: np.ndarray) -> tuple[np.ndarray | None, int]:
@@ -420,7 +442,9 @@ def export_session(session_dir: str | Path, bundle_dir: str | Path,
                         "is written without them and the calibration uses the site's pos_sigmas")  # fmt: skip
     if nav.from_clock:
         warnings.append(f"{nav.from_clock} INS epochs were timed by the clock model (INS not on "
-                        f"UTC + PPS)")  # fmt: skip
+                        f"UTC + PPS)" + (f", {nav.retimed} of them, received while the clock was "
+                                         f"unlocked, through the INS time tags around them"
+                                         if nav.retimed else ""))  # fmt: skip
     points = ScanPoints(pid, frames.gps_ns_to_seconds(t_ns), rng, np.radians(ang), inten)
     if progress is not None:
         progress("writing the bundle", 0, None)

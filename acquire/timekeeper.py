@@ -26,6 +26,7 @@ from typing import Any
 from acquire.clock import ClockModel, ClockState
 from calib.frames import leap_seconds_at_utc
 from drivers.pps import LABEL_WINDOW_NS, PpsEdge, PpsLabeler
+from drivers.timing import realtime_minus_monotonic_ns
 
 NS_PER_S = 1_000_000_000
 UNIX_TO_GPS_EPOCH_S = 315_964_800  # 1980-01-06T00:00:00Z in Unix seconds
@@ -37,11 +38,10 @@ def coarse_gps_offset_ns() -> int:
     """GPS ns − ``time.monotonic_ns()`` from the system clock (UTC + the leap seconds)."""
     import datetime as _dt
 
-    mono = time.monotonic_ns()
-    real = time.clock_gettime_ns(time.CLOCK_REALTIME)
-    mono = (mono + time.monotonic_ns()) // 2
+    offset = realtime_minus_monotonic_ns()
+    real = time.monotonic_ns() + offset
     leap = leap_seconds_at_utc(_dt.datetime.fromtimestamp(real / NS_PER_S, _dt.timezone.utc))
-    return real - UNIX_TO_GPS_EPOCH_S * NS_PER_S + leap * NS_PER_S - mono
+    return offset - UNIX_TO_GPS_EPOCH_S * NS_PER_S + leap * NS_PER_S
 
 
 class TimeKeeper:

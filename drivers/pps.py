@@ -43,6 +43,7 @@ from collections.abc import AsyncIterator
 from dataclasses import dataclass, replace
 
 from drivers.base import DecoderStats, DriverError, Registry
+from drivers.timing import realtime_minus_monotonic_ns
 
 NS_PER_S = 1_000_000_000
 LABEL_WINDOW_NS = 1_100_000_000
@@ -298,7 +299,7 @@ class KernelPpsSource(_ThreadedSource):
                         continue
                     self._put_threadsafe(DriverError(f"PPS_FETCH on {self.device}: {exc.strerror}"))
                     return
-                offset = time.clock_gettime_ns(time.CLOCK_REALTIME) - time.monotonic_ns()
+                offset = realtime_minus_monotonic_ns()
                 f = unpack_pps_fdata(buf)
                 if f.assert_sequence == last_seq or f.assert_realtime_ns == 0:
                     continue

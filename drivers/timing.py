@@ -16,11 +16,27 @@ This is the estimator behind ``mls decode --timing`` and the reference for the c
 
 from __future__ import annotations
 
+import time
 from dataclasses import dataclass
 
 import numpy as np
 
 DAY_NS = 86_400 * 1_000_000_000
+
+
+def realtime_minus_monotonic_ns(tries: int = 3) -> int:
+    """``CLOCK_REALTIME − CLOCK_MONOTONIC`` now, to move a kernel's realtime stamp (a socket's
+    ``SO_TIMESTAMPNS``, a PPS fetch) to monotonic time. Each try brackets the realtime read by
+    two monotonic reads; the narrowest bracket wins, so a preemption between the reads (a busy
+    machine) does not shift the offset — and with it the order of stamps taken moments apart."""
+    best_width, best = None, 0
+    for _ in range(tries):
+        a = time.monotonic_ns()
+        real = time.clock_gettime_ns(time.CLOCK_REALTIME)
+        b = time.monotonic_ns()
+        if best_width is None or b - a < best_width:
+            best_width, best = b - a, real - (a + b) // 2
+    return best
 
 
 @dataclass(frozen=True)

@@ -15,10 +15,12 @@ with ``@register_transport("name")``.
 - ``serial`` (:class:`SerialTransport`): pyserial opens and configures the port; its fd is
   non-blocking and read from the event loop (``loop.add_reader``), no thread. When the port
   vanishes (EIO/EOF: a USB adapter unplugged, an emulator's pty closed) the transport reports
-  ``disconnected``, backs off (``reconnect_min_s`` doubling to ``reconnect_max_s``) and reopens
-  the same path — a stable symlink such as ``/dev/serial/by-id/...`` or an emulator's
-  ``<run dir>/ins`` then reaches the new device — and reports ``connected``. A slow consumer
-  pauses reading (the kernel buffers) instead of losing bytes.
+  ``disconnected``, backs off (``reconnect_min_s`` doubling to ``reconnect_max_s``, 0.5 s for
+  a serial port: trying to open a missing path costs nothing, and every second waited after
+  the INS is back is a second of navigation lost) and reopens the same path — a stable symlink
+  such as ``/dev/serial/by-id/...`` or an emulator's ``<run dir>/ins`` then reaches the new
+  device — and reports ``connected``. A slow consumer pauses reading (the kernel buffers)
+  instead of losing bytes.
 - ``udp`` (:class:`UdpTransport`): one datagram per chunk; a large ``SO_RCVBUF`` (asked
   ``rcvbuf_bytes``, granted ``rcvbuf_bytes_granted``); optional multicast ``group`` joined on
   ``interface``; when the consumer lags, datagrams are dropped and counted (``stats``).
@@ -231,6 +233,7 @@ class SerialTransport(Transport):
         name: str | None = None,
         **kwargs,
     ) -> None:
+        kwargs.setdefault("reconnect_max_s", 0.5)
         super().__init__(name or port, **kwargs)
         self.port = port
         self.settings = {"baudrate": baudrate, "bytesize": bytesize, "parity": parity, "stopbits": stopbits}

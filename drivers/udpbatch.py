@@ -30,6 +30,7 @@ import socket
 import struct
 import time
 
+from drivers.timing import realtime_minus_monotonic_ns
 from drivers.transport import Transport, register_transport
 
 _TIMESPEC = struct.Struct("@qq")
@@ -98,7 +99,7 @@ class BatchUdpTransport(Transport):
         if sock is None:
             return
         mono = time.monotonic_ns()
-        offset = time.clock_gettime_ns(time.CLOCK_REALTIME) - mono
+        offset = realtime_minus_monotonic_ns()
         recvmsg, chunks, stats = sock.recvmsg, self._chunks, self.stats
         anc_size = socket.CMSG_SPACE(_TIMESPEC.size)
         got = 0

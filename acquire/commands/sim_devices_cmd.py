@@ -10,6 +10,7 @@ can write a vessel config for ``mls acquire``, and stop cleanly on Ctrl-C / SIGT
 from __future__ import annotations
 
 import signal
+import threading
 from pathlib import Path
 from typing import List, Optional
 
@@ -77,18 +78,17 @@ def _stats_table(stats: dict, title: str):
     return t
 
 
-def _run_until_done(run, console, total_s: float, label: str) -> bool:
-    """Progress bar until every emulator ends; True if interrupted (Ctrl-C / SIGTERM)."""
+def _run_until_done(run, console, total_s: float, label: str, stop: threading.Event) -> bool:
+    """Progress bar until every emulator ends; True if ``stop`` was set (Ctrl-C / SIGTERM)."""
     from rich.progress import BarColumn, Progress, TextColumn, TimeRemainingColumn
 
-    try:
-        with Progress(TextColumn("[bold]{task.description}"), BarColumn(),
-                      TextColumn("{task.completed:.1f}/{task.total:.1f} s"), TimeRemainingColumn(),
-                      console=console, transient=True) as bar:  # fmt: skip
-            task = bar.add_task(label, total=total_s)
-            while not run.wait(0.2):
-                bar.update(task, completed=run.elapsed_s())
-    except KeyboardInterrupt:
+    with Progress(TextColumn("[bold]{task.description}"), BarColumn(),
+                  TextColumn("{task.completed:.1f}/{task.total:.1f} s"), TimeRemainingColumn(),
+                  console=console, transient=True) as bar:  # fmt: skip
+        task = bar.add_task(label, total=total_s)
+        while not stop.is_set() and not run.wait(0.2):
+            bar.update(task, completed=run.elapsed_s())
+    if stop.is_set():
         console.print("stopping the emulators …", highlight=False)
         return True
     return False
@@ -103,6 +103,24 @@ class _SigtermAsInterrupt:
 
     def __exit__(self, *exc) -> None:
         signal.signal(signal.SIGTERM, self.previous)
+
+
+class _StopOnSignal:
+    """While the emulators run, Ctrl-C and SIGTERM only set an event that the waiting loop
+    polls: an exception raised at whatever line the signal lands on (inside a lock, a join, a
+    terminal write) could leave the stop half done."""
+
+    def __init__(self) -> None:
+        self.event = threading.Event()
+
+    def __enter__(self) -> threading.Event:
+        handler = lambda *_: self.event.set()  # noqa: E731
+        self.previous = {s: signal.signal(s, handler) for s in (signal.SIGINT, signal.SIGTERM)}
+        return self.event
+
+    def __exit__(self, *exc) -> None:
+        for s, h in self.previous.items():
+            signal.signal(s, h)
 
 
 def _check_config(path: Path, console) -> None:
@@ -231,12 +249,11 @@ def devices(
 
 def _serve(run, console, locations_table, notes: list[str], write_config: Path | None, total_s: float,
            label: str, title: str) -> None:  # fmt: skip
-    """Start the run, say where the devices are, wait for its end or Ctrl-C (SIGTERM too, under
-    :class:`_SigtermAsInterrupt`), stop it, and print what each emulator did (exit 1 if one crashed)."""
+    """Start the run, say where the devices are, wait for its end or Ctrl-C / SIGTERM
+    (:class:`_StopOnSignal`), stop it, and print what each emulator did (exit 1 if one crashed)."""
     from sim_devices.runner import SimDevicesError
 
-    interrupted = False
-    with run:
+    with run, _StopOnSignal() as stop:
         try:
             locations = run.start()
             console.print(locations_table(locations))
@@ -245,12 +262,10 @@ def _serve(run, console, locations_table, notes: list[str], write_config: Path |
             if write_config is not None:
                 _check_config(run.write_vessel_config(write_config), console)
             console.file.flush()
-            interrupted = _run_until_done(run, console, total_s, label)
+            interrupted = _run_until_done(run, console, total_s, label, stop)
         except (SimDevicesError, ValueError) as e:
             console.print(f"[red]error:[/red] {e}", highlight=False)
             raise typer.Exit(1) from None
-        except KeyboardInterrupt:  # while starting or printing: the same orderly stop
-            interrupted = True
         stats = run.stop()
     console.print(_stats_table(stats, title + (" (stopped)" if interrupted else "")))
     crashed = [s for s in stats.values() if s.get("status") in ("crashed", "failed to start")]

@@ -247,6 +247,20 @@ def test_app_shows_a_lost_link(tmp_path):
     asyncio.run(main())
 
 
+def test_a_message_arriving_while_the_app_closes_is_ignored(tmp_path):
+    """The feed runs until the app is torn down; a message it yields after the widgets are gone
+    must not fail the app (Textual would re-raise it from run_test / on exit)."""
+
+    async def main():
+        app = ChecklistApp(SocketFeed(tmp_path / "nobody.sock"))
+        async with app.run_test(size=(80, 24)) as pilot:
+            await _until(pilot, lambda: "no link" in _plain(app, "#header"), "the link state")
+        app.state.apply("status", {"state": "stopped"})
+        app.refresh_view()  # what the feed worker does with it: nothing, quietly
+
+    asyncio.run(main())
+
+
 # -- the pure rendering ---------------------------------------------------------------------------
 
 

@@ -80,8 +80,12 @@ def _write_session(tmp, marks: bool):
                "time_gps_ns": int(t[k]), "time_source": "device"}  # fmt: skip
         if k == 10:  # an epoch whose STDPOS/STDHRP were lost
             nav = {key: v for key, v in nav.items() if not key.startswith("sigma_")}
-        w.submit("/ins/nav", nav, host_ns=host, device_ns=int(t[k]), log_time_ns=int(t[k]),
-                 clock_state="LOCKED")  # fmt: skip
+        if k == 20:  # an epoch that lost its STATUS, timed by the clock model while unlocked
+            nav.update(time_gps_ns=int(t[k]) + 700_000_000, time_source="clock")
+            w.submit("/ins/nav", nav, host_ns=host, log_time_ns=nav["time_gps_ns"], clock_state="UNLOCKED")
+        else:
+            w.submit("/ins/nav", nav, host_ns=host, device_ns=int(t[k]), log_time_ns=int(t[k]),
+                     clock_state="LOCKED")  # fmt: skip
         r = np.full(20, 100_000, np.uint32)
         r[::5] = 0  # no returns
         locked = k != 30  # one profile without a PPS-locked time tag
@@ -119,7 +123,11 @@ def test_export_takes_passes_from_marks_or_the_plan_and_decodes_every_return(tmp
     b = read_bundle(res.bundle)
     assert np.allclose(np.degrees(b.site.mount.boresight_rad), [0.1, 0.2, 0.3])  # session.json
     assert np.allclose(b.site.mount.lever_arm_m, [0.35, 0.85, -1.65])
-    assert len(b.trajectory.t_gps_s) == len(t) and b.trajectory.has_sigmas
+    # every epoch at its own time, the one the unlocked clock misplaced by 0.7 s included
+    np.testing.assert_allclose(b.trajectory.t_gps_s, frames.gps_ns_to_seconds(t), rtol=0, atol=1e-6)
+    assert b.trajectory.has_sigmas
+    assert ("1 INS epochs were timed by the clock model (INS not on UTC + PPS), 1 of them, received "
+            "while the clock was unlocked, through the INS time tags around them") in res.warnings
     assert f"1 of {len(t)} INS epochs had no sigmas: interpolated from the neighbouring epochs" in res.warnings
     assert np.allclose(b.trajectory.sigma_p_m, [0.02, 0.02, 0.03])
     # expected: 16 returns per profile whose points fall inside a pass, no duplicate

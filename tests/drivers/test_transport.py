@@ -123,6 +123,25 @@ def test_serial_port_missing_at_start_is_reported_then_opened(tmp_path):
     assert events[-1].kind == "connected"
 
 
+def test_serial_port_that_appears_late_is_opened_within_half_a_second(tmp_path):
+    """The default back-off of a serial port stops doubling at 0.5 s: an INS that shows up after
+    a few seconds (the emulator starting, a USB adapter plugged in) is read at once."""
+    link = tmp_path / "late"
+
+    async def run():
+        t = SerialTransport(str(link))
+        async with t:
+            await asyncio.sleep(4.0)  # 0.1 + 0.2 + 0.4 + 0.5 …: past where a 5 s cap would wait
+            pty = Pty(link)
+            t0 = time.monotonic()
+            assert await until(lambda: t.connected), "port not opened within 10 s"
+            waited_s = time.monotonic() - t0
+            pty.unplug()
+            return waited_s
+
+    assert asyncio.run(run()) <= 0.5 + 0.25  # the cap, and a loaded machine's slack
+
+
 def test_serial_slow_consumer_pauses_reading_without_losing_bytes(tmp_path):
     pty = Pty(tmp_path / "fast")
 
