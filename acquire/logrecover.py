@@ -54,8 +54,8 @@ class SegmentScan:
     problem: str | None = None  # why the scan stopped early
 
     @property
-    def torn_bytes(self) -> int:
-        return self.size - self.good_bytes if not self.footer else 0
+    def torn_bytes(self) -> int:  # (after a footer: bytes past its magic, normally none)
+        return self.size - self.good_bytes
 
     @property
     def complete(self) -> bool:
@@ -108,7 +108,9 @@ def scan_segment(path: Path, scan: SegmentScan | None = None
                         scan.problem = f"torn or missing MCAP magic after the footer at byte {pos}"
                         return
                     scan.footer, scan.indexed = True, footer.summary_start != 0
-                    scan.good_bytes = size
+                    scan.good_bytes = end = pos + _HEAD.size + length + len(MCAP0_MAGIC)
+                    if end < size:  # never written so by a writer: reported, not ignored
+                        scan.problem = f"torn tail of {size - end} bytes after the footer at byte {pos}"
                     return
                 else:  # header, indexes, statistics, data end, attachments: nothing to carry
                     records = []

@@ -22,7 +22,10 @@ Durability:
   nothing written before can be trusted by retrying. Either way the ``disk_write_failed`` alarm
   is raised, records are dropped (and counted) while writing is paused, and every ``retry_s`` the
   writer tries a new segment; when writes succeed again it resumes there, clears the alarm and
-  logs a ``log_write_failed`` event in ``/events``;
+  logs a ``log_write_failed`` event in ``/events``. The records counted lost by a failure are
+  exactly those not in a chunk the file received whole (a chunk is one write; its message
+  indexes, the summary and the footer that follow it carry no record), i.e. what a salvage of
+  the segment cannot read;
 - the session directory holds ``session.lock`` (flock, with the writer's pid) while a writer
   owns it; an unfinished segment of a session nobody holds is salvaged by
   :mod:`acquire.logrecover` (at daemon start and by ``mls logs recover``).
@@ -45,6 +48,7 @@ from pathlib import Path
 from typing import Any, Callable, Protocol
 
 from mcap.data_stream import RecordBuilder
+from mcap.opcode import Opcode
 from mcap.records import DataEnd, Footer
 from mcap.writer import MCAP0_MAGIC, CompressionType, Writer
 
@@ -72,6 +76,7 @@ DataEnd(0).write(_rb)
 Footer(summary_start=0, summary_offset_start=0, summary_crc=0).write(_rb)
 MINIMAL_END = _rb.end() + MCAP0_MAGIC
 del _rb
+_CHUNK_OPCODE = bytes([Opcode.CHUNK])
 
 
 class LogError(RuntimeError):
@@ -136,6 +141,28 @@ class SegmentIO:
 
     def close(self) -> None:
         os.close(self.fd)
+
+
+class _ChunkWatch:
+    """The stream the mcap Writer writes to: passes everything to the segment file and calls
+    ``on_chunk()`` after each Chunk record written whole. (The Writer emits a chunk as one write
+    holding that record alone — its buffered records are written just before — and a chunk holds
+    every message added since the previous one, so from then on those records are in the file.)"""
+
+    def __init__(self, io: SegmentIO, on_chunk: Callable[[], None]):
+        self.io, self.on_chunk = io, on_chunk
+
+    def write(self, data) -> int:
+        n = self.io.write(data)
+        if data[:1] == _CHUNK_OPCODE:
+            self.on_chunk()
+        return n
+
+    def tell(self) -> int:
+        return self.io.tell()
+
+    def flush(self) -> None:
+        self.io.flush()
 
 
 class Clock(Protocol):
@@ -232,7 +259,8 @@ class SessionWriter:
         self._seg_opened_ns = 0
         self._closed_bytes = 0
         self._unflushed_since: int | None = None  # submit time of the oldest record not flushed
-        self._unflushed: Counter = Counter()  # records in the open chunk, by topic
+        self._unflushed: Counter = Counter()  # records not yet in a chunk written whole, by topic
+        self._data_end: int | None = None  # end of the data records once the segment is finishing
         self._chunk_bytes = 0  # message bytes in the open chunk
         self._dirty_since_fsync = False
         self._last_fsync_ns = 0
@@ -390,34 +418,39 @@ class SessionWriter:
             self._stats.lost[topic] += 1
             self._lost_at_failure[topic] += 1
             return
-        pos = self._io.pos if self._io is not None else 0
-        try:
+        if channel_kind(topic) == RAW:
+            data = encode_raw(seq, host_ns, device_ns, clock_state, payload)
+        else:
+            data = encode_json(seq, host_ns, device_ns, clock_state, payload)
+        publish = device_ns if device_ns is not None else log_time_ns
+        try:  # registering a channel may complete the open chunk (which does not hold this record)
             channel_id = self._channels.get(topic) or self._register(topic)
-            if channel_kind(topic) == RAW:
-                data = encode_raw(seq, host_ns, device_ns, clock_state, payload)
-            else:
-                data = encode_json(seq, host_ns, device_ns, clock_state, payload)
-            publish = device_ns if device_ns is not None else log_time_ns
+        except OSError as e:
+            self._unflushed[topic] += 1
+            self._fail(e, "write", self._now())
+            return
+        # counted before it is added: a chunk completed by add_message holds it (_chunk_written)
+        self._unflushed[topic] += 1
+        self._chunk_bytes += len(data)
+        if self._unflushed_since is None:
+            self._unflushed_since = submit_ns
+        try:
             self._mcap.add_message(channel_id, log_time=max(log_time_ns, 0), data=data,
                                    publish_time=max(int(publish), 0),
                                    sequence=seq & 0xFFFFFFFF)  # fmt: skip
-        except OSError as e:  # a chunk filled up and its write failed
-            self._unflushed[topic] += 1
+        except OSError as e:  # a chunk filled up and a write failed (the chunk's, or after it)
             self._fail(e, "write", self._now())
             return
         self._stats.messages_written += 1
         self._dirty_since_fsync = True
-        if self._io is not None and self._io.pos != pos:  # the chunk filled up and was written
-            self._unflushed.clear()
-            self._unflushed_since = None
-            self._chunk_bytes = 0
-        else:
-            self._unflushed[topic] += 1
-            self._chunk_bytes += len(data)
-            if self._unflushed_since is None:
-                self._unflushed_since = submit_ns
         if self._io is not None and self._io.pos + self._chunk_bytes >= self.options.rotate_bytes:
             self._rotate(self._now(), "rotation")
+
+    def _chunk_written(self) -> None:
+        """A chunk reached the file whole: every record added so far is in the file."""
+        self._unflushed.clear()
+        self._unflushed_since = None
+        self._chunk_bytes = 0
 
     def _register(self, topic: str) -> int:
         assert self._mcap is not None
@@ -443,13 +476,10 @@ class SessionWriter:
             return
         if self._unflushed_since is not None and now >= self._flush_deadline():
             try:
-                self._mcap.flush()
+                self._mcap.flush()  # completes the chunk: _chunk_written
             except OSError as e:
                 self._fail(e, "write", now)
                 return
-            self._unflushed_since = None
-            self._unflushed.clear()
-            self._chunk_bytes = 0
         if self._dirty_since_fsync and now - self._last_fsync_ns >= o.fsync_s * NS_PER_S:
             if not self._fsync(now):
                 return
@@ -517,7 +547,7 @@ class SessionWriter:
         try:
             self._ensure_reserve()
             io = self._io_factory(path)
-            mcap = Writer(io, chunk_size=self.options.chunk_bytes,
+            mcap = Writer(_ChunkWatch(io, self._chunk_written), chunk_size=self.options.chunk_bytes,
                           compression=COMPRESSIONS[self.options.compression])  # fmt: skip
             from acquire import __version__
 
@@ -542,6 +572,7 @@ class SessionWriter:
         self._index += 1
         self._io, self._mcap = io, mcap
         self._channels, self._schema_id = {}, 0
+        self._data_end = None
         self._seg_opened_ns = self._last_fsync_ns = now
         self._dirty_since_fsync = False
         self._stats.state, self._stats.segment = "writing", path.name
@@ -553,8 +584,11 @@ class SessionWriter:
         if self._mcap is None or self._io is None:
             return True
         try:
-            self._mcap.flush()
+            self._mcap.flush()  # the last chunk (_chunk_written)
             self._mcap.add_metadata("mls.segment_end", {"reason": reason})
+            # what follows (Data End, summary, footer) holds no record: a failure from here on
+            # cuts the file back to this point before ending it with Data End + Footer
+            self._data_end = self._io.good
             self._mcap.finish()
         except OSError as e:
             self._fail(e, "write", now)
@@ -564,9 +598,7 @@ class SessionWriter:
         io = self._io
         self._closed_bytes += io.pos
         self._mcap = self._io = None
-        self._unflushed_since = None
-        self._unflushed.clear()
-        self._chunk_bytes = 0
+        self._data_end = None
         try:
             io.close()
             assert self.session_dir is not None
@@ -581,12 +613,15 @@ class SessionWriter:
         io, name = self._io, self._stats.segment
         closed = "left unfinished (salvaged at the next start)"
         if io is not None and op == "write":
-            # the data up to the last complete write are whole records: cut there and end the
-            # file with Data End + Footer; release the reserve so that these bytes fit
+            # the data up to the last complete write are whole records: cut there (or, when the
+            # segment was being finished, where its data records end: no second Data End, no
+            # half summary) and end the file with Data End + Footer; release the reserve so
+            # that these bytes fit
+            cut = io.good if self._data_end is None else min(io.good, self._data_end)
             try:
                 assert self.session_dir is not None
                 (self.session_dir / RESERVE_NAME).unlink(missing_ok=True)
-                io.truncate(io.good)
+                io.truncate(cut)
                 io.write(MINIMAL_END)
                 io.fsync()
                 closed = f"closed cleanly at byte {io.pos} (no index)"
@@ -600,12 +635,14 @@ class SessionWriter:
                 io.close()
             except OSError:
                 pass
+        # lost: the records not in a chunk written whole (everything else reads after salvage)
         lost = Counter(self._unflushed)
         self._stats.lost.update(lost)
         self._lost_at_failure = Counter(lost)
         self._unflushed.clear()
         self._unflushed_since = None
         self._chunk_bytes = 0
+        self._data_end = None
         self._mcap = self._io = None
         self._stats.state = "failed"
         self._stats.failures += 1

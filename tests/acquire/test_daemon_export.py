@@ -1,11 +1,11 @@
 """End to end (issue 7): ``mls sim devices --scenario montreal`` → ``mls acquire`` → ``mls export``
 → ``mls calib run`` recovers the scenario's boresight within 3σ.
 
-The whole montreal scenario (six passes, 330 s) runs at ×10 with its CAN pass markers; the
+The whole montreal scenario (six passes, 330 s) runs at ×5 with its CAN pass markers; the
 daemon records it (its own process), ``mls export`` turns the session into a bundle (passes from
 the CAN marks), and the bundle is checked against the simulation itself — the same returns at
 the same times, ranges and angles, the same trajectory — before ``mls calib run`` calibrates it.
-At ×10 the PPS pulses come every 0.1 s, faster than gpsd's labelling rule accepts, so the clock
+At ×5 the PPS pulses come every 0.2 s, faster than gpsd's labelling rule accepts, so the clock
 model stays unlocked: the records are timed by the devices' own synced time tags (DESIGN §6),
 and the export times the CAN marks through the INS time tags around them.
 """
@@ -26,7 +26,8 @@ from calib.bundle import read_bundle
 from tests.acquire.daemon_util import MLS, NotifyCollector, Proc, ROOT, free_port, wait_until
 
 pytestmark = [pytest.mark.integration, pytest.mark.slow, pytest.mark.xdist_group("daemon-export")]
-SPEED = 10
+SPEED = 5  # ×10 streams 1000 INS epochs/s through a pty: on a loaded 2-core CI machine the
+# daemon falls behind by more than the emulated UART's backlog, and the gaps break the passes
 
 
 def _mls(*args) -> subprocess.CompletedProcess:

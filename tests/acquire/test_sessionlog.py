@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import errno
 import math
 import os
 import re
@@ -12,6 +13,7 @@ from pathlib import Path
 
 import pytest
 from mcap.reader import make_reader
+from mcap.writer import MCAP0_MAGIC
 
 from acquire.alarms import AlarmBook
 from acquire.clock import ClockState, GpsEstimate
@@ -28,7 +30,7 @@ from acquire.logrecover import (
 )
 from acquire.mcap_schema import FormatError, channel_kind, decode
 from acquire.sessionlog import LogError, SegmentIO, SessionOptions, SessionWriter
-from tests.acquire.logutil import payload, read_session
+from tests.acquire.logutil import payload, read_session, wait_for
 
 NS = 1_000_000_000
 GPS_OFFSET_NS = 1_400_000_000 * NS
@@ -288,3 +290,103 @@ def test_a_hung_fsync_makes_the_writer_unhealthy(tmp_path):
     time.sleep(0.3)
     assert w.health() == (True, "log writer ok")
     w.close()
+
+
+class _OneFailure(SegmentIO):
+    """ENOSPC once, at the first write (after arming) that ``where`` selects: half of it is written
+    (a short write), then the error; every other write succeeds (the reserve file makes room)."""
+
+    where = None  # callable(data, first_byte, previous_first_byte) -> bool; None: disarmed
+    fired: list = []
+
+    def __init__(self, path):
+        super().__init__(path)
+        self.prev = b""  # first byte of the previous write (the record it began with)
+
+    def write(self, data):
+        head, prev = bytes(data[:1]), self.prev
+        self.prev = head
+        if type(self).where is not None and type(self).where(bytes(data), head, prev):
+            type(self).where = None
+            type(self).fired.append((self.path.name, self.pos, head))
+            self.pos += os.write(self.fd, memoryview(data)[: len(data) // 2])
+            raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+        return super().write(data)
+
+
+_OP = {"chunk": 0x06, "message_index": 0x07, "metadata": 0x0C, "data_end": 0x0F, "footer": 0x02}
+
+
+@pytest.mark.parametrize("where, lost_in_segment", [
+    ("chunk", True),  # the last chunk itself fails: its 80 records are lost (and only those)
+    ("message_index", False),  # the chunk is in the file, its index write fails
+    ("metadata", False),  # the chunk is flushed, then the segment-end metadata fails
+    ("data_end", False),  # ... then finish(): Data End
+    ("summary", False),  # ... the summary section
+    ("footer", False),  # ... the footer
+    ("magic", False),  # ... the closing magic
+    ("index_of_a_full_chunk", False),  # a chunk filled up in add_message, its index write fails
+])  # fmt: skip
+def test_a_write_failure_counts_as_lost_exactly_the_records_the_segment_does_not_hold(
+        tmp_path, where, lost_in_segment):  # fmt: skip
+    """ENOSPC injected on purpose at each write of a segment's end (on a frozen clock, so that
+    nothing is flushed by time: the close's own flush writes the last chunk, then one write
+    fails). ``records_lost`` (stats, alarm, /events) must equal the records a salvage cannot
+    read, whichever write failed."""
+    op = _OP.get("message_index" if where == "index_of_a_full_chunk" else where)
+    _OneFailure.fired = []
+    preds = {
+        "summary": lambda d, h, prev: prev == b"\x0f",  # the write that follows Data End
+        "magic": lambda d, h, prev: d == MCAP0_MAGIC,
+    }
+    now = [1_000 * NS]
+    alarms = AlarmBook()
+    chunk_bytes = 8_000 if where == "index_of_a_full_chunk" else 1024 * 1024
+    w = SessionWriter(tmp_path, "v", SessionOptions(flush_s=1.0, fsync_s=1e6, retry_s=1.0,
+                                                    compression="none", chunk_bytes=chunk_bytes),
+                      alarms=alarms, io_factory=_OneFailure, monotonic_ns=lambda: now[0])  # fmt: skip
+    sd = w.start()
+    _OneFailure.where = preds.get(where) or (lambda d, h, prev: h == bytes([op]))
+    n = 40
+    for i in range(1, n + 1):
+        w.submit("/lidar/raw", payload(i, 500), host_ns=i)
+        w.submit("/ins/nav", {"i": i}, host_ns=i)
+    w.rotate()  # close seg-000001 (its flush writes the chunk), open seg-000002
+    wait_for(lambda: alarms.is_active("disk_write_failed", "log"), what="the failure")
+    assert _OneFailure.fired and _OneFailure.fired[0][0] == "seg-000001.mcap"
+    wait_for(lambda: w.stats().queue_depth == 0 and w.stats().state == "failed", what="drained")
+    time.sleep(0.2)
+    at_failure = sum(w.stats().lost.values())
+    for i in range(n + 1, n + 6):  # while paused: lost, counted
+        w.submit("/lidar/raw", payload(i, 500), host_ns=i)
+    wait_for(lambda: sum(w.stats().lost.values()) == at_failure + 5, what="the paused records")
+    now[0] += 2 * NS  # the retry: a new segment
+    wait_for(lambda: not alarms.is_active("disk_write_failed", "log"), what="writing to resume")
+    for i in range(n + 6, n + 11):
+        w.submit("/lidar/raw", payload(i, 500), host_ns=i)
+    w.close()
+    stats = w.stats()
+
+    first = segment_paths(sd)[0]
+    scan = SegmentScan(first, 0)
+    held = [r for r in scan_segment(first, scan) if type(r).__name__ == "Message"]
+    assert scan.footer and not scan.indexed and scan.problem is None, scan  # closed cleanly
+    with open(first, "rb") as f:  # a valid MCAP for any reader
+        assert len(list(make_reader(f).iter_messages())) == len(held)
+    msgs = read_session(sd)
+    seqs = {t: {m.seq for m in msgs if m.topic == t} for t in ("/lidar/raw", "/ins/nav")}
+    missing = {"/lidar/raw": set(range(1, n + 11)) - seqs["/lidar/raw"],
+               "/ins/nav": set(range(1, n + 1)) - seqs["/ins/nav"]}
+    for topic in missing:
+        assert len(missing[topic]) == stats.lost[topic], (where, topic, missing[topic], stats.lost)
+    if where == "index_of_a_full_chunk":  # the chunk that filled up is whole in the file
+        assert len(held) > 0 and held[-1].sequence == max(m.seq for m in msgs[:len(held)])
+    elif lost_in_segment:
+        assert missing == {"/lidar/raw": set(range(1, n + 6)), "/ins/nav": set(range(1, n + 1))}
+    else:  # every record before the failure is in the file: only the paused ones are lost
+        assert len(held) == 2 * n
+        assert missing == {"/lidar/raw": set(range(n + 1, n + 6)), "/ins/nav": set()}
+    (event,) = [m.payload for m in msgs if m.topic == "/events"]
+    assert event["event"] == "log_write_failed" and event["segment"] == first.name
+    assert event["records_lost"] == {t: c for t, c in stats.lost.items() if c}
+    assert f"{sum(stats.lost.values())} records lost" in alarms.get("disk_write_failed", "log").message
