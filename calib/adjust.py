@@ -16,7 +16,8 @@ Uncertainty:
   ``sigma_realistic`` propagates the observation errors through the estimator with a
   first-order Gauss–Markov correlation of the POS channels (σ from the trajectory, correlation
   time from the site or the caller), ``Cov = N⁻¹ (Σ_ij g_i g_jᵀ ρ(t_i − t_j)) N⁻¹`` — evaluated
-  in O(n) with decayed cumulative sums;
+  in O(n) with decayed cumulative sums; for the boresight and every extra unknown (each
+  extra is reported with its formal and realistic σ and its correlation with the boresight);
 - a delete-one-pass jackknife is reported beside it as an empirical check.
 """
 
@@ -189,7 +190,11 @@ class AdjustmentResult:
     iterations: int
     converged: bool
     state: State
-    extras: dict  # name -> {"value", "sigma", "correlation_with_boresight"}
+    #: name -> {"value", "sigma" (formal), "sigma_realistic" (``error_model`` propagated, as
+    #: ``cov_realistic``), "correlation_with_boresight" (formal; [roll, pitch, yaw])}; for
+    #: ``pass<id>_offset_m`` value and σ are [north, east, down] and the correlation is 3 × 3
+    #: (rows north, east, down; columns roll, pitch, yaw)
+    extras: dict
     plane_stats: list[dict]
     pass_stats: list[dict]
     n_points: int
@@ -520,10 +525,20 @@ def _singular_message(N, obs, layout) -> str:
 # ---------------------------------------------------------------------------------------------
 
 
+def _reported_rows(layout: _Layout) -> np.ndarray:
+    """Indices of the boresight, the extras and the pass offsets (the unknowns reported with a
+    realistic σ; the planes are not): just the boresight when nothing extra is estimated."""
+    idx = np.arange(layout.i_plane)
+    if layout.offsets:
+        idx = np.concatenate([idx, np.arange(layout.i_offset, layout.n)])
+    return idx
+
+
 def propagated_covariance(sol: _Solution, obs: Observations, model: ErrorModel,
-                          rows: slice = slice(0, 3)) -> np.ndarray:  # fmt: skip
-    """Covariance of the unknowns in ``rows`` when the POS channels (0–5) follow ``model`` and
-    range and scan angle are white: ``N⁻¹ H N⁻¹`` with H = Σ_c Σ_ij g_ic g_jcᵀ ρ_c(i, j)."""
+                          rows: slice | np.ndarray = slice(0, 3)) -> np.ndarray:  # fmt: skip
+    """Covariance of the unknowns in ``rows`` (a slice or an index array) when the POS channels
+    (0–5) follow ``model`` and range and scan angle are white: ``N⁻¹ H N⁻¹`` with
+    H = Σ_c Σ_ij g_ic g_jcᵀ ρ_c(i, j). O(n·r²) for r rows."""
     Ninv_rows = sol.Ninv[rows]
     G = _rows_of_inverse(sol.lin, sol.layout, obs, Ninv_rows, sol.M)  # (n, r)
     r = G.shape[1]
@@ -628,12 +643,22 @@ def adjust(obs: Observations, mount, planes_init, options: AdjustOptions = Adjus
                         _observations_at(used, sol.state, "latency" in sol.layout.extras))  # fmt: skip
     residual = lin_raw.F
     cov_formal_all = sol.Ninv
-    cov_real = (propagated_covariance(sol, used, options.error_model)
-                if options.error_model.kind != "white" else sol.Ninv[0:3, 0:3])  # fmt: skip
+    # the realistic covariance of the boresight and of every extra unknown (not the planes):
+    # an extra's formal σ is as optimistic as the boresight's under time-correlated POS errors
+    rows = _reported_rows(sol.layout)
+    cov_real_rows = (propagated_covariance(sol, used, options.error_model, rows)
+                     if options.error_model.kind != "white"
+                     else sol.Ninv[np.ix_(rows, rows)])  # fmt: skip
+    cov_real = cov_real_rows[0:3, 0:3].copy()
+    sd_real = np.sqrt(np.diag(cov_real_rows))  # in the order of ``rows``
     cov_jack = _jackknife(used, sol.state, r_nom, options) if options.jackknife else None
     names = sol.layout.names(used.plane_names, used.pass_ids)
     extras = {}
     sd = np.sqrt(np.diag(cov_formal_all))
+
+    def corr_with_boresight(j: int) -> list[float]:
+        return [float(cov_formal_all[j, a] / (sd[j] * sd[a])) for a in range(3)]
+
     for i, name in enumerate(sol.layout.extras):
         j = sol.layout.i_extra + i
         value = {"range_offset": sol.state.range_offset_m,
@@ -641,14 +666,18 @@ def adjust(obs: Observations, mount, planes_init, options: AdjustOptions = Adjus
                  "lever_arm_x": sol.state.lever_arm_m[0], "lever_arm_y": sol.state.lever_arm_m[1],
                  "latency": sol.state.latency_s}[name]  # fmt: skip
         extras[name] = {"value": float(value), "sigma": float(sd[j]),
-                        "correlation_with_boresight":
-                            [float(cov_formal_all[j, a] / (sd[j] * sd[a])) for a in range(3)]}  # fmt: skip
+                        "sigma_realistic": float(sd_real[3 + i]),
+                        "correlation_with_boresight": corr_with_boresight(j)}  # fmt: skip
     if sol.layout.offsets:
+        r0 = 3 + len(sol.layout.extras)  # first pass offset in ``rows``
         for k, pid in enumerate(used.pass_ids):
             j = sol.layout.i_offset + 3 * k
             extras[f"pass{pid}_offset_m"] = {
                 "value": [float(x) for x in sol.state.pass_offsets_m[k]],
                 "sigma": [float(x) for x in sd[j: j + 3]],
+                "sigma_realistic": [float(x) for x in sd_real[r0 + 3 * k: r0 + 3 * k + 3]],
+                # rows north, east, down; columns roll, pitch, yaw
+                "correlation_with_boresight": [corr_with_boresight(j + c) for c in range(3)],
             }
     planes, passes = _plane_pass_stats(used, residual, sol.state)
     return AdjustmentResult(

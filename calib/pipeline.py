@@ -85,6 +85,8 @@ class CalibrationOptions:
     tol_angle_rad: float = AdjustOptions.tol_angle_rad
     tol_m: float = AdjustOptions.tol_m
     rel_tol: float = AdjustOptions.rel_tol
+    #: iteration cap of the adjustment: reaching it unconverged is a warning in the result
+    max_iterations: int = AdjustOptions.max_iterations
 
     def __post_init__(self):
         self.adjust_options(ErrorModel("white"))  # unknown or refused extra unknowns: now
@@ -105,7 +107,8 @@ class CalibrationOptions:
         return AdjustOptions(estimate=tuple(self.estimate), error_model=model,
                              jackknife=self.jackknife, outliers=self.outliers,
                              tol_angle_rad=self.tol_angle_rad, tol_m=self.tol_m,
-                             rel_tol=self.rel_tol)  # fmt: skip
+                             rel_tol=self.rel_tol,
+                             max_iterations=self.max_iterations)  # fmt: skip
 
 
 @dataclass

@@ -233,6 +233,34 @@ def _observability(run) -> list[str]:
     return lines
 
 
+def extras_table(extras: dict) -> list[str]:
+    """The extra unknowns of result.json's ``extras`` as a table: value, formal and realistic
+    σ, and the correlation with each boresight angle; a pass offset gets a row per component
+    (north, east, down)."""
+    L = ["| unknown | value | σ formal | σ realistic | ρ roll | ρ pitch | ρ yaw |",
+         "|---|---:|---:|---:|---:|---:|---:|"]  # fmt: skip
+
+    def row(label, value, sigma, sigma_real, c):
+        return (f"| {label} | {value:+.6g} | {sigma:.3g} | **{_sig(sigma_real)}** | "
+                f"{c['roll']:+.2f} | {c['pitch']:+.2f} | {c['yaw']:+.2f} |")  # fmt: skip
+
+    for name, e in extras.items():
+        real = e.get("sigma_realistic")
+        c = e["correlation_with_boresight"]
+        if isinstance(e["value"], list):  # pass<id>_offset_m: north, east, down
+            for k, comp in enumerate(("north", "east", "down")):
+                L.append(row(f"{name} {comp}", e["value"][k], e["sigma"][k],
+                             None if real is None else real[k], c[comp]))  # fmt: skip
+        else:
+            L.append(row(name, e["value"], e["sigma"], real, c))
+    L.append("")
+    L.append("ρ: correlation with the boresight angle (formal covariance); |ρ| near 1 means the "
+             "unknown and that angle trade against each other. Judge whether an unknown "
+             "differs from zero by its realistic σ: the formal σ is as optimistic for it as "
+             "for the boresight when POS errors are correlated in time.")  # fmt: skip
+    return L
+
+
 def report_markdown(run, plot_names: list[str] | None = None) -> str:
     res, doc, obs = run.result, run.doc, run.observations
     site = run.site
@@ -315,17 +343,7 @@ def report_markdown(run, plot_names: list[str] | None = None) -> str:
         L.append("")
         L.append("## Extra unknowns")
         L.append("")
-        L.append("| unknown | value | σ | ρ roll | ρ pitch | ρ yaw |")
-        L.append("|---|---:|---:|---:|---:|---:|")
-        for name, e in doc["extras"].items():
-            if "correlation_with_boresight" in e:
-                c = e["correlation_with_boresight"]
-                L.append(f"| {name} | {e['value']:.6g} | {e['sigma']:.3g} | {c['roll']:+.2f} | "
-                         f"{c['pitch']:+.2f} | {c['yaw']:+.2f} |")  # fmt: skip
-            else:
-                v = ", ".join(f"{x:+.4f}" for x in e["value"])
-                s = ", ".join(f"{x:.4f}" for x in e["sigma"])
-                L.append(f"| {name} (N, E, D m) | {v} | {s} | | | |")
+        L.extend(extras_table(doc["extras"]))
     L.append("")
     L.append("## Observability")
     L.append("")

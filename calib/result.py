@@ -2,6 +2,21 @@
 
 Degrees at this edge (``_deg`` names); boresight angles in the canonical convention, with the
 thesis convention beside them for comparison with published figures.
+
+``extras`` holds the extra unknowns asked for (``--estimate``), keyed by name and unit:
+
+- ``range_offset_m``, ``scan_angle_offset_deg``, ``lever_arm_x_m``, ``lever_arm_y_m``,
+  ``latency_s``: ``value``; ``sigma`` (formal, σ0 = 1); ``sigma_realistic`` (the POS error
+  model of ``realistic_error_model`` propagated through the estimator, as for
+  ``sigma_realistic_deg``; equal to ``sigma`` under the white model): judge whether an extra
+  differs from zero by this one, since under time-correlated POS errors the formal σ is as
+  optimistic for an extra as for the boresight; ``correlation_with_boresight``
+  ``{roll, pitch, yaw}`` (from the formal covariance).
+- ``pass<id>_offset_m`` (``pass_offsets``: the translation of pass <id>'s trajectory in the
+  LGF): ``value``, ``sigma`` and ``sigma_realistic`` as ``[north, east, down]`` in metres, and
+  ``correlation_with_boresight`` as ``{north: {roll, pitch, yaw}, east: {…}, down: {…}}``
+  (formal): a large |ρ| says that pass's translation and that angle trade against each other
+  (the targets do not separate them).
 """
 
 from __future__ import annotations
@@ -67,16 +82,22 @@ def result_to_dict(res: AdjustmentResult, apriori_rad, software_version: str,
     return d
 
 
+OFFSET_COMPONENTS = ("north", "east", "down")
+
+
 def _extras(res: AdjustmentResult) -> dict:
     out = {}
     for name, e in res.extras.items():
         if name in _EXTRA_UNITS:
             key, scale = _EXTRA_UNITS[name]
             out[key] = {"value": e["value"] * scale, "sigma": e["sigma"] * scale,
+                        "sigma_realistic": e["sigma_realistic"] * scale,
                         "correlation_with_boresight": dict(zip(
                             ANGLE_NAMES, e["correlation_with_boresight"]))}  # fmt: skip
-        else:
-            out[name] = e
+        else:  # pass<id>_offset_m: metres already, one correlation row per component
+            out[name] = {**e, "correlation_with_boresight": {
+                c: dict(zip(ANGLE_NAMES, row))
+                for c, row in zip(OFFSET_COMPONENTS, e["correlation_with_boresight"])}}  # fmt: skip
     return out
 
 

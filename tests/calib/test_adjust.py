@@ -14,7 +14,13 @@ from calib.adjust import (
     build_observations,
     predict_covariance,
 )
+from dataclasses import replace
+
+from scipy import stats
+
 from calib.georef import Mount
+from calib.report import _chi2_sentence, extras_table
+from calib.result import result_to_dict
 from calib.trajectory import Trajectory
 from tests.calib import synth
 
@@ -181,6 +187,18 @@ def test_latency_is_estimated_from_the_trajectory():
                                                      error_model=WHITE))  # fmt: skip
     assert res.extras["latency"]["value"] == pytest.approx(0.005, abs=1e-7)
     np.testing.assert_allclose(res.boresight_rad, TRUTH_RAD, atol=1e-8)
+    # reported with its correlations to the boresight (from the formal covariance), in the
+    # adjustment's result and in result.json
+    j = res.names.index("latency")
+    sd = np.sqrt(np.diag(res.cov_all))
+    expected = res.cov_all[j, 0:3] / (sd[j] * sd[0:3])
+    e = res.extras["latency"]
+    np.testing.assert_allclose(e["correlation_with_boresight"], expected, rtol=1e-12)
+    assert np.all(np.abs(expected) <= 1.0) and np.max(np.abs(expected)) > 0.01
+    assert e["sigma"] == pytest.approx(sd[j]) and e["sigma_realistic"] == e["sigma"]  # white
+    doc = result_to_dict(res, np.zeros(3), "test")["extras"]["latency_s"]
+    assert doc["correlation_with_boresight"] == dict(zip(("roll", "pitch", "yaw"), expected))
+    assert doc["sigma_realistic"] == doc["sigma"]
 
 
 def test_prediction_equals_the_formal_covariance_of_the_adjustment(clean):
@@ -211,6 +229,94 @@ def test_pass_offsets_absorb_per_pass_translations():
     err_off = np.abs(with_offsets.boresight_rad - TRUTH_RAD).max()
     assert err_plain > np.radians(0.01)
     assert err_off < err_plain / 20
+    # each pass offset is reported with its 3 × 3 correlation with the boresight (rows north,
+    # east, down; columns roll, pitch, yaw), in the result, result.json and the report
+    res = with_offsets
+    sd = np.sqrt(np.diag(res.cov_all))
+    doc = result_to_dict(res, np.zeros(3), "test")["extras"]
+    for k, pid in enumerate(o.pass_ids):
+        e = res.extras[f"pass{pid}_offset_m"]
+        rows = [res.names.index(f"pass{pid}.offset_{c}") for c in ("north", "east", "down")]
+        expected = res.cov_all[np.ix_(rows, range(3))] / np.outer(sd[rows], sd[0:3])
+        np.testing.assert_allclose(e["correlation_with_boresight"], expected, rtol=1e-12)
+        np.testing.assert_allclose(e["sigma_realistic"], sd[rows], rtol=1e-12)  # white model
+        d = doc[f"pass{pid}_offset_m"]["correlation_with_boresight"]
+        assert list(d) == ["north", "east", "down"]
+        assert [[d[c][a] for a in ("roll", "pitch", "yaw")] for c in d] == expected.tolist()
+    # on a site spread in range and height the offsets and the angles separate: |ρ| small,
+    # but not zero
+    rho = np.abs([e["correlation_with_boresight"] for e in res.extras.values()])
+    assert 0.01 < rho.max() < 0.5
+    table = extras_table(doc)
+    row = next(x for x in table if x.startswith("| pass1_offset_m down |"))
+    cells = [c.strip().strip("*") for c in row.strip("|").split("|")]
+    assert float(cells[1]) == pytest.approx(res.extras["pass1_offset_m"]["value"][2], abs=1e-6)
+    assert [float(x) for x in cells[4:7]] == pytest.approx(
+        res.extras["pass1_offset_m"]["correlation_with_boresight"][2], abs=5e-3)
+    assert sum(x.startswith("| pass") for x in table) == 3 * len(o.pass_ids)
+
+
+def test_extras_carry_a_realistic_sigma_under_gauss_markov_pos_errors(clean):
+    """A range offset estimated (truth 0) under time-correlated POS errors (τ = 30 s): the
+    formal σ makes most estimates look significant, its realistic σ covers the truth."""
+    obs, planes = clean
+    tau = 30.0
+    model = ErrorModel("gauss_markov", tau)
+    value, formal, real = [], [], []
+    for seed in range(30):
+        rng = np.random.default_rng(seed)
+        o = obs.select(np.ones(len(obs), bool))
+        o.l = obs.l.copy()
+        for c in range(6):
+            o.l[:, c] += _gauss_markov(obs.t_gps_s, obs.sigma_l[0, c], tau, rng)
+        o.l[:, 6:] += rng.standard_normal((len(obs), 2)) * obs.sigma_l[:, 6:]
+        res = adjust(o, Mount(), planes, AdjustOptions(estimate=("range_offset",),
+                                                       jackknife=False, error_model=model,
+                                                       outliers="none"))  # fmt: skip
+        e = res.extras["range_offset"]
+        value.append(e["value"])
+        formal.append(e["sigma"])
+        real.append(e["sigma_realistic"])
+    value, formal, real = map(np.array, (value, formal, real))
+    assert np.all(real > 5 * formal)
+    assert np.mean(np.abs(value) > 3 * formal) >= 0.5  # the formal σ would mislead
+    assert np.mean(np.abs(value) <= 2 * real) >= 0.9
+    assert 0.6 < np.std(value) / np.mean(real) < 1.5  # and it is not merely wide
+
+
+def test_chi2_test_bounds_are_the_two_sided_quantiles_and_the_verdict_flips(clean):
+    """σ̂0² = vᵀPv / df with df·σ̂0² ~ χ²(df): accepted within [χ²_{α/2}, χ²_{1−α/2}] / df."""
+    obs, planes = clean
+    res = adjust(_with_noise(obs, 4), Mount(), planes, QUICK)
+    for alpha in (0.05, 0.01):
+        c = res.chi2_test(alpha)
+        df = len(obs) - 3 - 3 * 2
+        assert c["df"] == df == res.df
+        assert c["lower"] == pytest.approx(stats.chi2.ppf(alpha / 2, df) / df, rel=1e-12)
+        assert c["upper"] == pytest.approx(stats.chi2.ppf(1 - alpha / 2, df) / df, rel=1e-12)
+        assert c["lower"] < 1.0 < c["upper"]
+        for s02, passed in ((1.0, True), (c["lower"] * 1.001, True), (c["upper"] * 0.999, True),
+                            (c["lower"] * 0.999, False), (c["upper"] * 1.001, False)):
+            assert replace(res, sigma0_squared=s02).chi2_test(alpha)["passed"] is passed, s02
+    # wider at α = 0.01 than at 0.05
+    assert res.chi2_test(0.01)["lower"] < res.chi2_test(0.05)["lower"]
+    assert result_to_dict(res, np.zeros(3), "test")["chi2_test"] == res.chi2_test()
+    c = res.chi2_test()
+    assert "**failed (high)**" in _chi2_sentence(replace(res, sigma0_squared=c["upper"] * 1.5))
+    assert "**failed (low)**" in _chi2_sentence(replace(res, sigma0_squared=c["lower"] * 0.5))
+
+
+def test_hitting_the_iteration_cap_is_not_converged():
+    """From a 2° misalignment one iteration cannot converge: converged is False, with the
+    iterations done; six iterations do."""
+    truth = np.radians([2.0, -2.0, 2.0])
+    obs, planes, _ = synth.observations(Mount(boresight_rad=truth), synth.montreal_planes(),
+                                        points_per_plane_per_pass=40, noise=False)  # fmt: skip
+    for cap in (1, 2):
+        res = adjust(obs, Mount(), planes, replace(QUICK, outliers="none", max_iterations=cap))
+        assert not res.converged and res.iterations == cap
+    res = adjust(obs, Mount(), planes, replace(QUICK, max_iterations=6))
+    assert res.converged and res.iterations <= 6
 
 
 # -- clear, specific errors ------------------------------------------------------------------

@@ -12,6 +12,7 @@ import pytest
 from calib.adjust import AdjustmentError, ObservabilityError
 from calib.bundle import ScanPoints
 from calib.pipeline import CalibrationError, CalibrationOptions, calibrate
+from calib.report import report_markdown
 from calib.simulate import simulate
 
 #: The estimator's own stochastic model: independent POS errors for every point, and range
@@ -92,9 +93,46 @@ def test_subsampling_and_an_extra_unknown():
     assert abs(e["value"] - 0.03) <= 3 * e["sigma"] and e["sigma"] < 0.005
     assert set(thin.doc["extras"]["range_offset_m"]["correlation_with_boresight"]) == \
         {"roll", "pitch", "yaw"}  # fmt: skip
+    # the white error model: the realistic σ is the formal one
+    assert thin.doc["extras"]["range_offset_m"]["sigma_realistic"] == e["sigma"]
     res = thin.result
     err = np.abs(res.boresight_rad - r.mount_true.boresight_rad)
     assert np.all(err <= 3 * res.sigma_formal_rad)
+
+
+def test_an_extra_under_gauss_markov_pos_errors_is_judged_by_its_realistic_sigma():
+    """No range offset injected, the scenario's Gauss–Markov POS errors: the estimated range
+    offset is many formal σ from 0 (which would call it significant) but within its realistic
+    σ, which result.json and the report state beside the formal one."""
+    r = simulate("montreal", 3)
+    assert r.mount_true.range_offset_m == 0.0
+    run = _run(r, CalibrationOptions(jackknife=False, estimate=("range_offset",)))
+    e = run.doc["extras"]["range_offset_m"]
+    assert set(e) == {"value", "sigma", "sigma_realistic", "correlation_with_boresight"}
+    assert abs(e["value"]) > 10 * e["sigma"]
+    assert abs(e["value"]) <= 2 * e["sigma_realistic"]
+    assert e["sigma_realistic"] > 10 * e["sigma"]
+    row = next(x for x in report_markdown(run).splitlines() if x.startswith("| range_offset_m |"))
+    cells = [c.strip().strip("*") for c in row.strip("|").split("|")]
+    assert float(cells[2]) == pytest.approx(e["sigma"], rel=5e-3)
+    assert float(cells[3]) == pytest.approx(e["sigma_realistic"], rel=5e-3)
+
+
+def test_hitting_the_iteration_cap_is_a_warning_and_not_converged():
+    """A 2° misalignment and an iteration cap of 1: the result says converged = False and the
+    run warns not to use it (in result.json and in the report)."""
+    r = simulate("montreal", 2, overrides={"truth.boresight_deg": [2.0, -2.0, 2.0]})
+    run = _run(r, replace(FAST, max_iterations=1, outliers="none"), labels=r.target_index)
+    assert run.result.converged is False and run.result.iterations == 1
+    assert run.doc["converged"] is False and run.doc["iterations"] == 1
+    warning = ("the adjustment did not converge in 1 iterations: do not use the result; check "
+               "the a-priori boresight and the extraction")  # fmt: skip
+    assert run.warnings == [warning] and run.doc["warnings"] == [warning]
+    md = report_markdown(run)
+    assert "The adjustment **did not converge** in 1 iterations" in md
+    assert f"- ⚠ {warning}" in md
+    ok = _run(r, replace(FAST, max_iterations=6), labels=r.target_index)
+    assert ok.result.converged and ok.warnings == []
 
 
 def test_correlation_time_comes_from_the_site_else_the_default_is_stated():
