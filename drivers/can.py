@@ -247,4 +247,10 @@ def parse_can_frame(raw: bytes) -> tuple[int, bytes, bool]:
         can_id, n, _, data = _CANFD_FRAME.unpack(raw)
     else:
         raise DriverError(f"CAN frame record of {len(raw)} bytes: expected 16 or 72")
-    return can_id & 0x1FFFFFFF, data[:n], bool(can_id & CAN_EFF_FLAG)
+    if n > len(data):  # a damaged length byte: the data would be cut silently
+        raise DriverError(f"CAN frame record of {len(raw)} bytes says {n} data bytes: at most {len(data)}")
+    extended = bool(can_id & CAN_EFF_FLAG)
+    arbitration_id = can_id & 0x1FFFFFFF
+    if not extended and arbitration_id > 0x7FF:
+        raise DriverError(f"CAN frame record: standard (11-bit) id 0x{arbitration_id:x} exceeds 0x7ff")
+    return arbitration_id, data[:n], extended

@@ -10,7 +10,9 @@ loopback (NULL/LOOP), Linux cooked capture v1 and v2. UDP over IPv4 (unfragmente
 Capture stamps are kept as ``timestamp_ns`` (ns since the Unix epoch, the capture host's
 clock). A file that is not a capture raises :class:`PcapError` naming the file offset; a capture
 cut short (the last block incomplete) ends the iteration and is counted in
-``reader.stats.rejected['truncated']``; packets that are not UDP are counted by reason.
+``reader.stats.rejected['truncated']``; a block too short for its type's fixed fields (a damaged
+length) is skipped and counted in ``rejected['short_block']``; packets that are not UDP are
+counted by reason.
 """
 
 from __future__ import annotations
@@ -28,6 +30,10 @@ IDB, PB, SPB, EPB = 1, 2, 3, 6
 BYTE_ORDER_MAGIC = 0x1A2B3C4D
 LINKTYPE_NULL, LINKTYPE_ETHERNET, LINKTYPE_RAW = 0, 1, 101
 LINKTYPE_LOOP, LINKTYPE_LINUX_SLL, LINKTYPE_IPV4, LINKTYPE_IPV6, LINKTYPE_LINUX_SLL2 = 108, 113, 228, 229, 276
+
+
+#: the fixed part of each block type's body (IDB: linktype, reserved, snaplen; EPB/PB: 20 bytes)
+_MIN_BODY = {IDB: 8, PB: 20, EPB: 20, SPB: 4}
 
 
 class PcapError(DriverError):
@@ -95,6 +101,9 @@ class CaptureReader:
                 return
             body = d[pos + 8 : pos + blen - 4]
             pos += blen
+            if len(body) < _MIN_BODY.get(btype, 0):  # a damaged length: skip the block, count it
+                self.stats.rejected["short_block"] += 1
+                continue
             if btype == IDB:
                 linktype = struct.unpack_from(e + "H", body, 0)[0]
                 units, offset = 1_000_000, 0

@@ -162,7 +162,11 @@ class CanReplayer(_Replayer):
     def emit(self, msg, host_ns) -> None:
         import can
 
-        arbitration_id, data, extended = parse_can_frame(bytes(msg.payload))
+        try:
+            arbitration_id, data, extended = parse_can_frame(bytes(msg.payload))
+        except DriverError:  # a damaged record in the log: counted, the replay goes on
+            self.counts["bad_records"] = self.counts.get("bad_records", 0) + 1
+            return
         self.bus.send(can.Message(arbitration_id=arbitration_id, data=data, is_extended_id=extended,
                                   is_fd=len(data) > 8))
 

@@ -18,7 +18,11 @@ format, field names); the iXblue ``ixblue_stdbin_decoder`` sources and the real 
 :class:`StdbinDecoder` turns bytes into :class:`StdbinFrame` / :class:`StdbinAnswer` records:
 frames split across reads are reassembled, garbage before or between frames is skipped, and a
 frame with a bad checksum, an unknown version or a size that does not match its masks is
-rejected and counted (``stats.rejected``) — the decoder never raises. A mask bit this table does
+rejected and counted (``stats.rejected``) — the decoder never raises. A frame still incomplete
+while a later header's whole frame is already buffered and valid (a frame cut short, or a damaged
+size field) is dropped at once as ``truncated`` and decoding resumes at that later frame, so a
+good frame is never held back behind a bogus one; ``flush()`` does the same search before
+dropping what is left. A mask bit this table does
 not know (``stats.events['unknown_block']``) stops decoding of that mask at that bit; the frame
 is still delivered with the blocks before it (V4+: the external data too, found through the
 navigation size).
@@ -39,6 +43,7 @@ from __future__ import annotations
 
 import math
 import struct
+from bisect import bisect_right
 import time
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
@@ -432,18 +437,51 @@ class StdbinDecoder:
     def __init__(self) -> None:
         self.stats = DecoderStats()
         self._buf = b""
-        self._buf_ns: int | None = None
+        # chunk starts inside _buf (offsets, ascending, first 0) and their host stamps
+        self._mark_off: list[int] = []
+        self._mark_ns: list[int | None] = []
+        # while the candidate at _buf[0] is incomplete: (next offset to look for a header from,
+        # pending later candidates, bytes the candidate needs); see _later_frame
+        self._scan: tuple[int, list[int], int] | None = None
+        self._scan_state: tuple[int, list[int]] | None = None
 
     def feed(self, data: bytes, host_ns: int | None = None) -> list:
         """Decode what ``data`` completes; a frame's ``host_ns`` is the stamp of the chunk that
         brought its first byte."""
         self.stats.bytes_in += len(data)
         old = len(self._buf)
-        first_ns = self._buf_ns if old else host_ns
-        buf = self._buf + bytes(data) if old else bytes(data)
+        if not old:
+            self._mark_off, self._mark_ns = [0], [host_ns]
+            return self._decode(bytes(data), 0, host_ns)
+        if not data:
+            return []
+        self._mark_off.append(old)
+        self._mark_ns.append(host_ns)
+        buf = self._buf + bytes(data)
+        scan = self._scan
+        if (
+            scan is not None
+            and len(buf) < scan[2]
+            and not scan[1]
+            and buf.find(b"IX", scan[0]) < 0
+            and buf.find(b"AN", scan[0]) < 0
+        ):  # the frame at _buf[0] is still short and no other header came: just buffer
+            self._buf = buf
+            self._scan = (len(buf) - 1, scan[1], scan[2])
+            return []
+        return self._decode(buf, old, host_ns)
+
+    def _stamp(self, pos: int):
+        return self._mark_ns[bisect_right(self._mark_off, pos) - 1]
+
+    def _decode(self, buf: bytes, old: int, host_ns) -> list:
+        """Decode ``buf`` (``old`` bytes of it buffered before, the rest stamped ``host_ns``)."""
         out: list = []
         pos, n = 0, len(buf)
         stats = self.stats
+        scan = self._scan
+        self._scan = None
+        waiting = False
         i = j = -2  # next 'IX' / 'AN' at or after pos (-1: none left); searched lazily, each once
         while True:
             if -1 != i < pos:
@@ -462,31 +500,148 @@ class StdbinDecoder:
             if n - pos < 3:
                 break
             version = buf[pos + 2]
-            stamp = first_ns if pos < old else host_ns
+            stamp = host_ns if pos >= old else self._stamp(pos)
             if buf[pos] == 0x49:  # 'I'
                 status = self._frame(buf, pos, version, stamp, out)
             else:
                 status = self._answer(buf, pos, version, stamp, out)
-            if status == 0:  # incomplete: wait for more bytes
-                break
-            if status < 0:  # rejected: resynchronize one byte further
+            if status == 0:  # incomplete: a later complete, valid frame proves this one bogus
+                q = self._later_frame(buf, pos, scan if pos == 0 else None)
+                scan = None
+                if q < 0:
+                    waiting = True
+                    break
+                stats.rejected["truncated"] += 1
+                stats.skipped_bytes += q - pos
+                pos = q
+            elif status < 0:  # rejected: resynchronize one byte further
                 stats.skipped_bytes += 1
                 pos += 1
             else:
                 pos += status
-        self._buf = buf[pos:]
-        self._buf_ns = first_ns if pos < old else host_ns
+        if waiting:  # remember the look-ahead and the size the frame at pos needs
+            have = n - pos
+            if buf[pos] == 0x49:
+                header = HEADER_SIZES[buf[pos + 2]]
+                need = header if have < header else _U16.unpack_from(buf, pos + header - 10)[0]
+            else:
+                need = ANSWER_HEADER_SIZE if have < ANSWER_HEADER_SIZE else _U16.unpack_from(buf, pos + 3)[0]
+            self._scan = (*self._scan_state, need)
+        self._keep(buf, pos, old, host_ns)
         stats.records += len(out)
         return out
 
+    def _keep(self, buf: bytes, pos: int, old: int, host_ns) -> None:
+        """Buffer ``buf[pos:]`` with the stamps of the chunks it came in."""
+        self._buf = buf[pos:]
+        if not self._buf:
+            self._mark_off, self._mark_ns = [], []
+        elif pos >= old:
+            self._mark_off, self._mark_ns = [0], [host_ns]
+        elif pos:
+            k = bisect_right(self._mark_off, pos) - 1
+            self._mark_off = [0] + [o - pos for o in self._mark_off[k + 1 :]]
+            self._mark_ns = self._mark_ns[k:]
+
+    def _later_frame(self, buf: bytes, pos: int, state) -> int:
+        """Offset of the first header after ``pos`` whose whole frame is buffered and valid, else -1.
+
+        Candidates still incomplete are remembered (``state``: next offset to search from and the
+        pending candidates, relative to ``pos``) so a frame arriving in many reads is not rescanned
+        from its start at every read.
+        """
+        n = len(buf)
+        if state is None:
+            scan, pending = pos + 1, []
+        elif not state[1]:  # common case: nothing pending, and no new header in the new bytes
+            scan, pending = state[0] + pos, []
+            if buf.find(b"IX", scan) < 0 and buf.find(b"AN", scan) < 0:
+                self._scan_state = (max(scan, n - 1) - pos, pending)
+                return -1
+        else:
+            scan, pending = state[0] + pos, [q + pos for q in state[1]]
+        still = []
+        for q in pending:
+            r = self._check(buf, q)
+            if r > 0:
+                return q
+            if r == 0:
+                still.append(q)
+        i = j = -2
+        while True:
+            if -1 != i < scan:
+                i = buf.find(b"IX", scan)
+            if -1 != j < scan:
+                j = buf.find(b"AN", scan)
+            q = i if j < 0 or 0 <= i < j else j
+            if q < 0:
+                break
+            r = self._check(buf, q)
+            if r > 0:
+                return q
+            if r == 0:
+                still.append(q)
+            scan = q + 1
+        scan = max(scan, n - 1)
+        self._scan_state = (scan - pos, [q - pos for q in still])
+        return -1
+
+    @staticmethod
+    def _check(buf: bytes, q: int) -> int:
+        """Size of the complete, valid frame at ``q``; 0 if it may still become one; -1 if not."""
+        have = len(buf) - q
+        if have < 3:
+            return 0
+        version = buf[q + 2]
+        if buf[q] == 0x49:  # 'I'
+            header = HEADER_SIZES.get(version)
+            if header is None:
+                return -1
+            if have < header:
+                return 0
+            nav_size = ext_nav = None  # the same size test as _frame
+            if version == 2:
+                nav_mask, ext_mask, size, _, _ = _H_V2.unpack_from(buf, q + 3)
+            elif version == 3:
+                nav_mask, ext_nav, ext_mask, size, _, _ = _H_V3.unpack_from(buf, q + 3)
+            else:
+                nav_mask, ext_nav, ext_mask, nav_size, size, _, _ = _H_V4.unpack_from(buf, q + 3)
+            lay = _layout(version, nav_mask, ext_nav, ext_mask, nav_size)
+            if (lay.size is not None and size != lay.size) or size < lay.min_size or size > MAX_TELEGRAM:
+                return -1
+        else:
+            if not 3 <= version <= 5:
+                return -1
+            if have < ANSWER_HEADER_SIZE:
+                return 0
+            size = _U16.unpack_from(buf, q + 3)[0]
+            if not ANSWER_HEADER_SIZE + CHECKSUM_SIZE <= size <= MAX_ANSWER:
+                return -1
+        if have < size:
+            return 0
+        end = q + size - CHECKSUM_SIZE
+        return size if _U32.unpack_from(buf, end)[0] == _sum32(buf[q:end]) else -1
+
     def flush(self) -> list:
-        """End of stream: an incomplete frame left in the buffer is counted and dropped."""
+        """End of stream: frames still in the buffer behind an incomplete one are decoded; what
+        is left is counted (``truncated``) and dropped."""
+        out: list = []
+        self._scan = None
+        while len(self._buf) >= 3:
+            q = self._later_frame(self._buf, 0, None)
+            if q < 0:
+                break
+            self.stats.rejected["truncated"] += 1
+            self.stats.skipped_bytes += q
+            self._keep(self._buf, q, len(self._buf), None)
+            out += self._decode(self._buf, len(self._buf), None)  # every byte buffered: own stamps
+            self._scan = None
         if self._buf:
             self.stats.skipped_bytes += len(self._buf)
             if len(self._buf) >= 3:
                 self.stats.rejected["truncated"] += 1
-            self._buf = b""
-        return []
+        self._buf, self._mark_off, self._mark_ns, self._scan = b"", [], [], None
+        return out
 
     def _frame(self, buf: bytes, pos: int, version: int, host_ns, out: list) -> int:
         header = HEADER_SIZES.get(version)
@@ -555,8 +710,11 @@ class StdbinNavDecoder:
         return self.decoder.stats
 
     def feed(self, data: bytes, host_ns: int | None = None, utc_hint_ns: int | None = None) -> list[NavRecord]:
+        return self._navs(self.decoder.feed(data, host_ns), utc_hint_ns)
+
+    def _navs(self, records: list, utc_hint_ns: int | None) -> list[NavRecord]:
         out = []
-        for rec in self.decoder.feed(data, host_ns):
+        for rec in records:
             if isinstance(rec, StdbinFrame):
                 hint = utc_hint_ns
                 if hint is None and self.utc_clock is not None and "system_date" not in rec.blocks:
@@ -566,8 +724,8 @@ class StdbinNavDecoder:
                 self.stats.events["answers"] += 1
         return out
 
-    def flush(self) -> list[NavRecord]:
-        return self.decoder.flush()
+    def flush(self, utc_hint_ns: int | None = None) -> list[NavRecord]:
+        return self._navs(self.decoder.flush(), utc_hint_ns)
 
 
 # ---------------------------------------------------------------------------------------------

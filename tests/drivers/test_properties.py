@@ -6,17 +6,29 @@ decodes. (Round trips of generated records live with each codec's tests.)
 
 from __future__ import annotations
 
+import asyncio
+import struct
+
 import numpy as np
 import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
 from drivers.base import DriverError
-from drivers.can import CanFrame, decode_event_marker, encode_event_marker
+from drivers.can import (
+    EVENT_MARKER_ID,
+    CanFrame,
+    CanReader,
+    EventMarker,
+    can_frame_bytes,
+    decode_event_marker,
+    encode_event_marker,
+    parse_can_frame,
+)
 from drivers.hydrins.nmea import NmeaDecoder, NmeaNavAssembler
 from drivers.hydrins.stdbin import StdbinDecoder, StdbinNavDecoder
 from drivers.pcapng import CaptureReader, PcapError, udp_datagrams
-from drivers.pps import PpsLabeler, decode_pps_datagram, encode_pps_datagram
+from drivers.pps import PpsEdge, PpsLabeler, UdpPpsSource, decode_pps_datagram, encode_pps_datagram
 from drivers.zf.assembler import ProfileAssembler
 from drivers.zf.zfp1 import encode_profile
 from tests.drivers.helpers import PROPERTY, real_file
@@ -154,3 +166,272 @@ def test_capture_reader_raises_only_pcap_errors(data):
         except Exception as exc:  # struct.error and friends would be a defect
             if not isinstance(exc, PcapError):
                 raise
+
+
+# ---------------------------------------------------------------------------------------------
+# PPS datagrams: truncation at every offset, every single-bit flip.
+# ---------------------------------------------------------------------------------------------
+
+PPS_DG = encode_pps_datagram(0x0123_4567_89AB_CDEF, 1_234_567_890_123_456_789)
+
+
+def _pps_udp_source_feed(datagrams):
+    """Hand datagrams to a real UdpPpsSource's protocol (no network between): (edges, stats)."""
+    async def run():
+        src = UdpPpsSource("127.0.0.1", 0, "emu")
+        edges = []
+        async with src:
+            proto = src._transport.get_protocol()
+            for dg in datagrams:
+                proto.datagram_received(dg, ("127.0.0.1", 9))
+                while not src._queue.empty():
+                    edges.append(src._queue.get_nowait())
+        return edges, src.stats
+
+    return asyncio.run(run())
+
+
+def test_pps_datagram_truncated_at_every_offset_is_rejected_and_counted():
+    for cut in range(len(PPS_DG)):
+        with pytest.raises(DriverError, match=f"PPS datagram of {cut} bytes: expected {len(PPS_DG)}"):
+            decode_pps_datagram(PPS_DG[:cut])
+    edges, stats = _pps_udp_source_feed([PPS_DG[:cut] for cut in range(len(PPS_DG))] + [PPS_DG, PPS_DG + b"\0"])
+    assert [e.sequence for e in edges] == [0x0123_4567_89AB_CDEF]
+    assert stats.rejected["bad_datagram"] == len(PPS_DG) + 1 and stats.records == 1
+
+
+def test_pps_datagram_every_single_bit_flip():
+    """PPS1 has no checksum: a flip in the magic is rejected, a flip elsewhere decodes to a
+    different edge (exactly that bit of the sequence or of the stamp) — nothing else."""
+    good = decode_pps_datagram(PPS_DG)
+    flipped, n_magic = [], 0
+    for bit in range(len(PPS_DG) * 8):
+        bad = bytearray(PPS_DG)
+        bad[bit // 8] ^= 1 << (bit % 8)
+        flipped.append(bytes(bad))
+        if bit < 32:
+            n_magic += 1
+            with pytest.raises(DriverError, match="magic"):
+                decode_pps_datagram(bytes(bad))
+            continue
+        e = decode_pps_datagram(bytes(bad))
+        k = bit - 32
+        if k < 64:
+            assert e.sequence == good.sequence ^ (1 << k) and e.host_ns == good.host_ns
+        else:
+            expect = (good.host_ns & (2**64 - 1)) ^ (1 << (k - 64))
+            assert e.host_ns == expect - (2**64 if expect >= 2**63 else 0) and e.sequence == good.sequence
+    edges, stats = _pps_udp_source_feed(flipped + [PPS_DG])
+    assert stats.rejected["bad_datagram"] == n_magic == 32
+    assert len(edges) == len(flipped) - 32 + 1 and edges[-1] == PpsEdge(good.host_ns, "emu", good.sequence)
+
+
+# ---------------------------------------------------------------------------------------------
+# CAN: event markers through a CanReader's decoder hook, SocketCAN frame records.
+# ---------------------------------------------------------------------------------------------
+
+
+def _marker_reader():
+    return CanReader(None, {EVENT_MARKER_ID: decode_event_marker}), f"0x{EVENT_MARKER_ID:x}"
+
+
+def test_event_marker_truncated_at_every_offset_is_rejected_and_counted():
+    good = encode_event_marker("pass_end", 513, 70000)
+    reader, key = _marker_reader()
+    for cut in range(len(good)):
+        assert reader.decode(CanFrame(0x6E0, good[:cut], cut, 0.0)).decoded is None
+    assert reader.stats.rejected[key] == len(good)
+    assert reader.decode(CanFrame(0x6E0, good, 99, 0.0)).decoded == EventMarker("pass_end", 513, 70000, 99)
+
+
+def test_event_marker_every_single_bit_flip():
+    """No CRC in the payload (CAN has its own): format and kind flips are rejected unless the kind
+    lands on another valid code; pass id and sequence flips decode to exactly that change."""
+    good = encode_event_marker("pass_start", 0x0203, 0x0A0B0C0D)
+    reader, key = _marker_reader()
+    rejected = 0
+    for bit in range(len(good) * 8):
+        bad = bytearray(good)
+        bad[bit // 8] ^= 1 << (bit % 8)
+        m = reader.decode(CanFrame(0x6E0, bytes(bad), bit, 0.0)).decoded
+        byte = bit // 8
+        if byte == 0 or (byte == 1 and bad[1] not in (1, 2, 3)):
+            assert m is None, bit
+            rejected += 1
+        elif byte == 1:
+            assert m.kind in ("pass_end", "mark") and (m.pass_id, m.sequence) == (0x0203, 0x0A0B0C0D)
+        elif byte < 4:
+            assert m.pass_id == 0x0203 ^ (1 << (bit - 16)) and m.sequence == 0x0A0B0C0D
+        else:
+            assert m.sequence == 0x0A0B0C0D ^ (1 << (bit - 32)) and m.pass_id == 0x0203
+    assert reader.stats.rejected[key] == rejected and rejected > 8
+    assert reader.decode(CanFrame(0x6E0, good, 1, 0.0)).decoded.kind == "pass_start"
+
+
+CAN_RECORDS = [(0x6E0, encode_event_marker("mark", 1, 2), False), (0x1ABCDE, b"\x01\x02\x03", True),
+               (0x123, bytes(range(48)), False)]  # fmt: skip
+
+
+@pytest.mark.parametrize("arb, data, ext", CAN_RECORDS)
+def test_can_frame_record_truncated_at_every_offset_is_rejected(arb, data, ext):
+    raw = can_frame_bytes(arb, data, ext)
+    for cut in range(len(raw)):
+        with pytest.raises(DriverError, match=f"CAN frame record of {cut} bytes"):
+            parse_can_frame(raw[:cut])
+    assert parse_can_frame(raw) == (arb, data, ext)
+
+
+@pytest.mark.parametrize("arb, data, ext", CAN_RECORDS)
+def test_can_frame_record_every_single_bit_flip(arb, data, ext):
+    """The record has no checksum: a flip changes the id, the flags, the length or the data (or
+    falls in padding); a length beyond the data or a standard id beyond 11 bits is rejected."""
+    raw = can_frame_bytes(arb, data, ext)
+    cap = 8 if len(raw) == 16 else 64
+    data_at = 8
+    for bit in range(len(raw) * 8):
+        bad = bytearray(raw)
+        bad[bit // 8] ^= 1 << (bit % 8)
+        byte = bit // 8
+        try:
+            got = parse_can_frame(bytes(bad))
+        except DriverError:
+            n = bad[4]
+            can_id = int.from_bytes(bad[:4], "little")
+            assert n > cap or (not can_id & 0x80000000 and can_id & 0x1FFFFFFF > 0x7FF), bit
+            continue
+        g_arb, g_data, g_ext = got
+        if byte < 4:  # the id word: id bits, EFF flag, RTR/ERR flags (ignored)
+            assert g_data == data
+        elif byte == 4:
+            assert g_arb == arb and g_ext == ext and len(g_data) == bad[4] <= cap
+            assert g_data[: min(len(data), len(g_data))] == data[: len(g_data)]
+        elif byte < data_at:  # flags / padding
+            assert got == (arb, data, ext)
+        elif byte - data_at < len(data):
+            assert g_arb == arb and g_ext == ext and len(g_data) == len(data) and g_data != data
+        else:  # padding behind the data
+            assert got == (arb, data, ext)
+
+
+@PROPERTY
+@given(ext=st.booleans(), arb=st.integers(0, 0x1FFFFFFF), data=st.binary(max_size=64))
+def test_can_frame_record_round_trip(ext, arb, data):
+    arb = arb if ext else arb & 0x7FF
+    assert parse_can_frame(can_frame_bytes(arb, data, ext)) == (arb, data, ext)
+
+
+# ---------------------------------------------------------------------------------------------
+# pcapng: a real capture cut at many offsets and with flipped bits.
+# ---------------------------------------------------------------------------------------------
+
+PCAPNG_FILES = ["stdbin_V2_2Hz.pcapng", "stdbin_V3_2Hz.pcapng", "stdbin_V5_2Hz.pcapng"]
+
+
+def _blocks(data: bytes) -> list[int]:
+    """End offsets of the capture's blocks (little-endian pcapng, as these files are)."""
+    ends, pos = [], 0
+    while pos + 8 <= len(data):
+        pos += struct.unpack_from("<I", data, pos + 4)[0]
+        ends.append(pos)
+    assert pos == len(data)
+    return ends
+
+
+def _read(data: bytes):
+    """(datagrams, reader stats, error): iterate until the reader stops or raises."""
+    reader = CaptureReader(data)
+    grams, err = [], None
+    try:
+        for g in udp_datagrams(reader):
+            grams.append(g)
+    except PcapError as e:
+        err = e
+    return grams, reader.stats, err
+
+
+def _stdbin_of(grams):
+    dec = StdbinDecoder()
+    return [f for g in grams for f in dec.feed(g.payload, g.timestamp_ns)], dec
+
+
+@pytest.fixture(scope="module", params=PCAPNG_FILES)
+def capture(request):
+    data = real_file("ixblue-stdbin", request.param).read_bytes()
+    grams, stats, err = _read(data)
+    assert err is None and not stats.rejected and grams
+    ends = _blocks(data)
+    # datagrams complete by the end of each block
+    complete = {end: len(_read(data[:end])[0]) for end in ends}
+    return data, grams, ends, complete
+
+
+def _intact(ends, complete, offset):
+    """Datagrams in blocks that end at or before ``offset``."""
+    return max([complete[e] for e in ends if e <= offset], default=0)
+
+
+def test_pcapng_cut_at_many_offsets_keeps_every_whole_record(capture):
+    """Every offset of the section and interface headers, of the first and last packet blocks'
+    headers, one byte either side of every block boundary, and every 37th offset elsewhere."""
+    data, grams, ends, complete = capture
+    near = {o for e in [0, *ends[:6], *ends[-4:]] for o in range(e - 8, e + 32)}
+    near |= {o for e in ends for o in (e - 1, e, e + 1)}
+    offsets = sorted(o for o in set(range(ends[1])) | near | set(range(0, len(data), 37)) if 0 <= o < len(data))
+    for cut in offsets:
+        got, stats, err = _read(data[:cut])
+        if cut < 4:
+            assert isinstance(err, PcapError) and got == []
+            continue
+        assert err is None, cut  # a capture cut short ends the iteration; nothing raises
+        k = _intact(ends, complete, cut)
+        assert got == grams[:k], cut
+        assert (stats.rejected["truncated"] == 1) == (cut not in ends), cut
+        frames, dec = _stdbin_of(got)
+        assert len(frames) == k and dec.stats.rejected_total == 0
+
+
+@PROPERTY
+@given(bit=st.integers(0, 10**7), cut=st.integers(0, 10**7))
+def test_pcapng_random_cuts_and_bit_flips(capture, bit, cut):
+    data, grams, ends, complete = capture
+    bit %= len(data) * 8
+    bad = bytearray(data)
+    bad[bit // 8] ^= 1 << (bit % 8)
+    bad = bytes(bad[: max(bit // 8 + 1, cut % (len(data) + 1))])
+    got, stats, err = _read(bad)  # raises nothing but PcapError (checked in _read)
+    k = _intact(ends, complete, bit // 8)
+    assert got[:k] == grams[:k]  # every record before the damage still comes out
+    frames, dec = _stdbin_of(got)  # and the damaged payloads do not break the decoder
+    assert len(frames) >= k
+
+
+def test_pcapng_every_bit_of_the_block_headers(capture):
+    """Block type and length words of the first blocks: the fields that steer the reader."""
+    data, grams, ends, complete = capture
+    for start in [0, *ends[:5]]:
+        for bit in range(start * 8, (start + 8) * 8):
+            bad = bytearray(data)
+            bad[bit // 8] ^= 1 << (bit % 8)
+            got, stats, err = _read(bytes(bad))
+            k = _intact(ends, complete, start)
+            assert got[:k] == grams[:k], bit
+            _stdbin_of(got)
+
+
+def test_pcapng_damaged_block_lengths(capture):
+    """A block length rewritten to every multiple of 4 from 12 to its true size (the block
+    then ends early, and the reader parses what follows as the next block): only PcapError may
+    escape; a block too short for its fixed fields is counted, not a struct.error."""
+    data, grams, ends, complete = capture
+    for start in ends[:4]:  # the interface block and the first packet blocks
+        true_len = struct.unpack_from("<I", data, start + 4)[0]
+        for n in range(12, true_len, 4):
+            bad = bytearray(data)
+            struct.pack_into("<I", bad, start + 4, n)
+            got, stats, err = _read(bytes(bad))
+            k = _intact(ends, complete, start)
+            assert got[:k] == grams[:k], (start, n)
+            btype = struct.unpack_from("<I", data, start)[0]
+            if (btype == 6 and n < 12 + 20) or (btype == 1 and n < 12 + 8):  # EPB / IDB fixed fields
+                assert stats.rejected["short_block"] == 1, (start, n)
+            _stdbin_of(got)

@@ -2,7 +2,11 @@
 
 from __future__ import annotations
 
+import functools
 import math
+import operator
+import re
+from collections import Counter
 
 import numpy as np
 import pytest
@@ -137,6 +141,7 @@ GPSD_COUNTS = {
     "hemi.log": {"GPHDT": 215, "GPGGA": 215, "GPVTG": 215, "GPZDA": 108},
     "rst39.log": {"PASHR": 100, "GPGGA": 40, "GPRMC": 4, "GPHDT": 4, "GPZDA": 4},
     "saab-r4.log": {"PFEC": 12, "AIVDO": 12, "GPZDA": 12, "GPGLL": 12, "GPGGA": 12, "GPVTG": 12, "GPRMC": 12, "GPDTM": 12, "HEHDT": 12, "HEROT": 12, "AIVDM": 2},
+    "skytraq-PX1172RH_DS.log": {"PSTI": 54, "GNGSA": 36, "GAGSV": 15, "GPGSV": 12, "GPGGA": 9, "GNGLL": 9, "GNRMC": 9, "GNVTG": 9, "GNZDA": 9, "GNTHS": 9, "GNHDT": 9, "GBGSV": 9, "GLGSV": 6},
 }
 
 
@@ -154,6 +159,40 @@ def test_gpsd_captures_parse_with_no_valid_sentence_rejected(name):
     if name in GPSD_COUNTS:
         assert {k: dec.counts[k] for k in GPSD_COUNTS[name]} == GPSD_COUNTS[name]
         assert sum(dec.counts.values()) == sum(GPSD_COUNTS[name].values()) or name == "saab-r4.log"
+
+
+def _checksummed_sentence_ids(data: bytes) -> Counter:
+    """Sentence ids of the lines that carry a valid NMEA checksum, counted with a regex (independent
+    of the decoder); JSON, comment and unchecksummed lines do not count."""
+    ids: Counter = Counter()
+    for m in re.finditer(rb"^[$!]([A-Z0-9]+)(,[^*\r\n]*)?\*([0-9A-Fa-f]{2})\r?$", data, re.M):
+        body = m.group(0)[1 : m.group(0).rindex(b"*")]
+        if functools.reduce(operator.xor, body, 0) == int(m.group(3), 16):
+            ids[m.group(1).decode()] += 1
+    return ids
+
+
+@pytest.mark.parametrize("name", sorted(GPSD_COUNTS))
+def test_gpsd_counts_per_sentence_type_match_a_regex_count_of_the_file(name):
+    data = real_file("gpsd", name).read_bytes()
+    expected = _checksummed_sentence_ids(data)
+    dec = NmeaDecoder()
+    dec.feed(data)
+    dec.flush()
+    assert dict(dec.counts) == dict(expected)
+    if name != "saab-r4.log":  # saab-r4's table lists the types of interest only
+        assert dict(expected) == GPSD_COUNTS[name]
+    else:
+        assert {k: expected[k] for k in GPSD_COUNTS[name]} == GPSD_COUNTS[name]
+
+
+def test_skytraq_dual_antenna_heading_sentences_are_counted():
+    """The skytraq capture's reason to be here: $GNHDT and $GNTHS, behind leading JSON lines."""
+    dec = NmeaDecoder()
+    dec.feed(real_file("gpsd", "skytraq-PX1172RH_DS.log").read_bytes())
+    dec.flush()
+    assert dec.counts["GNHDT"] == dec.counts["GNTHS"] == dec.counts["GNZDA"] == 9
+    assert dec.stats.rejected_total == 0
 
 
 def test_gpsd_empty_fields_are_missing_not_zero():

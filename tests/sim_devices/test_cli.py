@@ -138,3 +138,30 @@ def test_bad_input_exits_2_with_a_located_message(tmp_path, faults, args, messag
     assert proc.returncode == 2, proc.stdout + proc.stderr
     assert message in " ".join(proc.stdout.split())
     assert not (tmp_path / "r" / "devices.json").exists()
+
+
+def test_point_rate_scale_thins_the_profiler_to_that_fraction_of_its_points(tmp_path):
+    """``--point-rate-scale 0.1`` sends about a tenth of the points of a run at 1.0 over the same
+    2 scenario seconds (√0.1 on the profile rate and on the points per profile), read from the
+    emulator's own stats (packets, bytes) and the layout it announced in devices.json."""
+    sets = [a for s in SHORT_PASSES for a in ("--set", s)]
+    points, infos = {}, {}
+    for scale in ("1.0", "0.1"):
+        run_dir = tmp_path / f"run-{scale}"
+        cmd = [sys.executable, "-m", "acquire.cli", "sim", "devices", "-s", "montreal", *sets, "--start", "2.5",
+               "--duration", "2", "--devices", "profiler", "--point-rate-scale", scale, "--run-dir", str(run_dir)]  # fmt: skip
+        proc = subprocess.run(cmd, capture_output=True, text=True, timeout=180, env={**os.environ, "COLUMNS": "200"})
+        assert proc.returncode == 0, proc.stdout + proc.stderr
+        info = json.loads((run_dir / "devices.json").read_text())["devices"]["profiler"]
+        result = json.loads((run_dir / "stats" / "profiler.json").read_text())
+        assert result["status"] == "finished", result
+        st = result["stats"]
+        assert st["packets"] == st["datagrams_sent"] > 0 and st["lost"] == 0
+        # every ZFP1 datagram: 40-byte header, 6 bytes a point, CRC-32
+        from_bytes = (st["bytes_sent"] - st["packets"] * (40 + 4)) / 6
+        assert from_bytes == st["profiles"] * info["points_per_profile"]
+        assert st["profiles"] == pytest.approx(2.0 * info["profile_rate_hz"], abs=2)  # 2 scenario seconds
+        points[scale], infos[scale] = from_bytes, info
+    assert infos["1.0"]["profile_rate_hz"] == 200.0 and infos["1.0"]["points_per_360"] == 5080  # the Z+F rate
+    assert infos["0.1"]["profile_rate_hz"] == pytest.approx(200.0 * 0.1**0.5)
+    assert points["0.1"] / points["1.0"] == pytest.approx(0.1, rel=0.1)
