@@ -2,7 +2,7 @@
 scene, and its ratio to the georeferencing throughput (``calib.georef.georeference`` on the
 same number of points) measured in the same run.
 
-    .venv/bin/python benchmarks/simulate.py [--seconds S]
+    .venv/bin/python benchmarks/simulate.py [--repeat N]
 
 The scene is the montreal scenario at the full Z+F point rate with its quay wall widened to
 40 m × 8 m and 17 more panels on it (20 rectangles); the scanner records its default angular
