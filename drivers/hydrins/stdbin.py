@@ -43,8 +43,8 @@ from __future__ import annotations
 
 import math
 import struct
-from bisect import bisect_right
 import time
+from bisect import bisect_right
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from typing import Any
@@ -431,6 +431,23 @@ _U16 = struct.Struct(">H")
 _U32 = struct.Struct(">I")
 
 
+def _nav_header(buf: bytes, pos: int, version: int):
+    """The header fields of the navigation frame at ``pos`` (``version`` known, header complete):
+    ``(nav_mask, ext_nav, ext_mask, size, validity, counter, layout)``, or None when the telegram
+    size does not match what the masks say."""
+    nav_size = ext_nav = None
+    if version == 2:
+        nav_mask, ext_mask, size, validity, counter = _H_V2.unpack_from(buf, pos + 3)
+    elif version == 3:
+        nav_mask, ext_nav, ext_mask, size, validity, counter = _H_V3.unpack_from(buf, pos + 3)
+    else:
+        nav_mask, ext_nav, ext_mask, nav_size, size, validity, counter = _H_V4.unpack_from(buf, pos + 3)
+    lay = _layout(version, nav_mask, ext_nav, ext_mask, nav_size)
+    if (lay.size is not None and size != lay.size) or size < lay.min_size or size > MAX_TELEGRAM:
+        return None
+    return nav_mask, ext_nav, ext_mask, size, validity, counter, lay
+
+
 class StdbinDecoder:
     """Bytes → :class:`StdbinFrame` / :class:`StdbinAnswer` (see the module docstring)."""
 
@@ -599,16 +616,10 @@ class StdbinDecoder:
                 return -1
             if have < header:
                 return 0
-            nav_size = ext_nav = None  # the same size test as _frame
-            if version == 2:
-                nav_mask, ext_mask, size, _, _ = _H_V2.unpack_from(buf, q + 3)
-            elif version == 3:
-                nav_mask, ext_nav, ext_mask, size, _, _ = _H_V3.unpack_from(buf, q + 3)
-            else:
-                nav_mask, ext_nav, ext_mask, nav_size, size, _, _ = _H_V4.unpack_from(buf, q + 3)
-            lay = _layout(version, nav_mask, ext_nav, ext_mask, nav_size)
-            if (lay.size is not None and size != lay.size) or size < lay.min_size or size > MAX_TELEGRAM:
+            h = _nav_header(buf, q, version)
+            if h is None:
                 return -1
+            size = h[3]
         else:
             if not 3 <= version <= 5:
                 return -1
@@ -650,18 +661,11 @@ class StdbinDecoder:
             return -1
         if len(buf) - pos < header:
             return 0
-        nav_size = None
-        ext_nav = None
-        if version == 2:
-            nav_mask, ext_mask, size, validity, counter = _H_V2.unpack_from(buf, pos + 3)
-        elif version == 3:
-            nav_mask, ext_nav, ext_mask, size, validity, counter = _H_V3.unpack_from(buf, pos + 3)
-        else:
-            nav_mask, ext_nav, ext_mask, nav_size, size, validity, counter = _H_V4.unpack_from(buf, pos + 3)
-        lay = _layout(version, nav_mask, ext_nav, ext_mask, nav_size)
-        if (lay.size is not None and size != lay.size) or size < lay.min_size or size > MAX_TELEGRAM:
+        h = _nav_header(buf, pos, version)
+        if h is None:
             self.stats.rejected["size_mismatch"] += 1
             return -1
+        nav_mask, ext_nav, ext_mask, size, validity, counter, lay = h
         if len(buf) - pos < size:
             return 0
         end = pos + size - CHECKSUM_SIZE
