@@ -431,6 +431,24 @@ _U16 = struct.Struct(">H")
 _U32 = struct.Struct(">I")
 
 
+class _Headers:
+    """The next ``'IX'`` / ``'AN'`` at or after a position of ``buf`` (-1: none), for positions
+    that only grow: each magic is searched again only once the position has passed it."""
+
+    __slots__ = ("buf", "ix", "an")
+
+    def __init__(self, buf: bytes) -> None:
+        self.buf, self.ix, self.an = buf, -2, -2
+
+    def next(self, pos: int) -> int:
+        if -1 != self.ix < pos:
+            self.ix = self.buf.find(b"IX", pos)
+        if -1 != self.an < pos:
+            self.an = self.buf.find(b"AN", pos)
+        i, j = self.ix, self.an
+        return i if j < 0 or 0 <= i < j else j
+
+
 def _nav_header(buf: bytes, pos: int, version: int):
     """The header fields of the navigation frame at ``pos`` (``version`` known, header complete):
     ``(nav_mask, ext_nav, ext_mask, size, validity, counter, layout)``, or None when the telegram
@@ -499,13 +517,9 @@ class StdbinDecoder:
         scan = self._scan
         self._scan = None
         waiting = False
-        i = j = -2  # next 'IX' / 'AN' at or after pos (-1: none left); searched lazily, each once
+        headers = _Headers(buf)
         while True:
-            if -1 != i < pos:
-                i = buf.find(b"IX", pos)
-            if -1 != j < pos:
-                j = buf.find(b"AN", pos)
-            start = i if j < 0 or 0 <= i < j else j
+            start = headers.next(pos)
             if start < 0:
                 # a lone trailing "I"/"A" may start the next frame (only if not yet consumed)
                 keep = n - 1 if n > pos and buf[-1:] in (b"I", b"A") else n
@@ -584,13 +598,9 @@ class StdbinDecoder:
                 return q
             if r == 0:
                 still.append(q)
-        i = j = -2
+        headers = _Headers(buf)
         while True:
-            if -1 != i < scan:
-                i = buf.find(b"IX", scan)
-            if -1 != j < scan:
-                j = buf.find(b"AN", scan)
-            q = i if j < 0 or 0 <= i < j else j
+            q = headers.next(scan)
             if q < 0:
                 break
             r = self._check(buf, q)
