@@ -12,9 +12,11 @@ instead). Then, session by session, against what the fake devices record of ever
   ``mls logs recover``, in the recovered segment's ``mls.recovery`` metadata, with the torn
   original kept, and its count of bytes and messages checked against a scan of that original.
 
-"Emitted" per channel (the fake's record is stamped when the send call returned, so the data
-were in the kernel's pty or socket buffer): an INS byte when the ``os.write`` holding it
-returned (the daemon reads the pty in arbitrary pieces, so the comparison is of byte streams:
+"Emitted" per channel (the fake stamps each send call before it is made and after it returned,
+so the data were in the kernel's pty or socket buffer by the second stamp; a piece is due only
+when its call started inside the window and returned before its end, since a stamp taken after
+the call can lag it by a GIL switch, past a reopening daemon's input flush): an INS byte when
+the ``os.write`` holding it returned (the daemon reads the pty in arbitrary pieces, so the comparison is of byte streams:
 a session's ``/ins/raw`` is one contiguous slice of everything sent, after the previous
 session's slice); a profiler datagram when its ``sendto`` returned (compared as whole
 datagrams, in order); a PPS edge when the ZDA sentence that labels it was written (the daemon
@@ -75,8 +77,9 @@ class _SendLog:
     def sendto(self, data, addr):
         if self.dev.halted.is_set():
             raise _Halt
+        t0 = time.monotonic_ns()
         n = self.sock.sendto(data, addr)
-        self.dev.sent.append((time.monotonic_ns(), addr, bytes(data)))
+        self.dev.sent.append(((t0, time.monotonic_ns()), addr, bytes(data)))
         return n
 
     def close(self):
@@ -89,8 +92,8 @@ class RecordingDevices(FakeDevices):
     def __init__(self, *args, **kwargs):
         super().__init__(*args, **kwargs)
         self.halted = threading.Event()
-        self.sent: list[tuple[int, tuple, bytes]] = []
-        self.ins_ends: list[tuple[int, int]] = []  # (host ns after os.write returned, end offset)
+        self.sent: list[tuple[tuple[int, int], tuple, bytes]] = []  # ((ns before, after), addr, datagram)
+        self.ins_ends: list[tuple[int, int, int]] = []  # (ns before os.write, after it returned, end offset)
         self.zda_ns: list[int] = []  # when each ZDA sentence was written whole
         self.sock = _SendLog(self.sock, self)
 
@@ -105,17 +108,25 @@ class RecordingDevices(FakeDevices):
         while view:
             if self.halted.is_set():
                 raise _Halt
+            t0 = time.monotonic_ns()
             n = os.write(self.master, view)
             self.ins_bytes += view[:n]
-            self.ins_ends.append((time.monotonic_ns(), len(self.ins_bytes)))
+            self.ins_ends.append((t0, time.monotonic_ns(), len(self.ins_bytes)))
             view = view[n:]
         if b"ZDA," in data:
-            self.zda_ns.append(self.ins_ends[-1][0])
+            self.zda_ns.append(self.ins_ends[-1][1])
+
+    def ins_due(self, lo_ns: int, hi_ns: int) -> tuple[int, int]:
+        """Byte offsets [first, last) of the writes that started at or after ``lo_ns`` and had
+        returned before ``hi_ns``."""
+        i = bisect_right([t0 for t0, _, _ in self.ins_ends], lo_ns - 1)
+        j = bisect_right([t1 for _, t1, _ in self.ins_ends], hi_ns - 1)
+        first = self.ins_ends[i - 1][2] if i else 0
+        return first, max(first, self.ins_ends[j - 1][2] if j else 0)
 
     def ins_offset_at(self, t_ns: int) -> int:
         """Bytes handed to the pty by host time ``t_ns``."""
-        i = bisect_right([t for t, _ in self.ins_ends], t_ns)
-        return self.ins_ends[i - 1][1] if i else 0
+        return self.ins_due(0, t_ns + 1)[1]
 
 
 @dataclass
@@ -275,7 +286,7 @@ def test_every_ins_byte_emitted_before_the_flush_period_is_logged_exactly_once(k
                                           "after the previous session's")  # fmt: skip
         b = a + len(logged)
         if r.kill_ns is not None:
-            first_due, last_due = (fake.ins_offset_at(t) for t in _window(r, "ins"))
+            first_due, last_due = fake.ins_due(*_window(r, "ins"))
             assert a <= first_due and b >= last_due, (r.trial, a, first_due, last_due, b)
             print(f"trial {r.trial}: INS bytes {a}–{b} logged, {first_due}–{last_due} due; "
                   f"{fake.ins_offset_at(r.kill_ns) - b} B sent before the kill not logged")
@@ -294,14 +305,14 @@ def test_every_profiler_datagram_emitted_before_the_flush_period_is_logged_exact
         assert got == sorted(set(got)) and (not got or got[0] > prev), (r.trial, "twice or out of order")
         if r.kill_ns is not None:
             lo, hi = _window(r, "profiler")
-            due = {i for i, (t, _) in enumerate(sent) if lo <= t < hi}
+            due = {i for i, ((t0, t1), _) in enumerate(sent) if lo <= t0 and t1 < hi}
             assert len(due) > 10 and due <= set(got), (r.trial, sorted(due - set(got))[:5])
         prev = got[-1] if got else prev
 
 
 def test_every_pps_edge_labelled_before_the_flush_period_is_logged_exactly_once(kill_runs):
     fake, runs = kill_runs["fake"], kill_runs["runs"]
-    pulses = [(t, decode_pps_datagram(d).sequence) for t, addr, d in fake.sent if addr == fake.addr_pps]
+    pulses = [(t0, decode_pps_datagram(d).sequence) for (t0, _), addr, d in fake.sent if addr == fake.addr_pps]
     second = {k + 1: s for k, (s, _) in enumerate(fake.pulses)}
     seen: set[int] = set()
     due_total = 0
