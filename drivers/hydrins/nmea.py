@@ -527,7 +527,10 @@ class NmeaNavAssembler:
         if not epoch:
             return []
         nav = NavRecord("nmea")
-        hosts = [r.host_ns for r in epoch.values() if r.host_ns is not None]
+        # received with the epoch's own sentences: a ZDA (sent once a second after the PPS edge,
+        # between two blocks) that happens to precede the block does not date its arrival
+        own = [r for k, r in epoch.items() if k is not Zda] or list(epoch.values())
+        hosts = [r.host_ns for r in own if r.host_ns is not None]
         nav.host_ns = min(hosts) if hosts else None
         tod = None
         for r in epoch.values():

@@ -250,6 +250,19 @@ def test_an_epoch_that_lost_its_time_is_not_dated_by_a_zda_of_another_instant():
     assert nav.gps_ns == zda_ns and asm.stats.rejected == {}
 
 
+def test_an_epoch_is_stamped_with_its_own_sentences_not_the_zda_read_before_it():
+    """The ZDA follows the PPS edge on its own schedule and often arrives a little before the
+    next block (read in a chunk of its own): the epoch's receive stamp is its block's."""
+    asm = NmeaNavAssembler(utc_clock=None)
+    out = asm.feed(encode_epoch(_epoch_at(-1)), host_ns=1_000)
+    out += asm.feed(encode_zda(_epoch_at(0).gps_ns), host_ns=2_000)
+    out += asm.feed(encode_epoch(_epoch_at(1)), host_ns=3_000)
+    assert [(n.host_ns, n.gps_ns) for n in out] == [(1_000, None), (3_000, _epoch_at(1).gps_ns)]  # (no date yet)
+    # a ZDA alone (a stream of time messages only) is still stamped by its own arrival
+    (nav,) = asm.feed(encode_zda(_epoch_at(200).gps_ns), host_ns=4_000) + asm.flush()
+    assert nav.host_ns == 4_000
+
+
 @PROPERTY
 @given(st.lists(st.tuples(st.floats(0, 1), st.integers(0, 12)), min_size=1, max_size=30))
 def test_a_stream_losing_bytes_never_mixes_epochs(cuts):
