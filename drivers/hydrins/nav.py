@@ -122,12 +122,11 @@ class NavRecord:
     def to_dict(self, degrees: bool = True) -> dict[str, Any]:
         """Plain dict for JSON: NaN → None; with ``degrees`` the ``*_rad`` fields become ``*_deg``."""
         out: dict[str, Any] = {}
-        for f in fields(self):
-            value = getattr(self, f.name)
-            name = f.name
+        for name, deg_name in _FIELD_NAMES:
+            value = getattr(self, name)
             if isinstance(value, float):
-                if degrees and name.endswith("_rad"):
-                    name, value = name[:-4] + "_deg", math.degrees(value)
+                if degrees and deg_name:
+                    name, value = deg_name, math.degrees(value)
                 if value != value:
                     value = None
             elif isinstance(value, tuple):
@@ -172,3 +171,7 @@ def wrap_heading_rad(heading_rad: float) -> float:
     if heading_rad != heading_rad:
         return heading_rad
     return heading_rad % TWO_PI
+
+
+# (field, its name in degrees for a ``*_rad`` field else None), in declaration order
+_FIELD_NAMES = tuple((f.name, f.name[:-4] + "_deg" if f.name.endswith("_rad") else None) for f in fields(NavRecord))

@@ -10,6 +10,7 @@ goes to the previous day.
 from __future__ import annotations
 
 import datetime as _dt
+from functools import lru_cache
 
 from calib.frames import leap_seconds_at_gps_ns, utc_fields_to_gps_ns
 
@@ -53,9 +54,21 @@ def utc_date_ns(year: int, month: int, day: int) -> int:
 def resolve_gps_ns(time_of_day_ns: int, hint_utc_ns: int) -> int:
     """UTC time of day + a UTC instant within ±12 h (ns since the Unix epoch) → GPS ns."""
     day = hint_utc_ns // DAY_NS
-    best = min((day - 1, day, day + 1), key=lambda d: abs(d * DAY_NS + time_of_day_ns - hint_utc_ns))
-    date = _UNIX_EPOCH + _dt.timedelta(days=best)
-    return utc_fields_to_gps_ns(date.year, date.month, date.day, time_of_day_ns)
+    err = day * DAY_NS + time_of_day_ns - hint_utc_ns  # of the hint's own day; the nearest wins
+    best, best_err = day - 1, abs(err - DAY_NS)  # (ties: the earlier day)
+    if abs(err) < best_err:
+        best, best_err = day, abs(err)
+    if abs(err + DAY_NS) < best_err:
+        best = day + 1
+    return _gps_midnight_ns(best) + time_of_day_ns
+
+
+@lru_cache(maxsize=16)
+def _gps_midnight_ns(day: int) -> int:
+    """GPS ns of UTC midnight ``day`` days after the Unix epoch (the day's leap-second count is
+    that of its midnight, as for :func:`calib.frames.utc_fields_to_gps_ns`)."""
+    date = _UNIX_EPOCH + _dt.timedelta(days=day)
+    return utc_fields_to_gps_ns(date.year, date.month, date.day, 0)
 
 
 def utc_time_of_day_ns(gps_ns: int) -> int:
