@@ -9,6 +9,7 @@ import time
 
 import pytest
 
+from drivers import recvmmsg
 from drivers.transport import create_transport
 
 pytestmark = pytest.mark.integration
@@ -24,11 +25,14 @@ async def _send(port: int, payloads: list[bytes]) -> tuple[int, int]:
     return t0, t1
 
 
-def test_bursts_arrive_complete_in_order_with_kernel_stamps_and_a_lagging_reader_pauses():
+@pytest.mark.parametrize("use_recvmmsg", [True, False], ids=["recvmmsg", "recvmsg"])
+def test_bursts_arrive_complete_in_order_with_kernel_stamps_and_a_lagging_reader_pauses(use_recvmmsg):
+    assert recvmmsg.available()  # Linux: the fast path is what the daemon runs
     async def run():
         t = create_transport({"kind": "udp-batch", "host": "127.0.0.1", "port": 0, "max_chunks": 64,
-                              "coalesce_s": 0.005})  # fmt: skip
+                              "coalesce_s": 0.005, "use_recvmmsg": use_recvmmsg})  # fmt: skip
         await t.open()
+        assert (t._mmsg is not None) == use_recvmmsg
         assert t.kernel_stamps and "kernel receive stamps" in t.describe()
         await asyncio.sleep(0.1)  # the kernel turns receive stamping on asynchronously
         payloads = [i.to_bytes(4, "little") * 300 for i in range(3000)]  # 1.2 kB each
@@ -54,3 +58,29 @@ def test_bursts_arrive_complete_in_order_with_kernel_stamps_and_a_lagging_reader
 
     data, rejected = asyncio.run(run())
     assert data == b"x" * 65000 and rejected == {}  # 64 kB fits: nothing truncated
+
+
+def test_recvmmsg_counts_a_datagram_larger_than_its_slot_and_reads_on():
+    rx = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    rx.setsockopt(socket.SOL_SOCKET, 35, 1)  # SO_TIMESTAMPNS (Linux; Python lacks the name)
+    rx.bind(("127.0.0.1", 0))
+    rx.setblocking(False)
+    m = recvmmsg.MmsgReceiver(rx, slots=4, max_datagram=1000)
+    with pytest.raises(BlockingIOError):
+        m.receive()
+    time.sleep(0.1)  # the kernel turns receive stamping on asynchronously
+    tx = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    t0 = time.time_ns()
+    for p in (b"a" * 10, b"b" * 1500, b"c" * 1000, b"d", b"e" * 7, b"f"):
+        tx.sendto(p, rx.getsockname())
+    t1 = time.time_ns()
+    time.sleep(0.05)
+    first = m.receive()
+    second = m.receive(limit=1)
+    third = m.receive()
+    assert (first[0], first[2]) == ([b"a" * 10, b"c" * 1000, b"d"], 1)  # 4 slots: one truncated
+    assert (second[0], second[2], third[0], third[2]) == ([b"e" * 7], 0, [b"f"], 0)
+    stamps = first[1] + second[1] + third[1]
+    assert all(t0 - 1_000_000 <= t <= t1 + 1_000_000 for t in stamps) and stamps == sorted(stamps)
+    tx.close()
+    rx.close()
