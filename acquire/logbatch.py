@@ -4,11 +4,12 @@ The devices call :meth:`LogBatcher.submit` (the signature of
 :meth:`acquire.sessionlog.SessionWriter.submit` for what they use): the record is stamped at
 once — its ``log_time`` and clock state from the :class:`~acquire.timekeeper.ClockCache` at the
 host receive stamp — and appended to a list; every ``period_s`` (5 ms) of loop time, or when
-``max_items`` are waiting, the list goes to the writer in one go. The writer thread then wakes
-once per batch instead of once per datagram (at the full Z+F rate that is ~4600 thread wake-ups
-and GIL hand-overs per second saved), and the writer's own queue still bounds memory and counts
-drops (``log_queue_overflow``). Records keep their order across topics; the delay (≤ 5 ms) is
-far below the chunk flush period. :meth:`flush` hands over what is waiting (shutdown).
+``max_items`` are waiting, the list goes to the writer in one go
+(:meth:`~acquire.sessionlog.SessionWriter.submit_batch`: one lock, one queue item). The writer
+thread then wakes once per batch instead of once per datagram (at the full Z+F rate that is
+~4600 thread wake-ups and GIL hand-overs per second saved), and the writer's queue still bounds
+memory in records and counts drops (``log_queue_overflow``). Records keep their order across
+topics; the delay (≤ 5 ms) is far below the chunk flush period. :meth:`flush` hands over what is waiting (shutdown).
 """
 
 from __future__ import annotations
@@ -20,9 +21,9 @@ from acquire.timekeeper import ClockCache
 
 
 class LogBatcher:
-    def __init__(self, submit: Callable[..., bool], clock: ClockCache, period_s: float = 0.005,
+    def __init__(self, submit_batch: Callable[[list[tuple]], int], clock: ClockCache, period_s: float = 0.005,
                  max_items: int = 1024) -> None:  # fmt: skip
-        self._submit = submit
+        self._submit_batch = submit_batch
         self._clock = clock
         self.period_s = period_s
         self.max_items = max_items
@@ -51,9 +52,6 @@ class LogBatcher:
         items, self._items = self._items, []
         if not items:
             return
-        submit = self._submit
-        for topic, payload, host_ns, device_ns, gps_ns, state in items:
-            submit(topic, payload, host_ns=host_ns, device_ns=device_ns, log_time_ns=gps_ns,
-                   clock_state=state)  # fmt: skip
+        self._submit_batch(items)
         self.batches += 1
         self.records += len(items)

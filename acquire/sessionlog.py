@@ -3,10 +3,12 @@
 A session is one directory per acquisition run, ``<root>/YYYYmmddTHHMMSSZ_<vessel>/``, holding
 ``seg-000001.mcap``, ``seg-000002.mcap``, … (message encodings: :mod:`acquire.mcap_schema`).
 
-Producers call :meth:`SessionWriter.submit`, which never blocks: it stamps the per-channel
-sequence counter and puts the record on a bounded queue; when the queue is full the record is
-dropped, counted, and the ``log_queue_overflow`` alarm raised (the sequence gap shows the loss in
-the log). One writer thread drains the queue into the current segment.
+Producers call :meth:`SessionWriter.submit` (one record) or :meth:`SessionWriter.submit_batch`
+(records already stamped with their GPS time: the daemon's hot path hands over a few
+milliseconds' worth at once), which never block: they stamp the per-channel sequence counter and
+put the records on a queue bounded in records (``queue_size``); what does not fit is dropped,
+counted, and the ``log_queue_overflow`` alarm raised (the sequence gap shows the loss in the
+log). One writer thread drains the queue into the current segment.
 
 Durability:
 
@@ -50,9 +52,10 @@ from typing import Any, Callable, Protocol
 from mcap.data_stream import RecordBuilder
 from mcap.opcode import Opcode
 from mcap.records import DataEnd, Footer
-from mcap.writer import MCAP0_MAGIC, CompressionType, Writer
+from mcap.writer import MCAP0_MAGIC, CompressionType
 
 from acquire.alarms import CRITICAL, WARNING, AlarmBook
+from acquire.mcapwriter import SegmentWriter
 from acquire.mcap_schema import (
     ENVELOPE_SCHEMA,
     ENVELOPE_SCHEMA_NAME,
@@ -241,7 +244,9 @@ class SessionWriter:
         self._start_utc = start_utc
         self._io_factory = io_factory
         self._now = monotonic_ns
-        self._queue: queue.Queue = queue.Queue(maxsize=self.options.queue_size)
+        self._queue: queue.SimpleQueue = queue.SimpleQueue()  # lists of records, and _ROTATE/_STOP
+        self._queued = 0  # records in the queue (under _seq_lock): the bound is in records
+        self._kinds: dict[str, str] = {}  # topic → channel kind
         self._seq: dict[str, int] = {}
         self._seq_lock = threading.Lock()
         self._stats = WriterStats()
@@ -252,7 +257,7 @@ class SessionWriter:
         self.session_dir: Path | None = None
         # segment state (writer thread only)
         self._io: SegmentIO | None = None
-        self._mcap: Writer | None = None
+        self._mcap: SegmentWriter | None = None
         self._channels: dict[str, int] = {}
         self._schema_id = 0
         self._index = 0
@@ -304,49 +309,63 @@ class SessionWriter:
         mutated afterwards). ``log_time_ns``/``clock_state`` default to the clock model's
         estimate at ``host_ns``.
         """
-        kind = channel_kind(topic)
-        if kind == RAW and not isinstance(payload, (bytes, bytearray, memoryview)):
-            raise TypeError(f"{topic} is a raw channel: payload must be bytes")
-        if kind != RAW and not isinstance(payload, dict):
-            raise TypeError(f"{topic} is a JSON channel: payload must be a dict")
         if log_time_ns is None:
             if self.clock is not None:
                 est = self.clock.to_gps(host_ns)
                 log_time_ns, clock_state = est.gps_ns, getattr(est.state, "value", est.state)
             else:
                 log_time_ns = host_ns
+        return self.submit_batch([(topic, payload, host_ns, device_ns, log_time_ns, clock_state)]) == 1
+
+    def submit_batch(self, records: list[tuple]) -> int:
+        """Queue ``(topic, payload, host_ns, device_ns, log_time_ns, clock_state)`` records, in
+        order; never blocks. Returns how many were queued: the rest did not fit (dropped,
+        counted, alarm). Raises TypeError, queuing nothing, when a payload does not suit its
+        channel."""
+        kinds = self._kinds
+        for topic, payload, *_ in records:
+            kind = kinds.get(topic) or kinds.setdefault(topic, channel_kind(topic))
+            if kind == RAW:
+                if not isinstance(payload, (bytes, bytearray, memoryview)):
+                    raise TypeError(f"{topic} is a raw channel: payload must be bytes")
+            elif not isinstance(payload, dict):
+                raise TypeError(f"{topic} is a JSON channel: payload must be a dict")
+        now = self._now()
+        items: list[tuple] = []
+        dropped: Counter | None = None
         with self._seq_lock:
-            seq = self._seq.get(topic, 0) + 1
-            self._seq[topic] = seq
-        item = (topic, seq, payload, int(host_ns), device_ns, int(log_time_ns),
-                clock_state or "UNLOCKED", self._now())  # fmt: skip
-        try:
-            self._queue.put_nowait(item)
-            return True
-        except queue.Full:
-            self._stats.dropped[topic] += 1
-            now = self._now()
+            room = self.options.queue_size - self._queued
+            seqs = self._seq
+            for topic, payload, host_ns, device_ns, log_time_ns, clock_state in records:
+                seq = seqs.get(topic, 0) + 1
+                seqs[topic] = seq
+                if len(items) < room:
+                    items.append((topic, seq, payload, int(host_ns), device_ns, int(log_time_ns),
+                                  clock_state or "UNLOCKED", now))  # fmt: skip
+                else:
+                    if dropped is None:
+                        dropped = Counter()
+                    dropped[topic] += 1
+            self._queued += len(items)
+        if items:
+            self._queue.put(items)
+        if dropped:
+            self._stats.dropped.update(dropped)
             self._last_drop_ns = now
             total = sum(self._stats.dropped.values())
             self.alarms.raise_now("log_queue_overflow", "log", now, severity=WARNING,
                                   message=f"log queue full ({self.options.queue_size}): "
                                           f"{total} records dropped")  # fmt: skip
-            return False
+        return len(items)
 
     def rotate(self) -> None:
         """Ask for a new segment now (operator command, or a pass start)."""
-        try:
-            self._queue.put_nowait(_ROTATE)
-        except queue.Full:
-            pass
+        self._queue.put(_ROTATE)
 
     def close(self, timeout_s: float = 30.0) -> None:
         """Drain the queue, close the segment (fsync), release the session lock."""
         if self._thread is not None:
-            try:
-                self._queue.put(_STOP, timeout=timeout_s)
-            except queue.Full:
-                pass  # the thread is stuck; do not hang the shutdown with it
+            self._queue.put(_STOP)
             self._thread.join(timeout_s)
             self._thread = None
         if self._lock_fd is not None:
@@ -355,7 +374,7 @@ class SessionWriter:
 
     def stats(self) -> WriterStats:
         s = self._stats
-        s.queue_depth = self._queue.qsize()
+        s.queue_depth = self._queued
         io = self._io
         s.bytes_written = self._closed_bytes + (io.pos if io is not None else 0)
         return s
@@ -382,20 +401,28 @@ class SessionWriter:
                 item = self._queue.get(timeout=self._wait_s(now))
             except queue.Empty:
                 item = None
-            batch = [item] if item is not None else []
-            while item is not None and len(batch) < 2000:
+            pending, n = [], 0
+            while item is not None:
+                pending.append(item)
+                if isinstance(item, list):
+                    n += len(item)
+                if n >= 2000:
+                    break
                 try:
                     item = self._queue.get_nowait()
-                    batch.append(item)
                 except queue.Empty:
                     break
-            for it in batch:
+            if n:
+                with self._seq_lock:
+                    self._queued -= n
+            for it in pending:
                 if it is _STOP:
                     stopping = True
                 elif it is _ROTATE:
                     self._rotate(self._now(), "requested")
                 else:
-                    self._write(it)
+                    for record in it:
+                        self._write(record)
             self._maintain(self._now())
             if stopping:  # everything submitted before close() was ahead of _STOP
                 self._close_segment(self._now(), "shutdown")
@@ -418,7 +445,7 @@ class SessionWriter:
             self._stats.lost[topic] += 1
             self._lost_at_failure[topic] += 1
             return
-        if channel_kind(topic) == RAW:
+        if (self._kinds.get(topic) or channel_kind(topic)) == RAW:
             data = encode_raw(seq, host_ns, device_ns, clock_state, payload)
         else:
             data = encode_json(seq, host_ns, device_ns, clock_state, payload)
@@ -547,7 +574,7 @@ class SessionWriter:
         try:
             self._ensure_reserve()
             io = self._io_factory(path)
-            mcap = Writer(_ChunkWatch(io, self._chunk_written), chunk_size=self.options.chunk_bytes,
+            mcap = SegmentWriter(_ChunkWatch(io, self._chunk_written), chunk_size=self.options.chunk_bytes,
                           compression=COMPRESSIONS[self.options.compression])  # fmt: skip
             from acquire import __version__
 

@@ -210,7 +210,7 @@ class Supervisor:
             metadata.update(d.channel_metadata())
         self.writer = SessionWriter(cfg.session_dir, cfg.vessel, cfg.session, alarms=self.alarms,
                                     clock=self.clock, channel_metadata=metadata)  # fmt: skip
-        self.batcher = LogBatcher(self.writer.submit, self.clock_cache)
+        self.batcher = LogBatcher(self.writer.submit_batch, self.clock_cache)
         self.ctx.submit = self.batcher.submit  # the devices' hot path
         try:
             session_dir = await asyncio.to_thread(self.writer.start)

@@ -16,6 +16,7 @@ from mcap.reader import make_reader
 from mcap.writer import MCAP0_MAGIC
 
 from acquire.alarms import AlarmBook
+from acquire.sessionread import iter_messages
 from acquire.clock import ClockState, GpsEstimate
 from acquire.logrecover import (
     SegmentScan,
@@ -142,6 +143,24 @@ def test_full_queue_drops_with_count_alarm_and_a_visible_sequence_gap(tmp_path):
     w.close()
     ch = session_info(sd).channels["/ins/raw"]
     assert (ch.messages, ch.missing, ch.missing_ranges) == (11, 15, [(11, 25)])
+
+
+def test_a_batch_is_queued_in_order_up_to_the_room_left_and_a_bad_one_queues_nothing(tmp_path):
+    alarms = AlarmBook()
+    w = SessionWriter(tmp_path, "v", SessionOptions(queue_size=5), alarms=alarms)
+    rec = [("/lidar/raw" if i % 2 else "/ins/raw", bytes([i]), i, None, 1000 + i, "LOCKED") for i in range(4)]
+    with pytest.raises(TypeError, match="JSON channel"):  # checked before any is counted
+        w.submit_batch(rec + [("/events", b"x", 9, None, 9, "LOCKED")])
+    assert w.submit_batch(rec) == 4 and w.stats().queue_depth == 4
+    assert w.submit_batch(rec[:3]) == 1  # room for one: two dropped, counted, alarm
+    assert w.stats().dropped == {"/lidar/raw": 1, "/ins/raw": 1}
+    assert alarms.get("log_queue_overflow", "log").active
+    sd = w.start()
+    w.close()
+    msgs = list(iter_messages(sd, {"/ins/raw", "/lidar/raw"}))
+    assert [(m.topic, m.payload, m.seq, m.log_time_ns) for m in msgs] == [
+        ("/ins/raw", b"\x00", 1, 1000), ("/lidar/raw", b"\x01", 1, 1001), ("/ins/raw", b"\x02", 2, 1002),
+        ("/lidar/raw", b"\x03", 2, 1003), ("/ins/raw", b"\x00", 3, 1000)]  # then seq 3 and 4 dropped
 
 
 def test_bad_topics_and_payloads_are_refused():

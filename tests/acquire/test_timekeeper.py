@@ -73,26 +73,28 @@ def test_clock_cache_gives_the_models_estimate_and_refreshes_after_an_edge():
 
 
 def test_log_batcher_keeps_the_order_stamps_the_clock_and_hands_over_in_batches():
-    calls = []
+    batches = []
 
-    def submit(topic, payload, **kw):
-        calls.append((topic, payload, kw))
-        return True
+    def submit_batch(records):
+        batches.append(list(records))
+        return len(records)
 
     clock = ClockModel(coarse_offset_ns=7 * NS)
-    b = LogBatcher(submit, ClockCache(clock), period_s=0.01, max_items=50)
+    b = LogBatcher(submit_batch, ClockCache(clock), period_s=0.01, max_items=50)
 
     async def run():
         for i in range(120):
             b.submit("/lidar/raw" if i % 2 else "/ins/raw", bytes([i]), host_ns=H0 + i, device_ns=i or None)
-        assert len(calls) == 100  # two full batches handed over at once
+        assert [len(x) for x in batches] == [50, 50]  # two full batches handed over at once
         await asyncio.sleep(0.05)  # the rest after the period
 
     asyncio.run(run())
+    assert [len(x) for x in batches] == [50, 50, 20]
+    calls = [r for x in batches for r in x]  # (topic, payload, host_ns, device_ns, log_time_ns, clock_state)
     assert [c[1] for c in calls] == [bytes([i]) for i in range(120)]
-    assert all(c[2]["log_time_ns"] == H0 + i + 7 * NS and c[2]["clock_state"] == "UNLOCKED"
-               for i, c in enumerate(calls))  # fmt: skip
-    assert calls[0][2]["device_ns"] is None and calls[5][2]["device_ns"] == 5
+    assert [c[0] for c in calls[:2]] == ["/ins/raw", "/lidar/raw"] and all(c[2] == H0 + i for i, c in enumerate(calls))
+    assert all(c[4] == H0 + i + 7 * NS and c[5] == "UNLOCKED" for i, c in enumerate(calls))
+    assert calls[0][3] is None and calls[5][3] == 5
     assert b.batches == 3 and b.records == 120
 
 
