@@ -32,7 +32,6 @@ take records without waiting (bounded queues that count what they drop).
 from __future__ import annotations
 
 import asyncio
-import struct
 from dataclasses import dataclass
 from typing import Any, Callable
 
@@ -44,14 +43,10 @@ from acquire.timekeeper import TimeKeeper
 from drivers.base import DriverError, Registry
 from drivers.can import can_frame_bytes
 from drivers.zf.codec import FLAG_PPS_LOCKED, FLAG_TIME_VALID
-from drivers.zf.zfp1 import HEADER_SIZE as _ZFP1_HEADER_SIZE
-from drivers.zf.zfp1 import MAGIC as _ZFP1_MAGIC
 
 NS_PER_S = 1_000_000_000
 STATUS_HOLD_NS = NS_PER_S  # how long an INS status stands for epochs that lost theirs
 DEVICES = Registry("devices")
-_ZFP1_FLAGS_T0 = struct.Struct("<H")  # ZFP1 header: flags at byte 6, t0_ns at byte 16
-_ZFP1_T0 = struct.Struct("<q")
 _SYNCED = FLAG_PPS_LOCKED | FLAG_TIME_VALID
 
 
@@ -217,11 +212,12 @@ class InsDevice(_StreamDevice):
     async def run(self) -> None:
         t, submit = self.transport, self.ctx.submit
         while True:
-            data, host_ns = await t.read()
-            self.chunks += 1
-            submit("/ins/raw", data, host_ns=host_ns)
-            for nav in self._decode(data, host_ns):
-                self._nav(nav)
+            chunks = await t.read_batch(256)
+            self.chunks += len(chunks)
+            for data, host_ns in chunks:
+                submit("/ins/raw", data, host_ns=host_ns)
+                for nav in self._decode(data, host_ns):
+                    self._nav(nav)
 
     def _decode(self, data: bytes, host_ns: int) -> list:
         dec = self.decoder
@@ -308,15 +304,6 @@ class InsDevice(_StreamDevice):
             hub.publish("nav", nav, gps_ns)
 
 
-def _zfp1_time_tag(data: bytes) -> int | None:
-    """A ZFP1 datagram's ``t0_ns`` when it says PPS-locked and time-valid (header peek; the
-    assembler validates the packet)."""
-    if len(data) < _ZFP1_HEADER_SIZE or data[:4] != _ZFP1_MAGIC:
-        return None
-    flags, t0 = _ZFP1_FLAGS_T0.unpack_from(data, 6)[0], _ZFP1_T0.unpack_from(data, 16)[0]
-    return t0 if flags & _SYNCED == _SYNCED else None
-
-
 @DEVICES.register("profiler")
 class ProfilerDevice(_StreamDevice):
     channel = "/lidar/raw"
@@ -327,9 +314,8 @@ class ProfilerDevice(_StreamDevice):
         from drivers.zf.assembler import ProfileAssembler
         from drivers.zf.zfp1 import ZFP1
 
-        codecs = {"zfp1": (ZFP1, _zfp1_time_tag)}
-        codec, self._time_tag = codecs[cfg.protocol or "zfp1"]
-        self.assembler = ProfileAssembler(codec)
+        codecs = {"zfp1": ZFP1}
+        self.assembler = ProfileAssembler(codecs[cfg.protocol or "zfp1"])
         self.profiles_synced = 0
 
     def channel_metadata(self) -> dict[str, dict[str, str]]:
@@ -349,24 +335,28 @@ class ProfilerDevice(_StreamDevice):
         return out
 
     async def run(self) -> None:
-        t, submit, asm, tag, ctx = self.transport, self.ctx.submit, self.assembler, self._time_tag, self.ctx
-        monitor, hub, name = ctx.monitor, ctx.hub, self.name
+        t, submit, asm, ctx = self.transport, self.ctx.submit, self.assembler, self.ctx
+        monitor, hub, name, seen = ctx.monitor, ctx.hub, self.name, self.seen
         while True:
-            data, host_ns = await t.read()  # no suspension while datagrams are waiting:
-            self.chunks += 1
-            if not self.chunks % 1024:  # a burst is processed at once, with a breath now and then
-                await asyncio.sleep(0)
-            submit("/lidar/raw", data, host_ns=host_ns, device_ns=tag(data))
-            self.seen(host_ns)
-            for prof in asm.feed(data, host_ns):
-                self.records += 1
-                synced = prof.pps_locked and prof.time_valid and prof.n_points > 0
-                t0 = int(prof.gps_ns[0]) if prof.n_points else None
-                if synced:
-                    self.profiles_synced += 1
-                monitor.observe(name, prof.host_ns, t0 if prof.time_valid else None, pps_flag=prof.pps_locked)
-                if hub.taps:
-                    hub.publish("profile", prof, t0 if synced else ctx.gps_ns(prof.host_ns))
+            chunks = await t.read_batch(1024)  # a burst at once, with a breath between bursts
+            self.chunks += len(chunks)
+            for data, host_ns in chunks:
+                profiles = asm.feed_assembled(data, host_ns)  # the points only when wanted
+                p = asm.last_packet  # device time tag: the packet's t0 when PPS-locked and time-valid
+                submit("/lidar/raw", data, host_ns=host_ns,
+                       device_ns=p.t0_ns if p is not None and p.flags & _SYNCED == _SYNCED else None)  # fmt: skip
+                seen(host_ns)
+                for prof in profiles:
+                    self.records += 1
+                    time_valid, pps, t0 = prof.time_valid, prof.pps_locked, prof.t0_ns
+                    synced = pps and time_valid and t0 is not None
+                    t0 = t0 if time_valid else None
+                    if synced:
+                        self.profiles_synced += 1
+                    monitor.observe(name, prof.host_ns, t0, pps_flag=pps)
+                    if hub.taps and hub.wants("profile"):
+                        hub.publish("profile", prof.build(), t0 if synced else ctx.gps_ns(prof.host_ns))
+            await asyncio.sleep(0)
 
 
 @DEVICES.register("pps")

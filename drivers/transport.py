@@ -135,15 +135,32 @@ class Transport:
     # -- reading -------------------------------------------------------------------------------
     async def read(self) -> Chunk:
         """The next chunk; raises EOFError once the transport is closed and drained."""
+        await self._wait_chunks()
+        chunk = self._chunks.popleft()
+        if len(self._chunks) < self.max_chunks // 2:
+            self._resume()
+        return chunk
+
+    async def read_batch(self, max_chunks: int = 4096) -> list[Chunk]:
+        """Every chunk waiting (at most ``max_chunks``, at least one): a high-rate consumer takes
+        a burst in one await. Raises EOFError once the transport is closed and drained."""
+        await self._wait_chunks()
+        chunks = self._chunks
+        if len(chunks) <= max_chunks:
+            out = list(chunks)
+            chunks.clear()
+        else:
+            out = [chunks.popleft() for _ in range(max_chunks)]
+        if len(chunks) < self.max_chunks // 2:
+            self._resume()
+        return out
+
+    async def _wait_chunks(self) -> None:
         while not self._chunks:
             if self._closing:
                 raise EOFError(f"transport {self.name} closed")
             self._ready.clear()
             await self._ready.wait()
-        chunk = self._chunks.popleft()
-        if len(self._chunks) < self.max_chunks // 2:
-            self._resume()
-        return chunk
 
     def __aiter__(self):
         return self._iter()

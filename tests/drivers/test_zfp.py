@@ -188,3 +188,48 @@ def test_encode_decode_round_trip_any_split(n, max_payload, t0, dt, a0, da):
     assert np.array_equal(prof.gps_ns, t0 + np.arange(n, dtype=np.int64) * dt)
     assert np.array_equal(np.nan_to_num(prof.range_m / 1e-4).round().astype(np.uint64), ranges.astype(np.uint64))
     assert np.array_equal(prof.intensity, inten)
+
+
+def test_feed_assembled_is_feed_without_the_arrays_and_remembers_the_last_packet():
+    streams = [profile_datagrams(c, n=1000)[0] for c in range(5)]
+    seq = streams[0] + [streams[1][k] for k in (0, 2, 1, 3, 3, 4)] + streams[2][:2] + streams[2][3:]
+    seq += [b"ZFP1 not a packet"] + streams[4] + [streams[2][2]]
+    lazy, eager = ProfileAssembler(), ProfileAssembler()
+    last = []
+    got = []
+    for d in seq:
+        got += lazy.feed_assembled(d, host_ns=len(got))
+        last.append(lazy.last_packet)
+    want = [p for i, d in enumerate(seq) for p in eager.feed(d, host_ns=None)]
+    got += lazy.flush_assembled()
+    want += eager.flush()
+    assert [(a.profile_counter, a.packet_count, a.packets_received, a.pps_locked, a.time_valid, a.t0_ns)
+            for a in got] == [(p.profile_counter, p.packet_count, p.packets_received, p.pps_locked, p.time_valid,
+                               int(p.gps_ns[0])) for p in want]  # fmt: skip
+    for a, p in zip(got, want):
+        b = a.build()
+        assert np.array_equal(b.gps_ns, p.gps_ns) and np.array_equal(b.range_m, p.range_m, equal_nan=True)
+    assert lazy.stats.events == eager.stats.events and lazy.stats.rejected == eager.stats.rejected
+    bad = seq.index(b"ZFP1 not a packet")
+    assert last[bad] is None and last[bad + 1].profile_counter == 4 and last[0].packet_index == 0
+
+
+def test_a_fractional_point_period_gives_each_packet_its_own_rounded_t0():
+    """As the scanner (and the emulator) send it: 984.25 ns between points, each packet's t0 and
+    angle0 rounded from its first point's exact values, dt rounded once."""
+    per = points_per_packet(1400)
+    n, dt_exact, t_base = 1000, 984.25, 1_400_000_000_000_000_000
+    ranges, inten = np.arange(1, n + 1, dtype=np.uint32), np.zeros(n, np.uint16)
+    dgs = []
+    for k, s in enumerate(range(0, n, per)):
+        dgs += encode_profile(9, t_base + round(s * dt_exact), 984, 7 * s, 7, ranges[s:s + per], inten[s:s + per])
+    dgs = [decode_packet(d) for d in dgs]  # re-label the single-packet profiles as one of 5 packets
+    packets = [Packet(p.flags & ~4 | (4 if k == len(dgs) - 1 else 0), 9, k, len(dgs), *[getattr(p, a) for a in (
+        "t0_ns", "dt_ns", "angle0_udeg", "dangle_udeg", "range_01mm", "intensity")]) for k, p in enumerate(dgs)]  # fmt: skip
+    from drivers.zf.assembler import build_profile
+
+    prof = build_profile(9, packets, len(packets), 1)
+    i = np.arange(n)
+    assert np.array_equal(prof.gps_ns, t_base + np.round((i // per * per) * dt_exact).astype(np.int64) + (i % per) * 984)
+    assert np.allclose(np.degrees(prof.scan_angle_rad) * 1e6, 7 * i)
+    assert np.array_equal(prof.range_m, ranges * 1e-4)
