@@ -25,6 +25,7 @@ import numpy as np
 from calib import frames
 from calib.adjust import ANGLE_NAMES, OBSERVING_PAIRS, sailed_headings
 from calib.georef import Mount, georeference_poses
+from calib.result import OFFSET_COMPONENTS
 from calib.trajectory import Poses
 
 PLOT_DPI = 110
@@ -248,7 +249,7 @@ def extras_table(extras: dict) -> list[str]:
         real = e.get("sigma_realistic")
         c = e["correlation_with_boresight"]
         if isinstance(e["value"], list):  # pass<id>_offset_m: north, east, down
-            for k, comp in enumerate(("north", "east", "down")):
+            for k, comp in enumerate(OFFSET_COMPONENTS):
                 L.append(row(f"{name} {comp}", e["value"][k], e["sigma"][k],
                              None if real is None else real[k], c[comp]))  # fmt: skip
         else:

@@ -27,7 +27,7 @@ from collections import deque
 import numpy as np
 
 from drivers.base import DecoderStats, DriverError
-from drivers.zf.codec import FLAG_PPS_LOCKED, FLAG_TIME_VALID, Packet, Profile, ProfileCodec
+from drivers.zf.codec import Packet, Profile, ProfileCodec
 from drivers.zf.zfp1 import RANGE_UNIT_M, ZFP1
 
 _HALF = 1 << 31
@@ -115,11 +115,11 @@ class AssembledProfile:
 
     @property
     def pps_locked(self) -> bool:
-        return all(p.flags & FLAG_PPS_LOCKED for p in self.packets)
+        return all(p.pps_locked for p in self.packets)
 
     @property
     def time_valid(self) -> bool:
-        return all(p.flags & FLAG_TIME_VALID for p in self.packets)
+        return all(p.time_valid for p in self.packets)
 
     def build(self) -> Profile:
         return build_profile(self.profile_counter, self.packets, self.packet_count, self.host_ns)

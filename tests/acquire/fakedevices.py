@@ -26,6 +26,26 @@ ZDA_DELAY_NS = 50_000_000
 POINTS = 600  # per profile: three ZFP1 packets
 
 
+def devices_yaml(tmp: Path, prof_port: int, pps_port: int) -> str:
+    """The ``devices:`` entries of a vessel config reading these fakes (YAML, at column 0): the
+    INS on the pty link ``tmp/ins``, the profiler and the PPS on their UDP ports."""
+    return (f"  - name: ins\n"
+            f"    kind: ins\n"
+            f"    protocol: nmea\n"
+            f"    transport: {{type: serial, port: {tmp}/ins, baud: 115200}}\n"
+            f"    latency: {{band_ms: [0.0, 20.0], rate_hz: 50.0, gap_s: 0.5}}\n"
+            f"  - name: profiler\n"
+            f"    kind: profiler\n"
+            f"    protocol: zfp1\n"
+            f"    transport: {{type: udp, host: 127.0.0.1, port: {prof_port}}}\n"
+            f"    latency: {{band_ms: [0.0, 60.0], rate_hz: 20.0, gap_s: 0.5}}\n"
+            f"  - name: pps\n"
+            f"    kind: pps\n"
+            f"    source: {{type: udp, host: 127.0.0.1, port: {pps_port}}}\n"
+            f"    time_device: ins\n"
+            f"    time_messages: [ZDA]\n")  # fmt: skip
+
+
 def nav_at(gps_ns: int, k: int) -> NavRecord:
     algo, system = status_words(navigation=True, fine_alignment=True, gps_received=True, gps_valid=True,
                                 gps_detected=True, utc_detected=True, pps_detected=True)  # fmt: skip

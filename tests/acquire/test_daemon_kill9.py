@@ -46,7 +46,7 @@ from acquire.logrecover import SegmentScan, scan_segment, segment_paths, session
 from acquire.sessionread import iter_messages
 from drivers.pps import decode_pps_datagram
 from tests.acquire.daemon_util import MLS, ROOT, NotifyCollector, Proc, free_port, wait_until
-from tests.acquire.fakedevices import FakeDevices
+from tests.acquire.fakedevices import FakeDevices, devices_yaml
 
 pytestmark = [pytest.mark.integration, pytest.mark.slow, pytest.mark.xdist_group("daemon-kill9")]
 
@@ -142,24 +142,7 @@ class Run:
 
 def _config(tmp: Path, prof: int, pps: int) -> Path:
     cfg = tmp / "vessel.yaml"
-    cfg.write_text(textwrap.dedent(f"""\
-        vessel: kill9
-        devices:
-          - name: ins
-            kind: ins
-            protocol: nmea
-            transport: {{type: serial, port: {tmp}/ins, baud: 115200}}
-            latency: {{band_ms: [0.0, 20.0], rate_hz: 50.0, gap_s: 0.5}}
-          - name: profiler
-            kind: profiler
-            protocol: zfp1
-            transport: {{type: udp, host: 127.0.0.1, port: {prof}}}
-            latency: {{band_ms: [0.0, 60.0], rate_hz: 20.0, gap_s: 0.5}}
-          - name: pps
-            kind: pps
-            source: {{type: udp, host: 127.0.0.1, port: {pps}}}
-            time_device: ins
-            time_messages: [ZDA]
+    cfg.write_text("vessel: kill9\ndevices:\n" + devices_yaml(tmp, prof, pps) + textwrap.dedent(f"""\
         session: {{directory: {tmp}/sessions, flush_s: {FLUSH_S}, fsync_s: 1.0, rotate_s: 10, rotate_mb: 1}}
         status: {{socket: {tmp}/status.sock, period_s: 0.5}}
         """))  # fmt: skip

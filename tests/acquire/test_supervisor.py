@@ -22,7 +22,7 @@ from acquire.sessionread import iter_messages
 from acquire.statusbus import read_snapshot
 from acquire.supervisor import Supervisor
 from tests.acquire.daemon_util import MLS, ROOT, NotifyCollector, free_port
-from tests.acquire.fakedevices import FakeDevices
+from tests.acquire.fakedevices import FakeDevices, devices_yaml
 
 pytestmark = [pytest.mark.integration, pytest.mark.xdist_group("daemon-fake")]
 NS = 1_000_000_000
@@ -38,24 +38,7 @@ def _gps_now_ns() -> int:
 
 def _config(tmp: Path, prof: int, pps: int, extra: str = "") -> Path:
     cfg = tmp / "vessel.yaml"
-    cfg.write_text(textwrap.dedent(f"""\
-        vessel: fake-1
-        devices:
-          - name: ins
-            kind: ins
-            protocol: nmea
-            transport: {{type: serial, port: {tmp}/ins, baud: 115200}}
-            latency: {{band_ms: [0.0, 20.0], rate_hz: 50.0, gap_s: 0.5}}
-          - name: profiler
-            kind: profiler
-            protocol: zfp1
-            transport: {{type: udp, host: 127.0.0.1, port: {prof}}}
-            latency: {{band_ms: [0.0, 60.0], rate_hz: 20.0, gap_s: 0.5}}
-          - name: pps
-            kind: pps
-            source: {{type: udp, host: 127.0.0.1, port: {pps}}}
-            time_device: ins
-            time_messages: [ZDA]
+    cfg.write_text("vessel: fake-1\ndevices:\n" + devices_yaml(tmp, prof, pps) + textwrap.dedent(f"""\
           - name: marks
             kind: can
             transport: {{type: can, interface: virtual, channel: mls-test-{prof}}}
