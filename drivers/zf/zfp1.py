@@ -106,11 +106,19 @@ def encode_packet(
     pts = np.empty(n, dtype=POINT_DTYPE)
     pts["range_01mm"] = range_01mm
     pts["intensity"] = intensity
+    return pack_packet(flags, profile_counter, packet_index, packet_count, t0_ns, dt_ns, angle0_udeg,
+                       dangle_udeg, pts)  # fmt: skip
+
+
+def pack_packet(flags: int, profile_counter: int, packet_index: int, packet_count: int, t0_ns: int, dt_ns: int,
+                angle0_udeg: int, dangle_udeg: int, points: np.ndarray) -> bytes:  # fmt: skip
+    """:func:`encode_packet` for points already in :data:`POINT_DTYPE` (at most 65535; an
+    emulator slices one profile-long array instead of building one per packet)."""
     head = HEADER.pack(
         MAGIC, HEADER_SIZE, flags & 0xFFFF, profile_counter & 0xFFFFFFFF, packet_index, packet_count,
-        t0_ns, dt_ns, angle0_udeg, dangle_udeg, n, 0,
+        t0_ns, dt_ns, angle0_udeg, dangle_udeg, len(points), 0,
     )  # fmt: skip
-    body = head + pts.tobytes()
+    body = head + points.tobytes()
     return body + zlib.crc32(body).to_bytes(4, "little")
 
 

@@ -155,3 +155,31 @@ def test_profiler_clock_faults_shift_the_time_stamps_only(short_sim):
             err = round(-500e-6 * (t - 0.6) * NS)
         assert_profile_matches(p, g, short_sim.points, 0, clock_error_ns=err)
         assert p.pps_locked is not (0.6 <= t < 0.8)
+
+
+def test_profiler_datagrams_leave_in_bursts_never_early_at_most_burst_s_late(short_sim):
+    feed = make_feed(short_sim, 3.0, 2.0, time_shift=0)  # a few datagrams a profile: bursts of 20 ms
+    emu = ProfilerEmulator(feed.grid, ProfilerSettings(burst_s=0.02), [], feed.start_gps_ns)
+    clock = _clock(feed)
+    now = [0]
+    sent, waits = [], []
+
+    class Pacer:
+        def wait_until(self, t_ns):
+            waits.append(t_ns)
+            now[0] = max(now[0], t_ns)
+            return True
+
+    class Link:
+        def send(self, payload, gps_ns):
+            sent.append((now[0], payload))
+
+    emu.link = Link()
+    assert emu.run(clock, Pacer(), type("T", (), {"record": lambda self, a, b: None})())
+    due = [(h, d) for h, _, d in emu.packets(clock)]
+    assert [d for _, d in sent] == [d for _, d in due] and emu.counts["packets"] == len(due) > 100
+    late_ns = np.array([s for s, _ in sent]) - np.array([h for h, _ in due])
+    assert late_ns.min() >= 0 and late_ns.max() <= 20_000_000
+    assert len(waits) < len(due) / 2  # one wake-up per burst, not per datagram
+    with pytest.raises(ValueError, match="burst_s"):
+        ProfilerSettings(burst_s=0.5)
