@@ -1,8 +1,8 @@
 """Async byte transports: serial, UDP, TCP — they move bytes and stamp the host receive time.
 
 Every transport yields :class:`Chunk` ``(data, host_ns)`` tuples, ``host_ns`` being
-``time.monotonic_ns()`` taken when the event loop saw the bytes ready (before the read), and
-is used the same way (aiomqtt style)::
+``time.monotonic_ns()`` taken when the bytes were seen ready (before the read: by the event loop,
+or by the serial port's reader thread), and is used the same way (aiomqtt style)::
 
     async with create_transport({"kind": "serial", "port": "/run/mls/ins", "baudrate": 115200}) as t:
         async for data, host_ns in t:
@@ -12,8 +12,10 @@ The registry (:data:`TRANSPORTS`, :func:`register_transport`, :func:`create_tran
 by the config's ``kind``, after python-can's interface registry; a new transport is one class
 with ``@register_transport("name")``.
 
-- ``serial`` (:class:`SerialTransport`): pyserial opens and configures the port; its fd is
-  non-blocking and read from the event loop (``loop.add_reader``), no thread. When the port
+- ``serial`` (:class:`SerialTransport`): pyserial opens and configures the port; a thread of its
+  own reads it (:class:`_PortReader`: ``poll`` and ``os.read``, the GIL released while it waits)
+  and stamps the bytes when they are ready, so a busy event loop delays their decoding but
+  neither their stamp nor their reading (a pty or UART buffers only a few kB). When the port
   vanishes (EIO/EOF: a USB adapter unplugged, an emulator's pty closed) the transport reports
   ``disconnected``, backs off (``reconnect_min_s`` doubling to ``reconnect_max_s``, 0.5 s for
   a serial port: trying to open a missing path costs nothing, and every second waited after
@@ -36,8 +38,10 @@ from __future__ import annotations
 
 import asyncio
 import os
+import select
 import socket
 import struct
+import threading
 import time
 from collections import deque
 from collections.abc import Callable
@@ -236,9 +240,86 @@ class Transport:
         raise NotImplementedError
 
 
+class _PortReader:
+    """The thread that reads one open serial fd: it waits in ``poll`` (the GIL released), stamps
+    the host time as soon as the bytes are ready and hands them to the event loop. A busy loop
+    (a burst of profiler datagrams, the log writer holding the GIL) then delays only the
+    *decoding* of serial bytes, never their reading: a UART's or pty's kernel buffer holds a few
+    kB, which at 100 kB/s is tens of milliseconds. At most ``max_waiting`` chunks wait for the
+    consumer; beyond that the thread stops reading (the kernel buffers) until :meth:`resume`."""
+
+    def __init__(self, fd: int, loop: asyncio.AbstractEventLoop, deliver: Callable[[Chunk | str], None],
+                 waiting: Callable[[], int], max_waiting: int, name: str) -> None:  # fmt: skip
+        self.fd, self.loop, self.deliver = fd, loop, deliver
+        self.waiting, self.max_waiting = waiting, max_waiting
+        self.incoming: deque[Chunk | str] = deque()  # appended here, taken in the loop (deque ops are atomic)
+        self._wake_r, self._wake_w = os.pipe()
+        self._room = threading.Event()
+        self._room.set()
+        self._stop = False
+        self.thread = threading.Thread(target=self._run, name=f"mls-serial-{name}"[:15], daemon=True)
+        self.thread.start()
+
+    def _hand_over(self, item: Chunk | str) -> None:
+        self.incoming.append(item)
+        try:
+            self.loop.call_soon_threadsafe(self._in_loop)
+        except RuntimeError:  # the loop is closed: nobody reads any more
+            self._stop = True
+
+    def _in_loop(self) -> None:
+        incoming, deliver = self.incoming, self.deliver
+        while incoming:
+            deliver(incoming.popleft())
+
+    def _run(self) -> None:
+        poller = select.poll()
+        poller.register(self.fd, select.POLLIN | select.POLLPRI)
+        poller.register(self._wake_r, select.POLLIN)
+        while not self._stop:
+            if self.waiting() + len(self.incoming) >= self.max_waiting:  # the consumer lags
+                self._room.clear()
+                if self.waiting() + len(self.incoming) >= self.max_waiting:
+                    self._room.wait(0.05)
+                continue
+            try:
+                ready = poller.poll()
+            except InterruptedError:
+                continue
+            if self._stop:
+                return
+            host_ns = time.monotonic_ns()
+            if not any(fd == self.fd for fd, _ in ready):
+                continue
+            try:
+                data = os.read(self.fd, 65536)
+            except BlockingIOError:
+                continue
+            except OSError as exc:
+                self._hand_over(f"read failed: {exc.strerror or exc}")
+                return
+            if not data:
+                self._hand_over("end of file (port closed by the other side)")
+                return
+            self._hand_over(Chunk(data, host_ns))
+
+    def resume(self) -> None:
+        self._room.set()
+
+    def stop(self) -> None:
+        """End the thread (it returns from ``poll`` at once) and wait for it."""
+        self._stop = True
+        self._room.set()
+        os.write(self._wake_w, b"x")
+        if self.thread is not threading.current_thread():
+            self.thread.join(2.0)
+        os.close(self._wake_r)
+        os.close(self._wake_w)
+
+
 @register_transport("serial")
 class SerialTransport(Transport):
-    """A serial port (or pty) read from the event loop; reopens the same path after a loss."""
+    """A serial port (or pty) read by a thread of its own; reopens the same path after a loss."""
 
     def __init__(
         self,
@@ -255,8 +336,7 @@ class SerialTransport(Transport):
         self.port = port
         self.settings = {"baudrate": baudrate, "bytesize": bytesize, "parity": parity, "stopbits": stopbits}
         self._serial = None
-        self._fd: int | None = None
-        self._paused = False
+        self._reader: _PortReader | None = None
 
     def describe(self) -> str:
         s = self.settings
@@ -271,50 +351,35 @@ class SerialTransport(Transport):
             raise OSError(str(exc)) from exc
         except ValueError as exc:  # a bad setting is a configuration error, not a missing device
             raise DriverError(f"serial {self.port}: {exc}") from exc
-        self._serial, self._fd = ser, ser.fileno()
-        os.set_blocking(self._fd, False)
-        self._paused = False
-        self._loop.add_reader(self._fd, self._on_readable)
+        os.set_blocking(ser.fileno(), False)
+        self._serial = ser
+        reader: _PortReader | None = None
+
+        def deliver(item: Chunk | str) -> None:
+            if self._reader is not reader:
+                return  # from a reader already stopped (a loss raced the thread's last read)
+            if isinstance(item, str):
+                self._lost(item)
+            else:
+                self._push(item.data, item.host_ns)
+
+        reader = self._reader = _PortReader(ser.fileno(), self._loop, deliver, self._chunks.__len__,
+                                            self.max_chunks, self.name)  # fmt: skip
 
     async def _disconnect(self) -> None:
-        ser, fd = self._serial, self._fd
-        self._serial = self._fd = None
-        if fd is not None:
-            try:
-                self._loop.remove_reader(fd)
-            except (ValueError, OSError):
-                pass
+        ser, reader = self._serial, self._reader
+        self._serial = self._reader = None
+        if reader is not None:
+            reader.stop()
         if ser is not None:
             try:
                 ser.close()
             except Exception:  # the device is gone; closing it can fail, that is fine
                 pass
 
-    def _on_readable(self) -> None:
-        host_ns = time.monotonic_ns()
-        fd = self._fd
-        if fd is None:
-            return
-        try:
-            data = os.read(fd, 65536)
-        except BlockingIOError:
-            return
-        except OSError as exc:
-            self._loop.remove_reader(fd)
-            self._lost(f"read failed: {exc.strerror or exc}")
-            return
-        if not data:
-            self._loop.remove_reader(fd)
-            self._lost("end of file (port closed by the other side)")
-            return
-        if not self._push(data, host_ns) and not self._paused:
-            self._paused = True
-            self._loop.remove_reader(fd)
-
     def _resume(self) -> None:
-        if self._paused and self._fd is not None:
-            self._paused = False
-            self._loop.add_reader(self._fd, self._on_readable)
+        if self._reader is not None:
+            self._reader.resume()
 
 
 @register_transport("udp")

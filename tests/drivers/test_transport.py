@@ -162,6 +162,40 @@ def test_serial_slow_consumer_pauses_reading_without_losing_bytes(tmp_path):
     pty.unplug()
 
 
+def test_serial_bytes_are_read_and_stamped_while_the_event_loop_is_busy(tmp_path):
+    """The port's reader thread: an event loop held for 0.5 s (a long burst of profiler
+    datagrams, the log writer holding the GIL) delays the decoding of serial bytes, not their
+    reading nor their stamps. 700 kB/s is the INS at ×5; a pty buffers a few kB."""
+    pty = Pty(tmp_path / "busy")
+    os.set_blocking(pty.master, False)
+
+    async def run():
+        t = SerialTransport(str(pty.link))
+        async with t:
+            writes, refused = [], 0
+            end = time.monotonic_ns() + 500_000_000
+            while time.monotonic_ns() < end:  # no await: the loop is blocked all along
+                piece = b"%06d," % len(writes) * 100
+                try:
+                    n = os.write(pty.master, piece)
+                except BlockingIOError:
+                    refused += 1
+                else:
+                    writes.append(piece[:n])
+                    refused += n < len(piece)
+                time.sleep(0.001)
+            free_ns = time.monotonic_ns()
+            chunks = await read_until(t, sum(map(len, writes)))
+            return writes, refused, free_ns, chunks
+
+    writes, refused, free_ns, chunks = asyncio.run(run())
+    pty.unplug()
+    assert refused == 0  # the pty never filled up
+    assert b"".join(c.data for c in chunks) == b"".join(writes) and len(writes) > 200
+    stamped_busy = sum(len(c.data) for c in chunks if c.host_ns < free_ns)
+    assert stamped_busy >= 0.9 * sum(map(len, writes))  # read (and stamped) while the loop was held
+
+
 def test_udp_loopback_datagrams_and_large_receive_buffer():
     async def run():
         t = create_transport({"kind": "udp", "host": "127.0.0.1", "port": 0, "rcvbuf_bytes": 4 * 1024 * 1024})
