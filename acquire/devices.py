@@ -32,6 +32,7 @@ take records without waiting (bounded queues that count what they drop).
 from __future__ import annotations
 
 import asyncio
+import operator
 from dataclasses import dataclass
 from typing import Any, Callable
 
@@ -42,12 +43,10 @@ from acquire.latency import LatencyMonitor
 from acquire.timekeeper import TimeKeeper
 from drivers.base import DriverError, Registry
 from drivers.can import can_frame_bytes
-from drivers.zf.codec import FLAG_PPS_LOCKED, FLAG_TIME_VALID
 
 NS_PER_S = 1_000_000_000
 STATUS_HOLD_NS = NS_PER_S  # how long an INS status stands for epochs that lost theirs
 DEVICES = Registry("devices")
-_SYNCED = FLAG_PPS_LOCKED | FLAG_TIME_VALID
 
 
 @dataclass
@@ -61,6 +60,8 @@ class DaemonContext:
     monitor: LatencyMonitor
     hub: ConsumerHub
     log_event: Callable[[dict, int], None]  # (event data, host_ns) → /events, taps, status
+    # (topic, payloads, host stamps, device stamps): a burst of records of one channel at once
+    submit_many: Callable[[str, list, list[int], list[int | None]], Any] | None = None
 
 
 def transport_config(t: SerialTransport | NetTransport, name: str, high_rate: bool = False) -> dict:
@@ -126,6 +127,16 @@ class Device:
         elif ev.kind == "disconnected":
             self.connected = False
         self.ctx.log_event({"event": ev.kind, "device": self.name, "detail": ev.detail}, ev.host_ns)
+
+    def seen_many(self, host_ns: list[int]) -> None:
+        """:meth:`seen` of a burst's stamps (in order)."""
+        last, gap = self.last_host_ns, self.gap_ns
+        if gap is not None and ((last is not None and host_ns[0] - last > gap)
+                                or max(map(operator.sub, host_ns[1:], host_ns[:-1]), default=0) > gap):  # fmt: skip
+            for h in host_ns:
+                self.seen(h)
+        else:
+            self.last_host_ns = host_ns[-1]
 
     def seen(self, host_ns: int) -> None:
         """A record at ``host_ns``: a gap event when it ends a pause longer than ``gap_s``."""
@@ -335,28 +346,33 @@ class ProfilerDevice(_StreamDevice):
         return out
 
     async def run(self) -> None:
-        t, submit, asm, ctx = self.transport, self.ctx.submit, self.assembler, self.ctx
-        monitor, hub, name, seen = ctx.monitor, ctx.hub, self.name, self.seen
+        t, asm, ctx = self.transport, self.assembler, self.ctx
+        monitor, hub, name = ctx.monitor, ctx.hub, self.name
+        submit_many = ctx.submit_many or self._submit_each
         while True:
             chunks = await t.read_batch(1024)  # a burst at once, with a breath between bursts
             self.chunks += len(chunks)
-            for data, host_ns in chunks:
-                profiles = asm.feed_assembled(data, host_ns)  # the points only when wanted
-                p = asm.last_packet  # device time tag: the packet's t0 when PPS-locked and time-valid
-                submit("/lidar/raw", data, host_ns=host_ns,
-                       device_ns=p.t0_ns if p is not None and p.flags & _SYNCED == _SYNCED else None)  # fmt: skip
-                seen(host_ns)
-                for prof in profiles:
-                    self.records += 1
-                    time_valid, pps, t0 = prof.time_valid, prof.pps_locked, prof.t0_ns
-                    synced = pps and time_valid and t0 is not None
-                    t0 = t0 if time_valid else None
-                    if synced:
-                        self.profiles_synced += 1
-                    monitor.observe(name, prof.host_ns, t0, pps_flag=pps)
-                    if hub.taps and hub.wants("profile"):
-                        hub.publish("profile", prof.build(), t0 if synced else ctx.gps_ns(prof.host_ns))
+            datagrams = [c[0] for c in chunks]
+            host_ns = [c[1] for c in chunks]
+            # device time tags: each packet's t0 when PPS-locked and time-valid; the points only when wanted
+            profiles, tags = asm.feed_batch(datagrams, host_ns)
+            submit_many("/lidar/raw", datagrams, host_ns, tags)
+            self.seen_many(host_ns)
+            for prof in profiles:
+                self.records += 1
+                time_valid, pps, t0 = prof.time_valid, prof.pps_locked, prof.t0_ns
+                synced = pps and time_valid and t0 is not None
+                t0 = t0 if time_valid else None
+                if synced:
+                    self.profiles_synced += 1
+                monitor.observe(name, prof.host_ns, t0, pps_flag=pps)
+                if hub.taps and hub.wants("profile"):
+                    hub.publish("profile", prof.build(), t0 if synced else ctx.gps_ns(prof.host_ns))
             await asyncio.sleep(0)
+
+    def _submit_each(self, topic: str, payloads: list, host_ns: list[int], device_ns: list[int | None]) -> None:
+        for payload, h, d in zip(payloads, host_ns, device_ns):
+            self.ctx.submit(topic, payload, host_ns=h, device_ns=d)
 
 
 @DEVICES.register("pps")

@@ -45,6 +45,21 @@ class LogBatcher:
                 self.flush()
         return True
 
+    def submit_many(self, topic: str, payloads: list, host_ns: list[int], device_ns: list[int | None]) -> None:
+        """:meth:`submit` of each (payload, host stamp, device stamp), in order (a device's burst)."""
+        estimate = self._clock.estimate
+        items = self._items
+        for payload, h, d in zip(payloads, host_ns, device_ns):
+            gps_ns, state = estimate(h)
+            items.append((topic, payload, h, d, gps_ns, state))
+        if len(items) >= self.max_items:
+            self.flush()
+        elif self._handle is None and items:
+            try:
+                self._handle = asyncio.get_running_loop().call_later(self.period_s, self.flush)
+            except RuntimeError:
+                self.flush()
+
     def flush(self) -> None:
         if self._handle is not None:
             self._handle.cancel()

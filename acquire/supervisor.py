@@ -213,6 +213,7 @@ class Supervisor:
                                     clock=self.clock, channel_metadata=metadata)  # fmt: skip
         self.batcher = LogBatcher(self.writer.submit_batch, self.clock_cache)
         self.ctx.submit = self.batcher.submit  # the devices' hot path
+        self.ctx.submit_many = self.batcher.submit_many
         try:
             session_dir = await asyncio.to_thread(self.writer.start)
         except (OSError, LogError) as e:

@@ -23,16 +23,18 @@ Profile counters are u32 and compared with serial-number arithmetic, so wrapping
 from __future__ import annotations
 
 from collections import deque
+from collections.abc import Callable
 
 import numpy as np
 
 from drivers.base import DecoderStats, DriverError
-from drivers.zf.codec import Packet, Profile, ProfileCodec
+from drivers.zf.codec import FLAG_PPS_LOCKED, FLAG_TIME_VALID, Packet, Profile, ProfileCodec
 from drivers.zf.zfp1 import RANGE_UNIT_M, ZFP1
 
 _HALF = 1 << 31
 _RESET_BACK = 1000  # a jump back by more than this many profiles is a restart, not reordering
 _UDEG_TO_RAD = np.pi / 180e6
+_SYNCED = FLAG_PPS_LOCKED | FLAG_TIME_VALID
 
 
 def _diff(a: int, b: int) -> int:
@@ -94,35 +96,70 @@ def build_profile(counter: int, packets: list[Packet], packet_count: int, host_n
 class AssembledProfile:
     """A profile's packets (in index order) before its per-point arrays are built: what the
     daemon needs of every profile (counter, flags, first time tag) at the cost of none of the
-    arrays; :meth:`build` makes the :class:`Profile` for those who want the points."""
+    arrays; :meth:`build` makes the :class:`Profile` for those who want the points.
 
-    __slots__ = ("profile_counter", "packets", "packet_count", "host_ns")
+    From the assembler's batch path the packets are still datagrams (``decode`` decodes them
+    when :attr:`packets` is first read) and ``summary`` gives (the AND of their flags, the t0 of
+    the first packet with points) without decoding them."""
 
-    def __init__(self, counter: int, packets: list[Packet], packet_count: int, host_ns: int | None) -> None:
+    __slots__ = ("profile_counter", "packet_count", "host_ns", "_items", "_decode", "_summary")
+
+    def __init__(self, counter: int, packets: list, packet_count: int, host_ns: int | None,
+                 decode: Callable[[bytes], Packet] | None = None,
+                 summary: tuple[int, int | None] | None = None) -> None:  # fmt: skip
         self.profile_counter = counter
-        self.packets = packets
         self.packet_count = packet_count
         self.host_ns = host_ns
+        self._items = packets
+        self._decode = decode
+        self._summary = summary
+
+    @property
+    def packets(self) -> list[Packet]:
+        if self._decode is not None:
+            decode = self._decode
+            self._items = [x if isinstance(x, Packet) else decode(x) for x in self._items]
+            self._decode = None
+        return self._items
 
     @property
     def packets_received(self) -> int:
-        return len(self.packets)
+        return len(self._items)
 
     @property
     def t0_ns(self) -> int | None:
         """GPS ns of the first point received (None: no points), ``Profile.gps_ns[0]``."""
+        if self._summary is not None:
+            return self._summary[1]
         return next((p.t0_ns for p in self.packets if p.range_01mm.shape[0]), None)
 
     @property
     def pps_locked(self) -> bool:
+        if self._summary is not None:
+            return bool(self._summary[0] & FLAG_PPS_LOCKED)
         return all(p.pps_locked for p in self.packets)
 
     @property
     def time_valid(self) -> bool:
+        if self._summary is not None:
+            return bool(self._summary[0] & FLAG_TIME_VALID)
         return all(p.time_valid for p in self.packets)
 
     def build(self) -> Profile:
         return build_profile(self.profile_counter, self.packets, self.packet_count, self.host_ns)
+
+
+class _Run:
+    """The profile in flight on the batch path: its packets 0…n−1 so far, in order (datagrams,
+    or Packets taken over from the one-by-one path), the AND of their flags and the t0 of the
+    first one with points."""
+
+    __slots__ = ("counter", "count", "host_ns", "items", "flags", "t0_ns")
+
+    def __init__(self, counter: int, count: int, host_ns: int | None, items: list, flags: int,
+                 t0_ns: int | None) -> None:  # fmt: skip
+        self.counter, self.count, self.host_ns = counter, count, host_ns
+        self.items, self.flags, self.t0_ns = items, flags, t0_ns
 
 
 class ProfileAssembler:
@@ -137,6 +174,8 @@ class ProfileAssembler:
         self._newest: int | None = None
         self._complete_recent: deque[int] = deque(maxlen=8)
         self._decode = codec.decode_packet
+        self._scan = getattr(codec, "scan_packets", None)  # optional: a batch's headers at once
+        self._run: _Run | None = None  # the profile in flight, when the batch path has it
         self.last_packet: Packet | None = None  # the last datagram fed, decoded (None: rejected)
 
     def feed(self, data: bytes, host_ns: int | None = None) -> list[Profile]:
@@ -148,6 +187,8 @@ class ProfileAssembler:
 
     def feed_assembled(self, data: bytes, host_ns: int | None = None) -> list[AssembledProfile]:
         """:meth:`feed` without building the per-point arrays (:meth:`AssembledProfile.build`)."""
+        if self._run is not None:
+            self._take_back_run()
         stats = self.stats
         stats.bytes_in += len(data)
         try:
@@ -195,6 +236,8 @@ class ProfileAssembler:
         return out
 
     def flush_assembled(self) -> list[AssembledProfile]:
+        if self._run is not None:
+            self._take_back_run()
         out = []
         for c in sorted(self._open, key=lambda k: _diff(k, self._newest if self._newest is not None else k)):
             out.append(self._emit(c))
@@ -230,3 +273,106 @@ class ProfileAssembler:
         packets = [part.packets[i] for i in sorted(part.packets)]
         stats.records += 1
         return AssembledProfile(c, packets, part.count, part.host_ns)
+
+    # -- the batch path --------------------------------------------------------------------------
+
+    def feed_batch(self, datagrams: list[bytes], host_ns: list[int]) -> tuple[list[AssembledProfile], list[int | None]]:
+        """:meth:`feed_assembled` over a batch, in order, and each datagram's device time tag (its
+        t0 when PPS-locked and time-valid; None otherwise or when rejected).
+
+        The usual batch — every datagram a valid packet (the codec's ``scan_packets``), each the
+        next packet of the profile in flight or the first of the next profile — is handled with
+        a few array operations and no per-datagram decoding; the profiles, counters and
+        :attr:`last_packet` are those of feeding the datagrams one by one, which is what any
+        other batch gets."""
+        heads = self._scan(datagrams) if self._scan is not None and datagrams else None
+        done = self._feed_run(datagrams, host_ns, heads) if heads is not None else None
+        if done is not None:
+            return done
+        profiles: list[AssembledProfile] = []
+        tags: list[int | None] = []
+        for data, t in zip(datagrams, host_ns):
+            profiles += self.feed_assembled(data, t)
+            p = self.last_packet
+            tags.append(p.t0_ns if p is not None and p.flags & _SYNCED == _SYNCED else None)
+        return profiles, tags
+
+    def _run_start(self) -> tuple[int, int | None, int] | None:
+        """(counter, packet count or None for a new profile, index) the batch path expects next."""
+        if self._run is not None:
+            r = self._run
+            return r.counter, r.count, len(r.items)
+        if not self._open:
+            if self._last is None or self._newest != self._last:
+                return None
+            return (self._last + 1) & 0xFFFFFFFF, None, 0
+        if len(self._open) != 1:
+            return None
+        ((c, part),) = self._open.items()
+        if part.max_index != len(part.packets) - 1:  # a hole: one by one
+            return None
+        return c, part.count, part.max_index + 1
+
+    def _feed_run(self, datagrams: list[bytes], host_ns: list[int], h: np.ndarray):
+        start = self._run_start()
+        if start is None:
+            return None
+        c = h["profile_counter"].astype(np.int64)
+        i = h["packet_index"].astype(np.int64)
+        k = h["packet_count"].astype(np.int64)
+        if c[0] != start[0] or i[0] != start[2] or (start[1] is not None and k[0] != start[1]):
+            return None
+        same = (c[1:] == c[:-1]) & (i[1:] == i[:-1] + 1) & (k[1:] == k[:-1])
+        nxt = (i[:-1] == k[:-1] - 1) & (c[1:] == (c[:-1] + 1) & 0xFFFFFFFF) & (i[1:] == 0)
+        if not (same | nxt).all():
+            return None
+        run = self._run
+        if run is None and self._open:  # take the profile in flight over from the one-by-one path
+            ((c0, part),) = self._open.items()
+            del self._open[c0]
+            packets = [part.packets[j] for j in range(len(part.packets))]
+            flags = 0xFFFF
+            for p in packets:
+                flags &= p.flags
+            t0 = next((p.t0_ns for p in packets if p.range_01mm.shape[0]), None)
+            run = _Run(c0, part.count, part.host_ns, packets, flags, t0)
+        stats = self.stats
+        stats.bytes_in += sum(map(len, datagrams))
+        flags_l, t0_l = h["flags"].tolist(), h["t0_ns"].tolist()
+        with_points = np.flatnonzero(h["n_points"]).tolist()
+        ends = (np.flatnonzero(i == k - 1) + 1).tolist()
+        if not ends or ends[-1] != len(datagrams):
+            ends.append(len(datagrams))
+        out: list[AssembledProfile] = []
+        a, w = 0, 0
+        for b in ends:
+            if run is None:  # the next profile begins
+                run = _Run(int(c[a]), int(k[a]), host_ns[a], [], 0xFFFF, None)
+                self._newest = run.counter
+            run.items += datagrams[a:b]
+            for f in flags_l[a:b]:
+                run.flags &= f
+            while w < len(with_points) and with_points[w] < a:
+                w += 1
+            if run.t0_ns is None and w < len(with_points) and with_points[w] < b:
+                run.t0_ns = t0_l[with_points[w]]
+            if len(run.items) == run.count:
+                self._last = run.counter
+                self._complete_recent.append(run.counter)
+                stats.records += 1
+                out.append(AssembledProfile(run.counter, run.items, run.count, run.host_ns, self._decode,
+                                            (run.flags, run.t0_ns)))  # fmt: skip
+                run = None
+            a = b
+        self._run = run
+        self.last_packet = self._decode(datagrams[-1])
+        tags = [t if f & _SYNCED == _SYNCED else None for f, t in zip(flags_l, t0_l)]
+        return out, tags
+
+    def _take_back_run(self) -> None:
+        """The profile in flight goes back to the one-by-one path (decoded)."""
+        r, self._run = self._run, None
+        part = self._open[r.counter] = _Partial(r.count, r.host_ns)
+        decode = self._decode
+        part.packets = {j: x if isinstance(x, Packet) else decode(x) for j, x in enumerate(r.items)}
+        part.max_index = len(r.items) - 1

@@ -80,6 +80,34 @@ def parse_header(data: bytes) -> tuple:
     return h
 
 
+HEADER_DTYPE = np.dtype([("magic", "S4"), ("header_size", "<u2"), ("flags", "<u2"), ("profile_counter", "<u4"),
+                         ("packet_index", "<u2"), ("packet_count", "<u2"), ("t0_ns", "<i8"), ("dt_ns", "<u4"),
+                         ("angle0_udeg", "<i4"), ("dangle_udeg", "<i4"), ("n_points", "<u2"),
+                         ("reserved", "<u2")])  # fmt: skip
+#: zlib.crc32 of a packet *with* its little-endian CRC-32 appended, whatever the packet: the check
+#: needs no slicing
+CRC_RESIDUE = 0x2144DF1C
+
+
+def scan_packets(datagrams: list[bytes]) -> np.ndarray | None:
+    """The headers of a batch of datagrams as one :data:`HEADER_DTYPE` array when every one is a
+    valid packet (what :func:`parse_header` accepts), None as soon as one is not (decode them one
+    by one to learn which and why): the assembler's batch path, a few numpy operations instead
+    of a header parse per datagram."""
+    n = len(datagrams)
+    if n == 0:
+        return None
+    lens = np.fromiter(map(len, datagrams), np.int64, n)
+    if lens.min() < HEADER_SIZE + CRC_SIZE:
+        return None
+    if (np.fromiter(map(zlib.crc32, datagrams), np.uint32, n) != CRC_RESIDUE).any():
+        return None
+    h = np.frombuffer(b"".join([d[:HEADER_SIZE] for d in datagrams]), HEADER_DTYPE)
+    ok = (h["magic"] == MAGIC) & (h["header_size"] == HEADER_SIZE) & (h["packet_index"] < h["packet_count"])
+    ok &= lens == HEADER_SIZE + CRC_SIZE + POINT_SIZE * h["n_points"].astype(np.int64)
+    return h if ok.all() else None
+
+
 def decode_packet(data: bytes) -> Packet:
     """One datagram → :class:`Packet` (raises :class:`ZfpError` on anything invalid)."""
     h = parse_header(data)
@@ -183,6 +211,9 @@ class Zfp1Codec:
 
     def decode_packet(self, data: bytes) -> Packet:
         return decode_packet(data)
+
+    def scan_packets(self, datagrams: list[bytes]) -> np.ndarray | None:
+        return scan_packets(datagrams)
 
     def encode_profile(self, profile: Profile, max_payload: int = DEFAULT_MAX_PAYLOAD) -> list[bytes]:
         """A Profile whose points are evenly spaced in time and angle → datagrams.

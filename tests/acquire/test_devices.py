@@ -64,3 +64,24 @@ def test_a_status_older_than_the_hold_is_not_trusted():
         dev._nav(nav)
     navs = [p for t, p in submitted if t == "/ins/nav"]
     assert [(n["time_source"], n["time_gps_ns"]) for n in navs] == [("device", G0), ("clock", CLOCK_NS)]
+
+
+def test_seen_many_reports_the_gaps_seen_one_by_one_would():
+    def device():
+        events = []
+        ctx = SimpleNamespace(log_event=lambda data, host_ns: events.append((data, host_ns)),
+                              clock=SimpleNamespace(to_gps=lambda h: SimpleNamespace(gps_ns=h + 5, state=SimpleNamespace(value="LOCKED"))),
+                              submit=None, hub=ConsumerHub())  # fmt: skip
+        dev = InsDevice(DeviceConfig("ins", "ins", protocol="nmea", latency=LatencyLimits(gap_ns=NS)), ctx)
+        return dev, events
+
+    stamps = [10 * NS + k * 10_000_000 for k in range(50)]
+    stamps = stamps[:20] + [s + 3 * NS for s in stamps[20:35]] + [s + 5 * NS for s in stamps[35:]]  # two gaps
+    one, ev_one = device()
+    many, ev_many = device()
+    for h in stamps:
+        one.seen(h)
+    for burst in (stamps[:7], stamps[7:21], stamps[21:36], stamps[36:]):  # a gap inside a burst, one at its start
+        many.seen_many(burst)
+    assert ev_many == ev_one and len(ev_one) == 2 and ev_one[0][0]["event"] == "data_gap"
+    assert (many.gaps, many.last_host_ns) == (one.gaps, one.last_host_ns) == (2, stamps[-1])

@@ -106,3 +106,20 @@ def test_can_frames_are_stored_as_socketcan_frames(arb, data, ext):
     assert parse_can_frame(raw) == (arb, data, ext)
     with pytest.raises(DriverError, match="17 bytes: expected 16 or 72"):
         parse_can_frame(raw[:16] + b"x")
+
+
+def test_log_batcher_submit_many_stamps_as_submit_does_one_by_one():
+    one, many = [], []
+    clock = ClockModel(coarse_offset_ns=7 * NS)
+    a = LogBatcher(lambda r: one.extend(r) or len(r), ClockCache(clock), max_items=50)
+    b = LogBatcher(lambda r: many.extend(r) or len(r), ClockCache(clock), max_items=50)
+    payloads = [bytes([i]) for i in range(80)]
+    hosts = [H0 + 3_000_000 * i for i in range(80)]  # 0.24 s: past the cache's 50 ms
+    tags = [H0 + i if i % 3 else None for i in range(80)]
+    for p, h, t in zip(payloads, hosts, tags):
+        a.submit("/lidar/raw", p, host_ns=h, device_ns=t)
+    for s in (slice(0, 30), slice(30, 31), slice(31, 80)):
+        b.submit_many("/lidar/raw", payloads[s], hosts[s], tags[s])
+    a.flush()
+    b.flush()
+    assert many == one and len(one) == 80 and one[4][3] == H0 + 4 and one[3][3] is None

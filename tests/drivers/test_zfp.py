@@ -233,3 +233,109 @@ def test_a_fractional_point_period_gives_each_packet_its_own_rounded_t0():
     assert np.array_equal(prof.gps_ns, t_base + np.round((i // per * per) * dt_exact).astype(np.int64) + (i % per) * 984)
     assert np.allclose(np.degrees(prof.scan_angle_rad) * 1e6, 7 * i)
     assert np.array_equal(prof.range_m, ranges * 1e-4)
+
+
+def _flip(d: bytes, bit: int) -> bytes:
+    b = bytearray(d)
+    b[bit // 8 % len(b)] ^= 1 << bit % 8
+    return bytes(b)
+
+
+@PROPERTY
+@given(st.lists(st.tuples(st.integers(0, 3), st.integers(0, 1 << 16)), min_size=1, max_size=12))
+def test_scan_packets_accepts_exactly_what_parse_header_accepts(spoils):
+    from drivers.zf.zfp1 import HEADER_DTYPE, parse_header, scan_packets
+
+    good = profile_datagrams(0, n=1500)[0] + profile_datagrams(1, n=300)[0]
+    batch = []
+    for j, (kind, arg) in enumerate(spoils):
+        d = good[j % len(good)]
+        batch.append([d, _flip(d, arg), d[: arg % len(d)], bytes(arg % 97)][kind])
+    heads = scan_packets(batch)
+    parsed = []
+    for d in batch:
+        try:
+            parsed.append(parse_header(d))
+        except ZfpError:
+            parsed = None
+            break
+    assert (heads is None) == (parsed is None)
+    if heads is not None:
+        assert heads.dtype == HEADER_DTYPE and [tuple(h) for h in heads.tolist()] == parsed
+
+
+def _disturbed_stream(draw_ops, n_profiles: int) -> list[bytes]:
+    """Five-packet profiles (some not PPS-locked, some with an empty packet) disturbed by ops."""
+    out = []
+    for c in range(n_profiles):
+        rng = np.random.default_rng(c)
+        ranges = rng.integers(1, 3_000_000, 1000).astype(np.uint32)
+        if c % 4 == 1:
+            ranges[:226] = 0  # the first packet has no returns: t0 comes from the second
+        dgs = encode_profile(c, 10**18 + c * 5_000_000, DT, 0, DANGLE, ranges, np.zeros(1000, np.uint16),
+                             pps_locked=c % 5 != 3)  # fmt: skip
+        out += dgs
+    for kind, at in draw_ops:
+        at %= len(out)
+        if kind == 0:
+            del out[at]
+        elif kind == 1:
+            out.insert(at, out[at])
+        elif kind == 2 and at + 1 < len(out):
+            out[at], out[at + 1] = out[at + 1], out[at]
+        elif kind == 3:
+            out.insert(at, b"ZFP1 garbage")
+        elif kind == 4:
+            out[at] = _flip(out[at], 8 * 20)
+    return out
+
+
+def _seen(profiles):
+    return [(a.profile_counter, a.packet_count, a.packets_received, a.pps_locked, a.time_valid, a.t0_ns, a.host_ns)
+            for a in profiles]  # fmt: skip
+
+
+@PROPERTY
+@given(st.lists(st.tuples(st.integers(0, 4), st.integers(0, 10**6)), max_size=6),
+       st.lists(st.integers(1, 17), min_size=1, max_size=40), st.integers(4, 14))  # fmt: skip
+def test_feed_batch_is_feeding_one_by_one(ops, sizes, n_profiles):
+    stream = _disturbed_stream(ops, n_profiles)
+    hosts = list(range(1000, 1000 + len(stream)))
+    one, batched = ProfileAssembler(), ProfileAssembler()
+    want, want_tags = [], []
+    for d, h in zip(stream, hosts):
+        want += one.feed_assembled(d, h)
+        p = one.last_packet
+        want_tags.append(p.t0_ns if p is not None and p.pps_locked and p.time_valid else None)
+    got, tags, a, k = [], [], 0, 0
+    while a < len(stream):
+        b = a + sizes[k % len(sizes)]
+        profiles, t = batched.feed_batch(stream[a:b], hosts[a:b])
+        got += profiles
+        tags += t
+        p, q = batched.last_packet, one.last_packet if b >= len(stream) else None
+        if q is not None:
+            assert (p is None) == (q is None) and (p is None or (p.profile_counter, p.packet_index) == (q.profile_counter, q.packet_index))
+        a, k = b, k + 1
+    want += one.flush_assembled()
+    got += batched.flush_assembled()
+    assert _seen(got) == _seen(want) and tags == want_tags
+    for x, y in zip(got, want):
+        bx, by = x.build(), y.build()
+        assert np.array_equal(bx.gps_ns, by.gps_ns) and np.array_equal(bx.range_m, by.range_m, equal_nan=True)
+    assert batched.stats.events == one.stats.events and batched.stats.rejected == one.stats.rejected
+    assert (batched.stats.records, batched.stats.bytes_in) == (one.stats.records, one.stats.bytes_in)
+
+
+def test_a_clean_stream_in_batches_is_not_decoded_datagram_by_datagram():
+    stream = _disturbed_stream([], 20)
+    asm = ProfileAssembler()
+    calls = []
+    decode = asm._decode
+    asm._decode = lambda d: calls.append(d) or decode(d)
+    profiles = []
+    for a in range(0, len(stream), 7):
+        profiles += asm.feed_batch(stream[a : a + 7], list(range(a, a + 7)))[0]
+    assert [p.profile_counter for p in profiles] == list(range(20)) and all(p.packets_received == 5 for p in profiles)
+    assert len(calls) <= 7 + len(stream) // 7 + 1  # the first batch one by one, then one decode a batch
+    assert len(profiles[10].build().gps_ns) == 1000  # the points are still there when wanted
