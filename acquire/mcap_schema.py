@@ -100,10 +100,10 @@ def clock_flags(clock_state: str) -> int:
     return FLAG_LOCKED if clock_state == "LOCKED" else FLAG_HOLDOVER if clock_state == "HOLDOVER" else 0
 
 
-def encode_raw(seq: int, host_ns: int, device_ns: int | None, clock_state: str, data: bytes) -> bytes:
+def raw_head(seq: int, host_ns: int, device_ns: int | None, clock_state: str) -> bytes:
+    """The envelope header of a raw record (the received bytes follow it)."""
     flags = clock_flags(clock_state) | (FLAG_DEVICE_TIME if device_ns is not None else 0)
-    head = RAW_HEADER.pack(RAW_VERSION, flags, RAW_HEADER.size, seq, host_ns, device_ns or 0)
-    return head + bytes(data)
+    return RAW_HEADER.pack(RAW_VERSION, flags, RAW_HEADER.size, seq, host_ns, device_ns or 0)
 
 
 def _plain(obj: Any) -> Any:

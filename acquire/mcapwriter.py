@@ -40,10 +40,13 @@ class _MessageIndex(MessageIndex):
 
 
 class SegmentWriter(Writer):
-    def add_message(self, channel_id: int, log_time: int, data: bytes, publish_time: int, sequence: int = 0) -> None:
+    def add_message(self, channel_id: int, log_time: int, data: bytes, publish_time: int, sequence: int = 0,
+                    head: bytes = b"") -> None:  # fmt: skip
+        """The library's ``add_message`` of ``head + data`` (``head``: a prefix written without
+        joining the two first, the raw records' envelope header)."""
         chunk = self._Writer__chunk_builder
         if chunk is None:
-            return super().add_message(channel_id, log_time, data, publish_time, sequence)
+            return super().add_message(channel_id, log_time, head + data, publish_time, sequence)
         st = self._Writer__statistics
         if st.message_count == 0 or log_time < st.message_start_time:
             st.message_start_time = log_time
@@ -61,8 +64,10 @@ class SegmentWriter(Writer):
         buf = chunk.record_writer._buffer
         index.records.append((log_time, buf.tell()))
         chunk.num_messages += 1
-        buf.write(_MESSAGE_HEAD.pack(Opcode.MESSAGE, _MESSAGE_FIXED + len(data), channel_id, sequence,
+        buf.write(_MESSAGE_HEAD.pack(Opcode.MESSAGE, _MESSAGE_FIXED + len(head) + len(data), channel_id, sequence,
                                      log_time, publish_time))  # fmt: skip
+        if head:
+            buf.write(head)
         buf.write(data)
         if buf.tell() > self._Writer__chunk_size:
             self._Writer__finalize_chunk()

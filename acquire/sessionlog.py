@@ -64,7 +64,7 @@ from acquire.mcap_schema import (
     RAW_ENCODING,
     channel_kind,
     encode_json,
-    encode_raw,
+    raw_head,
 )
 
 NS_PER_S = 1_000_000_000
@@ -446,9 +446,9 @@ class SessionWriter:
             self._lost_at_failure[topic] += 1
             return
         if (self._kinds.get(topic) or channel_kind(topic)) == RAW:
-            data = encode_raw(seq, host_ns, device_ns, clock_state, payload)
+            head, data = raw_head(seq, host_ns, device_ns, clock_state), payload
         else:
-            data = encode_json(seq, host_ns, device_ns, clock_state, payload)
+            head, data = b"", encode_json(seq, host_ns, device_ns, clock_state, payload)
         publish = device_ns if device_ns is not None else log_time_ns
         try:  # registering a channel may complete the open chunk (which does not hold this record)
             channel_id = self._channels.get(topic) or self._register(topic)
@@ -458,13 +458,11 @@ class SessionWriter:
             return
         # counted before it is added: a chunk completed by add_message holds it (_chunk_written)
         self._unflushed[topic] += 1
-        self._chunk_bytes += len(data)
+        self._chunk_bytes += len(head) + len(data)
         if self._unflushed_since is None:
             self._unflushed_since = submit_ns
         try:
-            self._mcap.add_message(channel_id, log_time=max(log_time_ns, 0), data=data,
-                                   publish_time=max(int(publish), 0),
-                                   sequence=seq & 0xFFFFFFFF)  # fmt: skip
+            self._mcap.add_message(channel_id, max(log_time_ns, 0), data, max(int(publish), 0), seq & 0xFFFFFFFF, head)
         except OSError as e:  # a chunk filled up and a write failed (the chunk's, or after it)
             self._fail(e, "write", self._now())
             return

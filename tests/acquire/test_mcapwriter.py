@@ -12,7 +12,8 @@ from mcap.writer import CompressionType, Writer
 from acquire.mcapwriter import SegmentWriter
 
 
-def _write(cls, records, chunk_size: int, compression) -> bytes:
+def _write(cls, records, chunk_size: int, compression, head: int = 0) -> bytes:
+    """``head``: SegmentWriter gets each record's first ``head`` bytes as its ``head`` prefix."""
     out = io.BytesIO()
     w = cls(out, chunk_size=chunk_size, compression=compression)
     w.start("mls-test", "mls")
@@ -20,14 +21,18 @@ def _write(cls, records, chunk_size: int, compression) -> bytes:
     channels = [w.register_channel("/lidar/raw", "mls-raw", 0, {"k": "v"}),
                 w.register_channel("/ins/nav", "json", sid, {})]  # fmt: skip
     for ch, log_time, publish, seq, data in records:
-        w.add_message(channels[ch], log_time=log_time, data=data, publish_time=publish, sequence=seq)
+        if head:
+            w.add_message(channels[ch], log_time, data[head:], publish, seq, head=data[:head])
+        else:
+            w.add_message(channels[ch], log_time=log_time, data=data, publish_time=publish, sequence=seq)
     w.finish()
     return out.getvalue()
 
 
 @pytest.mark.parametrize("compression", [CompressionType.ZSTD, CompressionType.NONE], ids=["zstd", "none"])
 @pytest.mark.parametrize("chunk_size", [1, 4096, 1 << 20], ids=["chunk-per-message", "4k", "1M"])
-def test_segment_writer_writes_the_bytes_of_the_library_writer(chunk_size, compression):
+@pytest.mark.parametrize("head", [0, 24], ids=["whole", "head+data"])
+def test_segment_writer_writes_the_bytes_of_the_library_writer(chunk_size, compression, head):
     rng = random.Random(7)
     records, t = [], 10**18
     for seq in range(1, 3000):
@@ -35,7 +40,7 @@ def test_segment_writer_writes_the_bytes_of_the_library_writer(chunk_size, compr
         records.append((rng.randrange(2), max(t, 0), t + rng.randrange(1000), seq,
                         bytes(rng.randrange(256) for _ in range(rng.randrange(0, 300)))))  # fmt: skip
     records.append((0, 0, 0, 0, b""))  # log time 0, empty payload
-    ours = _write(SegmentWriter, records, chunk_size, compression)
+    ours = _write(SegmentWriter, records, chunk_size, compression, head)
     assert ours == _write(Writer, records, chunk_size, compression)
     got = [(m.channel_id, m.log_time, m.publish_time, m.sequence, m.data)
            for _, _, m in make_reader(io.BytesIO(ours)).iter_messages(log_time_order=False)]  # fmt: skip
@@ -52,7 +57,7 @@ def test_without_chunking_it_is_the_library_method():
     w.start("mls-test", "mls")
     ch = w.register_channel("/x", "raw", 0)
     for _, log_time, publish, seq, data in records:
-        w.add_message(ch, log_time=log_time, data=data, publish_time=publish, sequence=seq)
+        w.add_message(ch, log_time, data[1:], publish, seq, head=data[:1])
     w.finish()
     got = [(m.log_time, m.sequence, m.data) for _, _, m in make_reader(io.BytesIO(out.getvalue())).iter_messages()]
     assert got == [(4, 2, b"{}"), (5, 1, b"abc")]
