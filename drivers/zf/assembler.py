@@ -5,7 +5,9 @@ are emitted in counter order: as soon as all their packets are in, or — incomp
 points they have — once a profile ``window`` counters newer has been seen (so a packet reordered
 across a profile boundary still finds its profile). ``feed_assembled``/``flush_assembled`` emit
 the same profiles as :class:`AssembledProfile` (the packets, arrays not built yet: the daemon's
-hot path builds them only when a consumer wants the points). Counters (``stats``):
+hot path builds them only when a consumer wants the points), and ``feed_batch`` a burst of
+datagrams at once (the same profiles and counters, with array operations for the usual burst).
+Counters (``stats``):
 
 - ``rejected[reason]``: datagrams the codec refused (``bad_crc``, ``bad_magic``, ``short``, ...)
   and ``inconsistent_count`` (a packet disagreeing with its profile's packet count);

@@ -4,7 +4,10 @@
 :class:`Profile` one reassembled scan line with per-point arrays, and :class:`ProfileCodec` the
 small interface a packet format implements: ``decode_packet(bytes) -> Packet`` (raising
 :class:`~drivers.base.DriverError` with a ``reason`` attribute on invalid input) and
-``encode_profile(profile, max_payload) -> list[bytes]``. The project's ZFP1 stand-in
+``encode_profile(profile, max_payload) -> list[bytes]``, and optionally
+``scan_packets(datagrams) -> headers | None`` (a batch's headers as one structured array with the
+fields of ZFP1's ``HEADER_DTYPE`` — counter, index, count, flags, t0, n_points —, None when one
+datagram is not valid: the assembler's batch path). The project's ZFP1 stand-in
 (:mod:`drivers.zf.zfp1`) is one implementation; the vendor's format becomes another, and
 :class:`~drivers.zf.assembler.ProfileAssembler` takes either.
 """
