@@ -68,6 +68,7 @@ from acquire.mcap_schema import (
 )
 
 NS_PER_S = 1_000_000_000
+_MESSAGE_RECORD_BYTES = 1 + 8 + 2 + 4 + 8 + 8  # an MCAP Message record without its data
 SEGMENT_RE = re.compile(r"^seg-(\d{6})\.mcap$")
 SESSION_RE = re.compile(r"^\d{8}T\d{6}Z_[A-Za-z0-9][A-Za-z0-9_.-]*$")
 LOCK_NAME = "session.lock"
@@ -421,8 +422,7 @@ class SessionWriter:
                 elif it is _ROTATE:
                     self._rotate(self._now(), "requested")
                 else:
-                    for record in it:
-                        self._write(record)
+                    self._write_all(it)
             self._maintain(self._now())
             if stopping:  # everything submitted before close() was ahead of _STOP
                 self._close_segment(self._now(), "shutdown")
@@ -438,6 +438,64 @@ class SessionWriter:
     def _flush_deadline(self) -> int:
         assert self._unflushed_since is not None
         return self._unflushed_since + int(0.75 * self.options.flush_s * NS_PER_S)
+
+    def _write_all(self, records: list) -> None:
+        """:meth:`_write` of each record, in order; a run of records of one raw channel (the
+        profiler's datagrams: ~23 k/s at ×5) goes to the segment as one run of messages."""
+        i, n, kinds = 0, len(records), self._kinds
+        while i < n:
+            topic = records[i][0]
+            j = i + 1  # (a rotation gives the next segment channels of its own)
+            if self._mcap is not None and topic in self._channels and (kinds.get(topic) or channel_kind(topic)) == RAW:
+                while j < n and records[j][0] == topic:
+                    j += 1
+            if j - i > 1:
+                i = self._write_raw_run(records, i, j)
+            else:
+                self._write(records[i])
+                i += 1
+
+    def _write_raw_run(self, records: list, i: int, j: int) -> int:
+        """Records ``i:j`` (one raw channel, already registered) as :meth:`_write` would write
+        them, up to the record that completes the open chunk or makes the segment due for
+        rotation; returns the index of the first record not written."""
+        mcap = self._mcap
+        room = mcap.chunk_room()
+        if room is None:
+            for k in range(i, j):
+                self._write(records[k])
+            return j
+        rotate_room = self.options.rotate_bytes - self._io.pos - self._chunk_bytes
+        topic = records[i][0]
+        messages, chunk_bytes, record_bytes = [], 0, 0
+        for k in range(i, j):
+            _, seq, payload, host_ns, device_ns, log_time_ns, clock_state, _ = records[k]
+            head = raw_head(seq, host_ns, device_ns, clock_state)
+            publish = device_ns if device_ns is not None else log_time_ns
+            messages.append((log_time_ns if log_time_ns > 0 else 0, publish if publish > 0 else 0,
+                             seq & 0xFFFFFFFF, head, payload))  # fmt: skip
+            size = len(head) + len(payload)
+            chunk_bytes += size
+            record_bytes += _MESSAGE_RECORD_BYTES + size
+            if record_bytes > room or chunk_bytes >= rotate_room:
+                break
+        m = len(messages)
+        # counted before they are added: the chunk they may complete holds them (_chunk_written)
+        self._unflushed[topic] += m
+        self._chunk_bytes += chunk_bytes
+        if self._unflushed_since is None:
+            self._unflushed_since = records[i][7]
+        try:
+            mcap.add_run(self._channels[topic], messages)
+        except OSError as e:  # the chunk the last one completed could not be written
+            self._stats.messages_written += m - 1
+            self._fail(e, "write", self._now())
+            return i + m
+        self._stats.messages_written += m
+        self._dirty_since_fsync = True
+        if self._io is not None and self._io.pos + self._chunk_bytes >= self.options.rotate_bytes:
+            self._rotate(self._now(), "rotation")
+        return i + m
 
     def _write(self, item) -> None:
         topic, seq, payload, host_ns, device_ns, log_time_ns, clock_state, submit_ns = item

@@ -61,3 +61,30 @@ def test_without_chunking_it_is_the_library_method():
     w.finish()
     got = [(m.log_time, m.sequence, m.data) for _, _, m in make_reader(io.BytesIO(out.getvalue())).iter_messages()]
     assert got == [(4, 2, b"{}"), (5, 1, b"abc")]
+
+
+@pytest.mark.parametrize("chunk_size", [700, 4096, 1 << 20], ids=["small", "4k", "1M"])
+def test_runs_cut_at_the_chunk_room_are_the_bytes_of_the_library_writer(chunk_size):
+    rng = random.Random(11)
+    records, t = [], 10**18
+    for seq in range(1, 2000):
+        t += rng.randrange(-50_000, 1_000_000)
+        records.append((0, max(t, 0), t + 7, seq, bytes(rng.randrange(256) for _ in range(rng.randrange(0, 300)))))
+    out = io.BytesIO()
+    w = SegmentWriter(out, chunk_size=chunk_size, compression=CompressionType.NONE)
+    w.start("mls-test", "mls")
+    w.register_schema("env", "jsonschema", b"{}")
+    ch = w.register_channel("/lidar/raw", "mls-raw", 0, {"k": "v"})
+    w.register_channel("/ins/nav", "json", 1, {})
+    i = 0
+    while i < len(records):  # runs of random length, cut where the chunk completes
+        room, j, size = w.chunk_room(), i, 0
+        while j < min(len(records), i + rng.randrange(1, 40)):
+            size += 31 + len(records[j][4])
+            j += 1
+            if size > room:
+                break
+        w.add_run(ch, [(lt, pub, seq, data[:3], data[3:]) for _, lt, pub, seq, data in records[i:j]])
+        i = j
+    w.finish()
+    assert out.getvalue() == _write(Writer, records, chunk_size, CompressionType.NONE)

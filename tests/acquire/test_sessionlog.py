@@ -13,6 +13,7 @@ from pathlib import Path
 
 import pytest
 from mcap.reader import make_reader
+from mcap.stream_reader import StreamReader
 from mcap.writer import MCAP0_MAGIC
 
 from acquire.alarms import AlarmBook
@@ -409,3 +410,74 @@ def test_a_write_failure_counts_as_lost_exactly_the_records_the_segment_does_not
     assert event["event"] == "log_write_failed" and event["segment"] == first.name
     assert event["records_lost"] == {t: c for t, c in stats.lost.items() if c}
     assert f"{sum(stats.lost.values())} records lost" in alarms.get("disk_write_failed", "log").message
+
+
+def _write_synchronously(root: Path, records: list, batch: int, one_by_one: bool, monkeypatch) -> Path:
+    """The writer's own code without its thread: start (no thread), write the records as the
+    thread would, in batches of ``batch``, and close the segment."""
+    from types import SimpleNamespace
+
+    import acquire.sessionlog as sessionlog
+
+    class NoThread:
+        def __init__(self, **kw):
+            pass
+
+        def start(self):
+            pass
+
+    w = SessionWriter(root, "same", SessionOptions(chunk_bytes=20_000, rotate_bytes=150_000, compression="none"))
+    with monkeypatch.context() as m:
+        m.setattr(sessionlog, "threading", SimpleNamespace(Thread=NoThread))
+        d = w.start()
+    for a in range(0, len(records), batch):
+        part = records[a : a + batch]
+        if one_by_one:
+            for r in part:
+                w._write(r)
+        else:
+            w._write_all(part)
+    w._close_segment(w._now(), "shutdown")
+    os.close(w._lock_fd)
+    return d
+
+
+def _segments(d: Path) -> list:
+    out = []
+    for path in segment_paths(d):
+        with open(path, "rb") as f:
+            reader = make_reader(f)
+            messages = [(c.topic, m.log_time, m.publish_time, m.sequence, m.data)
+                        for _, c, m in reader.iter_messages(log_time_order=False)]  # fmt: skip
+            s = reader.get_summary()
+            chunks = [(c.message_start_time, c.message_end_time, c.uncompressed_size) for c in s.chunk_indexes]
+            out.append((messages, chunks, s.statistics.message_count))
+        # every record but the segment's metadata (its opening time): chunks, message indexes,
+        # statistics, summary offsets
+        with open(path, "rb") as f:
+            out.append([r for r in StreamReader(f, emit_chunks=True).records if type(r).__name__ != "Metadata"])
+    return out
+
+
+@pytest.mark.parametrize("seed", [1, 2, 3])
+def test_runs_of_raw_records_are_written_as_one_by_one(tmp_path, monkeypatch, seed):
+    """The writer's run path (the profiler's datagrams) gives the segments, chunks, messages and
+    counters of writing each record on its own: chunk ends and rotations fall mid-run."""
+    import random
+
+    rng = random.Random(seed)
+    records, seqs = [], {}
+    for k in range(3000):
+        topic = rng.choice(["/lidar/raw"] * 12 + ["/ins/raw", "/ins/nav", "/can/events"])
+        seq = seqs[topic] = seqs.get(topic, 0) + 1
+        host = 10 * NS + k * 1000
+        data = {"k": k} if topic == "/ins/nav" else payload(k, rng.randrange(0, 1400))
+        records.append((topic, seq, data, host, rng.choice([None, host + 5]), rng.choice([host + GPS_OFFSET_NS, 0, -3]),
+                        rng.choice(["LOCKED", "HOLDOVER", "UNLOCKED"]), host))  # fmt: skip
+    batch = rng.randrange(50, 400)
+    a = _write_synchronously(tmp_path / "a", records, batch, True, monkeypatch)
+    b = _write_synchronously(tmp_path / "b", records, batch, False, monkeypatch)
+    want, got = _segments(a), _segments(b)
+    assert len(want) >= 6 and sum(len(c) for _, c, _ in want[::2]) > 20  # rotations and chunks to get right
+    assert got == want
+    assert sum(len(m) for m, _, _ in got[::2]) == len(records)
