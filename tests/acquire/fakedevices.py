@@ -23,6 +23,7 @@ INS_PERIOD_NS = 20_000_000  # 50 Hz
 PROFILE_PERIOD_NS = 50_000_000  # 20 profiles/s
 INS_LATENCY_NS = 3_000_000
 ZDA_DELAY_NS = 50_000_000
+STALE_NS = 300_000_000  # a pulse or ZDA this late is not sent
 POINTS = 600  # per profile: three ZFP1 packets
 
 
@@ -109,6 +110,9 @@ class FakeDevices(threading.Thread):
         rng = np.random.default_rng(1)
         for host_ns, kind, arg in self.schedule():
             time.sleep(max(host_ns - time.monotonic_ns(), 0) / NS)
+            if kind in ("pps", "zda") and time.monotonic_ns() - host_ns > STALE_NS:
+                continue  # stalled (a blocked pty write while the daemon was down): a receiver
+                # does not send an old second's pulse and sentence together with the next ones
             if kind == "pps":
                 self.sock.sendto(encode_pps_datagram(len(self.pulses) + 1, host_ns), self.addr_pps)
                 self.pulses.append((arg, host_ns))

@@ -6,6 +6,7 @@ module)."""
 from __future__ import annotations
 
 import asyncio
+import gc
 import time
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -69,7 +70,19 @@ def _chunk_hook(decoder, capture: Capture):
 async def _capture(cap: Capture, make_run, devices, ins_protocol: str, can_config: dict | None, end_host,
                    grace_s: float) -> None:  # fmt: skip
     """Open the receivers, ``make_run(profiler_port, pps_port)``, start it, capture until
-    ``end_host(run)`` + ``grace_s``, stop it."""
+    ``end_host(run)`` + ``grace_s``, stop it. The garbage collector is off meanwhile: in a test
+    process a full collection holds the GIL for a few hundred ms, longer than the emulated
+    UART buffers (the pty's 20 kB and the emulator's 50 ms)."""
+    gc.collect()
+    gc.disable()
+    try:
+        await _capture_with_gc_off(cap, make_run, devices, ins_protocol, can_config, end_host, grace_s)
+    finally:
+        gc.enable()
+
+
+async def _capture_with_gc_off(cap: Capture, make_run, devices, ins_protocol: str, can_config: dict | None,
+                               end_host, grace_s: float) -> None:  # fmt: skip
     loop_tasks = []
     prof_t = pps_t = None
     if "profiler" in devices:
