@@ -61,7 +61,7 @@ class DaemonContext:
     hub: ConsumerHub
     log_event: Callable[[dict, int], None]  # (event data, host_ns) → /events, taps, status
     # (topic, payloads, host stamps, device stamps): a burst of records of one channel at once
-    submit_many: Callable[[str, list, list[int], list[int | None]], Any] | None = None
+    submit_many: Callable[[str, list, list[int], list[int | None]], Any]
 
 
 def transport_config(t: SerialTransport | NetTransport, name: str, high_rate: bool = False) -> dict:
@@ -348,7 +348,7 @@ class ProfilerDevice(_StreamDevice):
     async def run(self) -> None:
         t, asm, ctx = self.transport, self.assembler, self.ctx
         monitor, hub, name = ctx.monitor, ctx.hub, self.name
-        submit_many = ctx.submit_many or self._submit_each
+        submit_many = ctx.submit_many
         while True:
             chunks = await t.read_batch(1024)  # a burst at once, with a breath between bursts
             self.chunks += len(chunks)
@@ -369,10 +369,6 @@ class ProfilerDevice(_StreamDevice):
                 if hub.taps and hub.wants("profile"):
                     hub.publish("profile", prof.build(), t0 if synced else ctx.gps_ns(prof.host_ns))
             await asyncio.sleep(0)
-
-    def _submit_each(self, topic: str, payloads: list, host_ns: list[int], device_ns: list[int | None]) -> None:
-        for payload, h, d in zip(payloads, host_ns, device_ns):
-            self.ctx.submit(topic, payload, host_ns=h, device_ns=d)
 
 
 @DEVICES.register("pps")

@@ -9,7 +9,8 @@ host receive stamp — and appended to a list; every ``period_s`` (5 ms) of loop
 thread then wakes once per batch instead of once per datagram (at the full Z+F rate that is
 ~4600 thread wake-ups and GIL hand-overs per second saved), and the writer's queue still bounds
 memory in records and counts drops (``log_queue_overflow``). Records keep their order across
-topics; the delay (≤ 5 ms) is far below the chunk flush period. :meth:`flush` hands over what is waiting (shutdown).
+topics; the delay (≤ 5 ms) is far below the chunk flush period. :meth:`submit_many` takes a
+device's burst in one call; :meth:`flush` hands over what is waiting (shutdown).
 """
 
 from __future__ import annotations
@@ -34,15 +35,8 @@ class LogBatcher:
 
     def submit(self, topic: str, payload: Any, *, host_ns: int, device_ns: int | None = None) -> bool:
         gps_ns, state = self._clock.estimate(host_ns)
-        items = self._items
-        items.append((topic, payload, host_ns, device_ns, gps_ns, state))
-        if len(items) >= self.max_items:
-            self.flush()
-        elif self._handle is None:
-            try:
-                self._handle = asyncio.get_running_loop().call_later(self.period_s, self.flush)
-            except RuntimeError:  # no loop (shutdown, tests): hand over at once
-                self.flush()
+        self._items.append((topic, payload, host_ns, device_ns, gps_ns, state))
+        self._appended()
         return True
 
     def submit_many(self, topic: str, payloads: list, host_ns: list[int], device_ns: list[int | None]) -> None:
@@ -52,12 +46,17 @@ class LogBatcher:
         for payload, h, d in zip(payloads, host_ns, device_ns):
             gps_ns, state = estimate(h)
             items.append((topic, payload, h, d, gps_ns, state))
-        if len(items) >= self.max_items:
+        if items:
+            self._appended()
+
+    def _appended(self) -> None:
+        """Hand over when ``max_items`` wait, else within ``period_s``."""
+        if len(self._items) >= self.max_items:
             self.flush()
-        elif self._handle is None and items:
+        elif self._handle is None:
             try:
                 self._handle = asyncio.get_running_loop().call_later(self.period_s, self.flush)
-            except RuntimeError:
+            except RuntimeError:  # no loop (shutdown, tests): hand over at once
                 self.flush()
 
     def flush(self) -> None:

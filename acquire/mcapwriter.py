@@ -28,6 +28,7 @@ from mcap.writer import Writer
 
 _MESSAGE_HEAD = struct.Struct("<BQHIQQ")  # opcode, record length, channel id, sequence, log time, publish time
 _MESSAGE_FIXED = 2 + 4 + 8 + 8  # the record's bytes before the data
+MESSAGE_RECORD_BYTES = 1 + 8 + _MESSAGE_FIXED  # a Message record without its data (opcode, length, fixed fields)
 
 
 class _MessageIndex(MessageIndex):
@@ -91,7 +92,7 @@ class SegmentWriter(Writer):
             size = fixed + len(head) + len(data)
             entries.append((log_time, pos))
             parts += (pack(message, size, channel_id, sequence, log_time, publish_time), head, data)
-            pos += 9 + size
+            pos += MESSAGE_RECORD_BYTES - fixed + size
         chunk.num_messages += k
         buf.write(b"".join(parts))
         if pos > self._Writer__chunk_size:

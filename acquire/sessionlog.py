@@ -55,7 +55,7 @@ from mcap.records import DataEnd, Footer
 from mcap.writer import MCAP0_MAGIC, CompressionType
 
 from acquire.alarms import CRITICAL, WARNING, AlarmBook
-from acquire.mcapwriter import SegmentWriter
+from acquire.mcapwriter import MESSAGE_RECORD_BYTES, SegmentWriter
 from acquire.mcap_schema import (
     ENVELOPE_SCHEMA,
     ENVELOPE_SCHEMA_NAME,
@@ -68,7 +68,6 @@ from acquire.mcap_schema import (
 )
 
 NS_PER_S = 1_000_000_000
-_MESSAGE_RECORD_BYTES = 1 + 8 + 2 + 4 + 8 + 8  # an MCAP Message record without its data
 SEGMENT_RE = re.compile(r"^seg-(\d{6})\.mcap$")
 SESSION_RE = re.compile(r"^\d{8}T\d{6}Z_[A-Za-z0-9][A-Za-z0-9_.-]*$")
 LOCK_NAME = "session.lock"
@@ -323,10 +322,8 @@ class SessionWriter:
         order; never blocks. Returns how many were queued: the rest did not fit (dropped,
         counted, alarm). Raises TypeError, queuing nothing, when a payload does not suit its
         channel."""
-        kinds = self._kinds
         for topic, payload, *_ in records:
-            kind = kinds.get(topic) or kinds.setdefault(topic, channel_kind(topic))
-            if kind == RAW:
+            if self._kind(topic) == RAW:
                 if not isinstance(payload, (bytes, bytearray, memoryview)):
                     raise TypeError(f"{topic} is a raw channel: payload must be bytes")
             elif not isinstance(payload, dict):
@@ -358,6 +355,10 @@ class SessionWriter:
                                   message=f"log queue full ({self.options.queue_size}): "
                                           f"{total} records dropped")  # fmt: skip
         return len(items)
+
+    def _kind(self, topic: str) -> str:
+        """The channel kind of a topic (ValueError for one not in DESIGN §4), remembered."""
+        return self._kinds.get(topic) or self._kinds.setdefault(topic, channel_kind(topic))
 
     def rotate(self) -> None:
         """Ask for a new segment now (operator command, or a pass start)."""
@@ -442,11 +443,11 @@ class SessionWriter:
     def _write_all(self, records: list) -> None:
         """:meth:`_write` of each record, in order; a run of records of one raw channel (the
         profiler's datagrams: ~23 k/s at ×5) goes to the segment as one run of messages."""
-        i, n, kinds = 0, len(records), self._kinds
+        i, n = 0, len(records)
         while i < n:
             topic = records[i][0]
             j = i + 1  # (a rotation gives the next segment channels of its own)
-            if self._mcap is not None and topic in self._channels and (kinds.get(topic) or channel_kind(topic)) == RAW:
+            if self._mcap is not None and topic in self._channels and self._kind(topic) == RAW:
                 while j < n and records[j][0] == topic:
                     j += 1
             if j - i > 1:
@@ -460,11 +461,7 @@ class SessionWriter:
         them, up to the record that completes the open chunk or makes the segment due for
         rotation; returns the index of the first record not written."""
         mcap = self._mcap
-        room = mcap.chunk_room()
-        if room is None:
-            for k in range(i, j):
-                self._write(records[k])
-            return j
+        room = mcap.chunk_room()  # segments are always chunked
         rotate_room = self.options.rotate_bytes - self._io.pos - self._chunk_bytes
         topic = records[i][0]
         messages, chunk_bytes, record_bytes = [], 0, 0
@@ -476,26 +473,34 @@ class SessionWriter:
                              seq & 0xFFFFFFFF, head, payload))  # fmt: skip
             size = len(head) + len(payload)
             chunk_bytes += size
-            record_bytes += _MESSAGE_RECORD_BYTES + size
+            record_bytes += MESSAGE_RECORD_BYTES + size
             if record_bytes > room or chunk_bytes >= rotate_room:
                 break
         m = len(messages)
-        # counted before they are added: the chunk they may complete holds them (_chunk_written)
-        self._unflushed[topic] += m
-        self._chunk_bytes += chunk_bytes
-        if self._unflushed_since is None:
-            self._unflushed_since = records[i][7]
+        self._adding(topic, m, chunk_bytes, records[i][7])
         try:
             mcap.add_run(self._channels[topic], messages)
         except OSError as e:  # the chunk the last one completed could not be written
             self._stats.messages_written += m - 1
             self._fail(e, "write", self._now())
             return i + m
-        self._stats.messages_written += m
+        self._added(m)
+        return i + m
+
+    def _adding(self, topic: str, n: int, nbytes: int, submit_ns: int) -> None:
+        """``n`` records of ``topic`` (``nbytes`` of message data) are about to be added, counted
+        first: a chunk they complete holds them (:meth:`_chunk_written`)."""
+        self._unflushed[topic] += n
+        self._chunk_bytes += nbytes
+        if self._unflushed_since is None:
+            self._unflushed_since = submit_ns
+
+    def _added(self, n: int) -> None:
+        """``n`` records are in the segment's open chunk: rotate when it is due by size."""
+        self._stats.messages_written += n
         self._dirty_since_fsync = True
         if self._io is not None and self._io.pos + self._chunk_bytes >= self.options.rotate_bytes:
             self._rotate(self._now(), "rotation")
-        return i + m
 
     def _write(self, item) -> None:
         topic, seq, payload, host_ns, device_ns, log_time_ns, clock_state, submit_ns = item
@@ -503,7 +508,7 @@ class SessionWriter:
             self._stats.lost[topic] += 1
             self._lost_at_failure[topic] += 1
             return
-        if (self._kinds.get(topic) or channel_kind(topic)) == RAW:
+        if self._kind(topic) == RAW:
             head, data = raw_head(seq, host_ns, device_ns, clock_state), payload
         else:
             head, data = b"", encode_json(seq, host_ns, device_ns, clock_state, payload)
@@ -514,20 +519,13 @@ class SessionWriter:
             self._unflushed[topic] += 1
             self._fail(e, "write", self._now())
             return
-        # counted before it is added: a chunk completed by add_message holds it (_chunk_written)
-        self._unflushed[topic] += 1
-        self._chunk_bytes += len(head) + len(data)
-        if self._unflushed_since is None:
-            self._unflushed_since = submit_ns
+        self._adding(topic, 1, len(head) + len(data), submit_ns)
         try:
             self._mcap.add_message(channel_id, max(log_time_ns, 0), data, max(int(publish), 0), seq & 0xFFFFFFFF, head)
         except OSError as e:  # a chunk filled up and a write failed (the chunk's, or after it)
             self._fail(e, "write", self._now())
             return
-        self._stats.messages_written += 1
-        self._dirty_since_fsync = True
-        if self._io is not None and self._io.pos + self._chunk_bytes >= self.options.rotate_bytes:
-            self._rotate(self._now(), "rotation")
+        self._added(1)
 
     def _chunk_written(self) -> None:
         """A chunk reached the file whole: every record added so far is in the file."""
@@ -537,8 +535,9 @@ class SessionWriter:
 
     def _register(self, topic: str) -> int:
         assert self._mcap is not None
-        md = {"mls.kind": channel_kind(topic), **self.channel_metadata.get(topic, {})}
-        if channel_kind(topic) == RAW:
+        kind = self._kind(topic)
+        md = {"mls.kind": kind, **self.channel_metadata.get(topic, {})}
+        if kind == RAW:
             cid = self._mcap.register_channel(topic, RAW_ENCODING, 0, md)
         else:
             if not self._schema_id:

@@ -103,7 +103,7 @@ class Supervisor:
         self.timekeeper = TimeKeeper(self.clock, self._submit, self._clock_state,
                                      self.clock_cache.invalidate)  # fmt: skip
         self.ctx = DaemonContext(_no_writer, self.clock, self.clock_cache.gps_ns, self.timekeeper,
-                                 self.monitor, self.hub, self.log_event)  # fmt: skip
+                                 self.monitor, self.hub, self.log_event, _no_writer)  # fmt: skip
         self.devices: dict[str, Device] = {}
         for d in config.devices:
             extra = {}

@@ -95,6 +95,14 @@ def build_profile(counter: int, packets: list[Packet], packet_count: int, host_n
     )
 
 
+def _summary(packets: list[Packet]) -> tuple[int, int | None]:
+    """(AND of the packets' flags, t0 of the first packet with points: None when none has any)."""
+    flags = 0xFFFF
+    for p in packets:
+        flags &= p.flags
+    return flags, next((p.t0_ns for p in packets if p.range_01mm.shape[0]), None)
+
+
 class AssembledProfile:
     """A profile's packets (in index order) before its per-point arrays are built: what the
     daemon needs of every profile (counter, flags, first time tag) at the cost of none of the
@@ -129,23 +137,24 @@ class AssembledProfile:
         return len(self._items)
 
     @property
+    def summary(self) -> tuple[int, int | None]:
+        """(AND of the packets' flags, t0 of the first packet with points)."""
+        if self._summary is None:
+            self._summary = _summary(self.packets)
+        return self._summary
+
+    @property
     def t0_ns(self) -> int | None:
         """GPS ns of the first point received (None: no points), ``Profile.gps_ns[0]``."""
-        if self._summary is not None:
-            return self._summary[1]
-        return next((p.t0_ns for p in self.packets if p.range_01mm.shape[0]), None)
+        return self.summary[1]
 
     @property
     def pps_locked(self) -> bool:
-        if self._summary is not None:
-            return bool(self._summary[0] & FLAG_PPS_LOCKED)
-        return all(p.pps_locked for p in self.packets)
+        return bool(self.summary[0] & FLAG_PPS_LOCKED)
 
     @property
     def time_valid(self) -> bool:
-        if self._summary is not None:
-            return bool(self._summary[0] & FLAG_TIME_VALID)
-        return all(p.time_valid for p in self.packets)
+        return bool(self.summary[0] & FLAG_TIME_VALID)
 
     def build(self) -> Profile:
         return build_profile(self.profile_counter, self.packets, self.packet_count, self.host_ns)
@@ -333,11 +342,7 @@ class ProfileAssembler:
             ((c0, part),) = self._open.items()
             del self._open[c0]
             packets = [part.packets[j] for j in range(len(part.packets))]
-            flags = 0xFFFF
-            for p in packets:
-                flags &= p.flags
-            t0 = next((p.t0_ns for p in packets if p.range_01mm.shape[0]), None)
-            run = _Run(c0, part.count, part.host_ns, packets, flags, t0)
+            run = _Run(c0, part.count, part.host_ns, packets, *_summary(packets))
         stats = self.stats
         stats.bytes_in += sum(map(len, datagrams))
         flags_l, t0_l = h["flags"].tolist(), h["t0_ns"].tolist()
