@@ -7,7 +7,10 @@ decodes. (Round trips of generated records live with each codec's tests.)
 from __future__ import annotations
 
 import asyncio
+import calendar
+import datetime as dt
 import struct
+from collections import Counter
 
 import numpy as np
 import pytest
@@ -25,12 +28,13 @@ from drivers.can import (
     encode_event_marker,
     parse_can_frame,
 )
+from drivers.files import split_stamped_line
 from drivers.hydrins.nmea import NmeaDecoder, NmeaNavAssembler
 from drivers.hydrins.stdbin import StdbinDecoder, StdbinNavDecoder
 from drivers.pcapng import CaptureReader, PcapError, udp_datagrams
 from drivers.pps import PpsEdge, PpsLabeler, UdpPpsSource, decode_pps_datagram, encode_pps_datagram
 from drivers.zf.assembler import ProfileAssembler
-from drivers.zf.zfp1 import encode_profile
+from drivers.zf.zfp1 import CRC_SIZE, HEADER_SIZE, ZfpError, decode_packet, encode_profile
 from tests.drivers.helpers import PROPERTY, real_file
 
 NMEA_FRAME = b"$PIXSE,POSITI,53.10245714,8.83994382,-0.115*71\r\n"
@@ -78,6 +82,11 @@ def test_truncation_at_every_offset_then_a_valid_frame(name, make, frame):
     for cut in range(complete):
         dec, out = _decode_all(make, [frame[:cut], frame])
         assert len(out) == 1, cut  # the truncated copy is dropped, the whole one decodes
+        # and counted: its bytes are skipped (exactly those, not the whole frame's after it)
+        s = dec.stats
+        assert s.skipped_bytes == cut and (cut == 0) == (s.rejected_total + s.skipped_bytes == 0), cut
+        if name.startswith("nmea"):  # the next '$' restarts the line: nothing to reject, all skipped
+            assert s.rejected_total == 0, cut
 
 
 @pytest.mark.parametrize("name, make, frame", stream_decoders(), ids=lambda v: v if isinstance(v, str) else "")
@@ -120,6 +129,52 @@ def test_profile_assembler_never_raises(data, flip, cut):
     (prof,) = asm.feed(ZFP_FRAME)
     assert prof.n_points == 40
     assert asm.stats.rejected_total == 3
+
+
+# ZFP1 datagrams: truncation at every offset, every single-bit flip, each followed by a valid one.
+ZFP_NEXT = encode_profile(2, 10**18 + 5_000_000, 1000, 0, 70866, np.arange(40, 80, dtype=np.uint32),
+                          np.arange(40, dtype=np.uint16))[0]  # fmt: skip
+
+
+def _zfp_damaged_then_valid(bad: bytes):
+    """(one-by-one assembler, batch assembler, profiles of each) after ``bad`` then ZFP_NEXT."""
+    one, batch = ProfileAssembler(), ProfileAssembler()
+    got_one = one.feed(bad) + one.feed(ZFP_NEXT)
+    got_batch = [a.build() for a in batch.feed_batch([bad, ZFP_NEXT], [1, 2])[0]]
+    return one, batch, got_one, got_batch
+
+
+def _assert_rejected_then_decoded(bad: bytes, reason: str, where) -> None:
+    one, batch, got_one, got_batch = _zfp_damaged_then_valid(bad)
+    for asm, got in ((one, got_one), (batch, got_batch)):
+        assert dict(asm.stats.rejected) == {reason: 1}, (where, dict(asm.stats.rejected))
+        assert len(got) == 1 and got[0].profile_counter == 2 and got[0].complete, where
+        assert np.array_equal(got[0].range_m, np.arange(40, 80) * 1e-4), where
+        assert asm.stats.records == 1 and not asm.stats.events, where
+        assert asm.stats.bytes_in == len(bad) + len(ZFP_NEXT), where
+
+
+def test_zfp_datagram_truncated_at_every_offset_is_rejected_then_the_next_decodes():
+    for cut in range(len(ZFP_FRAME)):
+        _assert_rejected_then_decoded(ZFP_FRAME[:cut], "short" if cut < HEADER_SIZE + CRC_SIZE else "size_mismatch", cut)
+
+
+def test_zfp_datagram_every_single_bit_flip_is_rejected_then_the_next_decodes():
+    """CRC-32 catches every single-bit error; the fields checked before it name the reason."""
+    reasons = Counter()
+    for bit in range(len(ZFP_FRAME) * 8):
+        bad = bytearray(ZFP_FRAME)
+        bad[bit // 8] ^= 1 << (bit % 8)
+        byte = bit // 8
+        # magic (bytes 0-3), header_size (4-5) and n_points (36-37) are checked before the CRC
+        reason = ("bad_magic" if byte < 4 else "bad_header_size" if byte < 6
+                  else "size_mismatch" if byte in (36, 37) else "bad_crc")  # fmt: skip
+        with pytest.raises(ZfpError) as exc:
+            decode_packet(bytes(bad))
+        assert exc.value.reason == reason, bit
+        _assert_rejected_then_decoded(bytes(bad), reason, bit)
+        reasons[reason] += 1
+    assert reasons == {"bad_magic": 32, "bad_header_size": 16, "size_mismatch": 16, "bad_crc": len(ZFP_FRAME) * 8 - 64}
 
 
 @PROPERTY
@@ -318,6 +373,57 @@ def test_can_frame_record_every_single_bit_flip(arb, data, ext):
 def test_can_frame_record_round_trip(ext, arb, data):
     arb = arb if ext else arb & 0x7FF
     assert parse_can_frame(can_frame_bytes(arb, data, ext)) == (arb, data, ext)
+
+
+@PROPERTY
+@given(raw=st.one_of(st.binary(max_size=100), st.binary(min_size=16, max_size=16), st.binary(min_size=72, max_size=72)),
+       n=st.one_of(st.none(), st.integers(0, 70)), small_id=st.booleans())  # fmt: skip
+def test_can_frame_record_random_bytes_raise_only_driver_errors(raw, n, small_id):
+    """Random records (some with a plausible length byte and an 11-bit id, so some parse)."""
+    raw = bytearray(raw)
+    if n is not None and len(raw) > 4:
+        raw[4] = n
+    if small_id and len(raw) > 3:
+        raw[1], raw[2], raw[3] = raw[1] & 0x07, 0, raw[3] & 0xE0  # id < 0x800, flag bits kept
+    raw = bytes(raw)
+    try:
+        arb, data, ext = parse_can_frame(raw)
+    except DriverError:
+        return
+    assert len(raw) in (16, 72) and len(data) == raw[4] <= len(raw) - 8
+    assert arb <= (0x1FFFFFFF if ext else 0x7FF) and ext == bool(raw[3] & 0x80)
+    assert data == raw[8 : 8 + len(data)]
+    assert parse_can_frame(can_frame_bytes(arb, data, ext)) == (arb, data, ext)  # what it accepts re-encodes
+
+
+# ---------------------------------------------------------------------------------------------
+# Stamped log lines (``ISO8601Z <payload>``, as OpenRVDAS writes them).
+# ---------------------------------------------------------------------------------------------
+
+_STAMP_LIKE = st.from_regex(rb"\A\d{4}-\d\d-\d\dT\d\d:\d\d:\d\d(\.\d{0,11})?Z? ?", fullmatch=True)
+
+
+@PROPERTY
+@given(head=st.one_of(st.just(b""), _STAMP_LIKE), tail=st.binary(max_size=200))
+def test_split_stamped_line_random_bytes_never_raise(head, tail):
+    """The function has no error: a line without a valid stamp comes back whole, unstamped."""
+    line = head + tail
+    stamp, payload = split_stamped_line(line)
+    if stamp is None:
+        assert payload == line
+    else:
+        assert line.endswith(b" " + payload) and line[:4].isdigit()
+
+
+@PROPERTY
+@given(when=st.datetimes(min_value=dt.datetime(1, 1, 1), max_value=dt.datetime(9999, 12, 31, 23, 59, 59)),
+       frac=st.one_of(st.none(), st.text("0123456789", min_size=1, max_size=9)), zulu=st.booleans(),
+       payload=st.binary(max_size=100))  # fmt: skip
+def test_split_stamped_line_round_trip(when, frac, zulu, payload):
+    stamp = when.replace(microsecond=0).isoformat() + ("." + frac if frac else "") + ("Z" if zulu else "")
+    ns, rest = split_stamped_line(stamp.encode() + b" " + payload)
+    assert rest == payload
+    assert ns == calendar.timegm(when.timetuple()) * 10**9 + int((frac or "").ljust(9, "0"))
 
 
 # ---------------------------------------------------------------------------------------------

@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from drivers.files import FileDecoder, split_stamped_line
-from drivers.hydrins.nmea import Gga, Hdt, NmeaDecoder, NmeaNavAssembler, Zda
+from drivers.hydrins.nmea import Gga, Hdt, NmeaDecoder, NmeaNavAssembler, Vtg, Zda
 from drivers.hydrins.stdbin import StdbinDecoder, StdbinFrame
 from drivers.pcapng import CaptureReader, udp_datagrams
 from drivers.timing import fit_clock, unwrap_time_of_day_ns
@@ -232,3 +232,45 @@ def test_seapath_epochs_assemble_with_zda_dates():
     assert first.lat_deg == pytest.approx(-(22 + 0.112071 / 60), abs=1e-9)
     assert math.degrees(first.heading_rad) == pytest.approx(218.83, abs=1e-9)
     assert first.height_ref == "geoid" and math.isnan(first.roll_rad)
+
+
+def test_nbp1406_empty_fields_are_missing_not_zero():
+    """Which fields the NBP1406 Seapath logs leave empty, every line: ZDA local zone (both logs;
+    the Zda record has no zone field, and the sentence still decodes whole), GGA DGPS age (both)
+    and geoid separation (seap; s330 fills it, 4.67 m), VTG magnetic course (seap). Empty → NaN."""
+    empty = Counter()
+    for name in ("NBP1406_seap-2014-08-01", "NBP1406_s330-2014-08-01"):
+        dec = NmeaDecoder()
+        for line in real_file("openrvdas-nbp1406", name).read_bytes().splitlines():
+            stamp, payload = split_stamped_line(line)
+            recs = dec.feed(payload + b"\r\n", stamp)
+            f = payload.split(b"*")[0].split(b",")
+            kind = f[0][3:]  # b"$GPZDA" → b"ZDA"
+            if kind not in (b"ZDA", b"GGA", b"VTG"):
+                continue
+            (rec,) = recs
+            if kind == b"ZDA":
+                assert isinstance(rec, Zda) and f[5:] == [b"", b""]
+                assert None not in (rec.time_of_day_ns, rec.day, rec.month, rec.year) and rec.year == 2014
+                empty[name, "zda_zone"] += 1
+                continue
+            if kind == b"GGA":
+                assert isinstance(rec, Gga)
+                checks = {"gga_geoid_separation": (rec.geoid_separation_m, f[11]), "gga_dgps_age": (rec.dgps_age_s, f[13])}
+            else:
+                assert isinstance(rec, Vtg) and rec.course_true_deg == float(f[1]) and f[4] == b"M"
+                checks = {"vtg_course_magnetic": (rec.course_magnetic_deg, f[3])}
+            for field, (value, raw) in checks.items():
+                if raw == b"":
+                    assert math.isnan(value), (name, field, line)
+                    empty[name, field] += 1
+                else:
+                    assert value == float(raw), (name, field, line)
+                    empty[name, field] += 0
+        assert dec.stats.rejected_total == 0
+    assert dict(empty) == {
+        ("NBP1406_seap-2014-08-01", "zda_zone"): 715, ("NBP1406_seap-2014-08-01", "gga_geoid_separation"): 715,
+        ("NBP1406_seap-2014-08-01", "gga_dgps_age"): 715, ("NBP1406_seap-2014-08-01", "vtg_course_magnetic"): 714,
+        ("NBP1406_s330-2014-08-01", "zda_zone"): 625, ("NBP1406_s330-2014-08-01", "gga_geoid_separation"): 0,
+        ("NBP1406_s330-2014-08-01", "gga_dgps_age"): 625, ("NBP1406_s330-2014-08-01", "vtg_course_magnetic"): 0,
+    }  # fmt: skip
