@@ -32,6 +32,9 @@ TRAJECTORY_COLUMNS = ("gps_time", "lat_deg", "lon_deg", "height_m", "roll_deg", 
                       "heading_deg")  # fmt: skip
 TRAJECTORY_SIGMA_COLUMNS = ("sigma_north_m", "sigma_east_m", "sigma_down_m", "sigma_roll_deg",
                             "sigma_pitch_deg", "sigma_heading_deg")  # fmt: skip
+#: (column index, name, lowest, highest) of the trajectory.csv values with a range.
+TRAJECTORY_RANGES = ((1, "lat_deg", -90, 90), (2, "lon_deg", -180, 360), (4, "roll_deg", -180, 180),
+                     (5, "pitch_deg", -90, 90), (6, "heading_deg", -360, 360))  # fmt: skip
 POINT_COLUMNS = ("pass_id", "gps_time", "range_m", "scan_angle_deg", "intensity")
 
 
@@ -209,8 +212,8 @@ def read_trajectory_csv(path: Path, frame: frames.LocalFrame | None = None,
     if a.shape[0] < 2:
         raise BundleError(f"{path}: {a.shape[0]} trajectory epochs, expected at least 2")
     _check_sorted_column(path, a[:, 0], "gps_time", 0)
-    for j, (name, lo, hi) in enumerate([("lat_deg", -90, 90), ("lon_deg", -180, 360)], start=1):
-        bad = (a[:, j] < lo) | (a[:, j] > hi)
+    for j, name, lo, hi in TRAJECTORY_RANGES:
+        bad = ~((a[:, j] >= lo) & (a[:, j] <= hi))
         if bad.any():
             i = int(np.argmax(bad))
             raise BundleError(f"{path}:{i + 2}:{j + 1}: {name} is {float(a[i, j])!r}, expected "
