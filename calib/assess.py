@@ -1137,7 +1137,7 @@ def summary_lines(a: Assessment) -> list[str]:
 
 
 def _stats_cells(s: DistanceStats) -> list[str]:
-    return [fmt_length(s.median_m), fmt_length(s.rms_m), fmt_length(s.p95_m)]
+    return [fmt_length(s.mean_m), fmt_length(s.median_m), fmt_length(s.rms_m), fmt_length(s.p95_m)]
 
 
 def assessment_markdown(a: Assessment, figures: Sequence[Path] = ()) -> str:
@@ -1172,8 +1172,9 @@ def assessment_markdown(a: Assessment, figures: Sequence[Path] = ()) -> str:
         if not rows:
             continue
         out += [f"## Passes {_pair_label(a, pair)}", ""]
-        head = ["surface", "height", "returns", "before median", "before RMS", "before p95",
-                "after median", "after RMS", "after p95", "×", "expected", "floor", "calib. σ"]  # fmt: skip
+        head = ["surface", "height", "returns", "before mean", "before median", "before RMS",
+                "before p95", "after mean", "after median", "after RMS", "after p95", "×",
+                "expected", "floor", "calib. σ"]  # fmt: skip
         truth_col = any(c.true_mount is not None for c in rows)
         if truth_col:
             head.append("true mount median")

@@ -11,6 +11,7 @@ import pytest
 from typer.testing import CliRunner
 
 from acquire.cli import app
+from calib.assess import fmt_length
 
 ENV = {"COLUMNS": "200", "MLS_HISTORY_DB": "/nonexistent/never-used.sqlite"}
 
@@ -58,6 +59,15 @@ def test_assess_prints_tables_and_writes_the_report(calibrated, tmp_path):
     assert doc["k"] == 12 and doc["pairs"] == [[1, 2]]
     md = (out / "assessment.md").read_text()
     assert "## Passes 1 (215°) ↔ 2 (35°)" in md and "went from" in md
+    # the per-plane table: count, mean, median, RMS and 95th percentile, before and after
+    head = next(line for line in md.splitlines() if line.startswith("| surface |"))
+    md_v3 = next(line for line in md.splitlines() if line.startswith("| V3 |"))
+    cells = dict(zip([h.strip() for h in head.split("|")], [x.strip() for x in md_v3.split("|")]))
+    for when in ("before", "after"):
+        for stat in ("mean", "median", "RMS", "p95"):
+            key = {"RMS": "rms_m", "p95": "p95_m"}.get(stat, f"{stat}_m")
+            assert cells[f"{when} {stat}"] == fmt_length(c[when][key]), (when, stat)
+    assert cells["returns"] == f"{c['after']['count']:,}"
     compared = {c["name"] for c in doc["comparisons"]}
     assert {"V1", "V2", "V3", "V5", "overlap"} <= compared
     figures = {p.name for p in out.glob("*.png")}
