@@ -236,7 +236,9 @@ def _sigma_line(d: dict | None) -> str:
     if not d:
         return "—"
     r = d.get("realistic_deg") or {}
-    parts = [f"{a[0]} {_fmt(r.get(a), '.3f', '°', 'n/o')}" for a in ("roll", "pitch", "yaw")]
+    rose = set(d.get("rose") or ())  # ↑: the last pass made this angle's realistic σ larger
+    parts = [f"{a[0]} {_fmt(r.get(a), '.3f', '°', 'n/o')}" + ("↑" if a in rose else "")
+             for a in ("roll", "pitch", "yaw")]  # fmt: skip
     return " ".join(parts)
 
 

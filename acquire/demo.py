@@ -274,7 +274,11 @@ def sigma_events(before: dict, after: dict) -> list[str]:
     passes = _sigma_passes(after)
     if not passes or passes == _sigma_passes(before):
         return []
-    return [f"  predicted {_sigma_text(after)} with passes {', '.join(str(p) for p in passes)}"]
+    line = f"  predicted {_sigma_text(after)} with passes {', '.join(str(p) for p in passes)}"
+    rose = (after.get("sigma") or {}).get("current", {}).get("rose") or []
+    if rose:  # see acquire.guidance_state.sigma_rises
+        line += f" ({', '.join(rose)} σ rose: the pass's POS bias outweighs its geometry)"
+    return [line]
 
 
 def sigma_covers_accepted(g: dict) -> bool:

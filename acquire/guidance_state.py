@@ -30,7 +30,7 @@ import math
 import threading
 from collections import deque
 from dataclasses import dataclass, field, replace
-from typing import Iterable
+from typing import Iterable, Sequence
 
 import numpy as np
 
@@ -40,8 +40,8 @@ from acquire.guidance import (AcceptanceTolerances, Check, GuidanceSettings,
 from calib import frames
 from calib.georef import Mount
 from calib.passplan import PassPlan, PlannedPass
-from calib.passpredict import (ObservationModel, PassGeometry, SigmaPrediction, predict_pass,
-                               predict_sigma, rank_candidates)  # fmt: skip
+from calib.passpredict import (ANGLES, ObservationModel, PassGeometry, SigmaPrediction,
+                               predict_pass, predict_sigma, rank_candidates)  # fmt: skip
 from calib.scenario import ScannerModel
 from calib.scene import Scene
 from calib.site import Site
@@ -125,6 +125,24 @@ class _Capture:
 class SigmaReport:
     current: SigmaPrediction
     ranking: tuple[tuple[int, SigmaPrediction], ...]  # remaining passes, best first
+    rose: tuple[str, ...] = ()  # angles whose realistic σ the last accepted pass made larger
+
+    def current_dict(self) -> dict:
+        return {**self.current.as_dict(), "rose": list(self.rose)}
+
+
+def sigma_rises(history: Sequence[dict], current: SigmaPrediction) -> tuple[str, ...]:
+    """The angles whose realistic σ is larger than in the latest prediction of other passes.
+
+    That happens: within a pass the POS error acts as one bias, and the adjustment weighs each
+    pass by its number of points (the white model), so a pass with many points whose geometry
+    adds little to an angle passes its bias on to it. The formal σ never rises."""
+    prev = next((h for h in reversed(history) if h["passes"] != list(current.pass_ids)), None)
+    if prev is None:
+        return ()
+    now = current.as_dict()["realistic_deg"]
+    return tuple(a for a in ANGLES if now[a] is not None and prev["realistic_deg"][a] is not None
+                 and now[a] > prev["realistic_deg"][a] * (1.0 + 1e-9))  # fmt: skip
 
 
 class Guidance:
@@ -494,9 +512,9 @@ class Guidance:
             ranking = rank_candidates(accepted, cands, rects, self.mount, self.obs_model,
                                       thin_step=self.thin_step,
                                       gap_s=self.settings.prediction_gap_s)  # fmt: skip
-            report = SigmaReport(current, tuple(ranking))
+            report = SigmaReport(current, tuple(ranking), sigma_rises(self.sigma_history, current))
             self.sigma = report
-            self.sigma_history.append(current.as_dict())
+            self.sigma_history.append(report.current_dict())
             return report
 
     # -- output -----------------------------------------------------------------------------
@@ -591,7 +609,7 @@ class Guidance:
                      "worst_deg": pred.as_dict()["worst_deg"],
                      "realistic_deg": pred.as_dict()["realistic_deg"]}
                     for pid, pred in self.sigma.ranking]  # fmt: skip
-            sigma = {"current": self.sigma.current.as_dict(),
+            sigma = {"current": self.sigma.current_dict(),
                      "next_best": rank[0] if rank else None, "ranking": rank,
                      "history": list(self.sigma_history)}  # fmt: skip
         checks = [c.as_dict() if isinstance(c, Check) else dict(c) for c in (checks or [])]

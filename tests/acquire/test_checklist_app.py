@@ -287,6 +287,14 @@ def test_render_passes_and_sigma_before_anything_is_sailed(survey):
     assert sig.startswith("σ(0) no pass accepted yet") and "next best: pass " in sig
 
 
+def test_a_sigma_that_rose_with_the_last_pass_is_marked():
+    st = ChecklistState()
+    st.apply("checklist", {"guidance": {"sigma": {"current": {
+        "passes": [1, 2, 3], "rose": ["roll"],
+        "realistic_deg": {"roll": 0.062, "pitch": 0.04, "yaw": None}}}}})  # fmt: skip
+    assert render_sigma(st).plain.splitlines()[0] == "σ(3) r 0.062°↑ p 0.040° y n/o"
+
+
 def test_prechecks_overflow_is_summed_up():
     st = ChecklistState()
     st.apply("checklist", {"presurvey": {f"c{i}": {"ok": i != 4, "detail": f"d{i}"}

@@ -255,7 +255,8 @@ def test_checklist_follows_the_live_survey_and_calibrates_the_session(demo, monk
     # the predicted σ after each accepted pass: the angles determined never go back to "not
     # observable", all three are determined at the end, and every determined angle's σ shrinks
     # with each new pass (the formal σ: information only adds; the realistic σ the screen shows
-    # may rise after a pass sailed within the POS errors' correlation time of the previous one)
+    # may rise: within a pass the POS error acts as a bias, and the adjustment's white weights
+    # give a pass with many points a weight its bias does not deserve)
     sig = record["sigma"]
     determined = [{a for a, v in s["formal_deg"].items() if v is not None} for s in sig]
     assert all(b >= a for a, b in zip(determined, determined[1:])) and determined[-1] == {"roll", "pitch", "yaw"}
@@ -457,6 +458,11 @@ def test_progress_line_and_pass_events():
     assert pass_events(after, after) == []
     assert sigma_events(before, after) == ["  predicted σ roll 0.050° pitch n/o yaw n/o with passes 1"]
     assert sigma_events(after, after) == [] and sigma_covers_accepted(after)
+    worse = {**after, "sigma": {"current": {"passes": [1, 3], "rose": ["roll"], "realistic_deg":
+                                            {"roll": 0.062, "pitch": None, "yaw": None}}}}  # fmt: skip
+    assert sigma_events(after, worse) == [
+        "  predicted σ roll 0.062° pitch n/o yaw n/o with passes 1, 3 (roll σ rose: the pass's "
+        "POS bias outweighs its geometry)"]
     assert not sigma_covers_accepted({**after, "sigma": None})
 
 

@@ -20,11 +20,12 @@ from acquire.guidance import (AcceptanceTolerances, GuidanceSettings, PassWindow
                               course_over_ground, disk_needed_bytes, evaluate_pass,
                               heading_error, in_capture, line_offsets, prechecks,
                               speed_over_ground, target_hits)  # fmt: skip
-from acquire.guidance_state import SCHEMA, Guidance, GuidanceConsumer
+from acquire.guidance_state import SCHEMA, Guidance, GuidanceConsumer, sigma_rises
 from calib import frames
 from calib.georef import Mount
 from calib.geometry import Rectangle
 from calib.passplan import PlannedPass, plan_site
+from calib.passpredict import SigmaPrediction
 from calib.scenario import ScannerModel, load_scenario
 from calib.scene import Scene
 from calib.simulate import scan
@@ -485,6 +486,23 @@ def test_predicted_sigma_shrinks_pass_by_pass_and_matches_the_adjustment(survey)
     predicted = np.radians([hist[-1]["realistic_deg"][a] for a in ("roll", "pitch", "yaw")])
     ratio = predicted / res.sigma_realistic_rad
     assert np.all((ratio > 0.75) & (ratio < 1.33)), ratio
+
+
+def test_a_realistic_sigma_that_rose_with_the_last_pass_is_named():
+    def pred(passes, realistic_deg, formal_deg=(0.002, 0.004, 0.003)):
+        return SigmaPrediction(tuple(passes), np.radians(formal_deg), np.radians(realistic_deg),
+                               np.eye(3), 1000)  # fmt: skip
+
+    hist = [pred([], [np.nan] * 3, [np.nan] * 3).as_dict(),
+            pred([1, 2], [0.043, 1.0, 1.0], [0.0015, 1.0, 1.0]).as_dict()]  # pitch, yaw n/o
+    assert hist[1]["realistic_deg"]["pitch"] is None
+    assert sigma_rises(hist[:1], pred([1, 2], [0.043, 1.0, 1.0])) == ()  # nothing to compare
+    three = pred([1, 2, 3], [0.062, 0.04, 0.03])
+    assert sigma_rises(hist, three) == ("roll",)  # pitch and yaw were not determined before
+    hist.append(three.as_dict())
+    assert sigma_rises(hist, pred([1, 2, 3], [0.07, 0.05, 0.04])) == ("roll",)  # vs passes 1, 2
+    assert sigma_rises(hist, pred([1, 2, 3, 4], [0.056, 0.041, 0.03])) == ("pitch",)
+    assert sigma_rises(hist, pred([1, 2, 3, 4], [0.05, 0.03, 0.02])) == ()
 
 
 def test_guidance_consumer_publishes_the_guidance_section(survey):
