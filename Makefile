@@ -25,7 +25,7 @@ test: $(STAMP)
 	$(PY) -m pytest -n $(JOBS) --dist loadgroup -q
 
 bench: $(STAMP)
-	@set -e; for b in benchmarks/*.py; do echo "== $$b"; $(PY) $$b; done
+	@set -e; for b in benchmarks/[!_]*.py; do echo "== $$b"; $(PY) $$b; done
 
 clean:
 	rm -rf $(VENV) build *.egg-info .pytest_cache .hypothesis

@@ -217,6 +217,15 @@ _STOP = object()
 _ROTATE = object()
 
 
+def _message(seq: int, device_ns: int | None, log_time_ns: int, head: bytes, data: bytes) -> tuple:
+    """A record as :meth:`SegmentWriter.add_run` takes it: (log time, publish time, sequence,
+    head, data); the publish time is the device's stamp when it has one, times before the GPS
+    epoch are 0, the sequence its low 32 bits."""
+    publish = device_ns if device_ns is not None else log_time_ns
+    return (log_time_ns if log_time_ns > 0 else 0, publish if publish > 0 else 0,
+            seq & 0xFFFFFFFF, head, data)  # fmt: skip
+
+
 class SessionWriter:
     """Writes one session: bounded queue in, MCAP segments out (see the module docstring)."""
 
@@ -468,9 +477,7 @@ class SessionWriter:
         for k in range(i, j):
             _, seq, payload, host_ns, device_ns, log_time_ns, clock_state, _ = records[k]
             head = raw_head(seq, host_ns, device_ns, clock_state)
-            publish = device_ns if device_ns is not None else log_time_ns
-            messages.append((log_time_ns if log_time_ns > 0 else 0, publish if publish > 0 else 0,
-                             seq & 0xFFFFFFFF, head, payload))  # fmt: skip
+            messages.append(_message(seq, device_ns, log_time_ns, head, payload))
             size = len(head) + len(payload)
             chunk_bytes += size
             record_bytes += MESSAGE_RECORD_BYTES + size
@@ -512,7 +519,6 @@ class SessionWriter:
             head, data = raw_head(seq, host_ns, device_ns, clock_state), payload
         else:
             head, data = b"", encode_json(seq, host_ns, device_ns, clock_state, payload)
-        publish = device_ns if device_ns is not None else log_time_ns
         try:  # registering a channel may complete the open chunk (which does not hold this record)
             channel_id = self._channels.get(topic) or self._register(topic)
         except OSError as e:
@@ -521,7 +527,7 @@ class SessionWriter:
             return
         self._adding(topic, 1, len(head) + len(data), submit_ns)
         try:
-            self._mcap.add_message(channel_id, max(log_time_ns, 0), data, max(int(publish), 0), seq & 0xFFFFFFFF, head)
+            self._mcap.add_run(channel_id, [_message(seq, device_ns, log_time_ns, head, data)])
         except OSError as e:  # a chunk filled up and a write failed (the chunk's, or after it)
             self._fail(e, "write", self._now())
             return

@@ -7,13 +7,12 @@ Goals: ≤ 20 ms for 1,300 points (the thesis reports 532 s in C++), ≤ 1 s for
 
 from __future__ import annotations
 
-import os
 import sys
 import time
 from pathlib import Path
 
-os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")  # one core
-os.environ.setdefault("OMP_NUM_THREADS", "1")
+import _onecore  # noqa: F401  (first: BLAS on one thread)
+
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 import numpy as np  # noqa: E402

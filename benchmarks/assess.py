@@ -9,11 +9,7 @@ Goal (issue 10): ≤ 5 s for 2 × 1 M points on one core.
 
 from __future__ import annotations
 
-import os
-
-# one core: keep BLAS (the local plane fits' eigen-solves) single-threaded
-for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
-    os.environ.setdefault(_var, "1")
+import _onecore  # noqa: F401  (first: BLAS on one thread)
 
 import argparse  # noqa: E402
 import time  # noqa: E402

@@ -10,10 +10,7 @@ Goal (issue 9): the full marine sweep in ≤ 60 s on the 2-core machine.
 
 from __future__ import annotations
 
-import os
-
-for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
-    os.environ.setdefault(_var, "1")  # one core per process
+import _onecore  # noqa: F401  (first: BLAS on one thread)
 
 import argparse  # noqa: E402
 import tempfile  # noqa: E402

@@ -14,11 +14,7 @@ Prints points/s of ``calib.georef.georeference`` and the ratio of its time to th
 
 from __future__ import annotations
 
-import os
-
-# one core: keep BLAS (used by the kernel's per-interval matrix product) single-threaded
-for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
-    os.environ.setdefault(_var, "1")
+import _onecore  # noqa: F401  (first: BLAS on one thread)
 
 import argparse  # noqa: E402
 import time  # noqa: E402

@@ -13,10 +13,7 @@ Mpts/s with room to spare (the daemon has other work).
 
 from __future__ import annotations
 
-import os
-
-for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
-    os.environ.setdefault(_var, "1")  # one core
+import _onecore  # noqa: F401  (first: BLAS on one thread)
 
 import argparse  # noqa: E402
 import sys  # noqa: E402
