@@ -41,9 +41,9 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from acquire.statusbus import read_snapshot  # noqa: E402
+from acquire.status.bus import read_snapshot  # noqa: E402
 
-MLS = [sys.executable, "-m", "acquire.cli"]
+MLS = [sys.executable, "-m", "cli.app"]
 TICK = os.sysconf("SC_CLK_TCK")
 # --lead-s 2: the first emission 2 s after the emulators are up, so that the daemon (already running,
 # retrying the INS port every 0.5 s at most) has opened the pty before the first epoch: the INS

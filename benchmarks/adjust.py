@@ -17,10 +17,10 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 import numpy as np  # noqa: E402
 
-from calib.adjust import AdjustOptions, ErrorModel, adjust  # noqa: E402
-from calib.georef import Mount  # noqa: E402
+from calib.boresight.adjust import AdjustOptions, ErrorModel, adjust  # noqa: E402
+from calib.core.georef import Mount  # noqa: E402
 from tests.calib import synth  # noqa: E402
-from tests.calib.test_adjust_dense import textbook_adjustment  # noqa: E402
+from tests.calib.boresight.test_adjust_dense import textbook_adjustment  # noqa: E402
 
 TRUTH = np.radians([0.208, 1.245, 0.149])
 

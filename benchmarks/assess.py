@@ -17,7 +17,7 @@ import time  # noqa: E402
 import numpy as np  # noqa: E402
 from scipy.spatial import cKDTree  # noqa: E402
 
-from calib.c2c import c2c  # noqa: E402
+from calib.assess.c2c import c2c  # noqa: E402
 
 GOAL_S = 5.0
 

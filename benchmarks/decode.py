@@ -25,7 +25,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from calib.frames import utc_fields_to_gps_ns  # noqa: E402
+from calib.core.frames import utc_fields_to_gps_ns  # noqa: E402
 from drivers.hydrins.nav import NavRecord, status_words  # noqa: E402
 from drivers.hydrins.nmea import NmeaDecoder, NmeaNavAssembler, encode_epoch, encode_zda  # noqa: E402
 from drivers.hydrins.stdbin import (  # noqa: E402
@@ -38,7 +38,7 @@ from drivers.hydrins.stdbin import (  # noqa: E402
 from drivers.zf.assembler import ProfileAssembler  # noqa: E402
 from drivers.zf.zfp1 import encode_profile  # noqa: E402
 
-REAL = ROOT / ".." / "shared" / "testdata" / "real"
+REAL = ROOT / "tests" / "data" / "real"
 
 
 def best_of(fn, repeat: int = 3) -> float:

@@ -23,9 +23,9 @@ def main() -> None:
     ap.add_argument("--peer-repeat", type=int, default=5, help="timed peer runs (best is used)")
     args = ap.parse_args()
 
-    from calib.design import (Sigmas, default_spec, design_scenario, layouts, predict, prepare,
+    from calib.design.study import (Sigmas, default_spec, design_scenario, layouts, predict, prepare,
                               run_study, write_study)  # fmt: skip
-    from calib.scenario import load_scenario
+    from calib.sim.scenario import load_scenario
 
     base = load_scenario("montreal")
     spec = default_spec(base)

@@ -8,7 +8,7 @@ buffers, timed in the same run: the least any implementation has to move through
 
     .venv/bin/python benchmarks/georef.py [--points N] [--repeat R]
 
-Prints points/s of ``calib.georef.georeference`` and the ratio of its time to the copy's
+Prints points/s of ``calib.core.georef.georeference`` and the ratio of its time to the copy's
 (goal: ≥ 20 M points/s and ≤ 10× the copy).
 """
 
@@ -21,9 +21,9 @@ import time  # noqa: E402
 
 import numpy as np  # noqa: E402
 
-from calib import frames  # noqa: E402
-from calib.georef import Mount, georeference  # noqa: E402
-from calib.trajectory import Trajectory  # noqa: E402
+from calib.core import frames  # noqa: E402
+from calib.core.georef import Mount, georeference  # noqa: E402
+from calib.core.trajectory import Trajectory  # noqa: E402
 
 POINT_RATE_HZ = 1.016e6
 PROFILE_RATE_HZ = 200.0

@@ -1,4 +1,4 @@
-"""Live target hits: profiler points per second that :func:`acquire.guidance.target_hits` handles
+"""Live target hits: profiler points per second that :func:`acquire.guidance.lines.target_hits` handles
 on one core at the full Z+F rate, against the peer measured in the same run — georeferencing
 every return and testing it against the targets (what the gate avoids).
 
@@ -29,12 +29,12 @@ import numpy as np  # noqa: E402
 def _stream(seconds: float):
     from dataclasses import replace
 
-    from calib.geometry import Rectangle
-    from calib.motion import MotionModel, Wave, sail
-    from calib.passplan import plan_site
-    from calib.scenario import ScannerModel, load_scenario
-    from calib.scene import Scene
-    from calib.simulate import scan
+    from calib.core.geometry import Rectangle
+    from calib.sim.motion import MotionModel, Wave, sail
+    from calib.survey.passplan import plan_site
+    from calib.sim.scenario import ScannerModel, load_scenario
+    from calib.sim.scene import Scene
+    from calib.sim.simulate import scan
 
     sc = load_scenario("montreal")
     site = sc.site()
@@ -78,8 +78,8 @@ def main() -> None:
     ap.add_argument("--repeat", type=int, default=3, help="timed runs (the best is reported)")
     args = ap.parse_args()
 
-    from acquire.guidance import target_hits
-    from calib.georef import georeference
+    from acquire.guidance.lines import target_hits
+    from calib.core.georef import georeference
 
     site, traj, targets, t, rho, alpha, prof, t_prof = _stream(args.seconds)
     n = t.size

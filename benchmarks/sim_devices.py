@@ -35,7 +35,7 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from calib.simulate import simulate  # noqa: E402
+from calib.sim.simulate import simulate  # noqa: E402
 from sim_devices.clock import TruthClock  # noqa: E402
 from sim_devices.feed import make_feed  # noqa: E402
 from sim_devices.ins import InsEmulator, InsSettings  # noqa: E402

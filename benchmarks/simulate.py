@@ -1,12 +1,12 @@
 """Simulator throughput: simulated returns per second on one core, with 20 rectangles in the
-scene, and its ratio to the georeferencing throughput (``calib.georef.georeference`` on the
+scene, and its ratio to the georeferencing throughput (``calib.core.georef.georeference`` on the
 same number of points) measured in the same run.
 
     .venv/bin/python benchmarks/simulate.py [--repeat N]
 
 The scene is the montreal scenario at the full Z+F point rate with its quay wall widened to
 40 m × 8 m and 17 more panels on it (20 rectangles); the scanner records its default angular
-windows toward the wall on the two parallel passes. The simulation timed is the whole of ``calib.simulate.simulate``
+windows toward the wall on the two parallel passes. The simulation timed is the whole of ``calib.sim.simulate.simulate``
 (plan, motion, ray casting, noise, observed trajectory).
 """
 
@@ -21,7 +21,7 @@ import numpy as np  # noqa: E402
 
 
 def _scenario():
-    from calib.scenario import load_scenario
+    from calib.sim.scenario import load_scenario
 
     panels = [
         {"name": f"P{i:02d}", "along_m": -17.0 + 2.0 * i + (2.0 if i >= 8 else 0.0),
@@ -45,8 +45,8 @@ def main() -> None:
     ap.add_argument("--repeat", type=int, default=3, help="timed runs (the best is reported)")
     args = ap.parse_args()
 
-    from calib.georef import georeference
-    from calib.simulate import simulate
+    from calib.core.georef import georeference
+    from calib.sim.simulate import simulate
 
     sc = _scenario()
     n_rect = len(sc.surfaces)

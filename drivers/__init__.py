@@ -8,7 +8,7 @@
   (the ZFP1 stand-in format), ``assembler`` (ProfileAssembler with loss/reorder accounting).
 - :mod:`drivers.pps` — PPS edges, gpsd's labelling rule, kernel / serial-line / udp sources.
 - :mod:`drivers.can` — python-can buses from config, host-stamped frames, event markers.
-- :mod:`drivers.transport` — async serial / udp / tcp transports yielding (bytes, host_ns).
-- :mod:`drivers.pcapng`, :mod:`drivers.files` — captures and recorded files; :mod:`drivers.timing`
+- :mod:`drivers.transport.base` — async serial / udp / tcp transports yielding (bytes, host_ns).
+- :mod:`drivers.capture.pcapng`, :mod:`drivers.capture.files` — captures and recorded files; :mod:`drivers.timing`
   — device clock drift/offset/jitter against receive stamps.
 """

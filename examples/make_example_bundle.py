@@ -5,9 +5,9 @@ A vessel sails two 24 m passes (heading 0° and 180°) past a quay at 15 m stand
 (30 × 5 m) and two targets standing on the quay 5 m above the scanner, as in the Port of
 Montreal campaign of the thesis: T1 vertical 1.23 × 1.22 m, T2 inclined 45°, 1.23 × 0.76 m.
 
-Points are not simulated (the simulator, ``calib.simulate``, comes later); they are placed on the
+Points are not simulated (the simulator, ``calib.sim.simulate``, comes later); they are placed on the
 rectangles where the scan plane cuts them (every 8th profile of 200/s, a fixed step along each
-rectangle), and ``calib.georef.inverse_georeference`` turns them into the range and scan angle
+rectangle), and ``calib.core.georef.inverse_georeference`` turns them into the range and scan angle
 the scanner would report. There is no noise, so georeferencing with the true boresight (in
 ``truth.json``; canonical roll 0.208°, pitch 1.245°, yaw 0.149°) puts every point on its
 rectangle; ``site.yaml`` carries a zero a-priori boresight, as before a calibration.
@@ -23,12 +23,12 @@ from pathlib import Path
 
 import numpy as np
 
-from calib import frames
-from calib.bundle import ScanPoints, write_bundle
-from calib.geometry import Rectangle
-from calib.georef import Mount, inverse_georeference
-from calib.site import PassSpec, Site, Target
-from calib.trajectory import Trajectory
+from calib.core import frames
+from calib.io.bundle import ScanPoints, write_bundle
+from calib.core.geometry import Rectangle
+from calib.core.georef import Mount, inverse_georeference
+from calib.io.site import PassSpec, Site, Target
+from calib.core.trajectory import Trajectory
 
 REFERENCE = frames.LocalFrame(45.5, -73.55, -30.0)  # LGF origin (ellipsoidal height)
 T_START_GPS_S = frames.gps_ns_to_seconds(

@@ -4,7 +4,7 @@
 
 ``host_anchor_ns`` is the host instant at which the emulated world's GPS time is
 ``gps_anchor_ns`` (the start of the scenario window). ``drift_ppm`` is how much faster GPS time
-runs than the host clock — the same sign as the daemon's clock model (``acquire.clock``:
+runs than the host clock — the same sign as the daemon's clock model (``acquire.timing.clock``:
 ``drift_ppm`` = (GPS ns per host ns − 1)·1e6), so a daemon tracking this clock perfectly
 reports ``drift_ppm`` (at speed 1). ``speed`` > 1 runs the scenario faster than real time: the
 daemon then sees a clock rate of ``speed``.

@@ -51,7 +51,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from calib.configfile import ConfigError, Node, load_yaml
+from calib.io.configfile import ConfigError, Node, load_yaml
 
 NS_PER_S = 1_000_000_000
 

@@ -1,4 +1,4 @@
-"""The scenario as the devices see it: a window of a :func:`calib.simulate.simulate` result cut
+"""The scenario as the devices see it: a window of a :func:`calib.sim.simulate.simulate` result cut
 into INS epochs, profiler profiles and pass markers (pure numpy, no I/O).
 
 - :class:`InsTrack` — the INS epochs on the GPS-time grid of the output rate (multiples of
@@ -41,8 +41,8 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from calib.bundle import ScanPoints
-from calib.frames import utc_to_gps_ns, wrap_2pi
+from calib.io.bundle import ScanPoints
+from calib.core.frames import utc_to_gps_ns, wrap_2pi
 from drivers.hydrins.nav import NavRecord
 
 NS_PER_S = 1_000_000_000
@@ -203,7 +203,7 @@ def _pass_grid(t_s: np.ndarray, angle_rad: np.ndarray, K: int, dt_s: float, pass
 def profile_grid(points: ScanPoints, scanner, start_ns: int, end_ns: int) -> ProfileGrid:
     """Profiles fully inside [start_ns, end_ns) with the returns they hold (module docstring).
 
-    ``scanner`` is the scenario's :class:`calib.scenario.ScannerModel`.
+    ``scanner`` is the scenario's :class:`calib.sim.scenario.ScannerModel`.
     """
     rate = float(scanner.effective_profile_rate_hz)
     K = int(scanner.effective_points_per_360)
@@ -287,7 +287,7 @@ class ScenarioFeed:
     """One run window of a simulation, on the devices' GPS time scale: device time = scenario
     time + ``time_shift_ns`` (whole seconds; 0 keeps the scenario's own date)."""
 
-    sim: object  # calib.simulate.SimResult
+    sim: object  # calib.sim.simulate.SimResult
     start_gps_ns: int
     end_gps_ns: int
     ins: InsTrack

@@ -1,6 +1,6 @@
 """The vessel config for a run of the emulators (``mls sim devices|replay --write-config``).
 
-:func:`vessel_config` returns the YAML mapping that ``acquire.config`` validates (the keys of
+:func:`vessel_config` returns the YAML mapping that ``acquire.daemon.config`` validates (the keys of
 ``systemd/vessel.example.yaml``): the devices where the emulators are (the INS on the stable
 ``<run dir>/ins`` link at 921600 baud — a pty ignores the rate, and the PHINS block at 100 Hz
 needs ~600 kbit/s on a real line; the profiler and PPS UDP addresses; the CAN event markers on
@@ -89,7 +89,7 @@ def vessel_config(*, vessel: str, run_dir: Path, locations: dict[str, dict], spe
 
 def write_vessel_config(path: str | Path, *, what: str, site=None, **kwargs) -> Path:
     """Write :func:`vessel_config` (``kwargs``) to ``path``, with the site file beside it when
-    ``site`` (a :class:`calib.site.Site`) is given; ``what`` names the run in the header."""
+    ``site`` (a :class:`calib.io.site.Site`) is given; ``what`` names the run in the header."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     site_file = None

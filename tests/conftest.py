@@ -24,8 +24,8 @@ def example_bundle() -> Path:
 def wave_trajectory():
     """Factory: a trajectory with swell (roll, pitch, yaw, heave) at ``rate_hz``, heading about
     ``heading_deg``, 2 m/s, starting at GPS second 1.313e9 (2021-08-17)."""
-    from calib import frames
-    from calib.trajectory import Trajectory
+    from calib.core import frames
+    from calib.core.trajectory import Trajectory
 
     def make(duration_s=4.0, rate_hz=200.0, heading_deg=30.0, sigmas=False, t0=1.313e9):
         t = t0 + np.arange(0.0, duration_s + 1e-9, 1.0 / rate_hz)

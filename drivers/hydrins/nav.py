@@ -5,7 +5,7 @@ STDBIN alike. Everything in it is **canonical** (DESIGN §3), converted at the e
 
 - attitude in radians, ``R_b^n = Rz(heading)·Ry(pitch)·Rx(roll)``; roll + starboard down, pitch +
   bow up (iXblue pitch is bow-down positive and is negated through
-  :func:`calib.frames.attitude_from_ixblue`), heading clockwise from true north in [0, 2π);
+  :func:`calib.core.frames.attitude_from_ixblue`), heading clockwise from true north in [0, 2π);
 - position WGS84: ``lat_deg``, ``lon_deg`` in [−180, 180) (iXblue sends 0–360), ``height_m``
   with ``height_ref`` ('ellipsoid', 'geoid' or None when the wire does not say);
 - velocity NED (``v_north_m_s``, ``v_east_m_s``, ``v_down_m_s``; iXblue sends east/north/up);

@@ -43,7 +43,7 @@ from dataclasses import dataclass
 from functools import reduce
 from operator import xor
 
-from calib.frames import attitude_from_ixblue, attitude_to_ixblue, gps_ns_to_utc
+from calib.core.frames import attitude_from_ixblue, attitude_to_ixblue, gps_ns_to_utc
 from drivers.base import DecoderStats
 from drivers.hydrins.nav import NavRecord, wrap_heading_rad, wrap_lon_deg
 from drivers.hydrins.timeofday import (

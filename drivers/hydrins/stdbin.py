@@ -13,7 +13,7 @@ extended-navigation blocks. Answer frame (``'AN'``, V3+): ``'AN' | version | tel
 payload | checksum``. Block sizes and field layouts are tabulated in :data:`NAVIGATION_BLOCKS`,
 :data:`EXTENDED_NAVIGATION_BLOCKS` and :data:`EXTERNAL_DATA_BLOCKS` (bit → name, struct
 format, field names); the iXblue ``ixblue_stdbin_decoder`` sources and the real captures in
-``shared/testdata/real/ixblue-stdbin`` are the reference.
+``tests/data/real/ixblue-stdbin`` are the reference.
 
 :class:`StdbinDecoder` turns bytes into :class:`StdbinFrame` / :class:`StdbinAnswer` records:
 frames split across reads are reassembled, garbage before or between frames is skipped, and a
@@ -49,7 +49,7 @@ from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
-from calib.frames import attitude_from_ixblue, attitude_to_ixblue, gps_ns_to_utc, utc_fields_to_gps_ns
+from calib.core.frames import attitude_from_ixblue, attitude_to_ixblue, gps_ns_to_utc, utc_fields_to_gps_ns
 from drivers.base import DecoderStats, DriverError
 from drivers.hydrins.nav import NavRecord, wrap_heading_rad, wrap_lon_deg
 from drivers.hydrins.timeofday import DAY_NS, resolve_gps_ns, utc_time_of_day_ns

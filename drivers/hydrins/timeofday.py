@@ -12,7 +12,7 @@ from __future__ import annotations
 import datetime as _dt
 from functools import lru_cache
 
-from calib.frames import leap_seconds_at_gps_ns, utc_fields_to_gps_ns
+from calib.core.frames import leap_seconds_at_gps_ns, utc_fields_to_gps_ns
 
 NS_PER_S = 1_000_000_000
 DAY_NS = 86_400 * NS_PER_S
@@ -66,7 +66,7 @@ def resolve_gps_ns(time_of_day_ns: int, hint_utc_ns: int) -> int:
 @lru_cache(maxsize=16)
 def _gps_midnight_ns(day: int) -> int:
     """GPS ns of UTC midnight ``day`` days after the Unix epoch (the day's leap-second count is
-    that of its midnight, as for :func:`calib.frames.utc_fields_to_gps_ns`)."""
+    that of its midnight, as for :func:`calib.core.frames.utc_fields_to_gps_ns`)."""
     date = _UNIX_EPOCH + _dt.timedelta(days=day)
     return utc_fields_to_gps_ns(date.year, date.month, date.day, 0)
 

@@ -17,9 +17,9 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from acquire.statusbus import StatusListener
+from acquire.status.bus import StatusListener
 
-MLS = [sys.executable, "-m", "acquire.cli"]
+MLS = [sys.executable, "-m", "cli.app"]
 ROOT = Path(__file__).resolve().parents[2]
 
 

@@ -1,6 +1,6 @@
 """A simulated survey for the guidance tests (not a test module): the ``montreal`` scenario
 simulated in memory, turned into the INS records and profiles the daemon would hand to
-:class:`acquire.guidance_state.Guidance`, fed in time order with an update every 0.2 s, with the
+:class:`acquire.guidance.state.Guidance`, fed in time order with an update every 0.2 s, with the
 ``checklist`` messages kept at the moments the checklist test shows."""
 
 from __future__ import annotations
@@ -10,12 +10,12 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from acquire.guidance import AcceptanceTolerances, prechecks
-from acquire.guidance_state import Guidance
-from calib import frames
-from calib.adjust import AdjustmentResult, AdjustOptions, ErrorModel, adjust, build_observations
-from calib.passplan import plan_site
-from calib.simulate import SimResult, simulate
+from acquire.guidance.lines import AcceptanceTolerances, prechecks
+from acquire.guidance.state import Guidance
+from calib.core import frames
+from calib.boresight.adjust import AdjustmentResult, AdjustOptions, ErrorModel, adjust, build_observations
+from calib.survey.passplan import plan_site
+from calib.sim.simulate import SimResult, simulate
 from drivers.hydrins.nav import NavRecord, status_words
 from drivers.zf.codec import Profile
 

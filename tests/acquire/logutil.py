@@ -5,8 +5,8 @@ from __future__ import annotations
 import time
 from pathlib import Path
 
-from acquire.logrecover import scan_segment, segment_paths
-from acquire.mcap_schema import Envelope, decode
+from acquire.log.recover import scan_segment, segment_paths
+from acquire.log.schema import Envelope, decode
 
 
 def read_session(session_dir: Path) -> list[Envelope]:

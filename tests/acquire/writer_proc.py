@@ -13,7 +13,7 @@ import os
 import sys
 import time
 
-from acquire.sessionlog import SessionOptions, SessionWriter
+from acquire.log.sessionlog import SessionOptions, SessionWriter
 
 
 def payload(seq: int, n: int) -> bytes:

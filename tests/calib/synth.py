@@ -3,18 +3,18 @@
 It does not ray-cast (the product's simulator does): it samples points uniformly on each
 rectangle and finds, by bisection, the time at which the true scan plane sweeps through each
 point; range and scan angle then come from the inverse georeferencing with the true mount.
-Independent of :mod:`calib.simulate`, so the adjustment is checked against a second route.
+Independent of :mod:`calib.sim.simulate`, so the adjustment is checked against a second route.
 """
 
 from __future__ import annotations
 
 import numpy as np
 
-from calib import frames
-from calib.adjust import Observations
-from calib.geometry import Rectangle  # noqa: F401  (re-exported for tests)
-from calib.georef import Mount, inverse_georeference
-from calib.trajectory import Trajectory
+from calib.core import frames
+from calib.boresight.adjust import Observations
+from calib.core.geometry import Rectangle  # noqa: F401  (re-exported for tests)
+from calib.core.georef import Mount, inverse_georeference
+from calib.core.trajectory import Trajectory
 
 FRAME = frames.LocalFrame(45.5, -73.55, 0.0)
 SIX_FOLD_DEG = (0.0, 180.0, 45.0, 225.0, 315.0, 135.0)

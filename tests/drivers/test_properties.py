@@ -28,10 +28,10 @@ from drivers.can import (
     encode_event_marker,
     parse_can_frame,
 )
-from drivers.files import split_stamped_line
+from drivers.capture.files import split_stamped_line
 from drivers.hydrins.nmea import NmeaDecoder, NmeaNavAssembler
 from drivers.hydrins.stdbin import StdbinDecoder, StdbinNavDecoder
-from drivers.pcapng import CaptureReader, PcapError, udp_datagrams
+from drivers.capture.pcapng import CaptureReader, PcapError, udp_datagrams
 from drivers.pps import PpsEdge, PpsLabeler, UdpPpsSource, decode_pps_datagram, encode_pps_datagram
 from drivers.zf.assembler import ProfileAssembler
 from drivers.zf.zfp1 import CRC_SIZE, HEADER_SIZE, ZfpError, decode_packet, encode_profile

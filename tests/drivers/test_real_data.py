@@ -1,4 +1,4 @@
-"""The drivers on real device bytes (shared/testdata/real): every file decodes, values are right."""
+"""The drivers on real device bytes (tests/data/real): every file decodes, values are right."""
 
 from __future__ import annotations
 
@@ -11,10 +11,10 @@ from collections import Counter
 import numpy as np
 import pytest
 
-from drivers.files import FileDecoder, split_stamped_line
+from drivers.capture.files import FileDecoder, split_stamped_line
 from drivers.hydrins.nmea import Gga, Hdt, NmeaDecoder, NmeaNavAssembler, Vtg, Zda
 from drivers.hydrins.stdbin import StdbinDecoder, StdbinFrame
-from drivers.pcapng import CaptureReader, udp_datagrams
+from drivers.capture.pcapng import CaptureReader, udp_datagrams
 from drivers.timing import fit_clock, unwrap_time_of_day_ns
 from tests.drivers.helpers import real_dir, real_file
 

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import pytest
 
-from calib.simulate import simulate
+from calib.sim.simulate import simulate
 from tests.sim_devices.harness import SHORT_PASSES
 
 

@@ -15,7 +15,7 @@ from drivers.can import EVENT_MARKER_ID, CanReader, decode_event_marker, open_ca
 from drivers.hydrins.nmea import NmeaNavAssembler, Zda
 from drivers.hydrins.stdbin import StdbinNavDecoder
 from drivers.pps import decode_pps_datagram
-from drivers.transport import create_transport
+from drivers.transport.base import create_transport
 from drivers.zf.assembler import ProfileAssembler
 from sim_devices.feed import make_feed
 from sim_devices.canbus import CanSettings

@@ -9,7 +9,7 @@ import math
 import numpy as np
 import pytest
 
-from calib.simulate import simulate
+from calib.sim.simulate import simulate
 from drivers.hydrins.nmea import NmeaNavAssembler
 from drivers.hydrins.stdbin import StdbinNavDecoder
 from drivers.zf.assembler import ProfileAssembler

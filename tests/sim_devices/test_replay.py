@@ -1,4 +1,4 @@
-"""Replay of a recorded session (MCAP segments written by ``acquire.sessionlog``): the raw
+"""Replay of a recorded session (MCAP segments written by ``acquire.log.sessionlog``): the raw
 channels come back byte for byte on the same transports, with their original timing (scaled by
 the speed), and ``mls sim replay`` runs it from the command line."""
 
@@ -12,9 +12,9 @@ import sys
 import numpy as np
 import pytest
 
-from acquire.commands.sim_devices_cmd import read_session
-from acquire.config import load_vessel_config
-from acquire.sessionlog import SessionOptions, SessionWriter
+from cli.commands.sim_devices_cmd import read_session
+from acquire.daemon.config import load_vessel_config
+from acquire.log.sessionlog import SessionOptions, SessionWriter
 from drivers.can import EVENT_MARKER_ID, can_frame_bytes, encode_event_marker, parse_can_frame
 from drivers.hydrins.timeofday import utc_time_of_day_ns
 from sim_devices.clock import TruthClock
@@ -110,7 +110,7 @@ def test_mls_sim_replay_command(session, tmp_path):
     session_dir, records, _ = session
     run_dir = tmp_path / "run"
     proc = subprocess.run(
-        [sys.executable, "-m", "acquire.cli", "sim", "replay", str(session_dir), "--speed", "4", "--run-dir",
+        [sys.executable, "-m", "cli.app", "sim", "replay", str(session_dir), "--speed", "4", "--run-dir",
          str(run_dir), "--write-config", str(tmp_path / "vessel.yaml"), "--can-port", str(free_udp_port())],
         capture_output=True, text=True, timeout=120, env={**os.environ, "COLUMNS": "300"},
     )  # fmt: skip
@@ -129,7 +129,7 @@ def test_mls_sim_replay_command(session, tmp_path):
 
 
 def test_mls_sim_replay_refuses_a_directory_without_segments(tmp_path):
-    proc = subprocess.run([sys.executable, "-m", "acquire.cli", "sim", "replay", str(tmp_path)],
+    proc = subprocess.run([sys.executable, "-m", "cli.app", "sim", "replay", str(tmp_path)],
                           capture_output=True, text=True, timeout=60)  # fmt: skip
     assert proc.returncode == 2
     assert f"{tmp_path}: no session segments (seg-NNNNNN.mcap) there" in " ".join(proc.stdout.split())

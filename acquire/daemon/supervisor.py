@@ -1,0 +1,634 @@
+"""The acquisition daemon (``mls acquire``): devices, clock, monitors, session log, status bus.
+
+:class:`Supervisor` runs one vessel config (DESIGN §4, §6, §8) in one asyncio loop:
+
+- **start-up**: salvage every unfinished session under the log directory
+  (:func:`acquire.log.recover.salvage_root`); seed the :class:`~acquire.timing.clock.ClockModel` from
+  the system clock (UTC + leap seconds, flagged UNLOCKED until PPS); open the session
+  (:class:`~acquire.log.sessionlog.SessionWriter`) and copy the vessel config (``vessel.yaml``),
+  the site file (``site.yaml``) and a summary (``session.json``: vessel, mount, devices) into
+  it; serve the status socket and, when configured, MQTT; open every device
+  (:mod:`acquire.daemon.devices`); then tell systemd ``READY=1``.
+- **running**: one task per device, reopened with a back-off when it fails (alarm
+  ``device_unavailable`` for a device error, ``driver_failed`` for a bug); one task per
+  consumer tap (:mod:`acquire.daemon.consumers`); a 4 Hz monitor loop (latency monitor tick, PPS
+  bookkeeping, clock-state alarms ``clock_holdover`` /
+  ``clock_unlocked`` / ``time_step`` on ``clock``, ``packet_loss``, ``consumer_overflow``,
+  then every alarm transition to the ``alarms`` topic and ``/events`` — so an alarm reaches the
+  socket, MQTT and the log within ~0.25 s of being raised); a status loop every
+  ``status.period_s`` (retained ``status``, ``sensors/<name>`` and ``checklist``; ``clock`` and
+  ``metrics``; the same to ``/status``, ``/clock``, ``/latency``; the ``presurvey`` section of
+  the checklist); the systemd watchdog, pinged only while no driver is down after a bug and
+  the log writer progresses. MQTT commands (when enabled): ``pass_start`` / ``pass_end`` /
+  ``mark`` to ``/events`` (``source: mqtt``), ``rotate`` to a new segment.
+- **shutdown** (SIGTERM, SIGINT or :meth:`Supervisor.request_stop`): ``STOPPING=1``, devices and
+  consumers cancelled and closed, ``session_end`` logged, the segment closed (fsync), the final
+  retained ``status`` (``{"state": "stopped", ...}``) published to the socket and MQTT (a clean
+  MQTT disconnect: no last will), the socket removed; every task the supervisor started has
+  ended when :meth:`Supervisor.run` returns.
+
+Nothing on the record path waits: records are stamped and batched in the loop
+(:mod:`acquire.log.batch`), and the writer's queue, the MQTT queue, the socket clients' queues
+and the taps are bounded and count what they drop (``log_queue_overflow``,
+``consumer_overflow``).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import datetime as _dt
+import gc
+import json
+import logging
+import os
+import shutil
+import signal
+import time
+import traceback
+from collections.abc import Sequence
+from pathlib import Path
+
+from acquire.daemon import sdnotify
+from acquire.alarms import CRITICAL, WARNING, AlarmBook
+from acquire.timing.clock import ClockModel, ClockState
+from acquire.daemon.config import VesselConfig
+from acquire.daemon.consumers import ChecklistPublisher, Consumer, ConsumerHub
+from acquire.daemon.devices import DEVICES, DaemonContext, Device
+from acquire.timing.latency import LatencyMonitor
+from acquire.log.batch import LogBatcher
+from acquire.log.sessionlog import LogError, SessionWriter
+from acquire.status.bus import StatusBus, StatusServer
+from acquire.timing.timekeeper import ClockCache, TimeKeeper, coarse_gps_offset_ns
+from drivers.base import DriverError
+
+log = logging.getLogger("mls.acquire")
+NS_PER_S = 1_000_000_000
+MONITOR_PERIOD_S = 0.25
+LOSS_CLEAR_S = 5.0  # packet_loss clears after this long without a new loss
+STEP_CLEAR_S = 10.0
+DRIVER_BACKOFF_S = (0.5, 30.0)
+MIN_RCVBUF_BYTES = 8 * 2**20  # profiler socket buffer: ~0.8 s of the full Z+F rate
+
+
+class StartupError(RuntimeError):
+    """The daemon cannot start (the message says what and why)."""
+
+
+class Supervisor:
+    """Runs one vessel config until stopped (see the module docstring)."""
+
+    def __init__(self, config: VesselConfig, consumers: Sequence[Consumer] = (),
+                 env: dict[str, str] | None = None) -> None:  # fmt: skip
+        self.config = config
+        self.consumers = list(consumers)
+        self.env = env
+        self.state = "starting"
+        self.stop_reason: str | None = None
+        self._stop: asyncio.Event | None = None
+        self._tasks: set[asyncio.Task] = set()
+        self._device_tasks: dict[str, asyncio.Task] = {}
+        self.crashed: dict[str, str] = {}  # device → the error while it is down after a driver bug
+        self.unavailable: dict[str, str] = {}  # device → the error while it cannot be opened/read
+        self.salvaged: dict = {}
+        self.started_mono_ns = time.monotonic_ns()
+        self.started_utc = _dt.datetime.now(_dt.timezone.utc)
+        self.loop_lag_ns = 0
+        self._check_devices()
+        self.clock = ClockModel(config.clock, coarse_offset_ns=coarse_gps_offset_ns())
+        self.alarms = AlarmBook(to_gps=self.clock.gps_ns)
+        self.monitor = LatencyMonitor(self.clock, self.alarms)
+        self.hub = ConsumerHub()
+        self.clock_cache = ClockCache(self.clock)
+        self.timekeeper = TimeKeeper(self.clock, self._submit, self._clock_state,
+                                     self.clock_cache.invalidate)  # fmt: skip
+        self.ctx = DaemonContext(_no_writer, self.clock, self.clock_cache.gps_ns, self.timekeeper,
+                                 self.monitor, self.hub, self.log_event, _no_writer)  # fmt: skip
+        self.devices: dict[str, Device] = {}
+        for d in config.devices:
+            extra = {}
+            if d.kind == "ins":
+                pps = next((p for p in config.devices_of("pps") if p.time_device == d.name), None)
+                extra["time_messages"] = pps.time_messages if pps is not None else ()
+            self.devices[d.name] = DEVICES[d.kind](d, self.ctx, **extra)
+            if d.kind in ("ins", "profiler"):
+                self.monitor.add_device(d.name, d.latency)
+        # opened by start(): the session, the status socket, MQTT, the watchdog
+        self.writer: SessionWriter | None = None
+        self.batcher: LogBatcher | None = None
+        self.server: StatusServer | None = None
+        self.watchdog: sdnotify.HealthWatchdog | None = None
+        self.bus = StatusBus()
+        self.mqtt = None
+        self.checklist = ChecklistPublisher(self.bus.publish)
+        self._losses: dict[str, tuple[int, int]] = {}  # device → (count, host_ns of last increase)
+        self._tap_drops: dict[str, int] = {}
+        self._steps = 0
+        self._step_ns: int | None = None
+        self._was_locked = False
+        self._errors_seen: set[str] = set()
+
+    def _check_devices(self) -> None:
+        for kind, channel in (("ins", "/ins/raw"), ("profiler", "/lidar/raw")):
+            devs = self.config.devices_of(kind)
+            if len(devs) > 1:
+                raise StartupError(f"{self.config.source}: {len(devs)} {kind} devices "
+                                   f"({', '.join(d.name for d in devs)}); the session has one "
+                                   f"{channel} channel: configure one {kind}")  # fmt: skip
+
+    # -- record plumbing --------------------------------------------------------------------
+
+    def _submit(self, topic, payload, **kw) -> bool:
+        return self.ctx.submit(topic, payload, **kw)
+
+    def log_event(self, data: dict, host_ns: int | None = None) -> None:
+        """An ``/events`` entry (also to the consumer taps)."""
+        host_ns = time.monotonic_ns() if host_ns is None else int(host_ns)
+        self.ctx.submit("/events", data, host_ns=host_ns)
+        if self.hub.taps:
+            self.hub.publish("event", data, self.clock.gps_ns(host_ns))
+
+    # -- life cycle -------------------------------------------------------------------------
+
+    def request_stop(self, reason: str = "requested") -> None:
+        if self.stop_reason is None:
+            self.stop_reason = reason
+        if self._stop is not None:
+            self._stop.set()
+
+    def _spawn(self, coro, name: str) -> asyncio.Task:
+        task = asyncio.get_running_loop().create_task(coro, name=name)
+        self._tasks.add(task)
+        task.add_done_callback(self._task_done)
+        return task
+
+    def _task_done(self, task: asyncio.Task) -> None:
+        self._tasks.discard(task)
+        if not task.cancelled() and task.exception() is not None:
+            e = task.exception()
+            log.error("task %s ended: %s: %s", task.get_name(), type(e).__name__, e)
+
+    def _guarded(self, what: str, fn, *args) -> None:
+        """Run one round of a periodic job; a bug in it is logged (once per message) and the
+        job goes on at its next round."""
+        try:
+            fn(*args)
+        except Exception as e:  # noqa: BLE001 — the daemon must keep acquiring
+            text = f"{what}: {type(e).__name__}: {e}"
+            if text not in self._errors_seen and len(self._errors_seen) < 100:
+                self._errors_seen.add(text)
+                log.error("%s\n%s", text, traceback.format_exc())
+                with contextlib.suppress(Exception):
+                    self.log_event({"event": "internal_error", "where": what, "error": text})
+
+    async def run(self) -> int:
+        """Start, run until stopped, shut down. Returns the exit status (0: orderly stop)."""
+        loop = asyncio.get_running_loop()
+        self._stop = asyncio.Event()
+        if self.stop_reason is not None:
+            self._stop.set()
+        for sig in (signal.SIGTERM, signal.SIGINT):
+            with contextlib.suppress(NotImplementedError, RuntimeError, ValueError):
+                loop.add_signal_handler(sig, self.request_stop, signal.Signals(sig).name)
+        try:
+            await self.start()
+            await self._stop.wait()
+        finally:
+            await self.shutdown()
+            for sig in (signal.SIGTERM, signal.SIGINT):
+                with contextlib.suppress(NotImplementedError, RuntimeError, ValueError):
+                    loop.remove_signal_handler(sig)
+        return 0
+
+    async def start(self) -> None:
+        cfg = self.config
+        try:
+            self.salvaged = await asyncio.to_thread(_salvage, cfg.session_dir)
+        except (OSError, LogError) as e:  # a damaged old session must not stop acquisition
+            self.salvaged = {"error": str(e)}
+        metadata: dict[str, dict[str, str]] = {}
+        for d in self.devices.values():
+            metadata.update(d.channel_metadata())
+        self.writer = SessionWriter(cfg.session_dir, cfg.vessel, cfg.session, alarms=self.alarms,
+                                    clock=self.clock, channel_metadata=metadata)  # fmt: skip
+        self.batcher = LogBatcher(self.writer.submit_batch, self.clock_cache)
+        self.ctx.submit = self.batcher.submit  # the devices' hot path
+        self.ctx.submit_many = self.batcher.submit_many
+        try:
+            session_dir = await asyncio.to_thread(self.writer.start)
+        except (OSError, LogError) as e:
+            raise StartupError(f"session directory {cfg.session_dir}: {e}") from None
+        self._write_session_files(session_dir)
+        self.server = StatusServer(cfg.status.socket)
+        try:
+            await self.server.start()
+        except (OSError, RuntimeError) as e:
+            raise StartupError(f"status socket {cfg.status.socket}: {e}") from None
+        self.bus.add_sink(self.server)
+        if cfg.mqtt is not None:
+            from acquire.status.mqtt import MqttPublisher
+
+            self.mqtt = MqttPublisher(cfg.mqtt, cfg.vessel, on_command=self.command)
+            self.bus.add_sink(self.mqtt)
+            self._spawn(self.mqtt.run(), "mqtt")
+        self.log_event({"event": "session_start", "session": session_dir.name, "pid": os.getpid(),
+                        "config": str(cfg.source), "devices": list(self.devices),
+                        "salvaged": self.salvaged})  # fmt: skip
+        self._publish_status()
+        for dev in self.devices.values():
+            try:
+                await dev.open()
+            except asyncio.CancelledError:
+                raise
+            except Exception as e:  # retried by the device task
+                self._device_failed(dev, e, "open")
+                with contextlib.suppress(Exception):
+                    await dev.close()
+        for name, dev in self.devices.items():
+            self._device_tasks[name] = self._spawn(self._device_loop(dev), f"device:{name}")
+        for c in self.consumers:
+            self._spawn(self._consumer_loop(c), f"consumer:{c.name}")
+        self._spawn(self._monitor_loop(), "monitor")
+        self._spawn(self._status_loop(), "status")
+        self.watchdog = sdnotify.HealthWatchdog({"drivers": self.drivers_health,
+                                                 "log": self.writer.health}, env=self.env)  # fmt: skip
+        self._spawn(self.watchdog.run(), "watchdog")
+        # what start-up built (modules, config, numpy/scipy) lives as long as the daemon: out of the
+        # collector's sight, a full collection takes ~1 ms instead of ~100 ms holding the GIL
+        gc.collect()
+        gc.freeze()
+        self.state = "running"
+        self._publish_status()
+        sdnotify.notify(f"READY=1\nSTATUS=acquiring: {len(self.devices)} devices, session "
+                        f"{session_dir.name}", self.env)  # fmt: skip
+        log.info("acquiring: session %s", session_dir)
+
+    def _write_session_files(self, session_dir: Path) -> None:
+        """vessel.yaml (verbatim), site.yaml (the site file) and session.json in the session."""
+        cfg = self.config
+        with contextlib.suppress(OSError):
+            shutil.copyfile(cfg.source, session_dir / "vessel.yaml")
+        if cfg.site_file is not None:
+            with contextlib.suppress(OSError):
+                shutil.copyfile(cfg.site_file, session_dir / "site.yaml")
+        m = cfg.mount
+        summary = {
+            "format": "marine-mls session v1", "vessel": cfg.vessel, "session": session_dir.name,
+            "started_utc": self.started_utc.isoformat(timespec="seconds"),
+            "config_file": str(cfg.source), "site_file": str(cfg.site_file) if cfg.site_file else None,
+            "mount": None if m is None else {"lever_arm_m": list(m.lever_arm_m),
+                                             "nominal_deg": list(m.nominal_deg),
+                                             "boresight_apriori_deg": list(m.boresight_apriori_deg)},
+            "devices": [{"name": d.name, "kind": d.kind, "protocol": d.protocol} for d in cfg.devices],
+        }  # fmt: skip
+        tmp = session_dir / "session.json.tmp"
+        tmp.write_text(json.dumps(summary, indent=2) + "\n", encoding="utf-8")
+        tmp.replace(session_dir / "session.json")
+
+    async def shutdown(self) -> None:
+        if self.state in ("stopped", "stopping"):
+            return
+        self.state = "stopping"
+        sdnotify.notify(f"STOPPING=1\nSTATUS=stopping ({self.stop_reason or 'error'})", self.env)
+        with contextlib.suppress(Exception):
+            self._publish_status()
+        ending = [t for t in self._tasks if t.get_name().startswith(("device:", "consumer:"))]
+        for t in ending:
+            t.cancel()
+        await asyncio.gather(*ending, return_exceptions=True)
+        for dev in self.devices.values():
+            with contextlib.suppress(Exception):
+                await asyncio.wait_for(dev.close(), 5.0)
+        helpers = [t for t in self._tasks if t.get_name() in ("monitor", "status", "watchdog")]
+        for t in helpers:
+            t.cancel()
+        await asyncio.gather(*helpers, return_exceptions=True)
+        if self.writer is not None:
+            now = time.monotonic_ns()
+            self.timekeeper.flush()  # log the pulses still waiting for a label
+            self._drain_alarms()
+            self.log_event({"event": "session_end", "reason": self.stop_reason or "error",
+                            "records": {n: d.records for n, d in self.devices.items()}}, now)  # fmt: skip
+            self._log_status(now)
+            self.batcher.flush()
+            await asyncio.to_thread(self.writer.close)
+        final = self.status_doc(state="stopped")
+        if self.server is not None:
+            self.bus.publish("status", final)
+        if self.mqtt is not None:
+            with contextlib.suppress(Exception):
+                await self.mqtt.stop(final)
+        if self.server is not None:
+            await self.server.close()
+        rest = [t for t in self._tasks if not t.done()]
+        for t in rest:
+            t.cancel()
+        await asyncio.gather(*rest, return_exceptions=True)
+        self.state = "stopped"
+        log.info("stopped (%s)", self.stop_reason)
+
+    # -- tasks ------------------------------------------------------------------------------
+
+    async def _device_loop(self, dev: Device) -> None:
+        """Open and run a device for ever; after a failure close it, wait (doubling back-off)
+        and open it again. A device error (:class:`~drivers.base.DriverError`, ``OSError``: the
+        device is absent or went away) makes it *unavailable* (alarm ``device_unavailable``);
+        anything else is a bug in a driver (alarm ``driver_failed``), which also withholds the
+        systemd watchdog until the device runs again."""
+        backoff = DRIVER_BACKOFF_S[0]
+        while True:
+            try:
+                if not dev.opened:
+                    await dev.open()
+                self.crashed.pop(dev.name, None)
+                self.unavailable.pop(dev.name, None)
+                now = time.monotonic_ns()
+                for name in ("driver_failed", "device_unavailable"):
+                    if self.alarms.is_active(name, dev.name):
+                        self.alarms.clear_now(name, dev.name, now, message=f"{dev.name} running again")
+                await dev.run()
+                raise EOFError(f"{dev.name}: the device stream ended")
+            except asyncio.CancelledError:
+                raise
+            except Exception as e:
+                self._device_failed(dev, e, "open" if not dev.opened else "run")
+                with contextlib.suppress(Exception):
+                    await dev.close()
+                dev.opened = False
+                await asyncio.sleep(backoff)
+                backoff = min(backoff * 2, DRIVER_BACKOFF_S[1])
+
+    def _device_failed(self, dev: Device, e: BaseException, when: str) -> None:
+        text = f"{type(e).__name__}: {e}"
+        now = time.monotonic_ns()
+        if isinstance(e, (DriverError, OSError, EOFError)):
+            self.unavailable[dev.name] = text
+            name, what = "device_unavailable", "unavailable"
+        else:
+            self.crashed[dev.name] = text
+            name, what = "driver_failed", "driver failed"
+        self.alarms.raise_now(name, dev.name, now, severity=CRITICAL,
+                              message=f"{dev.name} ({dev.kind}) {what} ({when}): {text}; retrying")
+        self.log_event({"event": name, "device": dev.name, "when": when, "error": text,
+                        "traceback": traceback.format_exception(e)[-3:]}, now)  # fmt: skip
+        log.error("device %s: %s (%s): %s", dev.name, what, when, text)
+
+    async def _consumer_loop(self, consumer: Consumer) -> None:
+        kinds = getattr(consumer, "kinds", ("nav", "profile", "event"))
+        backoff = DRIVER_BACKOFF_S[0]
+        while True:
+            tap = self.hub.subscribe(consumer.name, tuple(kinds))
+            try:
+                await consumer.run(tap, self.checklist)
+                return
+            except asyncio.CancelledError:
+                raise
+            except Exception as e:
+                now = time.monotonic_ns()
+                self.log_event({"event": "consumer_failed", "consumer": consumer.name,
+                                "error": f"{type(e).__name__}: {e}"}, now)  # fmt: skip
+                self.alarms.raise_now("consumer_failed", consumer.name, now, severity=WARNING,
+                                      message=f"{consumer.name}: {type(e).__name__}: {e}; restarting")
+            finally:
+                self.hub.unsubscribe(tap)
+            await asyncio.sleep(backoff)
+            backoff = min(backoff * 2, DRIVER_BACKOFF_S[1])
+
+    async def _monitor_loop(self) -> None:
+        period_ns = int(MONITOR_PERIOD_S * NS_PER_S)
+        due = time.monotonic_ns()
+        while True:
+            due += period_ns
+            await asyncio.sleep(max(due - time.monotonic_ns(), 0) / NS_PER_S)
+            now = time.monotonic_ns()
+            self.loop_lag_ns = max(self.loop_lag_ns, now - due)
+            if now - due > 5 * period_ns:
+                due = now  # fell far behind (suspend): do not run a burst
+            self._guarded("monitor", self.monitor_step, now)
+
+    def monitor_step(self, now: int) -> None:
+        """One round of the monitors (what the 4 Hz loop runs)."""
+        self.monitor.tick(now)
+        self.timekeeper.tick(now)
+        al = self.alarms
+        if self.clock.steps > self._steps:
+            self._steps, self._step_ns = self.clock.steps, now
+            al.raise_now("time_step", "clock", now, severity=CRITICAL,
+                         message=f"PPS labels stepped: the clock model restarted "
+                                 f"({self.clock.steps} steps so far)")  # fmt: skip
+        elif self._step_ns is not None and now - self._step_ns > STEP_CLEAR_S * NS_PER_S:
+            self._step_ns = None
+            al.clear_now("time_step", "clock", now, message="clock model steady since the step")
+        for name, dev in self.devices.items():
+            lost = dev.losses()
+            count, since = self._losses.get(name, (0, 0))
+            if lost > count:
+                self._losses[name] = (lost, now)
+                al.raise_now("packet_loss", name, now, severity=WARNING,
+                             message=f"{lost - count} packets lost (total {lost})")
+            elif al.is_active("packet_loss", name) and now - since > LOSS_CLEAR_S * NS_PER_S:
+                al.clear_now("packet_loss", name, now, message=f"no loss for {LOSS_CLEAR_S:g} s (total {lost})")
+        for tap in self.hub.taps:
+            before = self._tap_drops.get(tap.name, 0)
+            self._tap_drops[tap.name] = tap.dropped
+            al.update("consumer_overflow", tap.name, tap.dropped > before, now, severity=WARNING,
+                      message=f"{tap.name} does not keep up: {tap.dropped} records dropped",
+                      clear_after_ns=int(LOSS_CLEAR_S * NS_PER_S))  # fmt: skip
+        if self._drain_alarms():
+            self._publish_status()
+
+    def _clock_state(self, old: ClockState, new: ClockState, now: int) -> None:
+        st = self.clock.status(now)
+        bound = st.as_dict()["error_bound_us"]
+        self.log_event({"event": "clock_state", "from": old.value, "to": new.value,
+                        "error_bound_us": bound, "edges_in_window": st.edges_in_window}, now)  # fmt: skip
+        al = self.alarms
+        if new == ClockState.LOCKED:
+            self._was_locked = True
+            al.clear_now("clock_holdover", "clock", now, message="PPS back: LOCKED")
+            al.clear_now("clock_unlocked", "clock", now, message="PPS back: LOCKED")
+        elif new == ClockState.HOLDOVER:
+            al.raise_now("clock_holdover", "clock", now, severity=WARNING,
+                         message=f"no PPS for {st.as_dict()['last_edge_age_s']} s: holding over, "
+                                 f"error bound {bound} µs")  # fmt: skip
+        elif self._was_locked:
+            al.clear_now("clock_holdover", "clock", now)
+            al.raise_now("clock_unlocked", "clock", now, severity=CRITICAL,
+                         message="clock UNLOCKED: holdover bound exceeded or PPS labels lost; "
+                                 "GPS times come from the devices' tags or the system clock")  # fmt: skip
+
+    def _drain_alarms(self) -> bool:
+        events = self.alarms.drain()
+        for ev in events:
+            d = ev.as_dict()
+            self.bus.publish("alarms", d)
+            self.log_event({"event": "alarm", **d}, ev.alarm.last_host_ns)
+            log.warning("alarm %s %s/%s: %s", ev.action, ev.alarm.name, ev.alarm.device, ev.alarm.message)
+        return bool(events)
+
+    async def _status_loop(self) -> None:
+        period = self.config.status.period_s
+        while True:
+            now = time.monotonic_ns()
+            self._guarded("status", self._publish_status)
+            self._guarded("status details", self._publish_details, now)
+            self._guarded("status log", self._log_status, now)
+            self.loop_lag_ns = 0
+            await asyncio.sleep(period)
+
+    # -- status -----------------------------------------------------------------------------
+
+    def drivers_health(self) -> tuple[bool, str]:
+        """Watchdog check: every device task is running and none is down after a crash."""
+        dead = [n for n, t in self._device_tasks.items() if t.done()]
+        if dead:
+            return False, f"device task ended: {', '.join(dead)}"
+        if self.crashed:
+            return False, "; ".join(f"{n}: {e}" for n, e in self.crashed.items())
+        return True, f"{len(self._device_tasks)}/{len(self.devices)} device tasks alive"
+
+    def device_state(self, dev: Device) -> str:
+        if dev.name in self.crashed:
+            return "failed"
+        if dev.name in self.unavailable:
+            return "unavailable"
+        return "connected" if dev.connected else "disconnected"
+
+    def status_doc(self, state: str | None = None) -> dict:
+        now = time.monotonic_ns()
+        w = self.writer.stats() if self.writer is not None else None
+        doc = {
+            "state": state or self.state,
+            "vessel": self.config.vessel,
+            "session": self.writer.session_dir.name if self.writer and self.writer.session_dir else None,
+            "pid": os.getpid(),
+            "started_utc": self.started_utc.isoformat(timespec="seconds"),
+            "uptime_s": round((now - self.started_mono_ns) / NS_PER_S, 1),
+            "clock": self.clock.state_at(now).value,
+            "devices": {n: self.device_state(d) for n, d in self.devices.items()},
+            "log": None if w is None else {
+                "state": w.state, "segment": w.segment, "messages": w.messages_written,
+                "dropped": sum(w.dropped.values()), "lost": sum(w.lost.values()),
+                "free_mb": None if w.free_bytes is None else round(w.free_bytes / 2**20, 1)},
+            "mqtt": None if self.mqtt is None else ("connected" if self.mqtt.connected else "disconnected"),
+            "alarms": [a.as_dict() for a in self.alarms.active()],
+        }  # fmt: skip
+        return doc
+
+    def _publish_status(self) -> None:
+        self.bus.publish("status", self.status_doc())
+
+    def _sensor(self, name: str, dev: Device) -> dict:
+        """The retained ``sensors/<name>`` summary (the details are in ``metrics``)."""
+        out = {"state": self.device_state(dev), "kind": dev.kind, "records": dev.records}
+        if name in self.monitor.devices:
+            st = self.monitor.stats(name)
+            out.update(rate_hz=None if st.rate_hz is None else round(st.rate_hz, 1), sync=st.sync,
+                       latency_ms=None if st.mean_ns is None else round(st.mean_ns / 1e6, 3),
+                       latency_p99_ms=None if st.p99_ns is None else round(st.p99_ns / 1e6, 3),
+                       pps_flag=st.pps_flag)  # fmt: skip
+        out.update(reconnects=dev.reconnects, gaps=dev.gaps, lost=dev.losses())
+        return out
+
+    def clock_doc(self, now: int) -> dict:
+        est = self.clock.to_gps(now)
+        return {**self.clock.status(now).as_dict(), "gps_ns": est.gps_ns, "host_ns": now,
+                "pps": self.timekeeper.status()}  # fmt: skip
+
+    def _publish_details(self, now: int) -> None:
+        bus = self.bus
+        for name, dev in self.devices.items():
+            bus.publish(f"sensors/{name}", self._sensor(name, dev))
+        bus.publish("clock", self.clock_doc(now))
+        bus.publish("metrics", self.metrics_doc())
+        self.checklist.publish("presurvey", self.presurvey(now))
+
+    def metrics_doc(self) -> dict:
+        cpu = time.process_time()
+        return {
+            "latency": self.monitor.snapshot(),
+            "log": self.writer.stats().as_dict() if self.writer is not None else None,
+            "status_socket": None if self.server is None else {
+                "clients": self.server.clients, "served": self.server.clients_served,
+                "dropped": self.server.clients_dropped},
+            "mqtt": None if self.mqtt is None else {
+                "connected": self.mqtt.connected, "connects": self.mqtt.connects,
+                "published": self.mqtt.published, "dropped": self.mqtt.dropped,
+                "last_error": self.mqtt.last_error},
+            "devices": {n: d.status() for n, d in self.devices.items()},
+            "consumers": self.hub.status(),
+            "loop_lag_ms": round(self.loop_lag_ns / 1e6, 3),
+            "cpu_s": round(cpu, 3),
+        }  # fmt: skip
+
+    def presurvey(self, now: int) -> dict:
+        """DESIGN §8's pre-survey checks: ``{check: {"ok": bool, "detail": str}}``."""
+        checks: dict[str, dict] = {}
+
+        def check(name: str, ok: bool, detail: str) -> None:
+            checks[name] = {"ok": bool(ok), "detail": detail}
+
+        for dev in self.devices.values():
+            if dev.kind == "ins":
+                nav = getattr(dev, "last_nav", None) or {}
+                check("ins_navigating", nav.get("navigation") and nav.get("fine_alignment"),
+                      "navigating, fine aligned" if nav.get("navigation") and nav.get("fine_alignment")
+                      else "no navigation record yet" if not nav else "aligning / not navigating")
+                check("gnss_fix", nav.get("gps_valid"), "GNSS valid" if nav.get("gps_valid") else "no valid GNSS")
+                check("ins_pps", nav.get("pps_detected") and nav.get("utc_detected"),
+                      f"INS time source: {nav.get('time_source', 'none')}")
+            elif dev.kind == "profiler":
+                rate = self.monitor.stats(dev.name).rate_hz
+                check("profiler_data", bool(rate), f"{rate or 0:.0f} profiles/s")
+                buf = getattr(dev.transport, "rcvbuf_bytes_granted", 0)
+                check("receive_buffer", buf >= MIN_RCVBUF_BYTES,
+                      f"profiler socket buffer {buf / 2**20:.1f} MiB" + ("" if buf >= MIN_RCVBUF_BYTES else
+                      " (raise the sysctl net.core.rmem_max to 33554432)"))  # fmt: skip
+        state = self.clock.state_at(now)
+        check("clock_locked", state == ClockState.LOCKED, f"clock {state.value}")
+        bad = [a for a in self.alarms.active()
+               if a.name in ("latency_out_of_band", "latency_jump", "time_step", "clock_drift",
+                             "pps_flag_lost", "latency_jitter")]  # fmt: skip
+        check("latency_in_band", not bad, "; ".join(f"{a.device}: {a.name}" for a in bad) or "ok")
+        w = self.writer.stats() if self.writer is not None else None
+        free = w.free_bytes if w is not None else None
+        check("disk_space", free is not None and free > 2 * 2**30,
+              "unknown" if free is None else f"{free / 2**30:.1f} GiB free")
+        check("mount_configured", self.config.mount is not None,
+              "mount in the vessel config" if self.config.mount else "no mount in the vessel config")
+        return checks
+
+    def _log_status(self, now: int) -> None:
+        if self.writer is None:
+            return
+        submit = self.ctx.submit
+        submit("/status", self.status_doc(), host_ns=now)
+        submit("/clock", self.clock_doc(now), host_ns=now)
+        submit("/latency", self.monitor.snapshot(), host_ns=now)
+
+    # -- operator commands (MQTT) -----------------------------------------------------------
+
+    def command(self, name: str, args: dict) -> tuple[bool, str]:
+        now = time.monotonic_ns()
+        if name == "rotate":
+            if self.writer is None:
+                return False, "rotate: no session open"
+            self.writer.rotate()
+            self.log_event({"event": "rotate", "source": "mqtt"}, now)
+            return True, "rotate: a new segment is being opened"
+        data = {"event": name, "source": "mqtt", **args}
+        self.log_event(data, now)
+        what = f"pass {args['pass_id']}" if "pass_id" in args else repr(args.get("text", ""))
+        return True, f"{name} {what} logged at GPS {self.clock.gps_ns(now)}"
+
+
+def _no_writer(*args, **kwargs) -> bool:
+    return False  # records before the session is open (none: the devices start after it)
+
+
+def _salvage(root: Path) -> dict:
+    from acquire.log.recover import salvage_root
+
+    reports = salvage_root(root)
+    return {name: [{"segment": r.segment, "messages": r.messages, "torn_bytes": r.torn_bytes,
+                    "problem": r.problem} for r in rs] for name, rs in reports.items()}  # fmt: skip

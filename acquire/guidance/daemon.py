@@ -1,0 +1,106 @@
+"""The line guidance inside the daemon (DESIGN §8): when the vessel config names a site file,
+``mls acquire`` runs a :class:`~acquire.guidance.state.GuidanceConsumer` next to the devices.
+
+- :func:`make_guidance` builds the :class:`~acquire.guidance.state.Guidance` of a vessel config:
+  the site's targets and its six-fold plan (:func:`calib.survey.passplan.plan_site`), the vessel
+  config's mount (what is installed; else the site's), the acceptance tolerances and the
+  profiler settings of the config's ``guidance`` section (:class:`acquire.daemon.config.GuidanceConfig`).
+- :func:`guidance_consumer` wires it to a :class:`~acquire.daemon.supervisor.Supervisor`: the clock
+  model's state for the acceptance, and the pre-survey checks
+  (:func:`acquire.guidance.lines.prechecks`) from the supervisor's latest navigation, clock status,
+  latency statistics, free disk and configuration. The consumer publishes the guidance message
+  as the ``guidance`` section of the retained ``checklist`` topic (status socket and MQTT), next
+  to the supervisor's own ``presurvey`` section.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from pathlib import Path
+
+import numpy as np
+
+from acquire.daemon.config import GuidanceConfig, VesselConfig
+from acquire.guidance.lines import AcceptanceTolerances, Check, disk_needed_bytes, prechecks
+from acquire.guidance.state import Guidance, GuidanceConsumer
+
+MS = 1_000_000
+
+
+class GuidanceSetupError(ValueError):
+    """The guidance cannot be built from the vessel config's site file (the message says why)."""
+
+
+def tolerances(g: GuidanceConfig) -> AcceptanceTolerances:
+    return AcceptanceTolerances(
+        max_xte_m=g.max_xte_m, max_heading_error_rad=math.radians(g.max_heading_error_deg),
+        max_speed_error_mps=g.max_speed_error_mps, min_points_per_target=g.min_points_per_target,
+        max_gap_s=g.max_gap_s,
+    )  # fmt: skip
+
+
+def make_guidance(cfg: VesselConfig) -> Guidance:
+    """The guidance of a vessel config with a ``site_file`` (see the module docstring)."""
+    from calib.core import frames
+    from calib.io.configfile import ConfigError
+    from calib.core.georef import Mount
+    from calib.survey.passplan import PassPlanError, plan_site
+    from calib.sim.scenario import ScannerModel
+    from calib.io.site import load_site
+
+    if cfg.site_file is None:
+        raise GuidanceSetupError(f"{cfg.source}: no site_file: the guidance needs the site's "
+                                 f"targets and pass plan")  # fmt: skip
+    path = Path(cfg.site_file)
+    try:
+        site = load_site(path)
+    except (ConfigError, OSError) as e:
+        raise GuidanceSetupError(f"site_file {path}: {e}") from None
+    frame = site.reference
+    if frame is None:  # no reference point: the LGF at the targets' mean centre
+        c = np.mean([(t.lat_deg, t.lon_deg, t.height_m) for t in site.targets], axis=0)
+        frame = frames.LocalFrame(float(c[0]), float(c[1]), float(c[2]))
+    try:
+        plan = plan_site(site, frame)
+    except PassPlanError as e:
+        raise GuidanceSetupError(f"site_file {path}: no pass plan: {e}") from None
+    mount = None
+    if cfg.mount is not None:  # the vessel config's mount is what is installed
+        m = cfg.mount
+        mount = Mount(lever_arm_m=np.asarray(m.lever_arm_m, float),
+                      nominal_rad=np.radians(m.nominal_deg),
+                      boresight_rad=np.radians(m.boresight_apriori_deg))  # fmt: skip
+    g = cfg.guidance
+    scanner = ScannerModel(profile_rate_hz=g.profile_rate_hz, points_per_360=g.points_per_360)
+    return Guidance(site, plan, frame=frame, mount=mount, tolerances=tolerances(g),
+                    scanner=scanner)  # fmt: skip
+
+
+def daemon_checks(sup, guidance: Guidance, needed_bytes: int) -> list[Check]:
+    """The pre-survey checks from the supervisor's state now."""
+    cfg = sup.config
+    now = time.monotonic_ns()
+    latency = {name: sup.monitor.stats(name).as_dict() for name in sup.monitor.devices}
+    bands = {d.name: (d.latency.band_ns[0] / MS, d.latency.band_ns[1] / MS)
+             for d in cfg.devices if d.name in latency}  # fmt: skip
+    free = sup.writer.stats().free_bytes if sup.writer is not None else None
+    return prechecks(guidance.last_nav, sup.clock.status(now).as_dict(), latency, bands,
+                     free_bytes=free, needed_bytes=needed_bytes,
+                     mount_configured=cfg.mount is not None,
+                     n_targets=len(guidance.target_names))  # fmt: skip
+
+
+def guidance_consumer(cfg: VesselConfig, sup) -> GuidanceConsumer | None:
+    """The daemon's guidance consumer for ``sup`` (None without a site file, or when the
+    config's ``guidance.enabled`` is false); :class:`GuidanceSetupError` when the site file
+    gives no plan."""
+    if cfg.site_file is None or not cfg.guidance.enabled:
+        return None
+    g = make_guidance(cfg)
+    gc = cfg.guidance  # the log's data rate at the configured profiler settings (as the default)
+    needed = disk_needed_bytes(g.plan, gc.profile_rate_hz * gc.points_per_360 * 6 * 1.1 + 200 * 300)
+    return GuidanceConsumer(
+        g, clock_state=lambda: sup.clock.state_at(time.monotonic_ns()).value,
+        checks=lambda: daemon_checks(sup, g, needed), period_s=cfg.guidance.period_s,
+    )  # fmt: skip

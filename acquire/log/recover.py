@@ -1,0 +1,415 @@
+"""Reading, salvaging and summarizing session logs (``mls logs info`` / ``mls logs recover``).
+
+:func:`scan_segment` walks a segment record by record without trusting anything after the first
+problem: it yields every *complete* message (inside CRC-checked chunks) and stops at a torn or
+corrupt record, reporting where (:class:`SegmentScan`). That is what a ``kill -9``, a power cut or
+a full disk leaves: a segment without footer whose tail is a half-written chunk.
+
+:func:`recover_segment` rewrites such a segment into a valid, indexed MCAP with the same
+messages (same log/publish times, sequence numbers and bytes) plus an ``mls.recovery`` metadata
+record naming the torn tail; the original is kept beside it as ``seg-NNNNNN.mcap.torn`` (the
+swap is crash-safe: write ``.recovering``, fsync, rename the original, rename the new file,
+fsync the directory). :func:`salvage_session` does that for every unfinished segment of a
+session nobody is writing (``session.lock`` not held); :func:`salvage_root` for every session
+under the log root (what the daemon runs at start-up).
+
+:func:`session_info` summarizes a session: segments and their state, channels, message
+counts, time span, gaps and sequence continuity across segments.
+"""
+
+from __future__ import annotations
+
+import datetime as _dt
+import fcntl
+import io as _io
+import os
+import struct
+from collections import Counter
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Callable, Iterator
+
+from mcap.data_stream import ReadDataStream
+from mcap.opcode import Opcode
+from mcap.records import Channel, Chunk, Footer, Message, Metadata, Schema
+from mcap.stream_reader import breakup_chunk
+from mcap.writer import MCAP0_MAGIC, CompressionType, Writer
+
+from acquire.log.sessionlog import LOCK_NAME, SEGMENT_RE, LogError, fsync_dir
+
+NS_PER_S = 1_000_000_000
+_VALID_OPCODES = {int(o) for o in Opcode}
+_HEAD = struct.Struct("<BQ")
+
+
+@dataclass
+class SegmentScan:
+    """What a scan of one segment found."""
+
+    path: Path
+    size: int
+    good_bytes: int = 0  # end of the last complete record
+    footer: bool = False  # ends with Footer + magic (closed normally or after an error)
+    indexed: bool = False  # the footer points at a summary (closed normally)
+    problem: str | None = None  # why the scan stopped early
+
+    @property
+    def torn_bytes(self) -> int:  # (after a footer: bytes past its magic, normally none)
+        return self.size - self.good_bytes
+
+    @property
+    def complete(self) -> bool:
+        return self.footer and self.problem is None
+
+
+def scan_segment(path: Path, scan: SegmentScan | None = None
+                 ) -> Iterator[Schema | Channel | Message | Metadata]:  # fmt: skip
+    """Yield the schemas, channels, messages and metadata of a segment's data section, in file
+    order, stopping at the first torn or corrupt record. Fills ``scan`` as it goes."""
+    path = Path(path)
+    scan = scan if scan is not None else SegmentScan(path, 0)
+    with open(path, "rb") as f:
+        size = os.fstat(f.fileno()).st_size
+        scan.size = size
+        if f.read(8) != MCAP0_MAGIC:
+            scan.problem = "not an MCAP file (bad magic)"
+            return
+        pos = scan.good_bytes = 8
+        in_summary = False
+        while True:
+            head = f.read(_HEAD.size)
+            if not head:
+                return  # ends at a record boundary without footer: unfinished
+            if len(head) < _HEAD.size:
+                scan.problem = f"torn record header at byte {pos}"
+                return
+            opcode, length = _HEAD.unpack(head)
+            if opcode not in _VALID_OPCODES:
+                scan.problem = f"invalid record (opcode 0x{opcode:02x}) at byte {pos}"
+                return
+            if length > size - pos - _HEAD.size:
+                scan.problem = (f"torn {Opcode(opcode).name.lower()} record at byte {pos} "
+                                f"({length} bytes announced, {size - pos - _HEAD.size} present)")  # fmt: skip
+                return
+            body = f.read(length)
+            stream = ReadDataStream(_io.BytesIO(body))
+            try:
+                if opcode == Opcode.CHUNK:
+                    records = breakup_chunk(Chunk.read(stream), validate_crc=True)
+                elif opcode == Opcode.MESSAGE:
+                    records = [Message.read(stream, length)]
+                elif opcode in (Opcode.SCHEMA, Opcode.CHANNEL) and not in_summary:
+                    records = [Schema.read(stream) if opcode == Opcode.SCHEMA else Channel.read(stream)]
+                elif opcode == Opcode.METADATA:
+                    records = [Metadata.read(stream)]
+                elif opcode == Opcode.FOOTER:
+                    footer = Footer.read(stream)
+                    if f.read(8) != MCAP0_MAGIC:
+                        scan.problem = f"torn or missing MCAP magic after the footer at byte {pos}"
+                        return
+                    scan.footer, scan.indexed = True, footer.summary_start != 0
+                    scan.good_bytes = end = pos + _HEAD.size + length + len(MCAP0_MAGIC)
+                    if end < size:  # never written so by a writer: reported, not ignored
+                        scan.problem = f"torn tail of {size - end} bytes after the footer at byte {pos}"
+                    return
+                else:  # header, indexes, statistics, data end, attachments: nothing to carry
+                    records = []
+                    in_summary = in_summary or opcode == Opcode.DATA_END
+            except Exception as e:  # bad CRC, undecompressable chunk, malformed body
+                scan.problem = f"corrupt {Opcode(opcode).name.lower()} record at byte {pos} ({e})"
+                return
+            pos += _HEAD.size + length
+            scan.good_bytes = pos
+            yield from records
+
+
+def segment_paths(session_dir: Path) -> list[Path]:
+    return sorted(p for p in Path(session_dir).iterdir() if SEGMENT_RE.match(p.name))
+
+
+def is_locked(session_dir: Path) -> bool:
+    """True while a writer holds the session (its ``session.lock`` flock)."""
+    lock = Path(session_dir) / LOCK_NAME
+    if not lock.exists():
+        return False
+    fd = os.open(lock, os.O_RDONLY | os.O_CLOEXEC)
+    try:
+        fcntl.flock(fd, fcntl.LOCK_SH | fcntl.LOCK_NB)
+        fcntl.flock(fd, fcntl.LOCK_UN)
+        return False
+    except BlockingIOError:
+        return True
+    finally:
+        os.close(fd)
+
+
+def segment_closed(path: Path) -> bool:
+    """Quick check: the file ends with a Footer record and the magic (no full scan)."""
+    size = path.stat().st_size
+    if size < 8 + 8 + _HEAD.size + 20:
+        return False
+    with open(path, "rb") as f:
+        f.seek(size - 8 - _HEAD.size - 20)
+        tail = f.read()
+    opcode, length = _HEAD.unpack_from(tail)
+    return opcode == Opcode.FOOTER and length == 20 and tail[-8:] == MCAP0_MAGIC
+
+
+# -- recovery ---------------------------------------------------------------------------------
+
+
+@dataclass
+class RecoveryReport:
+    segment: str
+    messages: int
+    channels: dict[str, int]  # messages per topic
+    good_bytes: int
+    torn_bytes: int
+    problem: str | None
+    output: str  # the recovered file
+    original: str | None  # where the original was kept (None: deleted)
+
+    def as_dict(self) -> dict:
+        return asdict(self)
+
+
+def recover_segment(path: Path, keep_original: bool = True) -> RecoveryReport:
+    """Rewrite an unfinished segment as a valid MCAP with every complete message."""
+    path = Path(path)
+    source = path
+    torn_copy = path.with_name(path.name + ".torn")
+    if not path.exists() and torn_copy.exists():  # a swap interrupted after the first rename
+        source = torn_copy
+    tmp = path.with_name(path.name + ".recovering")
+    scan = SegmentScan(source, 0)
+    counts: Counter = Counter()
+    with open(tmp, "wb") as out:
+        w = Writer(out, compression=CompressionType.ZSTD)
+        w.start(profile="", library="marine-mls recover")
+        schema_ids: dict[int, int] = {}
+        channel_ids: dict[int, int] = {}
+        topics: dict[int, str] = {}
+        for rec in scan_segment(source, scan):
+            if isinstance(rec, Schema):
+                schema_ids[rec.id] = w.register_schema(rec.name, rec.encoding, rec.data)
+            elif isinstance(rec, Channel):
+                channel_ids[rec.id] = w.register_channel(rec.topic, rec.message_encoding,
+                                                         schema_ids.get(rec.schema_id, 0),
+                                                         dict(rec.metadata))  # fmt: skip
+                topics[rec.id] = rec.topic
+            elif isinstance(rec, Metadata):
+                w.add_metadata(rec.name, dict(rec.metadata))
+            elif isinstance(rec, Message) and rec.channel_id in channel_ids:
+                w.add_message(channel_ids[rec.channel_id], log_time=rec.log_time, data=rec.data,
+                              publish_time=rec.publish_time, sequence=rec.sequence)  # fmt: skip
+                counts[topics[rec.channel_id]] += 1
+        w.add_metadata("mls.recovery", {
+            "source": path.name, "good_bytes": str(scan.good_bytes),
+            "torn_bytes": str(scan.torn_bytes), "problem": scan.problem or "no footer",
+            "messages": str(sum(counts.values())),
+            "recovered_utc": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
+        })  # fmt: skip
+        w.finish()
+        out.flush()
+        os.fsync(out.fileno())
+    if source == path:
+        os.replace(path, torn_copy)
+    os.replace(tmp, path)
+    fsync_dir(path.parent)
+    if not keep_original:
+        torn_copy.unlink()
+        fsync_dir(path.parent)
+    return RecoveryReport(path.name, sum(counts.values()), dict(counts), scan.good_bytes,
+                          scan.torn_bytes, scan.problem, str(path),
+                          str(torn_copy) if keep_original else None)  # fmt: skip
+
+
+def unfinished_segments(session_dir: Path) -> list[Path]:
+    """Segments without a footer, and segments whose recovery was interrupted."""
+    session_dir = Path(session_dir)
+    out = [p for p in segment_paths(session_dir) if not segment_closed(p)]
+    for torn in session_dir.glob("seg-*.mcap.torn"):
+        seg = torn.with_name(torn.name[: -len(".torn")])
+        if not seg.exists():
+            out.append(seg)
+    return sorted(out)  # (a leftover .recovering file is simply rewritten)
+
+
+def salvage_session(session_dir: Path, keep_original: bool = True) -> list[RecoveryReport]:
+    session_dir = Path(session_dir)
+    if is_locked(session_dir):
+        raise LogError(f"{session_dir}: the session is being written by a running daemon "
+                       f"(pid {(session_dir / LOCK_NAME).read_text().strip() or '?'})")  # fmt: skip
+    return [recover_segment(p, keep_original) for p in unfinished_segments(session_dir)]
+
+
+def session_dirs(root: Path) -> list[Path]:
+    from acquire.log.sessionlog import SESSION_RE
+
+    root = Path(root)
+    if not root.is_dir():
+        return []
+    return sorted(p for p in root.iterdir() if p.is_dir() and SESSION_RE.match(p.name))
+
+
+def salvage_root(root: Path) -> dict[str, list[RecoveryReport]]:
+    """Salvage every session under ``root`` that no writer holds (daemon start-up)."""
+    out: dict[str, list[RecoveryReport]] = {}
+    for d in session_dirs(root):
+        if is_locked(d):
+            continue
+        reports = salvage_session(d)
+        if reports:
+            out[d.name] = reports
+    return out
+
+
+# -- info -------------------------------------------------------------------------------------
+
+
+@dataclass
+class ChannelInfo:
+    topic: str
+    encoding: str
+    messages: int = 0
+    first_log_ns: int | None = None
+    last_log_ns: int | None = None
+    seq_first: int | None = None
+    seq_last: int | None = None  # MCAP sequence (mod 2³²)
+    missing: int = 0  # sequence numbers never seen
+    duplicates: int = 0
+    backwards: int = 0
+    missing_ranges: list[tuple[int, int]] = field(default_factory=list)  # first few
+    gaps: list[tuple[int, float]] = field(default_factory=list)  # (log_time before, seconds)
+    unlocked: int = 0  # messages whose log_time came from an unlocked clock (JSON: read; raw: flag)
+    _period_ns: float | None = None
+
+
+@dataclass
+class SegmentInfo:
+    name: str
+    state: str  # complete | closed-after-error | unfinished | unreadable
+    bytes: int
+    messages: int
+    first_log_ns: int | None
+    last_log_ns: int | None
+    torn_bytes: int
+    problem: str | None
+    recovery: dict | None  # the mls.recovery metadata of a recovered segment
+    end_reason: str | None  # rotation | shutdown | requested (mls.segment_end)
+
+
+@dataclass
+class SessionInfo:
+    session: str
+    segments: list[SegmentInfo]
+    channels: dict[str, ChannelInfo]
+
+    @property
+    def messages(self) -> int:
+        return sum(c.messages for c in self.channels.values())
+
+    @property
+    def span_ns(self) -> tuple[int | None, int | None]:
+        firsts = [c.first_log_ns for c in self.channels.values() if c.first_log_ns is not None]
+        lasts = [c.last_log_ns for c in self.channels.values() if c.last_log_ns is not None]
+        return (min(firsts) if firsts else None, max(lasts) if lasts else None)
+
+    def as_dict(self) -> dict:
+        chans = {}
+        for t, c in self.channels.items():
+            d = asdict(c)
+            d.pop("_period_ns")
+            chans[t] = d
+        return {"session": self.session, "messages": self.messages,
+                "span_ns": list(self.span_ns),
+                "segments": [asdict(s) for s in self.segments], "channels": chans}  # fmt: skip
+
+
+def _unlocked(encoding: str, data: bytes) -> bool:
+    from acquire.log.schema import FLAG_HOLDOVER, FLAG_LOCKED, RAW_ENCODING
+
+    if encoding == RAW_ENCODING:
+        return len(data) > 1 and not data[1] & (FLAG_LOCKED | FLAG_HOLDOVER)
+    return b'"clock":"UNLOCKED"' in data
+
+
+def session_info(session_dir: Path, gap_s: float = 1.0,
+                 progress: Callable[[int, int], None] | None = None) -> SessionInfo:  # fmt: skip
+    """Read every segment of a session (in order) and summarize it.
+
+    A gap is a pause in a channel longer than ``max(gap_s, 5 × its typical period)``
+    (``/events`` is sparse by nature and not checked). ``progress(done_bytes, total_bytes)``.
+    """
+    session_dir = Path(session_dir)
+    if not session_dir.is_dir():
+        raise LogError(f"{session_dir}: no such session directory")
+    paths = segment_paths(session_dir)
+    total = sum(p.stat().st_size for p in paths)
+    done = 0
+    channels: dict[str, ChannelInfo] = {}
+    segments: list[SegmentInfo] = []
+    gap_ns = gap_s * NS_PER_S
+    for path in paths:
+        scan = SegmentScan(path, 0)
+        topics: dict[int, ChannelInfo] = {}
+        n, first, last = 0, None, None
+        recovery = end_reason = None
+        for rec in scan_segment(path, scan):
+            if isinstance(rec, Channel):
+                ci = channels.setdefault(rec.topic, ChannelInfo(rec.topic, rec.message_encoding))
+                topics[rec.id] = ci
+            elif isinstance(rec, Metadata):
+                if rec.name == "mls.recovery":
+                    recovery = dict(rec.metadata)
+                elif rec.name == "mls.segment_end":
+                    end_reason = rec.metadata.get("reason")
+            elif isinstance(rec, Message):
+                ci = topics.get(rec.channel_id)
+                if ci is None:
+                    continue
+                n += 1
+                t = rec.log_time
+                first = t if first is None else min(first, t)
+                last = t if last is None else max(last, t)
+                _account(ci, rec.sequence, t, gap_ns)
+                if _unlocked(ci.encoding, rec.data):
+                    ci.unlocked += 1
+        if scan.footer:
+            state = "complete" if scan.indexed else "closed-after-error"
+        elif scan.problem and scan.good_bytes <= 8:
+            state = "unreadable"
+        else:
+            state = "unfinished"
+        segments.append(SegmentInfo(path.name, state, scan.size, n, first, last, scan.torn_bytes,
+                                    scan.problem, recovery, end_reason))  # fmt: skip
+        done += scan.size
+        if progress is not None:
+            progress(done, total)
+    return SessionInfo(session_dir.name, segments, channels)
+
+
+def _account(ci: ChannelInfo, seq: int, t: int, gap_ns: float) -> None:
+    ci.messages += 1
+    if ci.seq_last is None:
+        ci.seq_first = seq
+    else:
+        delta = (seq - ci.seq_last) & 0xFFFFFFFF
+        if delta == 0:
+            ci.duplicates += 1
+        elif delta >= 1 << 31:
+            ci.backwards += 1
+        elif delta > 1:
+            ci.missing += delta - 1
+            if len(ci.missing_ranges) < 20:
+                ci.missing_ranges.append((ci.seq_last + 1, seq - 1))
+    ci.seq_last = seq
+    if ci.last_log_ns is not None and ci.topic != "/events":
+        dt = t - ci.last_log_ns
+        threshold = max(gap_ns, 5 * ci._period_ns) if ci._period_ns else None
+        if threshold is not None and dt > threshold and len(ci.gaps) < 100:
+            ci.gaps.append((ci.last_log_ns, dt / NS_PER_S))
+        elif dt > 0:
+            ci._period_ns = dt if ci._period_ns is None else 0.98 * ci._period_ns + 0.02 * dt
+    ci.first_log_ns = t if ci.first_log_ns is None else min(ci.first_log_ns, t)
+    ci.last_log_ns = t if ci.last_log_ns is None else max(ci.last_log_ns, t)

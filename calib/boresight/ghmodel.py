@@ -1,0 +1,227 @@
+"""The plane condition of the boresight adjustment and its derivatives, vectorized over points.
+
+For point i on plane j (DESIGN §3, §7):
+
+    F_i = n_jᵀ x_i + d_j = 0,
+    x_i = p_i + o_k(i) + R_b^n(φ_i, θ_i, ψ_i) · (R_bs(α_b, β, γ) · R_nom · r_S(ρ_i + δρ, α_i + δα) + a)
+
+Observations per point (8, in this order): position N, E, D; roll, pitch, heading; range; scan
+angle. Unknowns: boresight (3), optional extras (range offset δρ, scan-angle offset δα, lever
+arm x and y, latency Δt), per plane a unit normal (2 tangent-space increments) and d (relative to a fixed point near
+the plane's points, so that tilting the normal pivots the plane about its own points), optional
+per-pass translations o_k. This module evaluates F, ``A = ∂F/∂unknowns`` (as named columns) and
+``B = ∂F/∂observations`` (n × 8).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from calib.core import frames
+
+OBSERVATION_NAMES = ("north_m", "east_m", "down_m", "roll_rad", "pitch_rad", "heading_rad",
+                     "range_m", "scan_angle_rad")  # fmt: skip
+EXTRA_NAMES = ("range_offset", "scan_angle_offset", "lever_arm_x", "lever_arm_y", "latency")
+
+_EX, _EY, _EZ = np.eye(3)
+
+
+def tangent_basis(normal: np.ndarray) -> np.ndarray:
+    """(3, 2) orthonormal basis of the plane orthogonal to a unit normal (deterministic)."""
+    n = np.asarray(normal, float)
+    helper = _EZ if abs(n[2]) < 0.9 else _EX
+    e1 = np.cross(n, helper)
+    e1 /= np.linalg.norm(e1)
+    e2 = np.cross(n, e1)
+    return np.stack([e1, e2], axis=1)
+
+
+def _cross(a, b):
+    """Row-wise cross product of (n, 3) arrays (faster than np.cross for this shape)."""
+    return np.stack([a[:, 1] * b[:, 2] - a[:, 2] * b[:, 1],
+                     a[:, 2] * b[:, 0] - a[:, 0] * b[:, 2],
+                     a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0]], axis=1)  # fmt: skip
+
+
+def _rows_dot(a, b):
+    return np.einsum("ij,ij->i", a, b)
+
+
+@dataclass
+class State:
+    """Current values of the unknowns (SI, radians)."""
+
+    boresight_rad: np.ndarray  # (3,)
+    normals: np.ndarray  # (m, 3) unit
+    d_m: np.ndarray  # (m,) plane offsets relative to ``centers_m``: nᵀ(x − c) + d = 0
+    centers_m: np.ndarray  # (m, 3) fixed reference point of each plane (near its points)
+    pass_offsets_m: np.ndarray  # (K, 3)
+    lever_arm_m: np.ndarray  # (3,)
+    range_offset_m: float = 0.0
+    scan_angle_offset_rad: float = 0.0
+    latency_s: float = 0.0
+
+    @property
+    def d_lgf_m(self) -> np.ndarray:
+        """Plane offsets in the LGF: nᵀx + d = 0."""
+        return self.d_m - np.einsum("ij,ij->i", self.normals, self.centers_m)
+
+    def copy(self) -> "State":
+        return State(self.boresight_rad.copy(), self.normals.copy(), self.d_m.copy(),
+                     self.centers_m.copy(), self.pass_offsets_m.copy(), self.lever_arm_m.copy(), self.range_offset_m,
+                     self.scan_angle_offset_rad, self.latency_s)  # fmt: skip
+
+
+@dataclass
+class Linearization:
+    F: np.ndarray  # (n,) condition values at the linearization point
+    x_lgf_m: np.ndarray  # (n, 3) georeferenced points
+    A_boresight: np.ndarray  # (n, 3)
+    A_extra: dict  # name -> (n,)
+    A_plane: np.ndarray  # (n, 3): two tangent increments of the normal, then d
+    A_offset: np.ndarray  # (n, 3): ∂F/∂o_k = n_j
+    B: np.ndarray  # (n, 8)
+
+
+def _mat_rows(M: np.ndarray, v):
+    """M (3, 3) applied to component rows v = (x, y, z) of arrays."""
+    return tuple(M[i, 0] * v[0] + M[i, 1] * v[1] + M[i, 2] * v[2] for i in range(3))
+
+
+def _cross_rows(a, v):
+    """Constant vector a (3,) × component rows v."""
+    return (a[1] * v[2] - a[2] * v[1], a[2] * v[0] - a[0] * v[2], a[0] * v[1] - a[1] * v[0])
+
+
+def _linearize_block(
+    state: State,
+    r_nom: np.ndarray,
+    plane_index: np.ndarray,
+    pass_index: np.ndarray,
+    l: np.ndarray,
+    rates: tuple[np.ndarray, np.ndarray] | None,
+    bases: np.ndarray,
+    out: Linearization,
+) -> None:
+    """Evaluate the condition and its Jacobians at observations ``l`` (n, 8) into ``out``
+    (views of the caller's arrays). Vectors are kept as three contiguous component arrays."""
+    n = l.shape[0]
+    lt = np.ascontiguousarray(l.T)
+    nrm = np.ascontiguousarray(state.normals[plane_index].T)  # (3, n)
+    rho_t = lt[6] + state.range_offset_m
+    a = lt[7] + state.scan_angle_offset_rad
+    ca, sa = np.cos(a), np.sin(a)
+
+    br, bp, by = state.boresight_rad
+    Rx, Ry, Rz = frames.rot_x(br), frames.rot_y(bp), frames.rot_z(by)
+    R_bs = Rz @ Ry @ Rx
+    M = R_bs @ r_nom  # R_S^b
+    # r_S = ρ[0, cos α, sin α]; with the two scan-plane columns of the mounts:
+    m2, m3 = M[:, 1], M[:, 2]
+    q2, q3 = r_nom[:, 1], r_nom[:, 2]
+    e1, e2 = rho_t * ca, rho_t * sa
+    q = tuple(q2[i] * e1 + q3[i] * e2 for i in range(3))  # R_nom r_S
+    v_b = tuple(m2[i] * e1 + m3[i] * e2 + state.lever_arm_m[i] for i in range(3))
+    drho = tuple(m2[i] * ca + m3[i] * sa for i in range(3))  # ∂(M r_S)/∂ρ
+    dalpha = tuple(rho_t * (m3[i] * ca - m2[i] * sa) for i in range(3))  # ∂(M r_S)/∂α
+    # ∂v_b/∂(boresight roll, pitch, yaw)
+    dv_br = _mat_rows(R_bs, _cross_rows(_EX, q))
+    dv_bp = _mat_rows(Rz @ Ry, _cross_rows(_EY, _mat_rows(Rx, q)))
+    dv_by = _cross_rows(_EZ, _mat_rows(R_bs, q))
+
+    # attitude: R = Rz(ψ) Ry(θ) Rx(φ) per point, as rotations of component rows
+    cr, sr = np.cos(lt[3]), np.sin(lt[3])
+    cp, sp = np.cos(lt[4]), np.sin(lt[4])
+    ch, sh = np.cos(lt[5]), np.sin(lt[5])
+
+    def rx(v):
+        return (v[0], cr * v[1] - sr * v[2], sr * v[1] + cr * v[2])
+
+    def ry(v):
+        return (cp * v[0] + sp * v[2], v[1], cp * v[2] - sp * v[0])
+
+    def rz(v):
+        return (ch * v[0] - sh * v[1], sh * v[0] + ch * v[1], v[2])
+
+    def n_dot(v):
+        return nrm[0] * v[0] + nrm[1] * v[1] + nrm[2] * v[2]
+
+    def n_dot_R(v):
+        return n_dot(rz(ry(rx(v))))
+
+    # nᵀR for the constant-direction derivatives: uᵀ = nᵀ R = (Rᵀ n)ᵀ
+    rx_v = rx(v_b)
+    ryx_v = ry(rx_v)
+    Rv = rz(ryx_v)
+    off = state.pass_offsets_m[pass_index]
+    ctr = state.centers_m[plane_index]
+    x_rel = np.empty((n, 3))
+    for i in range(3):
+        x_rel[:, i] = lt[i] + off[:, i] + Rv[i] - ctr[:, i]
+    out.F[:] = n_dot((x_rel[:, 0], x_rel[:, 1], x_rel[:, 2])) + state.d_m[plane_index]
+    out.x_lgf_m[:] = x_rel + ctr
+    out.A_offset[:] = nrm.T
+
+    B = out.B
+    B[:, 0:3] = nrm.T
+    B[:, 3] = n_dot_R(_cross_rows(_EX, v_b))
+    B[:, 4] = n_dot(rz(ry(_cross_rows(_EY, rx_v))))
+    B[:, 5] = n_dot(_cross_rows(_EZ, Rv))
+    B[:, 6] = n_dot_R(drho)
+    B[:, 7] = n_dot_R(dalpha)
+
+    for c, dv in enumerate((dv_br, dv_bp, dv_by)):
+        out.A_boresight[:, c] = n_dot_R(dv)
+    ones, zeros = np.ones(n), np.zeros(n)
+    extra = out.A_extra
+    extra["range_offset"][:] = B[:, 6]
+    extra["scan_angle_offset"][:] = B[:, 7]
+    extra["lever_arm_x"][:] = n_dot_R((ones, zeros, zeros))
+    extra["lever_arm_y"][:] = n_dot_R((zeros, ones, zeros))
+    if rates is not None:
+        vel, omega_b = rates
+        w_x_v = _cross(omega_b, np.stack(v_b, axis=1))
+        extra["latency"][:] = n_dot(tuple(vel[:, i] for i in range(3))) + n_dot_R(
+            tuple(w_x_v[:, i] for i in range(3)))
+    E = bases[plane_index]  # (n, 3, 2)
+    out.A_plane[:, 0:2] = np.einsum("ni,nij->nj", x_rel, E)
+    out.A_plane[:, 2] = 1.0
+
+
+#: Points per block: the temporaries of a block stay in the CPU cache.
+_BLOCK = 1 << 15
+
+
+def linearize(
+    state: State,
+    r_nom: np.ndarray,
+    plane_index: np.ndarray,
+    pass_index: np.ndarray,
+    l: np.ndarray,
+    rates: tuple[np.ndarray, np.ndarray] | None = None,
+    bases: np.ndarray | None = None,
+) -> Linearization:
+    """Evaluate the condition and its Jacobians at observations ``l`` (n, 8), in blocks.
+
+    ``rates`` = (velocity (n, 3) in the LGF, angular rate (n, 3) in the body frame) is needed
+    only for the latency column; ``bases`` (m, 3, 2) are the tangent bases of the normals.
+    """
+    n = l.shape[0]
+    if bases is None:
+        bases = np.stack([tangent_basis(nn) for nn in state.normals])
+    names = list(EXTRA_NAMES[:4]) + (["latency"] if rates is not None else [])
+    res = Linearization(
+        F=np.empty(n), x_lgf_m=np.empty((n, 3)), A_boresight=np.empty((n, 3)),
+        A_extra={k: np.empty(n) for k in names}, A_plane=np.empty((n, 3)),
+        A_offset=np.empty((n, 3)), B=np.empty((n, 8)),
+    )  # fmt: skip
+    for lo in range(0, n, _BLOCK):
+        sl = slice(lo, min(lo + _BLOCK, n))
+        r = None if rates is None else (rates[0][sl], rates[1][sl])
+        view = Linearization(res.F[sl], res.x_lgf_m[sl], res.A_boresight[sl],
+                             {k: v[sl] for k, v in res.A_extra.items()}, res.A_plane[sl],
+                             res.A_offset[sl], res.B[sl])  # fmt: skip
+        _linearize_block(state, r_nom, plane_index[sl], pass_index[sl], l[sl], r, bases, view)
+    return res

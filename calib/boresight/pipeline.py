@@ -1,0 +1,389 @@
+"""The calibration pipeline (issue 4, DESIGN §7): a bundle in, the boresight and its
+uncertainties out.
+
+    bundle ──► check the points (finite, ordered in time within each pass, covered by the
+               trajectory)
+           ──► georeference every pass with the a-priori mount
+           ──► extract each target of each pass (:mod:`calib.boresight.extract`), optional voxel
+               subsampling
+           ──► observations (:func:`calib.boresight.adjust.build_observations`: trajectory at the
+               point times, the trajectory's per-epoch σ or the site's), initial planes (each
+               target's points over all passes combined, thesis §4.4.4; see
+               :func:`calib.boresight.extract.initial_planes`)
+           ──► the Gauss–Helmert adjustment (:func:`calib.boresight.adjust.adjust`)
+           ──► the result.json document (:func:`calib.boresight.result.result_to_dict`)
+
+:func:`calibrate` works on objects in memory (a site, a trajectory and raw scanner points,
+optionally per-point POS observations or known target labels, as a simulator has them);
+:func:`calibrate_bundle` reads a bundle directory; :func:`run_bundle` also writes
+``result.json``, ``report.md`` and the plots (what ``mls calib run`` calls). Every step
+reports through ``progress(stage, done, total)``.
+
+Convergence is declared when no angle moves by more than 1e-6 rad and no offset by more than
+10 µm (:class:`CalibrationOptions`; the adjustment's own defaults are 1000× stricter and cost
+2–3 more iterations on noisy data for a boresight change below 1e-8 rad).
+
+The realistic σ assumes first-order Gauss–Markov POS errors by default, with the correlation
+time given by the caller, else the site's ``pos_sigmas.correlation_time_s``, else
+:data:`calib.boresight.adjust.DEFAULT_POS_CORRELATION_S` (and the report says it was assumed).
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+
+from calib.core import frames
+from calib.boresight.adjust import (
+    DEFAULT_POS_CORRELATION_S,
+    AdjustmentResult,
+    AdjustOptions,
+    ErrorModel,
+    Observations,
+    adjust,
+    build_observations,
+    validate_input,
+)
+from calib.io.bundle import ScanPoints, read_bundle
+from calib.boresight.extract import (
+    Extraction,
+    ExtractOptions,
+    extract,
+    from_labels,
+    initial_planes,
+    subsample,
+)
+from calib.core.georef import Mount, georeference, georeference_poses
+from calib.boresight.result import result_to_dict, write_result
+from calib.io.site import Site
+from calib.core.trajectory import Poses, Trajectory
+
+Progress = Callable[[str, float, float | None], None]
+ERROR_MODELS = ("gauss_markov", "pass_bias", "white")
+
+
+class CalibrationError(ValueError):
+    """The input cannot be calibrated as given (the message says why and what to do)."""
+
+
+@dataclass(frozen=True)
+class CalibrationOptions:
+    subsample_m: float | None = None  # voxel edge; None: every extracted point
+    estimate: tuple[str, ...] = ()  # extra unknowns (calib.boresight.adjust.ESTIMABLE)
+    apriori_rad: tuple[float, float, float] | None = None  # overrides site.yaml's boresight
+    error_model: str = "gauss_markov"  # of the POS errors, for sigma_realistic
+    correlation_time_s: float | tuple[float, ...] | None = None  # overrides site.yaml's
+    extraction: ExtractOptions = field(default_factory=ExtractOptions)
+    outliers: str = "snooping"
+    jackknife: bool = True
+    #: convergence (calib.boresight.adjust.AdjustOptions): absolute step tolerances, or every step
+    #: below ``rel_tol`` of its formal σ, whichever comes first
+    tol_angle_rad: float = AdjustOptions.tol_angle_rad
+    tol_m: float = AdjustOptions.tol_m
+    rel_tol: float = AdjustOptions.rel_tol
+    #: iteration cap of the adjustment: reaching it unconverged is a warning in the result
+    max_iterations: int = AdjustOptions.max_iterations
+
+    def __post_init__(self):
+        self.adjust_options(ErrorModel("white"))  # unknown or refused extra unknowns: now
+        if self.error_model not in ERROR_MODELS:
+            raise CalibrationError(f"error model {self.error_model!r}: expected one of "
+                                   f"{', '.join(ERROR_MODELS)}")  # fmt: skip
+        if self.subsample_m is not None and not (np.isfinite(self.subsample_m)
+                                                 and self.subsample_m > 0):  # fmt: skip
+            raise CalibrationError(f"subsampling voxel {self.subsample_m!r} m: expected a "
+                                   f"positive size in metres, e.g. 0.05")  # fmt: skip
+        if self.correlation_time_s is not None:
+            tau = np.atleast_1d(np.asarray(self.correlation_time_s, float))
+            if tau.size not in (1, 6) or not np.all(np.isfinite(tau) & (tau > 0)):
+                raise CalibrationError(f"correlation time {self.correlation_time_s!r} s: "
+                                       f"expected one positive number (or six)")  # fmt: skip
+
+    def adjust_options(self, model: ErrorModel) -> AdjustOptions:
+        return AdjustOptions(estimate=tuple(self.estimate), error_model=model,
+                             jackknife=self.jackknife, outliers=self.outliers,
+                             tol_angle_rad=self.tol_angle_rad, tol_m=self.tol_m,
+                             rel_tol=self.rel_tol,
+                             max_iterations=self.max_iterations)  # fmt: skip
+
+
+@dataclass
+class CalibrationRun:
+    """Everything a calibration produced (the report is written from it)."""
+
+    source: str  # the bundle's path, or a description of the in-memory input
+    site: Site
+    frame: frames.LocalFrame
+    mount_apriori: Mount
+    options: CalibrationOptions
+    extraction: Extraction
+    observations: Observations
+    planes_init: list[tuple[np.ndarray, float]]
+    result: AdjustmentResult
+    doc: dict  # result.json
+    warnings: list[str]
+    notes: list[str]  # assumptions the report states
+    timings_s: dict[str, float]
+
+
+def _software_version() -> str:
+    from importlib.metadata import PackageNotFoundError, version
+
+    try:
+        return f"marine-mls {version('marine-mls')}"
+    except PackageNotFoundError:
+        return "marine-mls 0.0.0+source"
+
+
+# -- checks ---------------------------------------------------------------------------------
+
+
+def check_points(points: ScanPoints, trajectory: Trajectory, time_offset_s: float = 0.0) -> None:
+    """Refuse what cannot be georeferenced: non-finite times or observations, times going
+    backwards within a pass, and points the trajectory does not cover (named by pass)."""
+    t, pid = points.t_gps_s, points.pass_id
+    bad = ~np.isfinite(t)
+    if bad.any():
+        i = int(np.argmax(bad))
+        raise CalibrationError(f"{int(bad.sum())} point time(s) are NaN or infinite (first: "
+                               f"point {i}, pass {int(pid[i])}); fix or drop them")  # fmt: skip
+    for name, arr in (("range", points.range_m), ("scan angle", points.scan_angle_rad)):
+        bad = ~np.isfinite(arr)
+        if bad.any():
+            i = int(np.argmax(bad))
+            raise CalibrationError(f"{name} is NaN or infinite for {int(bad.sum())} point(s) "
+                                   f"(first: point {i}, pass {int(pid[i])})")  # fmt: skip
+    back = (pid[1:] == pid[:-1]) & (np.diff(t) < 0)
+    if back.any():
+        i = int(np.argmax(back)) + 1
+        raise CalibrationError(f"point times go backwards within pass {int(pid[i])} at point {i} "
+                               f"({t[i]:.6f} s after {t[i - 1]:.6f} s): the points of a pass "
+                               f"must be in time order")  # fmt: skip
+    uncovered = trajectory.uncovered(t + time_offset_s)
+    if uncovered.any():
+        parts = []
+        for p in np.unique(pid[uncovered]):
+            m = uncovered & (pid == p)
+            parts.append(f"pass {int(p)}: {int(m.sum())} of {int(np.sum(pid == p))} points, "
+                         f"{t[m].min():.3f}…{t[m].max():.3f} s")  # fmt: skip
+        raise CalibrationError(
+            f"the trajectory does not cover the points (it spans {trajectory.t_gps_s[0]:.3f}…"
+            f"{trajectory.t_gps_s[-1]:.3f} s, gaps > {trajectory.max_gap_s:g} s refused): "
+            f"{'; '.join(parts)}. Export the trajectory over every pass.")  # fmt: skip
+
+
+# -- the steps ------------------------------------------------------------------------------
+
+
+def _georeference(points: ScanPoints, trajectory: Trajectory, mount: Mount, poses: Poses | None,
+                  progress: Progress | None) -> tuple[np.ndarray, np.ndarray]:  # fmt: skip
+    """Points and beam origins (the scanner's position) in the LGF, pass by pass."""
+    n = len(points)
+    p, origin = np.empty((n, 3)), np.empty((n, 3))
+    pass_ids = points.pass_ids()
+    zero = np.zeros(n)
+    for k, pid in enumerate(pass_ids):
+        sel = np.flatnonzero(points.pass_id == pid)
+        t, rho, alpha = points.t_gps_s[sel], points.range_m[sel], points.scan_angle_rad[sel]
+        if poses is None:
+            p[sel] = georeference(t, rho, alpha, trajectory, mount)
+            origin[sel] = georeference(t, zero[sel], alpha, trajectory, mount)
+        else:
+            sub = Poses(poses.p_lgf_m[sel], poses.rpy_rad[sel], poses.r_b_n[sel])
+            p[sel] = georeference_poses(sub, rho, alpha, mount)
+            origin[sel] = georeference_poses(sub, zero[sel], alpha, mount)
+        if progress is not None:
+            progress("georeferencing passes", k + 1, len(pass_ids))
+    return p, origin
+
+
+def pass_headings(obs_heading_rad: np.ndarray, pass_id: np.ndarray, wall_azimuth_rad: float
+                  ) -> dict[int, float]:  # fmt: skip
+    """Heading of each pass relative to the wall direction: the circular mean of the vessel's
+    heading at the pass's points."""
+    out = {}
+    for p in np.unique(pass_id):
+        h = obs_heading_rad[pass_id == p]
+        mean = np.arctan2(np.mean(np.sin(h)), np.mean(np.cos(h)))
+        out[int(p)] = float(frames.wrap_2pi(mean - wall_azimuth_rad))
+    return out
+
+
+def error_model(options: CalibrationOptions, site: Site) -> tuple[ErrorModel, str]:
+    """The POS error model for ``sigma_realistic`` and where its correlation time came from."""
+    if options.error_model != "gauss_markov":
+        return ErrorModel(options.error_model), "not used"
+    if options.correlation_time_s is not None:
+        tau = np.atleast_1d(np.asarray(options.correlation_time_s, float))
+        source = "command line"
+    elif site.pos_correlation_time_s is not None:
+        tau = np.asarray(site.pos_correlation_time_s, float)
+        source = "site.yaml pos_sigmas.correlation_time_s"
+    else:
+        tau = np.array([DEFAULT_POS_CORRELATION_S])
+        source = "default (not configured)"
+    value = float(tau[0]) if np.all(tau == tau[0]) else tuple(float(x) for x in tau)
+    return ErrorModel("gauss_markov", value), source
+
+
+def calibrate(site: Site, trajectory: Trajectory, points: ScanPoints,
+              options: CalibrationOptions = CalibrationOptions(), *,
+              poses: Poses | None = None, labels: np.ndarray | None = None,
+              progress: Progress | None = None, source: str = "in memory",
+              software_version: str | None = None) -> CalibrationRun:  # fmt: skip
+    """Calibrate the boresight from raw scanner ``points`` and the ``trajectory``.
+
+    ``poses``: per-point POS observations that replace the trajectory's interpolation (a
+    simulator's per-point POS errors); ``labels``: per point the index of the target it hit
+    (−1 none) instead of the extraction. Raises :class:`CalibrationError`,
+    :class:`calib.boresight.extract.ExtractionError` or :class:`calib.boresight.adjust.AdjustmentError` (its
+    :class:`~calib.boresight.adjust.ObservabilityError` names the weak angles and the passes that would
+    observe them) with a message that says what to do.
+    """
+    timings: dict[str, float] = {}
+    clock = time.perf_counter()
+    notes: list[str] = []
+    if not site.targets:
+        raise CalibrationError("site.yaml configures no targets: list the planar targets "
+                               "(name, centre, size, inclination, facing) under 'targets'")  # fmt: skip
+    mount = site.mount
+    if options.apriori_rad is not None:
+        mount = mount.with_boresight(np.asarray(options.apriori_rad, float))
+    if len(points) == 0:
+        raise CalibrationError("the bundle holds no points")
+    if poses is not None and poses.p_lgf_m.shape != (len(points), 3):
+        raise CalibrationError(f"per-point poses for {poses.p_lgf_m.shape[0]} points, expected "
+                               f"{len(points)}")  # fmt: skip
+    check_points(points, trajectory, mount.time_offset_s)
+    frame = trajectory.frame
+    rects = site.target_rectangles(frame)
+    names = [r.name for r in rects]
+
+    p, origin = _georeference(points, trajectory, mount, poses, progress)
+    timings["georeference_s"] = time.perf_counter() - clock
+
+    clock = time.perf_counter()
+    if labels is None:
+        ext = extract(p, points.intensity, points.pass_id, rects, options.extraction, origin,
+                      progress=None if progress is None else
+                      (lambda done, total: progress("extracting targets", done, total)))  # fmt: skip
+    else:
+        lab = np.asarray(labels)
+        if lab.shape != (len(points),):
+            raise CalibrationError(f"labels for {lab.shape} points, expected ({len(points)},)")
+        ext = from_labels(lab, points.pass_id, names)
+    if options.subsample_m is not None:
+        ext = subsample(ext, p, options.subsample_m)
+    timings["extract_s"] = time.perf_counter() - clock
+    warnings = list(ext.warnings)
+
+    clock = time.perf_counter()
+    idx, tgt = ext.indices()
+    if idx.size == 0:
+        raise CalibrationError(
+            f"no target found in any pass ({', '.join(names)}): check the targets' centres "
+            f"and sizes in site.yaml (search radius {options.extraction.search_radius_m:g} m "
+            f"beyond each target), or try the automatic extraction")  # fmt: skip
+    pid = points.pass_id[idx]
+    if poses is None:
+        heading = trajectory.interpolate(points.t_gps_s[idx] + mount.time_offset_s).rpy_rad[:, 2]
+    else:
+        heading = poses.rpy_rad[idx, 2]
+    headings = pass_headings(heading, pid, site.wall_azimuth_rad)
+    obs = build_observations(
+        trajectory, points.t_gps_s[idx], points.range_m[idx], points.scan_angle_rad[idx], tgt,
+        pid, names, site.sigma_range_m, site.sigma_scan_angle_rad, site.sigma_position_m,
+        site.sigma_attitude_rad, point_ids=idx, time_offset_s=mount.time_offset_s,
+        pass_headings_rad=headings,
+    )  # fmt: skip
+    if poses is not None:
+        obs.l[:, 0:3] = poses.p_lgf_m[idx]
+        obs.l[:, 3:6] = poses.rpy_rad[idx]
+        if poses.sigma_p_m is not None and poses.sigma_rpy_rad is not None:
+            obs.sigma_l[:, 0:3] = poses.sigma_p_m[idx]
+            obs.sigma_l[:, 3:6] = poses.sigma_rpy_rad[idx]
+    if trajectory.has_sigmas:
+        notes.append("POS σ per point from the trajectory's per-epoch sigmas")
+    else:
+        notes.append("POS σ from site.yaml pos_sigmas (the trajectory carries none)")
+    validate_input(obs)  # a target with too few points, a single target: clear errors
+    planes = initial_planes(ext, p, rects)
+    model, tau_source = error_model(options, site)
+    if tau_source.startswith("default"):
+        notes.append(f"no POS correlation time configured (site.yaml pos_sigmas."
+                     f"correlation_time_s): sigma_realistic assumes {DEFAULT_POS_CORRELATION_S:g} "
+                     f"s")  # fmt: skip
+    timings["observations_s"] = time.perf_counter() - clock
+
+    clock = time.perf_counter()
+    if progress is not None:
+        progress("adjusting", 0, 1)
+    res = adjust(obs, mount, planes, options.adjust_options(model))
+    if progress is not None:
+        progress("adjusting", 1, 1)
+    timings["adjust_s"] = time.perf_counter() - clock
+    if not res.converged:
+        warnings.append(f"the adjustment did not converge in {res.iterations} iterations: do "
+                        f"not use the result; check the a-priori boresight and the "
+                        f"extraction")  # fmt: skip
+
+    formal = res.sigma_formal_rad
+    ratio = res.sigma_realistic_rad / formal
+    extra = {
+        "source": source,
+        "extraction": {
+            "mode": options.extraction.mode if labels is None else "labels",
+            "subsample_m": options.subsample_m,
+            "points_per_pass": {str(k): v for k, v in ext.counts().items()},
+            "points_per_target": ext.totals(),
+        },
+        "realistic_correlation_time_source": tau_source,
+        "sigma_realistic_over_formal": {a: float(r) for a, r in
+                                        zip(("roll", "pitch", "yaw"), ratio)},  # fmt: skip
+        "outlier_point_ids_refer_to": "0-based data rows of points.csv (after the header)",
+        "warnings": warnings,
+        "notes": notes,
+    }
+    doc = result_to_dict(res, mount.boresight_rad, software_version or _software_version(),
+                         extra)  # fmt: skip
+    timings["total_s"] = sum(timings.values())
+    return CalibrationRun(source, site, frame, mount, options, ext, obs, planes, res, doc,
+                          warnings, notes, timings)  # fmt: skip
+
+
+def calibrate_bundle(bundle_path: str | Path, options: CalibrationOptions = CalibrationOptions(),
+                     progress: Progress | None = None, max_gap_s: float = 1.0
+                     ) -> CalibrationRun:  # fmt: skip
+    """Read a bundle directory (DESIGN §4) and calibrate it; ``truth.json`` is never read."""
+    if progress is not None:
+        progress("reading the bundle", 0, None)
+    bundle = read_bundle(bundle_path, max_gap_s=max_gap_s)
+    return calibrate(bundle.site, bundle.trajectory, bundle.points, options, progress=progress,
+                     source=str(Path(bundle_path)))  # fmt: skip
+
+
+def write_outputs(run: CalibrationRun, out_dir: str | Path, plots: bool = True) -> list[Path]:
+    """Write ``result.json``, ``report.md`` and (with ``plots``) the PNG plots; returns the
+    paths written."""
+    from calib.boresight.report import write_report
+
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    return [write_result(out / "result.json", run.doc), *write_report(run, out, plots=plots)]
+
+
+def run_bundle(bundle_path: str | Path, out_dir: str | Path | None = None,
+               options: CalibrationOptions = CalibrationOptions(),
+               progress: Progress | None = None, plots: bool = True
+               ) -> tuple[CalibrationRun, list[Path]]:  # fmt: skip
+    """What ``mls calib run`` does: calibrate a bundle and write its outputs into ``out_dir``
+    (default ``BUNDLE/calib``)."""
+    run = calibrate_bundle(bundle_path, options, progress)
+    out = Path(bundle_path) / "calib" if out_dir is None else Path(out_dir)
+    if progress is not None:
+        progress("writing the report", 0, None)
+    return run, write_outputs(run, out, plots=plots)

@@ -1,0 +1,412 @@
+"""The calibration report: ``report.md`` and its PNG plots (matplotlib's Agg renderer, no
+display needed).
+
+Plots, all residuals in millimetres (signed distance of a point to its plane):
+
+- ``residuals_by_plane.png``: histogram per target, with the normal density of its mean and σ;
+- ``residuals_by_pass.png``: histogram per pass;
+- ``residuals_time.png``: residuals along time, a panel per pass, a colour per target;
+- ``target_<name>.png``: the target's points seen edge-on (along its plane: horizontal
+  position on the target against the distance to the plane) before the calibration (a-priori
+  mount, the initial plane) and after it (the estimated mount, the adjusted plane), one colour
+  per pass: the passes' copies of the target, apart before, fall onto one plane after.
+
+The narrative states the estimates, the four σ and by how much the formal σ is optimistic, the
+χ² test, the correlations, the outliers, what the passes sailed can observe, and every
+warning and assumption of the run.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from calib.core import frames
+from calib.boresight.adjust import ANGLE_NAMES, OBSERVING_PAIRS, sailed_headings
+from calib.core.georef import Mount, georeference_poses
+from calib.boresight.result import OFFSET_COMPONENTS
+from calib.core.trajectory import Poses
+
+PLOT_DPI = 110
+
+
+def _deg(x_rad) -> float:
+    return float(np.degrees(x_rad))
+
+
+def _fmt(x: float, digits: int = 4) -> str:
+    return "—" if x is None or not np.isfinite(x) else f"{x:.{digits}f}"
+
+
+def _sig(x: float) -> str:
+    """A σ in degrees with three significant digits."""
+    return "—" if x is None or not np.isfinite(x) else f"{x:.3g}"
+
+
+def _safe(name: str) -> str:
+    return "".join(c if c.isalnum() or c in "-_" else "_" for c in name)
+
+
+# -- geometry for the plots -------------------------------------------------------------------
+
+
+def _used(run) -> np.ndarray:
+    """Mask of the observations the adjustment kept (outliers removed)."""
+    return np.isin(run.observations.point_ids, run.result.used_point_ids)
+
+
+def _poses(obs) -> Poses:
+    rpy = obs.l[:, 3:6]
+    return Poses(obs.l[:, 0:3], rpy, frames.attitude_matrix(*rpy.T))
+
+
+def edge_on(run) -> dict[str, dict]:
+    """Per target, for the kept points: horizontal position on the plane (m) and distance to
+    the plane (m), before (a-priori mount, initial plane) and after (estimated mount and
+    extras, adjusted plane), and each point's pass index."""
+    obs, res = run.observations, run.result
+    used = _used(run)
+    poses = _poses(obs)
+    st = res.state
+    after_mount = Mount(st.lever_arm_m, run.mount_apriori.nominal_rad, st.boresight_rad,
+                        st.range_offset_m, st.scan_angle_offset_rad)  # fmt: skip
+    p0 = georeference_poses(poses, obs.l[:, 6], obs.l[:, 7], run.mount_apriori)[used]
+    p1 = georeference_poses(poses, obs.l[:, 6], obs.l[:, 7], after_mount)[used]
+    plane_index, pass_index = obs.plane_index[used], obs.pass_index[used]
+    p1 += st.pass_offsets_m[pass_index]
+    out = {}
+    for j, name in enumerate(obs.plane_names):
+        m = plane_index == j
+        n0, d0 = run.planes_init[j]
+        horiz = np.cross([0.0, 0.0, 1.0], n0)
+        horiz = horiz / np.linalg.norm(horiz) if np.linalg.norm(horiz) > 1e-6 else np.eye(3)[0]
+        q0, q1 = p0[m], p1[m]
+        centre = q1.mean(axis=0)
+        out[name] = {"along_before_m": (q0 - centre) @ horiz, "before_m": q0 @ n0 + d0,
+                     "along_after_m": (q1 - centre) @ horiz, "after_m": res.residual_m[m],
+                     "pass_index": pass_index[m]}  # fmt: skip
+    return out
+
+
+# -- plots --------------------------------------------------------------------------------------
+
+
+def _figure(n_panels: int, width_in: float = 4.2, height_in: float = 3.0):
+    from matplotlib.figure import Figure
+
+    cols = min(n_panels, 3)
+    rows = -(-n_panels // cols)
+    w, h = width_in * cols, height_in * rows + 0.4
+    fig = Figure(figsize=(w, h))
+    # fixed margins (in inches): a constrained layout would cost a second per figure
+    fig.subplots_adjust(left=0.75 / w, right=1 - 0.2 / w, bottom=0.55 / h, top=1 - 0.75 / h,
+                        wspace=0.35, hspace=0.55)  # fmt: skip
+    axes = np.atleast_1d(fig.subplots(rows, cols, squeeze=False).ravel())
+    for ax in axes[n_panels:]:
+        ax.set_visible(False)
+    return fig, axes
+
+
+def _histograms(values_mm: list[np.ndarray], titles: list[str], path: Path, suptitle: str):
+    fig, axes = _figure(len(values_mm))
+    for ax, v, title in zip(axes, values_mm, titles):
+        if v.size:
+            mean, std = float(v.mean()), float(v.std())
+            dens, edges = np.histogram(v, bins=min(60, max(10, v.size // 20)), density=True)
+            ax.stairs(dens, edges, fill=True, color="tab:blue", alpha=0.75)  # one artist: fast
+            if std > 0:
+                x = np.linspace(v.min(), v.max(), 200)
+                ax.plot(x, np.exp(-0.5 * ((x - mean) / std) ** 2) / (std * np.sqrt(2 * np.pi)),
+                        "k-", lw=1, label=f"mean {mean:+.2f}, σ {std:.2f} mm")  # fmt: skip
+                ax.legend(fontsize=8)
+        ax.set_title(f"{title} ({v.size} points)", fontsize=10)
+        ax.set_xlabel("residual (mm)")
+    fig.suptitle(suptitle)
+    fig.savefig(path, dpi=PLOT_DPI)
+    return path
+
+
+def _pass_colours(n: int):
+    from matplotlib import colormaps
+
+    cmap = colormaps["tab10"]
+    return [cmap(k % 10) for k in range(n)]
+
+
+def write_plots(run, out_dir: Path) -> list[Path]:
+    obs, res = run.observations, run.result
+    used = _used(run)
+    r_mm = res.residual_m * 1e3
+    plane_index, pass_index = obs.plane_index[used], obs.pass_index[used]
+    t = obs.t_gps_s[used]
+    paths = [
+        _histograms([r_mm[plane_index == j] for j in range(len(obs.plane_names))],
+                    list(obs.plane_names), out_dir / "residuals_by_plane.png",
+                    "Residuals per target (distance to the adjusted plane)"),
+        _histograms([r_mm[pass_index == k] for k in range(len(obs.pass_ids))],
+                    [f"pass {p}" for p in obs.pass_ids], out_dir / "residuals_by_pass.png",
+                    "Residuals per pass"),
+    ]  # fmt: skip
+    # along time, one panel per pass (passes last seconds, the gaps between them minutes),
+    # one colour per target: a drift within a pass is the POS error the formal σ ignores
+    colours = _pass_colours(max(len(obs.pass_ids), len(obs.plane_names)))
+    fig, axes = _figure(len(obs.pass_ids), 4.2, 2.8)
+    for ax, k, pid in zip(axes, range(len(obs.pass_ids)), obs.pass_ids):
+        m = pass_index == k
+        t0 = float(t[m].min()) if m.any() else 0.0
+        for j, name in enumerate(obs.plane_names):
+            mj = m & (plane_index == j)
+            ax.plot(t[mj] - t0, r_mm[mj], ".", ms=2, color=colours[j], label=name)
+        ax.axhline(0.0, color="k", lw=0.5)
+        ax.set_title(f"pass {pid}", fontsize=10)
+        ax.set_xlabel("time in the pass (s)")
+        ax.set_ylabel("residual (mm)")
+    axes[0].legend(fontsize=7, markerscale=4)
+    fig.suptitle("Residuals along time")
+    fig.savefig(out_dir / "residuals_time.png", dpi=PLOT_DPI)
+    paths.append(out_dir / "residuals_time.png")
+    colours = _pass_colours(len(obs.pass_ids))
+    for name, e in edge_on(run).items():
+        fig, axes = _figure(2, 5.0, 3.4)
+        for ax, key, title in ((axes[0], "before", "before: a-priori boresight"),
+                               (axes[1], "after", "after: estimated boresight")):  # fmt: skip
+            for k, pid in enumerate(obs.pass_ids):
+                m = e["pass_index"] == k
+                ax.plot(e[f"along_{key}_m"][m], e[f"{key}_m"][m] * 1e3, ".", ms=2,
+                        color=colours[k], label=f"pass {pid}")  # fmt: skip
+            ax.set_title(title, fontsize=10)
+            ax.set_xlabel("along the target (m)")
+            ax.set_ylabel("distance to the plane (mm)")
+        axes[1].legend(fontsize=7, markerscale=4)
+        fig.suptitle(f"Target {name} seen edge-on")
+        path = out_dir / f"target_{_safe(name)}.png"
+        fig.savefig(path, dpi=PLOT_DPI)
+        paths.append(path)
+    return paths
+
+
+# -- the narrative ------------------------------------------------------------------------------
+
+
+def _chi2_sentence(res) -> str:
+    c = res.chi2_test()
+    s0 = res.sigma0_squared
+    head = (f"σ̂0² = {s0:.3f} with {c['df']} degrees of freedom; the two-sided χ² test at 5 % "
+            f"accepts [{c['lower']:.3f}, {c['upper']:.3f}]: ")  # fmt: skip
+    if c["passed"]:
+        return head + "**passed** — the observation sigmas agree with the residuals."
+    if s0 > c["upper"]:
+        return head + (f"**failed (high)** — the residuals are {np.sqrt(s0):.2f}× larger than "
+                       f"the sigmas say: the sigmas are optimistic, or something is not "
+                       f"modelled (range offset, lever arm, latency, a poor extraction). The "
+                       f"scaled σ accounts for it.")  # fmt: skip
+    return head + (f"**failed (low)** — the residuals are {np.sqrt(s0):.2f}× the sigmas: the "
+                   f"sigmas are pessimistic (or the POS errors are correlated in time, which "
+                   f"within a pass the residuals do not show).")  # fmt: skip
+
+
+def _observability(run) -> list[str]:
+    obs, res = run.observations, run.result
+    sailed = sailed_headings(obs)
+    lines = []
+    headings = ", ".join(
+        f"{pid} ({round(np.degrees(obs.pass_headings_rad[pid])) % 360}°)" for pid in obs.pass_ids
+        if pid in obs.pass_headings_rad)  # fmt: skip
+    lines.append(f"Passes and their headings relative to the wall: {headings}.")
+    for i, angle in enumerate(ANGLE_NAMES):
+        label, pairs = OBSERVING_PAIRS[i]
+        have = [f"{a}°/{b}°" for a, b in pairs if a in sailed and b in sailed]
+        lines.append(f"- {angle}: observed best by {label}; "
+                     + (f"sailed: {', '.join(have)}." if have else "**none sailed**."))  # fmt: skip
+    corr = res.correlation
+    for i in range(3):
+        for j in range(i + 1, 3):
+            if abs(corr[i, j]) > 0.7:
+                lines.append(f"- {ANGLE_NAMES[i]} and {ANGLE_NAMES[j]} are strongly correlated "
+                             f"(ρ = {corr[i, j]:+.2f}): the targets and passes do not separate "
+                             f"them well.")  # fmt: skip
+    if len(obs.plane_names) <= 2 and int(np.argmax(res.sigma_realistic_rad)) == 1:
+        lines.append("- pitch is the weakest angle here: with the targets at one range and "
+                     "height, an along-track POS position error (or lever-arm x error) looks "
+                     "like a pitch rotation. A third target at another range or height (the "
+                     "design study) separates them.")  # fmt: skip
+    return lines
+
+
+def extras_table(extras: dict) -> list[str]:
+    """The extra unknowns of result.json's ``extras`` as a table: value, formal and realistic
+    σ, and the correlation with each boresight angle; a pass offset gets a row per component
+    (north, east, down)."""
+    L = ["| unknown | value | σ formal | σ realistic | ρ roll | ρ pitch | ρ yaw |",
+         "|---|---:|---:|---:|---:|---:|---:|"]  # fmt: skip
+
+    def row(label, value, sigma, sigma_real, c):
+        return (f"| {label} | {value:+.6g} | {sigma:.3g} | **{_sig(sigma_real)}** | "
+                f"{c['roll']:+.2f} | {c['pitch']:+.2f} | {c['yaw']:+.2f} |")  # fmt: skip
+
+    for name, e in extras.items():
+        real = e.get("sigma_realistic")
+        c = e["correlation_with_boresight"]
+        if isinstance(e["value"], list):  # pass<id>_offset_m: north, east, down
+            for k, comp in enumerate(OFFSET_COMPONENTS):
+                L.append(row(f"{name} {comp}", e["value"][k], e["sigma"][k],
+                             None if real is None else real[k], c[comp]))  # fmt: skip
+        else:
+            L.append(row(name, e["value"], e["sigma"], real, c))
+    L.append("")
+    L.append("ρ: correlation with the boresight angle (formal covariance); |ρ| near 1 means the "
+             "unknown and that angle trade against each other. Judge whether an unknown "
+             "differs from zero by its realistic σ: the formal σ is as optimistic for it as "
+             "for the boresight when POS errors are correlated in time.")  # fmt: skip
+    return L
+
+
+def report_markdown(run, plot_names: list[str] | None = None) -> str:
+    res, doc, obs = run.result, run.doc, run.observations
+    site = run.site
+    formal, scaled = res.sigma_formal_rad, res.sigma_scaled_rad
+    real = res.sigma_realistic_rad
+    jack = None if res.cov_jackknife is None else np.sqrt(np.diag(res.cov_jackknife))
+    thesis = frames.boresight_to_thesis(*res.boresight_rad)
+    ratio = real / formal
+    em = res.error_model
+    survey = frames.gps_ns_to_utc(frames.seconds_to_gps_ns(float(obs.t_gps_s.min())))
+    when = survey.strftime("%Y-%m-%d %H:%M UTC")
+    L = []
+    L.append(f"# Boresight calibration — {site.vessel}")
+    L.append("")
+    L.append(f"- Bundle: `{run.source}`")
+    L.append(f"- Survey: {when}; {len(obs.pass_ids)} passes, {len(obs.plane_names)} targets "
+             f"({', '.join(obs.plane_names)})")  # fmt: skip
+    L.append(f"- Software: {doc['software_version']}; adjustment {res.runtime_s:.2f} s, whole "
+             f"run {run.timings_s.get('total_s', float('nan')):.2f} s")  # fmt: skip
+    ap = np.degrees(run.mount_apriori.boresight_rad)
+    L.append(f"- A-priori boresight (canonical): roll {ap[0]:.4f}°, pitch {ap[1]:.4f}°, "
+             f"yaw {ap[2]:.4f}°")  # fmt: skip
+    L.append("")
+    L.append("## Boresight")
+    L.append("")
+    L.append("Canonical convention (DESIGN §3: rotations about the body's forward, starboard "
+             "and down axes); the thesis convention negates pitch.")  # fmt: skip
+    L.append("")
+    L.append("| angle | estimate (°) | thesis conv. (°) | σ formal (°) | σ scaled (°) | "
+             "σ realistic (°) | σ jackknife (°) | realistic / formal |")  # fmt: skip
+    L.append("|---|---:|---:|---:|---:|---:|---:|---:|")
+    for i, a in enumerate(ANGLE_NAMES):
+        L.append(f"| {a} | {_fmt(_deg(res.boresight_rad[i]))} | {_fmt(_deg(thesis[i]))} | "
+                 f"{_sig(_deg(formal[i]))} | {_sig(_deg(scaled[i]))} | "
+                 f"**{_sig(_deg(real[i]))}** | "
+                 f"{_sig(_deg(jack[i])) if jack is not None else '—'} | {ratio[i]:.1f} |")  # fmt: skip
+    L.append("")
+    if em.kind == "gauss_markov":
+        tau = em.correlation_time_s
+        tau_s = f"{tau:g} s" if isinstance(tau, float) else \
+            "/".join(f"{x:g}" for x in tau) + " s (N/E/D/roll/pitch/heading)"  # fmt: skip
+        model = (f"first-order Gauss–Markov POS errors with correlation time {tau_s} "
+                 f"(from {doc.get('realistic_correlation_time_source', 'the caller')})")
+    elif em.kind == "pass_bias":
+        model = "POS errors constant within each pass and independent between passes"
+    else:
+        model = "independent POS errors per point (the formal model itself)"
+    if em.kind == "white":
+        L.append("**Use the realistic σ** — here it equals the formal σ, because the white "
+                 "error model was chosen: POS errors correlated in time would make it "
+                 "optimistic.")  # fmt: skip
+    else:
+        L.append(f"**Use the realistic σ.** The formal σ (σ0 = 1) assumes every point's POS "
+                 f"error is independent; it is optimistic by a factor of {ratio[0]:.1f} for "
+                 f"roll, {ratio[1]:.1f} for pitch and {ratio[2]:.1f} for yaw (realistic / "
+                 f"formal). The realistic σ propagates {model} through the estimator: within "
+                 f"a pass such errors act almost as a bias, which more points do not average "
+                 f"out.")  # fmt: skip
+    if jack is not None:
+        L.append("")
+        L.append("The delete-one-pass jackknife σ is an empirical check from the spread of the "
+                 "estimates without each pass (few passes: itself uncertain by ±30–50 %).")  # fmt: skip
+    L.append("")
+    L.append(_chi2_sentence(res))
+    L.append("")
+    conv = "converged" if res.converged else "**did not converge**"
+    opts = run.options
+    L.append(f"The adjustment {conv} in {res.iterations} iterations (steps below "
+             f"{opts.tol_angle_rad:g} rad and {opts.tol_m * 1e3:g} mm, or below "
+             f"{opts.rel_tol:g} of each unknown's σ; {len(obs)} observations, "
+             f"{res.n_points} kept).")  # fmt: skip
+    L.append("")
+    L.append("## Correlations")
+    L.append("")
+    L.append("| | roll | pitch | yaw |")
+    L.append("|---|---:|---:|---:|")
+    for i, a in enumerate(ANGLE_NAMES):
+        L.append(f"| {a} | " + " | ".join(f"{res.correlation[i, j]:+.3f}" for j in range(3)) + " |")
+    if res.extras:
+        L.append("")
+        L.append("## Extra unknowns")
+        L.append("")
+        L.extend(extras_table(doc["extras"]))
+    L.append("")
+    L.append("## Observability")
+    L.append("")
+    L.extend(_observability(run))
+    L.append("")
+    L.append("## Targets")
+    L.append("")
+    L.append("| target | points | RMS (mm) | normal (N, E, D) | d (m) |")
+    L.append("|---|---:|---:|---|---:|")
+    for p in res.plane_stats:
+        n = ", ".join(f"{x:+.4f}" for x in p["normal"])
+        L.append(f"| {p['name']} | {p['n_points']} | {p['rms_m'] * 1e3:.2f} | {n} | "
+                 f"{p['d']:.4f} |")  # fmt: skip
+    L.append("")
+    L.append("## Passes")
+    L.append("")
+    counts = run.extraction.counts()
+    names = run.extraction.target_names
+    L.append("| pass | heading vs wall (°) | " + " | ".join(f"{n} extracted" for n in names)
+             + " | kept | RMS (mm) |")  # fmt: skip
+    L.append("|---:|---:|" + "---:|" * len(names) + "---:|---:|")
+    for p in res.pass_stats:
+        h = "—" if p["heading_deg"] is None else f"{p['heading_deg']:.1f}"
+        row = counts.get(p["id"], {})
+        L.append(f"| {p['id']} | {h} | " + " | ".join(str(row.get(n, 0)) for n in names)
+                 + f" | {p['n_points']} | {p['rms_m'] * 1e3:.2f} |")  # fmt: skip
+    ex = doc.get("extraction", {})
+    L.append("")
+    L.append(f"Extraction: {ex.get('mode', '?')}; "
+             + (f"voxel subsampling {ex['subsample_m']:g} m (one point per voxel, the "
+                f"nearest its centre)." if ex.get("subsample_m") else "no subsampling."))  # fmt: skip
+    L.append("")
+    L.append("## Outliers")
+    L.append("")
+    n_out = res.outlier_point_ids.size
+    if n_out:
+        ids = ", ".join(str(int(i)) for i in res.outlier_point_ids[:50])
+        more = f" … and {n_out - 50} more" if n_out > 50 else ""
+        L.append(f"{n_out} point(s) failed the data-snooping test on normalized residuals and "
+                 f"were removed (0-based data rows of points.csv): {ids}{more}.")  # fmt: skip
+    else:
+        L.append("No point failed the data-snooping test on normalized residuals.")
+    if run.warnings or run.notes:
+        L.append("")
+        L.append("## Warnings and assumptions")
+        L.append("")
+        L.extend(f"- ⚠ {w}" for w in run.warnings)
+        L.extend(f"- {n}" for n in run.notes)
+    if plot_names:
+        L.append("")
+        L.append("## Plots")
+        L.append("")
+        L.extend(f"![{Path(p).stem}]({Path(p).name})" for p in plot_names)
+    L.append("")
+    return "\n".join(L)
+
+
+def write_report(run, out_dir: str | Path, plots: bool = True) -> list[Path]:
+    """Write ``report.md`` (and the plots) into ``out_dir``; returns the paths written."""
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    pngs = write_plots(run, out) if plots else []
+    md = out / "report.md"
+    md.write_text(report_markdown(run, [p.name for p in pngs]), encoding="utf-8")
+    return [md, *pngs]

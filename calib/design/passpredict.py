@@ -1,0 +1,275 @@
+"""Predicted boresight σ during the survey: which passes so far give what σ, and which next pass
+helps most (DESIGN §7 "Design study", §8).
+
+A pass enters the prediction as a :class:`PassGeometry`: a trajectory and the raw observations
+(time, range, scan angle) of its returns on the targets. For a pass already sailed these are the
+live target hits and the INS trajectory; for a pass still to sail, :func:`predict_pass` sails the
+planned line (straight, level, at the planned speed) and scans the targets with the simulator's
+exact ray casting (:func:`calib.sim.simulate.scan`). :func:`predict_sigma` then builds the
+adjustment's observations with the site's sigmas and asks
+:func:`calib.boresight.adjust.predict_covariance` for the boresight covariance, formal and realistic (POS
+errors correlated in time, as the calibration reports them).
+
+Density. A full-rate profiler puts ~10⁴ points on a target per pass; the prediction keeps every
+``k``-th (``thin_step``) and scans candidates at 1/k of the point rate, then corrects to the
+full density: the formal covariance scales as ``1/k`` exactly (``N`` grows with the number of
+points), and in the realistic one only its white part does,
+``C_real(full) ≈ C_real(thin) − (1 − 1/k)·C_formal(thin)`` (the diagonal of the propagated
+double sum is ``N`` itself; the correlated pairs keep their weight when the spacing stays well
+below the correlation time).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+from typing import Mapping, Sequence
+
+import numpy as np
+
+from calib.core import frames
+from calib.boresight.adjust import (DEFAULT_POS_CORRELATION_S, AdjustmentError, ErrorModel, Observations,
+                          build_observations, predict_covariance)  # fmt: skip
+from calib.core.geometry import Rectangle
+from calib.core.georef import Mount
+from calib.survey.passplan import PlannedPass
+from calib.sim.scenario import ScannerModel
+from calib.sim.scene import Scene
+from calib.sim.simulate import scan
+from calib.io.site import Site
+from calib.core.trajectory import Trajectory
+
+ANGLES = ("roll", "pitch", "yaw")
+#: A boresight angle whose predicted σ exceeds this is "not determined" (the adjustment's own
+#: observability limit, :class:`calib.boresight.adjust.AdjustOptions`).
+DEFAULT_LIMIT_RAD = float(np.radians(0.05))
+
+
+@dataclass(frozen=True)
+class PassGeometry:
+    """One pass as the adjustment sees it: trajectory + raw observations of target returns."""
+
+    pass_id: int
+    relative_heading_rad: float
+    trajectory: Trajectory
+    t_gps_s: np.ndarray  # (n,) sorted
+    range_m: np.ndarray
+    scan_angle_rad: np.ndarray
+    target_index: np.ndarray  # (n,) into the target list
+
+    def __len__(self) -> int:
+        return int(self.t_gps_s.size)
+
+    @property
+    def t_end_gps_s(self) -> float:
+        return float(self.trajectory.t_gps_s[-1])
+
+    def shifted(self, dt_s: float) -> "PassGeometry":
+        """The same pass ``dt_s`` later (for placing a candidate after the passes sailed)."""
+        tr = self.trajectory
+        moved = Trajectory(tr.t_gps_s + dt_s, tr.p_lgf_m, tr.rpy_rad, tr.frame, tr.sigma_p_m,
+                           tr.sigma_rpy_rad, tr.max_gap_s, tr.name)  # fmt: skip
+        return replace(self, trajectory=moved, t_gps_s=self.t_gps_s + dt_s)
+
+    def thinned(self, step: int) -> "PassGeometry":
+        """Every ``step``-th point (in time order)."""
+        if step <= 1:
+            return self
+        s = slice(0, None, int(step))
+        return replace(self, t_gps_s=self.t_gps_s[s], range_m=self.range_m[s],
+                       scan_angle_rad=self.scan_angle_rad[s], target_index=self.target_index[s])
+
+    def counts(self, n_targets: int) -> np.ndarray:
+        return np.bincount(self.target_index, minlength=n_targets)
+
+
+@dataclass(frozen=True)
+class ObservationModel:
+    """The sigmas and POS error model the prediction assumes (the calibration's own)."""
+
+    sigma_range_m: float
+    sigma_scan_angle_rad: float
+    sigma_position_m: np.ndarray
+    sigma_attitude_rad: np.ndarray
+    error_model: ErrorModel
+
+    @classmethod
+    def from_site(cls, site: Site) -> "ObservationModel":
+        tau = site.pos_correlation_time_s
+        model = ErrorModel("gauss_markov", DEFAULT_POS_CORRELATION_S if tau is None
+                           else tuple(float(x) for x in tau))  # fmt: skip
+        return cls(site.sigma_range_m, site.sigma_scan_angle_rad,
+                   np.asarray(site.sigma_position_m, float),
+                   np.asarray(site.sigma_attitude_rad, float), model)  # fmt: skip
+
+
+@dataclass(frozen=True)
+class SigmaPrediction:
+    """Predicted boresight uncertainty of a set of passes (radians)."""
+
+    pass_ids: tuple[int, ...]
+    formal_rad: np.ndarray  # (3,) NaN where nothing can be said
+    realistic_rad: np.ndarray  # (3,)
+    correlation: np.ndarray  # (3, 3)
+    n_points: int
+    limit_rad: float = DEFAULT_LIMIT_RAD
+    note: str = ""
+
+    @property
+    def observable(self) -> np.ndarray:
+        """(3,) bool: the angle is determined, its formal σ positive and within the limit (the
+        adjustment's observability test; the realistic σ is the number to quote)."""
+        f = self.formal_rad
+        with np.errstate(invalid="ignore"):
+            return np.isfinite(f) & (f > 0.0) & (f <= self.limit_rad)
+
+    @property
+    def worst_rad(self) -> float:
+        """The largest realistic σ; inf while any angle is not determined."""
+        if not self.observable.all():
+            return np.inf
+        return float(np.max(self.realistic_rad))
+
+    def rank_key(self) -> tuple[int, float]:
+        """Smaller is better: first the number of undetermined angles, then the largest
+        realistic σ among the determined ones (a pass that makes an angle observable beats one
+        that only sharpens the others)."""
+        ok = self.observable
+        return int(np.sum(~ok)), float(np.max(self.realistic_rad[ok])) if ok.any() else np.inf
+
+    def as_dict(self) -> dict:
+        """JSON-ready, degrees; an angle beyond the display cap is ``null``."""
+
+        ok = self.observable
+
+        def deg(v):
+            return {a: (float(np.degrees(x)) if o else None) for a, x, o in zip(ANGLES, v, ok)}
+
+        worst = self.worst_rad
+        return {
+            "passes": [int(p) for p in self.pass_ids],
+            "realistic_deg": deg(self.realistic_rad),  # null: not determined
+            "formal_deg": deg(self.formal_rad),
+            "observable": {a: bool(o) for a, o in zip(ANGLES, ok)},
+            "worst_deg": None if not np.isfinite(worst) else float(np.degrees(worst)),
+            "limit_deg": float(np.degrees(self.limit_rad)),
+            "n_points": int(self.n_points),
+            "note": self.note,
+        }
+
+
+def _unknown(pass_ids, n_points, limit_rad, note) -> SigmaPrediction:
+    nan = np.full(3, np.nan)
+    return SigmaPrediction(tuple(pass_ids), nan, nan.copy(), np.full((3, 3), np.nan), n_points,
+                           limit_rad, note)  # fmt: skip
+
+
+# -- candidate passes -------------------------------------------------------------------------
+
+
+def line_trajectory(pp: PlannedPass, frame: frames.LocalFrame, t_start_gps_s: float,
+                    track_down_m: float, rate_hz: float = 10.0) -> Trajectory:  # fmt: skip
+    """A level vessel sailing the whole line at its heading and speed from ``t_start_gps_s``."""
+    n = max(int(np.ceil(pp.duration_s * rate_hz)), 1)
+    t_rel = np.linspace(0.0, pp.duration_s, n + 1)
+    p = pp.position_at(t_rel * pp.speed_mps)
+    p[:, 2] = track_down_m
+    rpy = np.column_stack([np.zeros(n + 1), np.zeros(n + 1), np.full(n + 1, pp.heading_rad)])
+    return Trajectory(t_start_gps_s + t_rel, p, rpy, frame, name=f"planned line {pp.id}")
+
+
+def predict_pass(pp: PlannedPass, targets: Sequence[Rectangle], mount: Mount,
+                 scanner: ScannerModel, frame: frames.LocalFrame, *,
+                 t_start_gps_s: float = 0.0, track_down_m: float | None = None) -> PassGeometry:  # fmt: skip
+    """The noise-free target returns of the planned line ``pp`` (capture window only), with the
+    scanner mounted as ``mount`` (the a-priori mount: what the survey will see)."""
+    down = float(pp.start_lgf_m[2]) if track_down_m is None else float(track_down_m)
+    traj = line_trajectory(pp, frame, t_start_gps_s, down)
+    cw0, cw1 = pp.capture_window_s
+    guard = abs(mount.time_offset_s) + 1e-3
+    t0 = t_start_gps_s + max(cw0, guard)
+    t1 = t_start_gps_s + min(cw1, pp.duration_s - guard)
+    scene = Scene(tuple(targets), ("target",) * len(targets))
+    ret = scan(scanner, scene, traj, mount, t0, t1)
+    return PassGeometry(pp.id, pp.relative_heading_rad, traj, ret.t_gps_s,
+                        ret.range_true_m - mount.range_offset_m, frames.wrap_2pi(ret.alpha_rad),
+                        ret.surface.astype(np.int64))  # fmt: skip
+
+
+# -- the prediction ---------------------------------------------------------------------------
+
+
+def build_pass_observations(passes: Sequence[PassGeometry], target_names: Sequence[str],
+                            model: ObservationModel) -> tuple[Observations, list[int]]:  # fmt: skip
+    """The adjustment's observations of ``passes`` and the target indices that have points
+    (the planes of the observations, in that order)."""
+    n_t = len(target_names)
+    counts = sum((p.counts(n_t) for p in passes), np.zeros(n_t, np.int64))
+    used = [int(j) for j in np.flatnonzero(counts > 0)]
+    remap = np.full(n_t, -1, np.int64)
+    remap[used] = np.arange(len(used))
+    parts = []
+    for p in passes:
+        if len(p) == 0:
+            continue
+        parts.append(build_observations(
+            p.trajectory, p.t_gps_s, p.range_m, p.scan_angle_rad, remap[p.target_index],
+            np.full(len(p), p.pass_id), [target_names[j] for j in used], model.sigma_range_m,
+            model.sigma_scan_angle_rad, model.sigma_position_m, model.sigma_attitude_rad,
+        ))  # fmt: skip
+    pass_ids = sorted({p.pass_id for p in passes if len(p)})
+    cat = lambda name: np.concatenate([getattr(o, name) for o in parts])  # noqa: E731
+    pid = np.concatenate([np.full(len(o), o.pass_ids[0]) for o in parts])
+    obs = Observations(
+        cat("t_gps_s"), cat("l"), cat("sigma_l"), cat("plane_index"),
+        np.searchsorted(pass_ids, pid), [target_names[j] for j in used], pass_ids,
+        np.arange(pid.size),
+        pass_headings_rad={p.pass_id: p.relative_heading_rad for p in passes},
+    )  # fmt: skip
+    return obs, used
+
+
+def predict_sigma(passes: Sequence[PassGeometry], targets: Sequence[Rectangle], mount: Mount,
+                  model: ObservationModel, *, thin_step: int = 1,
+                  limit_rad: float = DEFAULT_LIMIT_RAD) -> SigmaPrediction:  # fmt: skip
+    """Boresight σ that ``passes`` would give (points thinned by ``thin_step``, corrected to the
+    full density as the module docstring says)."""
+    ids = tuple(sorted({p.pass_id for p in passes}))
+    n = sum(len(p) for p in passes)
+    names = [t.name for t in targets]
+    with_points = [p for p in passes if len(p)]
+    if not with_points:
+        return _unknown(ids, 0, limit_rad, "no target points yet")
+    obs, used = build_pass_observations(with_points, names, model)
+    if len(used) < 2:
+        return _unknown(ids, n, limit_rad, "points on fewer than two targets")
+    planes = [(targets[j].normal, targets[j].d) for j in used]
+    try:
+        with np.errstate(all="ignore"):
+            cov = predict_covariance(obs, mount, planes, model=model.error_model)
+    except (AdjustmentError, np.linalg.LinAlgError, ValueError) as e:
+        return _unknown(ids, n, limit_rad, f"no prediction: {e}")
+    k = max(int(thin_step), 1)
+    formal = cov["formal"] / k
+    realistic = cov["realistic"] - (1.0 - 1.0 / k) * cov["formal"]
+    sf = np.sqrt(np.clip(np.diag(formal), 0.0, None))
+    sr = np.sqrt(np.maximum(np.diag(realistic), np.diag(formal)))
+    bad = ~np.isfinite(sf) | ~np.isfinite(sr)
+    sf[bad], sr[bad] = np.nan, np.nan
+    return SigmaPrediction(ids, sf, sr, cov["correlation"], n, limit_rad)
+
+
+def rank_candidates(accepted: Sequence[PassGeometry], candidates: Mapping[int, PassGeometry],
+                    targets: Sequence[Rectangle], mount: Mount, model: ObservationModel, *,
+                    thin_step: int = 1, gap_s: float = 60.0,
+                    limit_rad: float = DEFAULT_LIMIT_RAD) -> list[tuple[int, SigmaPrediction]]:  # fmt: skip
+    """For each candidate (pass id → its predicted geometry, any start time), the prediction
+    with the accepted passes plus that one, sailed ``gap_s`` after the last accepted pass;
+    best first (see :meth:`SigmaPrediction.rank_key`)."""
+    t_next = max((p.t_end_gps_s for p in accepted), default=0.0) + gap_s
+    out = []
+    for pid, cand in candidates.items():
+        moved = cand.shifted(t_next - float(cand.trajectory.t_gps_s[0]))
+        out.append((pid, predict_sigma([*accepted, moved], targets, mount, model,
+                                       thin_step=thin_step, limit_rad=limit_rad)))  # fmt: skip
+    out.sort(key=lambda item: (item[1].rank_key(), item[0]))
+    return out

@@ -1,0 +1,342 @@
+"""The calibration bundle (DESIGN §4): the interchange directory between simulation, export and
+calibration.
+
+    BUNDLE/site.yaml          site config (reference, mount, sigmas, targets, passes)
+    BUNDLE/trajectory.csv     gps_time,lat_deg,lon_deg,height_m,roll_deg,pitch_deg,heading_deg
+                              [,sigma_north_m,sigma_east_m,sigma_down_m,
+                                sigma_roll_deg,sigma_pitch_deg,sigma_heading_deg]
+                              (or trajectory.sbet [+ trajectory.smrmsg], see calib.io.sbet)
+    BUNDLE/points.csv[.gz]    pass_id,gps_time,range_m,scan_angle_deg,intensity
+    BUNDLE/truth.json         simulated bundles only; never read by ``mls calib run``
+
+Every error names the file, the line and the column and what was expected.
+"""
+
+from __future__ import annotations
+
+import gzip
+import io
+import json
+import warnings
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from calib.core import frames
+from calib.io.configfile import ConfigError
+from calib.io.site import Site, load_site
+from calib.core.trajectory import Trajectory, TrajectoryError
+
+TRAJECTORY_COLUMNS = ("gps_time", "lat_deg", "lon_deg", "height_m", "roll_deg", "pitch_deg",
+                      "heading_deg")  # fmt: skip
+TRAJECTORY_SIGMA_COLUMNS = ("sigma_north_m", "sigma_east_m", "sigma_down_m", "sigma_roll_deg",
+                            "sigma_pitch_deg", "sigma_heading_deg")  # fmt: skip
+#: (column index, name, lowest, highest) of the trajectory.csv values with a range.
+TRAJECTORY_RANGES = ((1, "lat_deg", -90, 90), (2, "lon_deg", -180, 360), (4, "roll_deg", -180, 180),
+                     (5, "pitch_deg", -90, 90), (6, "heading_deg", -360, 360))  # fmt: skip
+POINT_COLUMNS = ("pass_id", "gps_time", "range_m", "scan_angle_deg", "intensity")
+
+
+class BundleError(ValueError):
+    """A bundle file is missing or malformed (the message names file, line and column)."""
+
+
+@dataclass(frozen=True)
+class ScanPoints:
+    """Raw scanner observations, one entry per return."""
+
+    pass_id: np.ndarray  # int32
+    t_gps_s: np.ndarray  # float64 seconds since the GPS epoch
+    range_m: np.ndarray
+    scan_angle_rad: np.ndarray
+    intensity: np.ndarray  # float32
+
+    def __post_init__(self):
+        n = np.asarray(self.t_gps_s).shape[0]
+        for name, dtype in (("pass_id", np.int32), ("t_gps_s", np.float64),
+                            ("range_m", np.float64), ("scan_angle_rad", np.float64),
+                            ("intensity", np.float32)):  # fmt: skip
+            a = np.asarray(getattr(self, name), dtype=dtype)
+            if a.shape != (n,):
+                raise ValueError(f"ScanPoints.{name} has shape {a.shape}, expected ({n},)")
+            object.__setattr__(self, name, a)
+
+    def __len__(self) -> int:
+        return self.t_gps_s.shape[0]
+
+    def select(self, mask) -> "ScanPoints":
+        return ScanPoints(self.pass_id[mask], self.t_gps_s[mask], self.range_m[mask],
+                          self.scan_angle_rad[mask], self.intensity[mask])  # fmt: skip
+
+    @staticmethod
+    def concatenate(parts: list["ScanPoints"]) -> "ScanPoints":
+        return ScanPoints(*(np.concatenate([getattr(p, f) for p in parts]) for f in
+                            ("pass_id", "t_gps_s", "range_m", "scan_angle_rad", "intensity")))
+
+    def pass_ids(self) -> list[int]:
+        return [int(p) for p in np.unique(self.pass_id)]
+
+
+@dataclass(frozen=True)
+class Bundle:
+    path: Path
+    site: Site
+    trajectory: Trajectory
+    points: ScanPoints
+
+    @property
+    def frame(self) -> frames.LocalFrame:
+        return self.trajectory.frame
+
+
+# -- CSV ------------------------------------------------------------------------------------
+
+
+def _open_text(path: Path) -> str:
+    try:
+        raw = path.read_bytes()
+    except FileNotFoundError:
+        raise BundleError(f"{path}: file not found") from None
+    if path.suffix == ".gz":
+        try:
+            raw = gzip.decompress(raw)
+        except (OSError, EOFError) as e:
+            raise BundleError(f"{path}: not a valid gzip file ({e})") from None
+    try:
+        return raw.decode("utf-8")
+    except UnicodeDecodeError as e:
+        line = raw[: e.start].count(b"\n") + 1
+        raise BundleError(f"{path}:{line}: not UTF-8 text") from None
+
+
+def _fast_floats(body: str, n_lines: int, k: int) -> np.ndarray | None:
+    """The (n_lines, k) numbers of ``body``, or None unless every line holds k finite numbers.
+
+    Every line end is parsed as an extra ``inf`` field, so that a line with a missing field
+    next to a line with an extra one cannot pass for two good lines.
+    """
+    text = (body if body.endswith("\n") else body + "\n").replace("\n", ",inf,")[:-1]
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", DeprecationWarning)
+        try:
+            values = np.fromstring(text, sep=",")  # type: ignore[call-overload]
+        except ValueError:
+            return None
+    if values.size != n_lines * (k + 1):
+        return None
+    values = values.reshape(n_lines, k + 1)
+    if not (np.all(np.isinf(values[:, k])) and np.all(np.isfinite(values[:, :k]))):
+        return None
+    return values[:, :k]
+
+
+def _parse_csv(path: Path, text: str, required: tuple[str, ...], optional: tuple[str, ...] = ()
+               ) -> tuple[list[str], np.ndarray]:  # fmt: skip
+    """Parse a numeric CSV with a header; returns (columns, (n, k) float64 array).
+
+    A fast C-level parse is tried first; when it fails, a line-by-line pass finds the first bad
+    line and column for the error message.
+    """
+    header_end = text.find("\n")
+    header = (text if header_end < 0 else text[:header_end]).strip().lstrip("\ufeff")
+    columns = [c.strip() for c in header.split(",")]
+    if columns[: len(required)] != list(required):
+        raise BundleError(f"{path}:1: header is {header!r}, expected it to start with "
+                          f"{','.join(required)!r}")  # fmt: skip
+    extra = columns[len(required):]
+    if extra and extra != list(optional):
+        raise BundleError(f"{path}:1: unexpected columns {','.join(extra)!r}; after "
+                          f"{','.join(required)!r} only {','.join(optional)!r} may follow")  # fmt: skip
+    k = len(columns)
+    body = "" if header_end < 0 else text[header_end + 1:]
+    body = body.replace("\r", "")
+    n_lines = body.count("\n") + (0 if body.endswith("\n") or not body else 1)
+    if n_lines == 0:
+        return columns, np.empty((0, k))
+    values = _fast_floats(body, n_lines, k)
+    if values is not None:
+        return columns, values
+    # slow path: locate the first problem
+    for i, line in enumerate(body.split("\n")):
+        if not line and i == n_lines:
+            break
+        if not line.strip():
+            raise BundleError(f"{path}:{i + 2}: empty line, expected {k} fields "
+                              f"({','.join(columns)})")  # fmt: skip
+        fields = line.split(",")
+        if len(fields) != k:
+            raise BundleError(f"{path}:{i + 2}: {len(fields)} fields, expected {k} "
+                              f"({','.join(columns)})")  # fmt: skip
+        for j, f in enumerate(fields):
+            try:
+                v = float(f)
+            except ValueError:
+                raise BundleError(f"{path}:{i + 2}:{j + 1}: column {columns[j]!r} is {f!r}, "
+                                  f"expected a number") from None  # fmt: skip
+            if not np.isfinite(v):
+                raise BundleError(f"{path}:{i + 2}:{j + 1}: column {columns[j]!r} is {f!r}, "
+                                  f"expected a finite number")  # fmt: skip
+    raise BundleError(f"{path}: could not parse as CSV with columns {','.join(columns)}")
+
+
+def _write_csv(path: Path, header: tuple[str, ...], fmt: str, cols: list[np.ndarray]) -> None:
+    line = ",".join(fmt.split(",")) + "\n"
+    buf = io.StringIO()
+    buf.write(",".join(header) + "\n")
+    rows = zip(*[c.tolist() for c in cols])
+    buf.write("".join(line % r for r in rows))
+    data = buf.getvalue().encode("utf-8")
+    if path.suffix == ".gz":
+        data = gzip.compress(data, compresslevel=6, mtime=0)  # mtime=0: reproducible bytes
+    path.write_bytes(data)
+
+
+def _check_sorted_column(path: Path, values: np.ndarray, column: str, col_index: int,
+                         group: np.ndarray | None = None) -> None:  # fmt: skip
+    if values.size < 2:
+        return
+    d = np.diff(values)
+    bad = d <= 0 if group is None else (d < 0) & (group[1:] == group[:-1])
+    if np.any(bad):
+        i = int(np.argmax(bad)) + 1
+        what = "increase strictly" if group is None else "not decrease within a pass"
+        raise BundleError(f"{path}:{i + 2}:{col_index + 1}: {column} {float(values[i])!r} follows "
+                          f"{float(values[i - 1])!r}; times must {what}")  # fmt: skip
+
+
+def read_trajectory_csv(path: Path, frame: frames.LocalFrame | None = None,
+                        max_gap_s: float = 1.0) -> Trajectory:  # fmt: skip
+    path = Path(path)
+    columns, a = _parse_csv(path, _open_text(path), TRAJECTORY_COLUMNS, TRAJECTORY_SIGMA_COLUMNS)
+    if a.shape[0] < 2:
+        raise BundleError(f"{path}: {a.shape[0]} trajectory epochs, expected at least 2")
+    _check_sorted_column(path, a[:, 0], "gps_time", 0)
+    for j, name, lo, hi in TRAJECTORY_RANGES:
+        bad = ~((a[:, j] >= lo) & (a[:, j] <= hi))
+        if bad.any():
+            i = int(np.argmax(bad))
+            raise BundleError(f"{path}:{i + 2}:{j + 1}: {name} is {float(a[i, j])!r}, expected "
+                              f"{lo}…{hi}")  # fmt: skip
+    sig_p = sig_a = None
+    if len(columns) > len(TRAJECTORY_COLUMNS):
+        sig = a[:, 7:]
+        bad = sig <= 0
+        if bad.any():
+            i, j = np.argwhere(bad)[0]
+            raise BundleError(f"{path}:{i + 2}:{j + 8}: {columns[j + 7]} is {float(sig[i, j])!r}, "
+                              f"expected a positive sigma")  # fmt: skip
+        sig_p, sig_a = sig[:, :3], np.radians(sig[:, 3:])
+    try:
+        return Trajectory.from_geodetic(
+            a[:, 0], a[:, 1], a[:, 2], a[:, 3], np.radians(a[:, 4:7]), frame,
+            sigma_p_m=sig_p, sigma_rpy_rad=sig_a, max_gap_s=max_gap_s, name=str(path),
+        )  # fmt: skip
+    except TrajectoryError as e:
+        raise BundleError(str(e)) from None
+
+
+def write_trajectory_csv(path: Path, traj: Trajectory) -> None:
+    lat, lon, h = traj.geodetic()
+    rpy = np.degrees(traj.rpy_rad)
+    cols = [traj.t_gps_s, lat, lon, h, rpy[:, 0], rpy[:, 1], rpy[:, 2]]
+    header = TRAJECTORY_COLUMNS
+    fmt = "%.9f,%.12f,%.12f,%.6f,%.12g,%.12g,%.12g"
+    if traj.has_sigmas:
+        sa = np.degrees(traj.sigma_rpy_rad)
+        cols += [traj.sigma_p_m[:, 0], traj.sigma_p_m[:, 1], traj.sigma_p_m[:, 2],
+                 sa[:, 0], sa[:, 1], sa[:, 2]]  # fmt: skip
+        header = header + TRAJECTORY_SIGMA_COLUMNS
+        fmt += ",%.6g,%.6g,%.6g,%.6g,%.6g,%.6g"
+    _write_csv(Path(path), header, fmt, cols)
+
+
+def read_points_csv(path: Path) -> ScanPoints:
+    path = Path(path)
+    _, a = _parse_csv(path, _open_text(path), POINT_COLUMNS)
+    if a.shape[0] == 0:
+        raise BundleError(f"{path}: no points")
+    pid = a[:, 0]
+    bad = (pid != np.round(pid)) | (pid < 0)
+    if bad.any():
+        i = int(np.argmax(bad))
+        raise BundleError(f"{path}:{i + 2}:1: pass_id is {float(pid[i])!r}, expected a non-negative "
+                          f"integer")  # fmt: skip
+    bad = a[:, 2] < 0
+    if bad.any():
+        i = int(np.argmax(bad))
+        raise BundleError(f"{path}:{i + 2}:3: range_m is {float(a[i, 2])!r}, expected ≥ 0")
+    _check_sorted_column(path, a[:, 1], "gps_time", 1, group=pid)
+    return ScanPoints(pid.astype(np.int32), a[:, 1], a[:, 2], np.radians(a[:, 3]), a[:, 4])
+
+
+def write_points_csv(path: Path, pts: ScanPoints) -> None:
+    _write_csv(Path(path), POINT_COLUMNS, "%d,%.9f,%.17g,%.17g,%.6g",
+               [pts.pass_id, pts.t_gps_s, pts.range_m, np.degrees(pts.scan_angle_rad),
+                pts.intensity])  # fmt: skip
+
+
+# -- the bundle -----------------------------------------------------------------------------
+
+
+def _points_path(d: Path) -> Path:
+    for name in ("points.csv", "points.csv.gz"):
+        if (d / name).exists():
+            return d / name
+    raise BundleError(f"{d}: no points.csv or points.csv.gz")
+
+
+def read_bundle(path: str | Path, max_gap_s: float = 1.0) -> Bundle:
+    """Read a bundle directory; the LGF is the site's reference, else the trajectory mean."""
+    d = Path(path)
+    if not d.is_dir():
+        raise BundleError(f"{d}: not a directory (a calibration bundle is a directory with "
+                          f"site.yaml, trajectory.csv and points.csv)")  # fmt: skip
+    try:
+        site = load_site(d / "site.yaml")
+    except ConfigError as e:
+        raise BundleError(str(e)) from None
+    points = read_points_csv(_points_path(d))
+    if (d / "trajectory.csv").exists():
+        traj = read_trajectory_csv(d / "trajectory.csv", site.reference, max_gap_s)
+    elif (d / "trajectory.sbet").exists():
+        from calib.io.sbet import SbetError, read_sbet_trajectory
+
+        smrmsg = d / "trajectory.smrmsg"
+        try:  # SBET times are seconds of the week: the week is the one of the points
+            traj = read_sbet_trajectory(
+                d / "trajectory.sbet", site.reference, max_gap_s,
+                near_gps_s=float(points.t_gps_s[0]),
+                smrmsg_path=smrmsg if smrmsg.exists() else None,
+            )  # fmt: skip
+        except SbetError as e:
+            raise BundleError(str(e)) from None
+    else:
+        raise BundleError(f"{d}: no trajectory.csv or trajectory.sbet")
+    return Bundle(d, site, traj, points)
+
+
+def write_bundle(path: str | Path, site: Site, trajectory: Trajectory, points: ScanPoints,
+                 truth: dict | None = None, compress_points: bool = False) -> Path:  # fmt: skip
+    """Write a bundle directory (created if needed); returns its path."""
+    d = Path(path)
+    d.mkdir(parents=True, exist_ok=True)
+    site.dump(d / "site.yaml")
+    write_trajectory_csv(d / "trajectory.csv", trajectory)
+    for stale in ("points.csv", "points.csv.gz"):
+        (d / stale).unlink(missing_ok=True)
+    write_points_csv(d / ("points.csv.gz" if compress_points else "points.csv"), points)
+    if truth is not None:
+        (d / "truth.json").write_text(json.dumps(truth, indent=2, sort_keys=True) + "\n")
+    return d
+
+
+def read_truth(path: str | Path) -> dict:
+    """The injected errors of a simulated bundle (tests and assessment only)."""
+    p = Path(path) / "truth.json"
+    try:
+        return json.loads(p.read_text())
+    except FileNotFoundError:
+        raise BundleError(f"{p}: not found (only simulated bundles carry a truth)") from None
+    except json.JSONDecodeError as e:
+        raise BundleError(f"{p}:{e.lineno}:{e.colno}: not valid JSON ({e.msg})") from None

@@ -1,0 +1,183 @@
+"""A scene of planar rectangles (targets, quay wall, ground, validation planes) and exact,
+vectorized ray casting against it.
+
+A ray ``x = o + ρ·d`` (``d`` a unit vector) hits rectangle ``j`` at
+
+    ρ_j = n_j·(c_j − o) / (n_j·d),     inside when |u_j·(x − c_j)| ≤ w_j/2 and |v_j·(x − c_j)| ≤ h_j/2
+
+and the nearest hit in ``[min_range, max_range]`` wins; everything else (water, sky) gives no
+return. Both faces of a rectangle return.
+
+For a 2D profiler the rays of one profile share their origin and lie in one plane, so the
+scene also answers the question the simulator asks first: for each scan plane, which sector of
+scan angles can hit each rectangle (:meth:`Scene.scan_sectors`). Only the rays inside a sector
+are then tested exactly, which keeps the cost per return independent of the number of
+rectangles that are out of view.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from functools import cached_property
+
+import numpy as np
+
+from calib.core.geometry import Rectangle
+
+#: Kinds of surfaces; targets and validation planes are reported by name, the others are
+#: background (they make the scene realistic and occlude).
+BACKGROUND_KINDS = ("wall", "ground", "other")
+SURFACE_KINDS = ("target", "validation", *BACKGROUND_KINDS)
+
+
+@dataclass(frozen=True)
+class RayHits:
+    """Result of casting n rays."""
+
+    range_m: np.ndarray  # (n,) distance along the ray; NaN where nothing was hit
+    surface: np.ndarray  # (n,) int index into Scene.rectangles; −1 where nothing was hit
+    cos_incidence: np.ndarray  # (n,) |n·d| at the hit; NaN where nothing was hit
+
+    @property
+    def hit(self) -> np.ndarray:
+        return self.surface >= 0
+
+
+@dataclass(frozen=True)
+class ScanSectors:
+    """For P scan planes and R rectangles: the scan angles ``[start, start + width]`` at which
+    rays of each plane can reach each rectangle (``hit`` False: the plane misses it)."""
+
+    start_rad: np.ndarray  # (P, R), in [0, 2π)
+    width_rad: np.ndarray  # (P, R), in [0, π]
+    hit: np.ndarray  # (P, R) bool
+
+
+@dataclass(frozen=True)
+class Scene:
+    """Rectangles in the LGF with a kind each (see :data:`SURFACE_KINDS`)."""
+
+    rectangles: tuple[Rectangle, ...]
+    kinds: tuple[str, ...]
+
+    def __post_init__(self):
+        object.__setattr__(self, "rectangles", tuple(self.rectangles))
+        object.__setattr__(self, "kinds", tuple(self.kinds))
+        if len(self.rectangles) != len(self.kinds):
+            raise ValueError(f"Scene: {len(self.rectangles)} rectangles but "
+                             f"{len(self.kinds)} kinds")  # fmt: skip
+        for r, k in zip(self.rectangles, self.kinds):
+            if k not in SURFACE_KINDS:
+                raise ValueError(f"Scene: surface {r.name!r} has kind {k!r}, expected one of "
+                                 f"{', '.join(SURFACE_KINDS)}")  # fmt: skip
+        names = [r.name for r in self.rectangles]
+        dup = sorted({n for n in names if names.count(n) > 1})
+        if dup:
+            raise ValueError(f"Scene: surface names must be unique; repeated: {', '.join(dup)}")
+
+    def __len__(self) -> int:
+        return len(self.rectangles)
+
+    @property
+    def names(self) -> list[str]:
+        return [r.name for r in self.rectangles]
+
+    def indices(self, kind: str) -> list[int]:
+        return [i for i, k in enumerate(self.kinds) if k == kind]
+
+    # -- packed geometry ----------------------------------------------------------------------
+
+    @cached_property
+    def _packed(self) -> dict[str, np.ndarray]:
+        rs = self.rectangles
+        return {
+            "c": np.array([r.center_m for r in rs]).reshape(-1, 3),
+            "n": np.array([r.normal for r in rs]).reshape(-1, 3),
+            "u": np.array([r.u_axis for r in rs]).reshape(-1, 3),
+            "v": np.array([r.v_axis for r in rs]).reshape(-1, 3),
+            "hw": np.array([0.5 * r.width_m for r in rs]),
+            "hh": np.array([0.5 * r.height_m for r in rs]),
+            "refl": np.array([r.reflectivity for r in rs]),
+        }
+
+    @property
+    def reflectivity(self) -> np.ndarray:
+        return self._packed["refl"]
+
+    # -- exact ray casting ----------------------------------------------------------------------
+
+    def hit_range(self, j: int, ox, oy, oz, dx, dy, dz) -> tuple[np.ndarray, np.ndarray]:
+        """Range to rectangle ``j`` along rays given by components (arrays of equal length) and
+        whether the hit lies inside the rectangle (range may be negative or infinite: the
+        caller applies its range limits)."""
+        g = self._packed
+        n, c, u, v = g["n"][j], g["c"][j], g["u"][j], g["v"][j]
+        den = dx * n[0] + dy * n[1] + dz * n[2]
+        num = (c @ n) - (ox * n[0] + oy * n[1] + oz * n[2])
+        with np.errstate(divide="ignore", invalid="ignore"):  # rays parallel to the plane
+            rho = num / den
+            # local coordinates of the hit relative to the centre
+            qx, qy, qz = ox - c[0] + rho * dx, oy - c[1] + rho * dy, oz - c[2] + rho * dz
+            a = qx * u[0] + qy * u[1] + qz * u[2]
+            b = qx * v[0] + qy * v[1] + qz * v[2]
+        inside = (np.abs(a) <= g["hw"][j]) & (np.abs(b) <= g["hh"][j])
+        return rho, inside
+
+    def intersect(self, origins_m, directions, min_range_m: float = 0.0,
+                  max_range_m: float = np.inf) -> RayHits:  # fmt: skip
+        """Cast rays (``origins_m`` (n, 3) or (3,), unit ``directions`` (n, 3)); the nearest hit
+        with ``min_range_m < ρ ≤ max_range_m`` wins."""
+        d = np.atleast_2d(np.asarray(directions, float))
+        o = np.broadcast_to(np.asarray(origins_m, float), d.shape)
+        n_rays = d.shape[0]
+        best = np.full(n_rays, np.inf)
+        surf = np.full(n_rays, -1, dtype=np.int64)
+        comps = (o[:, 0], o[:, 1], o[:, 2], d[:, 0], d[:, 1], d[:, 2])
+        for j in range(len(self)):
+            rho, inside = self.hit_range(j, *comps)
+            ok = inside & (rho > min_range_m) & (rho <= max_range_m) & (rho < best)
+            best[ok] = rho[ok]
+            surf[ok] = j
+        hit = surf >= 0
+        cos_inc = np.full(n_rays, np.nan)
+        cos_inc[hit] = np.abs(np.einsum("ij,ij->i", d[hit], self._packed["n"][surf[hit]]))
+        return RayHits(np.where(hit, best, np.nan), surf, cos_inc)
+
+    # -- sectors of scan planes -----------------------------------------------------------------
+
+    def scan_sectors(self, origins_m, axis_x, axis_y, axis_z, grow_m: float = 0.0) -> ScanSectors:
+        """Scan-angle sectors of every rectangle for P scan planes.
+
+        Plane p passes through ``origins_m[p]`` with normal ``axis_x[p]``; a scan angle α points
+        along ``cos α·axis_y[p] + sin α·axis_z[p]`` (all (P, 3), LGF). Each rectangle is first
+        grown by ``grow_m`` on every side, so that rays fired from nearby poses are covered too.
+        The sector is the angle the plane's cut through the (grown) rectangle subtends from the
+        origin, always less than π.
+        """
+        o = np.asarray(origins_m, float)[:, None, None, :]  # (P, 1, 1, 3)
+        ex = np.asarray(axis_x, float)[:, None, None, :]
+        ey = np.asarray(axis_y, float)[:, None, None, :]
+        ez = np.asarray(axis_z, float)[:, None, None, :]
+        g = self._packed
+        su = np.array([-1.0, 1.0, 1.0, -1.0])[:, None]  # corner signs, counter-clockwise
+        sv = np.array([-1.0, -1.0, 1.0, 1.0])[:, None]
+        corners = (g["c"][:, None, :]
+                   + su * (g["hw"] + grow_m)[:, None, None] * g["u"][:, None, :]
+                   + sv * (g["hh"] + grow_m)[:, None, None] * g["v"][:, None, :])  # (R, 4, 3)
+        rel = corners[None] - o  # (P, R, 4, 3)
+        s = np.sum(rel * ex, axis=-1)  # signed distances to the scan plane
+        s_next = np.roll(s, -1, axis=-1)
+        crosses = (s >= 0) != (s_next >= 0)  # an edge the plane cuts: 0 or 2 per rectangle
+        with np.errstate(divide="ignore", invalid="ignore"):
+            f = np.where(crosses, s / (s - s_next), 0.0)
+        q = rel + f[..., None] * (np.roll(rel, -1, axis=-2) - rel)
+        ang = np.arctan2(np.sum(q * ez, axis=-1), np.sum(q * ey, axis=-1))  # (P, R, 4)
+        first_two = np.argsort(~crosses, axis=-1, kind="stable")[..., :2]
+        a = np.take_along_axis(ang, first_two, axis=-1)
+        start = np.mod(a[..., 0], 2 * np.pi)
+        width = np.mod(a[..., 1] - a[..., 0], 2 * np.pi)
+        flip = width > np.pi
+        start = np.where(flip, np.mod(a[..., 1], 2 * np.pi), start)
+        width = np.where(flip, 2 * np.pi - width, width)
+        hit = crosses.any(axis=-1)
+        return ScanSectors(np.where(hit, start, 0.0), np.where(hit, width, 0.0), hit)

@@ -1,0 +1,61 @@
+"""The one command-line interface, ``mls`` (DESIGN §2).
+
+Each command group lives in its own module under :mod:`cli.commands`; this file only
+assembles them. Command modules import their heavy dependencies inside the commands so that
+``mls --help`` stays fast.
+"""
+
+from __future__ import annotations
+
+import typer
+
+from cli.commands import calib_cmd, decode_cmd
+from cli.commands import assess_cmd  # noqa: F401  (adds calib c2c, history, compare)
+from cli.commands import assess_run_cmd  # noqa: F401  (adds calib assess)
+from cli.commands import run_cmd  # noqa: F401  (adds calib run)
+from cli.commands import demo_cmd
+from cli.commands import sim_cmd
+from cli.commands import sim_devices_cmd  # noqa: F401  (adds sim devices, sim replay)
+from cli.commands import logs_cmd, status_cmd
+from cli.commands import acquire_cmd, export_cmd
+from cli.commands import checklist_cmd, plan_cmd
+from cli.commands import design_cmd
+
+app = typer.Typer(
+    name="mls",
+    help=(
+        "marine-mls: acquisition, synchronization and boresight calibration for a marine "
+        "mobile LiDAR system (iXblue Hydrins INS + Z+F Profiler 9012)."
+    ),
+    no_args_is_help=True,
+    add_completion=False,
+    pretty_exceptions_enable=False,
+)
+
+app.add_typer(calib_cmd.app, name="calib")
+app.command("decode")(decode_cmd.decode)
+app.command("demo", help=demo_cmd.HELP)(demo_cmd.demo)
+app.add_typer(sim_cmd.app, name="sim")
+app.add_typer(logs_cmd.app, name="logs")
+app.command("status")(status_cmd.status)
+app.command("acquire", help=acquire_cmd.HELP)(acquire_cmd.acquire)
+app.command("export", help=export_cmd.HELP)(export_cmd.export)
+app.command("plan", help=plan_cmd.HELP)(plan_cmd.plan)
+app.command("checklist", help=checklist_cmd.HELP)(checklist_cmd.checklist)
+app.command("design", help=design_cmd.HELP)(design_cmd.design)
+
+
+@app.command("version")
+def version() -> None:
+    """Print the software version."""
+    from acquire import __version__
+
+    typer.echo(__version__)
+
+
+def main() -> None:  # console entry point
+    app()
+
+
+if __name__ == "__main__":
+    main()

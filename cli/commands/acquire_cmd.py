@@ -1,0 +1,111 @@
+"""``mls acquire --config vessel.yaml``: the acquisition daemon (what systemd runs)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import typer
+
+EXIT_OK, EXIT_FAILED, EXIT_CONFIG = 0, 1, 2
+
+HELP = (
+    "Run the acquisition daemon: read the INS, profiler, PPS and CAN devices of the vessel "
+    "config, keep the PPS clock model, check latency and sync, write the crash-safe session "
+    "log, publish status to the local socket and MQTT.\n\n"
+    "Runs until SIGTERM or Ctrl-C, then closes the session cleanly. Under systemd "
+    "(Type=notify) it reports READY once the devices are open and pings the watchdog while "
+    "every driver is alive and the log writer progresses.\n\n"
+    "Exit status: 0 after an orderly stop, 1 when it cannot start (session directory, status "
+    "socket), 2 when the config is invalid (every error printed, one per line).\n\n"
+    "When the config names a site_file, the daemon also runs the line guidance of the six-fold "
+    "pattern (pass acceptance with the tolerances of the config's guidance section, predicted "
+    "boresight σ, pre-survey checks) and publishes it on the checklist topic that mls checklist "
+    "shows.\n\n"
+    "Example: mls acquire --config /etc/mls/vessel.yaml"
+)
+
+
+def acquire(
+    config: Path = typer.Option(..., "--config", "-c", help="Vessel config (YAML), see "
+                                "systemd/vessel.example.yaml."),
+    check: bool = typer.Option(False, "--check", help="Validate the config, print a summary "
+                               "of the devices and exit."),
+    log_level: str = typer.Option("info", "--log-level", help="Log level on stderr: debug, "
+                                  "info, warning, error."),
+) -> None:
+    """``mls acquire`` (its help text is :data:`HELP`)."""
+    import asyncio
+    import logging
+    import sys
+
+    from acquire.daemon.config import VesselConfigError, load_vessel_config
+    from calib.io.configfile import ConfigError
+
+    try:
+        cfg = load_vessel_config(config)
+    except VesselConfigError as e:
+        for err in e.errors:
+            print(err, file=sys.stderr)
+        print(f"mls acquire: {config}: {len(e.errors)} error{'s' if len(e.errors) != 1 else ''} "
+              f"in the vessel config", file=sys.stderr)  # fmt: skip
+        raise typer.Exit(EXIT_CONFIG) from None
+    except (ConfigError, OSError) as e:
+        print(f"mls acquire: {e}", file=sys.stderr)
+        raise typer.Exit(EXIT_CONFIG) from None
+
+    from acquire.guidance.daemon import GuidanceSetupError, guidance_consumer
+    from acquire.daemon.supervisor import StartupError, Supervisor
+
+    try:
+        sup = Supervisor(cfg)
+        guidance = guidance_consumer(cfg, sup)
+    except (StartupError, GuidanceSetupError) as e:  # the config asks for what cannot be done
+        print(f"mls acquire: {e}", file=sys.stderr)
+        raise typer.Exit(EXIT_CONFIG) from None
+    if guidance is not None:
+        sup.consumers.append(guidance)
+    if check:
+        from rich.console import Console
+        from rich.table import Table
+
+        t = Table(title=f"{config}: vessel {cfg.vessel}, sessions in {cfg.session_dir}")
+        for col in ("device", "kind", "protocol", "where"):
+            t.add_column(col)
+        for d in cfg.devices:
+            where = d.transport or d.source
+            t.add_row(d.name, d.kind, d.protocol or "-", _describe(where))
+        Console().print(t)
+        if guidance is not None:
+            g, tol = guidance.guidance, cfg.guidance
+            print(f"guidance: {len(g.plan.passes)} passes around {len(g.target_names)} targets "
+                  f"({', '.join(g.target_names)}) of {cfg.site_file}; accepted within "
+                  f"{tol.max_xte_m:g} m XTE, {tol.max_heading_error_deg:g}° heading, "
+                  f"±{tol.max_speed_error_mps:g} m/s, ≥ {tol.min_points_per_target} points per "
+                  f"target, gaps ≤ {tol.max_gap_s:g} s")  # fmt: skip
+        raise typer.Exit(EXIT_OK)
+
+    logging.basicConfig(level=getattr(logging, log_level.upper(), logging.INFO), stream=sys.stderr,
+                        format="%(asctime)s %(name)s %(levelname)s: %(message)s")  # fmt: skip
+    try:
+        code = asyncio.run(sup.run())
+    except StartupError as e:
+        print(f"mls acquire: cannot start: {e}", file=sys.stderr)
+        raise typer.Exit(EXIT_FAILED) from None
+    raise typer.Exit(code)
+
+
+def _describe(where) -> str:
+    if where is None:
+        return "-"
+    t = getattr(where, "type", "")
+    if t == "serial":
+        return f"serial {where.port} {where.baud} Bd"
+    if t in ("udp", "tcp"):
+        return f"{t} {where.host}:{where.port}"
+    if t == "can":
+        return f"can {where.interface} {where.channel}"
+    if t == "kernel":
+        return f"kernel PPS {where.device}"
+    if t == "serial-line":
+        return f"serial-line PPS {where.port} ({where.line})"
+    return f"udp PPS {where.host}:{where.udp_port}"

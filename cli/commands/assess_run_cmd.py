@@ -1,0 +1,141 @@
+"""``mls calib assess``: relative accuracy of a calibration, before and after (thesis §4.4.6,
+§4.5.4; DESIGN §7 "Assessment"). Added to the ``mls calib`` group of
+:mod:`cli.commands.calib_cmd`; the work is :mod:`calib.assess.comparison`."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Optional
+
+import typer
+
+from cli.commands.calib_cmd import app
+
+ASSESS_HELP = (
+    "Relative accuracy: compare reciprocal passes before and after a calibration.\n\n"
+    "The same returns of two passes (the reciprocal pairs 0°/180°, 45°/225°, … found from the "
+    "sailed headings, or --pairs) are georeferenced with the a-priori mount of site.yaml "
+    "(before) and with the result's boresight (after), and compared with CloudCompare-style "
+    "cloud-to-cloud distances to local least-squares planes, on the site's validation planes "
+    "(or planar patches found in both passes when the site lists none) and on the whole "
+    "overlap. Prints the tables, writes assessment.md (the improvement in words), "
+    "assessment.json and PNG figures (histograms per surface, distance against height) into "
+    "--out. A simulated bundle (truth.json) is also compared with the truth.\n\n"
+    "Example: mls calib assess sim/tower --result out/result.json --out out/assess"
+)
+
+
+def _mm(x_m) -> str:
+    """Millimetres for the tables: 1384, 13, 4.6, 0.41."""
+    if x_m is None or x_m != x_m:
+        return "—"
+    mm = x_m * 1e3
+    return f"{mm:.0f}" if abs(mm) >= 10 else f"{mm:.1f}" if abs(mm) >= 1 else f"{mm:.2f}"
+
+
+@app.command("assess", help=ASSESS_HELP)
+def assess_cmd(
+    bundle: Path = typer.Argument(..., metavar="BUNDLE", help="Calibration bundle directory "
+                                  "(site.yaml, trajectory, points; truth.json when simulated)."),  # fmt: skip
+    result: Path = typer.Option(..., "--result", "-r", help="Calibration result (result.json, "
+                                "or the directory holding it) whose boresight is assessed."),  # fmt: skip
+    out: Path = typer.Option(..., "--out", "-o", help="Output directory (created) for "
+                             "assessment.md, assessment.json and the figures."),  # fmt: skip
+    pairs: Optional[str] = typer.Option(None, "--pairs", metavar="A:B[,C:D]", help="Pass pairs "
+                                        "to compare, compared pass first (e.g. 1:2,5:6); "
+                                        "default: the reciprocal pairs."),  # fmt: skip
+    knn: int = typer.Option(6, "--knn", min=3, help="Neighbours of each local least-squares "
+                            "plane (CloudCompare's '-MODEL LS KNN k'). On sparse scan lines "
+                            "6 neighbours can be collinear; the run says so: then try 12."),  # fmt: skip
+    gate_m: float = typer.Option(1.0, "--gate", min=0.001, help="Returns within this distance "
+                                 "(m) of a validation plane belong to it (after the "
+                                 "calibration; then trimmed per pass to its own plane)."),  # fmt: skip
+    auto_planes: bool = typer.Option(False, "--auto-planes", help="Find planar patches seen by "
+                                     "both passes even when site.yaml lists validation planes."),  # fmt: skip
+    scanner_height_m: float = typer.Option(0.0, "--scanner-height", help="Height of the scanner "
+                                           "above the water line (m); heights are reported "
+                                           "above the water."),  # fmt: skip
+    overlap: bool = typer.Option(True, "--overlap/--no-overlap", help="Also compare the whole "
+                                 "overlap of each pair."),  # fmt: skip
+) -> None:
+    """``mls calib assess`` (its help text is :data:`ASSESS_HELP`)."""
+    from rich.console import Console
+    from rich.markup import escape
+    from rich.progress import Progress, SpinnerColumn, TextColumn, TimeElapsedColumn
+    from rich.table import Table
+
+    from calib.assess.comparison import (AssessError, AssessOptions, assess, fmt_ratio, parse_pairs,
+                              summary_lines, write_assessment)  # fmt: skip
+    from calib.io.bundle import BundleError
+    from calib.io.configfile import ConfigError
+    from calib.assess.history import ResultFormatError, load_result
+    from calib.core.trajectory import TrajectoryError
+
+    err = Console(stderr=True)
+    try:
+        pair_list = parse_pairs(pairs) if pairs else None
+    except AssessError as e:
+        raise typer.BadParameter(str(e), param_hint="--pairs") from None
+    try:
+        options = AssessOptions(k=knn, gate_m=gate_m, auto_planes=auto_planes,
+                                scanner_height_m=scanner_height_m, overlap=overlap)  # fmt: skip
+        doc = load_result(result)
+        with Progress(SpinnerColumn(), TextColumn("{task.description}"), TimeElapsedColumn(),
+                      console=err, transient=True) as progress:  # fmt: skip
+            task = progress.add_task("assessing", total=None)
+            a = assess(bundle, doc, pair_list, options,
+                       progress=lambda msg: progress.update(task, description=msg))  # fmt: skip
+            progress.update(task, description="writing figures and assessment.md")
+            written = write_assessment(a, out)
+    except (AssessError, BundleError, ConfigError, ResultFormatError, TrajectoryError) as e:
+        err.print(f"[red]error:[/red] {escape(str(e))}", highlight=False, soft_wrap=True)
+        raise typer.Exit(1) from None
+
+    console = Console()
+    for note in a.notes:
+        console.print(f"note: {note}", highlight=False)
+    for line in summary_lines(a):
+        console.print(line, highlight=False)
+    truth = a.truth_boresight_deg is not None
+    tables = []
+    for pair in a.pairs:
+        rows = sorted((c for c in a.comparisons if c.pair == pair),
+                      key=lambda c: (c.source == "overlap", -c.height_m))  # fmt: skip
+        if not rows:
+            continue
+        h = a.headings_deg
+        table = Table(title=f"passes {pair[0]} ({h[pair[0]]:.0f}°) ↔ {pair[1]} ({h[pair[1]]:.0f}°): "
+                            f"median C2C (mm), local LS planes k = {knn}")  # fmt: skip
+        cols = ["surface", "height m", "returns", "before", "after", "×", "expected", "95 %",
+                "floor"] + (["true mount"] if truth else [])  # fmt: skip
+        for col in cols:
+            table.add_column(col, justify="left" if col == "surface" else "right", no_wrap=True)
+        for c in rows:
+            cells = [c.name if c.source != "overlap" else "overlap", f"{c.height_m:.1f}",
+                     f"{c.after.count:,}", _mm(c.before.median_m), _mm(c.after.median_m),
+                     fmt_ratio(c.improvement), _mm(c.expected_median_m), _mm(c.expected_upper_m),
+                     _mm(c.floor_median_m)]  # fmt: skip
+            if truth:
+                cells.append(_mm(c.true_mount.median_m if c.true_mount else None))
+            table.add_row(*cells)
+        tables.append(table)
+    if a.height_fits:
+        table = Table(title="C2C against height above the water (least-squares line)")
+        for col in ("passes", "before (mm per m)", "after (mm per m)", "heights"):
+            table.add_column(col, justify="left" if col == "passes" else "right")
+        for pair in a.pairs:
+            try:
+                b, f = a.height_fit(pair, "before"), a.height_fit(pair, "after")
+            except KeyError:
+                continue
+            table.add_row(f"{pair[0]}:{pair[1]}", f"{b.slope_m_per_m * 1e3:.1f}",
+                          f"{f.slope_m_per_m * 1e3:.1f}",
+                          f"{b.height_span_m[0]:.0f}–{b.height_span_m[1]:.0f} m")  # fmt: skip
+        tables.append(table)
+    if tables:
+        tables[-1].caption = (f"wrote {written['markdown'][0]}, {written['json'][0].name} and "
+                              f"{len(written['figures'])} figures")  # fmt: skip
+    for table in tables:
+        console.print(table)
+    if not tables:
+        console.print(f"nothing compared; wrote {written['markdown'][0]}", highlight=False)

@@ -1,0 +1,153 @@
+"""``mls decode``: decode a recorded device file (INS NMEA/STDBIN, ZFP1 profiles, pcapng captures)."""
+
+from __future__ import annotations
+
+import json
+import sys
+from enum import Enum
+from pathlib import Path
+
+import typer
+
+
+class Format(str, Enum):
+    nmea = "nmea"
+    stdbin = "stdbin"
+    zfp = "zfp"
+    pcapng = "pcapng"
+
+
+class Payload(str, Enum):
+    stdbin = "stdbin"
+    nmea = "nmea"
+    zfp = "zfp"
+    pps = "pps"
+
+
+def decode(
+    file: Path = typer.Argument(..., help="The recorded file: a raw stream, a stamped log or a packet capture."),
+    fmt: Format = typer.Option(..., "--format", "-f", help="What the file holds: nmea, stdbin, zfp or pcapng."),
+    payload: Payload = typer.Option(
+        Payload.stdbin, "--payload", help="pcapng only: the protocol carried in the UDP payloads."
+    ),
+    port: int | None = typer.Option(None, "--port", help="pcapng only: keep UDP datagrams to or from this port."),
+    as_json: bool = typer.Option(False, "--json", help="Print one JSON object per record (summary on stderr)."),
+    nav: bool = typer.Option(
+        False, "--nav", help="INS formats: print canonical navigation records (radians → degrees, NED, FRD)."
+    ),
+    timing: bool = typer.Option(
+        False, "--timing", help="Fit the device time tags against the receive stamps: drift, offset, jitter."
+    ),
+    date: str | None = typer.Option(
+        None, "--date", help="UTC date YYYY-MM-DD for time tags when the file carries none (no ZDA/system date)."
+    ),
+) -> None:
+    """Decode a recorded device file; end with a summary: records, bytes, rejected frames and why."""
+    from rich.console import Console
+    from rich.progress import BarColumn, Progress, TextColumn
+    from rich.table import Table
+
+    from drivers.base import DriverError
+    from drivers.capture.files import FileDecoder, record_to_dict
+    from drivers.capture.pcapng import PcapError
+
+    err = Console(stderr=True)
+    out = Console()
+    try:
+        fd = FileDecoder(file, fmt.value, payload.value, port, nav, date)
+    except DriverError as exc:
+        err.print(f"[red]error:[/red] {exc}")
+        raise typer.Exit(2) from exc
+
+    counts: dict[str, int] = {}
+    samples: list[tuple[int, int]] = []
+    try:
+        with Progress(
+            TextColumn("decoding"), BarColumn(), TextColumn("{task.percentage:>3.0f}%"),
+            console=err, transient=True, disable=as_json or not err.is_terminal,
+        ) as progress:  # fmt: skip
+            task = progress.add_task("decode", total=max(fd.size, 1))
+            for rec in fd:
+                d = record_to_dict(rec)
+                counts[d["type"]] = counts.get(d["type"], 0) + 1
+                if timing:
+                    sample = _time_sample(rec)
+                    if sample is not None:
+                        samples.append(sample)
+                if as_json:
+                    try:
+                        sys.stdout.write(json.dumps(d, default=_json_default) + "\n")
+                    except BrokenPipeError:  # `mls decode ... --json | head`
+                        sys.stdout = None
+                        raise typer.Exit(0) from None
+                progress.update(task, completed=fd.bytes_done)
+    except (DriverError, PcapError, OSError) as exc:
+        err.print(f"[red]error:[/red] {exc}")
+        raise typer.Exit(2) from exc
+
+    summary = f"summary: {fd.stats.summary()}"
+    if fd.capture_stats is not None:
+        summary += f"; capture: {fd.capture_stats.records} packets, {fd.udp_stats.records} UDP datagrams decoded"
+        skipped = {**fd.capture_stats.rejected, **fd.udp_stats.events}
+        if skipped:
+            summary += " (skipped " + ", ".join(f"{k}: {v}" for k, v in sorted(skipped.items())) + ")"
+    if not as_json:
+        table = Table(title=f"{file.name} ({fmt.value}{'/' + payload.value if fmt is Format.pcapng else ''})")
+        table.add_column("record type")
+        table.add_column("count", justify="right")
+        for kind, n in sorted(counts.items()):
+            table.add_row(kind, str(n))
+        out.print(table)
+    if timing:
+        _print_timing(samples, out if not as_json else err)
+    (err if as_json else out).print(summary, highlight=False, soft_wrap=True)
+
+
+def _time_sample(rec) -> tuple[int, int] | None:
+    """(receive stamp ns, device time-of-day ns) of a time-tagged record, else None."""
+    host = getattr(rec, "host_ns", None)
+    if host is None:
+        return None
+    name = type(rec).__name__
+    if name == "StdbinFrame":
+        return host, rec.validity_time_100us * 100_000
+    if name == "NavRecord" and rec.time_of_day_ns is not None:
+        return host, rec.time_of_day_ns
+    if name in ("PixseTime", "Zda") and rec.time_of_day_ns is not None:
+        return host, rec.time_of_day_ns
+    return None
+
+
+def _print_timing(samples: list[tuple[int, int]], console) -> None:
+    from rich.table import Table
+
+    from drivers.timing import fit_clock, unwrap_time_of_day_ns
+
+    if len(samples) < 3:
+        console.print("timing: fewer than 3 time-tagged records with receive stamps, nothing to fit")
+        return
+    host = [s[0] for s in samples]
+    fit = fit_clock(host, unwrap_time_of_day_ns([s[1] for s in samples]))
+    table = Table(title="device clock vs receive stamps")
+    table.add_column("quantity")
+    table.add_column("value", justify="right")
+    table.add_row("samples (outliers)", f"{fit.n} ({fit.n_outliers})")
+    table.add_row("span_s", f"{fit.span_s:.3f}")
+    table.add_row("drift_ppm (host vs device)", f"{fit.drift_ppm:+.2f}")
+    table.add_row("offset_s mod 1 day (latency + clock offset)", f"{fit.offset_s % 86400:.6f}")
+    table.add_row("jitter_rms_ms", f"{fit.jitter_rms_s * 1e3:.3f}")
+    table.add_row("jitter_max_ms", f"{fit.jitter_max_s * 1e3:.3f}")
+    table.add_row("jitter_p2p_ms", f"{fit.jitter_p2p_s * 1e3:.3f}")
+    console.print(table)
+
+
+def _json_default(o):
+    import numpy as np
+
+    if isinstance(o, np.generic):
+        return o.item()
+    if isinstance(o, bytes):
+        return o.hex()
+    if isinstance(o, (tuple, set)):
+        return list(o)
+    return str(o)

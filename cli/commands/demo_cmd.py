@@ -1,0 +1,100 @@
+"""``mls demo``: the end-to-end job on simulated devices (what ``make demo`` runs); the work is
+:func:`acquire.jobs.demo.run_demo`."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import List
+
+import typer
+
+EXIT_OK, EXIT_FAILED, EXIT_INTERRUPTED = 0, 1, 130
+
+HELP = (
+    "The whole job on simulated devices, in about a minute and a half: simulated INS, profiler "
+    "and PPS (the montreal scenario: two targets on a quay wall, six-fold line pattern on "
+    "short lines), the acquisition daemon with its line guidance accepting the passes live, "
+    "then mls export and mls calib run; prints the recovered boresight next to the truth.\n\n"
+    "Everything goes to OUT (default ./demo-out, emptied of a previous demo's files first): "
+    "run/ (the devices' run directory and the session), bundle/, calib/ (result.json, "
+    "report.md, plots), logs/ (one log per step). Every child process runs in its own "
+    "process group and is stopped when the demo ends, fails or is interrupted (Ctrl-C).\n\n"
+    "Time runs at ×1: the daemon's clock model locks only on a PPS that ticks once per host "
+    "second, and the guidance accepts a pass only with the clock LOCKED.\n\n"
+    "Exit status: 0 when the calibration ran, 1 when a step failed (the message names it and "
+    "its log), 130 on Ctrl-C (143 on SIGTERM, 129 on SIGHUP).\n\n"
+    "Example: mls demo   (or: make demo)"
+)
+
+
+def demo(
+    out: Path = typer.Option(Path("demo-out"), "--out", "-o", help="Run directory (emptied of "
+                             "a previous demo's files; a non-empty directory of anything else "
+                             "is refused)."),  # fmt: skip
+    seed: int = typer.Option(0, "--seed", help="Random seed of the simulation."),
+    line_m: float = typer.Option(18.0, "--line-m", min=10.0, max=200.0, help="Length of lines "
+                                 "2–6 (m); each must hold its ~10 m capture window."),
+    first_line_m: float = typer.Option(44.0, "--first-line-m", min=30.0, max=300.0,
+                                       help="Length of line 1 (m): the daemon starts and its "
+                                       "clock locks before its capture window."),
+    pass_gap_s: float = typer.Option(3.0, "--pass-gap-s", min=2.0, max=120.0, help="Transit "
+                                     "time from the end of a line to the start of the next."),
+    set_: List[str] = typer.Option([], "--set", metavar="KEY=VALUE", help="Further scenario "
+                                   "override (repeatable), e.g. scanner.point_rate_scale=0.05."),
+) -> None:  # fmt: skip
+    """``mls demo`` (its help text is :data:`HELP`)."""
+    import signal
+    import time
+
+    from rich.console import Console
+    from rich.markup import escape
+
+    from acquire.jobs.demo import DemoError, DemoSettings, Interrupted, comparison_table, run_demo
+
+    console = Console(soft_wrap=True)  # long lines (paths) stay whole: easy to copy
+    t0 = time.monotonic()
+    pending: list[str] = []
+
+    def on_signal(signum, frame) -> None:
+        pending.append(signal.Signals(signum).name)
+
+    def interrupted() -> None:
+        if pending:
+            raise Interrupted(pending[0])
+
+    # Ctrl-C, SIGTERM and a closed terminal (SIGHUP) all stop the children before exiting
+    previous = {s: signal.signal(s, on_signal) for s in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)}
+    settings = DemoSettings(out=out, seed=seed, first_line_m=first_line_m, line_m=line_m,
+                            pass_gap_s=pass_gap_s, extra_overrides=tuple(set_))  # fmt: skip
+    code = EXIT_OK
+    try:
+        res = run_demo(settings, console, interrupted)
+    except DemoError as e:
+        console.print(f"[bold red]mls demo failed[/bold red] at step [bold]{escape(e.step)}[/bold]: "
+                      f"{escape(e.message)}", highlight=False)  # fmt: skip
+        if e.log is not None:
+            console.print(f"  its log: {e.log}; all logs: {(out / 'logs').resolve()}", highlight=False)
+        code = EXIT_FAILED
+    except Interrupted as e:
+        console.print(f"mls demo: interrupted ({e.signame}); every child process was stopped",
+                      highlight=False)  # fmt: skip
+        code = EXIT_INTERRUPTED if e.signame == "SIGINT" else 128 + int(signal.Signals[e.signame])
+    else:
+        console.print()
+        console.print(comparison_table(res.rows))
+        within = all(abs(r.error_sigmas) <= 3 for r in res.rows)
+        console.print(("[green]recovered within 3σ (realistic) of the truth on every angle[/green]"
+                       if within else "[bold red]NOT within 3σ (realistic) of the truth[/bold red]")
+                      + f" · {res.accepted}/{res.n_passes} passes accepted live · "
+                      f"{res.result.get('n_points', '?')} target points", highlight=False)  # fmt: skip
+        console.print(f"result.json  {res.calib / 'result.json'}", highlight=False)
+        console.print(f"report.md    {res.calib / 'report.md'}", highlight=False)
+        for p in res.plots:
+            console.print(f"plot         {p}", highlight=False)
+        console.print(f"session      {res.session}\nbundle       {res.bundle}\nlogs         "
+                      f"{res.out / 'logs'}", highlight=False)  # fmt: skip
+    finally:
+        for s, h in previous.items():
+            signal.signal(s, h)
+    console.print(f"wall time {time.monotonic() - t0:.1f} s", highlight=False)
+    raise typer.Exit(code)

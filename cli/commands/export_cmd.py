@@ -1,0 +1,92 @@
+"""``mls export SESSION --bundle DIR``: a recorded session → a calibration bundle (DESIGN §4)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Optional
+
+import typer
+
+HELP = (
+    "Export a recorded session as a calibration bundle for `mls calib run`.\n\n"
+    "Writes BUNDLE/trajectory.csv (the INS epochs of /ins/nav at their GPS time, canonical "
+    "attitude, per-epoch sigmas), BUNDLE/points.csv (the profiler packets of /lidar/raw "
+    "decoded again: per point GPS time, range, scan angle, intensity; no-returns dropped; "
+    "only the points inside a pass) and BUNDLE/site.yaml (the site file with the mount of the "
+    "session's vessel config). Passes come from the pass_start/pass_end marks in /events (CAN "
+    "event markers, MQTT commands), or, when there are none, from the site's pass plan (where "
+    "the trajectory runs along a planned line). Optionally one LAZ per pass (--laz) and the "
+    "trajectory as an SBET (--sbet).\n\n"
+    "Example: mls export /var/lib/mls/sessions/20240709T140000Z_survey-1 --bundle calib-0709 "
+    "--laz calib-0709/laz"
+)
+
+
+def export(
+    session: Path = typer.Argument(..., help="Session directory (YYYYmmddTHHMMSSZ_<vessel>)."),
+    bundle: Path = typer.Option(..., "--bundle", "-o", help="Bundle directory to write (created)."),
+    laz: Optional[Path] = typer.Option(None, "--laz", help="Also write one LAZ per pass here "
+                                       "(UTM, a-priori mount)."),
+    sbet: Optional[Path] = typer.Option(None, "--sbet", help="Also write the trajectory as an "
+                                        "Applanix SBET (and .smrmsg with the sigmas)."),
+    site: Optional[Path] = typer.Option(None, "--site", help="Site file (targets, pass plan) "
+                                        "instead of the one stored in the session."),
+    passes: str = typer.Option("auto", "--passes", help="Where the passes come from: auto "
+                               "(event marks, else the plan), events, plan."),
+    cross_track_m: float = typer.Option(5.0, "--max-cross-track", min=0.1, help="Plan passes: "
+                                        "largest distance from the planned line (m)."),
+    heading_deg: float = typer.Option(20.0, "--max-heading-error", min=0.1, max=90.0,
+                                      help="Plan passes: largest heading error (deg)."),
+) -> None:  # fmt: skip
+    """``mls export`` (its help text is :data:`HELP`)."""
+    import time
+
+    from rich.console import Console
+    from rich.markup import escape
+    from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
+    from rich.table import Table
+
+    from acquire.jobs.export import ExportError, ExportOptions, export_session
+    from calib.io.bundle import BundleError
+    from calib.io.configfile import ConfigError
+    from calib.io.laz import LasOutputError
+    from calib.survey.passplan import PassPlanError
+    from calib.core.trajectory import TrajectoryError
+
+    console = Console()
+    t0 = time.perf_counter()
+    try:
+        opts = ExportOptions(passes=passes, site_file=site, max_cross_track_m=cross_track_m,
+                             max_heading_error_deg=heading_deg, laz_dir=laz, sbet_path=sbet)  # fmt: skip
+        with Progress(TextColumn("[bold]{task.description}"), BarColumn(), TimeElapsedColumn(),
+                      console=console, transient=True) as bar:  # fmt: skip
+            task = bar.add_task("reading the session", total=None)
+
+            def progress(stage: str, done: float, total: float | None) -> None:
+                bar.update(task, description=stage, completed=done, total=total)
+
+            res = export_session(session, bundle, opts, progress)
+    except (ExportError, BundleError, ConfigError, LasOutputError, PassPlanError,
+            TrajectoryError, OSError) as e:  # fmt: skip
+        Console(stderr=True).print(f"[red]error:[/red] {escape(str(e))}", highlight=False, soft_wrap=True)
+        raise typer.Exit(1) from None
+    from calib.core import frames
+
+    t = Table(title=f"{session.name} → {res.bundle} ({res.pass_source} passes)", title_justify="left")
+    for col in ("pass", "source", "start UTC", "span s", "points"):
+        t.add_column(col, justify="right" if col in ("pass", "span s", "points") else "left")
+    for w in res.passes:
+        start = frames.gps_ns_to_utc(w.start_gps_ns).strftime("%H:%M:%S.%f")[:-3]
+        t.add_row(str(w.pass_id), w.source, start, f"{(w.end_gps_ns - w.start_gps_ns) / 1e9:.1f}",
+                  f"{res.points_per_pass.get(w.pass_id, 0):,}")  # fmt: skip
+    console.print(t)
+    for w in res.warnings:
+        console.print(f"[yellow]warning:[/yellow] {escape(w)}", highlight=False)
+    extra = ""
+    if res.laz:
+        extra += f"; {len(res.laz)} LAZ files in {laz}"
+    if res.sbet is not None:
+        extra += f"; SBET {res.sbet}"
+    console.print(f"{res.epochs:,} INS epochs, {res.points:,} points from {res.packets:,} packets "
+                  f"({res.returns_outside_passes:,} returns outside the passes){extra} in "
+                  f"{time.perf_counter() - t0:.1f} s", highlight=False)  # fmt: skip

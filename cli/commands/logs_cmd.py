@@ -1,0 +1,129 @@
+"""``mls logs``: inspect and salvage session logs (DESIGN §4)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import typer
+
+app = typer.Typer(help="Session logs: summary (info) and salvage of torn segments (recover).",
+                  no_args_is_help=True)  # fmt: skip
+
+
+def _utc(gps_ns: int | None) -> str:
+    if gps_ns is None:
+        return "-"
+    from calib.core.frames import gps_ns_to_utc
+
+    return gps_ns_to_utc(gps_ns).strftime("%Y-%m-%d %H:%M:%S.%f")[:-3]
+
+
+def _session_arg(session: Path) -> Path:
+    if not session.is_dir():
+        typer.echo(f"mls logs: {session}: no such session directory", err=True)
+        raise typer.Exit(2)
+    return session
+
+
+@app.command("info")
+def info(
+    session: Path = typer.Argument(..., help="Session directory (YYYYmmddTHHMMSSZ_<vessel>)."),
+    gap_s: float = typer.Option(1.0, "--gap", help="Report pauses longer than this (s) and "
+                                "than 5 × the channel's typical period."),
+    as_json: bool = typer.Option(False, "--json", help="Print the summary as JSON."),
+) -> None:
+    """Segments, channels, message counts, time span, gaps and sequence continuity of a session.
+
+    Exit status 0 when every segment is complete and every sequence contiguous, 1 otherwise.
+    """
+    import json
+
+    from rich.console import Console
+    from rich.progress import Progress
+    from rich.table import Table
+
+    from acquire.log.recover import session_info
+
+    session = _session_arg(session)
+    with Progress(transient=True, disable=as_json) as progress:
+        task = progress.add_task(f"reading {session.name}", total=None)
+        info_ = session_info(session, gap_s,
+                             progress=lambda done, total: progress.update(task, completed=done,
+                                                                          total=total))  # fmt: skip
+    bad_segments = [s for s in info_.segments if s.state != "complete"]
+    discontinuous = [c for c in info_.channels.values() if c.missing or c.duplicates or c.backwards]
+    if as_json:
+        typer.echo(json.dumps(info_.as_dict(), indent=2))
+        raise typer.Exit(1 if bad_segments or discontinuous else 0)
+    con = Console()
+    st = Table(title=f"{session.name}: segments")
+    for c in ("segment", "state", "MiB", "messages", "first (UTC, log time)", "last", "note"):
+        st.add_column(c, justify="right" if c in ("MiB", "messages") else "left")
+    for s in info_.segments:
+        note = []
+        if s.torn_bytes:
+            note.append(f"torn tail {s.torn_bytes} B")
+        if s.problem:
+            note.append(s.problem)
+        if s.recovery:
+            note.append(f"recovered (torn {s.recovery.get('torn_bytes')} B)")
+        if s.end_reason:
+            note.append(s.end_reason)
+        st.add_row(s.name, s.state, f"{s.bytes / 2**20:.2f}", str(s.messages), _utc(s.first_log_ns),
+                   _utc(s.last_log_ns), "; ".join(note))  # fmt: skip
+    con.print(st)
+    ct = Table(title="channels")
+    for c in ("channel", "messages", "seq", "missing", "dup", "gaps", "longest gap s", "unlocked"):
+        ct.add_column(c, justify="left" if c == "channel" else "right")
+    for t, c in sorted(info_.channels.items()):
+        longest = max((g[1] for g in c.gaps), default=0.0)
+        ct.add_row(t, str(c.messages), f"{c.seq_first}–{c.seq_last}", str(c.missing),
+                   str(c.duplicates + c.backwards), str(len(c.gaps)),
+                   f"{longest:.2f}" if c.gaps else "-", str(c.unlocked))  # fmt: skip
+    con.print(ct)
+    first, last = info_.span_ns
+    span = (last - first) / 1e9 if first is not None and last is not None else 0.0
+    con.print(f"{len(info_.segments)} segments, {info_.messages} messages, {_utc(first)} → "
+              f"{_utc(last)} UTC ({span:.1f} s); {len(bad_segments)} segment(s) not complete, "
+              f"{sum(c.missing for c in info_.channels.values())} sequence number(s) missing")  # fmt: skip
+    for c in info_.channels.values():
+        for a, b in c.missing_ranges[:5]:
+            con.print(f"  {c.topic}: sequence {a}–{b} missing")
+    if bad_segments and any(s.state == "unfinished" for s in bad_segments):
+        con.print(f"run `mls logs recover {session}` to salvage the unfinished segment(s)")
+    raise typer.Exit(1 if bad_segments or discontinuous else 0)
+
+
+@app.command("recover")
+def recover(
+    session: Path = typer.Argument(..., help="Session directory to salvage."),
+    keep_torn: bool = typer.Option(True, "--keep-torn/--delete-torn",
+                                   help="Keep each original torn segment as seg-NNNNNN.mcap.torn."),
+) -> None:
+    """Rewrite every unfinished segment as a valid MCAP with all its complete messages.
+
+    The torn tail (a half-written chunk after a crash or a full disk) is reported, never
+    guessed at. Refuses a session that a running daemon is writing.
+    """
+    from rich.console import Console
+    from rich.table import Table
+
+    from acquire.log.recover import salvage_session
+    from acquire.log.sessionlog import LogError
+
+    session = _session_arg(session)
+    try:
+        reports = salvage_session(session, keep_original=keep_torn)
+    except LogError as e:
+        typer.echo(f"mls logs recover: {e}", err=True)
+        raise typer.Exit(1) from None
+    if not reports:
+        typer.echo(f"{session.name}: every segment is complete; nothing to recover")
+        return
+    t = Table(title=f"{session.name}: recovered segments")
+    for c in ("segment", "messages", "kept bytes", "torn bytes", "why it stopped", "original"):
+        t.add_column(c)
+    for r in reports:
+        t.add_row(r.segment, str(r.messages), str(r.good_bytes), str(r.torn_bytes),
+                  r.problem or "no footer (clean end of file)", r.original or "deleted")  # fmt: skip
+    Console().print(t)

@@ -1,0 +1,218 @@
+"""``mls calib run``: boresight calibration of a bundle (issue 4). Added to the ``mls calib``
+group of :mod:`cli.commands.calib_cmd`; the work is :func:`calib.boresight.pipeline.run_bundle`."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Optional
+
+import typer
+
+from cli.commands.calib_cmd import app, parse_triple_deg
+
+RUN_HELP = (
+    "Calibrate the boresight from a calibration bundle (or a recorded session).\n\n"
+    "Georeferences every pass with the a-priori mount, extracts each target (seeded by its "
+    "centre in site.yaml, RANSAC plane, its own rectangle by size and reflectivity), runs the "
+    "rigorous Gauss–Helmert adjustment and writes result.json, report.md and PNG plots into "
+    "--out (default BUNDLE/calib/). Prints the estimates with their formal and realistic σ "
+    "(use the realistic one: POS errors are correlated in time) and records the result in "
+    "the calibration history. A session directory is first exported to OUT/bundle as 'mls "
+    "export SESSION --bundle OUT/bundle' would (OUT defaults to SESSION/calib/).\n\n"
+    "Example: mls sim dataset --scenario montreal --out sim-mtl && mls calib run sim-mtl "
+    "--mount lidar-2024"
+)
+
+
+def _fail(message: str, code: int = 1) -> None:
+    from rich.console import Console
+    from rich.markup import escape
+
+    Console(stderr=True).print(f"[red]error:[/red] {escape(message)}", highlight=False,
+                               soft_wrap=True)  # fmt: skip
+    raise typer.Exit(code)
+
+
+def _is_session(path: Path) -> bool:
+    """An acquisition session directory (MCAP segments; the daemon also keeps a copy of the
+    site file there) rather than a bundle (points.csv)."""
+    return path.is_dir() and any(path.glob("*.mcap")) and \
+        not any((path / n).exists() for n in ("points.csv", "points.csv.gz"))  # fmt: skip
+
+
+def _progress_callback(progress):
+    tasks: dict[str, int] = {}
+
+    def update(stage: str, done: float, total: float | None) -> None:
+        if stage not in tasks:
+            for t in tasks.values():  # the previous stage is over
+                task = progress.tasks[t]
+                progress.update(t, completed=task.total if task.total else 1, total=task.total or 1)
+            tasks[stage] = progress.add_task(stage, total=total)
+        progress.update(tasks[stage], completed=done, total=total)
+
+    return update
+
+
+def _table(run, out_dir: Path):
+    import numpy as np
+    from rich.table import Table
+
+    res = run.result
+    chi2 = res.chi2_test()
+    table = Table(
+        title=f"boresight → {out_dir / 'result.json'}",
+        caption=(f"σ̂0² {res.sigma0_squared:.3f} (χ² test "
+                 f"{'passed' if chi2['passed'] else 'FAILED'}) · {res.iterations} iterations · {res.n_points:,} points, "
+                 f"{res.outlier_point_ids.size} outliers · {run.timings_s['total_s']:.1f} s"),
+    )  # fmt: skip
+    table.add_column("angle")
+    for col in ("estimate °", "σ formal °", "σ realistic °"):
+        table.add_column(col, justify="right")
+    for name, b, sf, sr in zip(("roll", "pitch", "yaw"), np.degrees(res.boresight_rad),
+                               np.degrees(res.sigma_formal_rad),
+                               np.degrees(res.sigma_realistic_rad)):  # fmt: skip
+        table.add_row(name, f"{b:.4f}", f"{sf:.4f}", f"{sr:.4f}")
+    return table
+
+
+def _export(session: Path, bundle_dir: Path, console, columns) -> Path:
+    """Export a recorded session to a bundle (what ``mls export`` does); returns the bundle."""
+    from rich.markup import escape
+    from rich.progress import Progress
+
+    from acquire.jobs.export import ExportError, export_session
+    from calib.io.bundle import BundleError
+    from calib.io.configfile import ConfigError
+    from calib.survey.passplan import PassPlanError
+    from calib.core.trajectory import TrajectoryError
+
+    try:
+        with Progress(*columns, console=console, transient=True) as progress:
+            res = export_session(session, bundle_dir, progress=_progress_callback(progress))
+    except (ExportError, BundleError, ConfigError, PassPlanError, TrajectoryError, OSError) as e:
+        _fail(f"{session} is a recorded session and could not be exported to a bundle: {e} "
+              f"(run 'mls export {session} --bundle DIR' with its options, then 'mls calib run "
+              f"DIR')")  # fmt: skip
+    console.print(f"exported the session to {res.bundle} ({res.points:,} points, "
+                  f"{len(res.passes)} passes from {res.pass_source})", highlight=False)  # fmt: skip
+    for w in res.warnings:
+        console.print(f"[yellow]warning:[/yellow] {escape(w)}", highlight=False, soft_wrap=True)
+    return Path(res.bundle)
+
+
+@app.command("run", help=RUN_HELP)
+def run(
+    bundle: Path = typer.Argument(..., metavar="BUNDLE|SESSION", help="Calibration bundle "
+                                  "directory (site.yaml, trajectory.csv or .sbet, "
+                                  "points.csv[.gz]), or a recorded session directory."),  # fmt: skip
+    out: Optional[Path] = typer.Option(None, "--out", "-o", help="Output directory (created); "
+                                       "default BUNDLE/calib/."),  # fmt: skip
+    subsample: Optional[float] = typer.Option(
+        None, "--subsample", metavar="M", help="Voxel subsampling of each target per pass (m), "
+        "e.g. 0.05: one point per voxel, the nearest its centre (thesis §4.4.4). Default: "
+        "every extracted point."),  # fmt: skip
+    estimate: str = typer.Option(
+        "", "--estimate", metavar="LIST", help="Extra unknowns, comma-separated: range_offset, "
+        "lever_arm_x, lever_arm_y, latency, pass_offsets (each reported with its correlation "
+        "to the boresight; refused with an explanation when not observable)."),  # fmt: skip
+    apriori_deg: Optional[str] = typer.Option(
+        None, "--apriori-deg", metavar="R,P,Y", help="A-priori boresight roll,pitch,yaw in "
+        "degrees (canonical convention); default site.yaml's mount.boresight_apriori_deg."),  # fmt: skip
+    correlation_time_s: Optional[float] = typer.Option(
+        None, "--correlation-time-s", metavar="S", help="Correlation time of the POS errors "
+        "that the realistic σ assumes (first-order Gauss–Markov); default site.yaml's "
+        "pos_sigmas.correlation_time_s, else 60 s (the report says so)."),  # fmt: skip
+    error_model: str = typer.Option(
+        "gauss_markov", "--error-model", metavar="MODEL", help="POS error model of the "
+        "realistic σ: gauss_markov (correlated in time), pass_bias (constant within each "
+        "pass) or white (independent: realistic = formal)."),  # fmt: skip
+    extraction: str = typer.Option(
+        "seeded", "--extraction", metavar="MODE", help="seeded: search around each target's "
+        "centre in site.yaml; auto: find bright planar rectangles of the configured sizes."),  # fmt: skip
+    search_radius_m: float = typer.Option(
+        2.0, "--search-radius-m", help="Seeded search radius beyond each target's half-diagonal "
+        "(m): covers a wrong a-priori boresight and approximate centres."),  # fmt: skip
+    mount: str = typer.Option("default", "--mount", metavar="ID", help="Mount id the result "
+                              "is recorded under in the history (a new id after every "
+                              "re-installation of the scanner)."),  # fmt: skip
+    vessel: Optional[str] = typer.Option(None, "--vessel", help="Vessel name for the history; "
+                                         "default site.yaml's vessel."),  # fmt: skip
+    db: Optional[Path] = typer.Option(None, "--db", help="History database (default "
+                                      "$MLS_HISTORY_DB, else ~/.local/share/marine-mls/"
+                                      "history.sqlite)."),  # fmt: skip
+    no_history: bool = typer.Option(False, "--no-history", help="Do not record the result in "
+                                    "the calibration history."),  # fmt: skip
+    no_plots: bool = typer.Option(False, "--no-plots", help="Write result.json and report.md "
+                                  "only (faster)."),  # fmt: skip
+) -> None:
+    """``mls calib run`` (its help text is :data:`RUN_HELP`)."""
+    import math
+    import sqlite3
+
+    import numpy as np
+    from rich.console import Console
+    from rich.markup import escape
+    from rich.progress import (BarColumn, MofNCompleteColumn, Progress, TextColumn,
+                               TimeElapsedColumn)  # fmt: skip
+
+    from calib.boresight.adjust import AdjustmentError
+    from calib.io.bundle import BundleError
+    from calib.io.configfile import ConfigError
+    from calib.boresight.extract import ExtractionError, ExtractOptions
+    from calib.assess.history import HistoryError, ResultFormatError, record_result
+    from calib.boresight.pipeline import CalibrationError, CalibrationOptions, run_bundle
+    from calib.core.trajectory import TrajectoryError
+
+    if not bundle.is_dir():
+        _fail(f"{bundle}: not a directory (a calibration bundle is a directory with site.yaml, "
+              f"trajectory.csv and points.csv)")  # fmt: skip
+    try:
+        apriori = parse_triple_deg(apriori_deg, "--apriori-deg") if apriori_deg else None
+    except typer.BadParameter as e:
+        _fail(f"--apriori-deg: {e.message}", 2)
+    if subsample is not None and not (math.isfinite(subsample) and subsample > 0):
+        _fail(f"--subsample {subsample!r}: expected a positive voxel size in metres, e.g. 0.05", 2)
+    if correlation_time_s is not None and not (math.isfinite(correlation_time_s)
+                                               and correlation_time_s > 0):  # fmt: skip
+        _fail(f"--correlation-time-s {correlation_time_s!r}: expected a positive number of "
+              f"seconds", 2)  # fmt: skip
+    extras = tuple(e.strip() for e in estimate.split(",") if e.strip())
+    try:
+        options = CalibrationOptions(
+            subsample_m=subsample, estimate=extras,
+            apriori_rad=None if apriori is None else tuple(np.radians(apriori)),
+            error_model=error_model, correlation_time_s=correlation_time_s,
+            extraction=ExtractOptions(mode=extraction, search_radius_m=search_radius_m),
+        )  # fmt: skip
+    except (CalibrationError, AdjustmentError, ExtractionError) as e:
+        _fail(str(e), 2)
+    out_dir = out if out is not None else bundle / "calib"
+
+    console = Console()
+    columns = (TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(),
+               TimeElapsedColumn())  # fmt: skip
+    if _is_session(bundle):
+        bundle = _export(bundle, out_dir / "bundle", console, columns)
+    try:
+        with Progress(*columns, console=console, transient=True) as progress:
+            cal, paths = run_bundle(bundle, out_dir, options, _progress_callback(progress),
+                                    plots=not no_plots)  # fmt: skip
+    except (BundleError, ConfigError, CalibrationError, ExtractionError, AdjustmentError,
+            TrajectoryError) as e:  # fmt: skip
+        _fail(str(e))
+    except OSError as e:  # reading the bundle or writing into out_dir
+        _fail(str(e))
+    console.print(_table(cal, out_dir))
+    for w in cal.warnings:
+        console.print(f"[yellow]warning:[/yellow] {escape(w)}", highlight=False, soft_wrap=True)
+    pngs = sum(p.suffix == ".png" for p in paths)
+    console.print(f"wrote result.json, report.md{f' and {pngs} plots' if pngs else ''} to "
+                  f"{out_dir}", highlight=False)  # fmt: skip
+    if not no_history:
+        try:
+            row = record_result(cal.doc, bundle, vessel, mount, db=db)
+        except (HistoryError, ResultFormatError, ConfigError, OSError, sqlite3.Error) as e:
+            _fail(f"the result is in {out_dir} but was not recorded in the history: {e}")
+        console.print(f"recorded in the calibration history as #{row} (mount {mount})",
+                      highlight=False)  # fmt: skip

@@ -1,0 +1,365 @@
+"""``mls sim devices`` and ``mls sim replay``: the simulated devices (``sim_devices``), loaded
+lazily inside the commands (``acquire`` never imports ``sim_devices`` at module level).
+
+``devices`` turns a scenario into the byte streams of the INS (pty), the profiler and the PPS
+(UDP) and the CAN event markers, in real time, with scripted faults; ``replay`` re-emits a
+recorded session's raw channels with their original timing. Both print where each device is,
+can write a vessel config for ``mls acquire``, and stop cleanly on Ctrl-C / SIGTERM.
+"""
+
+from __future__ import annotations
+
+import signal
+import threading
+from pathlib import Path
+from typing import List, Optional
+
+import typer
+
+from cli.commands.sim_cmd import app
+
+
+def _parse_devices(text: str) -> tuple[str, ...]:
+    from sim_devices.runner import DEVICES
+
+    names = tuple(n.strip() for n in text.split(",") if n.strip())
+    bad = [n for n in names if n not in DEVICES]
+    if bad or not names:
+        raise typer.BadParameter(f"{text!r}: expected a comma-separated subset of {','.join(DEVICES)}")
+    return names
+
+
+def _locations_table(locations: dict, run_dir: Path, title: str):
+    from rich import box
+    from rich.table import Table
+
+    t = Table(title=title, title_justify="left", box=box.SIMPLE_HEAD, pad_edge=False)
+    for col in ("device", "where", "what"):
+        t.add_column(col, no_wrap=col != "what")
+    for name, loc in locations.items():
+        if name == "ins":
+            where = f"{loc['link']} → {loc['pty']}"
+            what = f"{loc.get('protocol') or 'raw'}" + (f" {loc['rate_hz']:g} Hz" if loc.get("rate_hz") else "")
+        elif name == "can":
+            where = f"{loc['interface']} {loc['channel']}" + (f" port {loc['port']}" if "port" in loc else "")
+            what = f"event markers ({loc['markers']})" if "markers" in loc else "recorded CAN frames"
+        else:
+            host, port = loc["address"]
+            where = f"udp {host}:{port}"
+            what = loc.get("protocol") or loc.get("format", "")
+            if "profile_rate_hz" in loc:
+                what += (f" {loc['profile_rate_hz']:.1f} profiles/s × {loc['points_per_profile']} pts "
+                         f"({loc['packets_per_profile']} packets)")  # fmt: skip
+            if "jitter_s" in loc:
+                what += f" pulses, stamp jitter σ {loc['jitter_s'] * 1e6:g} µs"
+        t.add_row(name, where, what)
+    t.caption = f"run directory {run_dir}: truth_clock.json, faults.json, devices.json, stats/"
+    t.caption_justify = "left"
+    return t
+
+
+def _stats_table(stats: dict, title: str):
+    from rich import box
+    from rich.table import Table
+
+    t = Table(title=title, title_justify="left", box=box.SIMPLE_HEAD, pad_edge=False)
+    for col in ("device", "status", "sent", "faults applied", "timing error median / p99", "CPU"):
+        t.add_column(col, justify="left" if col in ("device", "status", "faults applied") else "right")
+    for name, st in stats.items():
+        s, tm = st.get("stats", {}), st.get("timing", {})
+        sent = {"ins": f"{s.get('epochs', s.get('messages', 0))} epochs", "profiler": f"{s.get('packets', s.get('messages', 0))} datagrams",
+                "pps": f"{s.get('pulses', s.get('messages', 0))} pulses", "can": f"{s.get('markers', s.get('messages', 0))} frames"}[name]  # fmt: skip
+        faults = ", ".join(f"{k} {s[k]}" for k in ("lost", "reordered", "duplicated", "corrupted", "garbage_bytes",
+                                                    "unplugs", "suppressed") if s.get(k))  # fmt: skip
+        timing = (f"{tm['error_median_us'] / 1e3:.2f} / {tm['error_p99_us'] / 1e3:.2f} ms"
+                  if "error_median_us" in tm else "–")  # fmt: skip
+        cpu = f"{100 * tm['cpu_fraction']:.0f} %" if tm.get("wall_s", 0) > 0.5 else "–"
+        t.add_row(name, st.get("status", "?"), sent, faults or "–", timing, cpu)
+    return t
+
+
+def _run_until_done(run, console, total_s: float, label: str, stop: threading.Event) -> bool:
+    """Progress bar until every emulator ends; True if ``stop`` was set (Ctrl-C / SIGTERM)."""
+    from rich.progress import BarColumn, Progress, TextColumn, TimeRemainingColumn
+
+    with Progress(TextColumn("[bold]{task.description}"), BarColumn(),
+                  TextColumn("{task.completed:.1f}/{task.total:.1f} s"), TimeRemainingColumn(),
+                  console=console, transient=True) as bar:  # fmt: skip
+        task = bar.add_task(label, total=total_s)
+        while not stop.is_set() and not run.wait(0.2):
+            bar.update(task, completed=run.elapsed_s())
+    if stop.is_set():
+        console.print("stopping the emulators …", highlight=False)
+        return True
+    return False
+
+
+class _SigtermAsInterrupt:
+    """SIGTERM raises KeyboardInterrupt (the Ctrl-C path: stop the emulators, clean up)."""
+
+    def __enter__(self):
+        self.previous = signal.signal(signal.SIGTERM, signal.default_int_handler)
+        return self
+
+    def __exit__(self, *exc) -> None:
+        signal.signal(signal.SIGTERM, self.previous)
+
+
+class _StopOnSignal:
+    """While the emulators run, Ctrl-C and SIGTERM only set an event that the waiting loop
+    polls: an exception raised at whatever line the signal lands on (inside a lock, a join, a
+    terminal write) could leave the stop half done."""
+
+    def __init__(self) -> None:
+        self.event = threading.Event()
+
+    def __enter__(self) -> threading.Event:
+        handler = lambda *_: self.event.set()  # noqa: E731
+        self.previous = {s: signal.signal(s, handler) for s in (signal.SIGINT, signal.SIGTERM)}
+        return self.event
+
+    def __exit__(self, *exc) -> None:
+        for s, h in self.previous.items():
+            signal.signal(s, h)
+
+
+def _check_config(path: Path, console) -> None:
+    from acquire.daemon.config import VesselConfigError, load_vessel_config
+
+    try:
+        load_vessel_config(path)
+    except VesselConfigError as e:
+        console.print(f"[red]the written vessel config does not validate[/red] (a bug): {e}", highlight=False)
+        raise typer.Exit(1) from None
+    console.print(f"vessel config for `mls acquire --config`: {path.resolve()}", highlight=False)
+
+
+@app.command("devices")
+def devices(
+    scenario: str = typer.Option(..., "--scenario", "-s", metavar="NAME|PATH",
+                                 help="A shipped scenario (montreal, terrestrial, tower) or a scenario YAML file."),
+    seed: int = typer.Option(0, "--seed", help="Random seed of the simulation, the jitters and the faults."),
+    speed: float = typer.Option(1.0, "--speed", min=0.01, max=100.0,
+                                help="Scenario seconds per real second (2 = twice as fast; the GPS clock then "
+                                     "runs 2× the host's, and above 2 the PPS comes faster than gpsd's rules "
+                                     "accept, so a daemon's clock model will not lock)."),
+    faults: Optional[Path] = typer.Option(None, "--faults", metavar="FILE",
+                                          help="Fault timeline (YAML): unplug, garbage, bad checksums, UDP "
+                                               "loss/reorder/duplication, PPS loss, profiler clock offset/drift, "
+                                               "INS latency jump, GNSS outage."),
+    write_config: Optional[Path] = typer.Option(None, "--write-config", metavar="vessel.yaml",
+                                                help="Write a vessel config for `mls acquire` that uses these devices."),
+    run_dir: Path = typer.Option(Path("mls-sim"), "--run-dir",
+                                 help="Run directory: the INS link 'ins', truth_clock.json, faults.json, stats/."),
+    start: Optional[str] = typer.Option(None, "--start", metavar="SECONDS|pass:N",
+                                        help="Start the run this many scenario seconds after the scenario's start, "
+                                             "or at the line start of pass N (default: the beginning)."),
+    duration: Optional[float] = typer.Option(None, "--duration", min=0.001,
+                                             help="Scenario seconds to run (default: to the scenario's end)."),
+    point_rate_scale: Optional[float] = typer.Option(
+        None, "--point-rate-scale", min=1e-6, max=1.0,
+        help="Scale the profiler's point rate (1 = the full Z+F rate); overrides the scenario."),
+    set_: List[str] = typer.Option([], "--set", metavar="KEY=VALUE",
+                                   help="Override a scenario value by dotted key (repeatable; values are YAML)."),
+    only: str = typer.Option("ins,profiler,pps,can", "--devices", metavar="LIST",
+                             help="The emulators to run (comma-separated subset of ins,profiler,pps,can)."),
+    ins_protocol: str = typer.Option("nmea", "--ins-protocol", help="INS output: nmea (PHINS standard + ZDA) or stdbin."),
+    ins_rate: float = typer.Option(100.0, "--ins-rate", min=1.0, max=200.0, help="INS output rate (Hz)."),
+    ins_latency_ms: float = typer.Option(3.0, "--ins-latency-ms", min=0.0, help="INS output latency (ms)."),
+    ins_jitter_ms: float = typer.Option(0.5, "--ins-jitter-ms", min=0.0, help="INS output jitter, uniform (ms)."),
+    ins_alignment_s: float = typer.Option(0.0, "--ins-alignment-s", min=0.0,
+                                          help="Seconds of INS alignment at the start (status: aligning)."),
+    stdbin_version: int = typer.Option(3, "--stdbin-version", min=2, max=5, help="STDBIN protocol version."),
+    profiler_host: str = typer.Option("127.0.0.1", "--profiler-host", help="Where the profiler sends its datagrams."),
+    profiler_port: int = typer.Option(0, "--profiler-port", min=0, max=65535, help="Profiler UDP port (0: a free one)."),
+    pps_port: int = typer.Option(0, "--pps-port", min=0, max=65535, help="PPS UDP port (0: a free one)."),
+    pps_jitter_us: float = typer.Option(20.0, "--pps-jitter-us", min=0.0, help="PPS stamp jitter σ (µs)."),
+    can_channel: str = typer.Option("239.74.163.2", "--can-channel", help="CAN udp_multicast group."),
+    can_port: int = typer.Option(43113, "--can-port", min=1, max=65535,
+                                 help="CAN udp_multicast port (a vessel config can only use 43113)."),
+    clock_drift_ppm: float = typer.Option(0.0, "--clock-drift-ppm",
+                                          help="Truth clock: GPS time runs this much faster than the host clock."),
+    realtime: bool = typer.Option(False, "--realtime",
+                                  help="Run the emulators SCHED_FIFO where permitted (root or RLIMIT_RTPRIO): "
+                                       "sub-millisecond timing on a busy machine."),
+    lead_s: float = typer.Option(0.25, "--lead-s", min=0.05, max=60.0,
+                                 help="Seconds between the emulators being ready (and the vessel config written) "
+                                      "and the first byte of the run: time for a daemon to start."),
+    time_base: str = typer.Option("now", "--time", metavar="now|scenario",
+                                  help="Devices send today's date and time (now: the scenario moved by whole "
+                                       "seconds, recorded in truth_clock.json) or the scenario's own."),
+) -> None:  # fmt: skip
+    """Run the simulated INS, profiler, PPS and CAN devices in real time.
+
+    The scenario is simulated, then each device runs in its own process: the INS writes NMEA or
+    STDBIN to a pty behind the stable link RUN_DIR/ins, the profiler sends ZFP1 packets and the
+    PPS its pulses over UDP, the CAN emulator sends pass start/end markers. All share one truth
+    clock (RUN_DIR/truth_clock.json). Ctrl-C stops them cleanly."""
+    from rich.console import Console
+    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn
+
+    from calib.io.configfile import ConfigError
+    from calib.survey.passplan import PassPlanError
+    from calib.sim.simulate import SimulationError, simulate
+    from sim_devices.canbus import CanSettings
+    from sim_devices.faults import FaultPlan, load_faults
+    from sim_devices.feed import FeedError, make_feed
+    from sim_devices.ins import InsSettings
+    from sim_devices.pps import PpsSettings
+    from sim_devices.profiler import ProfilerSettings
+    from sim_devices.runner import DeviceRun, DevicesSpec
+
+    console = Console()
+    names = _parse_devices(only)
+    if time_base not in ("now", "scenario"):
+        raise typer.BadParameter(f"{time_base!r}: expected now or scenario", param_hint="--time")
+    overrides = list(set_)
+    if point_rate_scale is not None:
+        overrides.append(f"scanner.point_rate_scale={point_rate_scale!r}")
+    with _SigtermAsInterrupt():
+        try:
+            spec = DevicesSpec(
+                run_dir=run_dir, devices=names, speed=speed, drift_ppm=clock_drift_ppm, seed=seed,
+                ins=InsSettings(protocol=ins_protocol, rate_hz=ins_rate, stdbin_version=stdbin_version,
+                                latency_s=ins_latency_ms / 1e3, jitter_s=ins_jitter_ms / 1e3,
+                                alignment_s=ins_alignment_s),
+                profiler=ProfilerSettings(host=profiler_host, port=profiler_port),
+                pps=PpsSettings(port=pps_port, jitter_s=pps_jitter_us / 1e6),
+                can=CanSettings(channel=can_channel, port=can_port), realtime=realtime, lead_s=lead_s,
+            )  # fmt: skip
+            plan = load_faults(faults) if faults is not None else FaultPlan()
+            with Progress(TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(),
+                          console=console, transient=True) as bar:  # fmt: skip
+                task = bar.add_task(f"simulating {scenario}", total=None)
+                sim = simulate(scenario, seed, overrides=overrides,
+                               progress=lambda done, total: bar.update(task, completed=done, total=total))  # fmt: skip
+                feed = make_feed(sim, start, duration, ins_rate, "now" if time_base == "now" else 0)
+            run = DeviceRun(feed, spec, plan)
+        except (ConfigError, PassPlanError, SimulationError, FeedError, ValueError, OSError) as e:
+            console.print(f"[red]error:[/red] {e}", highlight=False)
+            raise typer.Exit(2) from None
+        except KeyboardInterrupt:
+            raise typer.Exit(130) from None
+        title = f"{feed.name} (seed {seed}): {feed.duration_s:g} scenario s at ×{speed:g}"
+        notes = [f"{len(plan.faults)} faults scheduled (faults.json): "
+                 + ", ".join(f"{f.kind} at {f.at_s:g} s" for f in plan.faults)] if plan.faults else []  # fmt: skip
+        _serve(run, console, lambda loc: _locations_table(loc, run.run_dir, title), notes, write_config,
+               feed.duration_s, f"{feed.name} scenario time", "emulators")  # fmt: skip
+
+
+def _serve(run, console, locations_table, notes: list[str], write_config: Path | None, total_s: float,
+           label: str, title: str) -> None:  # fmt: skip
+    """Start the run, say where the devices are, wait for its end or Ctrl-C / SIGTERM
+    (:class:`_StopOnSignal`), stop it, and print what each emulator did (exit 1 if one crashed)."""
+    from sim_devices.runner import SimDevicesError
+
+    with run, _StopOnSignal() as stop:
+        try:
+            locations = run.start()
+            console.print(locations_table(locations))
+            for note in notes:
+                console.print(note, highlight=False)
+            if write_config is not None:
+                _check_config(run.write_vessel_config(write_config), console)
+            console.file.flush()
+            interrupted = _run_until_done(run, console, total_s, label, stop)
+        except (SimDevicesError, ValueError) as e:
+            console.print(f"[red]error:[/red] {e}", highlight=False)
+            raise typer.Exit(1) from None
+        stats = run.stop()
+    console.print(_stats_table(stats, title + (" (stopped)" if interrupted else "")))
+    crashed = [s for s in stats.values() if s.get("status") in ("crashed", "failed to start")]
+    for s in crashed:
+        console.print(f"[red]{s['device']}:[/red] {s.get('error', s['status'])}", highlight=False)
+    if crashed:
+        raise typer.Exit(1)
+
+
+# -- replay -------------------------------------------------------------------------------------
+
+
+def read_session(session_dir: Path):
+    """A recorded session (MCAP segments) as a :class:`sim_devices.replay.RecordedSession`."""
+    import numpy as np
+
+    from acquire.log.recover import segment_paths
+    from acquire.log.sessionlog import LogError
+    from acquire.log.read import channel_metadata, iter_messages
+    from sim_devices.replay import RecordedMessage, RecordedSession
+
+    session_dir = Path(session_dir)
+    if not (session_dir.is_dir() and segment_paths(session_dir)):
+        raise LogError(f"{session_dir}: no session segments (seg-NNNNNN.mcap) there")
+    replayed = lambda topic: topic in ("/ins/raw", "/lidar/raw", "/pps") or topic.startswith("/can/")  # noqa: E731
+    metadata = channel_metadata(session_dir)
+    channels = {t: m for t, m in metadata.items() if replayed(t)}
+    counts: dict[str, int] = {}
+    first = last = None
+    pairs_host, pairs_gps = [], []
+    for env in iter_messages(session_dir):
+        counts[env.topic] = counts.get(env.topic, 0) + 1
+        if not replayed(env.topic):
+            continue
+        first = env.host_ns if first is None else min(first, env.host_ns)
+        last = env.host_ns if last is None else max(last, env.host_ns)
+        if env.clock == "LOCKED" and len(pairs_host) < 100_000:
+            pairs_host.append(env.host_ns)
+            pairs_gps.append(env.log_time_ns)
+    if first is None:
+        raise LogError(f"{session_dir}: no /ins/raw, /lidar/raw, /pps or /can/<name> message to replay")
+    gps_fit = None
+    if len(pairs_host) >= 2:
+        h = np.asarray(pairs_host, np.int64)
+        g = np.asarray(pairs_gps, np.int64)
+        slope, intercept = np.polyfit((h - first) / 1e9, (g - g[0]) / 1e9, 1)
+        gps_fit = (int(g[0]) + round(intercept * 1e9), float(slope))
+
+    def messages(topics):
+        for env in iter_messages(session_dir, topics):
+            yield RecordedMessage(env.topic, env.host_ns, env.payload)
+
+    return RecordedSession(session_dir.name, channels, counts, first, last, messages, gps_fit)
+
+
+@app.command("replay")
+def replay(
+    session: Path = typer.Argument(..., help="A session directory (YYYYmmddTHHMMSSZ_<vessel>/ with seg-*.mcap)."),
+    speed: float = typer.Option(1.0, "--speed", min=0.01, max=100.0, help="Replay speed (2 = twice as fast)."),
+    run_dir: Path = typer.Option(Path("mls-replay"), "--run-dir", help="Run directory: the INS link 'ins', devices.json."),
+    write_config: Optional[Path] = typer.Option(None, "--write-config", metavar="vessel.yaml",
+                                                help="Write a vessel config for `mls acquire` that uses the replay."),
+    profiler_host: str = typer.Option("127.0.0.1", "--profiler-host", help="Where the profiler datagrams go."),
+    profiler_port: int = typer.Option(0, "--profiler-port", min=0, max=65535, help="Profiler UDP port (0: a free one)."),
+    pps_port: int = typer.Option(0, "--pps-port", min=0, max=65535, help="PPS UDP port (0: a free one)."),
+    can_channel: str = typer.Option("239.74.163.2", "--can-channel", help="CAN udp_multicast group."),
+    can_port: int = typer.Option(43113, "--can-port", min=1, max=65535, help="CAN udp_multicast port."),
+    realtime: bool = typer.Option(False, "--realtime", help="Run the replay SCHED_FIFO where permitted."),
+) -> None:  # fmt: skip
+    """Re-emit a recorded session's raw channels with their original timing.
+
+    /ins/raw goes to a pty behind RUN_DIR/ins, /lidar/raw to the profiler UDP port, /pps as PPS
+    datagrams, /can/<name> on the CAN bus — the same transports the emulators use. Ctrl-C stops."""
+    from rich.console import Console
+
+    from acquire.log.sessionlog import LogError
+    from sim_devices.canbus import CanSettings
+    from sim_devices.replay import ReplayRun, ReplaySpec
+
+    console = Console()
+    with _SigtermAsInterrupt():
+        try:
+            with console.status(f"reading {session}"):
+                rec = read_session(session)
+            spec = ReplaySpec(run_dir=run_dir, speed=speed, profiler=(profiler_host, profiler_port),
+                              pps=("127.0.0.1", pps_port), can=CanSettings(channel=can_channel, port=can_port),
+                              realtime=realtime)  # fmt: skip
+            run = ReplayRun(rec, spec)
+        except (LogError, ValueError, OSError) as e:
+            console.print(f"[red]error:[/red] {e}", highlight=False)
+            raise typer.Exit(2) from None
+        except KeyboardInterrupt:
+            raise typer.Exit(130) from None
+        counts = ", ".join(f"{t} {rec.counts[t]}" for t in sorted(rec.channels))
+        title = f"replay of {rec.name}: {rec.duration_s:.1f} s at ×{speed:g} ({counts})"
+        _serve(run, console, lambda loc: _locations_table(loc, run.run_dir, title), [], write_config,
+               rec.duration_s / speed, "replay", "replay")  # fmt: skip

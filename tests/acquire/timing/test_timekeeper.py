@@ -1,0 +1,125 @@
+"""PPS labelling into the clock model (TimeKeeper), the cached clock estimate, the log batcher and
+the CAN frame records — the daemon's record plumbing, without I/O."""
+
+from __future__ import annotations
+
+import asyncio
+
+import numpy as np
+import pytest
+
+from acquire.timing.clock import ClockModel, ClockState
+from drivers.can import can_frame_bytes, parse_can_frame
+from acquire.log.batch import LogBatcher
+from acquire.timing.timekeeper import ClockCache, TimeKeeper, coarse_gps_offset_ns
+from drivers.base import DriverError
+from drivers.pps import PpsEdge
+
+NS = 1_000_000_000
+H0 = 5_000 * NS  # host monotonic of the first pulse
+G0 = 1_400_000_000  # its GPS second
+
+
+class Log:
+    def __init__(self):
+        self.rows = []
+
+    def __call__(self, topic, payload, *, host_ns, device_ns=None):
+        self.rows.append((topic, payload, host_ns, device_ns))
+        return True
+
+
+def test_pulses_are_labelled_by_time_messages_and_every_pulse_is_logged_once():
+    clock, log, states = ClockModel(), Log(), []
+    tk = TimeKeeper(clock, log, lambda old, new, t: states.append((old, new)))
+    for k in range(8):
+        edge = PpsEdge(H0 + k * NS + (k % 3) * 7_000, "pps", k + 1)
+        tk.on_edge(edge)
+        if k == 5:
+            tk.on_edge(edge)  # the same pulse again (a duplicated datagram)
+        if k != 6:  # no time message for the 7th pulse
+            tk.on_time(G0 + k, H0 + k * NS + 50_000_000)
+        tk.tick(H0 + k * NS + 100_000_000)
+    tk.tick(H0 + 9 * NS)
+    rows = [r[1] for r in log.rows]
+    by_seq = {}
+    for r in rows:
+        by_seq.setdefault(r["sequence"], []).append(r["reason"])
+    assert by_seq[6] == ["duplicate", "accepted"]  # logged at once / when labelled
+    assert by_seq[7] == ["unlabelled"]
+    assert all(by_seq[s] == ["accepted"] for s in (1, 2, 3, 4, 5, 8))
+    labelled = [(p["gps_s"], h, d) for _, p, h, d in log.rows if p["gps_s"] is not None]
+    assert [g for g, _, _ in labelled] == [G0 + k for k in (0, 1, 2, 3, 4, 5, 7)]
+    assert all(d == g * NS and h // NS == H0 // NS + g - G0 for g, h, d in labelled)
+    assert clock.edges_accepted == 7
+    # locked at the 4th edge; 2 s after the last labelled pulse: holdover
+    assert states == [(ClockState.UNLOCKED, ClockState.LOCKED), (ClockState.LOCKED, ClockState.HOLDOVER)]
+    assert tk.status()["unlabelled"] == 1 and tk.status()["duplicate_edges"] == 1
+
+
+def test_clock_cache_gives_the_models_estimate_and_refreshes_after_an_edge():
+    clock = ClockModel(coarse_offset_ns=123 * NS)
+    cache = ClockCache(clock)
+    assert cache.estimate(H0) == (H0 + 123 * NS, "UNLOCKED")
+    rng = np.random.default_rng(3)
+    for k in range(10):  # host runs 35 ppm slow against GPS, 20 µs jitter
+        clock.add_edge(H0 + round(k * NS / (1 + 35e-6)) + int(rng.normal(0, 20_000)), G0 + k)
+        cache.invalidate()
+    for h in H0 + 9 * NS + np.sort(rng.integers(0, 3 * NS // 2, 2000)):
+        gps, state = cache.estimate(int(h))
+        est = clock.to_gps(int(h))
+        assert abs(gps - est.gps_ns) <= 1 and state == est.state.value
+    assert abs(coarse_gps_offset_ns() - coarse_gps_offset_ns()) < 1_000_000
+
+
+def test_log_batcher_keeps_the_order_stamps_the_clock_and_hands_over_in_batches():
+    batches = []
+
+    def submit_batch(records):
+        batches.append(list(records))
+        return len(records)
+
+    clock = ClockModel(coarse_offset_ns=7 * NS)
+    b = LogBatcher(submit_batch, ClockCache(clock), period_s=0.01, max_items=50)
+
+    async def run():
+        for i in range(120):
+            b.submit("/lidar/raw" if i % 2 else "/ins/raw", bytes([i]), host_ns=H0 + i, device_ns=i or None)
+        assert [len(x) for x in batches] == [50, 50]  # two full batches handed over at once
+        await asyncio.sleep(0.05)  # the rest after the period
+
+    asyncio.run(run())
+    assert [len(x) for x in batches] == [50, 50, 20]
+    calls = [r for x in batches for r in x]  # (topic, payload, host_ns, device_ns, log_time_ns, clock_state)
+    assert [c[1] for c in calls] == [bytes([i]) for i in range(120)]
+    assert [c[0] for c in calls[:2]] == ["/ins/raw", "/lidar/raw"] and all(c[2] == H0 + i for i, c in enumerate(calls))
+    assert all(c[4] == H0 + i + 7 * NS and c[5] == "UNLOCKED" for i, c in enumerate(calls))
+    assert calls[0][3] is None and calls[5][3] == 5
+    assert b.batches == 3 and b.records == 120
+
+
+@pytest.mark.parametrize("arb, data, ext", [(0x6E0, b"\xe1\x01\x03\x00\x01\x00\x00\x00", False),
+                                            (0x1ABCDE, b"", True), (0x123, bytes(range(48)), False)])
+def test_can_frames_are_stored_as_socketcan_frames(arb, data, ext):
+    raw = can_frame_bytes(arb, data, ext)
+    assert len(raw) == (16 if len(data) <= 8 else 72)
+    assert parse_can_frame(raw) == (arb, data, ext)
+    with pytest.raises(DriverError, match="17 bytes: expected 16 or 72"):
+        parse_can_frame(raw[:16] + b"x")
+
+
+def test_log_batcher_submit_many_stamps_as_submit_does_one_by_one():
+    one, many = [], []
+    clock = ClockModel(coarse_offset_ns=7 * NS)
+    a = LogBatcher(lambda r: one.extend(r) or len(r), ClockCache(clock), max_items=50)
+    b = LogBatcher(lambda r: many.extend(r) or len(r), ClockCache(clock), max_items=50)
+    payloads = [bytes([i]) for i in range(80)]
+    hosts = [H0 + 3_000_000 * i for i in range(80)]  # 0.24 s: past the cache's 50 ms
+    tags = [H0 + i if i % 3 else None for i in range(80)]
+    for p, h, t in zip(payloads, hosts, tags):
+        a.submit("/lidar/raw", p, host_ns=h, device_ns=t)
+    for s in (slice(0, 30), slice(30, 31), slice(31, 80)):
+        b.submit_many("/lidar/raw", payloads[s], hosts[s], tags[s])
+    a.flush()
+    b.flush()
+    assert many == one and len(one) == 80 and one[4][3] == H0 + 4 and one[3][3] is None

@@ -1,0 +1,289 @@
+"""Transports on real pseudo-terminals and loopback sockets: stamps, unplug/replug, back-pressure."""
+
+from __future__ import annotations
+
+import asyncio
+import os
+import socket
+import time
+from pathlib import Path
+
+import pytest
+
+from drivers.base import DriverError
+from drivers.transport.base import TRANSPORTS, Chunk, SerialTransport, create_transport
+
+pytestmark = pytest.mark.integration
+
+
+class Pty:
+    """A pseudo-terminal behind a stable symlink, like sim_devices' ``<run dir>/ins``."""
+
+    def __init__(self, link: Path) -> None:
+        self.link = link
+        self.master = None
+        self.plug()
+
+    def plug(self) -> None:
+        self.master, slave = os.openpty()
+        name = os.ttyname(slave)
+        os.close(slave)  # the transport opens the slave by path
+        tmp = self.link.with_suffix(".tmp")
+        tmp.unlink(missing_ok=True)
+        tmp.symlink_to(name)
+        tmp.replace(self.link)
+
+    def unplug(self) -> None:
+        os.close(self.master)
+        self.master = None
+
+    def write(self, data: bytes) -> None:
+        os.write(self.master, data)
+
+
+async def read_until(t, n: int, timeout: float = 3.0) -> list[Chunk]:
+    chunks, got = [], 0
+    deadline = time.monotonic() + timeout
+    while got < n:
+        chunk = await asyncio.wait_for(t.read(), max(0.01, deadline - time.monotonic()))
+        chunks.append(chunk)
+        got += len(chunk.data)
+    return chunks
+
+
+def test_registry_has_the_three_kinds_and_names_bad_configs():
+    assert {"serial", "udp", "tcp"} <= set(TRANSPORTS)
+    with pytest.raises(DriverError, match=r"transport.kind 'can'"):
+        create_transport({"kind": "can"})
+    with pytest.raises(DriverError, match=r"transport \(udp\)"):
+        create_transport({"kind": "udp", "prot": 1})
+
+
+async def until(condition, timeout_s: float = 10.0) -> bool:
+    """Poll ``condition`` until it holds or the deadline passes (generous: CI is loaded)."""
+    deadline = time.monotonic() + timeout_s
+    while not condition():
+        if time.monotonic() > deadline:
+            return False
+        await asyncio.sleep(0.01)
+    return True
+
+
+def test_serial_pty_bytes_are_stamped_and_survive_unplug_replug(tmp_path):
+    pty = Pty(tmp_path / "ins")
+    events = []
+
+    async def run():
+        t = create_transport(
+            {"kind": "serial", "port": str(pty.link), "baudrate": 115200, "reconnect_min_s": 0.02, "reconnect_max_s": 0.1},
+            on_event=events.append,
+        )
+        async with t:
+            assert t.connected
+            before = time.monotonic_ns()
+            pty.write(b"$HEHDT,1.0,T*00\r\n")
+            first = await read_until(t, 17)
+            pty.unplug()  # the emulator closes the pty: the slave reads EIO
+            assert await until(lambda: not t.connected), "unplug not noticed within 10 s"
+            await asyncio.sleep(0.15)  # a few reconnect attempts fail: the old pty is gone
+            pty.plug()  # a new pty behind the same symlink
+            assert await until(lambda: t.connected), "no reconnect within 10 s"
+            assert t.reconnects == 1
+            pty.write(b"after replug\n")
+            second = await read_until(t, 13)
+            return before, first, second
+
+    before, first, second = asyncio.run(run())
+    assert b"".join(c.data for c in first) == b"$HEHDT,1.0,T*00\r\n"
+    assert before <= first[0].host_ns <= time.monotonic_ns()
+    assert b"".join(c.data for c in second) == b"after replug\n"
+    kinds = [e.kind for e in events]
+    assert kinds[0] == "connected" and "disconnected" in kinds and kinds[-1] == "connected"
+    assert kinds.index("disconnected") < len(kinds) - 1
+    pty.unplug()
+
+
+def test_serial_port_missing_at_start_is_reported_then_opened(tmp_path):
+    link = tmp_path / "later"
+    events = []
+
+    async def run():
+        t = SerialTransport(str(link), reconnect_min_s=0.02, reconnect_max_s=0.05, on_event=events.append)
+        async with t:
+            assert not t.connected
+            pty = Pty(link)
+            assert await until(lambda: t.connected), "port not opened within 10 s"
+            pty.write(b"hello")
+            (chunk,) = await read_until(t, 5)
+            pty.unplug()
+            return chunk
+
+    assert asyncio.run(run()).data == b"hello"
+    assert events[0].kind == "disconnected" and "cannot open" in events[0].detail
+    assert events[-1].kind == "connected"
+
+
+def test_serial_port_that_appears_late_is_opened_within_half_a_second(tmp_path):
+    """The default back-off of a serial port stops doubling at 0.5 s: an INS that shows up after
+    a few seconds (the emulator starting, a USB adapter plugged in) is read at once."""
+    link = tmp_path / "late"
+
+    async def run():
+        t = SerialTransport(str(link))
+        async with t:
+            await asyncio.sleep(4.0)  # 0.1 + 0.2 + 0.4 + 0.5 …: past where a 5 s cap would wait
+            pty = Pty(link)
+            t0 = time.monotonic()
+            assert await until(lambda: t.connected), "port not opened within 10 s"
+            waited_s = time.monotonic() - t0
+            pty.unplug()
+            return waited_s
+
+    assert asyncio.run(run()) <= 0.5 + 0.25  # the cap, and a loaded machine's slack
+
+
+def test_serial_slow_consumer_pauses_reading_without_losing_bytes(tmp_path):
+    pty = Pty(tmp_path / "fast")
+
+    async def run():
+        t = SerialTransport(str(pty.link), max_chunks=4)
+        async with t:
+            payload = bytes(range(256)) * 64  # 16 KiB in many small writes
+            for i in range(0, len(payload), 256):
+                pty.write(payload[i : i + 256])
+                await asyncio.sleep(0)
+            await asyncio.sleep(0.1)
+            assert len(t._chunks) <= 5  # paused: the rest waits in the kernel
+            chunks = await read_until(t, len(payload))
+            return payload, b"".join(c.data for c in chunks)
+
+    sent, got = asyncio.run(run())
+    assert got == sent
+    pty.unplug()
+
+
+def test_serial_bytes_are_read_and_stamped_while_the_event_loop_is_busy(tmp_path):
+    """The port's reader thread: an event loop held for 0.5 s (a long burst of profiler
+    datagrams, the log writer holding the GIL) delays the decoding of serial bytes, not their
+    reading nor their stamps. 700 kB/s is the INS at ×5; a pty buffers a few kB."""
+    pty = Pty(tmp_path / "busy")
+    os.set_blocking(pty.master, False)
+
+    async def run():
+        t = SerialTransport(str(pty.link))
+        async with t:
+            writes, refused = [], 0
+            end = time.monotonic_ns() + 500_000_000
+            while time.monotonic_ns() < end:  # no await: the loop is blocked all along
+                piece = b"%06d," % len(writes) * 100
+                try:
+                    n = os.write(pty.master, piece)
+                except BlockingIOError:
+                    refused += 1
+                else:
+                    writes.append(piece[:n])
+                    refused += n < len(piece)
+                time.sleep(0.001)
+            free_ns = time.monotonic_ns()
+            chunks = await read_until(t, sum(map(len, writes)))
+            return writes, refused, free_ns, chunks
+
+    writes, refused, free_ns, chunks = asyncio.run(run())
+    pty.unplug()
+    assert refused == 0  # the pty never filled up
+    assert b"".join(c.data for c in chunks) == b"".join(writes) and len(writes) > 200
+    stamped_busy = sum(len(c.data) for c in chunks if c.host_ns < free_ns)
+    assert stamped_busy >= 0.9 * sum(map(len, writes))  # read (and stamped) while the loop was held
+
+
+def test_udp_loopback_datagrams_and_large_receive_buffer():
+    async def run():
+        t = create_transport({"kind": "udp", "host": "127.0.0.1", "port": 0, "rcvbuf_bytes": 4 * 1024 * 1024})
+        async with t:
+            tx = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+            for i in range(50):
+                tx.sendto(b"ZFP1" + bytes([i]) * 100, ("127.0.0.1", t.port))
+            chunks = [await asyncio.wait_for(t.read(), 2) for _ in range(50)]
+            tx.close()
+            return t.rcvbuf_bytes_granted, chunks
+
+    granted, chunks = asyncio.run(run())
+    assert granted >= 256 * 1024  # far above the 208 KiB default (the kernel may cap at rmem_max)
+    assert [c.data[4] for c in chunks] == list(range(50))
+    assert all(isinstance(c.host_ns, int) for c in chunks) and chunks[0].host_ns <= chunks[-1].host_ns
+
+
+def test_udp_drops_and_counts_when_the_consumer_lags():
+    async def run():
+        t = create_transport({"kind": "udp", "host": "127.0.0.1", "port": 0, "max_chunks": 10})
+        async with t:
+            tx = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+            for _ in range(30):
+                tx.sendto(b"x", ("127.0.0.1", t.port))
+            await asyncio.sleep(0.2)
+            tx.close()
+            return t.stats
+
+    stats = asyncio.run(run())
+    assert stats.records == 10 and stats.events["dropped_datagrams"] == 20
+
+
+def test_tcp_client_reconnects_after_the_server_drops_it():
+    events = []
+
+    async def run():
+        conns = []
+
+        async def handle(reader, writer):
+            conns.append(writer)
+            writer.write(b"conn%d;" % len(conns))
+            await writer.drain()
+
+        server = await asyncio.start_server(handle, "127.0.0.1", 0)
+        port = server.sockets[0].getsockname()[1]
+        t = create_transport({"kind": "tcp", "host": "127.0.0.1", "port": port, "reconnect_min_s": 0.02}, on_event=events.append)
+        async with t:
+            first = await read_until(t, 6)
+            conns[0].close()
+            second = await read_until(t, 6)
+        server.close()
+        await server.wait_closed()
+        return first, second, t.reconnects
+
+    first, second, reconnects = asyncio.run(run())
+    assert b"".join(c.data for c in first) == b"conn1;" and b"".join(c.data for c in second) == b"conn2;"
+    assert reconnects == 1 and [e.kind for e in events][:3] == ["connected", "disconnected", "connected"]
+
+
+def test_ins_nmea_over_a_pty_end_to_end(tmp_path):
+    """Emulator side encodes epochs, daemon side reads the pty and assembles canonical records."""
+    from calib.core.frames import utc_fields_to_gps_ns
+    from drivers.hydrins.nav import NavRecord, status_words
+    from drivers.hydrins.nmea import NmeaNavAssembler, encode_epoch, encode_zda
+
+    algo, system = status_words(navigation=True, utc_detected=True, pps_detected=True)
+    sent = [
+        NavRecord("nmea", gps_ns=utc_fields_to_gps_ns(2024, 1, 2, (k * 100 + 5_000) * 10**6), lat_deg=45.5, lon_deg=-73.55,
+                  height_m=3.0, roll_rad=0.01 * k, pitch_rad=-0.02, heading_rad=1.5, algorithm_status=algo,
+                  system_status=system, user_status=0)  # fmt: skip
+        for k in range(10)
+    ]
+    pty = Pty(tmp_path / "ins")
+
+    async def run():
+        asm = NmeaNavAssembler(utc_clock=None)
+        got = []
+        async with SerialTransport(str(pty.link), baudrate=115200) as t:
+            for nav in sent:
+                pty.write(encode_zda(nav.gps_ns) + encode_epoch(nav))
+            while len(got) < len(sent):
+                data, host_ns = await asyncio.wait_for(t.read(), 3)
+                got += asm.feed(data, host_ns)
+        return got, asm.stats
+
+    got, stats = asyncio.run(run())
+    pty.unplug()
+    assert [g.gps_ns for g in got] == [s.gps_ns for s in sent]
+    assert all(g.date_source == "zda" and g.pps_detected and g.host_ns is not None for g in got)
+    assert all(abs(g.roll_rad - s.roll_rad) < 1e-5 for g, s in zip(got, sent))  # 0.001° on the wire
+    assert stats.rejected_total == 0

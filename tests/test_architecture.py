@@ -1,0 +1,169 @@
+"""The shape of the house (docs/architecture.md §2): imports go one way, nothing is circular,
+modules stay small and folders stay walkable.
+
+Every ``import`` of the source packages is read with :mod:`ast` (module level and inside
+functions alike), resolved to a project module, and checked against the layer ranks below: a
+unit may import its own unit and units of a strictly lower rank, nothing else.
+"""
+
+from __future__ import annotations
+
+import ast
+from collections import defaultdict
+from pathlib import Path
+
+import pytest
+
+from tests.conftest import PROJECT_ROOT
+
+PACKAGES = ("calib", "drivers", "sim_devices", "acquire", "cli")
+
+#: top-level packages: calib ← drivers ← sim_devices / acquire ← cli
+PACKAGE_RANK = {"calib": 0, "drivers": 1, "sim_devices": 2, "acquire": 2, "cli": 3}
+
+#: units inside a package (a subpackage or a top-level module) and their ranks
+UNIT_RANK = {
+    "calib": {"core": 0, "io": 1, "survey": 2, "sim": 3, "boresight": 3, "assess": 3, "design": 4},
+    "drivers": {"base": 0, "timing": 0, "hydrins": 1, "zf": 1, "pps": 1, "can": 1,
+                "transport": 2, "capture": 2},
+    "acquire": {"alarms": 0, "errors": 0, "timing": 1, "log": 2, "status": 3, "daemon": 4,
+                "guidance": 5, "ui": 5, "jobs": 6},
+}
+
+MAX_MODULE_LINES = 600
+MAX_MODULES_PER_FOLDER = 16
+
+
+def _modules() -> dict[str, Path]:
+    mods = {}
+    for pkg in PACKAGES:
+        for path in (PROJECT_ROOT / pkg).rglob("*.py"):
+            parts = path.relative_to(PROJECT_ROOT).with_suffix("").parts
+            if parts[-1] == "__init__":
+                parts = parts[:-1]
+            mods[".".join(parts)] = path
+    return mods
+
+
+MODULES = _modules()
+
+
+def _imports(name: str, path: Path) -> set[str]:
+    """Project modules that ``name`` imports (``from pkg import mod`` counts as ``pkg.mod``)."""
+    out: set[str] = set()
+    is_pkg = path.name == "__init__.py"
+    for node in ast.walk(ast.parse(path.read_text(), str(path))):
+        if isinstance(node, ast.Import):
+            targets = [a.name for a in node.names]
+        elif isinstance(node, ast.ImportFrom):
+            if node.level:
+                base = name.split(".")
+                base = base[: len(base) - node.level + (1 if is_pkg else 0)]
+                module = ".".join(base + ([node.module] if node.module else []))
+            else:
+                module = node.module or ""
+            targets = [module] + [f"{module}.{a.name}" for a in node.names]
+        else:
+            continue
+        for t in targets:
+            # the longest project module that the dotted name starts with
+            while t and t not in MODULES:
+                t = t.rpartition(".")[0]
+            if t and t != name:
+                out.add(t)
+    return out
+
+
+GRAPH = {name: _imports(name, path) for name, path in MODULES.items()}
+
+
+def _unit(module: str) -> tuple[str, str | None]:
+    parts = module.split(".")
+    return parts[0], (parts[1] if len(parts) > 1 else None)
+
+
+def test_the_graph_is_read():
+    # a broken reader would pass every check below vacuously
+    assert len(MODULES) > 100
+    assert "calib.core.frames" in GRAPH["calib.io.site"]
+    assert "drivers.hydrins.nav" in GRAPH["sim_devices.feed"]
+
+
+def test_no_import_from_a_lower_layer_to_a_higher_one():
+    bad = []
+    for mod, deps in GRAPH.items():
+        pkg, unit = _unit(mod)
+        for dep in deps:
+            dpkg, dunit = _unit(dep)
+            if dpkg != pkg:
+                if PACKAGE_RANK[dpkg] >= PACKAGE_RANK[pkg]:
+                    bad.append(f"{mod} imports {dep} ({pkg} may not import {dpkg})")
+                continue
+            ranks = UNIT_RANK.get(pkg)
+            if ranks is None or unit is None or dunit is None or unit == dunit:
+                continue
+            if unit not in ranks or dunit not in ranks:
+                bad.append(f"{mod} / {dep}: unit without a rank in UNIT_RANK (add it there and to "
+                           f"docs/architecture.md §2)")
+            elif ranks[dunit] >= ranks[unit]:
+                bad.append(f"{mod} imports {dep} ({pkg}.{unit} may not import {pkg}.{dunit})")
+    assert not bad, "\n".join(sorted(bad))
+
+
+def _cycles(graph: dict[str, set[str]]) -> list[list[str]]:
+    """Strongly connected components of more than one module (Tarjan)."""
+    index: dict[str, int] = {}
+    low: dict[str, int] = {}
+    stack: list[str] = []
+    on: set[str] = set()
+    out: list[list[str]] = []
+
+    def visit(v: str) -> None:
+        index[v] = low[v] = len(index)
+        stack.append(v)
+        on.add(v)
+        for w in graph.get(v, ()):
+            if w not in index:
+                visit(w)
+                low[v] = min(low[v], low[w])
+            elif w in on:
+                low[v] = min(low[v], index[w])
+        if low[v] == index[v]:
+            comp = []
+            while True:
+                w = stack.pop()
+                on.discard(w)
+                comp.append(w)
+                if w == v:
+                    break
+            if len(comp) > 1:
+                out.append(sorted(comp))
+
+    for v in sorted(graph):
+        if v not in index:
+            visit(v)
+    return out
+
+
+def test_cycle_finder_finds_a_cycle():
+    assert _cycles({"a": {"b"}, "b": {"c"}, "c": {"a"}, "d": {"a"}}) == [["a", "b", "c"]]
+
+
+def test_no_import_cycles():
+    # a package's __init__ re-exporting its modules is not a cycle of the code
+    graph = defaultdict(set)
+    for mod, deps in GRAPH.items():
+        graph[mod] = {d for d in deps if not mod.startswith(d + ".")}
+    assert _cycles(graph) == []
+
+
+@pytest.mark.parametrize("pkg", PACKAGES)
+def test_modules_stay_small_and_folders_walkable(pkg):
+    long = [f"{p.relative_to(PROJECT_ROOT)}: {n} lines"
+            for p in (PROJECT_ROOT / pkg).rglob("*.py")
+            if (n := len(p.read_text().splitlines())) > MAX_MODULE_LINES]
+    assert not long, f"modules over {MAX_MODULE_LINES} lines:\n" + "\n".join(long)
+    crowded = [f"{d.relative_to(PROJECT_ROOT)}: {n} modules"
+               for d in [PROJECT_ROOT / pkg, *(PROJECT_ROOT / pkg).rglob("*/")]
+               if d.is_dir() and (n := len(list(d.glob("*.py")))) > MAX_MODULES_PER_FOLDER]
+    assert not crowded, f"folders over {MAX_MODULES_PER_FOLDER} modules:\n" + "\n".join(crowded)
