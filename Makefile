@@ -1,6 +1,7 @@
 # make demo  — create .venv, install, run the main job end to end on simulated devices
 # make test  — create .venv, install, run the whole test suite
 # make bench — run the benchmark scripts (figures and ratios to a peer measured in the same run)
+# make lint  — ruff (lint + format check) over the tree, mypy on calib/ and drivers/ (make test runs it first)
 
 PYTHON ?= $(shell command -v python3.11 || command -v python3)
 VENV   := .venv
@@ -8,12 +9,12 @@ PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed-stamp
 JOBS   ?= 2
 
-.PHONY: demo test bench venv clean
+.PHONY: demo test bench lint prereqs venv clean
 
 $(STAMP): pyproject.toml
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install --quiet --upgrade pip
-	$(PY) -m pip install --quiet -e '.[test,bench]'
+	$(PY) -m pip install --quiet -e '.[test,bench,dev]'
 	touch $(STAMP)
 
 venv: $(STAMP)
@@ -21,11 +22,23 @@ venv: $(STAMP)
 demo: $(STAMP)
 	$(VENV)/bin/mls demo
 
-test: $(STAMP)
+# the system programs the integration tests run for real; one line naming the install when missing
+prereqs:
+	@command -v mosquitto >/dev/null 2>&1 || test -x /usr/sbin/mosquitto || \
+	    { echo "make test needs the mosquitto broker: apt-get install mosquitto"; exit 1; }
+	@command -v systemd-analyze >/dev/null 2>&1 || \
+	    { echo "make test needs systemd-analyze: apt-get install systemd"; exit 1; }
+
+lint: $(STAMP)
+	$(VENV)/bin/ruff check --quiet .
+	$(VENV)/bin/ruff format --check --quiet .
+	$(VENV)/bin/mypy
+
+test: prereqs lint
 	$(PY) -m pytest -n $(JOBS) --dist loadgroup -q
 
 bench: $(STAMP)
 	@set -e; for b in benchmarks/[!_]*.py; do echo "== $$b"; $(PY) $$b; done
 
 clean:
-	rm -rf $(VENV) build *.egg-info .pytest_cache .hypothesis
+	rm -rf $(VENV) build *.egg-info .pytest_cache .hypothesis .mypy_cache .ruff_cache

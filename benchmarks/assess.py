@@ -4,7 +4,7 @@ measured in the same run: a plain scipy cKDTree nearest-neighbour query of the s
 
     .venv/bin/python benchmarks/assess.py [--points N] [--repeat R]
 
-Goal (issue 10): ≤ 5 s for 2 × 1 M points on one core.
+Goal: ≤ 5 s for 2 × 1 M points on one core.
 """
 
 from __future__ import annotations

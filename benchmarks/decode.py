@@ -6,7 +6,7 @@ Each figure is printed with its ratio to a peer measured in the same run on the 
   the iXblue C++ decoder walks the masks) on the real V3 frames;
 - ZFP1: a pure-Python decoder written here (``struct.iter_unpack`` over the points) on the same
   datagrams.
-Goals (issue 5): NMEA ≥ 50 k sentences/s, STDBIN ≥ 20 k frames/s, ZFP1 ≥ 20 M points/s, one core.
+Goals: NMEA ≥ 50 k sentences/s, STDBIN ≥ 20 k frames/s, ZFP1 ≥ 20 M points/s, one core.
 
 Run: ``.venv/bin/python benchmarks/decode.py``
 """
@@ -27,13 +27,14 @@ sys.path.insert(0, str(ROOT))
 
 from calib.core.frames import utc_fields_to_gps_ns  # noqa: E402
 from drivers.hydrins.nav import NavRecord, status_words  # noqa: E402
-from drivers.hydrins.nmea import NmeaDecoder, NmeaNavAssembler, encode_epoch, encode_zda  # noqa: E402
-from drivers.hydrins.stdbin import (  # noqa: E402
+from drivers.hydrins.nmea_decode import NmeaDecoder, NmeaNavAssembler  # noqa: E402
+from drivers.hydrins.nmea_encode import encode_epoch, encode_zda  # noqa: E402
+from drivers.hydrins.stdbin_decode import StdbinDecoder  # noqa: E402
+from drivers.hydrins.stdbin_format import (  # noqa: E402
     BLOCK_SIZES,
     EXTENDED_NAVIGATION_BLOCKS,
     EXTERNAL_DATA_BLOCKS,
     NAVIGATION_BLOCKS,
-    StdbinDecoder,
 )
 from drivers.zf.assembler import ProfileAssembler  # noqa: E402
 from drivers.zf.zfp1 import encode_profile  # noqa: E402

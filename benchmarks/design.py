@@ -5,7 +5,7 @@ one simulation + prediction of the montreal site (every model) per configuration
 
     .venv/bin/python benchmarks/design.py [--jobs 2]
 
-Goal (issue 9): the full marine sweep in ≤ 60 s on the 2-core machine.
+Goal: the full marine sweep in ≤ 60 s on the 2-core machine.
 """
 
 from __future__ import annotations
@@ -23,8 +23,11 @@ def main() -> None:
     ap.add_argument("--peer-repeat", type=int, default=5, help="timed peer runs (best is used)")
     args = ap.parse_args()
 
-    from calib.design.study import (Sigmas, default_spec, design_scenario, layouts, predict, prepare,
-                              run_study, write_study)  # fmt: skip
+    from calib.design.layouts import default_spec, layouts
+    from calib.design.prediction import Sigmas, predict, prepare
+    from calib.design.scenes import design_scenario
+    from calib.design.study import run_study
+    from calib.design.summary import write_study
     from calib.sim.scenario import load_scenario
 
     base = load_scenario("montreal")

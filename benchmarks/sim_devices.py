@@ -15,7 +15,7 @@ the streams costs on top of merely pacing them out.
 Both are measured twice: with the default scheduling, and with ``--realtime`` (SCHED_FIFO for
 the emitting processes where the system permits it; the stats say which policy was in effect).
 
-Goals (issue 6): p99 ≤ 2 ms; the full-rate profiler on less than one core.
+Goals: p99 ≤ 2 ms; the full-rate profiler on less than one core.
 
 Run: ``.venv/bin/python benchmarks/sim_devices.py [--seconds 8]``
 """

@@ -1,8 +1,11 @@
-"""The one command-line interface, ``mls`` (DESIGN §2).
+"""The one command-line interface, ``mls`` (docs/architecture.md §2; the console script ``mls = cli.app:main``).
 
-Each command group lives in its own module under :mod:`cli.commands`; this file only
-assembles them. Command modules import their heavy dependencies inside the commands so that
-``mls --help`` stays fast.
+Each command or command group lives in its own module ``cli/commands/<name>_cmd.py``
+(:mod:`cli.commands`); this file only assembles them (``calib`` and ``sim`` are groups that
+other command modules add to). A command module parses its options, calls the library
+(``calib``, ``drivers``, ``acquire``, ``sim_devices``), prints and maps the outcome to an exit
+status; it imports its heavy dependencies inside the command so that ``mls --help`` stays
+fast.
 """
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""What every protocol codec in :mod:`drivers` shares (DESIGN §5).
+"""What every protocol codec in :mod:`drivers` shares (docs/architecture.md §5).
 
 A *decoder* is sans-I/O: ``feed(data: bytes, host_ns: int | None = None) -> list[record]``.
 It keeps its own buffer (a record may be split across reads), resynchronizes after garbage,
@@ -13,6 +13,7 @@ An *encoder* does the reverse (records → bytes) and is used by the simulated d
 from __future__ import annotations
 
 from collections import Counter
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from typing import Any, Protocol
 
@@ -96,12 +97,28 @@ class Registry(dict):
         return deco
 
     def create(self, config: dict[str, Any], **extra: Any):
-        cfg = dict(config)
-        kind = cfg.pop("kind", None)
-        cls = self.get(kind)
-        if cls is None:
-            raise DriverError(f"{self.section}.kind {kind!r}: expected one of {sorted(self)}")
-        try:
-            return cls(**extra, **cfg)
-        except TypeError as exc:  # an unknown or missing key
-            raise DriverError(f"{self.section} ({kind}): {exc}") from exc
+        return create_from_config(self.section, self, config, None, **extra)
+
+
+def create_from_config(
+    section: str,
+    kinds: Mapping[str, Any],
+    config: Mapping[str, Any],
+    load: Callable[[Any], Any] | None = None,
+    /,
+    **extra: Any,
+):
+    """The object ``config['kind']`` names: ``kinds[kind]`` (turned into a class by ``load`` when
+    the table holds something else, e.g. where to import it from) called with ``extra`` and the
+    config's other keys. A :class:`DriverError` names the section, the kind and what was expected
+    when it cannot."""
+    cfg = dict(config)
+    kind = cfg.pop("kind", None)
+    entry = kinds.get(kind)
+    if entry is None:
+        raise DriverError(f"{section}.kind {kind!r}: expected one of {sorted(kinds)}")
+    cls = entry if load is None else load(entry)
+    try:
+        return cls(**extra, **cfg)
+    except TypeError as exc:  # an unknown or missing key
+        raise DriverError(f"{section} ({kind}): {exc}") from exc

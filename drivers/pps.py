@@ -1,4 +1,4 @@
-"""PPS sources and the labelling of pulses with GPS seconds (DESIGN §5).
+"""PPS sources and the labelling of pulses with GPS seconds (docs/architecture.md §5).
 
 Records: a :class:`PpsEdge` is one pulse as the host saw it — ``host_ns`` on the host's
 ``CLOCK_MONOTONIC`` (the time base of every transport stamp), ``source`` (the source's name),

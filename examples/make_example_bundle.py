@@ -143,7 +143,7 @@ def main(out_dir: Path) -> None:
     points = points.select(np.lexsort((points.t_gps_s, points.pass_id)))
     truth = {
         "generator": "examples/make_example_bundle.py (exact points, no noise)",
-        "convention": "canonical (DESIGN §3)",
+        "convention": "canonical (docs/architecture.md §3)",
         "boresight_deg": dict(zip(("roll", "pitch", "yaw"), TRUE_BORESIGHT_DEG)),
         "lever_arm_m": LEVER_ARM_M,
         "range_offset_m": 0.0,

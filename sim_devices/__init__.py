@@ -1,6 +1,6 @@
 """Simulated devices: real-time emulators of the INS, the profiler, the PPS and the CAN event
 markers, fed by :func:`calib.sim.simulate.simulate`, with fault injection and session replay
-(DESIGN §2, §5 "Simulated devices"). ``acquire`` never imports this package at module level;
+(docs/architecture.md §2, §5 "Simulated devices"). ``acquire`` never imports this package at module level;
 ``mls sim devices`` / ``mls sim replay`` load it inside the commands.
 
 - :mod:`sim_devices.feed` — a simulation window cut into device streams: INS epochs, the

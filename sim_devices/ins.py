@@ -1,9 +1,9 @@
 """The Hydrins INS emulator: the scenario's navigation on a pseudo-terminal, in real time.
 
-Output (:class:`InsSettings`): the PHINS-standard NMEA block (:func:`drivers.hydrins.nmea.
+Output (:class:`InsSettings`): the PHINS-standard NMEA block (:func:`drivers.hydrins.nmea_encode.
 encode_epoch`) at ``rate_hz`` (default 100, up to 200) plus ``$GPZDA`` once per second,
 ``zda_delay_s`` after each PPS edge (the whole GPS second S, in UTC); or STDBIN frames
-(:func:`drivers.hydrins.stdbin.encode_nav`, version ``stdbin_version``; no ZDA — the frame's
+(:func:`drivers.hydrins.stdbin_encode.encode_nav`, version ``stdbin_version``; no ZDA — the frame's
 validity time and system-date block date it). Epoch k carries the time tag of its GPS instant
 t_k (UTC on the wire) and leaves at ``host(t_k) + latency_s + U(0, jitter_s)`` on the truth
 clock (host seconds: latency and jitter are the device's, not scaled by ``--speed``), never
@@ -29,8 +29,8 @@ from pathlib import Path
 import numpy as np
 
 from drivers.hydrins.nav import status_words
-from drivers.hydrins.nmea import encode_epoch, encode_zda
-from drivers.hydrins.stdbin import encode_nav
+from drivers.hydrins.nmea_encode import encode_epoch, encode_zda
+from drivers.hydrins.stdbin_encode import encode_nav
 from sim_devices.faults import Fault, Timeline
 from sim_devices.feed import InsTrack
 from sim_devices.serialpty import PtyPort

@@ -57,11 +57,6 @@ class TimingLog:
         self._cpu0 = time.process_time()
         self._wall0 = time.monotonic()
 
-    def restart(self) -> None:
-        """Start the CPU/wall accounting now (after set-up)."""
-        self._cpu0 = time.process_time()
-        self._wall0 = time.monotonic()
-
     def record(self, scheduled_ns: int, emitted_ns: int) -> None:
         self.errors_ns.append(emitted_ns - scheduled_ns)
 

@@ -1,0 +1,10 @@
+"""The acquisition daemon (``mls acquire``).
+
+- ``config``: the vessel config (``vessel.yaml``): schema and validation.
+- ``devices``: the daemon's devices, one class per config ``kind``, each run as one task.
+- ``consumers``: taps on the daemon's record stream for consumers, and the checklist publisher.
+- ``sdnotify``: the systemd notification protocol and the health watchdog.
+- ``sessionfiles``: the start-up salvage report and the files written into a new session.
+- ``reports``: the status documents, the pre-survey checks and the watchdog's device check.
+- ``supervisor``: :class:`Supervisor`, one vessel config run from start-up to shutdown.
+"""

@@ -1,4 +1,4 @@
-"""The vessel config (``mls acquire --config vessel.yaml``, DESIGN §4): schema and validation.
+"""The vessel config (``mls acquire --config vessel.yaml``, docs/architecture.md §4): schema and validation.
 
 Validation collects **every** error, one per bad field, each naming the file, line, column, key,
 the value and what was expected (``vessel.yaml:14:13: devices[0].transport.baud: got 11520,
@@ -24,7 +24,7 @@ default shown in the example):
   ``max_gap_s``), the profiler's settings the σ prediction of the passes still to sail assumes
   (``profile_rate_hz``, ``points_per_360``), the publication period ``period_s`` and
   ``enabled``. The tolerances live here rather than in the site file: they describe how this
-  vessel is steered and how densely its profiler scans, not the site (whose keys DESIGN §4
+  vessel is steered and how densely its profiler scans, not the site (whose keys docs/architecture.md §4
   fixes).
 """
 
@@ -42,7 +42,7 @@ from calib.io.configfile import ConfigError, Node, load_yaml
 from acquire.timing.clock import ClockParams
 from acquire.timing.latency import LatencyLimits
 from acquire.status.mqtt import MqttSettings
-from acquire.log.sessionlog import COMPRESSIONS, SessionOptions
+from acquire.log.session import COMPRESSIONS, SessionOptions
 
 KINDS = ("ins", "profiler", "pps", "can")
 PROTOCOLS = {"ins": ("nmea", "stdbin"), "profiler": ("zfp1",)}

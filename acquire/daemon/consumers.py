@@ -1,4 +1,4 @@
-"""Taps on the daemon's record stream, for consumers such as operator guidance (DESIGN §8).
+"""Taps on the daemon's record stream, for consumers such as operator guidance (docs/architecture.md §8).
 
 The drivers hand every canonical record to :class:`ConsumerHub.publish` — ``("nav", NavRecord,
 gps_ns)`` per INS epoch, ``("profile", Profile, gps_ns)`` per assembled profile, ``("event",

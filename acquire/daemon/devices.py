@@ -2,10 +2,10 @@
 filed in :data:`DEVICES` (the drivers' :class:`~drivers.base.Registry`), each run as one asyncio
 task by :mod:`acquire.daemon.supervisor`.
 
-A device opens its transport through the drivers' registries (:func:`drivers.transport.base.
+A device opens its transport through the drivers' registries (:func:`drivers.transport.registry.
 create_transport`, :func:`drivers.pps.create_pps_source`, :func:`drivers.can.open_can_bus`),
 then loops: bytes in → the exact bytes to the session's raw channel → the sans-I/O codec →
-canonical records. What it does with a record (DESIGN §4, §6):
+canonical records. What it does with a record (docs/architecture.md §4, §6):
 
 - **ins** (``nmea`` | ``stdbin``): every read to ``/ins/raw``; every epoch (a
   :class:`~drivers.hydrins.nav.NavRecord`) to ``/ins/nav`` with its GPS time — the INS time tag
@@ -65,7 +65,7 @@ class DaemonContext:
 
 
 def transport_config(t: SerialTransport | NetTransport, name: str, high_rate: bool = False) -> dict:
-    """A vessel-config transport → the mapping :func:`drivers.transport.base.create_transport` takes
+    """A vessel-config transport → the mapping :func:`drivers.transport.registry.create_transport` takes
     (``high_rate``: UDP through :mod:`drivers.transport.udp_batch`, the profiler's thousands of datagrams
     per second)."""
     if isinstance(t, SerialTransport):
@@ -163,7 +163,7 @@ class _StreamDevice(Device):
         self.transport = None
 
     async def open(self) -> None:
-        from drivers.transport.base import create_transport
+        from drivers.transport.registry import create_transport
 
         self.transport = create_transport(transport_config(self.cfg.transport, self.name, self.high_rate),
                                           on_event=self.on_transport_event)  # fmt: skip
@@ -191,9 +191,9 @@ class InsDevice(_StreamDevice):
 
     def __init__(self, cfg: DeviceConfig, ctx: DaemonContext, time_messages: tuple[str, ...] = ()) -> None:
         super().__init__(cfg, ctx)
-        from drivers.hydrins import nmea
-        from drivers.hydrins.nmea import NmeaNavAssembler
-        from drivers.hydrins.stdbin import StdbinNavDecoder
+        from drivers.hydrins.nmea_decode import NmeaNavAssembler
+        from drivers.hydrins.nmea_sentences import Gga, Rmc, Zda
+        from drivers.hydrins.stdbin_decode import StdbinNavDecoder
 
         self.time_messages = frozenset(time_messages)
         if cfg.protocol == "stdbin":
@@ -201,7 +201,7 @@ class InsDevice(_StreamDevice):
         else:
             self.decoder = NmeaNavAssembler()
         # sentence types that label PPS pulses (full date: ZDA, RMC; time of day: GGA)
-        self._time_types = tuple(t for k, t in (("ZDA", nmea.Zda), ("RMC", nmea.Rmc), ("GGA", nmea.Gga))
+        self._time_types = tuple(t for k, t in (("ZDA", Zda), ("RMC", Rmc), ("GGA", Gga))
                                  if k in self.time_messages)  # fmt: skip
         self._nav_labels = bool(self.time_messages & {"TIME__", "validity_time"})
         self.synced_records = 0
@@ -234,7 +234,7 @@ class InsDevice(_StreamDevice):
         dec = self.decoder
         if not self._time_types or self.cfg.protocol == "stdbin":
             return dec.feed(data, host_ns)
-        from drivers.hydrins.nmea import Zda
+        from drivers.hydrins.nmea_sentences import Zda
         from drivers.hydrins.timeofday import utc_date_ns
 
         out = []
@@ -253,7 +253,7 @@ class InsDevice(_StreamDevice):
 
     def _sentence_gps_s(self, rec) -> int | None:
         from calib.core.frames import utc_fields_to_gps_ns
-        from drivers.hydrins.nmea import Gga, Rmc
+        from drivers.hydrins.nmea_sentences import Gga, Rmc
         from drivers.hydrins.timeofday import resolve_gps_ns
 
         tod = rec.time_of_day_ns

@@ -1,14 +1,14 @@
 """The acquisition daemon (``mls acquire``): devices, clock, monitors, session log, status bus.
 
-:class:`Supervisor` runs one vessel config (DESIGN §4, §6, §8) in one asyncio loop:
+:class:`Supervisor` runs one vessel config (docs/architecture.md §4, §6, §8) in one asyncio loop:
 
 - **start-up**: salvage every unfinished session under the log directory
   (:func:`acquire.log.recover.salvage_root`); seed the :class:`~acquire.timing.clock.ClockModel` from
   the system clock (UTC + leap seconds, flagged UNLOCKED until PPS); open the session
   (:class:`~acquire.log.sessionlog.SessionWriter`) and copy the vessel config (``vessel.yaml``),
   the site file (``site.yaml``) and a summary (``session.json``: vessel, mount, devices) into
-  it; serve the status socket and, when configured, MQTT; open every device
-  (:mod:`acquire.daemon.devices`); then tell systemd ``READY=1``.
+  it (:mod:`acquire.daemon.sessionfiles`); serve the status socket and, when configured, MQTT;
+  open every device (:mod:`acquire.daemon.devices`); then tell systemd ``READY=1``.
 - **running**: one task per device, reopened with a back-off when it fails (alarm
   ``device_unavailable`` for a device error, ``driver_failed`` for a bug); one task per
   consumer tap (:mod:`acquire.daemon.consumers`); a 4 Hz monitor loop (latency monitor tick, PPS
@@ -18,9 +18,10 @@
   socket, MQTT and the log within ~0.25 s of being raised); a status loop every
   ``status.period_s`` (retained ``status``, ``sensors/<name>`` and ``checklist``; ``clock`` and
   ``metrics``; the same to ``/status``, ``/clock``, ``/latency``; the ``presurvey`` section of
-  the checklist); the systemd watchdog, pinged only while no driver is down after a bug and
-  the log writer progresses. MQTT commands (when enabled): ``pass_start`` / ``pass_end`` /
-  ``mark`` to ``/events`` (``source: mqtt``), ``rotate`` to a new segment.
+  the checklist; built by :mod:`acquire.daemon.reports`); the systemd watchdog, pinged only
+  while no driver is down after a bug and the log writer progresses. MQTT commands (when
+  enabled): ``pass_start`` / ``pass_end`` / ``mark`` to ``/events`` (``source: mqtt``),
+  ``rotate`` to a new segment.
 - **shutdown** (SIGTERM, SIGINT or :meth:`Supervisor.request_stop`): ``STOPPING=1``, devices and
   consumers cancelled and closed, ``session_end`` logged, the segment closed (fsync), the final
   retained ``status`` (``{"state": "stopped", ...}``) published to the socket and MQTT (a clean
@@ -39,15 +40,12 @@ import asyncio
 import contextlib
 import datetime as _dt
 import gc
-import json
 import logging
 import os
-import shutil
 import signal
 import time
 import traceback
 from collections.abc import Sequence
-from pathlib import Path
 
 from acquire.daemon import sdnotify
 from acquire.alarms import CRITICAL, WARNING, AlarmBook
@@ -55,9 +53,12 @@ from acquire.timing.clock import ClockModel, ClockState
 from acquire.daemon.config import VesselConfig
 from acquire.daemon.consumers import ChecklistPublisher, Consumer, ConsumerHub
 from acquire.daemon.devices import DEVICES, DaemonContext, Device
+from acquire.daemon.reports import StatusReports
+from acquire.daemon.sessionfiles import salvage_report, write_session_files
 from acquire.timing.latency import LatencyMonitor
 from acquire.log.batch import LogBatcher
-from acquire.log.sessionlog import LogError, SessionWriter
+from acquire.log.session import LogError
+from acquire.log.sessionlog import SessionWriter
 from acquire.status.bus import StatusBus, StatusServer
 from acquire.timing.timekeeper import ClockCache, TimeKeeper, coarse_gps_offset_ns
 from drivers.base import DriverError
@@ -68,14 +69,13 @@ MONITOR_PERIOD_S = 0.25
 LOSS_CLEAR_S = 5.0  # packet_loss clears after this long without a new loss
 STEP_CLEAR_S = 10.0
 DRIVER_BACKOFF_S = (0.5, 30.0)
-MIN_RCVBUF_BYTES = 8 * 2**20  # profiler socket buffer: ~0.8 s of the full Z+F rate
 
 
 class StartupError(RuntimeError):
     """The daemon cannot start (the message says what and why)."""
 
 
-class Supervisor:
+class Supervisor(StatusReports):
     """Runs one vessel config until stopped (see the module docstring)."""
 
     def __init__(self, config: VesselConfig, consumers: Sequence[Consumer] = (),
@@ -203,7 +203,7 @@ class Supervisor:
     async def start(self) -> None:
         cfg = self.config
         try:
-            self.salvaged = await asyncio.to_thread(_salvage, cfg.session_dir)
+            self.salvaged = await asyncio.to_thread(salvage_report, cfg.session_dir)
         except (OSError, LogError) as e:  # a damaged old session must not stop acquisition
             self.salvaged = {"error": str(e)}
         metadata: dict[str, dict[str, str]] = {}
@@ -218,7 +218,7 @@ class Supervisor:
             session_dir = await asyncio.to_thread(self.writer.start)
         except (OSError, LogError) as e:
             raise StartupError(f"session directory {cfg.session_dir}: {e}") from None
-        self._write_session_files(session_dir)
+        write_session_files(cfg, session_dir, self.started_utc)
         self.server = StatusServer(cfg.status.socket)
         try:
             await self.server.start()
@@ -262,28 +262,6 @@ class Supervisor:
         sdnotify.notify(f"READY=1\nSTATUS=acquiring: {len(self.devices)} devices, session "
                         f"{session_dir.name}", self.env)  # fmt: skip
         log.info("acquiring: session %s", session_dir)
-
-    def _write_session_files(self, session_dir: Path) -> None:
-        """vessel.yaml (verbatim), site.yaml (the site file) and session.json in the session."""
-        cfg = self.config
-        with contextlib.suppress(OSError):
-            shutil.copyfile(cfg.source, session_dir / "vessel.yaml")
-        if cfg.site_file is not None:
-            with contextlib.suppress(OSError):
-                shutil.copyfile(cfg.site_file, session_dir / "site.yaml")
-        m = cfg.mount
-        summary = {
-            "format": "marine-mls session v1", "vessel": cfg.vessel, "session": session_dir.name,
-            "started_utc": self.started_utc.isoformat(timespec="seconds"),
-            "config_file": str(cfg.source), "site_file": str(cfg.site_file) if cfg.site_file else None,
-            "mount": None if m is None else {"lever_arm_m": list(m.lever_arm_m),
-                                             "nominal_deg": list(m.nominal_deg),
-                                             "boresight_apriori_deg": list(m.boresight_apriori_deg)},
-            "devices": [{"name": d.name, "kind": d.kind, "protocol": d.protocol} for d in cfg.devices],
-        }  # fmt: skip
-        tmp = session_dir / "session.json.tmp"
-        tmp.write_text(json.dumps(summary, indent=2) + "\n", encoding="utf-8")
-        tmp.replace(session_dir / "session.json")
 
     async def shutdown(self) -> None:
         if self.state in ("stopped", "stopping"):
@@ -476,136 +454,6 @@ class Supervisor:
             self.loop_lag_ns = 0
             await asyncio.sleep(period)
 
-    # -- status -----------------------------------------------------------------------------
-
-    def drivers_health(self) -> tuple[bool, str]:
-        """Watchdog check: every device task is running and none is down after a crash."""
-        dead = [n for n, t in self._device_tasks.items() if t.done()]
-        if dead:
-            return False, f"device task ended: {', '.join(dead)}"
-        if self.crashed:
-            return False, "; ".join(f"{n}: {e}" for n, e in self.crashed.items())
-        return True, f"{len(self._device_tasks)}/{len(self.devices)} device tasks alive"
-
-    def device_state(self, dev: Device) -> str:
-        if dev.name in self.crashed:
-            return "failed"
-        if dev.name in self.unavailable:
-            return "unavailable"
-        return "connected" if dev.connected else "disconnected"
-
-    def status_doc(self, state: str | None = None) -> dict:
-        now = time.monotonic_ns()
-        w = self.writer.stats() if self.writer is not None else None
-        doc = {
-            "state": state or self.state,
-            "vessel": self.config.vessel,
-            "session": self.writer.session_dir.name if self.writer and self.writer.session_dir else None,
-            "pid": os.getpid(),
-            "started_utc": self.started_utc.isoformat(timespec="seconds"),
-            "uptime_s": round((now - self.started_mono_ns) / NS_PER_S, 1),
-            "clock": self.clock.state_at(now).value,
-            "devices": {n: self.device_state(d) for n, d in self.devices.items()},
-            "log": None if w is None else {
-                "state": w.state, "segment": w.segment, "messages": w.messages_written,
-                "dropped": sum(w.dropped.values()), "lost": sum(w.lost.values()),
-                "free_mb": None if w.free_bytes is None else round(w.free_bytes / 2**20, 1)},
-            "mqtt": None if self.mqtt is None else ("connected" if self.mqtt.connected else "disconnected"),
-            "alarms": [a.as_dict() for a in self.alarms.active()],
-        }  # fmt: skip
-        return doc
-
-    def _publish_status(self) -> None:
-        self.bus.publish("status", self.status_doc())
-
-    def _sensor(self, name: str, dev: Device) -> dict:
-        """The retained ``sensors/<name>`` summary (the details are in ``metrics``)."""
-        out = {"state": self.device_state(dev), "kind": dev.kind, "records": dev.records}
-        if name in self.monitor.devices:
-            st = self.monitor.stats(name)
-            out.update(rate_hz=None if st.rate_hz is None else round(st.rate_hz, 1), sync=st.sync,
-                       latency_ms=None if st.mean_ns is None else round(st.mean_ns / 1e6, 3),
-                       latency_p99_ms=None if st.p99_ns is None else round(st.p99_ns / 1e6, 3),
-                       pps_flag=st.pps_flag)  # fmt: skip
-        out.update(reconnects=dev.reconnects, gaps=dev.gaps, lost=dev.losses())
-        return out
-
-    def clock_doc(self, now: int) -> dict:
-        est = self.clock.to_gps(now)
-        return {**self.clock.status(now).as_dict(), "gps_ns": est.gps_ns, "host_ns": now,
-                "pps": self.timekeeper.status()}  # fmt: skip
-
-    def _publish_details(self, now: int) -> None:
-        bus = self.bus
-        for name, dev in self.devices.items():
-            bus.publish(f"sensors/{name}", self._sensor(name, dev))
-        bus.publish("clock", self.clock_doc(now))
-        bus.publish("metrics", self.metrics_doc())
-        self.checklist.publish("presurvey", self.presurvey(now))
-
-    def metrics_doc(self) -> dict:
-        cpu = time.process_time()
-        return {
-            "latency": self.monitor.snapshot(),
-            "log": self.writer.stats().as_dict() if self.writer is not None else None,
-            "status_socket": None if self.server is None else {
-                "clients": self.server.clients, "served": self.server.clients_served,
-                "dropped": self.server.clients_dropped},
-            "mqtt": None if self.mqtt is None else {
-                "connected": self.mqtt.connected, "connects": self.mqtt.connects,
-                "published": self.mqtt.published, "dropped": self.mqtt.dropped,
-                "last_error": self.mqtt.last_error},
-            "devices": {n: d.status() for n, d in self.devices.items()},
-            "consumers": self.hub.status(),
-            "loop_lag_ms": round(self.loop_lag_ns / 1e6, 3),
-            "cpu_s": round(cpu, 3),
-        }  # fmt: skip
-
-    def presurvey(self, now: int) -> dict:
-        """DESIGN §8's pre-survey checks: ``{check: {"ok": bool, "detail": str}}``."""
-        checks: dict[str, dict] = {}
-
-        def check(name: str, ok: bool, detail: str) -> None:
-            checks[name] = {"ok": bool(ok), "detail": detail}
-
-        for dev in self.devices.values():
-            if dev.kind == "ins":
-                nav = getattr(dev, "last_nav", None) or {}
-                check("ins_navigating", nav.get("navigation") and nav.get("fine_alignment"),
-                      "navigating, fine aligned" if nav.get("navigation") and nav.get("fine_alignment")
-                      else "no navigation record yet" if not nav else "aligning / not navigating")
-                check("gnss_fix", nav.get("gps_valid"), "GNSS valid" if nav.get("gps_valid") else "no valid GNSS")
-                check("ins_pps", nav.get("pps_detected") and nav.get("utc_detected"),
-                      f"INS time source: {nav.get('time_source', 'none')}")
-            elif dev.kind == "profiler":
-                rate = self.monitor.stats(dev.name).rate_hz
-                check("profiler_data", bool(rate), f"{rate or 0:.0f} profiles/s")
-                buf = getattr(dev.transport, "rcvbuf_bytes_granted", 0)
-                check("receive_buffer", buf >= MIN_RCVBUF_BYTES,
-                      f"profiler socket buffer {buf / 2**20:.1f} MiB" + ("" if buf >= MIN_RCVBUF_BYTES else
-                      " (raise the sysctl net.core.rmem_max to 33554432)"))  # fmt: skip
-        state = self.clock.state_at(now)
-        check("clock_locked", state == ClockState.LOCKED, f"clock {state.value}")
-        bad = [a for a in self.alarms.active()
-               if a.name in ("latency_out_of_band", "latency_jump", "time_step", "clock_drift",
-                             "pps_flag_lost", "latency_jitter")]  # fmt: skip
-        check("latency_in_band", not bad, "; ".join(f"{a.device}: {a.name}" for a in bad) or "ok")
-        w = self.writer.stats() if self.writer is not None else None
-        free = w.free_bytes if w is not None else None
-        check("disk_space", free is not None and free > 2 * 2**30,
-              "unknown" if free is None else f"{free / 2**30:.1f} GiB free")
-        check("mount_configured", self.config.mount is not None,
-              "mount in the vessel config" if self.config.mount else "no mount in the vessel config")
-        return checks
-
-    def _log_status(self, now: int) -> None:
-        if self.writer is None:
-            return
-        submit = self.ctx.submit
-        submit("/status", self.status_doc(), host_ns=now)
-        submit("/clock", self.clock_doc(now), host_ns=now)
-        submit("/latency", self.monitor.snapshot(), host_ns=now)
-
     # -- operator commands (MQTT) -----------------------------------------------------------
 
     def command(self, name: str, args: dict) -> tuple[bool, str]:
@@ -624,11 +472,3 @@ class Supervisor:
 
 def _no_writer(*args, **kwargs) -> bool:
     return False  # records before the session is open (none: the devices start after it)
-
-
-def _salvage(root: Path) -> dict:
-    from acquire.log.recover import salvage_root
-
-    reports = salvage_root(root)
-    return {name: [{"segment": r.segment, "messages": r.messages, "torn_bytes": r.torn_bytes,
-                    "problem": r.problem} for r in rs] for name, rs in reports.items()}  # fmt: skip

@@ -31,7 +31,7 @@ import numpy as np
 from acquire.guidance.lines import line_offsets
 from calib.core import frames
 from calib.survey.passplan import PlannedPass
-from drivers.hydrins.nmea import encode_sentence
+from drivers.hydrins.nmea_encode import encode_sentence
 
 NM_M = 1852.0
 DEFAULT_LOOKAHEAD_M = 20.0

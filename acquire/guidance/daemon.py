@@ -1,5 +1,5 @@
-"""The line guidance inside the daemon (DESIGN §8): when the vessel config names a site file,
-``mls acquire`` runs a :class:`~acquire.guidance.state.GuidanceConsumer` next to the devices.
+"""The line guidance inside the daemon (docs/architecture.md §8): when the vessel config names a site file,
+``mls acquire`` runs a :class:`~acquire.guidance.consumer.GuidanceConsumer` next to the devices.
 
 - :func:`make_guidance` builds the :class:`~acquire.guidance.state.Guidance` of a vessel config:
   the site's targets and its six-fold plan (:func:`calib.survey.passplan.plan_site`), the vessel
@@ -22,8 +22,9 @@ from pathlib import Path
 import numpy as np
 
 from acquire.daemon.config import GuidanceConfig, VesselConfig
+from acquire.guidance.consumer import GuidanceConsumer
 from acquire.guidance.lines import AcceptanceTolerances, Check, disk_needed_bytes, prechecks
-from acquire.guidance.state import Guidance, GuidanceConsumer
+from acquire.guidance.state import Guidance
 
 MS = 1_000_000
 

@@ -1,4 +1,4 @@
-"""Line guidance for the calibration passes (DESIGN §8), as pure functions over numpy arrays
+"""Line guidance for the calibration passes (docs/architecture.md §8), as pure functions over numpy arrays
 (vectorized over samples or points): where the vessel is relative to the planned line, which
 targets the profiler is hitting, whether the system is ready, and whether a pass is good
 enough. The daemon's state that uses them is :mod:`acquire.guidance.state`.

@@ -312,7 +312,7 @@ class AngleComparison:
 
 def comparison_rows(result: dict, truth: dict) -> list[AngleComparison]:
     """Recovered (``result.json``) against the truth (``scenario_truth.json``), canonical and
-    in the thesis convention (roll, −pitch, yaw; DESIGN §3)."""
+    in the thesis convention (roll, −pitch, yaw; docs/architecture.md §3)."""
     b, sf, sr = result["boresight_deg"], result["sigma_deg"], result["sigma_realistic_deg"]
     t = truth["boresight_deg"]
     rows = [AngleComparison(a, "canonical", float(t[a]), float(b[a]), float(sf[a]), float(sr[a]))
@@ -340,7 +340,7 @@ def comparison_table(rows: list[AngleComparison]):
         t.add_row(name, f"{r.truth_deg:+.4f}", f"{r.recovered_deg:+.4f}", f"{r.error_deg:+.4f}",
                   f"{r.sigma_formal_deg:.4f}", f"{r.sigma_realistic_deg:.4f}",
                   f"[{'bold red' if bad else 'green'}]{r.error_sigmas:+.2f}[/]")  # fmt: skip
-    t.caption = ("canonical: DESIGN §3 (R_bs = Rz(yaw)·Ry(pitch)·Rx(roll), pitch + bow up); thesis: "
+    t.caption = ("canonical: docs/architecture.md §3 (R_bs = Rz(yaw)·Ry(pitch)·Rx(roll), pitch + bow up); thesis: "
                  "the iXblue/NWU convention of Shahraji 2022 (pitch negated); error/σ in realistic σ")  # fmt: skip
     t.caption_justify = "left"
     return t

@@ -1,4 +1,4 @@
-"""Session → calibration bundle (``mls export``, DESIGN §4).
+"""Session → calibration bundle (``mls export``, docs/architecture.md §4).
 
 :func:`export_session` reads a session written by the daemon and writes a bundle directory:
 
@@ -21,7 +21,7 @@
 - ``site.yaml``: the site file (``--site``, else the copy the daemon stored in the session)
   with the mount of the session's vessel config (lever arm, nominal mount, a-priori boresight).
 
-Optionally ``laz_dir`` (one LAZ per pass, :func:`cli.commands.calib_cmd.
+Optionally ``laz_dir`` (one LAZ per pass, :func:`calib.io.georef_bundle.
 georeference_bundle`) and ``sbet_path`` (the trajectory as an Applanix SBET, with its SMRMSG
 when it has sigmas, :mod:`calib.io.sbet`).
 """
@@ -455,7 +455,7 @@ def export_session(session_dir: str | Path, bundle_dir: str | Path,
     if options.sbet_path is not None:
         result.sbet = write_sbet(traj, options.sbet_path)
     if options.laz_dir is not None:
-        from cli.commands.calib_cmd import georeference_bundle
+        from calib.io.georef_bundle import georeference_bundle
 
         result.laz, _ = georeference_bundle(bundle, Path(options.laz_dir), skip_uncovered=True)
     return result

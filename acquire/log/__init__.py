@@ -1,0 +1,11 @@
+"""The session log: crash-safe MCAP segments, their salvage, and reading them back.
+
+- ``schema``: the message encodings of a session's channels (envelope, raw record heads).
+- ``mcapwriter``: the mcap ``Writer`` with a cheaper ``add_message`` for the hot path.
+- ``session``: a session directory's names, :class:`SessionOptions`, ``LogError``, ``fsync_dir``.
+- ``segments``: the writer thread's segments: records in, chunks, fsync, rotation, write failures.
+- ``sessionlog``: :class:`SessionWriter`, the bounded queue and writer thread of one session.
+- ``batch``: batching records from the event loop to the session writer (the hot path).
+- ``recover``: scanning, salvaging and summarizing sessions (``mls logs info`` / ``recover``).
+- ``read``: a session's messages read back, every segment in order, decoded.
+"""

@@ -35,7 +35,7 @@ from mcap.records import Channel, Chunk, Footer, Message, Metadata, Schema
 from mcap.stream_reader import breakup_chunk
 from mcap.writer import MCAP0_MAGIC, CompressionType, Writer
 
-from acquire.log.sessionlog import LOCK_NAME, SEGMENT_RE, LogError, fsync_dir
+from acquire.log.session import LOCK_NAME, SEGMENT_RE, LogError, fsync_dir
 
 NS_PER_S = 1_000_000_000
 _VALID_OPCODES = {int(o) for o in Opcode}
@@ -244,7 +244,7 @@ def salvage_session(session_dir: Path, keep_original: bool = True) -> list[Recov
 
 
 def session_dirs(root: Path) -> list[Path]:
-    from acquire.log.sessionlog import SESSION_RE
+    from acquire.log.session import SESSION_RE
 
     root = Path(root)
     if not root.is_dir():

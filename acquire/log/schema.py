@@ -1,4 +1,4 @@
-"""The session log's message encodings (DESIGN §4): what each MCAP message of a session holds.
+"""The session log's message encodings (docs/architecture.md §4): what each MCAP message of a session holds.
 
 Every message, whatever the channel:
 
@@ -53,7 +53,7 @@ FLAG_DEVICE_TIME = 0x04
 
 CLOCK_STATES = ("LOCKED", "HOLDOVER", "UNLOCKED")
 
-# DESIGN §4 channels; /can/<name> channels are raw as well
+# docs/architecture.md §4 channels; /can/<name> channels are raw as well
 CHANNELS: dict[str, str] = {
     "/ins/raw": RAW,
     "/ins/nav": JSON,
@@ -84,7 +84,7 @@ ENVELOPE_SCHEMA = json.dumps(
 
 
 def channel_kind(topic: str) -> str:
-    """``"raw"`` or ``"json"`` for a session channel; ValueError for a topic not in DESIGN §4."""
+    """``"raw"`` or ``"json"`` for a session channel; ValueError for a topic not in docs/architecture.md §4."""
     kind = CHANNELS.get(topic)
     if kind is not None:
         return kind

@@ -1,4 +1,4 @@
-"""Status bus: the daemon's status to the local Unix socket and to MQTT (DESIGN §8).
+"""Status bus: the daemon's status to the local Unix socket and to MQTT (docs/architecture.md §8).
 
 The daemon calls :meth:`StatusBus.publish` with a topic and a JSON-able dict. Topics (under
 ``<prefix>/<vessel>/`` in MQTT) and their delivery:
@@ -51,7 +51,7 @@ _POLICY: dict[str, tuple[bool, int]] = {
 
 
 def topic_policy(topic: str) -> tuple[bool, int]:
-    """(retained, QoS) of a status topic; ValueError for a topic not in DESIGN §8."""
+    """(retained, QoS) of a status topic; ValueError for a topic not in docs/architecture.md §8."""
     head, _, rest = topic.partition("/")
     if head in _POLICY and (bool(rest) == (head == "sensors")) and "/" not in rest:
         return _POLICY[head]

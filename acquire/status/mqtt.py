@@ -1,6 +1,6 @@
 """MQTT publisher of the status bus (aiomqtt), with last will, reconnects and optional commands.
 
-Topics live under ``<prefix>/<vessel>/`` (DESIGN §8; retain/QoS per topic in
+Topics live under ``<prefix>/<vessel>/`` (docs/architecture.md §8; retain/QoS per topic in
 :mod:`acquire.status.bus`). The connection carries the last will ``{"state":"lost"}`` on
 ``status`` (retained, QoS 1), so a subscriber learns when the daemon dies; a clean stop publishes
 the caller's final status and disconnects (no will).
@@ -45,7 +45,7 @@ COMMANDS: dict[str, dict[str, type]] = {
     "pass_end": {"pass_id": int},
     "rotate": {},
 }
-CommandHandler = Callable[[str, dict], "tuple[bool, str] | Awaitable[tuple[bool, str]]"]
+CommandHandler = Callable[[str, dict], tuple[bool, str] | Awaitable[tuple[bool, str]]]
 
 
 @dataclass(frozen=True)

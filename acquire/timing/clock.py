@@ -1,4 +1,4 @@
-"""Clock model: host monotonic ns → GPS ns, fitted over labelled PPS edges (DESIGN §6).
+"""Clock model: host monotonic ns → GPS ns, fitted over labelled PPS edges (docs/architecture.md §6).
 
 ``gps = a + b·(host − t0)``, fitted by least squares over a sliding window of labelled PPS edges
 ``(host_ns, gps_second)`` (the host stamp of the pulse and the GPS second a time message gave it,

@@ -1,4 +1,4 @@
-"""Latency monitor and sync check (DESIGN §6): device time tags against the PPS clock model.
+"""Latency monitor and sync check (docs/architecture.md §6): device time tags against the PPS clock model.
 
 For each record of a device, ``latency = GPS(host receive) − device time tag``, with GPS(host
 receive) from the clock model. A device whose time tags are synchronized to the same GPS time

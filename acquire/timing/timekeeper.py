@@ -1,4 +1,4 @@
-"""PPS edges and time messages → labelled pulses → the clock model (DESIGN §5, §6).
+"""PPS edges and time messages → labelled pulses → the clock model (docs/architecture.md §5, §6).
 
 :class:`TimeKeeper` owns the daemon's :class:`~drivers.pps.PpsLabeler` (gpsd's rule) and
 :class:`~acquire.timing.clock.ClockModel`. The PPS device hands it every pulse (:meth:`on_edge`); the

@@ -1,4 +1,4 @@
-"""``mls checklist``: the operator's screen during the calibration survey (DESIGN §8), a Textual
+"""``mls checklist``: the operator's screen during the calibration survey (docs/architecture.md §8), a Textual
 app that fits an 80 × 24 terminal and works over SSH.
 
 It reads the daemon's status bus (:mod:`acquire.status.feed`: the local socket by default, MQTT
@@ -43,7 +43,7 @@ from acquire.ui.planview import render_plan
 from acquire.status.feed import LINK, SNAPSHOT_END, guidance_of
 
 OK, FAIL, WAIT = "✔", "✘", "…"
-#: Short labels of the daemon's pre-survey check names (acquire.daemon.supervisor.presurvey).
+#: Short labels of the daemon's pre-survey check names (acquire.daemon.reports.StatusReports.presurvey).
 CHECK_LABELS = {"ins_navigating": "INS nav+fine", "gnss_fix": "GNSS fix", "ins_pps": "INS PPS+UTC",
                 "pps_locked": "PPS locked", "profiler_data": "Profiler data",
                 "clock_locked": "Clock LOCKED", "latency_in_band": "Latency",

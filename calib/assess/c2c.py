@@ -146,6 +146,15 @@ class C2CResult:
         """Statistics of the plain nearest-neighbour distances (the biased comparison)."""
         return distance_stats(self.nn_distance_m[self.within_max])
 
+    def extra_dimensions(self) -> dict[str, np.ndarray]:
+        """The per-point values written with the compared cloud (``extra`` of
+        :func:`calib.io.cloudio.write_cloud`): ``c2c_distance_m``, and ``c2c_signed_distance_m``
+        when the distances are signed."""
+        extra = {"c2c_distance_m": self.distance_m}
+        if self.signed_distance_m is not None:
+            extra["c2c_signed_distance_m"] = self.signed_distance_m
+        return extra
+
 
 # -- local planes ---------------------------------------------------------------------------
 

@@ -44,7 +44,7 @@ class HistoryError(ValueError):
 
 
 class ResultFormatError(ValueError):
-    """A result.json does not follow DESIGN §4 (the message names the field)."""
+    """A result.json does not follow docs/architecture.md §4 (the message names the field)."""
 
 
 # -- result.json ----------------------------------------------------------------------------
@@ -83,7 +83,7 @@ def _number(d: dict, key: str, source: str, minimum: float | None = None,
 
 
 def validate_result(result: dict, source: str = "result") -> dict:
-    """Check the fields of a calibration result (DESIGN §4) that the history uses; returns a
+    """Check the fields of a calibration result (docs/architecture.md §4) that the history uses; returns a
     normalised copy of them (angles as {roll, pitch, yaw} dicts, degrees). Raises
     :class:`ResultFormatError` naming the first missing or bad field."""
     if not isinstance(result, dict):
@@ -373,6 +373,20 @@ def get_result(record_id: int, db=None) -> HistoryRecord:
     if row is None:
         raise HistoryError(f"no calibration #{record_id} in the history")
     return _record(row)
+
+
+def resolve_result(ref: str, db=None, which: str = "result") -> tuple[dict | HistoryRecord, str]:
+    """A calibration named by a history id (``12`` or ``#12``) or a result.json path (file or
+    directory) → (the result, its label) for :func:`compare`; ``which`` names the argument in
+    the error when ``ref`` is neither."""
+    p = Path(ref)
+    if p.exists():
+        return load_result(p), str(p)
+    digits = ref.lstrip("#")
+    if digits.isdigit():
+        rec = get_result(int(digits), db=db)
+        return rec, rec.label
+    raise HistoryError(f"{which} {ref!r}: neither a result.json path nor a history id")
 
 
 def records_of_bundle(fingerprint: str, db=None) -> list[HistoryRecord]:

@@ -1,6 +1,6 @@
 """How POS errors are correlated in time, and the O(n) double sums that propagate them.
 
-Used by :mod:`calib.boresight.adjust` for ``sigma_realistic`` and by predictions of the site design and
+Used by :mod:`calib.boresight.covariance` for ``sigma_realistic`` and by predictions of the site design and
 the operator guidance. Σ_i Σ_j q_i q_jᵀ ρ(t_i − t_j) with ρ = exp(−|Δt|/τ) is evaluated with
 decayed cumulative sums (forward and backward), never with an n × n matrix.
 """

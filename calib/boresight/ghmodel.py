@@ -1,6 +1,6 @@
 """The plane condition of the boresight adjustment and its derivatives, vectorized over points.
 
-For point i on plane j (DESIGN §3, §7):
+For point i on plane j (docs/architecture.md §3, §7):
 
     F_i = n_jᵀ x_i + d_j = 0,
     x_i = p_i + o_k(i) + R_b^n(φ_i, θ_i, ψ_i) · (R_bs(α_b, β, γ) · R_nom · r_S(ρ_i + δρ, α_i + δα) + a)
@@ -21,8 +21,6 @@ import numpy as np
 
 from calib.core import frames
 
-OBSERVATION_NAMES = ("north_m", "east_m", "down_m", "roll_rad", "pitch_rad", "heading_rad",
-                     "range_m", "scan_angle_rad")  # fmt: skip
 EXTRA_NAMES = ("range_offset", "scan_angle_offset", "lever_arm_x", "lever_arm_y", "latency")
 
 _EX, _EY, _EZ = np.eye(3)
@@ -43,10 +41,6 @@ def _cross(a, b):
     return np.stack([a[:, 1] * b[:, 2] - a[:, 2] * b[:, 1],
                      a[:, 2] * b[:, 0] - a[:, 0] * b[:, 2],
                      a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0]], axis=1)  # fmt: skip
-
-
-def _rows_dot(a, b):
-    return np.einsum("ij,ij->i", a, b)
 
 
 @dataclass

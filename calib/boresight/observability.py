@@ -8,18 +8,11 @@ would observe it — instead of a number.
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
-
 import numpy as np
 
-if TYPE_CHECKING:
-    from calib.boresight.adjust import Observations
+from calib.boresight.observations import AdjustmentError, Observations
 
 ANGLE_NAMES = ("roll", "pitch", "yaw")
-
-
-class AdjustmentError(ValueError):
-    """The adjustment cannot run on this input (the message says why and what to do)."""
 
 
 class ObservabilityError(AdjustmentError):

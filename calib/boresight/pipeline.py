@@ -1,4 +1,4 @@
-"""The calibration pipeline (issue 4, DESIGN §7): a bundle in, the boresight and its
+"""The calibration pipeline (docs/architecture.md §7): a bundle in, the boresight and its
 uncertainties out.
 
     bundle ──► check the points (finite, ordered in time within each pass, covered by the
@@ -6,7 +6,7 @@ uncertainties out.
            ──► georeference every pass with the a-priori mount
            ──► extract each target of each pass (:mod:`calib.boresight.extract`), optional voxel
                subsampling
-           ──► observations (:func:`calib.boresight.adjust.build_observations`: trajectory at the
+           ──► observations (:func:`calib.boresight.observations.build_observations`: trajectory at the
                point times, the trajectory's per-epoch σ or the site's), initial planes (each
                target's points over all passes combined, thesis §4.4.4; see
                :func:`calib.boresight.extract.initial_planes`)
@@ -25,7 +25,7 @@ Convergence is declared when no angle moves by more than 1e-6 rad and no offset 
 
 The realistic σ assumes first-order Gauss–Markov POS errors by default, with the correlation
 time given by the caller, else the site's ``pos_sigmas.correlation_time_s``, else
-:data:`calib.boresight.adjust.DEFAULT_POS_CORRELATION_S` (and the report says it was assumed).
+:data:`calib.boresight.errormodel.DEFAULT_POS_CORRELATION_S` (and the report says it was assumed).
 """
 
 from __future__ import annotations
@@ -38,16 +38,9 @@ from typing import Callable
 import numpy as np
 
 from calib.core import frames
-from calib.boresight.adjust import (
-    DEFAULT_POS_CORRELATION_S,
-    AdjustmentResult,
-    AdjustOptions,
-    ErrorModel,
-    Observations,
-    adjust,
-    build_observations,
-    validate_input,
-)
+from calib.boresight.adjust import AdjustmentResult, adjust
+from calib.boresight.errormodel import DEFAULT_POS_CORRELATION_S, ErrorModel
+from calib.boresight.observations import AdjustOptions, Observations, build_observations, validate_input
 from calib.io.bundle import ScanPoints, read_bundle
 from calib.boresight.extract import (
     Extraction,
@@ -61,6 +54,7 @@ from calib.core.georef import Mount, georeference, georeference_poses
 from calib.boresight.result import result_to_dict, write_result
 from calib.io.site import Site
 from calib.core.trajectory import Poses, Trajectory
+from calib.core.version import software_version as _software_version
 
 Progress = Callable[[str, float, float | None], None]
 ERROR_MODELS = ("gauss_markov", "pass_bias", "white")
@@ -73,14 +67,14 @@ class CalibrationError(ValueError):
 @dataclass(frozen=True)
 class CalibrationOptions:
     subsample_m: float | None = None  # voxel edge; None: every extracted point
-    estimate: tuple[str, ...] = ()  # extra unknowns (calib.boresight.adjust.ESTIMABLE)
+    estimate: tuple[str, ...] = ()  # extra unknowns (calib.boresight.observations.ESTIMABLE)
     apriori_rad: tuple[float, float, float] | None = None  # overrides site.yaml's boresight
     error_model: str = "gauss_markov"  # of the POS errors, for sigma_realistic
     correlation_time_s: float | tuple[float, ...] | None = None  # overrides site.yaml's
     extraction: ExtractOptions = field(default_factory=ExtractOptions)
     outliers: str = "snooping"
     jackknife: bool = True
-    #: convergence (calib.boresight.adjust.AdjustOptions): absolute step tolerances, or every step
+    #: convergence (calib.boresight.observations.AdjustOptions): absolute step tolerances, or every step
     #: below ``rel_tol`` of its formal σ, whichever comes first
     tol_angle_rad: float = AdjustOptions.tol_angle_rad
     tol_m: float = AdjustOptions.tol_m
@@ -128,15 +122,6 @@ class CalibrationRun:
     warnings: list[str]
     notes: list[str]  # assumptions the report states
     timings_s: dict[str, float]
-
-
-def _software_version() -> str:
-    from importlib.metadata import PackageNotFoundError, version
-
-    try:
-        return f"marine-mls {version('marine-mls')}"
-    except PackageNotFoundError:
-        return "marine-mls 0.0.0+source"
 
 
 # -- checks ---------------------------------------------------------------------------------
@@ -240,8 +225,8 @@ def calibrate(site: Site, trajectory: Trajectory, points: ScanPoints,
     ``poses``: per-point POS observations that replace the trajectory's interpolation (a
     simulator's per-point POS errors); ``labels``: per point the index of the target it hit
     (−1 none) instead of the extraction. Raises :class:`CalibrationError`,
-    :class:`calib.boresight.extract.ExtractionError` or :class:`calib.boresight.adjust.AdjustmentError` (its
-    :class:`~calib.boresight.adjust.ObservabilityError` names the weak angles and the passes that would
+    :class:`calib.boresight.extract.ExtractionError` or :class:`calib.boresight.observations.AdjustmentError` (its
+    :class:`~calib.boresight.observability.ObservabilityError` names the weak angles and the passes that would
     observe them) with a message that says what to do.
     """
     timings: dict[str, float] = {}
@@ -358,7 +343,7 @@ def calibrate(site: Site, trajectory: Trajectory, points: ScanPoints,
 def calibrate_bundle(bundle_path: str | Path, options: CalibrationOptions = CalibrationOptions(),
                      progress: Progress | None = None, max_gap_s: float = 1.0
                      ) -> CalibrationRun:  # fmt: skip
-    """Read a bundle directory (DESIGN §4) and calibrate it; ``truth.json`` is never read."""
+    """Read a bundle directory (docs/architecture.md §4) and calibrate it; ``truth.json`` is never read."""
     if progress is not None:
         progress("reading the bundle", 0, None)
     bundle = read_bundle(bundle_path, max_gap_s=max_gap_s)

@@ -23,7 +23,7 @@ from pathlib import Path
 import numpy as np
 
 from calib.core import frames
-from calib.boresight.adjust import ANGLE_NAMES, OBSERVING_PAIRS, sailed_headings
+from calib.boresight.observability import ANGLE_NAMES, OBSERVING_PAIRS, sailed_headings
 from calib.core.georef import Mount, georeference_poses
 from calib.boresight.result import OFFSET_COMPONENTS
 from calib.core.trajectory import Poses
@@ -287,7 +287,7 @@ def report_markdown(run, plot_names: list[str] | None = None) -> str:
     L.append("")
     L.append("## Boresight")
     L.append("")
-    L.append("Canonical convention (DESIGN §3: rotations about the body's forward, starboard "
+    L.append("Canonical convention (docs/architecture.md §3: rotations about the body's forward, starboard "
              "and down axes); the thesis convention negates pitch.")  # fmt: skip
     L.append("")
     L.append("| angle | estimate (°) | thesis conv. (°) | σ formal (°) | σ scaled (°) | "

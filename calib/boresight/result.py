@@ -1,4 +1,4 @@
-"""``result.json`` (DESIGN §4): the calibration result as users and other tools read it.
+"""``result.json`` (docs/architecture.md §4): the calibration result as users and other tools read it.
 
 Degrees at this edge (``_deg`` names); boresight angles in the canonical convention, with the
 thesis convention beside them for comparison with published figures.
@@ -26,7 +26,8 @@ from pathlib import Path
 
 import numpy as np
 
-from calib.boresight.adjust import ANGLE_NAMES, AdjustmentResult
+from calib.boresight.adjust import AdjustmentResult
+from calib.boresight.observability import ANGLE_NAMES
 from calib.core.frames import boresight_to_thesis
 
 _EXTRA_UNITS = {

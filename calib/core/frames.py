@@ -1,4 +1,4 @@
-"""Frames, angles and time: the project's conventions in one place (DESIGN §3).
+"""Frames, angles and time: the project's conventions in one place (docs/architecture.md §3).
 
 Navigation frame: local geodetic frame (LGF), NED tangent plane at a reference point, WGS84.
 Body frame: FRD (x bow, y starboard, z down).
@@ -279,7 +279,7 @@ def ecef_to_ned_matrix(lat_deg: float, lon_deg: float) -> np.ndarray:
 
 @dataclass(frozen=True)
 class LocalFrame:
-    """The LGF: a NED tangent frame at a reference point (DESIGN §3)."""
+    """The LGF: a NED tangent frame at a reference point (docs/architecture.md §3)."""
 
     lat_deg: float
     lon_deg: float

@@ -1,4 +1,4 @@
-"""Direct georeferencing (DESIGN §3) and its inverse.
+"""Direct georeferencing (docs/architecture.md §3) and its inverse.
 
     x^n = p^n(t) + R_b^n(t) · (R_bs · R_nom · r_S(ρ + δρ, α + δα) + a^b),   t = t_point + Δt
 

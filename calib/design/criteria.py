@@ -161,7 +161,7 @@ def pass_spread(normals, signed_distances_m) -> tuple[float, float]:
 
 def thesis_tilt_deg(inclination_deg: float) -> float:
     """The thesis Chapter 3 angle of a plane (0° vertical, −90° horizontal facing up, positive:
-    leaning toward the scanner's side) from the DESIGN inclination (angle to the horizontal,
+    leaning toward the scanner's side) from the design inclination (angle to the horizontal,
     negative: tilted the other way)."""
     return float(inclination_deg - 90.0 if inclination_deg >= 0 else inclination_deg + 90.0)
 

@@ -1,5 +1,5 @@
 """Predicted boresight σ during the survey: which passes so far give what σ, and which next pass
-helps most (DESIGN §7 "Design study", §8).
+helps most (docs/architecture.md §7 "Design study", §8).
 
 A pass enters the prediction as a :class:`PassGeometry`: a trajectory and the raw observations
 (time, range, scan angle) of its returns on the targets. For a pass already sailed these are the
@@ -7,7 +7,7 @@ live target hits and the INS trajectory; for a pass still to sail, :func:`predic
 planned line (straight, level, at the planned speed) and scans the targets with the simulator's
 exact ray casting (:func:`calib.sim.simulate.scan`). :func:`predict_sigma` then builds the
 adjustment's observations with the site's sigmas and asks
-:func:`calib.boresight.adjust.predict_covariance` for the boresight covariance, formal and realistic (POS
+:func:`calib.boresight.covariance.predict_covariance` for the boresight covariance, formal and realistic (POS
 errors correlated in time, as the calibration reports them).
 
 Density. A full-rate profiler puts ~10⁴ points on a target per pass; the prediction keeps every
@@ -27,8 +27,9 @@ from typing import Mapping, Sequence
 import numpy as np
 
 from calib.core import frames
-from calib.boresight.adjust import (DEFAULT_POS_CORRELATION_S, AdjustmentError, ErrorModel, Observations,
-                          build_observations, predict_covariance)  # fmt: skip
+from calib.boresight.covariance import predict_covariance
+from calib.boresight.errormodel import DEFAULT_POS_CORRELATION_S, ErrorModel
+from calib.boresight.observations import AdjustmentError, Observations, build_observations
 from calib.core.geometry import Rectangle
 from calib.core.georef import Mount
 from calib.survey.passplan import PlannedPass
@@ -40,7 +41,7 @@ from calib.core.trajectory import Trajectory
 
 ANGLES = ("roll", "pitch", "yaw")
 #: A boresight angle whose predicted σ exceeds this is "not determined" (the adjustment's own
-#: observability limit, :class:`calib.boresight.adjust.AdjustOptions`).
+#: observability limit, :class:`calib.boresight.observations.AdjustOptions`).
 DEFAULT_LIMIT_RAD = float(np.radians(0.05))
 
 

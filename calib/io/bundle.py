@@ -1,4 +1,4 @@
-"""The calibration bundle (DESIGN §4): the interchange directory between simulation, export and
+"""The calibration bundle (docs/architecture.md §4): the interchange directory between simulation, export and
 calibration.
 
     BUNDLE/site.yaml          site config (reference, mount, sigmas, targets, passes)

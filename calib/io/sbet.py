@@ -6,7 +6,7 @@ Both are headerless sequences of little-endian float64 records:
   height (m, ellipsoidal), x/y/z velocity (m/s, wander frame), roll, pitch, platform heading,
   wander angle (rad), x/y/z body acceleration (m/s²), x/y/z body angular rate (rad/s).
   True heading = platform heading − wander angle. Roll + starboard down, pitch + bow up, heading
-  clockwise from north: the project's canonical convention (DESIGN §3).
+  clockwise from north: the project's canonical convention (docs/architecture.md §3).
 - **SMRMSG** (10 × 8 = 80 bytes): time (seconds of the week), north/east/down position RMS (m),
   north/east/down velocity RMS (m/s), roll/pitch/heading RMS (arc-minutes). Usually at a lower
   rate than the SBET, and records may come out of time order.

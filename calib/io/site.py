@@ -1,10 +1,10 @@
-"""The site config (``site.yaml``, DESIGN §4): reference, mount, sigmas, targets, pass plan.
+"""The site config (``site.yaml``, docs/architecture.md §4): reference, mount, sigmas, targets, pass plan.
 
 Readers accept exactly the documented keys; an unknown key, a missing key or a bad value is a
 :class:`calib.io.configfile.ConfigError` naming the file, line, key and value. In memory everything
 is SI and radians; degrees exist only in the YAML.
 
-Beyond DESIGN §4 a pass entry may carry ``length_m`` and ``speed_mps`` (the pass-plan generator
+Beyond docs/architecture.md §4 a pass entry may carry ``length_m`` and ``speed_mps`` (the pass-plan generator
 and ``mls plan`` use them; defaults below), and ``pos_sigmas`` may carry ``correlation_time_s``,
 the correlation time of the POS errors that ``sigma_realistic`` assumes (first-order
 Gauss–Markov; one number, ``[position, attitude]`` or six values for north, east, down, roll,
@@ -118,12 +118,6 @@ class Site:
 
     def target_rectangles(self, frame: frames.LocalFrame) -> list[Rectangle]:
         return [t.rectangle(frame) for t in self.targets]
-
-    def pass_by_id(self, pass_id: int) -> PassSpec:
-        for p in self.passes:
-            if p.id == pass_id:
-                return p
-        raise KeyError(f"pass {pass_id} is not in the site's pass plan")
 
     # -- YAML -------------------------------------------------------------------------------
 

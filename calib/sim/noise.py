@@ -21,7 +21,6 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.signal import lfilter
 
-POS_CHANNELS = ("north", "east", "down", "roll", "pitch", "heading")
 POS_NOISE_MODELS = ("none", "white", "gauss_markov", "per_point")
 
 

@@ -99,7 +99,7 @@ class SimResult:
         return out
 
     def write(self, path: str | Path, compress_points: bool = False) -> Path:
-        """Write the calibration bundle (DESIGN §4) with ``truth.json``."""
+        """Write the calibration bundle (docs/architecture.md §4) with ``truth.json``."""
         if self.pose_errors is not None:
             raise SimulationError(
                 "POS noise model 'per_point' gives every point its own pose error, which a "
@@ -276,7 +276,7 @@ def _truth(sc: Scenario, seed: int, overrides: list[str], scene: Scene, plan: Pa
         "scenario": sc.name,
         "seed": int(seed),
         "overrides": list(overrides),
-        "convention": "canonical (DESIGN §3): R_bs = Rz(yaw)·Ry(pitch)·Rx(roll) about the body "
+        "convention": "canonical (docs/architecture.md §3): R_bs = Rz(yaw)·Ry(pitch)·Rx(roll) about the body "
                       "FRD axes; thesis pitch = −canonical pitch",
         "boresight_deg": _deg3(mount.boresight_rad),
         "boresight_thesis_deg": _deg3(frames.boresight_to_thesis(*mount.boresight_rad)),

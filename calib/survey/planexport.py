@@ -1,4 +1,4 @@
-"""The pass plan as GeoJSON (RFC 7946) for chart plotters, GIS and the helmsman (DESIGN §8).
+"""The pass plan as GeoJSON (RFC 7946) for chart plotters, GIS and the helmsman (docs/architecture.md §8).
 
 One FeatureCollection in WGS84 longitude/latitude with the ellipsoidal height as the optional
 third coordinate (so that the lines convert back to the plan's LGF exactly):
@@ -12,11 +12,14 @@ third coordinate (so that the lines convert back to the plan's LGF exactly):
 
 The collection carries a foreign member ``"mls_plan"`` with the LGF reference, the wall azimuth
 and the standoff. Coordinates keep 1e-10° (~0.01 mm) and heights 0.1 mm.
+:func:`write_plan_geojson` writes it to a file (what ``mls plan --out`` does).
 """
 
 from __future__ import annotations
 
+import json
 import math
+from pathlib import Path
 from typing import Sequence
 
 import numpy as np
@@ -91,3 +94,13 @@ def plan_geojson(plan: PassPlan, frame: frames.LocalFrame, targets: Sequence[Tar
         },
         "features": features,
     }
+
+
+def write_plan_geojson(path: str | Path, plan: PassPlan, frame: frames.LocalFrame,
+                       targets: Sequence[Target] = (), name: str | None = None) -> Path:  # fmt: skip
+    """Write :func:`plan_geojson` to ``path`` (its folder created), UTF-8; returns the path."""
+    path = Path(path)
+    doc = plan_geojson(plan, frame, targets, name=name)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps(doc, indent=1) + "\n", encoding="utf-8")
+    return path

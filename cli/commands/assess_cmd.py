@@ -1,5 +1,5 @@
 """``mls calib c2c``, ``mls calib history``, ``mls calib compare``: relative accuracy and
-repeatability (thesis §4.4.6, §4.5.4, §4.5.5; DESIGN §7 "Assessment").
+repeatability (thesis §4.4.6, §4.5.4, §4.5.5; docs/architecture.md §7 "Assessment").
 
 The commands are added to the ``mls calib`` group of :mod:`cli.commands.calib_cmd`.
 """
@@ -103,10 +103,7 @@ def c2c_cmd(
                          **orient)  # fmt: skip
             if out is not None:
                 progress.add_task(f"writing {out}", total=None)
-                extra = {"c2c_distance_m": result.distance_m}
-                if result.signed_distance_m is not None:
-                    extra["c2c_signed_distance_m"] = result.signed_distance_m
-                write_cloud(out, cmp_cloud, extra)
+                write_cloud(out, cmp_cloud, result.extra_dimensions())
     except (CloudError, C2CError) as e:
         _fail(str(e))
 
@@ -180,20 +177,6 @@ def history_cmd(
     console.print(table)
 
 
-def _resolve(ref: str, db, which: str):
-    """A history id (``12`` or ``#12``) or a result.json path (file or directory)."""
-    from calib.assess.history import get_result, load_result
-
-    p = Path(ref)
-    if p.exists():
-        return load_result(p), str(p)
-    digits = ref.lstrip("#")
-    if digits.isdigit():
-        rec = get_result(int(digits), db=db)
-        return rec, rec.label
-    _fail(f"{which} {ref!r}: neither a result.json path nor a history id")
-
-
 @app.command("compare")
 def compare_cmd(
     a: str = typer.Argument(..., help="First calibration: a history id or a result.json path."),
@@ -209,11 +192,11 @@ def compare_cmd(
     from rich.console import Console
     from rich.table import Table
 
-    from calib.assess.history import HistoryError, ResultFormatError, compare
+    from calib.assess.history import HistoryError, ResultFormatError, compare, resolve_result
 
     try:
-        ra, la = _resolve(a, db, "A")
-        rb, lb = _resolve(b, db, "B")
+        ra, la = resolve_result(a, db, "A")
+        rb, lb = resolve_result(b, db, "B")
         cmp = compare(ra, rb, k_sigma, a_label=la, b_label=lb)
     except (HistoryError, ResultFormatError) as e:
         _fail(str(e))

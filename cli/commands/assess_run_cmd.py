@@ -1,6 +1,7 @@
 """``mls calib assess``: relative accuracy of a calibration, before and after (thesis §4.4.6,
-§4.5.4; DESIGN §7 "Assessment"). Added to the ``mls calib`` group of
-:mod:`cli.commands.calib_cmd`; the work is :mod:`calib.assess.comparison`."""
+§4.5.4; docs/architecture.md §7 "Assessment"). Added to the ``mls calib`` group of
+:mod:`cli.commands.calib_cmd`; the work is :mod:`calib.assess.comparison`, the report
+:mod:`calib.assess.summary`."""
 
 from __future__ import annotations
 
@@ -64,8 +65,10 @@ def assess_cmd(
     from rich.progress import Progress, SpinnerColumn, TextColumn, TimeElapsedColumn
     from rich.table import Table
 
-    from calib.assess.comparison import (AssessError, AssessOptions, assess, fmt_ratio, parse_pairs,
-                              summary_lines, write_assessment)  # fmt: skip
+    from calib.assess.comparison import assess
+    from calib.assess.pairs import parse_pairs
+    from calib.assess.results import AssessError, AssessOptions
+    from calib.assess.summary import fmt_ratio, summary_lines, write_assessment
     from calib.io.bundle import BundleError
     from calib.io.configfile import ConfigError
     from calib.assess.history import ResultFormatError, load_result

@@ -48,7 +48,7 @@ def decode(
     from rich.table import Table
 
     from drivers.base import DriverError
-    from drivers.capture.files import FileDecoder, record_to_dict
+    from drivers.capture.files import FileDecoder, json_default, record_to_dict, time_sample
     from drivers.capture.pcapng import PcapError
 
     err = Console(stderr=True)
@@ -71,12 +71,12 @@ def decode(
                 d = record_to_dict(rec)
                 counts[d["type"]] = counts.get(d["type"], 0) + 1
                 if timing:
-                    sample = _time_sample(rec)
+                    sample = time_sample(rec)
                     if sample is not None:
                         samples.append(sample)
                 if as_json:
                     try:
-                        sys.stdout.write(json.dumps(d, default=_json_default) + "\n")
+                        sys.stdout.write(json.dumps(d, default=json_default) + "\n")
                     except BrokenPipeError:  # `mls decode ... --json | head`
                         sys.stdout = None
                         raise typer.Exit(0) from None
@@ -103,21 +103,6 @@ def decode(
     (err if as_json else out).print(summary, highlight=False, soft_wrap=True)
 
 
-def _time_sample(rec) -> tuple[int, int] | None:
-    """(receive stamp ns, device time-of-day ns) of a time-tagged record, else None."""
-    host = getattr(rec, "host_ns", None)
-    if host is None:
-        return None
-    name = type(rec).__name__
-    if name == "StdbinFrame":
-        return host, rec.validity_time_100us * 100_000
-    if name == "NavRecord" and rec.time_of_day_ns is not None:
-        return host, rec.time_of_day_ns
-    if name in ("PixseTime", "Zda") and rec.time_of_day_ns is not None:
-        return host, rec.time_of_day_ns
-    return None
-
-
 def _print_timing(samples: list[tuple[int, int]], console) -> None:
     from rich.table import Table
 
@@ -139,15 +124,3 @@ def _print_timing(samples: list[tuple[int, int]], console) -> None:
     table.add_row("jitter_max_ms", f"{fit.jitter_max_s * 1e3:.3f}")
     table.add_row("jitter_p2p_ms", f"{fit.jitter_p2p_s * 1e3:.3f}")
     console.print(table)
-
-
-def _json_default(o):
-    import numpy as np
-
-    if isinstance(o, np.generic):
-        return o.item()
-    if isinstance(o, bytes):
-        return o.hex()
-    if isinstance(o, (tuple, set)):
-        return list(o)
-    return str(o)

@@ -1,4 +1,4 @@
-"""``mls design``: the site design study (DESIGN §7 "Design study", :mod:`calib.design.study`)."""
+"""``mls design``: the site design study (docs/architecture.md §7 "Design study", :mod:`calib.design.study`)."""
 
 from __future__ import annotations
 
@@ -101,7 +101,7 @@ def design(
     from rich.markup import escape
 
     from calib.io.configfile import ConfigError
-    from calib.design.study import DesignError
+    from calib.design.prediction import DesignError
     from calib.survey.passplan import PassPlanError
     from calib.sim.simulate import SimulationError
 
@@ -133,7 +133,10 @@ def _progress(console):
 
 def _study(console, scenario, out, jobs, targets, max_size, passes, group, error, seeds, seed,
            overrides, figures) -> None:  # fmt: skip
-    from calib.design.study import default_spec, run_study, write_study
+    from calib.design.sitecheck import compare_sites
+    from calib.design.layouts import default_spec
+    from calib.design.study import run_study
+    from calib.design.summary import write_study
     from calib.sim.scenario import load_scenario
 
     base = load_scenario(scenario, list(overrides))
@@ -151,8 +154,8 @@ def _study(console, scenario, out, jobs, targets, max_size, passes, group, error
         rec = result.recommendation
         if seeds and rec is not None:
             bar.update(task, description=f"Monte Carlo, {seeds} seeds", completed=0, total=None)
-            empirical = _monte_carlo(base, rec, seeds, jobs,
-                                     lambda d, n: bar.update(task, completed=d, total=n))  # fmt: skip
+            empirical = compare_sites(base, rec, seeds, jobs,
+                                      lambda d, n: bar.update(task, completed=d, total=n))  # fmt: skip
         bar.update(task, description="writing tables and figures", completed=0, total=None)
         files = write_study(result, out, empirical, figures=figures, jobs=jobs)
     _study_table(console, result, empirical)
@@ -160,38 +163,11 @@ def _study(console, scenario, out, jobs, targets, max_size, passes, group, error
                   f"(summary: {Path(out) / 'summary.md'})", highlight=False)  # fmt: skip
 
 
-def _monte_carlo(base, rec, seeds, jobs, progress) -> dict:
-    """Both sites simulated with the scenario's noise, adjusted; RMS errors side by side."""
-    import numpy as np
-
-    from calib.design.study import empirical_errors, site_scenario
-
-    own = site_scenario(base, [s for s in base.surfaces if s.kind == "target"])
-    new = site_scenario(base, rec.layout.targets)
-    n = int(seeds)
-    runs = {
-        "scenario's site, thesis adjustment": (own, ()),
-        "scenario's site, pass offsets": (own, ("pass_offsets",)),
-        "recommended site": (new, rec.estimator),
-    }
-    errs_own = empirical_errors(own, range(n), ((), ("pass_offsets",)), jobs, progress)
-    errs_new = empirical_errors(new, range(n), (rec.estimator,), jobs, progress)
-    rms = {}
-    for name, (sc, est) in runs.items():
-        e = (errs_new if sc is new else errs_own)[est]
-        rms[name] = np.degrees(np.sqrt(np.mean(e**2, axis=0)))
-    lines = [f"{n} simulations of each site with the scenario's noise ({base.pos_noise.model} POS "
-             f"errors), adjusted; RMS error of the estimates:", "",
-             "| site and adjustment | roll | pitch | yaw | total |", "|---|---|---|---|---|"]  # fmt: skip
-    for name, r in rms.items():
-        lines.append(f"| {name} | {r[0]:.4f}° | {r[1]:.4f}° | {r[2]:.4f}° | "
-                     f"{float(np.sqrt(np.sum(r**2))):.4f}° |")
-    return {"rms_deg": rms, "seeds": n, "text": "\n".join(lines)}
-
-
 def _study_table(console, result, empirical) -> None:
     from rich import box
     from rich.table import Table
+
+    from calib.design.scenes import surface_inclination_deg
 
     rec = result.recommendation
     t = Table(title=f"{result.scenario.name}: predicted boresight σ (°)", title_justify="left",
@@ -208,10 +184,10 @@ def _study_table(console, result, empirical) -> None:
                                          ("roll", "pitch", "yaw", "total")))  # fmt: skip
         console.print(t)
         console.print("recommended: " + ", ".join(
-            f"{s.name} {_incl(s):g}° {s.width_m:g}×{s.height_m:g} m at along {s.along_m + 0.0:+.2f} m, "
+            f"{s.name} {surface_inclination_deg(s):g}° {s.width_m:g}×{s.height_m:g} m at along {s.along_m + 0.0:+.2f} m, "
             f"up {s.up_m:.2f} m, out {s.out_m + 0.0:+.2f} m" for s in rec.layout.targets)
             + (" — adjust with pass offsets" if rec.estimator else ""), highlight=False)  # fmt: skip
-    from calib.design.study import findings
+    from calib.design.summary import findings
 
     for f in findings(result):
         console.print(f"  {'[green]yes[/green]' if f['holds'] else '[yellow]no[/yellow]'}  "
@@ -222,18 +198,11 @@ def _study_table(console, result, empirical) -> None:
                           f"{r[0]:.4f}°, pitch {r[1]:.4f}°, yaw {r[2]:.4f}°", highlight=False)  # fmt: skip
 
 
-def _incl(s) -> float:
-    import math
-
-    d = math.degrees(s.inclination_rad)
-    return d - 180.0 if d > 90.0 + 1e-9 else d
-
-
 def _what_if(console, site_path, out, template, scanner_height_m, seed) -> None:
     from rich import box
     from rich.table import Table
 
-    from calib.design.study import what_if, write_what_if
+    from calib.design.whatif import what_if, write_what_if
     from calib.io.site import load_site
 
     site = load_site(site_path)

@@ -1,4 +1,4 @@
-"""``mls export SESSION --bundle DIR``: a recorded session → a calibration bundle (DESIGN §4)."""
+"""``mls export SESSION --bundle DIR``: a recorded session → a calibration bundle (docs/architecture.md §4)."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""``mls logs``: inspect and salvage session logs (DESIGN §4)."""
+"""``mls logs``: inspect and salvage session logs (docs/architecture.md §4)."""
 
 from __future__ import annotations
 
@@ -109,7 +109,7 @@ def recover(
     from rich.table import Table
 
     from acquire.log.recover import salvage_session
-    from acquire.log.sessionlog import LogError
+    from acquire.log.session import LogError
 
     session = _session_arg(session)
     try:

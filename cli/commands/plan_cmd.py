@@ -35,66 +35,10 @@ def _latlon(text: str) -> tuple[float, float]:
     return lat, lon
 
 
-class _Output:
-    """Where the sentences go: stdout, a file/serial device, or UDP."""
-
-    def __init__(self, dest: str):
-        import socket
-        import sys
-
-        self.sock = self.fh = None
-        self._own = dest != "-"
-        if dest == "-":
-            self.fh = sys.stdout.buffer
-        elif dest.startswith("udp://"):
-            from acquire.status.feed import parse_host_port
-
-            try:
-                self.addr = parse_host_port(dest[len("udp://"):], default_port=10110)
-            except ValueError as e:
-                raise typer.BadParameter(str(e), param_hint="--nmea-out") from None
-            self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-        else:
-            self.fh = open(dest, "ab", buffering=0)  # noqa: SIM115 (closed in close())
-
-    def write(self, data: bytes) -> None:
-        if self.sock is not None:
-            self.sock.sendto(data, self.addr)
-        else:
-            self.fh.write(data)
-            self.fh.flush()
-
-    def close(self) -> None:
-        if self.sock is not None:
-            self.sock.close()
-        elif self.fh is not None and self._own:
-            self.fh.close()
-
-
-async def _follow(socket_path: Path, plan, frame, active: int | None, out: _Output, talker: str,
-                  lookahead_m: float) -> None:  # fmt: skip
-    import numpy as np
-
-    from acquire.guidance.autopilot import autopilot_sentences
-    from acquire.status.feed import LINK, SocketFeed, guidance_of
-
-    async for topic, data in SocketFeed(socket_path):
-        if topic == LINK:
-            typer.echo(f"mls plan: {'connected to' if data['up'] else 'waiting for'} "
-                       f"{data['detail']}", err=True)  # fmt: skip
-            continue
-        if topic != "checklist":
-            continue
-        g = guidance_of(data)
-        vessel = g.get("vessel") or {}
-        pid = active or (g.get("active") or {}).get("pass_id")
-        if pid is None or "lat_deg" not in vessel:
-            continue
-        p = frame.to_lgf([vessel["lat_deg"]], [vessel["lon_deg"]], [frame.height_m])[0]
-        line = plan.by_id(int(pid))
-        p[2] = line.start_lgf_m[2]
-        for s in autopilot_sentences(np.asarray(p), line, talker=talker, lookahead_m=lookahead_m):
-            out.write(s)
+def _say_link(data: dict) -> None:
+    """The status feed's link events, on stderr (``mls plan --follow``)."""
+    typer.echo(f"mls plan: {'connected to' if data['up'] else 'waiting for'} "
+               f"{data['detail']}", err=True)  # fmt: skip
 
 
 def plan(
@@ -124,8 +68,6 @@ def plan(
                                       "of the heading-to-steer law."),  # fmt: skip
 ) -> None:
     """``mls plan`` (its help text is :data:`HELP`)."""
-    import json
-
     import numpy as np
     from rich.console import Console
     from rich.markup import escape
@@ -133,7 +75,7 @@ def plan(
 
     from calib.io.configfile import ConfigError
     from calib.survey.passplan import PassPlanError, plan_site
-    from calib.survey.planexport import plan_geojson
+    from calib.survey.planexport import write_plan_geojson
     from calib.io.site import load_site
 
     err = Console(stderr=True)
@@ -160,30 +102,29 @@ def plan(
         raise typer.Exit(1) from None
 
     if out is not None:
-        doc = plan_geojson(pp, frame, site.targets, name=f"{site.vessel} calibration lines")
-        out.parent.mkdir(parents=True, exist_ok=True)
-        out.write_text(json.dumps(doc, indent=1) + "\n", encoding="utf-8")
+        write_plan_geojson(out, pp, frame, site.targets, name=f"{site.vessel} calibration lines")
 
     if nmea:
-        from acquire.guidance.autopilot import autopilot_sentences
+        from acquire.guidance.autopilot_out import NmeaOutput, NmeaOutputError, follow_daemon, sentences_at
 
         lat_lon = _latlon(position) if position else None
-        dest = _Output(nmea_out)
+        try:
+            dest = NmeaOutput(nmea_out)
+        except NmeaOutputError as e:
+            raise typer.BadParameter(str(e), param_hint="--nmea-out") from None
         try:
             if lat_lon:
                 lat, lon = lat_lon
                 line = pp.by_id(active_pass if active_pass is not None else pp.passes[0].id)
-                p = frame.to_lgf([lat], [lon], [frame.height_m])[0]
-                p[2] = line.start_lgf_m[2]
-                for s in autopilot_sentences(np.asarray(p), line, talker=talker,
-                                             lookahead_m=lookahead_m):  # fmt: skip
+                for s in sentences_at(frame, line, lat, lon, talker=talker,
+                                      lookahead_m=lookahead_m):  # fmt: skip
                     dest.write(s)
             else:
                 import asyncio
 
                 try:
-                    asyncio.run(_follow(socket, pp, frame, active_pass, dest, talker,
-                                        lookahead_m))  # fmt: skip
+                    asyncio.run(follow_daemon(socket, pp, frame, active_pass, dest, talker,
+                                              lookahead_m, on_link=_say_link))  # fmt: skip
                 except KeyboardInterrupt:
                     pass
         finally:

@@ -1,4 +1,4 @@
-"""``mls calib run``: boresight calibration of a bundle (issue 4). Added to the ``mls calib``
+"""``mls calib run``: boresight calibration of a bundle. Added to the ``mls calib``
 group of :mod:`cli.commands.calib_cmd`; the work is :func:`calib.boresight.pipeline.run_bundle`."""
 
 from __future__ import annotations
@@ -156,7 +156,7 @@ def run(
     from rich.progress import (BarColumn, MofNCompleteColumn, Progress, TextColumn,
                                TimeElapsedColumn)  # fmt: skip
 
-    from calib.boresight.adjust import AdjustmentError
+    from calib.boresight.observations import AdjustmentError
     from calib.io.bundle import BundleError
     from calib.io.configfile import ConfigError
     from calib.boresight.extract import ExtractionError, ExtractOptions

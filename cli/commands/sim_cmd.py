@@ -1,4 +1,4 @@
-"""``mls sim``: simulators. ``dataset`` writes a simulated calibration bundle (DESIGN §4) with
+"""``mls sim``: simulators. ``dataset`` writes a simulated calibration bundle (docs/architecture.md §4) with
 its ``truth.json``; the device emulators (``devices``) and the replay (``replay``) join this
 group from their own modules."""
 
@@ -38,7 +38,7 @@ def dataset(
 
     The vessel sails the scenario's passes around its targets with the injected systematic
     errors; the bundle holds site.yaml (the a-priori mount), trajectory.csv (with POS errors
-    and sigmas) and points.csv (raw range and scan angle), as DESIGN §4 describes."""
+    and sigmas) and points.csv (raw range and scan angle), as docs/architecture.md §4 describes."""
     import math
     import time
 

@@ -280,45 +280,17 @@ def _serve(run, console, locations_table, notes: list[str], write_config: Path |
 
 def read_session(session_dir: Path):
     """A recorded session (MCAP segments) as a :class:`sim_devices.replay.RecordedSession`."""
-    import numpy as np
-
-    from acquire.log.recover import segment_paths
-    from acquire.log.sessionlog import LogError
-    from acquire.log.read import channel_metadata, iter_messages
+    from acquire.log.read import iter_messages, raw_channels
     from sim_devices.replay import RecordedMessage, RecordedSession
 
-    session_dir = Path(session_dir)
-    if not (session_dir.is_dir() and segment_paths(session_dir)):
-        raise LogError(f"{session_dir}: no session segments (seg-NNNNNN.mcap) there")
-    replayed = lambda topic: topic in ("/ins/raw", "/lidar/raw", "/pps") or topic.startswith("/can/")  # noqa: E731
-    metadata = channel_metadata(session_dir)
-    channels = {t: m for t, m in metadata.items() if replayed(t)}
-    counts: dict[str, int] = {}
-    first = last = None
-    pairs_host, pairs_gps = [], []
-    for env in iter_messages(session_dir):
-        counts[env.topic] = counts.get(env.topic, 0) + 1
-        if not replayed(env.topic):
-            continue
-        first = env.host_ns if first is None else min(first, env.host_ns)
-        last = env.host_ns if last is None else max(last, env.host_ns)
-        if env.clock == "LOCKED" and len(pairs_host) < 100_000:
-            pairs_host.append(env.host_ns)
-            pairs_gps.append(env.log_time_ns)
-    if first is None:
-        raise LogError(f"{session_dir}: no /ins/raw, /lidar/raw, /pps or /can/<name> message to replay")
-    gps_fit = None
-    if len(pairs_host) >= 2:
-        h = np.asarray(pairs_host, np.int64)
-        g = np.asarray(pairs_gps, np.int64)
-        slope, intercept = np.polyfit((h - first) / 1e9, (g - g[0]) / 1e9, 1)
-        gps_fit = (int(g[0]) + round(intercept * 1e9), float(slope))
+    raw = raw_channels(session_dir)
 
     def messages(topics):
-        for env in iter_messages(session_dir, topics):
+        for env in iter_messages(raw.path, topics):
             yield RecordedMessage(env.topic, env.host_ns, env.payload)
 
-    return RecordedSession(session_dir.name, channels, counts, first, last, messages, gps_fit)
+    return RecordedSession(raw.name, raw.channels, raw.counts, raw.first_host_ns, raw.last_host_ns,
+                           messages, raw.gps_fit)  # fmt: skip
 
 
 @app.command("replay")
@@ -341,7 +313,7 @@ def replay(
     datagrams, /can/<name> on the CAN bus — the same transports the emulators use. Ctrl-C stops."""
     from rich.console import Console
 
-    from acquire.log.sessionlog import LogError
+    from acquire.log.session import LogError
     from sim_devices.canbus import CanSettings
     from sim_devices.replay import ReplayRun, ReplaySpec
 

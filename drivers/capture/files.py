@@ -22,6 +22,9 @@ Formats:
 With ``nav=True`` INS formats give canonical :class:`~drivers.hydrins.nav.NavRecord` s instead
 of native records. ``date`` (``'YYYY-MM-DD'``) dates NMEA/STDBIN time tags when the file has no
 ZDA / system date and no stamped lines; without it such records keep ``gps_ns=None``.
+
+:func:`record_to_dict` (with :func:`json_default` for ``json.dumps``) turns a record into JSON;
+:func:`time_sample` gives a time-tagged record's (receive stamp, device time of day) pair.
 """
 
 from __future__ import annotations
@@ -38,8 +41,8 @@ from typing import Any
 import numpy as np
 
 from drivers.base import DecoderStats, DriverError
-from drivers.hydrins.nmea import NmeaDecoder, NmeaNavAssembler
-from drivers.hydrins.stdbin import StdbinDecoder, StdbinNavDecoder
+from drivers.hydrins.nmea_decode import NmeaDecoder, NmeaNavAssembler
+from drivers.hydrins.stdbin_decode import StdbinDecoder, StdbinNavDecoder
 from drivers.capture.pcapng import CaptureReader, udp_datagrams
 from drivers.pps import decode_pps_datagram
 from drivers.zf.assembler import ProfileAssembler
@@ -226,3 +229,31 @@ def record_to_dict(rec: Any) -> dict[str, Any]:
         v = getattr(rec, f.name)
         out[f.name] = None if isinstance(v, float) and math.isnan(v) else v
     return out
+
+
+def time_sample(rec: Any) -> tuple[int, int] | None:
+    """(receive stamp ns, device time-of-day ns) of a time-tagged record, else None (the
+    samples of ``mls decode --timing``, for :func:`drivers.timing.fit_clock`)."""
+    host = getattr(rec, "host_ns", None)
+    if host is None:
+        return None
+    name = type(rec).__name__
+    if name == "StdbinFrame":
+        return host, rec.validity_time_100us * 100_000
+    if name == "NavRecord" and rec.time_of_day_ns is not None:
+        return host, rec.time_of_day_ns
+    if name in ("PixseTime", "Zda") and rec.time_of_day_ns is not None:
+        return host, rec.time_of_day_ns
+    return None
+
+
+def json_default(o: Any) -> Any:
+    """``json.dumps(record_to_dict(rec), default=json_default)``: numpy scalars as numbers,
+    bytes as hex, tuples and sets as lists, anything else as its ``str``."""
+    if isinstance(o, np.generic):
+        return o.item()
+    if isinstance(o, bytes):
+        return o.hex()
+    if isinstance(o, (tuple, set)):
+        return list(o)
+    return str(o)

@@ -25,9 +25,11 @@ from pathlib import Path
 
 from drivers.base import DecoderStats, DriverError
 
-SHB = 0x0A0D0D0A
+#: a section header block starts with this block type, the same in either byte order
+SHB_MAGIC = b"\x0a\x0d\x0d\x0a"
 IDB, PB, SPB, EPB = 1, 2, 3, 6
-BYTE_ORDER_MAGIC = 0x1A2B3C4D
+#: the section header's byte-order magic 0x1A2B3C4D as written little- and big-endian
+BYTE_ORDER_LE, BYTE_ORDER_BE = b"\x4d\x3c\x2b\x1a", b"\x1a\x2b\x3c\x4d"
 LINKTYPE_NULL, LINKTYPE_ETHERNET, LINKTYPE_RAW = 0, 1, 101
 LINKTYPE_LOOP, LINKTYPE_LINUX_SLL, LINKTYPE_IPV4, LINKTYPE_IPV6, LINKTYPE_LINUX_SLL2 = 108, 113, 228, 229, 276
 
@@ -71,7 +73,7 @@ class CaptureReader:
         if len(d) < 4:
             raise PcapError(f"{self.name}: {len(d)} bytes is too short for a packet capture")
         magic = d[:4]
-        if magic == b"\x0a\x0d\x0d\x0a":
+        if magic == SHB_MAGIC:
             yield from self._pcapng()
         elif magic in (b"\xd4\xc3\xb2\xa1", b"\xa1\xb2\xc3\xd4", b"\x4d\x3c\xb2\xa1", b"\xa1\xb2\x3c\x4d"):
             yield from self._pcap()
@@ -83,11 +85,11 @@ class CaptureReader:
         d, pos, e = self.data, 0, "<"
         interfaces: list[tuple[int, int, int]] = []  # (linktype, units per second, offset_s)
         while pos + 12 <= len(d):
-            if d[pos : pos + 4] == b"\x0a\x0d\x0d\x0a":
+            if d[pos : pos + 4] == SHB_MAGIC:
                 bom = d[pos + 8 : pos + 12]
-                if bom == b"\x4d\x3c\x2b\x1a":
+                if bom == BYTE_ORDER_LE:
                     e = "<"
-                elif bom == b"\x1a\x2b\x3c\x4d":
+                elif bom == BYTE_ORDER_BE:
                     e = ">"
                 else:
                     raise PcapError(f"{self.name}: offset {pos}: bad byte-order magic {bom.hex()}")

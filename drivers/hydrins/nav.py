@@ -1,7 +1,7 @@
 """The canonical INS navigation record, shared by the Hydrins NMEA and STDBIN drivers.
 
 One :class:`NavRecord` per INS epoch, whatever the wire format, so the daemon treats NMEA and
-STDBIN alike. Everything in it is **canonical** (DESIGN §3), converted at the edge:
+STDBIN alike. Everything in it is **canonical** (docs/architecture.md §3), converted at the edge:
 
 - attitude in radians, ``R_b^n = Rz(heading)·Ry(pitch)·Rx(roll)``; roll + starboard down, pitch +
   bow up (iXblue pitch is bow-down positive and is negated through

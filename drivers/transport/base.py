@@ -1,4 +1,5 @@
-"""Async byte transports: serial, UDP, TCP — they move bytes and stamp the host receive time.
+"""Async byte transports: what every transport shares — :class:`Transport`, :class:`Chunk`,
+:class:`TransportEvent`.
 
 Every transport yields :class:`Chunk` ``(data, host_ns)`` tuples, ``host_ns`` being
 ``time.monotonic_ns()`` taken when the bytes were seen ready (before the read: by the event loop,
@@ -8,27 +9,10 @@ or by the serial port's reader thread), and is used the same way (aiomqtt style)
         async for data, host_ns in t:
             records = decoder.feed(data, host_ns)
 
-The registry (:data:`TRANSPORTS`, :func:`register_transport`, :func:`create_transport`) is keyed
-by the config's ``kind``, after python-can's interface registry; a new transport is one class
-with ``@register_transport("name")``.
-
-- ``serial`` (:class:`SerialTransport`): pyserial opens and configures the port; a thread of its
-  own reads it (:class:`_PortReader`: ``poll`` and ``os.read``, the GIL released while it waits)
-  and stamps the bytes when they are ready, so a busy event loop delays their decoding but
-  neither their stamp nor their reading (a pty or UART buffers only a few kB). When the port
-  vanishes (EIO/EOF: a USB adapter unplugged, an emulator's pty closed) the transport reports
-  ``disconnected``, backs off (``reconnect_min_s`` doubling to ``reconnect_max_s``, 0.5 s for
-  a serial port: trying to open a missing path costs nothing, and every second waited after
-  the INS is back is a second of navigation lost) and reopens the same path — a stable symlink
-  such as ``/dev/serial/by-id/...`` or an emulator's ``<run dir>/ins`` then reaches the new
-  device — and reports ``connected``. A slow consumer pauses reading (the kernel buffers)
-  instead of losing bytes.
-- ``udp`` (:class:`UdpTransport`): one datagram per chunk; a large ``SO_RCVBUF`` (asked
-  ``rcvbuf_bytes``, granted ``rcvbuf_bytes_granted``); optional multicast ``group`` joined on
-  ``interface``; when the consumer lags, datagrams are dropped and counted (``stats``).
-- ``tcp`` (:class:`TcpTransport`): a client that reconnects with the same back-off.
-- ``udp-batch`` (:mod:`drivers.transport.udp_batch`): UDP for high datagram rates (the profiler at the
-  full Z+F rate): kernel receive stamps, every waiting datagram drained per wake-up.
+(:func:`drivers.transport.registry.create_transport` builds one from a config.) A subclass
+implements ``_connect`` / ``_disconnect``; the base class queues the chunks, and when the device
+goes away (``_lost``) reports it and reconnects in the background with a back-off
+(``reconnect_min_s`` doubling to ``reconnect_max_s``).
 
 State changes are reported as :class:`TransportEvent` to the ``on_event`` callback and kept in
 ``transport.events``; ``transport.connected`` and ``transport.reconnects`` give the state.
@@ -37,18 +21,13 @@ State changes are reported as :class:`TransportEvent` to the ``on_event`` callba
 from __future__ import annotations
 
 import asyncio
-import os
-import select
-import socket
-import struct
-import threading
 import time
 from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any, ClassVar, NamedTuple
+from typing import ClassVar, NamedTuple
 
-from drivers.base import DecoderStats, DriverError, Registry
+from drivers.base import DecoderStats
 
 
 class Chunk(NamedTuple):
@@ -62,15 +41,6 @@ class TransportEvent:
     kind: str  # 'connected' | 'disconnected' | 'reconnect_failed'
     detail: str
     host_ns: int
-
-
-TRANSPORTS = Registry("transport")
-register_transport = TRANSPORTS.register
-
-
-def create_transport(config: dict[str, Any], on_event: Callable[[TransportEvent], None] | None = None) -> Transport:
-    """A config mapping with ``kind`` and that transport's keyword arguments → a transport."""
-    return TRANSPORTS.create(config, on_event=on_event)
 
 
 class Transport:
@@ -238,258 +208,3 @@ class Transport:
 
     async def _disconnect(self) -> None:
         raise NotImplementedError
-
-
-class _PortReader:
-    """The thread that reads one open serial fd: it waits in ``poll`` (the GIL released), stamps
-    the host time as soon as the bytes are ready and hands them to the event loop. A busy loop
-    (a burst of profiler datagrams, the log writer holding the GIL) then delays only the
-    *decoding* of serial bytes, never their reading: a UART's or pty's kernel buffer holds a few
-    kB, which at 100 kB/s is tens of milliseconds. At most ``max_waiting`` chunks wait for the
-    consumer; beyond that the thread stops reading (the kernel buffers) until :meth:`resume`."""
-
-    def __init__(self, fd: int, loop: asyncio.AbstractEventLoop, deliver: Callable[[Chunk | str], None],
-                 waiting: Callable[[], int], max_waiting: int, name: str) -> None:  # fmt: skip
-        self.fd, self.loop, self.deliver = fd, loop, deliver
-        self.waiting, self.max_waiting = waiting, max_waiting
-        self.incoming: deque[Chunk | str] = deque()  # appended here, taken in the loop (deque ops are atomic)
-        self._wake_r, self._wake_w = os.pipe()
-        self._room = threading.Event()
-        self._room.set()
-        self._stop = False
-        self.thread = threading.Thread(target=self._run, name=f"mls-serial-{name}"[:15], daemon=True)
-        self.thread.start()
-
-    def _hand_over(self, item: Chunk | str) -> None:
-        self.incoming.append(item)
-        try:
-            self.loop.call_soon_threadsafe(self._in_loop)
-        except RuntimeError:  # the loop is closed: nobody reads any more
-            self._stop = True
-
-    def _in_loop(self) -> None:
-        incoming, deliver = self.incoming, self.deliver
-        while incoming:
-            deliver(incoming.popleft())
-
-    def _run(self) -> None:
-        poller = select.poll()
-        poller.register(self.fd, select.POLLIN | select.POLLPRI)
-        poller.register(self._wake_r, select.POLLIN)
-        while not self._stop:
-            if self.waiting() + len(self.incoming) >= self.max_waiting:  # the consumer lags
-                self._room.clear()
-                if self.waiting() + len(self.incoming) >= self.max_waiting:
-                    self._room.wait(0.05)
-                continue
-            try:
-                ready = poller.poll()
-            except InterruptedError:
-                continue
-            if self._stop:
-                return
-            host_ns = time.monotonic_ns()
-            if not any(fd == self.fd for fd, _ in ready):
-                continue
-            try:
-                data = os.read(self.fd, 65536)
-            except BlockingIOError:
-                continue
-            except OSError as exc:
-                self._hand_over(f"read failed: {exc.strerror or exc}")
-                return
-            if not data:
-                self._hand_over("end of file (port closed by the other side)")
-                return
-            self._hand_over(Chunk(data, host_ns))
-
-    def resume(self) -> None:
-        self._room.set()
-
-    def stop(self) -> None:
-        """End the thread (it returns from ``poll`` at once) and wait for it."""
-        self._stop = True
-        self._room.set()
-        os.write(self._wake_w, b"x")
-        if self.thread is not threading.current_thread():
-            self.thread.join(2.0)
-        os.close(self._wake_r)
-        os.close(self._wake_w)
-
-
-@register_transport("serial")
-class SerialTransport(Transport):
-    """A serial port (or pty) read by a thread of its own; reopens the same path after a loss."""
-
-    def __init__(
-        self,
-        port: str,
-        baudrate: int = 115200,
-        bytesize: int = 8,
-        parity: str = "N",
-        stopbits: float = 1,
-        name: str | None = None,
-        **kwargs,
-    ) -> None:
-        kwargs.setdefault("reconnect_max_s", 0.5)
-        super().__init__(name or port, **kwargs)
-        self.port = port
-        self.settings = {"baudrate": baudrate, "bytesize": bytesize, "parity": parity, "stopbits": stopbits}
-        self._serial = None
-        self._reader: _PortReader | None = None
-
-    def describe(self) -> str:
-        s = self.settings
-        return f"serial {self.port} {s['baudrate']} {s['bytesize']}{s['parity']}{s['stopbits']}"
-
-    async def _connect(self) -> None:
-        import serial  # pyserial
-
-        try:
-            ser = serial.Serial(self.port, timeout=0, exclusive=True, **self.settings)
-        except serial.SerialException as exc:
-            raise OSError(str(exc)) from exc
-        except ValueError as exc:  # a bad setting is a configuration error, not a missing device
-            raise DriverError(f"serial {self.port}: {exc}") from exc
-        os.set_blocking(ser.fileno(), False)
-        self._serial = ser
-        reader: _PortReader | None = None
-
-        def deliver(item: Chunk | str) -> None:
-            if self._reader is not reader:
-                return  # from a reader already stopped (a loss raced the thread's last read)
-            if isinstance(item, str):
-                self._lost(item)
-            else:
-                self._push(item.data, item.host_ns)
-
-        reader = self._reader = _PortReader(ser.fileno(), self._loop, deliver, self._chunks.__len__,
-                                            self.max_chunks, self.name)  # fmt: skip
-
-    async def _disconnect(self) -> None:
-        ser, reader = self._serial, self._reader
-        self._serial = self._reader = None
-        if reader is not None:
-            reader.stop()
-        if ser is not None:
-            try:
-                ser.close()
-            except Exception:  # the device is gone; closing it can fail, that is fine
-                pass
-
-    def _resume(self) -> None:
-        if self._reader is not None:
-            self._reader.resume()
-
-
-@register_transport("udp")
-class UdpTransport(Transport):
-    """Datagrams on a UDP port (optionally a multicast group), one chunk per datagram."""
-
-    def __init__(
-        self,
-        port: int,
-        host: str = "0.0.0.0",
-        group: str | None = None,
-        interface: str = "0.0.0.0",
-        rcvbuf_bytes: int = 8 * 1024 * 1024,
-        name: str | None = None,
-        **kwargs,
-    ) -> None:
-        super().__init__(name or f"udp:{port}", **kwargs)
-        self.host, self.port, self.group, self.interface = host, port, group, interface
-        self.rcvbuf_bytes = rcvbuf_bytes
-        self.rcvbuf_bytes_granted = 0
-        self._transport = None
-
-    def describe(self) -> str:
-        where = f"{self.group} on {self.interface}" if self.group else self.host
-        return f"udp {where}:{self.port} (SO_RCVBUF {self.rcvbuf_bytes_granted} bytes)"
-
-    async def _connect(self) -> None:
-        sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-        try:
-            sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, self.rcvbuf_bytes)
-            self.rcvbuf_bytes_granted = sock.getsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF)
-            if self.group:
-                sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
-                sock.bind(("", self.port))
-                mreq = struct.pack("4s4s", socket.inet_aton(self.group), socket.inet_aton(self.interface))
-                sock.setsockopt(socket.IPPROTO_IP, socket.IP_ADD_MEMBERSHIP, mreq)
-            else:
-                sock.bind((self.host, self.port))
-            self.port = sock.getsockname()[1]
-        except OSError:
-            sock.close()
-            raise
-        owner = self
-
-        class _Proto(asyncio.DatagramProtocol):
-            def datagram_received(self, data, addr):
-                host_ns = time.monotonic_ns()
-                if len(owner._chunks) >= owner.max_chunks:
-                    owner.stats.events["dropped_datagrams"] += 1
-                    return
-                owner._push(data, host_ns)
-
-            def error_received(self, exc):
-                owner.stats.events["socket_errors"] += 1
-
-        self._transport, _ = await self._loop.create_datagram_endpoint(_Proto, sock=sock)
-
-    async def _disconnect(self) -> None:
-        if self._transport is not None:
-            self._transport.close()
-            self._transport = None
-
-
-@register_transport("tcp")
-class TcpTransport(Transport):
-    """A TCP client (e.g. an INS Ethernet output); reconnects after the peer goes away."""
-
-    def __init__(self, host: str, port: int, name: str | None = None, **kwargs) -> None:
-        super().__init__(name or f"tcp:{host}:{port}", **kwargs)
-        self.host, self.port = host, port
-        self._writer = None
-        self._task: asyncio.Task | None = None
-        self._drained = asyncio.Event()
-
-    def describe(self) -> str:
-        return f"tcp {self.host}:{self.port}"
-
-    def _resume(self) -> None:
-        self._drained.set()
-
-    async def _connect(self) -> None:
-        reader, self._writer = await asyncio.open_connection(self.host, self.port)
-        self._task = self._loop.create_task(self._pump(reader))
-
-    async def _pump(self, reader: asyncio.StreamReader) -> None:
-        while True:
-            try:
-                data = await reader.read(65536)
-            except (ConnectionError, OSError) as exc:
-                self._lost(f"read failed: {exc}")
-                return
-            host_ns = time.monotonic_ns()
-            if not data:
-                self._lost("connection closed by the peer")
-                return
-            if not self._push(data, host_ns):  # slow consumer: stop reading, TCP pushes back
-                self._drained.clear()
-                await self._drained.wait()
-
-    async def _disconnect(self) -> None:
-        task, writer = self._task, self._writer
-        self._task = self._writer = None
-        if task is not None and task is not asyncio.current_task():
-            task.cancel()
-        if writer is not None:
-            writer.close()
-            try:
-                await writer.wait_closed()
-            except (ConnectionError, OSError):
-                pass
-
-
-from drivers.transport import udp_batch as udpbatch  # noqa: E402,F401  (files the udp-batch transport; it imports this module)

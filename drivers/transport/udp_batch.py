@@ -1,5 +1,5 @@
 """A UDP transport for high datagram rates (the profiler: ~4600 datagrams/s at the full Z+F rate),
-filed in the drivers' transport registry as ``udp-batch``.
+filed in the drivers' transport table (:mod:`drivers.transport.registry`) as ``udp-batch``.
 
 asyncio's datagram transport reads one datagram per event-loop iteration, so every datagram
 costs a wake-up of the loop (an ``epoll_wait``, the callbacks, a task step) — most of the
@@ -23,8 +23,6 @@ daemon's CPU at the full Z+F rate. This transport instead:
 When ``max_chunks`` datagrams wait for the consumer, reading pauses (they wait in the socket
 buffer; the kernel drops what overflows it, counted in ``/proc/net/udp``) until the consumer has
 taken half of them. Truncated datagrams are counted (``rejected['truncated']``).
-:mod:`drivers.transport.base` imports this module, so ``create_transport({"kind": "udp-batch", ...})``
-works wherever the transports do.
 """
 
 from __future__ import annotations
@@ -33,9 +31,9 @@ import socket
 import struct
 import time
 
-from drivers.transport import recvmmsg
 from drivers.timing import realtime_minus_monotonic_ns
-from drivers.transport.base import Transport, register_transport
+from drivers.transport import recvmmsg
+from drivers.transport.base import Transport
 
 _TIMESPEC = struct.Struct("@qq")
 _SO_TIMESTAMPNS = getattr(socket, "SO_TIMESTAMPNS", 35)  # Linux values where Python lacks the name
@@ -45,8 +43,9 @@ _MSG_TRUNC = int(socket.MSG_TRUNC)  # a plain int: the IntFlag's & costs a micro
 MAX_DATAGRAM = 65535
 
 
-@register_transport("udp-batch")
 class BatchUdpTransport(Transport):
+    kind = "udp-batch"
+
     def __init__(self, port: int, host: str = "0.0.0.0", rcvbuf_bytes: int = 32 * 1024 * 1024,
                  coalesce_s: float = 0.005, burst: int = 4096, name: str | None = None,
                  use_recvmmsg: bool = True, **kwargs) -> None:  # fmt: skip

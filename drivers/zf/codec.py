@@ -57,7 +57,7 @@ class Profile:
     """One scan line. Arrays are per point, in packet order; a missing packet leaves a gap.
 
     ``range_m`` is NaN where the scanner had no return; ``scan_angle_rad`` is the raw scanner
-    angle α of DESIGN §3 (from +y_S toward +z_S).
+    angle α of docs/architecture.md §3 (from +y_S toward +z_S).
     """
 
     profile_counter: int

@@ -1,4 +1,4 @@
-"""ZFP1: the project's documented stand-in for the Z+F profiler packet format (DESIGN §5).
+"""ZFP1: the project's documented stand-in for the Z+F profiler packet format (docs/architecture.md §5).
 
 The vendor's format is not public; until its interface document is at hand, profiles travel as
 ZFP1 packets, one per UDP datagram, little-endian::

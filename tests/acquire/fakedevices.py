@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 
 from drivers.hydrins.nav import NavRecord, status_words
-from drivers.hydrins.nmea import encode_epoch, encode_zda
+from drivers.hydrins.nmea_encode import encode_epoch, encode_zda
 from drivers.pps import encode_pps_datagram
 from drivers.zf.zfp1 import encode_profile
 

@@ -13,7 +13,9 @@ import numpy as np
 from acquire.guidance.lines import AcceptanceTolerances, prechecks
 from acquire.guidance.state import Guidance
 from calib.core import frames
-from calib.boresight.adjust import AdjustmentResult, AdjustOptions, ErrorModel, adjust, build_observations
+from calib.boresight.adjust import AdjustmentResult, adjust
+from calib.boresight.errormodel import ErrorModel
+from calib.boresight.observations import AdjustOptions, build_observations
 from calib.survey.passplan import plan_site
 from calib.sim.simulate import SimResult, simulate
 from drivers.hydrins.nav import NavRecord, status_words

@@ -13,7 +13,8 @@ import os
 import sys
 import time
 
-from acquire.log.sessionlog import SessionOptions, SessionWriter
+from acquire.log.session import SessionOptions
+from acquire.log.sessionlog import SessionWriter
 
 
 def payload(seq: int, n: int) -> bytes:

@@ -11,7 +11,7 @@ from __future__ import annotations
 import numpy as np
 
 from calib.core import frames
-from calib.boresight.adjust import Observations
+from calib.boresight.observations import Observations
 from calib.core.geometry import Rectangle  # noqa: F401  (re-exported for tests)
 from calib.core.georef import Mount, inverse_georeference
 from calib.core.trajectory import Trajectory

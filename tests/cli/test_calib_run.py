@@ -22,7 +22,7 @@ from calib.sim.simulate import simulate
 runner = CliRunner()
 WIDE = {"COLUMNS": "250"}
 ANGLES = ("roll", "pitch", "yaw")
-#: Issue 4: first-order Gauss–Markov POS errors, attitude σ 0.012° with τ = 30 s, position as
+#: First-order Gauss–Markov POS errors, attitude σ 0.012° with τ = 30 s, position as
 #: the scenario gives (2 cm, τ = 20 s).
 GAUSS_MARKOV = ("noise.pos.model=gauss_markov", "noise.pos.sigma_attitude_deg=[0.012,0.012,0.012]",
                 "noise.pos.tau_attitude_s=[30,30,30]")  # fmt: skip
@@ -55,7 +55,7 @@ def bundle(tmp_path_factory):
 
 @pytest.mark.slow
 def test_realistic_sigma_covers_the_truth_through_the_files(tmp_path):
-    """Issue 4: 20 simulated bundles with Gauss–Markov POS errors, calibrated from the files
+    """20 simulated bundles with Gauss–Markov POS errors, calibrated from the files
     (seed 0 by the command itself, the others by the function it calls, without plots):
     sigma_realistic_deg covers the truth at 2σ for ≥ 90 % of the 60 angles, while the formal σ
     is optimistic by an order of magnitude, and the report says by how much."""

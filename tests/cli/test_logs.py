@@ -10,7 +10,8 @@ from typer.testing import CliRunner
 from cli.app import app
 from acquire.timing.clock import ClockState, GpsEstimate
 from acquire.log.recover import SegmentScan, scan_segment, segment_paths
-from acquire.log.sessionlog import SessionOptions, SessionWriter
+from acquire.log.session import SessionOptions
+from acquire.log.sessionlog import SessionWriter
 
 NS = 1_000_000_000
 GPS0 = 1_400_000_000 * NS

@@ -29,8 +29,8 @@ from drivers.can import (
     parse_can_frame,
 )
 from drivers.capture.files import split_stamped_line
-from drivers.hydrins.nmea import NmeaDecoder, NmeaNavAssembler
-from drivers.hydrins.stdbin import StdbinDecoder, StdbinNavDecoder
+from drivers.hydrins.nmea_decode import NmeaDecoder, NmeaNavAssembler
+from drivers.hydrins.stdbin_decode import StdbinDecoder, StdbinNavDecoder
 from drivers.capture.pcapng import CaptureReader, PcapError, udp_datagrams
 from drivers.pps import PpsEdge, PpsLabeler, UdpPpsSource, decode_pps_datagram, encode_pps_datagram
 from drivers.zf.assembler import ProfileAssembler

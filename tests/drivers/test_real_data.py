@@ -12,8 +12,10 @@ import numpy as np
 import pytest
 
 from drivers.capture.files import FileDecoder, split_stamped_line
-from drivers.hydrins.nmea import Gga, Hdt, NmeaDecoder, NmeaNavAssembler, Vtg, Zda
-from drivers.hydrins.stdbin import StdbinDecoder, StdbinFrame
+from drivers.hydrins.nmea_decode import NmeaDecoder, NmeaNavAssembler
+from drivers.hydrins.nmea_sentences import Gga, Hdt, Vtg, Zda
+from drivers.hydrins.stdbin_decode import StdbinDecoder
+from drivers.hydrins.stdbin_records import StdbinFrame
 from drivers.capture.pcapng import CaptureReader, udp_datagrams
 from drivers.timing import fit_clock, unwrap_time_of_day_ns
 from tests.drivers.helpers import real_dir, real_file
@@ -79,7 +81,7 @@ def test_stdbin_v3_log_external_blocks_and_status_bits():
 
 @pytest.mark.parametrize("name", ["log_STDBIN_V2.log", "log_STDBIN_V3.log", "log_STDBIN_V3_old.log", "log_STDBIN_V4.log", "log_STDBIN_V5.log"])
 def test_stdbin_real_frames_reencode_byte_exact(name):
-    from drivers.hydrins.stdbin import encode_frame
+    from drivers.hydrins.stdbin_encode import encode_frame
 
     data = real_file("ixblue-stdbin", name).read_bytes()
     frames = StdbinDecoder().feed(data)

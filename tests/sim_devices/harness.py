@@ -12,10 +12,11 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 from drivers.can import EVENT_MARKER_ID, CanReader, decode_event_marker, open_can_bus
-from drivers.hydrins.nmea import NmeaNavAssembler, Zda
-from drivers.hydrins.stdbin import StdbinNavDecoder
+from drivers.hydrins.nmea_decode import NmeaNavAssembler
+from drivers.hydrins.nmea_sentences import Zda
+from drivers.hydrins.stdbin_decode import StdbinNavDecoder
 from drivers.pps import decode_pps_datagram
-from drivers.transport.base import create_transport
+from drivers.transport.registry import create_transport
 from drivers.zf.assembler import ProfileAssembler
 from sim_devices.feed import make_feed
 from sim_devices.canbus import CanSettings

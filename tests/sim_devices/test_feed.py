@@ -10,8 +10,8 @@ import numpy as np
 import pytest
 
 from calib.sim.simulate import simulate
-from drivers.hydrins.nmea import NmeaNavAssembler
-from drivers.hydrins.stdbin import StdbinNavDecoder
+from drivers.hydrins.nmea_decode import NmeaNavAssembler
+from drivers.hydrins.stdbin_decode import StdbinNavDecoder
 from drivers.zf.assembler import ProfileAssembler
 from sim_devices.clock import TruthClock
 from sim_devices.faults import parse_faults
@@ -82,7 +82,7 @@ def test_ins_bytes_decode_to_the_observed_trajectory(short_sim, protocol):
     assert np.allclose(track.rpy_rad, poses.rpy_rad) and np.allclose(track.sigma_p_m, poses.sigma_p_m)
     emu = InsEmulator(track, InsSettings(protocol=protocol), [], feed.start_gps_ns, feed.end_gps_ns, "/nonexistent")
     dec = NmeaNavAssembler(utc_clock=None) if protocol == "nmea" else StdbinNavDecoder(utc_clock=None)
-    from drivers.hydrins.nmea import encode_zda
+    from drivers.hydrins.nmea_encode import encode_zda
 
     navs = dec.feed(encode_zda(feed.start_gps_ns)) if protocol == "nmea" else []
     for k in range(len(track)):

@@ -11,7 +11,7 @@ import math
 import numpy as np
 import pytest
 
-from drivers.hydrins.nmea import NmeaDecoder
+from drivers.hydrins.nmea_decode import NmeaDecoder
 from sim_devices.faults import load_faults
 from sim_devices.ins import InsSettings
 from sim_devices.profiler import packet_layout

@@ -8,7 +8,7 @@ import json
 
 import pytest
 
-from drivers.hydrins.stdbin import StdbinDecoder
+from drivers.hydrins.stdbin_decode import StdbinDecoder
 from sim_devices.faults import parse_faults
 from sim_devices.ins import InsSettings
 from tests.sim_devices.checks import assert_nav_matches

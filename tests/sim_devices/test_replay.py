@@ -14,7 +14,8 @@ import pytest
 
 from cli.commands.sim_devices_cmd import read_session
 from acquire.daemon.config import load_vessel_config
-from acquire.log.sessionlog import SessionOptions, SessionWriter
+from acquire.log.session import SessionOptions
+from acquire.log.sessionlog import SessionWriter
 from drivers.can import EVENT_MARKER_ID, can_frame_bytes, encode_event_marker, parse_can_frame
 from drivers.hydrins.timeofday import utc_time_of_day_ns
 from sim_devices.clock import TruthClock

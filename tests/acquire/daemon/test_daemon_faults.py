@@ -1,4 +1,4 @@
-"""The daemon against the simulated devices, one 50-s real-time run with faults (issue 7, "must show").
+"""The daemon against the simulated devices, one 50-s real-time run with faults.
 
 ``mls sim devices`` (scenario montreal from pass 1, INS NMEA 100 Hz on a pty, profiler ZFP1
 over UDP, PPS over UDP with 20 µs jitter, truth clock drifting 35 ppm, at ×1: the clock's

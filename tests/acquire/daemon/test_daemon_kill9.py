@@ -1,4 +1,4 @@
-"""Durability of the real daemon (issue 7, "must show"): ``kill -9`` of ``mls acquire`` at 5
+"""Durability of the real daemon: ``kill -9`` of ``mls acquire`` at 5
 random (seeded) times while the fake devices stream, each time restarted in the same session
 root (its start-up salvages the torn session; once ``mls logs info``/``mls logs recover`` do it
 instead). Then, session by session, against what the fake devices record of every byte sent:
@@ -20,7 +20,7 @@ the ``os.write`` holding it returned (the daemon reads the pty in arbitrary piec
 a session's ``/ins/raw`` is one contiguous slice of everything sent, after the previous
 session's slice); a profiler datagram when its ``sendto`` returned (compared as whole
 datagrams, in order); a PPS edge when the ZDA sentence that labels it was written (the daemon
-logs a pulse on ``/pps`` once its label arrives: DESIGN §5/§6, :mod:`acquire.timing.timekeeper`),
+logs a pulse on ``/pps`` once its label arrives: docs/architecture.md §5, §6, :mod:`acquire.timing.timekeeper`),
 identified by the datagram's sequence number. "Up and connected": from the later of the
 daemon's READY=1 and the device's ``connected`` event in the session.
 """

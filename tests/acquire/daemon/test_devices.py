@@ -10,7 +10,7 @@ from acquire.daemon.consumers import ConsumerHub
 from acquire.daemon.devices import STATUS_HOLD_NS, InsDevice
 from acquire.timing.latency import LatencyLimits
 from calib.core.frames import utc_to_gps_ns
-from drivers.hydrins.nmea import encode_epoch
+from drivers.hydrins.nmea_encode import encode_epoch
 from tests.acquire.fakedevices import nav_at
 
 NS = 1_000_000_000

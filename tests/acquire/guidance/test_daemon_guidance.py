@@ -1,4 +1,4 @@
-"""The guidance inside the daemon (issue 8): the vessel config's ``guidance`` section (defaults,
+"""The guidance inside the daemon: the vessel config's ``guidance`` section (defaults,
 validation with one clear error per bad field), :func:`acquire.guidance.daemon.make_guidance`
 (the site's plan, the vessel's mount, an LGF without a site reference, a site that gives no
 plan), the config the simulated devices write, and a supervisor with fake devices publishing

@@ -1,4 +1,4 @@
-"""Line guidance (issue 8): cross-track error sign and value, heading wrap, speed, the capture
+"""Line guidance: cross-track error sign and value, heading wrap, speed, the capture
 window, live target hits against the simulator's exact labels, pre-survey checks and pass
 acceptance with reasons on constructed geometry; the guidance state machine on constructed
 tracks (rejection, resail, abort); and a whole simulated survey: six passes accepted, live hits
@@ -16,11 +16,12 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from acquire.daemon.consumers import ChecklistPublisher, Tap
+from acquire.guidance.consumer import GuidanceConsumer
 from acquire.guidance.lines import (AcceptanceTolerances, GuidanceSettings, PassWindow,
                               course_over_ground, disk_needed_bytes, evaluate_pass,
                               heading_error, in_capture, line_offsets, prechecks,
                               speed_over_ground, target_hits)  # fmt: skip
-from acquire.guidance.state import SCHEMA, Guidance, GuidanceConsumer, sigma_rises
+from acquire.guidance.state import SCHEMA, Guidance, sigma_rises
 from calib.core import frames
 from calib.core.georef import Mount
 from calib.core.geometry import Rectangle

@@ -1,4 +1,4 @@
-"""``mls plan`` (issue 8): the lines as GeoJSON (structure, properties, coordinates back to the
+"""``mls plan``: the lines as GeoJSON (structure, properties, coordinates back to the
 plan's LGF lines within 1 mm) and NMEA XTE/APB for an autopilot (valid checksums, decodable by
 the project's NMEA decoder as generic sentences, the steering side and values)."""
 
@@ -13,13 +13,14 @@ import pytest
 from typer.testing import CliRunner
 
 from cli.app import app
-from cli.commands.plan_cmd import _follow, _Output
 from acquire.guidance.autopilot import autopilot_sentences, steering
+from acquire.guidance.autopilot_out import NmeaOutput, follow_daemon
 from acquire.status.bus import StatusBus, StatusServer
 from calib.survey.passplan import plan_site
 from calib.survey.planexport import FORMAT, plan_geojson
 from calib.sim.scenario import load_scenario
-from drivers.hydrins.nmea import NmeaDecoder, Sentence
+from drivers.hydrins.nmea_decode import NmeaDecoder
+from drivers.hydrins.nmea_sentences import Sentence
 
 runner = CliRunner()
 
@@ -221,9 +222,9 @@ def test_follow_emits_sentences_for_the_daemons_vessel_and_active_pass(site, tmp
         server = StatusServer(tmp_path / "status.sock")
         await server.start()
         bus = StatusBus([server])
-        out = _Output(str(out_path))
-        task = asyncio.create_task(_follow(tmp_path / "status.sock", plan, frame, None, out, "GP",
-                                           20.0))  # fmt: skip
+        out = NmeaOutput(str(out_path))
+        task = asyncio.create_task(follow_daemon(tmp_path / "status.sock", plan, frame, None, out,
+                                                 "GP", 20.0))  # fmt: skip
         for i, p in enumerate(positions):
             lat, lon, _ = frame.to_geodetic(p[None])
             msg = {"schema": "mls.checklist/1", "active": {"pass_id": 5},

@@ -1,4 +1,4 @@
-"""End to end (issue 7): ``mls sim devices --scenario montreal`` → ``mls acquire`` → ``mls export``
+"""End to end: ``mls sim devices --scenario montreal`` → ``mls acquire`` → ``mls export``
 → ``mls calib run`` recovers the scenario's boresight within 3σ.
 
 The whole montreal scenario (six passes, 330 s) runs at ×5 with its CAN pass markers; the
@@ -6,7 +6,7 @@ daemon records it (its own process), ``mls export`` turns the session into a bun
 the CAN marks), and the bundle is checked against the simulation itself — the same returns at
 the same times, ranges and angles, the same trajectory — before ``mls calib run`` calibrates it.
 At ×5 the PPS pulses come every 0.2 s, faster than gpsd's labelling rule accepts, so the clock
-model stays unlocked: the records are timed by the devices' own synced time tags (DESIGN §6),
+model stays unlocked: the records are timed by the devices' own synced time tags (docs/architecture.md §6),
 and the export times the CAN marks through the INS time tags around them.
 """
 

@@ -1,4 +1,4 @@
-"""``mls demo`` end to end (issue 8), and the operator's checklist against the real thing.
+"""``mls demo`` end to end, and the operator's checklist against the real thing.
 
 One demo run, shorter than ``make demo``'s (lines 2–6 of 14 m, 2 s transits: all six passes
 and both targets), is shared by two tests: the Textual checklist (headless, 80×24) follows it

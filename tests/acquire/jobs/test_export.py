@@ -12,7 +12,8 @@ import numpy as np
 import pytest
 
 from acquire.jobs.export import ExportError, ExportOptions, _fill_sigmas, export_session, passes_from_events
-from acquire.log.sessionlog import SessionOptions, SessionWriter
+from acquire.log.session import SessionOptions
+from acquire.log.sessionlog import SessionWriter
 from calib.core import frames
 from calib.io.bundle import read_bundle
 from calib.survey.passplan import plan_site

@@ -19,7 +19,9 @@ import pytest
 
 from acquire.alarms import AlarmBook
 from acquire.log.recover import salvage_session, segment_paths, session_info, unfinished_segments
-from acquire.log.sessionlog import SegmentIO, SessionOptions, SessionWriter
+from acquire.log.segments import SegmentIO
+from acquire.log.session import SessionOptions
+from acquire.log.sessionlog import SessionWriter
 from tests.acquire.logutil import payload, read_session, wait_for
 
 NS = 1_000_000_000

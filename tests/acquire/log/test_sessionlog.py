@@ -31,7 +31,9 @@ from acquire.log.recover import (
     session_info,
 )
 from acquire.log.schema import FormatError, channel_kind, decode
-from acquire.log.sessionlog import LogError, SegmentIO, SessionOptions, SessionWriter
+from acquire.log.segments import SegmentIO
+from acquire.log.session import LogError, SessionOptions
+from acquire.log.sessionlog import SessionWriter
 from tests.acquire.logutil import payload, read_session, wait_for
 
 NS = 1_000_000_000

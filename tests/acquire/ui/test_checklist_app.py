@@ -1,4 +1,4 @@
-"""``mls checklist`` (issue 8), headless: the Textual app in an 80×24 terminal reads a status
+"""``mls checklist``, headless: the Textual app in an 80×24 terminal reads a status
 stream from a real Unix socket (:class:`acquire.status.bus.StatusServer`). The stream is the
 guidance's own output over a simulated survey (:mod:`tests.acquire.guidance_sim`): pre-checks
 fail, then go green; the passes are sailed one by one (one is rejected when the clock drops to

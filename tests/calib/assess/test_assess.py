@@ -17,21 +17,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from calib.assess.comparison import (
-    AssessError,
-    AssessOptions,
-    assess,
-    assessment_markdown,
-    clean_patch,
-    expected_c2c,
-    extract_common_patches,
-    mount_from_result,
-    parse_pairs,
-    plane_candidates,
-    reciprocal_pairs,
-    within_coverage,
-    write_assessment,
-)
+from calib.assess.comparison import assess
+from calib.assess.expected import expected_c2c
+from calib.assess.mounts import mount_from_result
+from calib.assess.pairs import parse_pairs, reciprocal_pairs
+from calib.assess.results import AssessError, AssessOptions
+from calib.assess.summary import assessment_markdown, write_assessment
+from calib.assess.surfaces import clean_patch, extract_common_patches, plane_candidates, within_coverage
 from calib.io.bundle import read_bundle
 from calib.assess.c2c import c2c
 from calib.core.geometry import Rectangle
@@ -158,7 +150,7 @@ def test_k6_on_scan_lines_is_flagged(realistic, realistic_k12):
 
 def test_after_matches_the_noise_level_when_the_scanner_is_the_only_error(quiet):
     """Without POS errors the distances after the calibration are the scanner noise seen
-    through C2C's local planes. Expected level (module docstring of calib.assess.comparison): per return
+    through C2C's local planes. Expected level (module docstring of calib.assess.expected): per return
     the σ along the normal from σ_range 2 mm and σ_scan_angle 0.005° (0.09 mm per m of range),
     then C2C on the very sampling of the two patches (for an evenly sampled plane the median is
     0.674·σ·√(1 + h), h the leverage of the point in its local plane; see
@@ -339,7 +331,7 @@ def test_error_propagation_along_the_normal():
     position errors move it along the normal by their east component; a roll error δ moves it
     by 38 m·δ (the lever of the height), pitch and heading errors along the wall. Range noise
     acts along the beam, scan-angle noise across it (ρ·δα), each projected on the normal."""
-    from calib.assess.comparison import pos_normal_variance, scanner_normal_variance
+    from calib.assess.expected import pos_normal_variance, scanner_normal_variance
     from calib.core.frames import LocalFrame
     from calib.core.trajectory import Trajectory
 

@@ -32,7 +32,7 @@ ANGLES = ("roll", "pitch", "yaw")
 
 
 def make_result(boresight, sigma_scaled, sigma_realistic=None, n_points=1300, version="0.1.0"):
-    """A result.json as DESIGN §4 describes it (degrees)."""
+    """A result.json as docs/architecture.md §4 describes it (degrees)."""
     b = dict(zip(ANGLES, map(float, boresight)))
     s = dict(zip(ANGLES, map(float, sigma_scaled)))
     return {
@@ -296,7 +296,7 @@ def test_comparing_history_records_knows_a_rerun_of_the_same_bundle(tmp_path, db
 
 
 # =============================================================================================
-# Real simulated bundles and calibration results (issue 10 "Must show"; added with calib.assess.comparison)
+# Real simulated bundles and calibration results (added with calib.assess.comparison)
 # =============================================================================================
 # Calibrations of bundles simulated with the same true mount are not flagged; a calibration
 # after the mount moved is. The bundles are the shipped `tower` scenario (Gauss–Markov POS

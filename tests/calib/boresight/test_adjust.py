@@ -5,15 +5,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from calib.boresight.adjust import (
-    AdjustmentError,
-    AdjustOptions,
-    ErrorModel,
-    ObservabilityError,
-    adjust,
-    build_observations,
-    predict_covariance,
-)
+from calib.boresight.adjust import adjust
+from calib.boresight.covariance import predict_covariance
+from calib.boresight.errormodel import ErrorModel
+from calib.boresight.observability import ObservabilityError
+from calib.boresight.observations import AdjustmentError, AdjustOptions, build_observations
 from dataclasses import replace
 
 from scipy import stats

@@ -1,4 +1,4 @@
-"""The O(n) adjustment equals a dense textbook Gauss–Helmert solution (issue 4).
+"""The O(n) adjustment equals a dense textbook Gauss–Helmert solution.
 
 The textbook solution here is written independently of calib.boresight.ghmodel/calib.boresight.adjust: its own
 condition function, derivatives by complex-step differentiation (exact to machine precision),
@@ -11,7 +11,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from calib.boresight.adjust import AdjustOptions, ErrorModel, adjust
+from calib.boresight.adjust import adjust
+from calib.boresight.errormodel import ErrorModel
+from calib.boresight.observations import AdjustOptions
 from calib.core.georef import Mount
 from tests.calib import synth
 

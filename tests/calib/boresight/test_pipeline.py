@@ -1,6 +1,6 @@
 """The calibration pipeline (calib.boresight.pipeline) on the simulator's Montreal site, in memory:
 the estimator's statistics where its model holds, convergence from a 2° misalignment, the
-labels and extraction routes, extra unknowns, and the clear errors of issue 4."""
+labels and extraction routes, extra unknowns, and the clear errors."""
 
 from __future__ import annotations
 
@@ -9,7 +9,8 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from calib.boresight.adjust import AdjustmentError, ObservabilityError
+from calib.boresight.observability import ObservabilityError
+from calib.boresight.observations import AdjustmentError
 from calib.io.bundle import ScanPoints
 from calib.boresight.pipeline import CalibrationError, CalibrationOptions, calibrate
 from calib.boresight.report import report_markdown
@@ -29,7 +30,7 @@ def _run(r, options=FAST, **kw):
 
 @pytest.mark.slow
 def test_per_point_monte_carlo_through_the_extraction():
-    """Issue 4: 20 seeds of Montreal with per-point POS errors, targets extracted from the
+    """20 seeds of Montreal with per-point POS errors, targets extracted from the
     simulated returns: |estimate − truth| ≤ 3 σ_formal for ≥ 97 % of the 60 angles and the
     mean σ̂0² within [0.9, 1.1]."""
     z, s02 = [], []

@@ -1,4 +1,4 @@
-"""Conventions of calib.core.frames (DESIGN §3): attitude, foreign conventions, geodesy, GPS time."""
+"""Conventions of calib.core.frames (docs/architecture.md §3): attitude, foreign conventions, geodesy, GPS time."""
 
 from __future__ import annotations
 

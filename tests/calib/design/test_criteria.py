@@ -1,4 +1,4 @@
-"""Visibility criteria (issue 9; thesis §3.4.4, Appendix C): Type I and Type II on known point
+"""Visibility criteria (thesis §3.4.4, Appendix C): Type I and Type II on known point
 sets, and the thesis's findings on simulated targets — a Z lever-arm error is invisible in
 every configuration, a scan-angle offset acts exactly like a roll boresight."""
 
@@ -10,8 +10,11 @@ import pytest
 from calib.design.criteria import (MIN_CRITERIA_POINTS, SYSTEMATIC_ERRORS, THESIS_MAGNITUDES,
                             CriteriaError, best_inclinations, injected, is_angular, normalized,
                             pass_spread, plane_criteria, thesis_tilt_deg, type1)  # fmt: skip
-from calib.design.study import (Sigmas, default_spec, design_scenario, observations, run_study,
-                          scan_angle_roll_correlation, target_planes)  # fmt: skip
+from calib.design.layouts import default_spec
+from calib.design.prediction import (Sigmas, observations, scan_angle_roll_correlation,
+                                     target_planes)  # fmt: skip
+from calib.design.scenes import design_scenario
+from calib.design.study import run_study
 from calib.core.geometry import Rectangle
 from calib.sim.scenario import load_scenario
 from calib.sim.simulate import simulate
@@ -184,7 +187,7 @@ def _line_of_sight(base, inc_deg):
     """Range to the centre of the sweep's target at ``inc_deg`` from a parallel pass and the
     incidence angle there (rad): the scanner at the pass's closest approach, ``standoff_m``
     across the track and level with the scanner's mean height (site frame: out, up)."""
-    from calib.design.study import target
+    from calib.design.scenes import target
 
     s = target(base, "P", np.radians(inc_deg), 1.0, 1.0)
     n = np.array([np.sin(s.inclination_rad), np.cos(s.inclination_rad)])

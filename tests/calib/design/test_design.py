@@ -1,4 +1,4 @@
-"""Site design study (issue 9): the thesis's findings on the predicted σ (Fig. 4.12), the
+"""Site design study: the thesis's findings on the predicted σ (Fig. 4.12), the
 prediction against Monte Carlo adjustments, the recommended site against the thesis's, the site
 what-if and ``mls design``.
 
@@ -17,17 +17,21 @@ import yaml
 from typer.testing import CliRunner
 
 from cli.app import app
-from calib.boresight.adjust import ErrorModel, predict_covariance
-from calib.design.study import (ANGLES, MODELS, REALISTIC, Sigmas, default_spec, design_scenario,
-                          empirical_errors, observations, predict, predicted_covariance, run_study,
-                          select_passes, site_as_scenario, site_scenario, target_planes,
-                          what_if)  # fmt: skip
+from calib.boresight.covariance import predict_covariance
+from calib.boresight.errormodel import ErrorModel
+from calib.design.layouts import default_spec
+from calib.design.montecarlo import empirical_errors, predicted_covariance
+from calib.design.prediction import (ANGLES, MODELS, REALISTIC, Sigmas, observations, predict,
+                                     select_passes, target_planes)  # fmt: skip
+from calib.design.scenes import design_scenario, site_scenario
+from calib.design.study import run_study
+from calib.design.whatif import site_as_scenario, what_if
 from calib.sim.noise import PosNoise
 from calib.sim.scenario import load_scenario
 from calib.sim.simulate import simulate
 
 SEEDS = range(20)
-#: The issue's Gauss–Markov POS errors: 1 cm, 0.005°, 20 s on every channel.
+#: Gauss–Markov POS errors of a montreal-like survey: 1 cm, 0.005°, 20 s on every channel.
 GM = PosNoise("gauss_markov", np.full(3, 0.01), np.radians(np.full(3, 0.005)), np.full(3, 20.0),
               np.full(3, 20.0))  # fmt: skip
 
@@ -256,7 +260,7 @@ def test_a_z_lever_arm_error_is_invisible_on_the_marine_site_too(study):
 
 def test_the_white_prediction_is_the_adjustments_formal_covariance(base):
     """The design's white σ (Schur complement of the plane parameters) is
-    :func:`calib.boresight.adjust.predict_covariance`'s formal covariance, also for a pass subset."""
+    :func:`calib.boresight.covariance.predict_covariance`'s formal covariance, also for a pass subset."""
     sigmas = Sigmas.of_scenario(base)
     sim = simulate(design_scenario(base, [s for s in base.surfaces if s.kind == "target"]), 3)
     obs, planes = select_passes(observations(sim, sigmas, noisy=False), target_planes(sim), (1, 3, 4, 6))

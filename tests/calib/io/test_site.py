@@ -1,4 +1,4 @@
-"""calib.io.site: the site config (DESIGN §4): values, round trip, and located errors."""
+"""calib.io.site: the site config (docs/architecture.md §4): values, round trip, and located errors."""
 
 from __future__ import annotations
 
@@ -9,7 +9,7 @@ from calib.core import frames
 from calib.io.configfile import ConfigError
 from calib.io.site import SIX_FOLD_RELATIVE_HEADINGS_DEG, load_site, parse_site, six_fold_passes
 
-DESIGN_EXAMPLE = """\
+SITE_EXAMPLE = """\
 vessel: survey-1
 reference: {lat_deg: 45.5, lon_deg: -73.55, height_m: 0.0}
 mount:
@@ -42,7 +42,7 @@ validation_planes: []
 
 
 def test_design_example_values_are_si_and_radians():
-    site = parse_site(DESIGN_EXAMPLE)
+    site = parse_site(SITE_EXAMPLE)
     assert site.vessel == "survey-1"
     assert site.reference == frames.LocalFrame(45.5, -73.55, 0.0)
     np.testing.assert_allclose(site.mount.lever_arm_m, [0.1, -0.2, -1.5])
@@ -74,7 +74,7 @@ def test_minimal_site_gets_the_documented_defaults():
 
 
 def test_dump_load_round_trip(tmp_path):
-    site = parse_site(DESIGN_EXAMPLE)
+    site = parse_site(SITE_EXAMPLE)
     site.dump(tmp_path / "site.yaml")
     again = load_site(tmp_path / "site.yaml")
     assert again.targets == site.targets and again.passes == site.passes
@@ -113,8 +113,8 @@ def test_dump_load_round_trip(tmp_path):
     (("targets:\n", "targets: [\n"), r"site\.yaml:\d+:\d+: not valid YAML"),
 ])  # fmt: skip
 def test_errors_name_file_line_column_key_and_expectation(edit, message):
-    text = DESIGN_EXAMPLE.replace(*edit)
-    assert text != DESIGN_EXAMPLE
+    text = SITE_EXAMPLE.replace(*edit)
+    assert text != SITE_EXAMPLE
     with pytest.raises(ConfigError, match=message):
         parse_site(text, source="site.yaml")
 

@@ -1,4 +1,4 @@
-"""Noise models (issue 3): Gauss–Markov processes reproduce σ and correlation time, exactly
+"""Noise models: Gauss–Markov processes reproduce σ and correlation time, exactly
 across gaps; white and per-point errors; range noise growing with range and incidence;
 seeded reproducibility."""
 

@@ -1,4 +1,4 @@
-"""Scenarios (issue 3): the shipped montreal, terrestrial and tower scenarios hold what the
+"""Scenarios: the shipped montreal, terrestrial and tower scenarios hold what the
 thesis describes; loading by name or path; dotted-key overrides; errors that say where."""
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""Scene ray casting (issue 3): exact ray–rectangle hits, nearest hit wins, no return from
+"""Scene ray casting: exact ray–rectangle hits, nearest hit wins, no return from
 water or sky, and scan-plane sectors that contain every hit of a profile."""
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""The MLS simulator (issue 3): exact returns, the thesis's signature of every injected error,
+"""The MLS simulator: exact returns, the thesis's signature of every injected error,
 the observed trajectory and its noise, vessel motion, and reproducible bundles written by
 ``mls sim dataset``."""
 

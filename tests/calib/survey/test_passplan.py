@@ -1,4 +1,4 @@
-"""The six-fold pass-plan generator (issue 3): headings relative to the wall, closest approach
+"""The six-fold pass-plan generator: headings relative to the wall, closest approach
 at the standoff on the water side, length, order, safe distance from the wall for the oblique
 passes, and a capture window around the targets."""
 

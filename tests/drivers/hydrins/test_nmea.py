@@ -10,17 +10,9 @@ from hypothesis import strategies as st
 
 from calib.core.frames import utc_fields_to_gps_ns
 from drivers.hydrins.nav import NavRecord, status_words
-from drivers.hydrins.nmea import (
-    NmeaDecoder,
-    NmeaNavAssembler,
-    PixseAtitud,
-    PixseTime,
-    Sentence,
-    checksum,
-    encode_epoch,
-    encode_sentence,
-    encode_zda,
-)
+from drivers.hydrins.nmea_decode import NmeaDecoder, NmeaNavAssembler
+from drivers.hydrins.nmea_encode import encode_epoch, encode_sentence, encode_zda
+from drivers.hydrins.nmea_sentences import PixseAtitud, PixseTime, Sentence, checksum
 from drivers.hydrins.timeofday import utc_date_ns
 from tests.drivers.helpers import PROPERTY
 

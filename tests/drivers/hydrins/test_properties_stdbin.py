@@ -17,18 +17,15 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from drivers.hydrins.stdbin import (
+from drivers.hydrins.stdbin_decode import StdbinDecoder, StdbinNavDecoder
+from drivers.hydrins.stdbin_encode import encode_answer, encode_frame
+from drivers.hydrins.stdbin_format import (
     EXTENDED_NAVIGATION_BLOCKS,
     EXTERNAL_DATA_BLOCKS,
     HEADER_SIZES,
     NAVIGATION_BLOCKS,
-    StdbinAnswer,
-    StdbinDecoder,
-    StdbinFrame,
-    StdbinNavDecoder,
-    encode_answer,
-    encode_frame,
 )
+from drivers.hydrins.stdbin_records import StdbinAnswer, StdbinFrame
 from tests.drivers.helpers import PROPERTY, real_file
 
 # ---------------------------------------------------------------------------------------------

@@ -12,17 +12,10 @@ from hypothesis import strategies as st
 from calib.core.frames import utc_fields_to_gps_ns
 from drivers.base import DriverError
 from drivers.hydrins.nav import NavRecord, status_words
-from drivers.hydrins.stdbin import (
-    BLOCK_SIZES,
-    NAVIGATION_BLOCKS,
-    StdbinAnswer,
-    StdbinDecoder,
-    StdbinFrame,
-    StdbinNavDecoder,
-    encode_answer,
-    encode_frame,
-    encode_nav,
-)
+from drivers.hydrins.stdbin_decode import StdbinDecoder, StdbinNavDecoder
+from drivers.hydrins.stdbin_encode import encode_answer, encode_frame, encode_nav
+from drivers.hydrins.stdbin_format import BLOCK_SIZES, NAVIGATION_BLOCKS
+from drivers.hydrins.stdbin_records import StdbinAnswer, StdbinFrame
 from tests.drivers.helpers import PROPERTY, real_file
 
 

@@ -11,7 +11,9 @@ from pathlib import Path
 import pytest
 
 from drivers.base import DriverError
-from drivers.transport.base import TRANSPORTS, Chunk, SerialTransport, create_transport
+from drivers.transport.base import Chunk
+from drivers.transport.registry import TRANSPORTS, create_transport
+from drivers.transport.serial_port import SerialTransport
 
 pytestmark = pytest.mark.integration
 
@@ -259,7 +261,8 @@ def test_ins_nmea_over_a_pty_end_to_end(tmp_path):
     """Emulator side encodes epochs, daemon side reads the pty and assembles canonical records."""
     from calib.core.frames import utc_fields_to_gps_ns
     from drivers.hydrins.nav import NavRecord, status_words
-    from drivers.hydrins.nmea import NmeaNavAssembler, encode_epoch, encode_zda
+    from drivers.hydrins.nmea_decode import NmeaNavAssembler
+    from drivers.hydrins.nmea_encode import encode_epoch, encode_zda
 
     algo, system = status_words(navigation=True, utc_detected=True, pps_detected=True)
     sent = [

@@ -10,7 +10,7 @@ import time
 import pytest
 
 from drivers.transport import recvmmsg
-from drivers.transport.base import create_transport
+from drivers.transport.registry import create_transport
 
 pytestmark = pytest.mark.integration
 

@@ -1,0 +1,58 @@
+"""A session log's directory and settings, shared by the writer and the salvage: the names of
+the session directory, its segments, lock and reserve files, :class:`SessionOptions`,
+:class:`LogError` and :func:`fsync_dir`."""
+
+from __future__ import annotations
+
+import datetime as _dt
+import os
+import re
+from dataclasses import dataclass
+from pathlib import Path
+
+from mcap.writer import CompressionType
+
+SEGMENT_RE = re.compile(r"^seg-(\d{6})\.mcap$")
+SESSION_RE = re.compile(r"^\d{8}T\d{6}Z_[A-Za-z0-9][A-Za-z0-9_.-]*$")
+LOCK_NAME = "session.lock"
+RESERVE_NAME = ".reserve"
+COMPRESSIONS = {"zstd": CompressionType.ZSTD, "lz4": CompressionType.LZ4, "none": CompressionType.NONE}
+
+
+class LogError(RuntimeError):
+    """A session directory that cannot be used (locked by another writer, not creatable)."""
+
+
+@dataclass(frozen=True)
+class SessionOptions:
+    rotate_s: float = 600.0
+    rotate_bytes: int = 512 * 1024 * 1024
+    flush_s: float = 0.5  # chunk flush period (≤ 1 s)
+    fsync_s: float = 2.0
+    queue_size: int = 50_000
+    compression: str = "zstd"  # zstd | lz4 | none
+    chunk_bytes: int = 1024 * 1024
+    retry_s: float = 1.0  # after a write failure, try a new segment this often
+    reserve_bytes: int = 64 * 1024  # released to close a segment on a full disk
+    min_free_bytes: int = 16 * 1024 * 1024  # no new segment on a file system with less free
+    stall_s: float = 10.0  # writer loop silent this long → unhealthy (watchdog)
+
+    def __post_init__(self) -> None:
+        if not 0 < self.flush_s <= 1.0:
+            raise ValueError(f"flush_s={self.flush_s}: expected 0 < flush_s ≤ 1 s")
+        if self.fsync_s <= 0 or self.rotate_s <= 0 or self.rotate_bytes <= 0:
+            raise ValueError("fsync_s, rotate_s and rotate_bytes must be positive")
+        if self.compression not in COMPRESSIONS:
+            raise ValueError(f"compression {self.compression!r}: expected one of {sorted(COMPRESSIONS)}")
+
+
+def fsync_dir(path: Path) -> None:
+    fd = os.open(path, os.O_RDONLY | os.O_DIRECTORY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+
+
+def session_name(vessel: str, start_utc: _dt.datetime) -> str:
+    return f"{start_utc.astimezone(_dt.timezone.utc):%Y%m%dT%H%M%SZ}_{vessel}"

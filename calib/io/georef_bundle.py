@@ -1,0 +1,112 @@
+"""A calibration bundle → one LAS/LAZ file per pass (what ``mls calib georef`` and ``mls export
+--laz`` write).
+
+:func:`georeference_bundle` georeferences every pass of a bundle with the mount of its
+site.yaml (optionally another boresight) in chunks of :data:`DEFAULT_CHUNK_POINTS` points and
+writes ``pass-<id>.laz`` (or ``.las``) through :class:`calib.io.laz.LasPassWriter`; it returns a
+:class:`PassOutput` per pass and the facts a caption needs (CRS, boresight, intensity scale).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+#: Points georeferenced and written per step (bounds the memory a pass needs).
+DEFAULT_CHUNK_POINTS = 1_000_000
+
+
+@dataclass(frozen=True)
+class PassOutput:
+    """What ``mls calib georef`` wrote for one pass."""
+
+    pass_id: int
+    n_points: int
+    n_dropped: int
+    t_first_gps_s: float
+    t_last_gps_s: float
+    path: Path
+
+
+def georeference_bundle(
+    bundle_dir: Path,
+    out_dir: Path,
+    crs: str = "utm",
+    boresight_deg: tuple[float, float, float] | None = None,
+    compress: bool = True,
+    max_gap_s: float = 1.0,
+    skip_uncovered: bool = False,
+    chunk_points: int = DEFAULT_CHUNK_POINTS,
+    progress=None,
+    boresight_source: str = "--boresight-deg",
+) -> tuple[list[PassOutput], dict]:
+    """Georeference every pass of a bundle into ``out_dir/pass-<id>.laz``.
+
+    ``boresight_deg`` (canonical roll, pitch, yaw) overrides site.yaml's a-priori boresight;
+    ``boresight_source`` names where it came from for the caption. Returns the per-pass outputs
+    and facts for the caption (CRS, boresight, intensity scale). ``progress`` is an optional
+    rich Progress that gets one task per pass.
+    """
+    import numpy as np
+
+    from calib.core.georef import georeference
+    from calib.core.trajectory import TrajectoryError
+    from calib.core.version import software_version
+    from calib.io.bundle import read_bundle
+    from calib.io.laz import LasPassWriter, output_crs
+
+    bundle = read_bundle(bundle_dir, max_gap_s=max_gap_s)
+    pts, traj = bundle.points, bundle.trajectory
+    mount = bundle.site.mount
+    if boresight_deg is not None:
+        mount = mount.with_boresight(np.radians(boresight_deg))
+    out_crs = output_crs(crs, bundle.frame)
+    # intensity → u16: reflectance-like values in [0, 1] span the full range, anything else is
+    # taken as counts (rounded, clipped); decided once for the bundle so passes compare
+    intensity_scale = 65535.0 if float(pts.intensity.max(initial=0.0)) <= 1.0 else 1.0
+    out_dir.mkdir(parents=True, exist_ok=True)
+    suffix = ".laz" if compress else ".las"
+    software = software_version()
+
+    outputs = []
+    for pass_id in pts.pass_ids():
+        idx = np.flatnonzero(pts.pass_id == pass_id)
+        bad = traj.uncovered(pts.t_gps_s[idx] + mount.time_offset_s)
+        if bad.any():
+            if not skip_uncovered:
+                tb = pts.t_gps_s[idx[bad]]
+                raise TrajectoryError(
+                    f"pass {pass_id}: {int(bad.sum())} of {idx.size} points fall outside the "
+                    f"trajectory {traj.t_gps_s[0]:.3f} … {traj.t_gps_s[-1]:.3f} s or in a gap "
+                    f"> {max_gap_s:g} s (first {tb.min():.3f} s, last {tb.max():.3f} s); "
+                    f"use --skip-uncovered to drop them"
+                )
+            idx = idx[~bad]
+        path = out_dir / f"pass-{pass_id}{suffix}"
+        task = None
+        if progress is not None:
+            task = progress.add_task(f"pass {pass_id}", total=max(idx.size, 1))
+        with LasPassWriter(path, out_crs, pass_id, software) as writer:
+            for lo in range(0, idx.size, chunk_points):
+                sel = idx[lo : lo + chunk_points]
+                t = pts.t_gps_s[sel]
+                p = georeference(t, pts.range_m[sel], pts.scan_angle_rad[sel], traj, mount)
+                intensity = np.clip(np.round(pts.intensity[sel] * intensity_scale), 0, 65535)
+                writer.write(p, t, intensity, pts.scan_angle_rad[sel])
+                if task is not None:
+                    progress.advance(task, sel.size)
+        if task is not None and idx.size == 0:
+            progress.advance(task, 1)
+        t_pass = pts.t_gps_s[idx]
+        outputs.append(PassOutput(
+            pass_id, int(idx.size), int(bad.sum()),
+            float(t_pass.min()) if t_pass.size else float("nan"),
+            float(t_pass.max()) if t_pass.size else float("nan"), path,
+        ))  # fmt: skip
+    facts = {
+        "crs": out_crs.name,
+        "boresight_deg": tuple(float(v) for v in np.degrees(mount.boresight_rad)),
+        "boresight_source": boresight_source if boresight_deg is not None else "site.yaml",
+        "intensity": "×65535 (values in 0…1)" if intensity_scale > 1 else "counts",
+    }
+    return outputs, facts

@@ -1,0 +1,75 @@
+"""Hydrins NMEA encoders for the emulators: a canonical NavRecord → the PHINS standard block.
+
+:func:`encode_sentence` (a body → a checksummed sentence), :func:`encode_epoch` (a canonical
+NavRecord → the PHINS standard block, in the order HEHDT, ATITUD, POSITI, SPEED_, HEAVE_,
+TIME__, STDHRP, STDPOS, STDSPD, ALGSTS, STATUS, HT_STS) and :func:`encode_zda`.
+"""
+
+from __future__ import annotations
+
+import math
+
+from calib.core.frames import attitude_to_ixblue, gps_ns_to_utc
+from drivers.hydrins.nav import NavRecord
+from drivers.hydrins.nmea_sentences import NAN, checksum
+from drivers.hydrins.timeofday import format_hhmmss, utc_time_of_day_ns
+
+
+def encode_sentence(body: str, start: str = "$") -> bytes:
+    """``'PIXSE,ATITUD,1.000,2.000'`` → ``b'$PIXSE,ATITUD,1.000,2.000*hh\\r\\n'``."""
+    raw = body.encode("ascii")
+    return b"%s%s*%02X\r\n" % (start.encode("ascii"), raw, checksum(raw))
+
+
+def _fmt(value: float, spec: str) -> str:
+    return "" if value is None or value != value else format(value, spec)
+
+
+def _deg(value_rad: float, spec: str = ".3f") -> str:
+    return _fmt(math.degrees(value_rad), spec) if value_rad == value_rad else ""
+
+
+def _neg(value: float) -> float:
+    return -value if value == value else value
+
+
+def _word(value: int | None) -> str:
+    return "" if value is None else f"{value & 0xFFFFFFFF:08X}"
+
+
+def encode_epoch(nav: NavRecord, talker: str = "HE") -> bytes:
+    """A canonical NavRecord → the PHINS standard block (iXblue signs and units on the wire).
+
+    TIME__ carries the UTC time of day of ``nav.gps_ns`` when it is set, else
+    ``nav.time_of_day_ns``; missing values become empty fields.
+    """
+    roll, pitch, _ = attitude_to_ixblue(nav.roll_rad, nav.pitch_rad, 0.0)
+    lon = nav.lon_deg % 360.0 if nav.lon_deg == nav.lon_deg else NAN
+    if nav.gps_ns is not None:
+        tod = utc_time_of_day_ns(nav.gps_ns)
+    else:
+        tod = nav.time_of_day_ns
+    words_a = nav.algorithm_status or (None, None)
+    words_s = nav.system_status or (None, None)
+    bodies = [
+        f"{talker}HDT,{_deg(nav.heading_rad)},T",
+        f"PIXSE,ATITUD,{_deg(float(roll))},{_deg(float(pitch))}",
+        f"PIXSE,POSITI,{_fmt(nav.lat_deg, '.8f')},{_fmt(lon, '.8f')},{_fmt(nav.height_m, '.3f')}",
+        f"PIXSE,SPEED_,{_fmt(nav.v_east_m_s, '.3f')},{_fmt(nav.v_north_m_s, '.3f')},{_fmt(_neg(nav.v_down_m_s), '.3f')}",
+        f"PIXSE,HEAVE_,{_fmt(nav.surge_m, '.3f')},{_fmt(_neg(nav.sway_m), '.3f')},{_fmt(_neg(nav.heave_m), '.3f')}",
+        f"PIXSE,TIME__,{format_hhmmss(tod, 6) if tod is not None else ''}",
+        f"PIXSE,STDHRP,{_deg(nav.sigma_heading_rad)},{_deg(nav.sigma_roll_rad)},{_deg(nav.sigma_pitch_rad)}",
+        f"PIXSE,STDPOS,{_fmt(nav.sigma_north_m, '.2f')},{_fmt(nav.sigma_east_m, '.2f')},{_fmt(nav.sigma_down_m, '.2f')}",
+        f"PIXSE,STDSPD,{_fmt(nav.sigma_v_north_m_s, '.3f')},{_fmt(nav.sigma_v_east_m_s, '.3f')},{_fmt(nav.sigma_v_down_m_s, '.3f')}",
+        f"PIXSE,ALGSTS,{_word(words_a[0])},{_word(words_a[1])}",
+        f"PIXSE,STATUS,{_word(words_s[0])},{_word(words_s[1])}",
+        f"PIXSE,HT_STS,{_word(nav.user_status)}",
+    ]
+    return b"".join(encode_sentence(b) for b in bodies)
+
+
+def encode_zda(gps_ns: int, talker: str = "GP", decimals: int = 2) -> bytes:
+    """``$--ZDA`` for a GPS instant (UTC on the wire; local zone 00,00)."""
+    utc = gps_ns_to_utc(gps_ns)
+    tod = utc_time_of_day_ns(gps_ns)
+    return encode_sentence(f"{talker}ZDA,{format_hhmmss(tod, decimals)},{utc.day:02d},{utc.month:02d},{utc.year:04d},00,00")
