@@ -16,8 +16,9 @@ The book is thread-safe (the log writer updates it from its own thread).
 from __future__ import annotations
 
 import threading
+from collections.abc import Callable
 from dataclasses import asdict, dataclass, replace
-from typing import Callable, Literal
+from typing import Literal
 
 INFO, WARNING, CRITICAL = "info", "warning", "critical"
 SEVERITIES = (INFO, WARNING, CRITICAL)
@@ -101,9 +102,12 @@ class AlarmBook:
                 pending.since_ns = None
                 if active and alarm is not None:  # refresh the message and the last time
                     self._alarms[key] = replace(
-                        alarm, message=message or alarm.message, last_host_ns=now_ns,
-                        last_gps_ns=self._gps(now_ns), severity=severity,
-                    )  # fmt: skip
+                        alarm,
+                        message=message or alarm.message,
+                        last_host_ns=now_ns,
+                        last_gps_ns=self._gps(now_ns),
+                        severity=severity,
+                    )
                 return None
             if pending.since_ns is None:
                 pending.since_ns = now_ns
@@ -113,23 +117,35 @@ class AlarmBook:
             pending.since_ns = None
             if condition:
                 new = Alarm(
-                    name=name, device=device, severity=severity, message=message,
-                    first_host_ns=now_ns, last_host_ns=now_ns, first_gps_ns=self._gps(now_ns),
-                    last_gps_ns=self._gps(now_ns), active=True,
+                    name=name,
+                    device=device,
+                    severity=severity,
+                    message=message,
+                    first_host_ns=now_ns,
+                    last_host_ns=now_ns,
+                    first_gps_ns=self._gps(now_ns),
+                    last_gps_ns=self._gps(now_ns),
+                    active=True,
                     raised_count=(alarm.raised_count + 1) if alarm is not None else 1,
-                )  # fmt: skip
+                )
                 event = AlarmEvent("raise", new)
             else:
                 assert alarm is not None
-                new = replace(alarm, active=False, message=message or alarm.message,
-                              last_host_ns=now_ns, last_gps_ns=self._gps(now_ns))  # fmt: skip
+                new = replace(
+                    alarm,
+                    active=False,
+                    message=message or alarm.message,
+                    last_host_ns=now_ns,
+                    last_gps_ns=self._gps(now_ns),
+                )
                 event = AlarmEvent("clear", new)
             self._alarms[key] = new
             self._events.append(event)
             return event
 
-    def raise_now(self, name: str, device: str, now_ns: int, *, message: str,
-                  severity: str = WARNING) -> AlarmEvent | None:  # fmt: skip
+    def raise_now(
+        self, name: str, device: str, now_ns: int, *, message: str, severity: str = WARNING
+    ) -> AlarmEvent | None:
         """Raise (or refresh) an alarm at once, for conditions that are events."""
         return self.update(name, device, True, now_ns, message=message, severity=severity)
 

@@ -48,8 +48,20 @@ TICK = os.sysconf("SC_CLK_TCK")
 # --lead-s 2: the first emission 2 s after the emulators are up, so that the daemon (already running,
 # retrying the INS port every 0.5 s at most) has opened the pty before the first epoch: the INS
 # epochs lost then measure throughput, not the start-up race
-SIM_ARGS = ["--scenario", "montreal", "--point-rate-scale", "1", "--set", "scanner.angular_windows_deg=[]",
-            "--ins-rate", "200", "--start", "pass:1", "--lead-s", "2"]  # fmt: skip
+SIM_ARGS = [
+    "--scenario",
+    "montreal",
+    "--point-rate-scale",
+    "1",
+    "--set",
+    "scanner.angular_windows_deg=[]",
+    "--ins-rate",
+    "200",
+    "--start",
+    "pass:1",
+    "--lead-s",
+    "2",
+]
 
 
 def free_port(kind=socket.SOCK_DGRAM) -> int:
@@ -85,7 +97,7 @@ def vessel_yaml(run: Path, prof_port: int, pps_port: int, speed: float) -> str:
             time_messages: [ZDA]
         session: {{directory: {run}/sessions, queue_size: 200000}}
         status: {{socket: {run}/status.sock}}
-        """)  # fmt: skip
+        """)
 
 
 def wait_for(cond, timeout_s: float, what: str) -> None:
@@ -107,16 +119,36 @@ def stop(proc: subprocess.Popen) -> None:
             proc.wait(10)
 
 
-def run_sim(run: Path, speed: float, seconds: float, prof_port: int, pps_port: int, devices: str,
-            receiver_pid: int) -> tuple[dict, float, float, float]:  # fmt: skip
+def run_sim(
+    run: Path, speed: float, seconds: float, prof_port: int, pps_port: int, devices: str, receiver_pid: int
+) -> tuple[dict, float, float, float]:
     """Run the emulators; returns (their stats, the receiver's CPU s over the window, the window
     length s, the seconds after the window until the receiver's socket buffer was empty)."""
     (run / "truth_clock.json").unlink(missing_ok=True)
-    sim = subprocess.Popen([*MLS, "sim", "devices", *SIM_ARGS, "--speed", str(speed),
-                            "--duration", str(seconds * speed), "--devices", devices,
-                            "--run-dir", str(run), "--profiler-port", str(prof_port),
-                            "--pps-port", str(pps_port)], cwd=run,
-                           stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, start_new_session=True)  # fmt: skip
+    sim = subprocess.Popen(
+        [
+            *MLS,
+            "sim",
+            "devices",
+            *SIM_ARGS,
+            "--speed",
+            str(speed),
+            "--duration",
+            str(seconds * speed),
+            "--devices",
+            devices,
+            "--run-dir",
+            str(run),
+            "--profiler-port",
+            str(prof_port),
+            "--pps-port",
+            str(pps_port),
+        ],
+        cwd=run,
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.PIPE,
+        start_new_session=True,
+    )
     try:
         wait_for(lambda: (run / "truth_clock.json").exists() or sim.poll() is not None, 120, "the emulators")
         if sim.poll() is not None:
@@ -143,14 +175,20 @@ def daemon_run(tmp: Path, speed: float, seconds: float) -> dict:
     prof_port, pps_port = free_port(), free_port()
     cfg = run / "vessel.yaml"
     cfg.write_text(vessel_yaml(run, prof_port, pps_port, speed))
-    daemon = subprocess.Popen([*MLS, "acquire", "--config", str(cfg), "--log-level", "error"], cwd=run,
-                              stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, start_new_session=True)  # fmt: skip
+    daemon = subprocess.Popen(
+        [*MLS, "acquire", "--config", str(cfg), "--log-level", "error"],
+        cwd=run,
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.PIPE,
+        start_new_session=True,
+    )
     try:
         wait_for(lambda: (run / "status.sock").exists() or daemon.poll() is not None, 30, "the daemon")
         if daemon.poll() is not None:
             raise RuntimeError(f"mls acquire failed: {daemon.stderr.read().decode()[-2000:]}")
-        stats, cpu, window, drain_s = run_sim(run, speed, seconds, prof_port, pps_port, "ins,profiler,pps",
-                                              daemon.pid)  # fmt: skip
+        stats, cpu, window, drain_s = run_sim(
+            run, speed, seconds, prof_port, pps_port, "ins,profiler,pps", daemon.pid
+        )
         snap, last, stable_since = None, -1, time.monotonic()
         while time.monotonic() - stable_since < 1.5 and time.monotonic() - stable_since < 30:
             time.sleep(0.5)  # until the daemon has worked through its socket buffer
@@ -168,13 +206,23 @@ def daemon_run(tmp: Path, speed: float, seconds: float) -> dict:
     lost = sent - received + sum(log["dropped"].values())
     ins = stats["ins"]["stats"]
     ins_lost = max(ins["epochs"] - snap["metrics"]["devices"]["ins"]["records"], 0)
-    return {"speed": speed, "sent": sent, "received": received, "kernel_drops": kernel_drops,
-            "lost": lost, "ins_lost": ins_lost, "ins_sent": ins["epochs"],
-            "ins_overrun_bytes": ins["bytes_overrun"], "drain_s": drain_s,
-            "sustained": lost == 0 and ins_lost == 0 and drain_s < 1.0,
-            "cpu_pct": 100 * cpu / window, "rate": sent / window,
-            "emulators_cpu_pct": 100 * sum(st.get("timing", {}).get("cpu_fraction", 0.0) for st in stats.values()),
-            "emitter_p99_ms": prof.get("timing", {}).get("error_p99_us", float("nan")) / 1e3}  # fmt: skip
+    return {
+        "speed": speed,
+        "sent": sent,
+        "received": received,
+        "kernel_drops": kernel_drops,
+        "lost": lost,
+        "ins_lost": ins_lost,
+        "ins_sent": ins["epochs"],
+        "ins_overrun_bytes": ins["bytes_overrun"],
+        "drain_s": drain_s,
+        "sustained": lost == 0 and ins_lost == 0 and drain_s < 1.0,
+        "cpu_pct": 100 * cpu / window,
+        "rate": sent / window,
+        "emulators_cpu_pct": 100
+        * sum(st.get("timing", {}).get("cpu_fraction", 0.0) for st in stats.values()),
+        "emitter_p99_ms": prof.get("timing", {}).get("error_p99_us", float("nan")) / 1e3,
+    }
 
 
 def udp_socket(port: int) -> tuple[int, int] | None:
@@ -216,8 +264,11 @@ def peer_run(tmp: Path, seconds: float) -> dict:
     run.mkdir()
     prof_port, pps_port = free_port(), free_port()
     count = run / "count"
-    peer = subprocess.Popen([sys.executable, "-c", PEER, str(prof_port), str(count)], stdout=subprocess.PIPE,
-                            start_new_session=True)  # fmt: skip
+    peer = subprocess.Popen(
+        [sys.executable, "-c", PEER, str(prof_port), str(count)],
+        stdout=subprocess.PIPE,
+        start_new_session=True,
+    )
     try:
         peer.stdout.readline()
         stats, cpu, window, _ = run_sim(run, 1.0, seconds, prof_port, pps_port, "profiler", peer.pid)
@@ -238,31 +289,41 @@ def main() -> None:
     with tempfile.TemporaryDirectory(prefix="mls-bench-acquire-") as d:
         tmp = Path(d)
         peer = peer_run(tmp, args.seconds)
-        print(f"peer: bare UDP receive loop at 1×: {peer['received']:,} of {peer['sent']:,} datagrams, "
-              f"lost {peer['lost']}, CPU {peer['cpu_pct']:.1f} % of one core")  # fmt: skip
+        print(
+            f"peer: bare UDP receive loop at 1×: {peer['received']:,} of {peer['sent']:,} datagrams, "
+            f"lost {peer['lost']}, CPU {peer['cpu_pct']:.1f} % of one core"
+        )
         results = []
         for s in speeds:
             r = daemon_run(tmp, s, args.seconds)
             results.append(r)
-            print(f"daemon ×{s:<4g} {r['rate']:>8,.0f} datagrams/s (emulators' CPU "
-                  f"{r['emulators_cpu_pct']:.0f} %, p99 late {r['emitter_p99_ms']:.1f} ms): lost "
-                  f"{r['lost']:,} of {r['sent']:,} (socket overflows {r['kernel_drops']}), INS epochs lost "
-                  f"{r['ins_lost']:,} of {r['ins_sent']:,} ({r['ins_overrun_bytes']:,} bytes overrun), backlog read "
-                  f"{r['drain_s']:.2f} s after the end, daemon CPU {r['cpu_pct']:.1f} % of one core",
-                  flush=True)  # fmt: skip
+            print(
+                f"daemon ×{s:<4g} {r['rate']:>8,.0f} datagrams/s (emulators' CPU "
+                f"{r['emulators_cpu_pct']:.0f} %, p99 late {r['emitter_p99_ms']:.1f} ms): lost "
+                f"{r['lost']:,} of {r['sent']:,} (socket overflows {r['kernel_drops']}), INS epochs lost "
+                f"{r['ins_lost']:,} of {r['ins_sent']:,} ({r['ins_overrun_bytes']:,} bytes overrun), backlog read "
+                f"{r['drain_s']:.2f} s after the end, daemon CPU {r['cpu_pct']:.1f} % of one core",
+                flush=True,
+            )
             if not r["sustained"] and s > 1:
                 break
     one = results[0]
     ok = [r["speed"] for r in results if r["sustained"]]
     best = max(ok) if ok else 0.0
     print()
-    print(f"packets lost at 1× (1.016 Mpts/s + INS 200 Hz): {one['lost']} profiler, {one['ins_lost']} INS   "
-          f"goal 0 ({'met' if one['lost'] == 0 and one['ins_lost'] == 0 else 'NOT met'})")  # fmt: skip
-    print(f"daemon CPU at 1×: {one['cpu_pct']:.1f} % of one core   peer {peer['cpu_pct']:.1f} %   ratio "
-          f"{one['cpu_pct'] / max(peer['cpu_pct'], 1e-9):.1f}x   goal < 50 % "
-          f"({'met' if one['cpu_pct'] < 50 else 'NOT met'})")  # fmt: skip
-    print(f"highest rate multiple with zero loss: {best:g}×   goal ≥ 5× ({'met' if best >= 5 else 'NOT met'})"
-          + ("" if len(ok) < len(speeds) or best < max(speeds) else " (every multiple tried)"))
+    print(
+        f"packets lost at 1× (1.016 Mpts/s + INS 200 Hz): {one['lost']} profiler, {one['ins_lost']} INS   "
+        f"goal 0 ({'met' if one['lost'] == 0 and one['ins_lost'] == 0 else 'NOT met'})"
+    )
+    print(
+        f"daemon CPU at 1×: {one['cpu_pct']:.1f} % of one core   peer {peer['cpu_pct']:.1f} %   ratio "
+        f"{one['cpu_pct'] / max(peer['cpu_pct'], 1e-9):.1f}x   goal < 50 % "
+        f"({'met' if one['cpu_pct'] < 50 else 'NOT met'})"
+    )
+    print(
+        f"highest rate multiple with zero loss: {best:g}×   goal ≥ 5× ({'met' if best >= 5 else 'NOT met'})"
+        + ("" if len(ok) < len(speeds) or best < max(speeds) else " (every multiple tried)")
+    )
 
 
 if __name__ == "__main__":

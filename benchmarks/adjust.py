@@ -29,8 +29,11 @@ TRUTH = np.radians([0.208, 1.245, 0.149])
 
 def tiled(base, n, seed):
     """n observations: the base geometry repeated, each copy with fresh per-point noise."""
-    idx = (np.arange(n) * len(base)) // n if n <= len(base) else \
-        np.tile(np.arange(len(base)), -(-n // len(base)))[:n]
+    idx = (
+        (np.arange(n) * len(base)) // n
+        if n <= len(base)
+        else np.tile(np.arange(len(base)), -(-n // len(base)))[:n]
+    )
     obs = base.select(idx)
     # keep passes contiguous and times non-decreasing within a pass
     order = np.lexsort((obs.t_gps_s, obs.pass_index))
@@ -51,16 +54,17 @@ def best_of(fn, repeat):
 
 
 def main():
-    base, planes, _ = synth.observations(Mount(boresight_rad=TRUTH), synth.montreal_planes(),
-                                         points_per_plane_per_pass=1100, noise=False)
+    base, planes, _ = synth.observations(
+        Mount(boresight_rad=TRUTH), synth.montreal_planes(), points_per_plane_per_pass=1100, noise=False
+    )
     solve_only = AdjustOptions(outliers="none", jackknife=False, error_model=ErrorModel("white"))
     full = AdjustOptions()
     print(f"{'points':>9} {'solve (formal σ)':>18} {'full (outliers, realistic σ, jackknife)':>42}")
     rows = {}
     for n, repeat in ((1300, 20), (100_000, 3), (1_000_000, 1)):
         obs = tiled(base, n, seed=n)
-        t_solve, res = best_of(lambda: adjust(obs, Mount(), planes, solve_only), repeat)
-        t_full, _ = best_of(lambda: adjust(obs, Mount(), planes, full), max(1, repeat // 3))
+        t_solve, res = best_of(lambda obs=obs: adjust(obs, Mount(), planes, solve_only), repeat)
+        t_full, _ = best_of(lambda obs=obs: adjust(obs, Mount(), planes, full), max(1, repeat // 3))
         rows[n] = (t_solve, res)
         print(f"{n:>9} {t_solve * 1e3:>15.1f} ms {t_full * 1e3:>39.1f} ms")
     obs = tiled(base, 1300, seed=1300)
@@ -69,12 +73,16 @@ def main():
     t_dense = time.perf_counter() - t0
     t_fast = rows[1300][0]
     print(f"dense textbook Gauss–Helmert, 1,300 points, 4 iterations: {t_dense:.2f} s")
-    print(f"ratio dense / O(n) at 1,300 points: {t_dense / t_fast:,.0f}×  "
-          f"(thesis, C++: 532 s → ratio to ours {532.0 / t_fast:,.0f}×)")
+    print(
+        f"ratio dense / O(n) at 1,300 points: {t_dense / t_fast:,.0f}×  "
+        f"(thesis, C++: 532 s → ratio to ours {532.0 / t_fast:,.0f}×)"
+    )
     goals = {1300: 0.020, 100_000: 1.0, 1_000_000: 10.0}
     for n, goal in goals.items():
-        print(f"goal {n:>9} points ≤ {goal:g} s: {'met' if rows[n][0] <= goal else 'NOT met'} "
-              f"({rows[n][0]:.3f} s)")
+        print(
+            f"goal {n:>9} points ≤ {goal:g} s: {'met' if rows[n][0] <= goal else 'NOT met'} "
+            f"({rows[n][0]:.3f} s)"
+        )
 
 
 if __name__ == "__main__":

@@ -68,13 +68,33 @@ def nmea_lines(epochs: int) -> list[bytes]:
     for k in range(epochs):
         gps_ns = utc_fields_to_gps_ns(2024, 6, 1, 36_000 * 10**9 + k * 10**8)
         nav = NavRecord(
-            "nmea", gps_ns=gps_ns, lat_deg=45.5 + rng.normal() * 1e-4, lon_deg=-73.55 + rng.normal() * 1e-4,
-            height_m=5.0, roll_rad=rng.normal() * 0.02, pitch_rad=rng.normal() * 0.02, heading_rad=1.0,
-            v_north_m_s=2.0, v_east_m_s=0.5, v_down_m_s=0.0, surge_m=0.0, sway_m=0.0, heave_m=0.1,
-            sigma_roll_rad=1e-4, sigma_pitch_rad=1e-4, sigma_heading_rad=2e-4, sigma_north_m=0.02,
-            sigma_east_m=0.02, sigma_down_m=0.03, sigma_v_north_m_s=0.01, sigma_v_east_m_s=0.01,
-            sigma_v_down_m_s=0.01, algorithm_status=algo, system_status=system, user_status=0,
-        )  # fmt: skip
+            "nmea",
+            gps_ns=gps_ns,
+            lat_deg=45.5 + rng.normal() * 1e-4,
+            lon_deg=-73.55 + rng.normal() * 1e-4,
+            height_m=5.0,
+            roll_rad=rng.normal() * 0.02,
+            pitch_rad=rng.normal() * 0.02,
+            heading_rad=1.0,
+            v_north_m_s=2.0,
+            v_east_m_s=0.5,
+            v_down_m_s=0.0,
+            surge_m=0.0,
+            sway_m=0.0,
+            heave_m=0.1,
+            sigma_roll_rad=1e-4,
+            sigma_pitch_rad=1e-4,
+            sigma_heading_rad=2e-4,
+            sigma_north_m=0.02,
+            sigma_east_m=0.02,
+            sigma_down_m=0.03,
+            sigma_v_north_m_s=0.01,
+            sigma_v_east_m_s=0.01,
+            sigma_v_down_m_s=0.01,
+            algorithm_status=algo,
+            system_status=system,
+            user_status=0,
+        )
         lines += (encode_zda(gps_ns) + encode_epoch(nav)).splitlines(keepends=True)
     return lines
 
@@ -107,8 +127,22 @@ def bench_nmea() -> None:
     t_peer = best_of(peer)
     peer_rate = n / t_peer
     row("NMEA sentences/s (stream)", n / best_of(ours_stream), "sentences/s", "pynmeagps", peer_rate, 50_000)
-    row("NMEA sentences/s (line by line)", n / best_of(ours_lines), "sentences/s", "pynmeagps", peer_rate, 50_000)
-    row("NMEA → nav records (sentences/s)", n / best_of(ours_nav), "sentences/s", "pynmeagps (no assembly)", peer_rate, 50_000)
+    row(
+        "NMEA sentences/s (line by line)",
+        n / best_of(ours_lines),
+        "sentences/s",
+        "pynmeagps",
+        peer_rate,
+        50_000,
+    )
+    row(
+        "NMEA → nav records (sentences/s)",
+        n / best_of(ours_nav),
+        "sentences/s",
+        "pynmeagps (no assembly)",
+        peer_rate,
+        50_000,
+    )
 
 
 # -- STDBIN -------------------------------------------------------------------------------------
@@ -155,7 +189,14 @@ def bench_stdbin() -> None:
     def peer():
         assert naive_stdbin(blob) == n
 
-    row("STDBIN V3 frames/s", n / best_of(ours), "frames/s", "per-block struct decoder", n / best_of(peer), 20_000)
+    row(
+        "STDBIN V3 frames/s",
+        n / best_of(ours),
+        "frames/s",
+        "per-block struct decoder",
+        n / best_of(peer),
+        20_000,
+    )
 
 
 # -- ZFP1 ---------------------------------------------------------------------------------------
@@ -179,7 +220,13 @@ def bench_zfp() -> None:
     dgs = []
     for c in range(n_profiles):
         dgs += encode_profile(
-            c, 10**18 + c * 5_000_000, 984, 0, 70866, rng.integers(0, 3_000_000, n_points), rng.integers(0, 65535, n_points)
+            c,
+            10**18 + c * 5_000_000,
+            984,
+            0,
+            70866,
+            rng.integers(0, 3_000_000, n_points),
+            rng.integers(0, 65535, n_points),
         )
     total = n_profiles * n_points
 
@@ -191,7 +238,14 @@ def bench_zfp() -> None:
     def peer():
         assert naive_zfp(dgs) == total
 
-    row("ZFP1 points/s (decode+assemble)", total / best_of(ours, 5), "points/s", "pure-Python struct decoder", total / best_of(peer, 1), 20_000_000)
+    row(
+        "ZFP1 points/s (decode+assemble)",
+        total / best_of(ours, 5),
+        "points/s",
+        "pure-Python struct decoder",
+        total / best_of(peer, 1),
+        20_000_000,
+    )
 
 
 if __name__ == "__main__":

@@ -10,11 +10,11 @@ Goal: the full marine sweep in ≤ 60 s on the 2-core machine.
 
 from __future__ import annotations
 
-import _onecore  # noqa: F401  (first: BLAS on one thread)
-
 import argparse  # noqa: E402
 import tempfile  # noqa: E402
 import time  # noqa: E402
+
+import _onecore  # noqa: F401  (first: BLAS on one thread)
 
 
 def main() -> None:
@@ -54,12 +54,16 @@ def main() -> None:
         files = write_study(result, out, jobs=args.jobs)
         t_write = time.perf_counter() - t1
     total = t_study + t_write
-    print(f"full marine sweep (montreal, {n_configs} configurations, {len(result.sigma)} "
-          f"predictions, {len(files)} files) on {args.jobs} processes: {total:.1f} s "
-          f"(study {t_study:.1f} s, tables/figures/summary {t_write:.1f} s); goal ≤ 60 s: "
-          f"{'met' if total <= 60 else 'NOT met'}")
-    print(f"peer: one simulation + prediction of montreal {best_peer * 1e3:.0f} ms × {n_configs} "
-          f"configurations = {peer:.1f} s on one core")
+    print(
+        f"full marine sweep (montreal, {n_configs} configurations, {len(result.sigma)} "
+        f"predictions, {len(files)} files) on {args.jobs} processes: {total:.1f} s "
+        f"(study {t_study:.1f} s, tables/figures/summary {t_write:.1f} s); goal ≤ 60 s: "
+        f"{'met' if total <= 60 else 'NOT met'}"
+    )
+    print(
+        f"peer: one simulation + prediction of montreal {best_peer * 1e3:.0f} ms × {n_configs} "
+        f"configurations = {peer:.1f} s on one core"
+    )
     print(f"ratio full sweep / peer: {total / peer:.2f}")
 
 

@@ -14,11 +14,10 @@ Prints points/s of ``calib.core.georef.georeference`` and the ratio of its time 
 
 from __future__ import annotations
 
-import _onecore  # noqa: F401  (first: BLAS on one thread)
-
 import argparse  # noqa: E402
 import time  # noqa: E402
 
+import _onecore  # noqa: F401  (first: BLAS on one thread)
 import numpy as np  # noqa: E402
 
 from calib.core import frames  # noqa: E402
@@ -36,17 +35,23 @@ def wave_trajectory(duration_s: float) -> Trajectory:
     t = T0_GPS_S + np.arange(-1.0, duration_s + 1.0, 1.0 / TRAJECTORY_RATE_HZ)
     dt = t - T0_GPS_S
     w = 2.0 * np.pi / 6.0  # 6 s swell
-    rpy = np.stack([
-        np.radians(3.0) * np.sin(w * dt),
-        np.radians(1.0) * np.sin(1.3 * w * dt + 0.4),
-        np.radians(30.0) + np.radians(0.5) * np.sin(0.7 * w * dt),
-    ], axis=1)  # fmt: skip
+    rpy = np.stack(
+        [
+            np.radians(3.0) * np.sin(w * dt),
+            np.radians(1.0) * np.sin(1.3 * w * dt + 0.4),
+            np.radians(30.0) + np.radians(0.5) * np.sin(0.7 * w * dt),
+        ],
+        axis=1,
+    )
     heading = rpy[0, 2]
-    p = np.stack([
-        2.0 * np.cos(heading) * dt,
-        2.0 * np.sin(heading) * dt,
-        0.2 * np.sin(w * dt + 1.0),
-    ], axis=1)  # fmt: skip
+    p = np.stack(
+        [
+            2.0 * np.cos(heading) * dt,
+            2.0 * np.sin(heading) * dt,
+            0.2 * np.sin(w * dt + 1.0),
+        ],
+        axis=1,
+    )
     return Trajectory(t, p, rpy, frames.LocalFrame(45.5, -73.55, -30.0), name="waves")
 
 
@@ -91,8 +96,12 @@ def main() -> None:
         time_offset_s=0.0005,
     )
     out = np.empty((3, n)).T
-    t_c, rho_c, alpha_c, out_c = np.empty_like(t), np.empty_like(rho), np.empty_like(alpha), \
-        np.empty((3, n)).T  # fmt: skip
+    t_c, rho_c, alpha_c, out_c = (
+        np.empty_like(t),
+        np.empty_like(rho),
+        np.empty_like(alpha),
+        np.empty((3, n)).T,
+    )
 
     def georef():
         georeference(t, rho, alpha, traj, mount, out=out)
@@ -109,10 +118,11 @@ def main() -> None:
 
     print(f"points: {n:,}  trajectory epochs: {traj.t_gps_s.size:,} ({TRAJECTORY_RATE_HZ:g} Hz)")
     print(f"georeference : {t_georef * 1e3:8.1f} ms  {n / t_georef / 1e6:7.1f} M points/s")
-    print(f"numpy copy   : {t_copy * 1e3:8.1f} ms  {n / t_copy / 1e6:7.1f} M points/s "
-          f"(inputs + outputs: {2 * 6 * 8 * n / t_copy / 1e9:.1f} GB/s)")  # fmt: skip
-    print(f"ratio georeference / copy: {t_georef / t_copy:.1f}×  "
-          f"(goal: ≥ 20 M points/s and ≤ 10×)")  # fmt: skip
+    print(
+        f"numpy copy   : {t_copy * 1e3:8.1f} ms  {n / t_copy / 1e6:7.1f} M points/s "
+        f"(inputs + outputs: {2 * 6 * 8 * n / t_copy / 1e9:.1f} GB/s)"
+    )
+    print(f"ratio georeference / copy: {t_georef / t_copy:.1f}×  (goal: ≥ 20 M points/s and ≤ 10×)")
 
 
 if __name__ == "__main__":

@@ -13,12 +13,12 @@ Mpts/s with room to spare (the daemon has other work).
 
 from __future__ import annotations
 
-import _onecore  # noqa: F401  (first: BLAS on one thread)
-
 import argparse  # noqa: E402
 import sys  # noqa: E402
 import time  # noqa: E402
 from pathlib import Path  # noqa: E402
+
+import _onecore  # noqa: F401  (first: BLAS on one thread)
 
 # the project root first: benchmarks/acquire.py would otherwise shadow the acquire package
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
@@ -31,10 +31,10 @@ def _stream(seconds: float):
 
     from calib.core.geometry import Rectangle
     from calib.sim.motion import MotionModel, Wave, sail
-    from calib.survey.passplan import plan_site
     from calib.sim.scenario import ScannerModel, load_scenario
     from calib.sim.scene import Scene
     from calib.sim.simulate import scan
+    from calib.survey.passplan import plan_site
 
     sc = load_scenario("montreal")
     site = sc.site()
@@ -49,8 +49,9 @@ def _stream(seconds: float):
     c = np.mean([t.center_m for t in targets], axis=0)
     back = np.array([np.cos(w), np.sin(w), 0.0])
     wall = Rectangle.from_orientation("wall", c - 0.05 * back, 40.0, 8.0, np.pi / 2, w, 0.25)
-    top = Rectangle.from_orientation("top", c - 0.05 * back - 4.0 * back + [0, 0, -4.0], 40.0,
-                                     8.0, 0.0, w, 0.3)  # fmt: skip
+    top = Rectangle.from_orientation(
+        "top", c - 0.05 * back - 4.0 * back + [0, 0, -4.0], 40.0, 8.0, 0.0, w, 0.3
+    )
     scene = Scene((*targets, wall, top), ("target", "target", "wall", "ground"))
     scanner = ScannerModel()  # full rate, full circle
     c0, c1 = run.capture_times[1]
@@ -73,8 +74,12 @@ def _stream(seconds: float):
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--seconds", type=float, default=5.0, help="seconds of profiler stream "
-                    "(centred on the capture window)")
+    ap.add_argument(
+        "--seconds",
+        type=float,
+        default=5.0,
+        help="seconds of profiler stream (centred on the capture window)",
+    )
     ap.add_argument("--repeat", type=int, default=3, help="timed runs (the best is reported)")
     args = ap.parse_args()
 
@@ -96,15 +101,20 @@ def main() -> None:
         t_a = time.perf_counter()
         fin = np.flatnonzero(np.isfinite(rho))
         p = georeference(t[fin], rho[fin], alpha[fin], traj, mount)
-        counts_all = [int(np.sum((np.abs(r.signed_distance(p)) <= 0.15) & r.contains(p)))
-                      for r in targets.rectangles]  # fmt: skip
+        counts_all = [
+            int(np.sum((np.abs(r.signed_distance(p)) <= 0.15) & r.contains(p))) for r in targets.rectangles
+        ]
         best_all = min(best_all, time.perf_counter() - t_a)
     rate_gate, rate_all = n / best_gate, n / best_all
-    print(f"stream: {args.seconds:g} s at the full Z+F rate, {n:,} points, {returns:,} returns; "
-          f"gated {hits.n_gated:,}")
+    print(
+        f"stream: {args.seconds:g} s at the full Z+F rate, {n:,} points, {returns:,} returns; "
+        f"gated {hits.n_gated:,}"
+    )
     print(f"hits per target: gate {hits.counts(2).tolist()}, georeference-all {counts_all}")
-    print(f"target_hits (gate, then georeference): {best_gate:7.3f} s "
-          f"{rate_gate / 1e6:7.2f} Mpts/s = {rate_gate / 1.016e6:5.1f}× real time (goal ≥ 1×)")
+    print(
+        f"target_hits (gate, then georeference): {best_gate:7.3f} s "
+        f"{rate_gate / 1e6:7.2f} Mpts/s = {rate_gate / 1.016e6:5.1f}× real time (goal ≥ 1×)"
+    )
     print(f"georeference every return + test:      {best_all:7.3f} s {rate_all / 1e6:7.2f} Mpts/s")
     print(f"ratio gate / georeference-all: {rate_gate / rate_all:.2f}")
 

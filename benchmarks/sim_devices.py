@@ -44,8 +44,11 @@ from sim_devices.profiler import ProfilerEmulator, ProfilerSettings  # noqa: E40
 from sim_devices.runner import DeviceRun, DevicesSpec, EmulatorRun, free_udp_port  # noqa: E402
 from sim_devices.serialpty import PtyPort  # noqa: E402
 
-FULL_RATE = ["scanner.point_rate_scale=1", "scanner.angular_windows_deg=[]",
-             "site.passes=[{id: 1, relative_heading_deg: 0}]"]  # fmt: skip
+FULL_RATE = [
+    "scanner.point_rate_scale=1",
+    "scanner.angular_windows_deg=[]",
+    "site.passes=[{id: 1, relative_heading_deg: 0}]",
+]
 
 
 class Sink:
@@ -177,14 +180,18 @@ def run_and_sink(run, ports: list[int], seconds: float) -> dict:
 
 def fmt_row(name: str, ours: dict, peer: dict | None) -> None:
     t = ours["timing"]
-    line = (f"{name:<26} {t['emissions']:>7} emissions  timing error median {t['error_median_us'] / 1e3:6.3f} ms"
-            f"  p99 {t['error_p99_us'] / 1e3:6.3f} ms  max {t['error_max_us'] / 1e3:6.2f} ms"
-            f"  CPU {100 * t['cpu_fraction']:5.1f} % of a core")  # fmt: skip
+    line = (
+        f"{name:<26} {t['emissions']:>7} emissions  timing error median {t['error_median_us'] / 1e3:6.3f} ms"
+        f"  p99 {t['error_p99_us'] / 1e3:6.3f} ms  max {t['error_max_us'] / 1e3:6.2f} ms"
+        f"  CPU {100 * t['cpu_fraction']:5.1f} % of a core"
+    )
     if peer is not None:
         p = peer["timing"]
-        line += (f"   | peer p99 {p['error_p99_us'] / 1e3:6.3f} ms, CPU {100 * p['cpu_fraction']:5.1f} %"
-                 f"   ratio p99 {t['error_p99_us'] / p['error_p99_us']:5.2f}x, CPU "
-                 f"{t['cpu_fraction'] / max(p['cpu_fraction'], 1e-9):5.2f}x")  # fmt: skip
+        line += (
+            f"   | peer p99 {p['error_p99_us'] / 1e3:6.3f} ms, CPU {100 * p['cpu_fraction']:5.1f} %"
+            f"   ratio p99 {t['error_p99_us'] / p['error_p99_us']:5.2f}x, CPU "
+            f"{t['cpu_fraction'] / max(p['cpu_fraction'], 1e-9):5.2f}x"
+        )
     print(line)
 
 
@@ -200,33 +207,48 @@ def main() -> None:
     g = feed.grid
     per_profile = ProfilerEmulator(g, ProfilerSettings(), [], feed.start_gps_ns).layout
     pts = sum(n for _, n in per_profile)
-    print(f"scenario montreal, full Z+F rate: {g.profile_rate_hz:g} profiles/s × {pts} points = "
-          f"{g.profile_rate_hz * pts / 1e6:.3f} Mpts/s, {len(per_profile)} datagrams/profile "
-          f"({g.profile_rate_hz * len(per_profile):,.0f}/s); INS NMEA 100 Hz; PPS; {args.seconds:g} s each "
-          f"(simulated in {t_sim:.1f} s)")  # fmt: skip
+    print(
+        f"scenario montreal, full Z+F rate: {g.profile_rate_hz:g} profiles/s × {pts} points = "
+        f"{g.profile_rate_hz * pts / 1e6:.3f} Mpts/s, {len(per_profile)} datagrams/profile "
+        f"({g.profile_rate_hz * len(per_profile):,.0f}/s); INS NMEA 100 Hz; PPS; {args.seconds:g} s each "
+        f"(simulated in {t_sim:.1f} s)"
+    )
 
     zero = TruthClock(0, feed.start_gps_ns)
-    datagrams = [(h, d) for h, _, d in ProfilerEmulator(g, ProfilerSettings(), [], feed.start_gps_ns).packets(zero)]
+    datagrams = [
+        (h, d) for h, _, d in ProfilerEmulator(g, ProfilerSettings(), [], feed.start_gps_ns).packets(zero)
+    ]
     ins = InsEmulator(feed.ins, InsSettings(), [], feed.start_gps_ns, feed.end_gps_ns, "/nonexistent")
     hosts, kinds, args_ = ins.schedule(zero)
     blocks = [(int(h), ins.nav_bytes(int(a))) for h, k, a in zip(hosts, kinds, args_) if k == 2]
 
     def measure(tmp: Path, realtime: bool) -> tuple[dict, dict]:
         prof_port, pps_port = free_udp_port(), free_udp_port()
-        spec = DevicesSpec(run_dir=tmp / "emulators", devices=("ins", "profiler", "pps"), ins=InsSettings(),
-                           profiler=ProfilerSettings(port=prof_port), pps=PpsSettings(port=pps_port),
-                           realtime=realtime)  # fmt: skip
+        spec = DevicesSpec(
+            run_dir=tmp / "emulators",
+            devices=("ins", "profiler", "pps"),
+            ins=InsSettings(),
+            profiler=ProfilerSettings(port=prof_port),
+            pps=PpsSettings(port=pps_port),
+            realtime=realtime,
+        )
         ours = run_and_sink(DeviceRun(feed, spec), [prof_port, pps_port], args.seconds)
         for name in ("profiler", "ins", "pps"):
             if ours[name].get("status") != "finished":
                 sys.exit(f"the {name} emulator did not finish: {ours[name]}")
         # the peer: the same bytes at the same instants, precomputed
         peer_port = free_udp_port()
-        bares = [_Bare("profiler", datagrams, ("127.0.0.1", peer_port), ProfilerEmulator.spin_ns),
-                 _Bare("ins", blocks, tmp / "peer" / "ins", InsEmulator.spin_ns)]
-        peer = run_and_sink(PeerRun(tmp / "peer", bares, feed.start_gps_ns, realtime), [peer_port], args.seconds)
-        print(f"received: {ours['_sink']['datagrams']:,} datagrams, {ours['_sink']['serial_bytes']:,} pty bytes "
-              f"(peer {peer['_sink']['datagrams']:,}, {peer['_sink']['serial_bytes']:,})")  # fmt: skip
+        bares = [
+            _Bare("profiler", datagrams, ("127.0.0.1", peer_port), ProfilerEmulator.spin_ns),
+            _Bare("ins", blocks, tmp / "peer" / "ins", InsEmulator.spin_ns),
+        ]
+        peer = run_and_sink(
+            PeerRun(tmp / "peer", bares, feed.start_gps_ns, realtime), [peer_port], args.seconds
+        )
+        print(
+            f"received: {ours['_sink']['datagrams']:,} datagrams, {ours['_sink']['serial_bytes']:,} pty bytes "
+            f"(peer {peer['_sink']['datagrams']:,}, {peer['_sink']['serial_bytes']:,})"
+        )
         return ours, peer
 
     results = {}
@@ -242,8 +264,10 @@ def main() -> None:
     for policy, ours in results.items():
         worst_p99_ms = max(ours[n]["timing"]["error_p99_us"] for n in ("profiler", "ins", "pps")) / 1e3
         cpu = ours["profiler"]["timing"]["cpu_fraction"]
-        print(f"{policy}: goal p99 ≤ 2 ms: worst {worst_p99_ms:.3f} ms ({'met' if worst_p99_ms <= 2.0 else 'NOT met'}); "
-              f"goal full-rate profiler < 1 core: {cpu:.2f} core ({'met' if cpu < 1.0 else 'NOT met'})")
+        print(
+            f"{policy}: goal p99 ≤ 2 ms: worst {worst_p99_ms:.3f} ms ({'met' if worst_p99_ms <= 2.0 else 'NOT met'}); "
+            f"goal full-rate profiler < 1 core: {cpu:.2f} core ({'met' if cpu < 1.0 else 'NOT met'})"
+        )
 
 
 if __name__ == "__main__":

@@ -12,11 +12,10 @@ windows toward the wall on the two parallel passes. The simulation timed is the 
 
 from __future__ import annotations
 
-import _onecore  # noqa: F401  (first: BLAS on one thread)
-
 import argparse  # noqa: E402
 import time  # noqa: E402
 
+import _onecore  # noqa: F401  (first: BLAS on one thread)
 import numpy as np  # noqa: E402
 
 
@@ -24,19 +23,33 @@ def _scenario():
     from calib.sim.scenario import load_scenario
 
     panels = [
-        {"name": f"P{i:02d}", "along_m": -17.0 + 2.0 * i + (2.0 if i >= 8 else 0.0),
-         "out_m": 0.05, "up_m": 4.0 + (i % 3), "size_m": [1.0, 1.0], "inclination_deg": 90.0}
+        {
+            "name": f"P{i:02d}",
+            "along_m": -17.0 + 2.0 * i + (2.0 if i >= 8 else 0.0),
+            "out_m": 0.05,
+            "up_m": 4.0 + (i % 3),
+            "size_m": [1.0, 1.0],
+            "inclination_deg": 90.0,
+        }
         for i in range(17)
-    ]  # fmt: skip
+    ]
     overrides = {
         "scanner.point_rate_scale": 1.0,
-        "scene.surfaces": [{"name": "quay_wall", "kind": "wall", "along_m": 0.0, "out_m": 0.0,
-                            "up_m": 4.0, "size_m": [40.0, 8.0], "reflectivity": 0.25}]
+        "scene.surfaces": [
+            {
+                "name": "quay_wall",
+                "kind": "wall",
+                "along_m": 0.0,
+                "out_m": 0.0,
+                "up_m": 4.0,
+                "size_m": [40.0, 8.0],
+                "reflectivity": 0.25,
+            }
+        ]
         + [dict(p, kind="other") for p in panels],
         "site.capture_margin_m": 15.0,
-        "site.passes": [{"id": 1, "relative_heading_deg": 0.0},
-                        {"id": 2, "relative_heading_deg": 180.0}],
-    }  # fmt: skip
+        "site.passes": [{"id": 1, "relative_heading_deg": 0.0}, {"id": 2, "relative_heading_deg": 180.0}],
+    }
     return load_scenario("montreal", overrides)
 
 
@@ -61,8 +74,7 @@ def main() -> None:
     best_geo = np.inf
     for _ in range(args.repeat):
         t0 = time.perf_counter()
-        georeference(pts.t_gps_s, pts.range_m, pts.scan_angle_rad, res.trajectory_observed,
-                     res.site.mount)  # fmt: skip
+        georeference(pts.t_gps_s, pts.range_m, pts.scan_angle_rad, res.trajectory_observed, res.site.mount)
         best_geo = min(best_geo, time.perf_counter() - t0)
     sim_rate, geo_rate = n / best_sim, n / best_geo
     print(f"scene: {n_rect} rectangles; {n:,} returns in {len(res.plan.passes)} passes")

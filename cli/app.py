@@ -12,17 +12,23 @@ from __future__ import annotations
 
 import typer
 
-from cli.commands import calib_cmd, decode_cmd
-from cli.commands import assess_cmd  # noqa: F401  (adds calib c2c, history, compare)
-from cli.commands import assess_run_cmd  # noqa: F401  (adds calib assess)
-from cli.commands import run_cmd  # noqa: F401  (adds calib run)
-from cli.commands import demo_cmd
-from cli.commands import sim_cmd
-from cli.commands import sim_devices_cmd  # noqa: F401  (adds sim devices, sim replay)
-from cli.commands import logs_cmd, status_cmd
-from cli.commands import acquire_cmd, export_cmd
-from cli.commands import checklist_cmd, plan_cmd
-from cli.commands import design_cmd
+from cli.commands import (
+    acquire_cmd,
+    assess_cmd,  # noqa: F401  (adds calib c2c, history, compare)
+    assess_run_cmd,  # noqa: F401  (adds calib assess)
+    calib_cmd,
+    checklist_cmd,
+    decode_cmd,
+    demo_cmd,
+    design_cmd,
+    export_cmd,
+    logs_cmd,
+    plan_cmd,
+    run_cmd,  # noqa: F401  (adds calib run)
+    sim_cmd,
+    sim_devices_cmd,  # noqa: F401  (adds sim devices, sim replay)
+    status_cmd,
+)
 
 app = typer.Typer(
     name="mls",

@@ -128,7 +128,9 @@ def pin_multicast_to_loopback(sock: socket.socket, group: str) -> None:
     if sock.family == socket.AF_INET:
         grp = socket.inet_aton(group)
         try:
-            sock.setsockopt(socket.IPPROTO_IP, socket.IP_DROP_MEMBERSHIP, grp + struct.pack("@I", socket.INADDR_ANY))
+            sock.setsockopt(
+                socket.IPPROTO_IP, socket.IP_DROP_MEMBERSHIP, grp + struct.pack("@I", socket.INADDR_ANY)
+            )
         except OSError:
             pass
         lo = socket.inet_aton("127.0.0.1")
@@ -177,9 +179,13 @@ class CanReader:
         class _Listener(can.Listener):
             def on_message_received(self, msg) -> None:  # notifier thread
                 frame = CanFrame(
-                    msg.arbitration_id, bytes(msg.data), time.monotonic_ns(), msg.timestamp,
-                    msg.is_extended_id, None if msg.channel is None else str(msg.channel),
-                )  # fmt: skip
+                    msg.arbitration_id,
+                    bytes(msg.data),
+                    time.monotonic_ns(),
+                    msg.timestamp,
+                    msg.is_extended_id,
+                    None if msg.channel is None else str(msg.channel),
+                )
                 reader._loop.call_soon_threadsafe(reader._deliver, frame)
 
         self._notifier = can.Notifier(self.bus, [_Listener()], timeout=0.1)

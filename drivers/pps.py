@@ -80,7 +80,9 @@ class PpsLabeler:
         key = (edge.source, edge.sequence)
         last = self._last_edge
         if key in self._seen or (
-            last is not None and last.source == edge.source and 0 <= edge.host_ns - last.host_ns < self.min_interval_ns
+            last is not None
+            and last.source == edge.source
+            and 0 <= edge.host_ns - last.host_ns < self.min_interval_ns
         ):
             self.stats.events["duplicate_edge"] += 1
             return []
@@ -276,7 +278,9 @@ class _ThreadedSource(PpsSource):
 class KernelPpsSource(_ThreadedSource):
     """``/dev/ppsN`` via ``PPS_FETCH`` (assert edges). ``ioctl`` is injectable for tests."""
 
-    def __init__(self, device: str = "/dev/pps0", name: str | None = None, timeout_s: float = 1.5, ioctl=fcntl.ioctl):
+    def __init__(
+        self, device: str = "/dev/pps0", name: str | None = None, timeout_s: float = 1.5, ioctl=fcntl.ioctl
+    ):
         super().__init__(name or device)
         self.device = device
         self.timeout_s = timeout_s
@@ -305,7 +309,13 @@ class KernelPpsSource(_ThreadedSource):
                     continue
                 last_seq = f.assert_sequence
                 self._put_threadsafe(
-                    PpsEdge(f.assert_realtime_ns - offset, self.name, f.assert_sequence, None, f.assert_realtime_ns)
+                    PpsEdge(
+                        f.assert_realtime_ns - offset,
+                        self.name,
+                        f.assert_sequence,
+                        None,
+                        f.assert_realtime_ns,
+                    )
                 )
         finally:
             os.close(fd)
@@ -318,7 +328,12 @@ class SerialLinePpsSource(_ThreadedSource):
     ``ioctl`` is injectable so the edge logic can be tested without a UART.
     """
 
-    LINES = {"dcd": termios.TIOCM_CD, "cts": termios.TIOCM_CTS, "dsr": termios.TIOCM_DSR, "ri": termios.TIOCM_RI}
+    LINES = {
+        "dcd": termios.TIOCM_CD,
+        "cts": termios.TIOCM_CTS,
+        "dsr": termios.TIOCM_DSR,
+        "ri": termios.TIOCM_RI,
+    }
 
     def __init__(self, port: str, line: str = "dcd", name: str | None = None, ioctl=fcntl.ioctl):
         super().__init__(name or f"{port}:{line}")
@@ -350,7 +365,9 @@ class SerialLinePpsSource(_ThreadedSource):
                 level = new_level
         except OSError as exc:
             self._put_threadsafe(
-                DriverError(f"TIOCMIWAIT/TIOCMGET on {self.port}: {exc.strerror or exc} (not a UART with modem lines?)")
+                DriverError(
+                    f"TIOCMIWAIT/TIOCMGET on {self.port}: {exc.strerror or exc} (not a UART with modem lines?)"
+                )
             )
         finally:
             os.close(fd)

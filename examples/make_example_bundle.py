@@ -24,15 +24,15 @@ from pathlib import Path
 import numpy as np
 
 from calib.core import frames
-from calib.io.bundle import ScanPoints, write_bundle
 from calib.core.geometry import Rectangle
 from calib.core.georef import Mount, inverse_georeference
-from calib.io.site import PassSpec, Site, Target
 from calib.core.trajectory import Trajectory
+from calib.io.bundle import ScanPoints, write_bundle
+from calib.io.site import PassSpec, Site, Target
 
 REFERENCE = frames.LocalFrame(45.5, -73.55, -30.0)  # LGF origin (ellipsoidal height)
 T_START_GPS_S = frames.gps_ns_to_seconds(
-    frames.utc_to_gps_ns(datetime.datetime(2021, 8, 17, 14, tzinfo=datetime.timezone.utc))
+    frames.utc_to_gps_ns(datetime.datetime(2021, 8, 17, 14, tzinfo=datetime.UTC))
 )
 TRAJECTORY_RATE_HZ = 50.0
 PROFILE_RATE_HZ = 25.0  # every 8th profile of the Z+F's 200 per second
@@ -63,11 +63,14 @@ def trajectory() -> Trajectory:
         along = -0.5 * PASS_LENGTH_M - SPEED_MPS + SPEED_MPS * (t - t_pass)
         north = along if heading_deg == 0.0 else -along
         p = np.stack([north, 0.05 * np.sin(0.3 * s), 0.15 * np.sin(2 * np.pi * s / 5.5)], axis=1)
-        rpy = np.stack([
-            np.radians(2.5) * np.sin(2 * np.pi * s / 6.0),
-            np.radians(0.8) * np.sin(2 * np.pi * s / 4.5 + 0.7),
-            frames.wrap_2pi(np.radians(heading_deg + 0.4 * np.sin(2 * np.pi * s / 9.0))),
-        ], axis=1)  # fmt: skip  (pass 1's heading swings across 360°/0°)
+        rpy = np.stack(
+            [
+                np.radians(2.5) * np.sin(2 * np.pi * s / 6.0),
+                np.radians(0.8) * np.sin(2 * np.pi * s / 4.5 + 0.7),
+                frames.wrap_2pi(np.radians(heading_deg + 0.4 * np.sin(2 * np.pi * s / 9.0))),
+            ],
+            axis=1,
+        )  # fmt: skip  (pass 1's heading swings across 360°/0°)
         parts.append((t, p, rpy))
         t_pass = t[-1] + TURN_S
     t, p, rpy = (np.concatenate(x) for x in zip(*parts))
@@ -111,8 +114,7 @@ def main(out_dir: Path) -> None:
     scene = []  # (Target, sampling step)
     for name, c, w, h, incl, facing, refl, step in SCENE:
         lat, lon, hgt = (float(x[0]) for x in REFERENCE.to_geodetic(np.array([c])))
-        target = Target(name, lat, lon, hgt, w, h, float(np.radians(incl)),
-                        float(np.radians(facing)), refl)  # fmt: skip
+        target = Target(name, lat, lon, hgt, w, h, float(np.radians(incl)), float(np.radians(facing)), refl)
         scene.append((target, step))
     site = Site(
         mount=Mount(lever_arm_m=LEVER_ARM_M),  # a-priori boresight 0: before calibration
@@ -120,8 +122,10 @@ def main(out_dir: Path) -> None:
         reference=REFERENCE,
         vessel="montreal-mini",
         standoff_m=STANDOFF_M,
-        passes=(PassSpec(1, 0.0, PASS_LENGTH_M, SPEED_MPS),
-                PassSpec(2, float(np.pi), PASS_LENGTH_M, SPEED_MPS)),  # fmt: skip
+        passes=(
+            PassSpec(1, 0.0, PASS_LENGTH_M, SPEED_MPS),
+            PassSpec(2, float(np.pi), PASS_LENGTH_M, SPEED_MPS),
+        ),
         validation_planes=tuple(t for t, _ in scene if not t.name.startswith("T")),
     )
 
@@ -137,8 +141,7 @@ def main(out_dir: Path) -> None:
             assert np.abs(obs.out_of_plane_m).max() < 1e-9, "points must lie in the scan plane"
             incidence = np.abs(to_scanner @ rect.normal) / np.linalg.norm(to_scanner, axis=1)
             intensity = np.round(rect.reflectivity * incidence, 3)
-            parts.append(ScanPoints(np.full(t.size, pass_id), t, obs.range_m, obs.scan_angle_rad,
-                                    intensity))  # fmt: skip
+            parts.append(ScanPoints(np.full(t.size, pass_id), t, obs.range_m, obs.scan_angle_rad, intensity))
     points = ScanPoints.concatenate(parts)
     points = points.select(np.lexsort((points.t_gps_s, points.pass_id)))
     truth = {
@@ -152,8 +155,10 @@ def main(out_dir: Path) -> None:
     }
     write_bundle(out_dir, site, traj, points, truth=truth, compress_points=True)
     size = sum(f.stat().st_size for f in out_dir.iterdir())
-    print(f"{out_dir}: {len(points)} points in {len(pass_spans)} passes, "
-          f"{traj.t_gps_s.size} trajectory epochs, {size / 1e3:.0f} kB")  # fmt: skip
+    print(
+        f"{out_dir}: {len(points)} points in {len(pass_spans)} passes, "
+        f"{traj.t_gps_s.size} trajectory epochs, {size / 1e3:.0f} kB"
+    )
 
 
 if __name__ == "__main__":

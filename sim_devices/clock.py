@@ -40,11 +40,13 @@ class TruthClock:
             raise ValueError(f"truth clock drift_ppm {self.drift_ppm!r}: expected |drift| < 1e5 ppm")
 
     @classmethod
-    def starting_in(cls, lead_s: float, gps_anchor_ns: int, drift_ppm: float = 0.0,
-                    speed: float = 1.0) -> "TruthClock":  # fmt: skip
+    def starting_in(
+        cls, lead_s: float, gps_anchor_ns: int, drift_ppm: float = 0.0, speed: float = 1.0
+    ) -> TruthClock:
         """A clock whose GPS time is ``gps_anchor_ns`` ``lead_s`` seconds from now."""
-        return cls(time.monotonic_ns() + round(lead_s * NS_PER_S), int(gps_anchor_ns), float(drift_ppm),
-                   float(speed))  # fmt: skip
+        return cls(
+            time.monotonic_ns() + round(lead_s * NS_PER_S), int(gps_anchor_ns), float(drift_ppm), float(speed)
+        )
 
     @property
     def rate(self) -> float:
@@ -78,8 +80,8 @@ class TruthClock:
             rate=self.rate,
             gps_minus_host_at_anchor_ns=self.gps_anchor_ns - self.host_anchor_ns,
             formula="gps_ns = gps_anchor_ns + (host_ns - host_anchor_ns) * rate; "
-                    "rate = speed * (1 + drift_ppm * 1e-6); host_ns is time.monotonic_ns()",
-        )  # fmt: skip
+            "rate = speed * (1 + drift_ppm * 1e-6); host_ns is time.monotonic_ns()",
+        )
         return d
 
     def write(self, path: str | Path, **extra) -> Path:
@@ -91,8 +93,10 @@ class TruthClock:
         return path
 
     @classmethod
-    def read(cls, path: str | Path) -> "TruthClock":
+    def read(cls, path: str | Path) -> TruthClock:
         d = json.loads(Path(path).read_text(encoding="utf-8"))
         if d.get("format") != FORMAT:
             raise ValueError(f"{path}: format {d.get('format')!r}, expected {FORMAT!r}")
-        return cls(int(d["host_anchor_ns"]), int(d["gps_anchor_ns"]), float(d["drift_ppm"]), float(d["speed"]))
+        return cls(
+            int(d["host_anchor_ns"]), int(d["gps_anchor_ns"]), float(d["drift_ppm"]), float(d["speed"])
+        )

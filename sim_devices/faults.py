@@ -111,8 +111,10 @@ class FaultPlan:
         """Every fault must start inside a run window of ``duration_s`` scenario seconds."""
         for f in self.faults:
             if f.at_s >= duration_s:
-                raise FaultError(f"{f.where}.at_s: got {f.at_s:g}, expected < {duration_s:g} "
-                                 f"(the run window's length in scenario seconds)")  # fmt: skip
+                raise FaultError(
+                    f"{f.where}.at_s: got {f.at_s:g}, expected < {duration_s:g} "
+                    f"(the run window's length in scenario seconds)"
+                )
 
     def schedule(self, start_gps_ns: int, clock=None) -> list[dict]:
         """JSON-ready list: every fault with its window in scenario seconds, GPS ns and (with a
@@ -120,8 +122,15 @@ class FaultPlan:
         out = []
         for f in self.faults:
             g0, g1 = f.window_ns(start_gps_ns)
-            row = {"kind": f.kind, "device": f.device, "at_s": f.at_s, "duration_s": f.duration_s,
-                   "start_gps_ns": g0, "end_gps_ns": g1, **f.params}  # fmt: skip
+            row = {
+                "kind": f.kind,
+                "device": f.device,
+                "at_s": f.at_s,
+                "duration_s": f.duration_s,
+                "start_gps_ns": g0,
+                "end_gps_ns": g1,
+                **f.params,
+            }
             if clock is not None:
                 row["start_host_ns"] = clock.host_ns(g0)
                 row["end_host_ns"] = None if g1 is None else clock.host_ns(g1)
@@ -163,15 +172,18 @@ class Timeline:
 
 def _fault(node: Node) -> Fault:
     where = node.where()
-    m = node.mapping(required={"at_s", "kind"},
-                     optional={"device", "duration_s", *{k for _, o in KINDS.values() for k in o}})  # fmt: skip
+    m = node.mapping(
+        required={"at_s", "kind"},
+        optional={"device", "duration_s", *{k for _, o in KINDS.values() for k in o}},
+    )
     kind = m["kind"].string(choices=KINDS)
     devices, options = KINDS[kind]
     allowed = {"at_s", "kind", "device", *options} | ({"duration_s"} if kind not in INSTANT else set())
     for key in m:
         if key not in allowed:
-            raise FaultError(f"{m[key].where()}: not a key of a {kind} fault; allowed: "
-                             f"{', '.join(sorted(allowed))}")  # fmt: skip
+            raise FaultError(
+                f"{m[key].where()}: not a key of a {kind} fault; allowed: {', '.join(sorted(allowed))}"
+            )
     at_s = m["at_s"].number(minimum=0.0)
     if "device" in m:
         device = m["device"].string(choices=devices)
@@ -224,9 +236,11 @@ def faults_from_node(root: Node) -> FaultPlan:
         group.sort(key=lambda f: f.at_s)
         for a, b in zip(group, group[1:]):
             if b.at_s < a.end_s or (a.kind in INSTANT and b.at_s == a.at_s):
-                raise FaultError(f"{b.where}: {b.kind} on {b.device} at {b.at_s:g} s overlaps "
-                                 f"the one at {a.where.split(': ')[-1]} ({a.at_s:g} s to "
-                                 f"{a.end_s:g} s)")  # fmt: skip
+                raise FaultError(
+                    f"{b.where}: {b.kind} on {b.device} at {b.at_s:g} s overlaps "
+                    f"the one at {a.where.split(': ')[-1]} ({a.at_s:g} s to "
+                    f"{a.end_s:g} s)"
+                )
     return FaultPlan(tuple(sorted(faults, key=lambda f: f.at_s)), seed, root.source)
 
 

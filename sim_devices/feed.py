@@ -41,8 +41,8 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from calib.io.bundle import ScanPoints
 from calib.core.frames import utc_to_gps_ns, wrap_2pi
+from calib.io.bundle import ScanPoints
 from drivers.hydrins.nav import NavRecord
 
 NS_PER_S = 1_000_000_000
@@ -89,24 +89,41 @@ class InsTrack:
         sn, se, sd = self.sigma_p_m[k]
         sr, sp, sh = self.sigma_rpy_rad[k]
         return NavRecord(
-            source, gps_ns=int(self.gps_ns[k]), lat_deg=float(self.lat_deg[k]),
-            lon_deg=float(self.lon_deg[k]), height_m=float(self.height_m[k]), height_ref="ellipsoid",
-            roll_rad=float(r), pitch_rad=float(p), heading_rad=float(h),
-            v_north_m_s=float(vn), v_east_m_s=float(ve), v_down_m_s=float(vd),
-            surge_m=0.0, sway_m=0.0, heave_m=float(self.heave_m[k]),
-            sigma_roll_rad=float(sr), sigma_pitch_rad=float(sp), sigma_heading_rad=float(sh),
-            sigma_north_m=float(sn), sigma_east_m=float(se), sigma_down_m=float(sd),
-            sigma_v_north_m_s=SIGMA_VELOCITY_M_S, sigma_v_east_m_s=SIGMA_VELOCITY_M_S,
+            source,
+            gps_ns=int(self.gps_ns[k]),
+            lat_deg=float(self.lat_deg[k]),
+            lon_deg=float(self.lon_deg[k]),
+            height_m=float(self.height_m[k]),
+            height_ref="ellipsoid",
+            roll_rad=float(r),
+            pitch_rad=float(p),
+            heading_rad=float(h),
+            v_north_m_s=float(vn),
+            v_east_m_s=float(ve),
+            v_down_m_s=float(vd),
+            surge_m=0.0,
+            sway_m=0.0,
+            heave_m=float(self.heave_m[k]),
+            sigma_roll_rad=float(sr),
+            sigma_pitch_rad=float(sp),
+            sigma_heading_rad=float(sh),
+            sigma_north_m=float(sn),
+            sigma_east_m=float(se),
+            sigma_down_m=float(sd),
+            sigma_v_north_m_s=SIGMA_VELOCITY_M_S,
+            sigma_v_east_m_s=SIGMA_VELOCITY_M_S,
             sigma_v_down_m_s=SIGMA_VELOCITY_M_S,
-        )  # fmt: skip
+        )
 
 
 def ins_track(sim, start_ns: int, end_ns: int, rate_hz: float) -> InsTrack:
     """The INS epochs of [start_ns, end_ns) at ``rate_hz`` (see the module docstring)."""
     period = NS_PER_S / rate_hz
     if not (rate_hz > 0 and period == int(period)):
-        raise FeedError(f"INS rate {rate_hz:g} Hz: expected a rate whose period is a whole number "
-                        f"of nanoseconds (1, 2, 5, 10, 20, 25, 50, 100, 125, 200 Hz ...)")  # fmt: skip
+        raise FeedError(
+            f"INS rate {rate_hz:g} Hz: expected a rate whose period is a whole number "
+            f"of nanoseconds (1, 2, 5, 10, 20, 25, 50, 100, 125, 200 Hz ...)"
+        )
     period = int(period)
     first = -(-start_ns // period) * period
     gps = np.arange(first, end_ns, period, dtype=np.int64)
@@ -124,11 +141,17 @@ def ins_track(sim, start_ns: int, end_ns: int, rate_hz: float) -> InsTrack:
     heave = poses.p_lgf_m[:, 2] - float(np.mean(obs.p_lgf_m[:, 2]))
     nan3 = np.full((gps.size, 3), np.nan)
     return InsTrack(
-        period, gps, np.asarray(lat, float), np.asarray(lon, float), np.asarray(h, float),
-        poses.rpy_rad, v, heave,
+        period,
+        gps,
+        np.asarray(lat, float),
+        np.asarray(lon, float),
+        np.asarray(h, float),
+        poses.rpy_rad,
+        v,
+        heave,
         nan3 if poses.sigma_p_m is None else poses.sigma_p_m,
         nan3 if poses.sigma_rpy_rad is None else poses.sigma_rpy_rad,
-    )  # fmt: skip
+    )
 
 
 # -- profiler -----------------------------------------------------------------------------------
@@ -187,15 +210,19 @@ def _pass_grid(t_s: np.ndarray, angle_rad: np.ndarray, K: int, dt_s: float, pass
     j = np.rint(rel).astype(np.int64)
     off = float(np.max(np.abs(rel - j)))
     if off > 0.25:
-        raise FeedError(f"pass {pass_id}: return times are not on the profiler's point grid "
-                        f"(a point period of {dt_s * 1e9:.1f} ns; off by {off:.2f} of it)")  # fmt: skip
+        raise FeedError(
+            f"pass {pass_id}: return times are not on the profiler's point grid "
+            f"(a point period of {dt_s * 1e9:.1f} ns; off by {off:.2f} of it)"
+        )
     slot_a = np.rint(wrap_2pi(angle_rad) / (2.0 * np.pi / K)).astype(np.int64) % K
     values, counts = np.unique((slot_a - j) % K, return_counts=True)
     phase = int(values[np.argmax(counts)])
     if counts.max() < 0.9 * j.size:
-        raise FeedError(f"pass {pass_id}: only {counts.max() / j.size:.0%} of the scan angles sit "
-                        f"on the encoder grid their times imply (scan-angle noise too large for "
-                        f"a step of {360.0 / K:.4f}°?)")  # fmt: skip
+        raise FeedError(
+            f"pass {pass_id}: only {counts.max() / j.size:.0%} of the scan angles sit "
+            f"on the encoder grid their times imply (scan-angle noise too large for "
+            f"a step of {360.0 / K:.4f}°?)"
+        )
     origin_ns = int(seconds_to_ns(t_s[0])) - round(phase * dt_s * 1e9)
     return origin_ns, j + phase
 
@@ -219,7 +246,7 @@ def profile_grid(points: ScanPoints, scanner, start_ns: int, end_ns: int) -> Pro
     grids.sort(key=lambda x: x[0])
     if not grids:
         grids = [(start_ns, np.zeros(0, np.int64), np.zeros(0, np.int64))]
-    starts, prof_of = [], []
+    starts = []
     ret_prof, ret_slot, ret_idx = [], [], []
     n_total = 0
     for i, (origin, idx, g) in enumerate(grids):
@@ -308,7 +335,7 @@ def shift_to_now(start_gps_ns: int, now_utc: _dt.datetime | None = None) -> int:
     """The whole seconds that move a window starting at ``start_gps_ns`` to the next GPS second
     after now: devices then send today's date and time (as real ones do), which a daemon dating
     time-of-day tags from the host's date needs."""
-    now = utc_to_gps_ns(now_utc or _dt.datetime.now(_dt.timezone.utc))
+    now = utc_to_gps_ns(now_utc or _dt.datetime.now(_dt.UTC))
     return -(-(now - start_gps_ns) // NS_PER_S) * NS_PER_S
 
 
@@ -332,8 +359,10 @@ def run_window(sim, start: str | float | None = None, duration_s: float | None =
         except ValueError:
             raise FeedError(f"start {start!r}: expected seconds after the scenario start or pass:N") from None
         if not 0 <= s < (t1_ns - t0_ns) / NS_PER_S:
-            raise FeedError(f"start {s:g} s: expected 0 ≤ start < {(t1_ns - t0_ns) / NS_PER_S:g} s "
-                            f"(the scenario's trajectory)")  # fmt: skip
+            raise FeedError(
+                f"start {s:g} s: expected 0 ≤ start < {(t1_ns - t0_ns) / NS_PER_S:g} s "
+                f"(the scenario's trajectory)"
+            )
         start_ns = t0_ns + round(s * NS_PER_S)
     if duration_s is None:
         end_ns = t1_ns
@@ -342,13 +371,20 @@ def run_window(sim, start: str | float | None = None, duration_s: float | None =
             raise FeedError(f"duration {duration_s:g} s: expected > 0")
         end_ns = start_ns + round(duration_s * NS_PER_S)
         if end_ns > t1_ns:
-            raise FeedError(f"duration {duration_s:g} s from {(start_ns - t0_ns) / NS_PER_S:g} s runs "
-                            f"past the scenario's end ({(t1_ns - t0_ns) / NS_PER_S:g} s)")  # fmt: skip
+            raise FeedError(
+                f"duration {duration_s:g} s from {(start_ns - t0_ns) / NS_PER_S:g} s runs "
+                f"past the scenario's end ({(t1_ns - t0_ns) / NS_PER_S:g} s)"
+            )
     return start_ns, end_ns
 
 
-def make_feed(sim, start: str | float | None = None, duration_s: float | None = None,
-              ins_rate_hz: float = 100.0, time_shift: int | str = 0) -> ScenarioFeed:  # fmt: skip
+def make_feed(
+    sim,
+    start: str | float | None = None,
+    duration_s: float | None = None,
+    ins_rate_hz: float = 100.0,
+    time_shift: int | str = 0,
+) -> ScenarioFeed:
     """Cut a simulation into the device streams of one run window; ``time_shift`` (ns, whole
     seconds) moves it in time, ``"now"`` to the present (:func:`shift_to_now`)."""
     a, b = run_window(sim, start, duration_s)
@@ -360,6 +396,11 @@ def make_feed(sim, start: str | float | None = None, duration_s: float | None = 
     grid = profile_grid(sim.points, sim.scenario.scanner, a, b)
     sh = time_shift
     return ScenarioFeed(
-        sim, a + sh, b + sh, replace(ins, gps_ns=ins.gps_ns + sh), replace(grid, start_ns=grid.start_ns + sh),
-        tuple(replace(m, gps_ns=m.gps_ns + sh) for m in pass_marks(sim, a, b)), sh,
-    )  # fmt: skip
+        sim,
+        a + sh,
+        b + sh,
+        replace(ins, gps_ns=ins.gps_ns + sh),
+        replace(grid, start_ns=grid.start_ns + sh),
+        tuple(replace(m, gps_ns=m.gps_ns + sh) for m in pass_marks(sim, a, b)),
+        sh,
+    )

@@ -67,7 +67,9 @@ class InsSettings:
             if not getattr(self, name) >= 0:
                 raise ValueError(f"INS {name} {getattr(self, name)!r}: expected ≥ 0")
         if self.zda_delay_s >= 0.9:
-            raise ValueError(f"INS zda_delay_s {self.zda_delay_s:g}: expected < 0.9 s (a ZDA must follow its PPS edge)")
+            raise ValueError(
+                f"INS zda_delay_s {self.zda_delay_s:g}: expected < 0.9 s (a ZDA must follow its PPS edge)"
+            )
 
 
 def _garbage(rng: np.random.Generator, n: int, forbidden: set[int]) -> bytes:
@@ -90,8 +92,16 @@ class InsEmulator:
     name = "ins"
     spin_ns = 0  # sleep only: the output jitter (0.5 ms by default) dwarfs the sleep overshoot (10–30 µs)
 
-    def __init__(self, track: InsTrack, settings: InsSettings, faults: list[Fault], start_gps_ns: int,
-                 end_gps_ns: int, link: str | Path, seed: int = 0) -> None:  # fmt: skip
+    def __init__(
+        self,
+        track: InsTrack,
+        settings: InsSettings,
+        faults: list[Fault],
+        start_gps_ns: int,
+        end_gps_ns: int,
+        link: str | Path,
+        seed: int = 0,
+    ) -> None:
         self.track = track
         self.s = settings
         self.faults = faults
@@ -114,7 +124,9 @@ class InsEmulator:
         nav_host = np.maximum.accumulate(clock.host_ns_array(tr.gps_ns) + lat + jitter)
         hosts, kinds, args = [nav_host], [np.full(len(tr), _EV_NAV)], [np.arange(len(tr))]
         if s.protocol == "nmea":
-            sec = np.arange(-(-self.start_gps_ns // NS_PER_S), -(-self.end_gps_ns // NS_PER_S), dtype=np.int64)
+            sec = np.arange(
+                -(-self.start_gps_ns // NS_PER_S), -(-self.end_gps_ns // NS_PER_S), dtype=np.int64
+            )
             hosts.append(clock.host_ns_array(sec * NS_PER_S) + round(s.zda_delay_s * NS_PER_S))
             kinds.append(np.full(sec.size, _EV_ZDA))
             args.append(sec)
@@ -147,14 +159,23 @@ class InsEmulator:
             err_m = outage.params["position_drift_m_s"] * dt_s
             phi = math.radians(nav.lat_deg)
             meridian_m = _WGS84_A * (1 - _WGS84_E2) / (1 - _WGS84_E2 * math.sin(phi) ** 2) ** 1.5
-            nav = replace(nav, lat_deg=nav.lat_deg + math.degrees(err_m / meridian_m),
-                          sigma_north_m=math.hypot(nav.sigma_north_m, err_m),
-                          sigma_east_m=math.hypot(nav.sigma_east_m, err_m))  # fmt: skip
+            nav = replace(
+                nav,
+                lat_deg=nav.lat_deg + math.degrees(err_m / meridian_m),
+                sigma_north_m=math.hypot(nav.sigma_north_m, err_m),
+                sigma_east_m=math.hypot(nav.sigma_east_m, err_m),
+            )
         algo, system = status_words(
-            navigation=not aligning, alignment=aligning, fine_alignment=not aligning,
-            dead_reckoning=outage is not None, gps_received=outage is None, gps_valid=outage is None,
-            gps_detected=True, utc_detected=True, pps_detected=True,
-        )  # fmt: skip
+            navigation=not aligning,
+            alignment=aligning,
+            fine_alignment=not aligning,
+            dead_reckoning=outage is not None,
+            gps_received=outage is None,
+            gps_valid=outage is None,
+            gps_detected=True,
+            utc_detected=True,
+            pps_detected=True,
+        )
         nav = replace(nav, algorithm_status=algo, system_status=system, user_status=0)
         if s.protocol == "nmea":
             return encode_epoch(nav, s.talker)
@@ -178,8 +199,13 @@ class InsEmulator:
 
     def prepare(self) -> dict:
         pty = self.port.plug()
-        return {"link": str(self.port.link), "pty": pty, "protocol": self.s.protocol, "rate_hz": self.s.rate_hz,
-                "stdbin_version": self.s.stdbin_version if self.s.protocol == "stdbin" else None}  # fmt: skip
+        return {
+            "link": str(self.port.link),
+            "pty": pty,
+            "protocol": self.s.protocol,
+            "rate_hz": self.s.rate_hz,
+            "stdbin_version": self.s.stdbin_version if self.s.protocol == "stdbin" else None,
+        }
 
     def run(self, clock, pacer, timing) -> bool:
         hosts, kinds, args = self.schedule(clock)
@@ -203,7 +229,9 @@ class InsEmulator:
             if kind == _EV_GARBAGE:
                 f = self.faults[arg]
                 n = f.params["bytes"]
-                port.write(_garbage(self.rng, n, _NMEA_FORBIDDEN if self.s.protocol == "nmea" else _STDBIN_FORBIDDEN))
+                port.write(
+                    _garbage(self.rng, n, _NMEA_FORBIDDEN if self.s.protocol == "nmea" else _STDBIN_FORBIDDEN)
+                )
                 self.counts["garbage_bytes"] += n
                 self.applied.append({"kind": "garbage", "host_ns": mono(), "bytes": n})
                 continue

@@ -64,7 +64,12 @@ class TimingLog:
         wall = time.monotonic() - self._wall0
         cpu = time.process_time() - self._cpu0
         e = np.frombuffer(self.errors_ns, dtype=np.int64) if len(self.errors_ns) else np.zeros(0, np.int64)
-        out = {"emissions": int(e.size), "wall_s": wall, "cpu_s": cpu, "cpu_fraction": cpu / wall if wall > 0 else 0.0}
+        out = {
+            "emissions": int(e.size),
+            "wall_s": wall,
+            "cpu_s": cpu,
+            "cpu_fraction": cpu / wall if wall > 0 else 0.0,
+        }
         if e.size:
             out.update(
                 error_median_us=float(np.median(e)) / 1e3,

@@ -37,8 +37,9 @@ class PpsEmulator:
     name = "pps"
     spin_ns = 200_000
 
-    def __init__(self, settings: PpsSettings, faults: list[Fault], start_gps_ns: int, end_gps_ns: int,
-                 seed: int = 0) -> None:  # fmt: skip
+    def __init__(
+        self, settings: PpsSettings, faults: list[Fault], start_gps_ns: int, end_gps_ns: int, seed: int = 0
+    ) -> None:
         self.s = settings
         self.timeline = Timeline(faults, start_gps_ns)
         self.start_gps_ns, self.end_gps_ns = start_gps_ns, end_gps_ns
@@ -79,5 +80,8 @@ class PpsEmulator:
             self.link.close()
 
     def stats(self) -> dict:
-        return {**self.counts, **(self.link.stats if self.link else {}),
-                "edges": [{"sequence": q, "gps_s": s, "host_ns": h} for q, s, h in self.edges]}  # fmt: skip
+        return {
+            **self.counts,
+            **(self.link.stats if self.link else {}),
+            "edges": [{"sequence": q, "gps_s": s, "host_ns": h} for q, s, h in self.edges],
+        }

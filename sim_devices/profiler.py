@@ -59,8 +59,14 @@ class ProfilerEmulator:
     name = "profiler"
     spin_ns = 0  # thousands of datagrams per second: sleep only
 
-    def __init__(self, grid: ProfileGrid, settings: ProfilerSettings, faults: list[Fault], start_gps_ns: int,
-                 seed: int = 0) -> None:  # fmt: skip
+    def __init__(
+        self,
+        grid: ProfileGrid,
+        settings: ProfilerSettings,
+        faults: list[Fault],
+        start_gps_ns: int,
+        seed: int = 0,
+    ) -> None:
         self.grid = grid
         self.s = settings
         self.timeline = Timeline(faults, start_gps_ns)
@@ -78,7 +84,11 @@ class ProfilerEmulator:
             locked &= f.params["pps_locked"]
         f = self.timeline.active("profiler_clock_drift", t_gps_ns)
         if f is not None:
-            err += round(f.params["drift_ppm"] * 1e-6 * (t_gps_ns - self.timeline.started_at("profiler_clock_drift", t_gps_ns)))
+            err += round(
+                f.params["drift_ppm"]
+                * 1e-6
+                * (t_gps_ns - self.timeline.started_at("profiler_clock_drift", t_gps_ns))
+            )
             locked &= f.params["pps_locked"]
         return err, locked
 
@@ -91,7 +101,9 @@ class ProfilerEmulator:
         points = np.zeros(K, POINT_DTYPE)
         ranges, inten = points["range_01mm"], points["intensity"]
         count = len(self.layout)
-        layout = [(s0, n, round(s0 * dt_ns), round((s0 + n) * dt_ns), round(s0 * da_udeg)) for s0, n in self.layout]
+        layout = [
+            (s0, n, round(s0 * dt_ns), round((s0 + n) * dt_ns), round(s0 * da_udeg)) for s0, n in self.layout
+        ]
         for p in range(len(g)):
             start = int(g.start_ns[p])
             err, locked = self.clock_error(start)
@@ -101,8 +113,17 @@ class ProfilerEmulator:
             inten[slots] = i16
             for k, (s0, n, t_first, t_end, a0) in enumerate(layout):
                 emit_gps = start + t_end
-                payload = pack_packet(flags | (FLAG_LAST if k == count - 1 else 0), p, k, count,
-                                      start + t_first + err, dt_int, a0, da_int, points[s0 : s0 + n])  # fmt: skip
+                payload = pack_packet(
+                    flags | (FLAG_LAST if k == count - 1 else 0),
+                    p,
+                    k,
+                    count,
+                    start + t_first + err,
+                    dt_int,
+                    a0,
+                    da_int,
+                    points[s0 : s0 + n],
+                )
                 yield clock.host_ns(emit_gps) + latency_ns, emit_gps, payload
             ranges[slots] = 0
             inten[slots] = 0
@@ -110,9 +131,15 @@ class ProfilerEmulator:
     def prepare(self) -> dict:
         self.link = UdpLink((self.s.host, self.s.port), self.timeline, self.seed)
         g = self.grid
-        return {"address": [self.s.host, self.s.port], "protocol": "zfp1", "profile_rate_hz": g.profile_rate_hz,
-                "points_per_360": g.points_per_360, "profiles": len(g), "packets_per_profile": len(self.layout),
-                "points_per_profile": sum(n for _, n in self.layout)}  # fmt: skip
+        return {
+            "address": [self.s.host, self.s.port],
+            "protocol": "zfp1",
+            "profile_rate_hz": g.profile_rate_hz,
+            "points_per_360": g.points_per_360,
+            "profiles": len(g),
+            "packets_per_profile": len(self.layout),
+            "points_per_profile": sum(n for _, n in self.layout),
+        }
 
     def run(self, clock, pacer, timing) -> bool:
         link, mono, wait, record = self.link, time.monotonic_ns, pacer.wait_until, timing.record

@@ -26,8 +26,8 @@ from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from drivers.can import open_can_bus, parse_can_frame
 from drivers.base import DriverError
+from drivers.can import open_can_bus, parse_can_frame
 from drivers.pps import encode_pps_datagram
 from drivers.zf.zfp1 import parse_header
 from sim_devices.canbus import CanSettings
@@ -167,8 +167,11 @@ class CanReplayer(_Replayer):
         except DriverError:  # a damaged record in the log: counted, the replay goes on
             self.counts["bad_records"] = self.counts.get("bad_records", 0) + 1
             return
-        self.bus.send(can.Message(arbitration_id=arbitration_id, data=data, is_extended_id=extended,
-                                  is_fd=len(data) > 8))
+        self.bus.send(
+            can.Message(
+                arbitration_id=arbitration_id, data=data, is_extended_id=extended, is_fd=len(data) > 8
+            )
+        )
 
     def close(self) -> None:
         if self.bus is not None:
@@ -213,8 +216,10 @@ class ReplayRun(EmulatorRun):
         if any(t.startswith("/can/") for t in ch):
             out.append(CanReplayer(s, sp.speed, sp.can))
         if not out:
-            raise ValueError(f"session {s.name}: no channel to replay (it has {', '.join(sorted(ch)) or 'none'}; "
-                             f"replayed: /ins/raw, /lidar/raw, /pps, /can/<name>)")  # fmt: skip
+            raise ValueError(
+                f"session {s.name}: no channel to replay (it has {', '.join(sorted(ch)) or 'none'}; "
+                f"replayed: /ins/raw, /lidar/raw, /pps, /can/<name>)"
+            )
         return out
 
     def make_clock(self) -> TruthClock:
@@ -223,12 +228,18 @@ class ReplayRun(EmulatorRun):
 
     def write_run_files(self) -> None:
         c, s = self.clock, self.session
-        window = {"session": s.name, "duration_s": s.duration_s / self.spec.speed,
-                  "start_host_ns": c.host_anchor_ns,
-                  "end_host_ns": c.host_anchor_ns + round((s.last_host_ns - s.first_host_ns) / self.spec.speed)}  # fmt: skip
+        window = {
+            "session": s.name,
+            "duration_s": s.duration_s / self.spec.speed,
+            "start_host_ns": c.host_anchor_ns,
+            "end_host_ns": c.host_anchor_ns + round((s.last_host_ns - s.first_host_ns) / self.spec.speed),
+        }
         if s.gps_fit is not None:
-            c.write(self.run_dir / "truth_clock.json", window=window,
-                    source="the recorded session's clock model (log_time against host stamps)")  # fmt: skip
+            c.write(
+                self.run_dir / "truth_clock.json",
+                window=window,
+                source="the recorded session's clock model (log_time against host stamps)",
+            )
         self._devices_json(speed=self.spec.speed, window=window, replay_of=s.name)
 
     def write_vessel_config(self, path: str | Path) -> Path:
@@ -244,15 +255,18 @@ class ReplayRun(EmulatorRun):
             except DriverError:
                 pass
         return write_vessel_config(
-            path, what=f"the replay of session {s.name}", vessel=s.name.split("_", 1)[-1] or "replay",
-            run_dir=self.run_dir, locations=self.locations, speed=self.spec.speed,
+            path,
+            what=f"the replay of session {s.name}",
+            vessel=s.name.split("_", 1)[-1] or "replay",
+            run_dir=self.run_dir,
+            locations=self.locations,
+            speed=self.spec.speed,
             ins=InsSettings(protocol=protocol, rate_hz=min(ins_rate, 200.0)),
             profiler_rate_hz=s.counts.get("/lidar/raw", 0) / per_profile / span or 200.0,
-        )  # fmt: skip
+        )
 
     def elapsed_s(self) -> float:
         if self.clock is None:
             return 0.0
         t = (time.monotonic_ns() - self.clock.host_anchor_ns) / 1e9
         return min(max(t, 0.0), self.session.duration_s / self.spec.speed)
-

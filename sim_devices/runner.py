@@ -70,12 +70,16 @@ class DevicesSpec:
     def __post_init__(self) -> None:
         unknown = sorted(set(self.devices) - set(DEVICES))
         if unknown or not self.devices:
-            raise ValueError(f"devices {list(self.devices)}: expected a non-empty subset of {', '.join(DEVICES)}")
+            raise ValueError(
+                f"devices {list(self.devices)}: expected a non-empty subset of {', '.join(DEVICES)}"
+            )
         if not 0 < self.speed <= 100:
             raise ValueError(f"speed {self.speed!r}: expected 0 < speed ≤ 100")
         if "ins" in self.devices and self.ins.protocol == "nmea" and self.speed * self.ins.zda_delay_s >= 0.9:
-            raise ValueError(f"speed {self.speed:g} with a ZDA {self.ins.zda_delay_s:g} s after each PPS edge: the "
-                             f"ZDA would come after the next edge (speed × delay must stay below 0.9 s)")  # fmt: skip
+            raise ValueError(
+                f"speed {self.speed:g} with a ZDA {self.ins.zda_delay_s:g} s after each PPS edge: the "
+                f"ZDA would come after the next edge (speed × delay must stay below 0.9 s)"
+            )
 
 
 def free_udp_port(host: str = "127.0.0.1") -> int:
@@ -150,8 +154,9 @@ class EmulatorRun:
     :class:`~sim_devices.replay.ReplayRun`): subclasses give :meth:`emulators`,
     :meth:`make_clock` and :meth:`write_run_files`."""
 
-    def __init__(self, run_dir: str | Path, lead_s: float = 0.25, ready_timeout_s: float = 30.0,
-                 realtime: bool = False) -> None:  # fmt: skip
+    def __init__(
+        self, run_dir: str | Path, lead_s: float = 0.25, ready_timeout_s: float = 30.0, realtime: bool = False
+    ) -> None:
         self.run_dir = Path(run_dir).resolve()
         self.realtime = realtime
         self.lead_s = lead_s
@@ -183,10 +188,16 @@ class EmulatorRun:
                 p.unlink()
 
     def _devices_json(self, **extra) -> None:
-        _write_json(self.run_dir / "devices.json", {
-            "run_dir": str(self.run_dir), "pid": os.getpid(),
-            "processes": {n: p.pid for n, p in self._procs.items()}, **extra, "devices": self.locations,
-        })  # fmt: skip
+        _write_json(
+            self.run_dir / "devices.json",
+            {
+                "run_dir": str(self.run_dir),
+                "pid": os.getpid(),
+                "processes": {n: p.pid for n, p in self._procs.items()},
+                **extra,
+                "devices": self.locations,
+            },
+        )
 
     def start(self) -> dict[str, dict]:
         """Start every emulator; returns where each device is (also in ``devices.json``)."""
@@ -198,10 +209,20 @@ class EmulatorRun:
         conns = {}
         for emu in self.emulators():
             parent_end, child_end = ctx.Pipe()
-            proc = ctx.Process(target=_child_main, name=f"mls-sim-{emu.name}", daemon=True,
-                               args=(emu, child_end, parent_end, self._stop,
-                                     self.run_dir / "stats" / f"{emu.name}.json", os.getpid(),
-                                     self.realtime))  # fmt: skip
+            proc = ctx.Process(
+                target=_child_main,
+                name=f"mls-sim-{emu.name}",
+                daemon=True,
+                args=(
+                    emu,
+                    child_end,
+                    parent_end,
+                    self._stop,
+                    self.run_dir / "stats" / f"{emu.name}.json",
+                    os.getpid(),
+                    self.realtime,
+                ),
+            )
             proc.start()
             child_end.close()
             self._procs[emu.name] = proc
@@ -214,8 +235,10 @@ class EmulatorRun:
                 try:
                     what, info = conn.recv()
                 except EOFError:
-                    raise SimDevicesError(f"{name} emulator: the process ended while starting "
-                                          f"(exit code {self._procs[name].exitcode})") from None  # fmt: skip
+                    raise SimDevicesError(
+                        f"{name} emulator: the process ended while starting "
+                        f"(exit code {self._procs[name].exitcode})"
+                    ) from None
                 if what != "ready":
                     raise SimDevicesError(f"cannot start the {info}")
                 self.locations[name] = info
@@ -293,8 +316,10 @@ class DeviceRun(EmulatorRun):
         self.faults.check_window(feed.duration_s)
         for f in self.faults.faults:
             if f.device not in spec.devices:
-                raise FaultError(f"{f.where}: the {f.kind} fault is for the {f.device} emulator, which "
-                                 f"is not running (devices: {', '.join(spec.devices)})")  # fmt: skip
+                raise FaultError(
+                    f"{f.where}: the {f.kind} fault is for the {f.device} emulator, which "
+                    f"is not running (devices: {', '.join(spec.devices)})"
+                )
         spec = replace(spec, run_dir=self.run_dir)
         if "profiler" in spec.devices and spec.profiler.port == 0:
             spec = replace(spec, profiler=replace(spec.profiler, port=free_udp_port(spec.profiler.host)))
@@ -306,33 +331,61 @@ class DeviceRun(EmulatorRun):
         s, f, fp = self.spec, self.feed, self.faults
         out = []
         if "ins" in s.devices:
-            out.append(InsEmulator(f.ins, s.ins, fp.for_device("ins"), f.start_gps_ns, f.end_gps_ns,
-                                   self.run_dir / "ins", seed=s.seed + fp.seed))  # fmt: skip
+            out.append(
+                InsEmulator(
+                    f.ins,
+                    s.ins,
+                    fp.for_device("ins"),
+                    f.start_gps_ns,
+                    f.end_gps_ns,
+                    self.run_dir / "ins",
+                    seed=s.seed + fp.seed,
+                )
+            )
         if "profiler" in s.devices:
-            out.append(ProfilerEmulator(f.grid, s.profiler, fp.for_device("profiler"), f.start_gps_ns,
-                                        seed=s.seed + fp.seed + 2))  # fmt: skip
+            out.append(
+                ProfilerEmulator(
+                    f.grid, s.profiler, fp.for_device("profiler"), f.start_gps_ns, seed=s.seed + fp.seed + 2
+                )
+            )
         if "pps" in s.devices:
-            out.append(PpsEmulator(s.pps, fp.for_device("pps"), f.start_gps_ns, f.end_gps_ns, seed=s.seed + fp.seed))
+            out.append(
+                PpsEmulator(s.pps, fp.for_device("pps"), f.start_gps_ns, f.end_gps_ns, seed=s.seed + fp.seed)
+            )
         if "can" in s.devices:
             out.append(CanEmulator(f.marks, s.can))
         return out
 
     def make_clock(self) -> TruthClock:
-        return TruthClock.starting_in(self.lead_s, self.feed.start_gps_ns, self.spec.drift_ppm, self.spec.speed)
+        return TruthClock.starting_in(
+            self.lead_s, self.feed.start_gps_ns, self.spec.drift_ppm, self.spec.speed
+        )
 
     def window(self) -> dict:
         f, c = self.feed, self.clock
-        return {"scenario": f.name, "seed": int(f.sim.seed), "time_shift_ns": f.time_shift_ns,
-                "time_shift_note": "device GPS time = scenario GPS time (scenario_truth.json) + time_shift_ns",
-                "start_gps_ns": f.start_gps_ns,
-                "end_gps_ns": f.end_gps_ns, "duration_s": f.duration_s,
-                "start_host_ns": c.host_ns(f.start_gps_ns), "end_host_ns": c.host_ns(f.end_gps_ns)}  # fmt: skip
+        return {
+            "scenario": f.name,
+            "seed": int(f.sim.seed),
+            "time_shift_ns": f.time_shift_ns,
+            "time_shift_note": "device GPS time = scenario GPS time (scenario_truth.json) + time_shift_ns",
+            "start_gps_ns": f.start_gps_ns,
+            "end_gps_ns": f.end_gps_ns,
+            "duration_s": f.duration_s,
+            "start_host_ns": c.host_ns(f.start_gps_ns),
+            "end_host_ns": c.host_ns(f.end_gps_ns),
+        }
 
     def write_run_files(self) -> None:
         f, c, window = self.feed, self.clock, self.window()
         c.write(self.run_dir / "truth_clock.json", window=window)
-        _write_json(self.run_dir / "faults.json", {"source": self.faults.source, "seed": self.faults.seed,
-                                                   "faults": self.faults.schedule(f.start_gps_ns, c)})  # fmt: skip
+        _write_json(
+            self.run_dir / "faults.json",
+            {
+                "source": self.faults.source,
+                "seed": self.faults.seed,
+                "faults": self.faults.schedule(f.start_gps_ns, c),
+            },
+        )
         _write_json(self.run_dir / "scenario_truth.json", f.sim.truth)
         self._devices_json(speed=self.spec.speed, window=window)
 
@@ -340,11 +393,18 @@ class DeviceRun(EmulatorRun):
         """The vessel config of this run (after :meth:`start`): see :mod:`sim_devices.vesselconfig`."""
         f, s = self.feed, self.spec
         return write_vessel_config(
-            path, what=f"the emulators of scenario {f.name} (seed {f.sim.seed})", vessel=f.sim.scenario.vessel,
-            run_dir=self.run_dir, locations=self.locations, speed=s.speed, ins=s.ins,
-            profiler_rate_hz=f.grid.profile_rate_hz, profiler_latency_s=s.profiler.latency_s,
-            profiler_points_per_360=f.grid.points_per_360, site=f.sim.site,
-        )  # fmt: skip
+            path,
+            what=f"the emulators of scenario {f.name} (seed {f.sim.seed})",
+            vessel=f.sim.scenario.vessel,
+            run_dir=self.run_dir,
+            locations=self.locations,
+            speed=s.speed,
+            ins=s.ins,
+            profiler_rate_hz=f.grid.profile_rate_hz,
+            profiler_latency_s=s.profiler.latency_s,
+            profiler_points_per_360=f.grid.points_per_360,
+            site=f.sim.site,
+        )
 
     def elapsed_s(self) -> float:
         """Scenario seconds since the window's start (0 before it, the duration after it)."""

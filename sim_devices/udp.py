@@ -24,14 +24,23 @@ class UdpLink:
         self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
         self.sock.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, 4 * 1024 * 1024)
         self._held: bytes | None = None
-        self.stats = {"datagrams_sent": 0, "bytes_sent": 0, "lost": 0, "reordered": 0, "duplicated": 0,
-                      "send_errors": 0}  # fmt: skip
+        self.stats = {
+            "datagrams_sent": 0,
+            "bytes_sent": 0,
+            "lost": 0,
+            "reordered": 0,
+            "duplicated": 0,
+            "send_errors": 0,
+        }
         self._faulty = timeline is not None and any(
-            timeline.events(k) for k in ("udp_loss", "udp_reorder", "udp_duplicate"))  # fmt: skip
+            timeline.events(k) for k in ("udp_loss", "udp_reorder", "udp_duplicate")
+        )
 
     def _draw(self, kind: str, gps_ns: int) -> bool:
         f = self.timeline.active(kind, gps_ns)
-        return f is not None and (f.params["probability"] >= 1.0 or self.rng.random() < f.params["probability"])
+        return f is not None and (
+            f.params["probability"] >= 1.0 or self.rng.random() < f.params["probability"]
+        )
 
     def _out(self, payload: bytes) -> None:
         try:

@@ -28,40 +28,76 @@ from sim_devices.ins import InsSettings
 FULL_RATE_PTS_S = 200.0 * 5080  # the Z+F Profiler 9012 at its full rate
 MIN_TARGET_POINTS = 20  # the guidance's floor of hits per target and pass
 
-def vessel_config(*, vessel: str, run_dir: Path, locations: dict[str, dict], speed: float = 1.0,
-                  ins: InsSettings | None = None, profiler_rate_hz: float = 200.0,
-                  profiler_latency_s: float = 0.0005, profiler_points_per_360: int | None = None,
-                  site=None, site_file: str | None = None) -> dict:  # fmt: skip
+
+def vessel_config(
+    *,
+    vessel: str,
+    run_dir: Path,
+    locations: dict[str, dict],
+    speed: float = 1.0,
+    ins: InsSettings | None = None,
+    profiler_rate_hz: float = 200.0,
+    profiler_latency_s: float = 0.0005,
+    profiler_points_per_360: int | None = None,
+    site=None,
+    site_file: str | None = None,
+) -> dict:
     run_dir = Path(run_dir)
     ins = ins or InsSettings(protocol=locations.get("ins", {}).get("protocol") or "nmea")
     devices = []
     if "ins" in locations:
-        devices.append({
-            "name": "ins", "kind": "ins", "protocol": ins.protocol,
-            "transport": {"type": "serial", "port": locations["ins"]["link"], "baud": 921600},
-            "latency": {"band_ms": [0.0, round(max(30.0, 1.5e3 * (ins.latency_s + ins.jitter_s) + 10.0), 1)],
-                        "jump_ms": 5.0, "rate_hz": float(ins.rate_hz * speed), "gap_s": 0.5,
-                        "expect_pps_flag": True},
-        })  # fmt: skip
+        devices.append(
+            {
+                "name": "ins",
+                "kind": "ins",
+                "protocol": ins.protocol,
+                "transport": {"type": "serial", "port": locations["ins"]["link"], "baud": 921600},
+                "latency": {
+                    "band_ms": [0.0, round(max(30.0, 1.5e3 * (ins.latency_s + ins.jitter_s) + 10.0), 1)],
+                    "jump_ms": 5.0,
+                    "rate_hz": float(ins.rate_hz * speed),
+                    "gap_s": 0.5,
+                    "expect_pps_flag": True,
+                },
+            }
+        )
     if "profiler" in locations:
         host, port = locations["profiler"]["address"]
         band = 1.5 * (1e3 / profiler_rate_hz + 1e3 * profiler_latency_s) + 10.0
-        devices.append({
-            "name": "profiler", "kind": "profiler", "protocol": "zfp1",
-            "transport": {"type": "udp", "host": host, "port": int(port)},
-            "latency": {"band_ms": [0.0, round(band, 1)], "jump_ms": 5.0,
-                        "rate_hz": float(profiler_rate_hz * speed), "gap_s": 0.5},
-        })  # fmt: skip
+        devices.append(
+            {
+                "name": "profiler",
+                "kind": "profiler",
+                "protocol": "zfp1",
+                "transport": {"type": "udp", "host": host, "port": int(port)},
+                "latency": {
+                    "band_ms": [0.0, round(band, 1)],
+                    "jump_ms": 5.0,
+                    "rate_hz": float(profiler_rate_hz * speed),
+                    "gap_s": 0.5,
+                },
+            }
+        )
     if "pps" in locations and "ins" in locations:
         host, port = locations["pps"]["address"]
-        devices.append({
-            "name": "pps", "kind": "pps", "source": {"type": "udp", "host": host, "port": int(port)},
-            "time_device": "ins", "time_messages": ["ZDA"] if ins.protocol == "nmea" else ["validity_time"],
-        })  # fmt: skip
+        devices.append(
+            {
+                "name": "pps",
+                "kind": "pps",
+                "source": {"type": "udp", "host": host, "port": int(port)},
+                "time_device": "ins",
+                "time_messages": ["ZDA"] if ins.protocol == "nmea" else ["validity_time"],
+            }
+        )
     if "can" in locations:
         c = locations["can"]
-        devices.append({"name": "marks", "kind": "can",
-                        "transport": {"type": "can", "interface": c["interface"], "channel": c["channel"]}})  # fmt: skip
+        devices.append(
+            {
+                "name": "marks",
+                "kind": "can",
+                "transport": {"type": "can", "interface": c["interface"], "channel": c["channel"]},
+            }
+        )
     cfg = {
         "vessel": vessel,
         "devices": devices,
@@ -99,14 +135,18 @@ def write_vessel_config(path: str | Path, *, what: str, site=None, **kwargs) -> 
         site_file = site_path.name
     cfg = vessel_config(site=site, site_file=site_file, **kwargs)
     notes = [
-        f"# marine-mls vessel config written on {_dt.datetime.now(_dt.timezone.utc):%Y-%m-%dT%H:%M:%SZ} for",
+        f"# marine-mls vessel config written on {_dt.datetime.now(_dt.UTC):%Y-%m-%dT%H:%M:%SZ} for",
         f"# {what}, run directory {kwargs['run_dir']}:",
         "# its devices are those emulators; `mls acquire --config` this file while they run.",
     ]
     can = kwargs["locations"].get("can")
     if can is not None and can.get("port", DEFAULT_PORT) != DEFAULT_PORT:
-        notes.append(f"# NOTE: the CAN emulator uses UDP port {can['port']}; a vessel config cannot set "
-                     f"the port (python-can uses {DEFAULT_PORT}), so the daemon will not see the markers.")  # fmt: skip
-    path.write_text("\n".join(notes) + "\n" + yaml.safe_dump(cfg, sort_keys=False, default_flow_style=None),
-                    encoding="utf-8")  # fmt: skip
+        notes.append(
+            f"# NOTE: the CAN emulator uses UDP port {can['port']}; a vessel config cannot set "
+            f"the port (python-can uses {DEFAULT_PORT}), so the daemon will not see the markers."
+        )
+    path.write_text(
+        "\n".join(notes) + "\n" + yaml.safe_dump(cfg, sort_keys=False, default_flow_style=None),
+        encoding="utf-8",
+    )
     return path

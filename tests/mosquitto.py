@@ -45,7 +45,7 @@ class Mosquitto:
         self.proc: subprocess.Popen | None = None
         self.log = self.workdir / "mosquitto.log"
 
-    def start(self, timeout_s: float = 10.0) -> "Mosquitto":
+    def start(self, timeout_s: float = 10.0) -> Mosquitto:
         conf = self.workdir / "mosquitto.conf"
         conf.write_text(
             f"listener {self.port} {self.host}\n"
@@ -55,21 +55,22 @@ class Mosquitto:
             "log_type error\nlog_type warning\nlog_type notice\n"
         )
         with open(self.log, "ab") as log:
-            self.proc = subprocess.Popen([mosquitto_binary(), "-c", str(conf)],
-                                         stdout=log, stderr=log)  # fmt: skip
+            self.proc = subprocess.Popen([mosquitto_binary(), "-c", str(conf)], stdout=log, stderr=log)
         deadline = time.monotonic() + timeout_s
         while time.monotonic() < deadline:
             if self.proc.poll() is not None:
-                raise RuntimeError(f"mosquitto exited with {self.proc.returncode}: "
-                                   f"{self.log.read_text()[-2000:]}")  # fmt: skip
+                raise RuntimeError(
+                    f"mosquitto exited with {self.proc.returncode}: {self.log.read_text()[-2000:]}"
+                )
             try:
                 socket.create_connection((self.host, self.port), timeout=0.2).close()
                 return self
             except OSError:
                 time.sleep(0.05)
         self.stop()
-        raise RuntimeError(f"mosquitto did not open port {self.port} in {timeout_s} s: "
-                           f"{self.log.read_text()[-2000:]}")  # fmt: skip
+        raise RuntimeError(
+            f"mosquitto did not open port {self.port} in {timeout_s} s: {self.log.read_text()[-2000:]}"
+        )
 
     def kill(self) -> None:
         """Crash the broker (SIGKILL): clients see the connection drop."""

@@ -24,10 +24,27 @@ PACKAGE_RANK = {"calib": 0, "drivers": 1, "sim_devices": 2, "acquire": 2, "cli":
 #: units inside a package (a subpackage or a top-level module) and their ranks
 UNIT_RANK = {
     "calib": {"core": 0, "io": 1, "survey": 2, "sim": 3, "boresight": 3, "assess": 3, "design": 4},
-    "drivers": {"base": 0, "timing": 0, "hydrins": 1, "zf": 1, "pps": 1, "can": 1,
-                "transport": 2, "capture": 2},
-    "acquire": {"alarms": 0, "errors": 0, "timing": 1, "log": 2, "status": 3, "daemon": 4,
-                "guidance": 5, "ui": 5, "jobs": 6},
+    "drivers": {
+        "base": 0,
+        "timing": 0,
+        "hydrins": 1,
+        "zf": 1,
+        "pps": 1,
+        "can": 1,
+        "transport": 2,
+        "capture": 2,
+    },
+    "acquire": {
+        "alarms": 0,
+        "errors": 0,
+        "timing": 1,
+        "log": 2,
+        "status": 3,
+        "daemon": 4,
+        "guidance": 5,
+        "ui": 5,
+        "jobs": 6,
+    },
 }
 
 MAX_MODULE_LINES = 600
@@ -103,8 +120,10 @@ def test_no_import_from_a_lower_layer_to_a_higher_one():
             if ranks is None or unit is None or dunit is None or unit == dunit:
                 continue
             if unit not in ranks or dunit not in ranks:
-                bad.append(f"{mod} / {dep}: unit without a rank in UNIT_RANK (add it there and to "
-                           f"docs/architecture.md §2)")
+                bad.append(
+                    f"{mod} / {dep}: unit without a rank in UNIT_RANK (add it there and to "
+                    f"docs/architecture.md §2)"
+                )
             elif ranks[dunit] >= ranks[unit]:
                 bad.append(f"{mod} imports {dep} ({pkg}.{unit} may not import {pkg}.{dunit})")
     assert not bad, "\n".join(sorted(bad))
@@ -159,11 +178,15 @@ def test_no_import_cycles():
 
 @pytest.mark.parametrize("pkg", PACKAGES)
 def test_modules_stay_small_and_folders_walkable(pkg):
-    long = [f"{p.relative_to(PROJECT_ROOT)}: {n} lines"
-            for p in (PROJECT_ROOT / pkg).rglob("*.py")
-            if (n := len(p.read_text().splitlines())) > MAX_MODULE_LINES]
+    long = [
+        f"{p.relative_to(PROJECT_ROOT)}: {n} lines"
+        for p in (PROJECT_ROOT / pkg).rglob("*.py")
+        if (n := len(p.read_text().splitlines())) > MAX_MODULE_LINES
+    ]
     assert not long, f"modules over {MAX_MODULE_LINES} lines:\n" + "\n".join(long)
-    crowded = [f"{d.relative_to(PROJECT_ROOT)}: {n} modules"
-               for d in [PROJECT_ROOT / pkg, *(PROJECT_ROOT / pkg).rglob("*/")]
-               if d.is_dir() and (n := len(list(d.glob("*.py")))) > MAX_MODULES_PER_FOLDER]
+    crowded = [
+        f"{d.relative_to(PROJECT_ROOT)}: {n} modules"
+        for d in [PROJECT_ROOT / pkg, *(PROJECT_ROOT / pkg).rglob("*/")]
+        if d.is_dir() and (n := len(list(d.glob("*.py")))) > MAX_MODULES_PER_FOLDER
+    ]
     assert not crowded, f"folders over {MAX_MODULES_PER_FOLDER} modules:\n" + "\n".join(crowded)

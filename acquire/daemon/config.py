@@ -33,16 +33,16 @@ from __future__ import annotations
 import os
 import re
 import stat
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
 
-from calib.io.configfile import ConfigError, Node, load_yaml
-
+from acquire.log.session import COMPRESSIONS, SessionOptions
+from acquire.status.mqtt import MqttSettings
 from acquire.timing.clock import ClockParams
 from acquire.timing.latency import LatencyLimits
-from acquire.status.mqtt import MqttSettings
-from acquire.log.session import COMPRESSIONS, SessionOptions
+from calib.io.configfile import ConfigError, Node, load_yaml
 
 KINDS = ("ins", "profiler", "pps", "can")
 PROTOCOLS = {"ins": ("nmea", "stdbin"), "profiler": ("zfp1",)}
@@ -242,8 +242,13 @@ def _opt(m: dict[str, Node], key: str, errs: _Errors, fn: Callable[[Node], Any],
 # -- sections -----------------------------------------------------------------------------------
 
 
-def _variant(node: Node, errs: _Errors, what: str, choices,
-             variants: dict[str, tuple[tuple[str, ...], tuple[str, ...]]]):  # fmt: skip
+def _variant(
+    node: Node,
+    errs: _Errors,
+    what: str,
+    choices,
+    variants: dict[str, tuple[tuple[str, ...], tuple[str, ...]]],
+):
     """A mapping whose ``type`` says which keys it needs (and which it may have). Returns
     ``(type, children)``, or None after recording every unknown and every missing key."""
     optional = {k for need, extra in variants.values() for k in need + extra}
@@ -262,8 +267,12 @@ def _variant(node: Node, errs: _Errors, what: str, choices,
 
 
 _NET = (("host", "port"), ())
-_TRANSPORT_KEYS = {"serial": (("port", "baud"), ()), "udp": _NET, "tcp": _NET,
-                   "can": (("interface", "channel"), ("bitrate",))}  # fmt: skip
+_TRANSPORT_KEYS = {
+    "serial": (("port", "baud"), ()),
+    "udp": _NET,
+    "tcp": _NET,
+    "can": (("interface", "channel"), ("bitrate",)),
+}
 _PPS_KEYS = {"kernel": (("device",), ()), "serial-line": (("port",), ("line",)), "udp": _NET}
 
 
@@ -304,8 +313,19 @@ def _pps_source(node: Node, errs: _Errors) -> PpsSource | None:
 
 
 def _latency(node: Node, errs: _Errors) -> LatencyLimits:
-    m = _keys(node, errs, optional={"band_ms", "jump_ms", "max_sigma_ms", "max_drift_ppm",
-                                     "rate_hz", "gap_s", "expect_pps_flag"})  # fmt: skip
+    m = _keys(
+        node,
+        errs,
+        optional={
+            "band_ms",
+            "jump_ms",
+            "max_sigma_ms",
+            "max_drift_ppm",
+            "rate_hz",
+            "gap_s",
+            "expect_pps_flag",
+        },
+    )
     d = LatencyLimits()
 
     def band(n: Node) -> tuple[int, int]:
@@ -329,20 +349,27 @@ def _latency(node: Node, errs: _Errors) -> LatencyLimits:
 
 
 def _device(node: Node, errs: _Errors) -> DeviceConfig | None:
-    m = _keys(node, errs, required={"name", "kind"},
-              optional={"protocol", "transport", "source", "time_device", "time_messages",
-                        "latency"})  # fmt: skip
+    m = _keys(
+        node,
+        errs,
+        required={"name", "kind"},
+        optional={"protocol", "transport", "source", "time_device", "time_messages", "latency"},
+    )
     name = errs.get(lambda: _name(m["name"])) if "name" in m else None
     kind = errs.get(lambda: _choice(m["kind"], KINDS)) if "kind" in m else None
     if kind is None:
         return None
-    allowed = {"ins": {"protocol", "transport", "latency"},
-               "profiler": {"protocol", "transport", "latency"},
-               "can": {"transport", "latency"},
-               "pps": {"source", "time_device", "time_messages"}}[kind]  # fmt: skip
+    allowed = {
+        "ins": {"protocol", "transport", "latency"},
+        "profiler": {"protocol", "transport", "latency"},
+        "can": {"transport", "latency"},
+        "pps": {"source", "time_device", "time_messages"},
+    }[kind]
     for key in sorted(set(m) - allowed - {"name", "kind"}):
-        errs.add(f"{m[key].where()}: not a key of a device of kind {kind}; allowed: "
-                 f"{', '.join(sorted(allowed | {'name', 'kind'}))}")  # fmt: skip
+        errs.add(
+            f"{m[key].where()}: not a key of a device of kind {kind}; allowed: "
+            f"{', '.join(sorted(allowed | {'name', 'kind'}))}"
+        )
     for key in sorted(allowed - {"latency"} - set(m)):
         if kind == "pps" and key == "time_messages":
             continue  # defaults to the time device's protocol's messages
@@ -368,9 +395,12 @@ def _device(node: Node, errs: _Errors) -> DeviceConfig | None:
 
 
 def _session(node: Node, errs: _Errors, base: Path) -> tuple[Path | None, SessionOptions]:
-    m = _keys(node, errs, required={"directory"},
-              optional={"rotate_s", "rotate_mb", "flush_s", "fsync_s", "queue_size",
-                        "compression", "min_free_mb"})  # fmt: skip
+    m = _keys(
+        node,
+        errs,
+        required={"directory"},
+        optional={"rotate_s", "rotate_mb", "flush_s", "fsync_s", "queue_size", "compression", "min_free_mb"},
+    )
     d = SessionOptions()
     directory = _opt(m, "directory", errs, lambda n: _path(n, base), None)
 
@@ -379,40 +409,61 @@ def _session(node: Node, errs: _Errors, base: Path) -> tuple[Path | None, Sessio
 
     kw = dict(
         rotate_s=_opt(m, "rotate_s", errs, lambda n: n.number(10.0), d.rotate_s),
-        rotate_bytes=round(_opt(m, "rotate_mb", errs, lambda n: n.number(1.0), d.rotate_bytes / 2**20)
-                           * 2**20),
+        rotate_bytes=round(
+            _opt(m, "rotate_mb", errs, lambda n: n.number(1.0), d.rotate_bytes / 2**20) * 2**20
+        ),
         flush_s=_opt(m, "flush_s", errs, flush, d.flush_s),
         fsync_s=_opt(m, "fsync_s", errs, lambda n: n.number(0.1, 10.0), d.fsync_s),
         queue_size=_opt(m, "queue_size", errs, lambda n: _int(n, 100, 10_000_000), d.queue_size),
-        compression=_opt(m, "compression", errs, lambda n: _choice(n, tuple(COMPRESSIONS)),
-                         d.compression),
-        min_free_bytes=round(_opt(m, "min_free_mb", errs, lambda n: n.number(0.0),
-                                  d.min_free_bytes / 2**20) * 2**20),
-    )  # fmt: skip
+        compression=_opt(m, "compression", errs, lambda n: _choice(n, tuple(COMPRESSIONS)), d.compression),
+        min_free_bytes=round(
+            _opt(m, "min_free_mb", errs, lambda n: n.number(0.0), d.min_free_bytes / 2**20) * 2**20
+        ),
+    )
     return directory, SessionOptions(**kw)
 
 
 def _clock(node: Node, errs: _Errors) -> ClockParams:
-    m = _keys(node, errs, optional={"window_edges", "min_edges", "gate_us", "loss_timeout_s",
-                                     "holdover_limit_us", "holdover_wander_ppm"})  # fmt: skip
+    m = _keys(
+        node,
+        errs,
+        optional={
+            "window_edges",
+            "min_edges",
+            "gate_us",
+            "loss_timeout_s",
+            "holdover_limit_us",
+            "holdover_wander_ppm",
+        },
+    )
     d = ClockParams()
     window = _opt(m, "window_edges", errs, lambda n: _int(n, 2, 3600), d.window_edges)
     min_edges = _opt(m, "min_edges", errs, lambda n: _int(n, 2, 3600), d.min_edges)
     if min_edges > window:
-        errs.add(f"{m['min_edges'].where() if 'min_edges' in m else node.where()}: min_edges "
-                 f"{min_edges} is larger than window_edges {window}")  # fmt: skip
+        errs.add(
+            f"{m['min_edges'].where() if 'min_edges' in m else node.where()}: min_edges "
+            f"{min_edges} is larger than window_edges {window}"
+        )
         min_edges = window
     return ClockParams(
-        window_edges=window, min_edges=min_edges,
+        window_edges=window,
+        min_edges=min_edges,
         gate_floor_ns=round(_opt(m, "gate_us", errs, lambda n: n.number(1.0), d.gate_floor_ns / US) * US),
-        loss_timeout_ns=round(_opt(m, "loss_timeout_s", errs, lambda n: n.number(1.0, 60.0),
-                                   d.loss_timeout_ns / NS_PER_S) * NS_PER_S),
-        holdover_limit_ns=round(_opt(m, "holdover_limit_us", errs, lambda n: n.number(1.0),
-                                     d.holdover_limit_ns / US) * US),
-        holdover_wander_ppm=_opt(m, "holdover_wander_ppm", errs,
-                                 lambda n: n.number(0.0, exclusive_minimum=True),
-                                 d.holdover_wander_ppm),
-    )  # fmt: skip
+        loss_timeout_ns=round(
+            _opt(m, "loss_timeout_s", errs, lambda n: n.number(1.0, 60.0), d.loss_timeout_ns / NS_PER_S)
+            * NS_PER_S
+        ),
+        holdover_limit_ns=round(
+            _opt(m, "holdover_limit_us", errs, lambda n: n.number(1.0), d.holdover_limit_ns / US) * US
+        ),
+        holdover_wander_ppm=_opt(
+            m,
+            "holdover_wander_ppm",
+            errs,
+            lambda n: n.number(0.0, exclusive_minimum=True),
+            d.holdover_wander_ppm,
+        ),
+    )
 
 
 def _credentials(node: Node, base: Path) -> tuple[str, str]:
@@ -422,17 +473,22 @@ def _credentials(node: Node, base: Path) -> tuple[str, str]:
     except OSError as e:
         raise node.fail(f"a readable credentials file ({e.strerror})") from None
     if st.st_mode & stat.S_IROTH:
-        raise node.fail(f"a credentials file not readable by others ({path} has mode "
-                        f"{stat.filemode(st.st_mode)}; chmod 600 it)")  # fmt: skip
+        raise node.fail(
+            f"a credentials file not readable by others ({path} has mode "
+            f"{stat.filemode(st.st_mode)}; chmod 600 it)"
+        )
     inner = load_yaml(path)
     cm = inner.mapping(required={"username", "password"})
     return cm["username"].string(), cm["password"].string()
 
 
 def _mqtt(node: Node, errs: _Errors, base: Path) -> MqttSettings | None:
-    m = _keys(node, errs, required={"host"},
-              optional={"port", "credentials_file", "topic_prefix", "commands_enabled",
-                        "keepalive_s"})  # fmt: skip
+    m = _keys(
+        node,
+        errs,
+        required={"host"},
+        optional={"port", "credentials_file", "topic_prefix", "commands_enabled", "keepalive_s"},
+    )
 
     def prefix(n: Node) -> str:
         v = n.string()
@@ -471,9 +527,21 @@ def _status(node: Node, errs: _Errors, base: Path) -> StatusSettings:
 
 
 def _guidance(node: Node, errs: _Errors) -> GuidanceConfig:
-    m = _keys(node, errs, optional={"enabled", "max_xte_m", "max_heading_error_deg",
-                                     "max_speed_error_mps", "min_points_per_target", "max_gap_s",
-                                     "profile_rate_hz", "points_per_360", "period_s"})  # fmt: skip
+    m = _keys(
+        node,
+        errs,
+        optional={
+            "enabled",
+            "max_xte_m",
+            "max_heading_error_deg",
+            "max_speed_error_mps",
+            "min_points_per_target",
+            "max_gap_s",
+            "profile_rate_hz",
+            "points_per_360",
+            "period_s",
+        },
+    )
     d = GuidanceConfig()
 
     def positive(n: Node) -> float:
@@ -482,27 +550,34 @@ def _guidance(node: Node, errs: _Errors) -> GuidanceConfig:
     return GuidanceConfig(
         enabled=_opt(m, "enabled", errs, Node.boolean, d.enabled),
         max_xte_m=_opt(m, "max_xte_m", errs, positive, d.max_xte_m),
-        max_heading_error_deg=_opt(m, "max_heading_error_deg", errs,
-                                   lambda n: n.number(0.0, 90.0, exclusive_minimum=True),
-                                   d.max_heading_error_deg),
+        max_heading_error_deg=_opt(
+            m,
+            "max_heading_error_deg",
+            errs,
+            lambda n: n.number(0.0, 90.0, exclusive_minimum=True),
+            d.max_heading_error_deg,
+        ),
         max_speed_error_mps=_opt(m, "max_speed_error_mps", errs, positive, d.max_speed_error_mps),
-        min_points_per_target=_opt(m, "min_points_per_target", errs, lambda n: _int(n, 1, 10**7),
-                                   d.min_points_per_target),
+        min_points_per_target=_opt(
+            m, "min_points_per_target", errs, lambda n: _int(n, 1, 10**7), d.min_points_per_target
+        ),
         max_gap_s=_opt(m, "max_gap_s", errs, lambda n: n.number(0.01, 60.0), d.max_gap_s),
-        profile_rate_hz=_opt(m, "profile_rate_hz", errs, lambda n: n.number(0.1, 10_000.0),
-                             d.profile_rate_hz),
-        points_per_360=_opt(m, "points_per_360", errs, lambda n: _int(n, 4, 1_000_000),
-                            d.points_per_360),
+        profile_rate_hz=_opt(
+            m, "profile_rate_hz", errs, lambda n: n.number(0.1, 10_000.0), d.profile_rate_hz
+        ),
+        points_per_360=_opt(m, "points_per_360", errs, lambda n: _int(n, 4, 1_000_000), d.points_per_360),
         period_s=_opt(m, "period_s", errs, lambda n: n.number(0.1, 10.0), d.period_s),
-    )  # fmt: skip
+    )
 
 
 def _cross_checks(devices: list[DeviceConfig], dev_nodes: dict[str, Node], errs: _Errors) -> None:
     seen = {d.name: d for d in devices}
     pps = [d for d in devices if d.kind == "pps"]
     if len(pps) > 1:
-        errs.add(f"{dev_nodes[pps[1].name].where()}: a second pps device ({pps[1].name!r}); "
-                 "the clock model takes one PPS source")  # fmt: skip
+        errs.add(
+            f"{dev_nodes[pps[1].name].where()}: a second pps device ({pps[1].name!r}); "
+            "the clock model takes one PPS source"
+        )
     for p in pps:
         if p.time_device is None:
             continue
@@ -510,21 +585,28 @@ def _cross_checks(devices: list[DeviceConfig], dev_nodes: dict[str, Node], errs:
         where = dev_nodes[p.name].where()
         if target is None or target.kind != "ins":
             names = ", ".join(d.name for d in devices if d.kind == "ins") or "none configured"
-            errs.add(f"{where}.time_device: got {p.time_device!r}, expected the name of an ins "
-                     f"device ({names})")  # fmt: skip
+            errs.add(
+                f"{where}.time_device: got {p.time_device!r}, expected the name of an ins device ({names})"
+            )
             continue
         allowed = TIME_MESSAGES.get(target.protocol or "", ())
         for msg in p.time_messages:
             if msg and msg not in allowed:
-                errs.add(f"{where}.time_messages: got {msg!r}, expected messages of the "
-                         f"{target.protocol} protocol: {', '.join(allowed)}")  # fmt: skip
+                errs.add(
+                    f"{where}.time_messages: got {msg!r}, expected messages of the "
+                    f"{target.protocol} protocol: {', '.join(allowed)}"
+                )
 
 
 def vessel_config_from_node(root: Node, base_dir: Path) -> VesselConfig:
     """Validate a loaded YAML tree; raise :class:`VesselConfigError` with every error."""
     errs = _Errors()
-    top = _keys(root, errs, required={"vessel", "devices", "session"},
-                optional={"clock", "status", "mqtt", "mount", "site_file", "guidance"})  # fmt: skip
+    top = _keys(
+        root,
+        errs,
+        required={"vessel", "devices", "session"},
+        optional={"clock", "status", "mqtt", "mount", "site_file", "guidance"},
+    )
     vessel = errs.get(lambda: _name(top["vessel"])) if "vessel" in top else None
     devices: list[DeviceConfig] = []
     dev_nodes: dict[str, Node] = {}
@@ -536,8 +618,10 @@ def vessel_config_from_node(root: Node, base_dir: Path) -> VesselConfig:
             if name_node is not None and isinstance(name_node.value, str):
                 duplicate = name_node.value in first_use
                 if duplicate:
-                    errs.add(f"{name_node.where()}: device name {name_node.value!r} is used "
-                             f"twice (first at {first_use[name_node.value].path})")  # fmt: skip
+                    errs.add(
+                        f"{name_node.where()}: device name {name_node.value!r} is used "
+                        f"twice (first at {first_use[name_node.value].path})"
+                    )
                 first_use.setdefault(name_node.value, name_node)
             d = _device(n, errs)  # (a duplicate is still checked, but not used)
             if d is not None and not duplicate:
@@ -545,11 +629,14 @@ def vessel_config_from_node(root: Node, base_dir: Path) -> VesselConfig:
                 dev_nodes.setdefault(d.name, n)
     _cross_checks(devices, dev_nodes, errs)
     devices = [
-        d if d.kind != "pps" or d.time_messages or d.time_device is None
-        else _with_default_messages(d, devices) for d in devices
-    ]  # fmt: skip
-    session_dir, session = (_session(top["session"], errs, base_dir) if "session" in top
-                            else (None, SessionOptions()))  # fmt: skip
+        d
+        if d.kind != "pps" or d.time_messages or d.time_device is None
+        else _with_default_messages(d, devices)
+        for d in devices
+    ]
+    session_dir, session = (
+        _session(top["session"], errs, base_dir) if "session" in top else (None, SessionOptions())
+    )
     clock = _clock(top["clock"], errs) if "clock" in top else ClockParams()
     status = _status(top["status"], errs, base_dir) if "status" in top else StatusSettings()
     mqtt = _mqtt(top["mqtt"], errs, base_dir) if "mqtt" in top else None
@@ -566,13 +653,26 @@ def vessel_config_from_node(root: Node, base_dir: Path) -> VesselConfig:
                 errs.get(lambda: load_site(site_file))
     guidance = _guidance(top["guidance"], errs) if "guidance" in top else GuidanceConfig()
     if "guidance" in top and "site_file" not in top and guidance.enabled:
-        errs.add(f"{top['guidance'].where()}: the guidance needs the site's targets and pass "
-                 f"plan: add site_file (or set guidance.enabled: false)")  # fmt: skip
+        errs.add(
+            f"{top['guidance'].where()}: the guidance needs the site's targets and pass "
+            f"plan: add site_file (or set guidance.enabled: false)"
+        )
     if errs.items:
         raise VesselConfigError(root.source, sorted(errs.items, key=_position))
     assert vessel is not None and session_dir is not None
-    return VesselConfig(Path(root.source), vessel, tuple(devices), session_dir, session, clock,
-                        status, mqtt, mount, site_file, guidance)  # fmt: skip
+    return VesselConfig(
+        Path(root.source),
+        vessel,
+        tuple(devices),
+        session_dir,
+        session,
+        clock,
+        status,
+        mqtt,
+        mount,
+        site_file,
+        guidance,
+    )
 
 
 def _position(error: str) -> tuple[int, int]:
@@ -594,5 +694,7 @@ def load_vessel_config(path: str | Path) -> VesselConfig:
     return vessel_config_from_node(load_yaml(path), path.resolve().parent)
 
 
-def parse_vessel_config(text: str, source: str = "vessel.yaml", base_dir: str | Path | None = None) -> VesselConfig:
+def parse_vessel_config(
+    text: str, source: str = "vessel.yaml", base_dir: str | Path | None = None
+) -> VesselConfig:
     return vessel_config_from_node(load_yaml(text, source=source), Path(base_dir or os.getcwd()))

@@ -115,5 +115,7 @@ class ConsumerHub:
         return any(kind in t.kinds for t in self.taps)
 
     def status(self) -> dict:
-        return {t.name: {"delivered": t.delivered, "dropped": t.dropped, "queued": t.queue.qsize()}
-                for t in self.taps}  # fmt: skip
+        return {
+            t.name: {"delivered": t.delivered, "dropped": t.dropped, "queued": t.queue.qsize()}
+            for t in self.taps
+        }

@@ -33,15 +33,16 @@ from __future__ import annotations
 
 import asyncio
 import operator
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any, Callable
+from typing import Any
 
-from acquire.timing.clock import ClockModel
 from acquire.daemon.config import CanTransport, DeviceConfig, NetTransport, SerialTransport
 from acquire.daemon.consumers import ConsumerHub
+from acquire.timing.clock import ClockModel
 from acquire.timing.latency import LatencyMonitor
 from acquire.timing.timekeeper import TimeKeeper
-from drivers.base import DriverError, Registry
+from drivers.base import Registry
 from drivers.can import can_frame_bytes
 
 NS_PER_S = 1_000_000_000
@@ -71,8 +72,13 @@ def transport_config(t: SerialTransport | NetTransport, name: str, high_rate: bo
     if isinstance(t, SerialTransport):
         return {"kind": "serial", "port": t.port, "baudrate": t.baud, "name": name}
     if t.type == "udp":
-        return {"kind": "udp-batch" if high_rate else "udp", "host": t.host, "port": t.port,
-                "name": name, "max_chunks": 16384}  # fmt: skip
+        return {
+            "kind": "udp-batch" if high_rate else "udp",
+            "host": t.host,
+            "port": t.port,
+            "name": name,
+            "max_chunks": 16384,
+        }
     return {"kind": "tcp", "host": t.host, "port": t.port, "name": name}
 
 
@@ -109,8 +115,14 @@ class Device:
         pass
 
     def status(self) -> dict:
-        return {"kind": self.kind, "connected": self.connected, "chunks": self.chunks,
-                "records": self.records, "reconnects": self.reconnects, "gaps": self.gaps}  # fmt: skip
+        return {
+            "kind": self.kind,
+            "connected": self.connected,
+            "chunks": self.chunks,
+            "records": self.records,
+            "reconnects": self.reconnects,
+            "gaps": self.gaps,
+        }
 
     def losses(self) -> int:
         """Packets/records lost so far (for the ``packet_loss`` alarm); 0 when not counted."""
@@ -131,8 +143,10 @@ class Device:
     def seen_many(self, host_ns: list[int]) -> None:
         """:meth:`seen` of a burst's stamps (in order)."""
         last, gap = self.last_host_ns, self.gap_ns
-        if gap is not None and ((last is not None and host_ns[0] - last > gap)
-                                or max(map(operator.sub, host_ns[1:], host_ns[:-1]), default=0) > gap):  # fmt: skip
+        if gap is not None and (
+            (last is not None and host_ns[0] - last > gap)
+            or max(map(operator.sub, host_ns[1:], host_ns[:-1]), default=0) > gap
+        ):
             for h in host_ns:
                 self.seen(h)
         else:
@@ -146,11 +160,19 @@ class Device:
             self.gaps += 1
             gps = self.ctx.clock.to_gps
             a, b = gps(last), gps(host_ns)
-            self.ctx.log_event({
-                "event": "data_gap", "device": self.name, "gap_s": round((host_ns - last) / NS_PER_S, 6),
-                "last_host_ns": last, "resumed_host_ns": host_ns, "last_gps_ns": a.gps_ns,
-                "resumed_gps_ns": b.gps_ns, "clock": b.state.value,
-            }, host_ns)  # fmt: skip
+            self.ctx.log_event(
+                {
+                    "event": "data_gap",
+                    "device": self.name,
+                    "gap_s": round((host_ns - last) / NS_PER_S, 6),
+                    "last_host_ns": last,
+                    "resumed_host_ns": host_ns,
+                    "last_gps_ns": a.gps_ns,
+                    "resumed_gps_ns": b.gps_ns,
+                    "clock": b.state.value,
+                },
+                host_ns,
+            )
 
 
 class _StreamDevice(Device):
@@ -165,8 +187,9 @@ class _StreamDevice(Device):
     async def open(self) -> None:
         from drivers.transport.registry import create_transport
 
-        self.transport = create_transport(transport_config(self.cfg.transport, self.name, self.high_rate),
-                                          on_event=self.on_transport_event)  # fmt: skip
+        self.transport = create_transport(
+            transport_config(self.cfg.transport, self.name, self.high_rate), on_event=self.on_transport_event
+        )
         await self.transport.open()
         self.opened = True
 
@@ -201,8 +224,9 @@ class InsDevice(_StreamDevice):
         else:
             self.decoder = NmeaNavAssembler()
         # sentence types that label PPS pulses (full date: ZDA, RMC; time of day: GGA)
-        self._time_types = tuple(t for k, t in (("ZDA", Zda), ("RMC", Rmc), ("GGA", Gga))
-                                 if k in self.time_messages)  # fmt: skip
+        self._time_types = tuple(
+            t for k, t in (("ZDA", Zda), ("RMC", Rmc), ("GGA", Gga)) if k in self.time_messages
+        )
         self._nav_labels = bool(self.time_messages & {"TIME__", "validity_time"})
         self.synced_records = 0
         self.last_nav: dict | None = None
@@ -214,8 +238,11 @@ class InsDevice(_StreamDevice):
 
     def status(self) -> dict:
         out = super().status()
-        out.update(protocol=self.cfg.protocol, synced_records=self.synced_records,
-                   decoder=self.decoder.stats.as_dict())  # fmt: skip
+        out.update(
+            protocol=self.cfg.protocol,
+            synced_records=self.synced_records,
+            decoder=self.decoder.stats.as_dict(),
+        )
         if self.last_nav is not None:
             out["nav"] = self.last_nav
         return out
@@ -282,8 +309,12 @@ class InsDevice(_StreamDevice):
             self._status_nav = nav
         else:
             held = self._status_nav
-            if held is not None and host_ns is not None and held.host_ns is not None \
-                    and host_ns - held.host_ns <= STATUS_HOLD_NS:
+            if (
+                held is not None
+                and host_ns is not None
+                and held.host_ns is not None
+                and host_ns - held.host_ns <= STATUS_HOLD_NS
+            ):
                 nav = held
         return nav.utc_detected, nav.pps_detected
 
@@ -306,9 +337,20 @@ class InsDevice(_StreamDevice):
         ctx.monitor.observe(self.name, host_ns, tag, pps_flag=pps)
         data = nav.to_dict()
         data["time_gps_ns"], data["time_source"] = gps_ns, source
-        self.last_nav = {k: data[k] for k in ("lat_deg", "lon_deg", "heading_deg", "navigation",
-                                              "fine_alignment", "gps_valid", "utc_detected",
-                                              "pps_detected", "time_source")}  # fmt: skip
+        self.last_nav = {
+            k: data[k]
+            for k in (
+                "lat_deg",
+                "lon_deg",
+                "heading_deg",
+                "navigation",
+                "fine_alignment",
+                "gps_valid",
+                "utc_detected",
+                "pps_detected",
+                "time_source",
+            )
+        }
         ctx.submit("/ins/nav", data, host_ns=host_ns, device_ns=nav.gps_ns if synced else None)
         hub = ctx.hub
         if hub.taps:
@@ -340,9 +382,14 @@ class ProfilerDevice(_StreamDevice):
     def status(self) -> dict:
         out = super().status()
         ev = self.assembler.stats.events
-        out.update(protocol=self.cfg.protocol, profiles=self.records, profiles_synced=self.profiles_synced,
-                   packets_lost=ev.get("packets_lost", 0), profiles_lost=ev.get("profiles_lost", 0),
-                   rejected=dict(self.assembler.stats.rejected))  # fmt: skip
+        out.update(
+            protocol=self.cfg.protocol,
+            profiles=self.records,
+            profiles_synced=self.profiles_synced,
+            packets_lost=ev.get("packets_lost", 0),
+            profiles_lost=ev.get("profiles_lost", 0),
+            rejected=dict(self.assembler.stats.rejected),
+        )
         return out
 
     async def run(self) -> None:
@@ -427,9 +474,15 @@ class CanDevice(Device):
 
     def channel_metadata(self) -> dict[str, dict[str, str]]:
         t: CanTransport = self.cfg.transport
-        return {self.channel: {"format": "socketcan_can_frame_le", "interface": t.interface,
-                               "channel": t.channel, "device": self.name,
-                               "event_marker_id": "0x6e0"}}  # fmt: skip
+        return {
+            self.channel: {
+                "format": "socketcan_can_frame_le",
+                "interface": t.interface,
+                "channel": t.channel,
+                "device": self.name,
+                "event_marker_id": "0x6e0",
+            }
+        }
 
     async def open(self) -> None:
         from drivers.can import EVENT_MARKER_ID, CanReader, decode_event_marker, open_can_bus
@@ -452,13 +505,23 @@ class CanDevice(Device):
         async for frame in self.reader:
             self.records += 1
             self.seen(frame.host_ns)
-            submit(self.channel, can_frame_bytes(frame.arbitration_id, frame.data, frame.is_extended_id),
-                   host_ns=frame.host_ns)  # fmt: skip
+            submit(
+                self.channel,
+                can_frame_bytes(frame.arbitration_id, frame.data, frame.is_extended_id),
+                host_ns=frame.host_ns,
+            )
             m = frame.decoded
             if isinstance(m, EventMarker):
                 self.markers += 1
-                self.ctx.log_event({"event": m.kind, "pass_id": m.pass_id, "sequence": m.sequence,
-                                    "source": f"can:{self.name}"}, frame.host_ns)  # fmt: skip
+                self.ctx.log_event(
+                    {
+                        "event": m.kind,
+                        "pass_id": m.pass_id,
+                        "sequence": m.sequence,
+                        "source": f"can:{self.name}",
+                    },
+                    frame.host_ns,
+                )
 
     def status(self) -> dict:
         out = {**super().status(), "markers": self.markers}

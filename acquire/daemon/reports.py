@@ -48,13 +48,19 @@ class StatusReports:
             "uptime_s": round((now - self.started_mono_ns) / NS_PER_S, 1),
             "clock": self.clock.state_at(now).value,
             "devices": {n: self.device_state(d) for n, d in self.devices.items()},
-            "log": None if w is None else {
-                "state": w.state, "segment": w.segment, "messages": w.messages_written,
-                "dropped": sum(w.dropped.values()), "lost": sum(w.lost.values()),
-                "free_mb": None if w.free_bytes is None else round(w.free_bytes / 2**20, 1)},
+            "log": None
+            if w is None
+            else {
+                "state": w.state,
+                "segment": w.segment,
+                "messages": w.messages_written,
+                "dropped": sum(w.dropped.values()),
+                "lost": sum(w.lost.values()),
+                "free_mb": None if w.free_bytes is None else round(w.free_bytes / 2**20, 1),
+            },
             "mqtt": None if self.mqtt is None else ("connected" if self.mqtt.connected else "disconnected"),
             "alarms": [a.as_dict() for a in self.alarms.active()],
-        }  # fmt: skip
+        }
         return doc
 
     def _publish_status(self) -> None:
@@ -65,17 +71,24 @@ class StatusReports:
         out = {"state": self.device_state(dev), "kind": dev.kind, "records": dev.records}
         if name in self.monitor.devices:
             st = self.monitor.stats(name)
-            out.update(rate_hz=None if st.rate_hz is None else round(st.rate_hz, 1), sync=st.sync,
-                       latency_ms=None if st.mean_ns is None else round(st.mean_ns / 1e6, 3),
-                       latency_p99_ms=None if st.p99_ns is None else round(st.p99_ns / 1e6, 3),
-                       pps_flag=st.pps_flag)  # fmt: skip
+            out.update(
+                rate_hz=None if st.rate_hz is None else round(st.rate_hz, 1),
+                sync=st.sync,
+                latency_ms=None if st.mean_ns is None else round(st.mean_ns / 1e6, 3),
+                latency_p99_ms=None if st.p99_ns is None else round(st.p99_ns / 1e6, 3),
+                pps_flag=st.pps_flag,
+            )
         out.update(reconnects=dev.reconnects, gaps=dev.gaps, lost=dev.losses())
         return out
 
     def clock_doc(self, now: int) -> dict:
         est = self.clock.to_gps(now)
-        return {**self.clock.status(now).as_dict(), "gps_ns": est.gps_ns, "host_ns": now,
-                "pps": self.timekeeper.status()}  # fmt: skip
+        return {
+            **self.clock.status(now).as_dict(),
+            "gps_ns": est.gps_ns,
+            "host_ns": now,
+            "pps": self.timekeeper.status(),
+        }
 
     def _publish_details(self, now: int) -> None:
         bus = self.bus
@@ -90,18 +103,27 @@ class StatusReports:
         return {
             "latency": self.monitor.snapshot(),
             "log": self.writer.stats().as_dict() if self.writer is not None else None,
-            "status_socket": None if self.server is None else {
-                "clients": self.server.clients, "served": self.server.clients_served,
-                "dropped": self.server.clients_dropped},
-            "mqtt": None if self.mqtt is None else {
-                "connected": self.mqtt.connected, "connects": self.mqtt.connects,
-                "published": self.mqtt.published, "dropped": self.mqtt.dropped,
-                "last_error": self.mqtt.last_error},
+            "status_socket": None
+            if self.server is None
+            else {
+                "clients": self.server.clients,
+                "served": self.server.clients_served,
+                "dropped": self.server.clients_dropped,
+            },
+            "mqtt": None
+            if self.mqtt is None
+            else {
+                "connected": self.mqtt.connected,
+                "connects": self.mqtt.connects,
+                "published": self.mqtt.published,
+                "dropped": self.mqtt.dropped,
+                "last_error": self.mqtt.last_error,
+            },
             "devices": {n: d.status() for n, d in self.devices.items()},
             "consumers": self.hub.status(),
             "loop_lag_ms": round(self.loop_lag_ns / 1e6, 3),
             "cpu_s": round(cpu, 3),
-        }  # fmt: skip
+        }
 
     def presurvey(self, now: int) -> dict:
         """docs/architecture.md §8's pre-survey checks: ``{check: {"ok": bool, "detail": str}}``."""
@@ -113,31 +135,65 @@ class StatusReports:
         for dev in self.devices.values():
             if dev.kind == "ins":
                 nav = getattr(dev, "last_nav", None) or {}
-                check("ins_navigating", nav.get("navigation") and nav.get("fine_alignment"),
-                      "navigating, fine aligned" if nav.get("navigation") and nav.get("fine_alignment")
-                      else "no navigation record yet" if not nav else "aligning / not navigating")
-                check("gnss_fix", nav.get("gps_valid"), "GNSS valid" if nav.get("gps_valid") else "no valid GNSS")
-                check("ins_pps", nav.get("pps_detected") and nav.get("utc_detected"),
-                      f"INS time source: {nav.get('time_source', 'none')}")
+                check(
+                    "ins_navigating",
+                    nav.get("navigation") and nav.get("fine_alignment"),
+                    "navigating, fine aligned"
+                    if nav.get("navigation") and nav.get("fine_alignment")
+                    else "no navigation record yet"
+                    if not nav
+                    else "aligning / not navigating",
+                )
+                check(
+                    "gnss_fix",
+                    nav.get("gps_valid"),
+                    "GNSS valid" if nav.get("gps_valid") else "no valid GNSS",
+                )
+                check(
+                    "ins_pps",
+                    nav.get("pps_detected") and nav.get("utc_detected"),
+                    f"INS time source: {nav.get('time_source', 'none')}",
+                )
             elif dev.kind == "profiler":
                 rate = self.monitor.stats(dev.name).rate_hz
                 check("profiler_data", bool(rate), f"{rate or 0:.0f} profiles/s")
                 buf = getattr(dev.transport, "rcvbuf_bytes_granted", 0)
-                check("receive_buffer", buf >= MIN_RCVBUF_BYTES,
-                      f"profiler socket buffer {buf / 2**20:.1f} MiB" + ("" if buf >= MIN_RCVBUF_BYTES else
-                      " (raise the sysctl net.core.rmem_max to 33554432)"))  # fmt: skip
+                check(
+                    "receive_buffer",
+                    buf >= MIN_RCVBUF_BYTES,
+                    f"profiler socket buffer {buf / 2**20:.1f} MiB"
+                    + (
+                        "" if buf >= MIN_RCVBUF_BYTES else " (raise the sysctl net.core.rmem_max to 33554432)"
+                    ),
+                )
         state = self.clock.state_at(now)
         check("clock_locked", state == ClockState.LOCKED, f"clock {state.value}")
-        bad = [a for a in self.alarms.active()
-               if a.name in ("latency_out_of_band", "latency_jump", "time_step", "clock_drift",
-                             "pps_flag_lost", "latency_jitter")]  # fmt: skip
+        bad = [
+            a
+            for a in self.alarms.active()
+            if a.name
+            in (
+                "latency_out_of_band",
+                "latency_jump",
+                "time_step",
+                "clock_drift",
+                "pps_flag_lost",
+                "latency_jitter",
+            )
+        ]
         check("latency_in_band", not bad, "; ".join(f"{a.device}: {a.name}" for a in bad) or "ok")
         w = self.writer.stats() if self.writer is not None else None
         free = w.free_bytes if w is not None else None
-        check("disk_space", free is not None and free > 2 * 2**30,
-              "unknown" if free is None else f"{free / 2**30:.1f} GiB free")
-        check("mount_configured", self.config.mount is not None,
-              "mount in the vessel config" if self.config.mount else "no mount in the vessel config")
+        check(
+            "disk_space",
+            free is not None and free > 2 * 2**30,
+            "unknown" if free is None else f"{free / 2**30:.1f} GiB free",
+        )
+        check(
+            "mount_configured",
+            self.config.mount is not None,
+            "mount in the vessel config" if self.config.mount else "no mount in the vessel config",
+        )
         return checks
 
     def _log_status(self, now: int) -> None:

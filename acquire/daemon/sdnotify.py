@@ -16,7 +16,7 @@ from __future__ import annotations
 import asyncio
 import os
 import socket
-from typing import Callable
+from collections.abc import Callable
 
 Check = Callable[[], "tuple[bool, str]"]
 
@@ -91,8 +91,7 @@ class HealthWatchdog:
         """One watchdog round: ping if healthy, else report why not. Returns health."""
         failures = self.evaluate()
         if failures != self.last_failures:
-            notify("STATUS=" + ("running" if not failures else "unhealthy: " + "; ".join(failures)),
-                   self.env)  # fmt: skip
+            notify("STATUS=" + ("running" if not failures else "unhealthy: " + "; ".join(failures)), self.env)
         self.last_failures = failures
         if failures:
             return False

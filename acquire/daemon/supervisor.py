@@ -47,19 +47,19 @@ import time
 import traceback
 from collections.abc import Sequence
 
-from acquire.daemon import sdnotify
 from acquire.alarms import CRITICAL, WARNING, AlarmBook
-from acquire.timing.clock import ClockModel, ClockState
+from acquire.daemon import sdnotify
 from acquire.daemon.config import VesselConfig
 from acquire.daemon.consumers import ChecklistPublisher, Consumer, ConsumerHub
 from acquire.daemon.devices import DEVICES, DaemonContext, Device
 from acquire.daemon.reports import StatusReports
 from acquire.daemon.sessionfiles import salvage_report, write_session_files
-from acquire.timing.latency import LatencyMonitor
 from acquire.log.batch import LogBatcher
 from acquire.log.session import LogError
 from acquire.log.sessionlog import SessionWriter
 from acquire.status.bus import StatusBus, StatusServer
+from acquire.timing.clock import ClockModel, ClockState
+from acquire.timing.latency import LatencyMonitor
 from acquire.timing.timekeeper import ClockCache, TimeKeeper, coarse_gps_offset_ns
 from drivers.base import DriverError
 
@@ -78,8 +78,9 @@ class StartupError(RuntimeError):
 class Supervisor(StatusReports):
     """Runs one vessel config until stopped (see the module docstring)."""
 
-    def __init__(self, config: VesselConfig, consumers: Sequence[Consumer] = (),
-                 env: dict[str, str] | None = None) -> None:  # fmt: skip
+    def __init__(
+        self, config: VesselConfig, consumers: Sequence[Consumer] = (), env: dict[str, str] | None = None
+    ) -> None:
         self.config = config
         self.consumers = list(consumers)
         self.env = env
@@ -92,7 +93,7 @@ class Supervisor(StatusReports):
         self.unavailable: dict[str, str] = {}  # device → the error while it cannot be opened/read
         self.salvaged: dict = {}
         self.started_mono_ns = time.monotonic_ns()
-        self.started_utc = _dt.datetime.now(_dt.timezone.utc)
+        self.started_utc = _dt.datetime.now(_dt.UTC)
         self.loop_lag_ns = 0
         self._check_devices()
         self.clock = ClockModel(config.clock, coarse_offset_ns=coarse_gps_offset_ns())
@@ -100,10 +101,17 @@ class Supervisor(StatusReports):
         self.monitor = LatencyMonitor(self.clock, self.alarms)
         self.hub = ConsumerHub()
         self.clock_cache = ClockCache(self.clock)
-        self.timekeeper = TimeKeeper(self.clock, self._submit, self._clock_state,
-                                     self.clock_cache.invalidate)  # fmt: skip
-        self.ctx = DaemonContext(_no_writer, self.clock, self.clock_cache.gps_ns, self.timekeeper,
-                                 self.monitor, self.hub, self.log_event, _no_writer)  # fmt: skip
+        self.timekeeper = TimeKeeper(self.clock, self._submit, self._clock_state, self.clock_cache.invalidate)
+        self.ctx = DaemonContext(
+            _no_writer,
+            self.clock,
+            self.clock_cache.gps_ns,
+            self.timekeeper,
+            self.monitor,
+            self.hub,
+            self.log_event,
+            _no_writer,
+        )
         self.devices: dict[str, Device] = {}
         for d in config.devices:
             extra = {}
@@ -132,9 +140,11 @@ class Supervisor(StatusReports):
         for kind, channel in (("ins", "/ins/raw"), ("profiler", "/lidar/raw")):
             devs = self.config.devices_of(kind)
             if len(devs) > 1:
-                raise StartupError(f"{self.config.source}: {len(devs)} {kind} devices "
-                                   f"({', '.join(d.name for d in devs)}); the session has one "
-                                   f"{channel} channel: configure one {kind}")  # fmt: skip
+                raise StartupError(
+                    f"{self.config.source}: {len(devs)} {kind} devices "
+                    f"({', '.join(d.name for d in devs)}); the session has one "
+                    f"{channel} channel: configure one {kind}"
+                )
 
     # -- record plumbing --------------------------------------------------------------------
 
@@ -209,8 +219,14 @@ class Supervisor(StatusReports):
         metadata: dict[str, dict[str, str]] = {}
         for d in self.devices.values():
             metadata.update(d.channel_metadata())
-        self.writer = SessionWriter(cfg.session_dir, cfg.vessel, cfg.session, alarms=self.alarms,
-                                    clock=self.clock, channel_metadata=metadata)  # fmt: skip
+        self.writer = SessionWriter(
+            cfg.session_dir,
+            cfg.vessel,
+            cfg.session,
+            alarms=self.alarms,
+            clock=self.clock,
+            channel_metadata=metadata,
+        )
         self.batcher = LogBatcher(self.writer.submit_batch, self.clock_cache)
         self.ctx.submit = self.batcher.submit  # the devices' hot path
         self.ctx.submit_many = self.batcher.submit_many
@@ -231,9 +247,16 @@ class Supervisor(StatusReports):
             self.mqtt = MqttPublisher(cfg.mqtt, cfg.vessel, on_command=self.command)
             self.bus.add_sink(self.mqtt)
             self._spawn(self.mqtt.run(), "mqtt")
-        self.log_event({"event": "session_start", "session": session_dir.name, "pid": os.getpid(),
-                        "config": str(cfg.source), "devices": list(self.devices),
-                        "salvaged": self.salvaged})  # fmt: skip
+        self.log_event(
+            {
+                "event": "session_start",
+                "session": session_dir.name,
+                "pid": os.getpid(),
+                "config": str(cfg.source),
+                "devices": list(self.devices),
+                "salvaged": self.salvaged,
+            }
+        )
         self._publish_status()
         for dev in self.devices.values():
             try:
@@ -250,8 +273,9 @@ class Supervisor(StatusReports):
             self._spawn(self._consumer_loop(c), f"consumer:{c.name}")
         self._spawn(self._monitor_loop(), "monitor")
         self._spawn(self._status_loop(), "status")
-        self.watchdog = sdnotify.HealthWatchdog({"drivers": self.drivers_health,
-                                                 "log": self.writer.health}, env=self.env)  # fmt: skip
+        self.watchdog = sdnotify.HealthWatchdog(
+            {"drivers": self.drivers_health, "log": self.writer.health}, env=self.env
+        )
         self._spawn(self.watchdog.run(), "watchdog")
         # what start-up built (modules, config, numpy/scipy) lives as long as the daemon: out of the
         # collector's sight, a full collection takes ~1 ms instead of ~100 ms holding the GIL
@@ -259,8 +283,9 @@ class Supervisor(StatusReports):
         gc.freeze()
         self.state = "running"
         self._publish_status()
-        sdnotify.notify(f"READY=1\nSTATUS=acquiring: {len(self.devices)} devices, session "
-                        f"{session_dir.name}", self.env)  # fmt: skip
+        sdnotify.notify(
+            f"READY=1\nSTATUS=acquiring: {len(self.devices)} devices, session {session_dir.name}", self.env
+        )
         log.info("acquiring: session %s", session_dir)
 
     async def shutdown(self) -> None:
@@ -285,8 +310,14 @@ class Supervisor(StatusReports):
             now = time.monotonic_ns()
             self.timekeeper.flush()  # log the pulses still waiting for a label
             self._drain_alarms()
-            self.log_event({"event": "session_end", "reason": self.stop_reason or "error",
-                            "records": {n: d.records for n, d in self.devices.items()}}, now)  # fmt: skip
+            self.log_event(
+                {
+                    "event": "session_end",
+                    "reason": self.stop_reason or "error",
+                    "records": {n: d.records for n, d in self.devices.items()},
+                },
+                now,
+            )
             self._log_status(now)
             self.batcher.flush()
             await asyncio.to_thread(self.writer.close)
@@ -345,10 +376,23 @@ class Supervisor(StatusReports):
         else:
             self.crashed[dev.name] = text
             name, what = "driver_failed", "driver failed"
-        self.alarms.raise_now(name, dev.name, now, severity=CRITICAL,
-                              message=f"{dev.name} ({dev.kind}) {what} ({when}): {text}; retrying")
-        self.log_event({"event": name, "device": dev.name, "when": when, "error": text,
-                        "traceback": traceback.format_exception(e)[-3:]}, now)  # fmt: skip
+        self.alarms.raise_now(
+            name,
+            dev.name,
+            now,
+            severity=CRITICAL,
+            message=f"{dev.name} ({dev.kind}) {what} ({when}): {text}; retrying",
+        )
+        self.log_event(
+            {
+                "event": name,
+                "device": dev.name,
+                "when": when,
+                "error": text,
+                "traceback": traceback.format_exception(e)[-3:],
+            },
+            now,
+        )
         log.error("device %s: %s (%s): %s", dev.name, what, when, text)
 
     async def _consumer_loop(self, consumer: Consumer) -> None:
@@ -363,10 +407,21 @@ class Supervisor(StatusReports):
                 raise
             except Exception as e:
                 now = time.monotonic_ns()
-                self.log_event({"event": "consumer_failed", "consumer": consumer.name,
-                                "error": f"{type(e).__name__}: {e}"}, now)  # fmt: skip
-                self.alarms.raise_now("consumer_failed", consumer.name, now, severity=WARNING,
-                                      message=f"{consumer.name}: {type(e).__name__}: {e}; restarting")
+                self.log_event(
+                    {
+                        "event": "consumer_failed",
+                        "consumer": consumer.name,
+                        "error": f"{type(e).__name__}: {e}",
+                    },
+                    now,
+                )
+                self.alarms.raise_now(
+                    "consumer_failed",
+                    consumer.name,
+                    now,
+                    severity=WARNING,
+                    message=f"{consumer.name}: {type(e).__name__}: {e}; restarting",
+                )
             finally:
                 self.hub.unsubscribe(tap)
             await asyncio.sleep(backoff)
@@ -391,9 +446,13 @@ class Supervisor(StatusReports):
         al = self.alarms
         if self.clock.steps > self._steps:
             self._steps, self._step_ns = self.clock.steps, now
-            al.raise_now("time_step", "clock", now, severity=CRITICAL,
-                         message=f"PPS labels stepped: the clock model restarted "
-                                 f"({self.clock.steps} steps so far)")  # fmt: skip
+            al.raise_now(
+                "time_step",
+                "clock",
+                now,
+                severity=CRITICAL,
+                message=f"PPS labels stepped: the clock model restarted ({self.clock.steps} steps so far)",
+            )
         elif self._step_ns is not None and now - self._step_ns > STEP_CLEAR_S * NS_PER_S:
             self._step_ns = None
             al.clear_now("time_step", "clock", now, message="clock model steady since the step")
@@ -402,38 +461,69 @@ class Supervisor(StatusReports):
             count, since = self._losses.get(name, (0, 0))
             if lost > count:
                 self._losses[name] = (lost, now)
-                al.raise_now("packet_loss", name, now, severity=WARNING,
-                             message=f"{lost - count} packets lost (total {lost})")
+                al.raise_now(
+                    "packet_loss",
+                    name,
+                    now,
+                    severity=WARNING,
+                    message=f"{lost - count} packets lost (total {lost})",
+                )
             elif al.is_active("packet_loss", name) and now - since > LOSS_CLEAR_S * NS_PER_S:
-                al.clear_now("packet_loss", name, now, message=f"no loss for {LOSS_CLEAR_S:g} s (total {lost})")
+                al.clear_now(
+                    "packet_loss", name, now, message=f"no loss for {LOSS_CLEAR_S:g} s (total {lost})"
+                )
         for tap in self.hub.taps:
             before = self._tap_drops.get(tap.name, 0)
             self._tap_drops[tap.name] = tap.dropped
-            al.update("consumer_overflow", tap.name, tap.dropped > before, now, severity=WARNING,
-                      message=f"{tap.name} does not keep up: {tap.dropped} records dropped",
-                      clear_after_ns=int(LOSS_CLEAR_S * NS_PER_S))  # fmt: skip
+            al.update(
+                "consumer_overflow",
+                tap.name,
+                tap.dropped > before,
+                now,
+                severity=WARNING,
+                message=f"{tap.name} does not keep up: {tap.dropped} records dropped",
+                clear_after_ns=int(LOSS_CLEAR_S * NS_PER_S),
+            )
         if self._drain_alarms():
             self._publish_status()
 
     def _clock_state(self, old: ClockState, new: ClockState, now: int) -> None:
         st = self.clock.status(now)
         bound = st.as_dict()["error_bound_us"]
-        self.log_event({"event": "clock_state", "from": old.value, "to": new.value,
-                        "error_bound_us": bound, "edges_in_window": st.edges_in_window}, now)  # fmt: skip
+        self.log_event(
+            {
+                "event": "clock_state",
+                "from": old.value,
+                "to": new.value,
+                "error_bound_us": bound,
+                "edges_in_window": st.edges_in_window,
+            },
+            now,
+        )
         al = self.alarms
         if new == ClockState.LOCKED:
             self._was_locked = True
             al.clear_now("clock_holdover", "clock", now, message="PPS back: LOCKED")
             al.clear_now("clock_unlocked", "clock", now, message="PPS back: LOCKED")
         elif new == ClockState.HOLDOVER:
-            al.raise_now("clock_holdover", "clock", now, severity=WARNING,
-                         message=f"no PPS for {st.as_dict()['last_edge_age_s']} s: holding over, "
-                                 f"error bound {bound} µs")  # fmt: skip
+            al.raise_now(
+                "clock_holdover",
+                "clock",
+                now,
+                severity=WARNING,
+                message=f"no PPS for {st.as_dict()['last_edge_age_s']} s: holding over, "
+                f"error bound {bound} µs",
+            )
         elif self._was_locked:
             al.clear_now("clock_holdover", "clock", now)
-            al.raise_now("clock_unlocked", "clock", now, severity=CRITICAL,
-                         message="clock UNLOCKED: holdover bound exceeded or PPS labels lost; "
-                                 "GPS times come from the devices' tags or the system clock")  # fmt: skip
+            al.raise_now(
+                "clock_unlocked",
+                "clock",
+                now,
+                severity=CRITICAL,
+                message="clock UNLOCKED: holdover bound exceeded or PPS labels lost; "
+                "GPS times come from the devices' tags or the system clock",
+            )
 
     def _drain_alarms(self) -> bool:
         events = self.alarms.drain()

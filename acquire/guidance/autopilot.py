@@ -63,8 +63,14 @@ class Steering:
         return f"L{self.pass_id}"
 
 
-def steering(p_lgf_m, line: PlannedPass, *, lookahead_m: float = DEFAULT_LOOKAHEAD_M,
-             arrival_radius_m: float = DEFAULT_ARRIVAL_RADIUS_M, valid: bool = True) -> Steering:  # fmt: skip
+def steering(
+    p_lgf_m,
+    line: PlannedPass,
+    *,
+    lookahead_m: float = DEFAULT_LOOKAHEAD_M,
+    arrival_radius_m: float = DEFAULT_ARRIVAL_RADIUS_M,
+    valid: bool = True,
+) -> Steering:
     """Steering toward ``line`` from the LGF position ``p_lgf_m`` (3,)."""
     p = np.asarray(p_lgf_m, float).reshape(3)
     along, xte = line_offsets(p, line)
@@ -72,9 +78,18 @@ def steering(p_lgf_m, line: PlannedPass, *, lookahead_m: float = DEFAULT_LOOKAHE
     d = line.end_lgf_m[:2] - p[:2]
     dist = float(np.hypot(*d))
     steer = frames.wrap_2pi(line.heading_rad - math.atan2(x, lookahead_m))
-    return Steering(line.id, bool(valid) and math.isfinite(x), x, a, float(line.heading_rad),
-                    float(frames.wrap_2pi(math.atan2(d[1], d[0]))), float(steer), dist,
-                    dist <= arrival_radius_m, a >= line.length_m)  # fmt: skip
+    return Steering(
+        line.id,
+        bool(valid) and math.isfinite(x),
+        x,
+        a,
+        float(line.heading_rad),
+        float(frames.wrap_2pi(math.atan2(d[1], d[0]))),
+        float(steer),
+        dist,
+        dist <= arrival_radius_m,
+        a >= line.length_m,
+    )
 
 
 def _deg(rad: float) -> str:
@@ -92,17 +107,35 @@ def apb_sentence(s: Steering, talker: str = "GP") -> bytes:
     """``$--APB``: autopilot sentence B (bearings true)."""
     st, mode = ("A", "A") if s.valid else ("V", "N")
     mag = f"{abs(s.xte_m) / NM_M:.4f}" if s.valid else ""
-    fields = [st, st, mag, s.steer if s.valid else "", "N", "A" if s.arrived else "V",
-              "A" if s.passed else "V", _deg(s.line_heading_rad), "T", s.waypoint_id,
-              _deg(s.bearing_to_end_rad), "T", _deg(s.heading_to_steer_rad), "T", mode]
+    fields = [
+        st,
+        st,
+        mag,
+        s.steer if s.valid else "",
+        "N",
+        "A" if s.arrived else "V",
+        "A" if s.passed else "V",
+        _deg(s.line_heading_rad),
+        "T",
+        s.waypoint_id,
+        _deg(s.bearing_to_end_rad),
+        "T",
+        _deg(s.heading_to_steer_rad),
+        "T",
+        mode,
+    ]
     return encode_sentence(f"{talker}APB," + ",".join(fields))
 
 
-def autopilot_sentences(p_lgf_m, line: PlannedPass, *, talker: str = "GP",
-                        lookahead_m: float = DEFAULT_LOOKAHEAD_M,
-                        arrival_radius_m: float = DEFAULT_ARRIVAL_RADIUS_M,
-                        valid: bool = True) -> list[bytes]:  # fmt: skip
+def autopilot_sentences(
+    p_lgf_m,
+    line: PlannedPass,
+    *,
+    talker: str = "GP",
+    lookahead_m: float = DEFAULT_LOOKAHEAD_M,
+    arrival_radius_m: float = DEFAULT_ARRIVAL_RADIUS_M,
+    valid: bool = True,
+) -> list[bytes]:
     """The XTE and APB sentences for an autopilot following ``line`` from ``p_lgf_m``."""
-    s = steering(p_lgf_m, line, lookahead_m=lookahead_m, arrival_radius_m=arrival_radius_m,
-                 valid=valid)  # fmt: skip
+    s = steering(p_lgf_m, line, lookahead_m=lookahead_m, arrival_radius_m=arrival_radius_m, valid=valid)
     return [xte_sentence(s, talker), apb_sentence(s, talker)]

@@ -35,7 +35,7 @@ class NmeaOutput:
             from acquire.status.feed import parse_host_port
 
             try:
-                self.addr = parse_host_port(dest[len("udp://"):], default_port=NMEA_UDP_PORT)
+                self.addr = parse_host_port(dest[len("udp://") :], default_port=NMEA_UDP_PORT)
             except ValueError as e:
                 raise NmeaOutputError(str(e)) from None
             self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
@@ -56,8 +56,9 @@ class NmeaOutput:
             self.fh.close()
 
 
-def sentences_at(frame, line, lat_deg: float, lon_deg: float, *, talker: str,
-                 lookahead_m: float) -> list[bytes]:  # fmt: skip
+def sentences_at(
+    frame, line, lat_deg: float, lon_deg: float, *, talker: str, lookahead_m: float
+) -> list[bytes]:
     """The XTE and APB sentences for following ``line`` (a planned pass in the LGF of ``frame``)
     from the vessel at ``lat_deg``, ``lon_deg``, its height taken as the line's."""
     import numpy as np
@@ -69,9 +70,16 @@ def sentences_at(frame, line, lat_deg: float, lon_deg: float, *, talker: str,
     return autopilot_sentences(np.asarray(p), line, talker=talker, lookahead_m=lookahead_m)
 
 
-async def follow_daemon(socket_path: Path, plan, frame, active: int | None, out: NmeaOutput,
-                        talker: str, lookahead_m: float,
-                        on_link: Callable[[dict], None] | None = None) -> None:  # fmt: skip
+async def follow_daemon(
+    socket_path: Path,
+    plan,
+    frame,
+    active: int | None,
+    out: NmeaOutput,
+    talker: str,
+    lookahead_m: float,
+    on_link: Callable[[dict], None] | None = None,
+) -> None:
     """Write the sentences to ``out`` at every vessel position the daemon publishes, for the
     pass ``active`` (else the daemon's active pass); ``on_link`` gets the feed's link events
     (``{"up": bool, "detail": str}``). Runs until cancelled."""
@@ -89,6 +97,12 @@ async def follow_daemon(socket_path: Path, plan, frame, active: int | None, out:
         pid = active or (g.get("active") or {}).get("pass_id")
         if pid is None or "lat_deg" not in vessel:
             continue
-        for s in sentences_at(frame, plan.by_id(int(pid)), vessel["lat_deg"], vessel["lon_deg"],
-                              talker=talker, lookahead_m=lookahead_m):  # fmt: skip
+        for s in sentences_at(
+            frame,
+            plan.by_id(int(pid)),
+            vessel["lat_deg"],
+            vessel["lon_deg"],
+            talker=talker,
+            lookahead_m=lookahead_m,
+        ):
             out.write(s)

@@ -31,8 +31,7 @@ class GuidanceConsumer:
     name = "guidance"
     kinds = ("nav", "profile", "event")
 
-    def __init__(self, guidance: Guidance, *, clock_state=None, checks=None,
-                 period_s: float = 0.5):  # fmt: skip
+    def __init__(self, guidance: Guidance, *, clock_state=None, checks=None, period_s: float = 0.5):
         self.guidance = guidance
         self.clock_state = clock_state
         self.checks = checks

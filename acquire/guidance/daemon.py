@@ -35,24 +35,27 @@ class GuidanceSetupError(ValueError):
 
 def tolerances(g: GuidanceConfig) -> AcceptanceTolerances:
     return AcceptanceTolerances(
-        max_xte_m=g.max_xte_m, max_heading_error_rad=math.radians(g.max_heading_error_deg),
-        max_speed_error_mps=g.max_speed_error_mps, min_points_per_target=g.min_points_per_target,
+        max_xte_m=g.max_xte_m,
+        max_heading_error_rad=math.radians(g.max_heading_error_deg),
+        max_speed_error_mps=g.max_speed_error_mps,
+        min_points_per_target=g.min_points_per_target,
         max_gap_s=g.max_gap_s,
-    )  # fmt: skip
+    )
 
 
 def make_guidance(cfg: VesselConfig) -> Guidance:
     """The guidance of a vessel config with a ``site_file`` (see the module docstring)."""
     from calib.core import frames
-    from calib.io.configfile import ConfigError
     from calib.core.georef import Mount
-    from calib.survey.passplan import PassPlanError, plan_site
-    from calib.sim.scenario import ScannerModel
+    from calib.io.configfile import ConfigError
     from calib.io.site import load_site
+    from calib.sim.scenario import ScannerModel
+    from calib.survey.passplan import PassPlanError, plan_site
 
     if cfg.site_file is None:
-        raise GuidanceSetupError(f"{cfg.source}: no site_file: the guidance needs the site's "
-                                 f"targets and pass plan")  # fmt: skip
+        raise GuidanceSetupError(
+            f"{cfg.source}: no site_file: the guidance needs the site's targets and pass plan"
+        )
     path = Path(cfg.site_file)
     try:
         site = load_site(path)
@@ -69,13 +72,14 @@ def make_guidance(cfg: VesselConfig) -> Guidance:
     mount = None
     if cfg.mount is not None:  # the vessel config's mount is what is installed
         m = cfg.mount
-        mount = Mount(lever_arm_m=np.asarray(m.lever_arm_m, float),
-                      nominal_rad=np.radians(m.nominal_deg),
-                      boresight_rad=np.radians(m.boresight_apriori_deg))  # fmt: skip
+        mount = Mount(
+            lever_arm_m=np.asarray(m.lever_arm_m, float),
+            nominal_rad=np.radians(m.nominal_deg),
+            boresight_rad=np.radians(m.boresight_apriori_deg),
+        )
     g = cfg.guidance
     scanner = ScannerModel(profile_rate_hz=g.profile_rate_hz, points_per_360=g.points_per_360)
-    return Guidance(site, plan, frame=frame, mount=mount, tolerances=tolerances(g),
-                    scanner=scanner)  # fmt: skip
+    return Guidance(site, plan, frame=frame, mount=mount, tolerances=tolerances(g), scanner=scanner)
 
 
 def daemon_checks(sup, guidance: Guidance, needed_bytes: int) -> list[Check]:
@@ -83,13 +87,22 @@ def daemon_checks(sup, guidance: Guidance, needed_bytes: int) -> list[Check]:
     cfg = sup.config
     now = time.monotonic_ns()
     latency = {name: sup.monitor.stats(name).as_dict() for name in sup.monitor.devices}
-    bands = {d.name: (d.latency.band_ns[0] / MS, d.latency.band_ns[1] / MS)
-             for d in cfg.devices if d.name in latency}  # fmt: skip
+    bands = {
+        d.name: (d.latency.band_ns[0] / MS, d.latency.band_ns[1] / MS)
+        for d in cfg.devices
+        if d.name in latency
+    }
     free = sup.writer.stats().free_bytes if sup.writer is not None else None
-    return prechecks(guidance.last_nav, sup.clock.status(now).as_dict(), latency, bands,
-                     free_bytes=free, needed_bytes=needed_bytes,
-                     mount_configured=cfg.mount is not None,
-                     n_targets=len(guidance.target_names))  # fmt: skip
+    return prechecks(
+        guidance.last_nav,
+        sup.clock.status(now).as_dict(),
+        latency,
+        bands,
+        free_bytes=free,
+        needed_bytes=needed_bytes,
+        mount_configured=cfg.mount is not None,
+        n_targets=len(guidance.target_names),
+    )
 
 
 def guidance_consumer(cfg: VesselConfig, sup) -> GuidanceConsumer | None:
@@ -102,6 +115,8 @@ def guidance_consumer(cfg: VesselConfig, sup) -> GuidanceConsumer | None:
     gc = cfg.guidance  # the log's data rate at the configured profiler settings (as the default)
     needed = disk_needed_bytes(g.plan, gc.profile_rate_hz * gc.points_per_360 * 6 * 1.1 + 200 * 300)
     return GuidanceConsumer(
-        g, clock_state=lambda: sup.clock.state_at(time.monotonic_ns()).value,
-        checks=lambda: daemon_checks(sup, g, needed), period_s=cfg.guidance.period_s,
-    )  # fmt: skip
+        g,
+        clock_state=lambda: sup.clock.state_at(time.monotonic_ns()).value,
+        checks=lambda: daemon_checks(sup, g, needed),
+        period_s=cfg.guidance.period_s,
+    )

@@ -20,19 +20,20 @@ Signs and conventions:
   bow points to starboard of the line.
 - **Progress** ``along_m``: distance along the line from its start (negative before it).
 """
+
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping
 from dataclasses import dataclass, replace
-from typing import Mapping
 
 import numpy as np
 
 from calib.core import frames
 from calib.core.georef import Mount, georeference
-from calib.survey.passplan import PassPlan, PlannedPass
-from calib.sim.scene import Scene
 from calib.core.trajectory import Trajectory
+from calib.sim.scene import Scene
+from calib.survey.passplan import PassPlan, PlannedPass
 from drivers.hydrins.nav import NavRecord
 
 #: Z+F Profiler 9012: 1.016 Mpts/s of (range u32, intensity u16) in ZFP1 packets, plus packet
@@ -56,11 +57,13 @@ class AcceptanceTolerances:
     max_gap_s: float = 0.5  # longest gap in the INS records or between profiles
 
     def as_dict(self) -> dict:
-        return {"max_xte_m": self.max_xte_m,
-                "max_heading_error_deg": math.degrees(self.max_heading_error_rad),
-                "max_speed_error_mps": self.max_speed_error_mps,
-                "min_points_per_target": self.min_points_per_target,
-                "max_gap_s": self.max_gap_s}  # fmt: skip
+        return {
+            "max_xte_m": self.max_xte_m,
+            "max_heading_error_deg": math.degrees(self.max_heading_error_rad),
+            "max_speed_error_mps": self.max_speed_error_mps,
+            "min_points_per_target": self.min_points_per_target,
+            "max_gap_s": self.max_gap_s,
+        }
 
 
 @dataclass(frozen=True)
@@ -132,22 +135,34 @@ class LineState:
     range_to_targets_m: float  # 3D distance from the vessel to the nearest target centre
 
     def as_dict(self) -> dict:
-        return {"pass_id": self.pass_id, "along_m": round(self.along_m, 3),
-                "xte_m": round(self.xte_m, 3),
-                "heading_error_deg": round(math.degrees(self.heading_error_rad), 3),
-                "speed_mps": round(self.speed_mps, 3), "in_capture": self.in_capture,
-                "to_capture_m": round(self.to_capture_m, 2),
-                "range_to_targets_m": round(self.range_to_targets_m, 2)}  # fmt: skip
+        return {
+            "pass_id": self.pass_id,
+            "along_m": round(self.along_m, 3),
+            "xte_m": round(self.xte_m, 3),
+            "heading_error_deg": round(math.degrees(self.heading_error_rad), 3),
+            "speed_mps": round(self.speed_mps, 3),
+            "in_capture": self.in_capture,
+            "to_capture_m": round(self.to_capture_m, 2),
+            "range_to_targets_m": round(self.range_to_targets_m, 2),
+        }
 
 
-def line_state(p_lgf_m, heading_rad: float, speed_mps: float, line: PlannedPass,
-               target_centers_lgf_m: np.ndarray) -> LineState:  # fmt: skip
+def line_state(
+    p_lgf_m, heading_rad: float, speed_mps: float, line: PlannedPass, target_centers_lgf_m: np.ndarray
+) -> LineState:
     along, xte = line_offsets(p_lgf_m, line)
     a = float(along[0])
     rng = np.linalg.norm(np.atleast_2d(target_centers_lgf_m) - np.asarray(p_lgf_m, float), axis=1)
-    return LineState(line.id, a, float(xte[0]), float(heading_error(heading_rad, line.heading_rad)),
-                     float(speed_mps), bool(in_capture(a, line)), line.capture_start_m - a,
-                     float(rng.min()) if rng.size else math.nan)  # fmt: skip
+    return LineState(
+        line.id,
+        a,
+        float(xte[0]),
+        float(heading_error(heading_rad, line.heading_rad)),
+        float(speed_mps),
+        bool(in_capture(a, line)),
+        line.capture_start_m - a,
+        float(rng.min()) if rng.size else math.nan,
+    )
 
 
 # =============================================================================================
@@ -171,14 +186,24 @@ class TargetHits:
         return np.bincount(self.target_index, minlength=n_targets)
 
     @staticmethod
-    def empty(n_points: int = 0) -> "TargetHits":
+    def empty(n_points: int = 0) -> TargetHits:
         e = np.empty(0)
         return TargetHits(e, e, e, np.empty(0, np.int64), n_points, 0)
 
 
-def target_hits(t_gps_s, range_m, scan_angle_rad, profile_of_point, t_profile_gps_s,
-                traj: Trajectory, mount: Mount, scene: Scene, *,
-                settings: GuidanceSettings = GuidanceSettings(), intensity=None) -> TargetHits:  # fmt: skip
+def target_hits(
+    t_gps_s,
+    range_m,
+    scan_angle_rad,
+    profile_of_point,
+    t_profile_gps_s,
+    traj: Trajectory,
+    mount: Mount,
+    scene: Scene,
+    *,
+    settings: GuidanceSettings = GuidanceSettings(),
+    intensity=None,
+) -> TargetHits:
     """Which returns of a batch of profiles lie on the targets (the scene's rectangles).
 
     ``profile_of_point`` (n,) indexes ``t_profile_gps_s`` (P,), each profile's mid time. Per
@@ -222,7 +247,8 @@ def target_hits(t_gps_s, range_m, scan_angle_rad, profile_of_point, t_profile_gp
             continue
         ok = sec.hit[:, r].take(pr)
         ok &= np.mod(beam - sec.start_rad[:, r].take(pr), two_pi) <= (
-            sec.width_rad[:, r] + 2 * s.gate_pad_rad).take(pr)
+            sec.width_rad[:, r] + 2 * s.gate_pad_rad
+        ).take(pr)
         ok &= np.abs(rho_r - dist[:, r].take(pr)) <= half_diag[r] + s.gate_grow_m
         gated |= ok
     idx = ret[gated]
@@ -262,8 +288,9 @@ class Check:
         return {"name": self.name, "label": self.label, "ok": self.ok, "detail": self.detail}
 
 
-def disk_needed_bytes(plan: PassPlan, rate_bytes_s: float = DEFAULT_LOG_RATE_BYTES_S,
-                      turn_s: float = 120.0, margin: float = 2.0) -> int:  # fmt: skip
+def disk_needed_bytes(
+    plan: PassPlan, rate_bytes_s: float = DEFAULT_LOG_RATE_BYTES_S, turn_s: float = 120.0, margin: float = 2.0
+) -> int:
     """Disk the planned passes need: their sailing time plus a turn between passes, at the
     log's data rate, times a margin (resails, the export and the calibration's outputs)."""
     t = sum(p.duration_s for p in plan.passes) + turn_s * max(len(plan.passes) - 1, 0)
@@ -316,14 +343,21 @@ def prechecks(
         if nav.gps_valid is None:
             out.append(Check("gnss_fix", "GNSS fix", False, "status not received"))
         elif not nav.gps_valid:
-            out.append(Check("gnss_fix", "GNSS fix", False,
-                             "no GNSS data" if not nav.gps_received else "GNSS not valid"))
+            out.append(
+                Check(
+                    "gnss_fix",
+                    "GNSS fix",
+                    False,
+                    "no GNSS data" if not nav.gps_received else "GNSS not valid",
+                )
+            )
         elif nav.utc_detected is False:
             out.append(Check("gnss_fix", "GNSS fix", False, "fix, INS not on UTC"))
         else:
             sig = math.hypot(nav.sigma_north_m, nav.sigma_east_m)
-            out.append(Check("gnss_fix", "GNSS fix", True,
-                             f"fix, σh {sig:.2f} m" if math.isfinite(sig) else "fix"))
+            out.append(
+                Check("gnss_fix", "GNSS fix", True, f"fix, σh {sig:.2f} m" if math.isfinite(sig) else "fix")
+            )
     # PPS: the INS sees it, the clock model has recent edges, the profiler reports it
     pps_bad = []
     if nav is not None and nav.pps_detected is not True:
@@ -340,20 +374,38 @@ def prechecks(
         out.append(Check("pps_locked", "PPS locked", False, "no PPS: " + ", ".join(pps_bad)))
     else:
         devs = sum(bool(st.get("pps_flag")) for st in (latency or {}).values())
-        out.append(Check("pps_locked", "PPS locked", True, "INS, clock" + (
-            f", {devs} device{'s' if devs > 1 else ''}" if devs else "")))
+        out.append(
+            Check(
+                "pps_locked",
+                "PPS locked",
+                True,
+                "INS, clock" + (f", {devs} device{'s' if devs > 1 else ''}" if devs else ""),
+            )
+        )
     if clock is None:
         out.append(Check("clock_locked", "Clock LOCKED", None, "no clock status"))
     else:
         state = clock.get("state")
         jit = clock.get("jitter_rms_us")
         if state == "LOCKED":
-            out.append(Check("clock_locked", "Clock LOCKED", True, "LOCKED" + (
-                f", jitter {jit:.1f} µs" if jit is not None else "")))
+            out.append(
+                Check(
+                    "clock_locked",
+                    "Clock LOCKED",
+                    True,
+                    "LOCKED" + (f", jitter {jit:.1f} µs" if jit is not None else ""),
+                )
+            )
         else:
             bound = clock.get("error_bound_us")
-            out.append(Check("clock_locked", "Clock LOCKED", False, f"{state}" + (
-                f", ±{bound:.0f} µs" if bound is not None else "")))
+            out.append(
+                Check(
+                    "clock_locked",
+                    "Clock LOCKED",
+                    False,
+                    f"{state}" + (f", ±{bound:.0f} µs" if bound is not None else ""),
+                )
+            )
     # latency in band
     if not latency:
         out.append(Check("latency_in_band", "Latency", None, "no statistics yet"))
@@ -370,22 +422,40 @@ def prechecks(
                 bad.append(f"{dev} {mean:.1f}<{lo:g} ms")
             else:
                 worst = max(worst, mean)
-        out.append(Check("latency_in_band", "Latency", not bad,
-                         ", ".join(bad) if bad else f"in band, max {worst:.1f} ms"))
+        out.append(
+            Check(
+                "latency_in_band",
+                "Latency",
+                not bad,
+                ", ".join(bad) if bad else f"in band, max {worst:.1f} ms",
+            )
+        )
     if free_bytes is None:
         out.append(Check("disk_space", "Disk space", None, "unknown"))
     else:
         need = needed_bytes or 0
         ok = free_bytes >= need
-        out.append(Check("disk_space", "Disk space", ok, f"{_fmt_bytes(free_bytes)} free "
-                         f"{'≥' if ok else '<'} {_fmt_bytes(need)}"))
+        out.append(
+            Check(
+                "disk_space",
+                "Disk space",
+                ok,
+                f"{_fmt_bytes(free_bytes)} free {'≥' if ok else '<'} {_fmt_bytes(need)}",
+            )
+        )
     cfg_bad = []
     if not mount_configured:
         cfg_bad.append("no mount")
     if n_targets < 2:
         cfg_bad.append(f"{n_targets} target{'s' if n_targets != 1 else ''} (need 2)")
-    out.append(Check("mount_targets", "Mount+targets", not cfg_bad,
-                     ", ".join(cfg_bad) if cfg_bad else f"mount, {n_targets} targets"))
+    out.append(
+        Check(
+            "mount_targets",
+            "Mount+targets",
+            not cfg_bad,
+            ", ".join(cfg_bad) if cfg_bad else f"mount, {n_targets} targets",
+        )
+    )
     return out
 
 
@@ -432,8 +502,13 @@ class PassVerdict:
     attempt: int = 1
 
     def as_dict(self) -> dict:
-        return {"pass_id": self.pass_id, "accepted": self.accepted,
-                "reasons": list(self.reasons), "stats": self.stats, "attempt": self.attempt}
+        return {
+            "pass_id": self.pass_id,
+            "accepted": self.accepted,
+            "reasons": list(self.reasons),
+            "stats": self.stats,
+            "attempt": self.attempt,
+        }
 
 
 def _flag_seconds(t: np.ndarray, bad: np.ndarray) -> float:
@@ -449,47 +524,64 @@ def _max_gap(t: np.ndarray, t0: float, t1: float) -> float:
     return float(np.max(np.diff(edges))) if edges.size > 1 else 0.0
 
 
-def evaluate_pass(w: PassWindow, tol: AcceptanceTolerances = AcceptanceTolerances(),
-                  attempt: int = 1) -> PassVerdict:  # fmt: skip
+def evaluate_pass(
+    w: PassWindow, tol: AcceptanceTolerances = AcceptanceTolerances(), attempt: int = 1
+) -> PassVerdict:
     """Accept or reject a sailed window; every failed condition is a reason that names the
     value and the tolerance."""
     reasons: list[str] = []
-    stats: dict = {"t_enter_gps_s": w.t_enter_gps_s, "t_exit_gps_s": w.t_exit_gps_s,
-                   "duration_s": round(w.t_exit_gps_s - w.t_enter_gps_s, 3),
-                   "n_nav": int(w.t_gps_s.size), "n_profiles": int(w.profile_t_gps_s.size),
-                   "hits": dict(w.hits)}  # fmt: skip
+    stats: dict = {
+        "t_enter_gps_s": w.t_enter_gps_s,
+        "t_exit_gps_s": w.t_exit_gps_s,
+        "duration_s": round(w.t_exit_gps_s - w.t_enter_gps_s, 3),
+        "n_nav": int(w.t_gps_s.size),
+        "n_profiles": int(w.profile_t_gps_s.size),
+        "hits": dict(w.hits),
+    }
     if not w.completed:
         reached = float(np.max(w.along_m)) if w.along_m.size else w.capture_m[0]
-        reasons.append(f"capture window not completed: {w.exit_reason} at "
-                       f"{reached - w.capture_m[0]:.1f} of "
-                       f"{w.capture_m[1] - w.capture_m[0]:.1f} m")  # fmt: skip
+        reasons.append(
+            f"capture window not completed: {w.exit_reason} at "
+            f"{reached - w.capture_m[0]:.1f} of "
+            f"{w.capture_m[1] - w.capture_m[0]:.1f} m"
+        )
     if w.t_gps_s.size:
         xte = float(np.max(np.abs(w.xte_m)))
         herr = float(np.max(np.abs(w.heading_error_rad)))
         v = w.speed_mps[np.isfinite(w.speed_mps)]
-        stats.update(max_xte_m=round(xte, 3),
-                     rms_xte_m=round(float(np.sqrt(np.mean(w.xte_m**2))), 3),
-                     max_heading_error_deg=round(math.degrees(herr), 3))  # fmt: skip
+        stats.update(
+            max_xte_m=round(xte, 3),
+            rms_xte_m=round(float(np.sqrt(np.mean(w.xte_m**2))), 3),
+            max_heading_error_deg=round(math.degrees(herr), 3),
+        )
         if xte > tol.max_xte_m:
             reasons.append(f"cross-track error up to {xte:.2f} m (tolerance {tol.max_xte_m:g} m)")
         if herr > tol.max_heading_error_rad:
-            reasons.append(f"heading error up to {math.degrees(herr):.1f}° (tolerance "
-                           f"{math.degrees(tol.max_heading_error_rad):g}°)")  # fmt: skip
+            reasons.append(
+                f"heading error up to {math.degrees(herr):.1f}° (tolerance "
+                f"{math.degrees(tol.max_heading_error_rad):g}°)"
+            )
         if v.size:
-            stats.update(speed_min_mps=round(float(v.min()), 3),
-                         speed_max_mps=round(float(v.max()), 3),
-                         speed_mean_mps=round(float(v.mean()), 3))  # fmt: skip
+            stats.update(
+                speed_min_mps=round(float(v.min()), 3),
+                speed_max_mps=round(float(v.max()), 3),
+                speed_mean_mps=round(float(v.mean()), 3),
+            )
             dev = float(np.max(np.abs(v - w.planned_speed_mps)))
             if dev > tol.max_speed_error_mps:
-                reasons.append(f"speed {v.min():.2f}–{v.max():.2f} m/s, planned "
-                               f"{w.planned_speed_mps:g} ± {tol.max_speed_error_mps:g} m/s")
+                reasons.append(
+                    f"speed {v.min():.2f}–{v.max():.2f} m/s, planned "
+                    f"{w.planned_speed_mps:g} ± {tol.max_speed_error_mps:g} m/s"
+                )
         else:
             reasons.append("no speed over ground from the INS")
         # INS health over the window
         t = w.t_gps_s
-        for arr, item, what in ((w.navigation, "navigation", "not navigating"),
-                                (w.utc, "UTC time", "not on UTC time"),
-                                (w.ins_pps, "PPS", "without PPS")):  # fmt: skip
+        for arr, item, what in (
+            (w.navigation, "navigation", "not navigating"),
+            (w.utc, "UTC time", "not on UTC time"),
+            (w.ins_pps, "PPS", "without PPS"),
+        ):
             if np.isnan(arr).any():
                 reasons.append(f"INS status ({item}) not reported")
             elif (arr == 0).any():
@@ -513,11 +605,16 @@ def evaluate_pass(w: PassWindow, tol: AcceptanceTolerances = AcceptanceTolerance
         reasons.append(f"profiler PPS not locked in {w.profiles_pps_unlocked} profile(s)")
     unlocked = sorted({s for s in w.clock_states if s != "LOCKED"})
     if unlocked or not w.clock_states:
-        reasons.append("clock " + (", ".join(unlocked) if unlocked else "state unknown")
-                       + " during the window (must stay LOCKED)")  # fmt: skip
-    few = [f"{name}: {n} point{'s' if n != 1 else ''}" for name, n in w.hits.items()
-           if n < tol.min_points_per_target]  # fmt: skip
+        reasons.append(
+            "clock "
+            + (", ".join(unlocked) if unlocked else "state unknown")
+            + " during the window (must stay LOCKED)"
+        )
+    few = [
+        f"{name}: {n} point{'s' if n != 1 else ''}"
+        for name, n in w.hits.items()
+        if n < tol.min_points_per_target
+    ]
     if few:
-        reasons.append(f"too few target points ({', '.join(few)}; need "
-                       f"{tol.min_points_per_target})")  # fmt: skip
+        reasons.append(f"too few target points ({', '.join(few)}; need {tol.min_points_per_target})")
     return PassVerdict(w.pass_id, not reasons, tuple(reasons), stats, attempt)

@@ -18,21 +18,36 @@ from __future__ import annotations
 
 import math
 import threading
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, replace
-from typing import Iterable, Sequence
 
 import numpy as np
 
-from acquire.guidance.lines import (AcceptanceTolerances, Check, GuidanceSettings, PassVerdict,
-                              heading_error, line_offsets, line_state, speed_over_ground)  # fmt: skip
+from acquire.guidance.lines import (
+    AcceptanceTolerances,
+    Check,
+    GuidanceSettings,
+    PassVerdict,
+    heading_error,
+    line_offsets,
+    line_state,
+    speed_over_ground,
+)
 from acquire.guidance.tracking import PassTracker
 from calib.core import frames
 from calib.core.georef import Mount
-from calib.survey.passplan import PassPlan
-from calib.design.passpredict import (ANGLES, ObservationModel, PassGeometry, SigmaPrediction,
-                               predict_pass, predict_sigma, rank_candidates)  # fmt: skip
-from calib.sim.scenario import ScannerModel
+from calib.design.passpredict import (
+    ANGLES,
+    ObservationModel,
+    PassGeometry,
+    SigmaPrediction,
+    predict_pass,
+    predict_sigma,
+    rank_candidates,
+)
 from calib.io.site import Site
+from calib.sim.scenario import ScannerModel
+from calib.survey.passplan import PassPlan
 
 SCHEMA = "mls.checklist/1"  # of the message (the checklist topic's ``guidance`` section)
 
@@ -57,8 +72,13 @@ def sigma_rises(history: Sequence[dict], current: SigmaPrediction) -> tuple[str,
     if prev is None:
         return ()
     now = current.as_dict()["realistic_deg"]
-    return tuple(a for a in ANGLES if now[a] is not None and prev["realistic_deg"][a] is not None
-                 and now[a] > prev["realistic_deg"][a] * (1.0 + 1e-9))  # fmt: skip
+    return tuple(
+        a
+        for a in ANGLES
+        if now[a] is not None
+        and prev["realistic_deg"][a] is not None
+        and now[a] > prev["realistic_deg"][a] * (1.0 + 1e-9)
+    )
 
 
 class Guidance(PassTracker):
@@ -69,11 +89,18 @@ class Guidance(PassTracker):
     of the scanner are kept).
     """
 
-    def __init__(self, site: Site, plan: PassPlan, *, frame: frames.LocalFrame | None = None,
-                 mount: Mount | None = None,
-                 tolerances: AcceptanceTolerances = AcceptanceTolerances(),
-                 settings: GuidanceSettings = GuidanceSettings(),
-                 scanner: ScannerModel = ScannerModel(), thin_step: int | None = None):  # fmt: skip
+    def __init__(
+        self,
+        site: Site,
+        plan: PassPlan,
+        *,
+        frame: frames.LocalFrame | None = None,
+        mount: Mount | None = None,
+        tolerances: AcceptanceTolerances = AcceptanceTolerances(),
+        settings: GuidanceSettings = GuidanceSettings(),
+        scanner: ScannerModel = ScannerModel(),
+        thin_step: int | None = None,
+    ):
         self.site = site
         frame = site.frame(frame)
         rects = site.target_rectangles(frame)
@@ -119,8 +146,11 @@ class Guidance(PassTracker):
     # -- prediction -------------------------------------------------------------------------
 
     def _track_down_m(self) -> float:
-        downs = [float(np.median(g.trajectory.p_lgf_m[:, 2])) for g in self._accepted.values()
-                 if g.trajectory is not None]  # fmt: skip
+        downs = [
+            float(np.median(g.trajectory.p_lgf_m[:, 2]))
+            for g in self._accepted.values()
+            if g.trajectory is not None
+        ]
         if downs:
             return float(np.median(downs))
         if len(self._nav):
@@ -133,10 +163,15 @@ class Guidance(PassTracker):
         cached = self._candidates.get(pid)
         if cached is not None and abs(cached[0] - track_down_m) <= 0.5:
             return cached[1]
-        scanner = replace(self.scanner,
-                          point_rate_scale=self.scanner.point_rate_scale / self.thin_step)
-        g = predict_pass(self.plan.by_id(pid), self.scene.rectangles, self.mount, scanner,
-                         self.frame, track_down_m=track_down_m)  # fmt: skip
+        scanner = replace(self.scanner, point_rate_scale=self.scanner.point_rate_scale / self.thin_step)
+        g = predict_pass(
+            self.plan.by_id(pid),
+            self.scene.rectangles,
+            self.mount,
+            scanner,
+            self.frame,
+            track_down_m=track_down_m,
+        )
         self._candidates[pid] = (track_down_m, g)
         return g
 
@@ -149,12 +184,17 @@ class Guidance(PassTracker):
             remaining = [i for i in order if i not in self._accepted]
             down = self._track_down_m()
             rects = self.scene.rectangles
-            current = predict_sigma(accepted, rects, self.mount, self.obs_model,
-                                    thin_step=self.thin_step)  # fmt: skip
+            current = predict_sigma(accepted, rects, self.mount, self.obs_model, thin_step=self.thin_step)
             cands = {i: self._candidate(i, down) for i in remaining}
-            ranking = rank_candidates(accepted, cands, rects, self.mount, self.obs_model,
-                                      thin_step=self.thin_step,
-                                      gap_s=self.settings.prediction_gap_s)  # fmt: skip
+            ranking = rank_candidates(
+                accepted,
+                cands,
+                rects,
+                self.mount,
+                self.obs_model,
+                thin_step=self.thin_step,
+                gap_s=self.settings.prediction_gap_s,
+            )
             report = SigmaReport(current, tuple(ranking), sigma_rises(self.sigma_history, current))
             self.sigma = report
             self.sigma_history.append(report.current_dict())
@@ -175,9 +215,11 @@ class Guidance(PassTracker):
                 line = self.plan.by_id(pid)
                 along, xte = line_offsets(latest[1:4], line)
                 herr = float(heading_error(latest[6], line.heading_rad))
-                if (abs(xte[0]) <= self.settings.match_xte_m
-                        and abs(herr) <= self.settings.match_heading_rad
-                        and -self.settings.approach_m <= along[0] <= line.capture_end_m):
+                if (
+                    abs(xte[0]) <= self.settings.match_xte_m
+                    and abs(herr) <= self.settings.match_heading_rad
+                    and -self.settings.approach_m <= along[0] <= line.capture_end_m
+                ):
                     if best is None or abs(xte[0]) < best[0]:
                         best = (abs(xte[0]), pid)
             if best is not None:
@@ -192,19 +234,26 @@ class Guidance(PassTracker):
             "reference": self.frame.as_dict(),
             "wall_azimuth_deg": math.degrees(self.plan.wall_azimuth_rad),
             "standoff_m": self.plan.standoff_m,
-            "passes": [{
-                "id": p.id, "order": p.order,
-                "heading_deg": round(math.degrees(p.heading_rad), 3),
-                "relative_heading_deg": round(math.degrees(p.relative_heading_rad), 3),
-                "start_ne_m": ne(p.start_lgf_m), "end_ne_m": ne(p.end_lgf_m),
-                "capture_m": [round(p.capture_start_m, 3), round(p.capture_end_m, 3)],
-                "length_m": round(p.length_m, 3), "speed_mps": p.speed_mps,
-                "targets_side": p.targets_side,
-            } for p in self.plan.passes],
-            "targets": [{"name": r.name, "center_ne_m": ne(r.center_m),
-                         "corners_ne_m": [ne(c) for c in r.corners()]}
-                        for r in self.scene.rectangles],
-        }  # fmt: skip
+            "passes": [
+                {
+                    "id": p.id,
+                    "order": p.order,
+                    "heading_deg": round(math.degrees(p.heading_rad), 3),
+                    "relative_heading_deg": round(math.degrees(p.relative_heading_rad), 3),
+                    "start_ne_m": ne(p.start_lgf_m),
+                    "end_ne_m": ne(p.end_lgf_m),
+                    "capture_m": [round(p.capture_start_m, 3), round(p.capture_end_m, 3)],
+                    "length_m": round(p.length_m, 3),
+                    "speed_mps": p.speed_mps,
+                    "targets_side": p.targets_side,
+                }
+                for p in self.plan.passes
+            ],
+            "targets": [
+                {"name": r.name, "center_ne_m": ne(r.center_m), "corners_ne_m": [ne(c) for c in r.corners()]}
+                for r in self.scene.rectangles
+            ],
+        }
 
     def message(self, checks: Iterable[Check] | None = None) -> dict:
         """The ``checklist`` status message (JSON-ready)."""
@@ -214,9 +263,13 @@ class Guidance(PassTracker):
         aid = self.active_pass_id()
         if latest is not None:
             sog = float(speed_over_ground(latest[7], latest[8]))
-            vessel = {"n_m": round(float(latest[1]), 3), "e_m": round(float(latest[2]), 3),
-                      "heading_deg": round(math.degrees(latest[6]), 3),
-                      "speed_mps": round(sog, 3), "t_gps_s": float(latest[0])}  # fmt: skip
+            vessel = {
+                "n_m": round(float(latest[1]), 3),
+                "e_m": round(float(latest[2]), 3),
+                "heading_deg": round(math.degrees(latest[6]), 3),
+                "speed_mps": round(sog, 3),
+                "t_gps_s": float(latest[0]),
+            }
             if self.last_nav is not None:
                 vessel["lat_deg"] = self.last_nav.lat_deg
                 vessel["lon_deg"] = self.last_nav.lon_deg
@@ -237,24 +290,36 @@ class Guidance(PassTracker):
         for p in self.plan.passes:
             rec = self.passes[p.id]
             last = rec.verdicts[-1] if rec.verdicts else None
-            passes.append({
-                "id": p.id, "order": p.order,
-                "heading_deg": round(math.degrees(p.heading_rad), 3),
-                "relative_heading_deg": round(math.degrees(p.relative_heading_rad), 3),
-                "status": rec.status, "attempts": len(rec.verdicts),
-                "reasons": list(last.reasons) if last else [],
-                "hits": last.stats.get("hits", {}) if last else {},
-                "stats": {k: v for k, v in last.stats.items() if k != "hits"} if last else {},
-            })  # fmt: skip
+            passes.append(
+                {
+                    "id": p.id,
+                    "order": p.order,
+                    "heading_deg": round(math.degrees(p.heading_rad), 3),
+                    "relative_heading_deg": round(math.degrees(p.relative_heading_rad), 3),
+                    "status": rec.status,
+                    "attempts": len(rec.verdicts),
+                    "reasons": list(last.reasons) if last else [],
+                    "hits": last.stats.get("hits", {}) if last else {},
+                    "stats": {k: v for k, v in last.stats.items() if k != "hits"} if last else {},
+                }
+            )
         sigma = None
         if self.sigma is not None:
-            rank = [{"pass_id": pid, "undetermined": pred.rank_key()[0],
-                     "worst_deg": pred.as_dict()["worst_deg"],
-                     "realistic_deg": pred.as_dict()["realistic_deg"]}
-                    for pid, pred in self.sigma.ranking]  # fmt: skip
-            sigma = {"current": self.sigma.current_dict(),
-                     "next_best": rank[0] if rank else None, "ranking": rank,
-                     "history": list(self.sigma_history)}  # fmt: skip
+            rank = [
+                {
+                    "pass_id": pid,
+                    "undetermined": pred.rank_key()[0],
+                    "worst_deg": pred.as_dict()["worst_deg"],
+                    "realistic_deg": pred.as_dict()["realistic_deg"],
+                }
+                for pid, pred in self.sigma.ranking
+            ]
+            sigma = {
+                "current": self.sigma.current_dict(),
+                "next_best": rank[0] if rank else None,
+                "ranking": rank,
+                "history": list(self.sigma_history),
+            }
         checks = [c.as_dict() if isinstance(c, Check) else dict(c) for c in (checks or [])]
         n_acc = sum(r.status == "accepted" for r in self.passes.values())
         return {
@@ -268,8 +333,7 @@ class Guidance(PassTracker):
             "passes": passes,
             "accepted": n_acc,
             "sigma": sigma,
-            "calibration_ready": bool(self.sigma is not None
-                                      and all(self.sigma.current.observable)),
+            "calibration_ready": bool(self.sigma is not None and all(self.sigma.current.observable)),
             "tolerances": self.tol.as_dict(),
             "counters": dict(self.counters),
-        }  # fmt: skip
+        }

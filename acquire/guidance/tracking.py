@@ -34,8 +34,27 @@ from drivers.hydrins.nav import NavRecord
 from drivers.zf.codec import Profile
 
 #: Columns of the navigation kept in memory (LGF metres, radians, flags 1/0/NaN).
-_NAV_COLUMNS = ("t", "n", "e", "d", "roll", "pitch", "heading", "vn", "ve", "sn", "se", "sd",
-                "sr", "sp", "sh", "nav", "dr", "pps", "utc")  # fmt: skip
+_NAV_COLUMNS = (
+    "t",
+    "n",
+    "e",
+    "d",
+    "roll",
+    "pitch",
+    "heading",
+    "vn",
+    "ve",
+    "sn",
+    "se",
+    "sd",
+    "sr",
+    "sp",
+    "sh",
+    "nav",
+    "dr",
+    "pps",
+    "utc",
+)
 _C = {name: i for i, name in enumerate(_NAV_COLUMNS)}
 
 
@@ -63,18 +82,18 @@ class _Columns:
     def extend(self, rows: np.ndarray) -> None:
         m = rows.shape[0]
         if self._hi + m > self._a.shape[0]:
-            keep = self._a[self._lo:self._hi]
+            keep = self._a[self._lo : self._hi]
             cap = max(2 * (keep.shape[0] + m), 4096)
             a = np.empty((cap, self._a.shape[1]))
             a[: keep.shape[0]] = keep
             self._a, self._lo, self._hi = a, 0, keep.shape[0]
-        self._a[self._hi:self._hi + m] = rows
+        self._a[self._hi : self._hi + m] = rows
         self._hi += m
 
     def rows(self, start_abs: int | None = None, end_abs: int | None = None) -> np.ndarray:
         lo = self._lo if start_abs is None else self._lo + max(start_abs - self.offset, 0)
         hi = self._hi if end_abs is None else self._lo + min(end_abs - self.offset, len(self))
-        return self._a[lo:max(hi, lo)]
+        return self._a[lo : max(hi, lo)]
 
     def trim_before(self, abs_index: int) -> None:
         k = min(max(abs_index - self.offset, 0), len(self))
@@ -142,8 +161,14 @@ class PassTracker:
         self._selected: int | None = None
         self.passes = {p.id: _PassRecord() for p in plan.passes}
         self._accepted: dict[int, PassGeometry] = {}
-        self.counters = {"nav_without_time": 0, "nav_rejected": 0, "profiles_dropped": 0,
-                         "points_seen": 0, "points_gated": 0, "points_uncovered": 0}  # fmt: skip
+        self.counters = {
+            "nav_without_time": 0,
+            "nav_rejected": 0,
+            "profiles_dropped": 0,
+            "points_seen": 0,
+            "points_gated": 0,
+            "points_uncovered": 0,
+        }
 
     # -- inputs -----------------------------------------------------------------------------
 
@@ -160,8 +185,7 @@ class PassTracker:
         if profile.n_points == 0:
             return
         self._profiles.append(profile)
-        self._last_profile_t = max(self._last_profile_t,
-                                   float(profile.gps_ns[-1]) * 1e-9)  # fmt: skip
+        self._last_profile_t = max(self._last_profile_t, float(profile.gps_ns[-1]) * 1e-9)
         while len(self._profiles) > self.settings.max_pending_profiles:
             self._profiles.popleft()
             self.counters["profiles_dropped"] += 1
@@ -189,12 +213,33 @@ class PassTracker:
         recs, self._pending_nav = self._pending_nav, []
         if not recs:
             return
-        rows = np.array([(r.gps_ns * 1e-9, r.lat_deg, r.lon_deg, r.height_m, r.roll_rad,
-                          r.pitch_rad, r.heading_rad, r.v_north_m_s, r.v_east_m_s,
-                          r.sigma_north_m, r.sigma_east_m, r.sigma_down_m, r.sigma_roll_rad,
-                          r.sigma_pitch_rad, r.sigma_heading_rad, _flag(r.navigation),
-                          _flag(r.dead_reckoning), _flag(r.pps_detected),
-                          _flag(r.utc_detected)) for r in recs], float)  # fmt: skip
+        rows = np.array(
+            [
+                (
+                    r.gps_ns * 1e-9,
+                    r.lat_deg,
+                    r.lon_deg,
+                    r.height_m,
+                    r.roll_rad,
+                    r.pitch_rad,
+                    r.heading_rad,
+                    r.v_north_m_s,
+                    r.v_east_m_s,
+                    r.sigma_north_m,
+                    r.sigma_east_m,
+                    r.sigma_down_m,
+                    r.sigma_roll_rad,
+                    r.sigma_pitch_rad,
+                    r.sigma_heading_rad,
+                    _flag(r.navigation),
+                    _flag(r.dead_reckoning),
+                    _flag(r.pps_detected),
+                    _flag(r.utc_detected),
+                )
+                for r in recs
+            ],
+            float,
+        )
         ok = np.all(np.isfinite(rows[:, :7]), axis=1)
         rows = rows[ok]
         rows = rows[np.argsort(rows[:, 0], kind="stable")]
@@ -234,8 +279,8 @@ class PassTracker:
                 herr = heading_error(hdg, line.heading_rad)
                 cross = np.zeros(rows.shape[0], bool)
                 cross[1:] = (along[:-1] < line.capture_start_m) & (along[1:] >= line.capture_start_m)
-                cross &= (np.abs(xte) <= self.settings.match_xte_m)
-                cross &= (np.abs(herr) <= self.settings.match_heading_rad)
+                cross &= np.abs(xte) <= self.settings.match_xte_m
+                cross &= np.abs(herr) <= self.settings.match_heading_rad
                 cross[:first] = False
                 k = np.flatnonzero(cross)
                 if k.size and (best is None or k[0] < best[0]):
@@ -268,10 +313,15 @@ class PassTracker:
         cap.i_exit = ctx + k
         cap.t_exit = float(t[k])
         cap.completed = bool(done[k])
-        cap.exit_reason = ("" if done[k] else
-                           f"left the line (XTE {xte[k]:+.1f} m)" if off[k] else
-                           f"turned away (heading error {math.degrees(herr[k]):+.0f}°)" if turned[k]
-                           else "went back before the window")  # fmt: skip
+        cap.exit_reason = (
+            ""
+            if done[k]
+            else f"left the line (XTE {xte[k]:+.1f} m)"
+            if off[k]
+            else f"turned away (heading error {math.degrees(herr[k]):+.0f}°)"
+            if turned[k]
+            else "went back before the window"
+        )
         self._cursor = ctx + k + 1
 
     def _consume_profiles(self) -> None:
@@ -283,8 +333,12 @@ class PassTracker:
         t_limit = t_nav
         if cap is None or cap.i_exit is None:
             # only as far as the state machine has looked
-            t_limit = min(t_nav, self._nav.rows(self._cursor - 1, self._cursor)[0, 0]
-                          if self._cursor - 1 >= self._nav.offset else t_nav)
+            t_limit = min(
+                t_nav,
+                self._nav.rows(self._cursor - 1, self._cursor)[0, 0]
+                if self._cursor - 1 >= self._nav.offset
+                else t_nav,
+            )
         batch = []
         while self._profiles and float(self._profiles[0].gps_ns[-1]) * 1e-9 <= t_limit:
             prof = self._profiles.popleft()
@@ -311,8 +365,18 @@ class PassTracker:
         if traj is None:
             return
         try:
-            hits = target_hits(t, rho, alpha, which, t_prof, traj, self.mount, self.scene,
-                               settings=self.settings, intensity=inten)  # fmt: skip
+            hits = target_hits(
+                t,
+                rho,
+                alpha,
+                which,
+                t_prof,
+                traj,
+                self.mount,
+                self.scene,
+                settings=self.settings,
+                intensity=inten,
+            )
         except TrajectoryError:
             # some profile mid-times outside the navigation: place them one by one
             keep = ~traj.uncovered(t_prof + self.mount.time_offset_s)
@@ -320,9 +384,18 @@ class PassTracker:
                 return
             sel = keep[which]
             remap = np.cumsum(keep) - 1
-            hits = target_hits(t[sel], rho[sel], alpha[sel], remap[which[sel]], t_prof[keep],
-                               traj, self.mount, self.scene, settings=self.settings,
-                               intensity=inten[sel])  # fmt: skip
+            hits = target_hits(
+                t[sel],
+                rho[sel],
+                alpha[sel],
+                remap[which[sel]],
+                t_prof[keep],
+                traj,
+                self.mount,
+                self.scene,
+                settings=self.settings,
+                intensity=inten[sel],
+            )
         self.counters["points_gated"] += hits.n_gated
         self.counters["points_uncovered"] += hits.n_uncovered
         cap.hits.append(hits)
@@ -337,8 +410,7 @@ class PassTracker:
         kw = {}
         if with_sigmas:
             sp, sa = r[:, [_C["sn"], _C["se"], _C["sd"]]], r[:, [_C["sr"], _C["sp"], _C["sh"]]]
-            if np.all(np.isfinite(sp)) and np.all(sp > 0) and np.all(np.isfinite(sa)) \
-                    and np.all(sa > 0):
+            if np.all(np.isfinite(sp)) and np.all(sp > 0) and np.all(np.isfinite(sa)) and np.all(sa > 0):
                 kw = {"sigma_p_m": sp, "sigma_rpy_rad": sa}
         return Trajectory(r[:, 0], r[:, 1:4], r[:, 4:7], self.frame, name="INS", **kw)
 
@@ -368,18 +440,28 @@ class PassTracker:
         along, xte = line_offsets(rows[:, 1:4], line)
         hits = self._hit_counts(cap)
         return PassWindow(
-            pass_id=line.id, planned_speed_mps=line.speed_mps,
-            capture_m=(line.capture_start_m, line.capture_end_m), completed=cap.completed,
-            exit_reason=cap.exit_reason, t_enter_gps_s=cap.t_enter, t_exit_gps_s=cap.t_exit,
-            t_gps_s=rows[:, 0], along_m=along, xte_m=xte,
+            pass_id=line.id,
+            planned_speed_mps=line.speed_mps,
+            capture_m=(line.capture_start_m, line.capture_end_m),
+            completed=cap.completed,
+            exit_reason=cap.exit_reason,
+            t_enter_gps_s=cap.t_enter,
+            t_exit_gps_s=cap.t_exit,
+            t_gps_s=rows[:, 0],
+            along_m=along,
+            xte_m=xte,
             heading_error_rad=heading_error(rows[:, 6], line.heading_rad),
             speed_mps=speed_over_ground(rows[:, 7], rows[:, 8]),
-            navigation=rows[:, _C["nav"]], dead_reckoning=rows[:, _C["dr"]],
-            ins_pps=rows[:, _C["pps"]], utc=rows[:, _C["utc"]],
+            navigation=rows[:, _C["nav"]],
+            dead_reckoning=rows[:, _C["dr"]],
+            ins_pps=rows[:, _C["pps"]],
+            utc=rows[:, _C["utc"]],
             profile_t_gps_s=np.asarray(cap.profile_t, float),
-            profiles_incomplete=cap.incomplete, profiles_pps_unlocked=cap.unlocked,
-            hits=hits, clock_states=tuple(sorted(cap.clock_states)),
-        )  # fmt: skip
+            profiles_incomplete=cap.incomplete,
+            profiles_pps_unlocked=cap.unlocked,
+            hits=hits,
+            clock_states=tuple(sorted(cap.clock_states)),
+        )
 
     def _hit_counts(self, cap: _Capture) -> dict[str, int]:
         n = len(self.target_names)
@@ -388,14 +470,19 @@ class PassTracker:
 
     def _geometry(self, cap: _Capture) -> PassGeometry:
         """The accepted pass as the σ prediction sees it (thinned)."""
-        cat = lambda f: np.concatenate([getattr(h, f) for h in cap.hits]) if cap.hits \
-            else np.empty(0)  # noqa: E731
+        cat = lambda f: np.concatenate([getattr(h, f) for h in cap.hits]) if cap.hits else np.empty(0)  # noqa: E731
         t = cat("t_gps_s")
         order = np.argsort(t, kind="stable")
         traj = self._trajectory(cap.t_enter - 1.0, cap.t_exit + 1.0, with_sigmas=True)
-        g = PassGeometry(cap.line.id, cap.line.relative_heading_rad, traj, t[order],
-                         cat("range_m")[order], cat("scan_angle_rad")[order],
-                         cat("target_index").astype(np.int64)[order])  # fmt: skip
+        g = PassGeometry(
+            cap.line.id,
+            cap.line.relative_heading_rad,
+            traj,
+            t[order],
+            cat("range_m")[order],
+            cat("scan_angle_rad")[order],
+            cat("target_index").astype(np.int64)[order],
+        )
         return g.thinned(self.thin_step)
 
     def _trim(self) -> None:

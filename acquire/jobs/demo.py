@@ -40,17 +40,16 @@ import signal
 import subprocess
 import sys
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Callable
 
 from acquire.status.bus import StatusListener
 
 NS_PER_S = 1_000_000_000
 MARKER = ".mls-demo"  # in OUT: the directory is a demo's, its contents may be removed
 #: What a demo writes in OUT (``laz`` was the output of the earlier ``mls demo``).
-DEMO_ENTRIES = frozenset({MARKER, "run", "bundle", "calib", "logs", "vessel.yaml",
-                          "vessel.site.yaml", "laz"})
+DEMO_ENTRIES = frozenset({MARKER, "run", "bundle", "calib", "logs", "vessel.yaml", "vessel.site.yaml", "laz"})
 SIX_FOLD_DEG = (0.0, 180.0, 45.0, 225.0, 315.0, 135.0)
 ANGLES = ("roll", "pitch", "yaw")
 MLS = (sys.executable, "-m", "cli.app")
@@ -97,10 +96,15 @@ def scenario_overrides(s: DemoSettings) -> list[str]:
     """The demo's scenario overrides: the six-fold pattern on short lines (values are YAML)."""
     lines = ", ".join(
         f"{{id: {i + 1}, relative_heading_deg: {h:g}, length_m: {s.first_line_m if i == 0 else s.line_m:g}}}"
-        for i, h in enumerate(SIX_FOLD_DEG))  # fmt: skip
-    return [f"site.passes=[{lines}]", f"site.speed_mps={s.vessel_speed_mps:g}",
-            f"site.capture_margin_m={s.capture_margin_m:g}",
-            f"motion.pass_gap_s={s.pass_gap_s:g}", *s.extra_overrides]  # fmt: skip
+        for i, h in enumerate(SIX_FOLD_DEG)
+    )
+    return [
+        f"site.passes=[{lines}]",
+        f"site.speed_mps={s.vessel_speed_mps:g}",
+        f"site.capture_margin_m={s.capture_margin_m:g}",
+        f"motion.pass_gap_s={s.pass_gap_s:g}",
+        *s.extra_overrides,
+    ]
 
 
 # =============================================================================================
@@ -136,9 +140,14 @@ class Child:
         with open(log, "wb") as f:
             f.write(("$ " + " ".join(args) + "\n").encode())
             f.flush()
-            self.p = subprocess.Popen(args, stdin=subprocess.DEVNULL, stdout=f,
-                                      stderr=subprocess.STDOUT, process_group=0,
-                                      preexec_fn=_child_setup(os.getpid()))  # fmt: skip
+            self.p = subprocess.Popen(
+                args,
+                stdin=subprocess.DEVNULL,
+                stdout=f,
+                stderr=subprocess.STDOUT,
+                process_group=0,
+                preexec_fn=_child_setup(os.getpid()),
+            )
 
     def poll(self) -> int | None:
         return self.p.poll()
@@ -159,7 +168,7 @@ class Child:
                     stat = (d / "stat").read_text()
                 except OSError:
                     continue
-                f = stat[stat.rfind(")") + 2:].split()  # state ppid pgrp session ...
+                f = stat[stat.rfind(")") + 2 :].split()  # state ppid pgrp session ...
                 if f[0] != "Z" and int(f[2]) == self.p.pid and int(f[3]) == sid:
                     out.append(int(d.name))
         return out
@@ -213,8 +222,7 @@ def _sigma_text(g: dict) -> str:
     r = cur.get("realistic_deg") or {}
     if not cur.get("passes"):
         return "σ —"
-    return "σ " + " ".join(f"{a} " + ("n/o" if r.get(a) is None else f"{r[a]:.3f}°")
-                           for a in ANGLES)  # fmt: skip
+    return "σ " + " ".join(f"{a} " + ("n/o" if r.get(a) is None else f"{r[a]:.3f}°") for a in ANGLES)
 
 
 def progress_line(g: dict, clock_state: str | None, elapsed_s: float) -> str:
@@ -257,10 +265,14 @@ def pass_events(before: dict, after: dict) -> list[str]:
         hits = ", ".join(f"{k} {v}" for k, v in (p.get("hits") or {}).items())
         st = p.get("stats") or {}
         if p["status"] == "accepted":
-            line = (f"✔ pass {p['id']} ({p['relative_heading_deg']:.0f}°) accepted: hits {hits}; "
-                    f"max XTE {st.get('max_xte_m', math.nan):.2f} m")  # fmt: skip
+            line = (
+                f"✔ pass {p['id']} ({p['relative_heading_deg']:.0f}°) accepted: hits {hits}; "
+                f"max XTE {st.get('max_xte_m', math.nan):.2f} m"
+            )
         else:
-            line = f"✘ pass {p['id']} ({p['relative_heading_deg']:.0f}°) rejected: " + "; ".join(p.get("reasons") or [])
+            line = f"✘ pass {p['id']} ({p['relative_heading_deg']:.0f}°) rejected: " + "; ".join(
+                p.get("reasons") or []
+            )
         out.append(line)
     return out
 
@@ -291,6 +303,7 @@ def sigma_covers_accepted(g: dict) -> bool:
 # The comparison (pure)
 # =============================================================================================
 
+
 @dataclass(frozen=True)
 class AngleComparison:
     angle: str
@@ -315,12 +328,21 @@ def comparison_rows(result: dict, truth: dict) -> list[AngleComparison]:
     in the thesis convention (roll, −pitch, yaw; docs/architecture.md §3)."""
     b, sf, sr = result["boresight_deg"], result["sigma_deg"], result["sigma_realistic_deg"]
     t = truth["boresight_deg"]
-    rows = [AngleComparison(a, "canonical", float(t[a]), float(b[a]), float(sf[a]), float(sr[a]))
-            for a in ANGLES]  # fmt: skip
+    rows = [
+        AngleComparison(a, "canonical", float(t[a]), float(b[a]), float(sf[a]), float(sr[a])) for a in ANGLES
+    ]
     sign = {"roll": 1.0, "pitch": -1.0, "yaw": 1.0}
-    rows += [AngleComparison(r.angle, "thesis", sign[r.angle] * r.truth_deg,
-                             sign[r.angle] * r.recovered_deg, r.sigma_formal_deg,
-                             r.sigma_realistic_deg) for r in rows]  # fmt: skip
+    rows += [
+        AngleComparison(
+            r.angle,
+            "thesis",
+            sign[r.angle] * r.truth_deg,
+            sign[r.angle] * r.recovered_deg,
+            r.sigma_formal_deg,
+            r.sigma_realistic_deg,
+        )
+        for r in rows
+    ]
     return rows
 
 
@@ -328,8 +350,13 @@ def comparison_table(rows: list[AngleComparison]):
     from rich import box
     from rich.table import Table
 
-    t = Table(title="boresight: recovered vs truth (degrees)", box=box.SIMPLE_HEAD,
-              title_justify="left", pad_edge=False, show_edge=False)  # fmt: skip
+    t = Table(
+        title="boresight: recovered vs truth (degrees)",
+        box=box.SIMPLE_HEAD,
+        title_justify="left",
+        pad_edge=False,
+        show_edge=False,
+    )
     for col in ("", "truth", "recovered", "error", "σ formal", "σ realistic", "error/σ"):
         t.add_column(col, justify="right" if col else "left", no_wrap=True)
     for i, r in enumerate(rows):
@@ -337,11 +364,19 @@ def comparison_table(rows: list[AngleComparison]):
             t.add_section()
         name = r.angle if r.convention == "canonical" else f"thesis {r.angle}"
         bad = abs(r.error_sigmas) > 3
-        t.add_row(name, f"{r.truth_deg:+.4f}", f"{r.recovered_deg:+.4f}", f"{r.error_deg:+.4f}",
-                  f"{r.sigma_formal_deg:.4f}", f"{r.sigma_realistic_deg:.4f}",
-                  f"[{'bold red' if bad else 'green'}]{r.error_sigmas:+.2f}[/]")  # fmt: skip
-    t.caption = ("canonical: docs/architecture.md §3 (R_bs = Rz(yaw)·Ry(pitch)·Rx(roll), pitch + bow up); thesis: "
-                 "the iXblue/NWU convention of Shahraji 2022 (pitch negated); error/σ in realistic σ")  # fmt: skip
+        t.add_row(
+            name,
+            f"{r.truth_deg:+.4f}",
+            f"{r.recovered_deg:+.4f}",
+            f"{r.error_deg:+.4f}",
+            f"{r.sigma_formal_deg:.4f}",
+            f"{r.sigma_realistic_deg:.4f}",
+            f"[{'bold red' if bad else 'green'}]{r.error_sigmas:+.2f}[/]",
+        )
+    t.caption = (
+        "canonical: docs/architecture.md §3 (R_bs = Rz(yaw)·Ry(pitch)·Rx(roll), pitch + bow up); thesis: "
+        "the iXblue/NWU convention of Shahraji 2022 (pitch negated); error/σ in realistic σ"
+    )
     t.caption_justify = "left"
     return t
 
@@ -372,9 +407,12 @@ def prepare_out(out: Path) -> None:
     entries = list(out.iterdir())
     foreign = sorted(p.name for p in entries if p.name not in DEMO_ENTRIES)
     if foreign and not (out / MARKER).is_file():
-        raise DemoError("preparing the run directory", f"{out.resolve()} is not a previous demo's "
-                        f"run directory (no {MARKER} in it, and it holds {', '.join(foreign[:3])}"
-                        f"{' …' if len(foreign) > 3 else ''}): choose another --out")  # fmt: skip
+        raise DemoError(
+            "preparing the run directory",
+            f"{out.resolve()} is not a previous demo's "
+            f"run directory (no {MARKER} in it, and it holds {', '.join(foreign[:3])}"
+            f"{' …' if len(foreign) > 3 else ''}): choose another --out",
+        )
     for p in entries:
         if p.is_dir() and not p.is_symlink():
             shutil.rmtree(p)
@@ -397,11 +435,13 @@ def _wait_for_config(path: Path, devices: Child, deadline: float, interrupted) -
                 pass
         code = devices.poll()
         if code is not None:
-            raise DemoError(devices.step, f"mls sim devices ended with exit code {code} before "
-                            f"writing {path}: {devices.tail()}", devices.log)  # fmt: skip
+            raise DemoError(
+                devices.step,
+                f"mls sim devices ended with exit code {code} before writing {path}: {devices.tail()}",
+                devices.log,
+            )
         if time.monotonic() > deadline:
-            raise DemoError(devices.step, f"no vessel config {path} after the start timeout",
-                            devices.log)  # fmt: skip
+            raise DemoError(devices.step, f"no vessel config {path} after the start timeout", devices.log)
         time.sleep(0.1)
 
 
@@ -419,22 +459,48 @@ def run_demo(settings: DemoSettings, console, interrupted: Callable[[], None] = 
     say = lambda text: console.print(text, highlight=False)  # noqa: E731
     try:
         # 1. the simulated devices (they write the vessel config once they run)
-        say(f"[bold]mls demo[/bold]: the {settings.scenario} scenario on simulated devices, "
-            f"acquired, exported and calibrated in {out}")
-        devices = Child("simulated devices (mls sim devices)", [
-            *MLS, "sim", "devices", "--scenario", settings.scenario, "--seed", str(settings.seed),
-            "--speed", "1", "--devices", "ins,profiler,pps", "--run-dir", str(run_dir),
-            "--write-config", str(config), "--lead-s", f"{settings.lead_s:g}",
-            *[a for o in scenario_overrides(settings) for a in ("--set", o)]], logs / "devices.log")  # fmt: skip
+        say(
+            f"[bold]mls demo[/bold]: the {settings.scenario} scenario on simulated devices, "
+            f"acquired, exported and calibrated in {out}"
+        )
+        devices = Child(
+            "simulated devices (mls sim devices)",
+            [
+                *MLS,
+                "sim",
+                "devices",
+                "--scenario",
+                settings.scenario,
+                "--seed",
+                str(settings.seed),
+                "--speed",
+                "1",
+                "--devices",
+                "ins,profiler,pps",
+                "--run-dir",
+                str(run_dir),
+                "--write-config",
+                str(config),
+                "--lead-s",
+                f"{settings.lead_s:g}",
+                *[a for o in scenario_overrides(settings) for a in ("--set", o)],
+            ],
+            logs / "devices.log",
+        )
         children.append(devices)
         deadline = time.monotonic() + settings.start_timeout_s
         _wait_for_config(config, devices, deadline, interrupted)
         window = json.loads((run_dir / "truth_clock.json").read_text())["window"]
-        say(f"devices: INS on {run_dir / 'ins'}, profiler and PPS over UDP; "
-            f"{window['duration_s']:.0f} s of survey in real time (log {devices.log})")
+        say(
+            f"devices: INS on {run_dir / 'ins'}, profiler and PPS over UDP; "
+            f"{window['duration_s']:.0f} s of survey in real time (log {devices.log})"
+        )
         # 2. the daemon
-        daemon = Child("acquisition daemon (mls acquire)", [*MLS, "acquire", "--config", str(config)],
-                       logs / "acquire.log")  # fmt: skip
+        daemon = Child(
+            "acquisition daemon (mls acquire)",
+            [*MLS, "acquire", "--config", str(config)],
+            logs / "acquire.log",
+        )
         children.append(daemon)
         from acquire.daemon.config import load_vessel_config
 
@@ -445,21 +511,24 @@ def run_demo(settings: DemoSettings, console, interrupted: Callable[[], None] = 
             interrupted()
             code = daemon.poll()
             if code is not None:
-                raise DemoError(daemon.step, f"exited with code {code} while starting: "
-                                f"{daemon.tail()}", daemon.log)  # fmt: skip
+                raise DemoError(
+                    daemon.step, f"exited with code {code} while starting: {daemon.tail()}", daemon.log
+                )
             if time.monotonic() > deadline:
                 raise DemoError(daemon.step, "not running after the start timeout", daemon.log)
             time.sleep(0.05)
-        say(f"daemon: acquiring into {cfg.session_dir}, status on {cfg.status.socket} "
-            f"(log {daemon.log}); watch it with: mls checklist --socket {cfg.status.socket}")
-        g = _follow(devices, daemon, watcher, console, window["duration_s"] + 60.0, t_start,
-                    interrupted)  # fmt: skip
+        say(
+            f"daemon: acquiring into {cfg.session_dir}, status on {cfg.status.socket} "
+            f"(log {daemon.log}); watch it with: mls checklist --socket {cfg.status.socket}"
+        )
+        g = _follow(devices, daemon, watcher, console, window["duration_s"] + 60.0, t_start, interrupted)
         # 3. stop the daemon (orderly: the session is closed), then the devices
         session_name = (watcher.latest("status") or {}).get("session")
         code = daemon.stop(signal.SIGTERM, 30.0)
         if code != 0:
-            raise DemoError(daemon.step, f"did not stop cleanly (exit code {code}): "
-                            f"{daemon.tail()}", daemon.log)  # fmt: skip
+            raise DemoError(
+                daemon.step, f"did not stop cleanly (exit code {code}): {daemon.tail()}", daemon.log
+            )
         devices.stop(signal.SIGTERM, 10.0)
         watcher.stop()
         watcher = None
@@ -467,27 +536,42 @@ def run_demo(settings: DemoSettings, console, interrupted: Callable[[], None] = 
         if session is None or not session.is_dir():
             found = sorted(p for p in cfg.session_dir.iterdir() if p.is_dir())
             if len(found) != 1:
-                raise DemoError("finding the session", f"{len(found)} sessions in {cfg.session_dir}",
-                                daemon.log)  # fmt: skip
+                raise DemoError(
+                    "finding the session", f"{len(found)} sessions in {cfg.session_dir}", daemon.log
+                )
             session = found[0]
         n_passes = len(g.get("passes") or [])
         accepted = int(g.get("accepted", 0))
         say(f"session {session} closed: {accepted}/{n_passes} passes accepted by the guidance")
         # 4. export, 5. calibration
         bundle, calib = out / "bundle", out / "calib"
-        _step(children, "export (mls export)", [*MLS, "export", str(session), "--bundle", str(bundle)],
-              logs / "export.log", settings.step_timeout_s, interrupted, say)  # fmt: skip
-        _step(children, "calibration (mls calib run)",
-              [*MLS, "calib", "run", str(bundle), "--out", str(calib), "--no-history"],
-              logs / "calib.log", settings.step_timeout_s, interrupted, say)  # fmt: skip
+        _step(
+            children,
+            "export (mls export)",
+            [*MLS, "export", str(session), "--bundle", str(bundle)],
+            logs / "export.log",
+            settings.step_timeout_s,
+            interrupted,
+            say,
+        )
+        _step(
+            children,
+            "calibration (mls calib run)",
+            [*MLS, "calib", "run", str(bundle), "--out", str(calib), "--no-history"],
+            logs / "calib.log",
+            settings.step_timeout_s,
+            interrupted,
+            say,
+        )
         try:
             result = json.loads((calib / "result.json").read_text())
             truth = json.loads((run_dir / "scenario_truth.json").read_text())
             rows = comparison_rows(result, truth)
         except (OSError, ValueError, KeyError, TypeError) as e:
             raise DemoError("reading the results", f"{type(e).__name__}: {e}", logs / "calib.log") from None
-        return DemoResult(out, session, bundle, calib, result, truth, rows, accepted, n_passes,
-                          sorted(calib.glob("*.png")))  # fmt: skip
+        return DemoResult(
+            out, session, bundle, calib, result, truth, rows, accepted, n_passes, sorted(calib.glob("*.png"))
+        )
     finally:
         if watcher is not None:
             watcher.stop()
@@ -495,9 +579,10 @@ def run_demo(settings: DemoSettings, console, interrupted: Callable[[], None] = 
             c.stop(signal.SIGTERM, 10.0)
 
 
-def _step(children: list[Child], step: str, args: list[str], log: Path, timeout_s: float,
-          interrupted, say) -> None:  # fmt: skip
-    say(f"{step.split(' (')[0]}: mls {' '.join(args[len(MLS):])}")
+def _step(
+    children: list[Child], step: str, args: list[str], log: Path, timeout_s: float, interrupted, say
+) -> None:
+    say(f"{step.split(' (')[0]}: mls {' '.join(args[len(MLS) :])}")
     c = Child(step, args, log)
     children.append(c)
     code = c.wait(timeout_s, interrupted)
@@ -505,8 +590,15 @@ def _step(children: list[Child], step: str, args: list[str], log: Path, timeout_
         raise DemoError(step, f"exit code {code}: {c.tail()}", log)
 
 
-def _follow(devices: Child, daemon: Child, watcher: StatusListener, console, timeout_s: float,
-            t_start: float, interrupted) -> dict:  # fmt: skip
+def _follow(
+    devices: Child,
+    daemon: Child,
+    watcher: StatusListener,
+    console,
+    timeout_s: float,
+    t_start: float,
+    interrupted,
+) -> dict:
     """Follow the guidance until every pass is accepted or the scenario has ended (then wait
     for the last verdict); returns the last guidance message."""
     from rich.live import Live
@@ -517,8 +609,9 @@ def _follow(devices: Child, daemon: Child, watcher: StatusListener, console, tim
     deadline = time.monotonic() + timeout_s
     last: dict = {}
     ended_at = done_at = None
-    live = Live(Text(""), console=console, auto_refresh=False, transient=True) \
-        if console.is_terminal else None  # fmt: skip
+    live = (
+        Live(Text(""), console=console, auto_refresh=False, transient=True) if console.is_terminal else None
+    )
     if live is not None:
         live.start()
     try:
@@ -530,8 +623,9 @@ def _follow(devices: Child, daemon: Child, watcher: StatusListener, console, tim
             last = g or last
             clock = (watcher.latest("clock") or {}).get("state")
             if live is not None:
-                line = Text(progress_line(last, clock, time.monotonic() - t_start), no_wrap=True,
-                            overflow="ellipsis")  # fmt: skip
+                line = Text(
+                    progress_line(last, clock, time.monotonic() - t_start), no_wrap=True, overflow="ellipsis"
+                )
                 live.update(line, refresh=True)
             passes = last.get("passes") or []
             if passes and all(p.get("status") == "accepted" for p in passes):
@@ -540,19 +634,20 @@ def _follow(devices: Child, daemon: Child, watcher: StatusListener, console, tim
                     return last  # with the σ prediction of all the passes
             code = daemon.poll()
             if code is not None:
-                raise DemoError(daemon.step, f"ended during the survey (exit code {code}): "
-                                f"{daemon.tail()}", daemon.log)  # fmt: skip
+                raise DemoError(
+                    daemon.step, f"ended during the survey (exit code {code}): {daemon.tail()}", daemon.log
+                )
             code = devices.poll()
             if code is not None and ended_at is None:
                 if code != 0:
-                    raise DemoError(devices.step, f"ended with exit code {code}: {devices.tail()}",
-                                    devices.log)  # fmt: skip
+                    raise DemoError(
+                        devices.step, f"ended with exit code {code}: {devices.tail()}", devices.log
+                    )
                 ended_at = time.monotonic()  # the scenario is over: the last verdict follows
             if ended_at is not None and time.monotonic() - ended_at > 3.0:
                 return last
             if time.monotonic() > deadline:
-                raise DemoError(daemon.step, f"the survey did not end within {timeout_s:.0f} s",
-                                daemon.log)  # fmt: skip
+                raise DemoError(daemon.step, f"the survey did not end within {timeout_s:.0f} s", daemon.log)
             time.sleep(0.25)
     finally:
         if live is not None:

@@ -30,9 +30,9 @@ from __future__ import annotations
 
 import math
 from collections import deque
+from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Callable
 
 import numpy as np
 
@@ -104,8 +104,14 @@ class _Nav:
     retimed: int  # of those, logged while the clock was unlocked: timed by the INS tags around
 
 
-_SIGMAS = ("sigma_north_m", "sigma_east_m", "sigma_down_m", "sigma_roll_deg", "sigma_pitch_deg",
-           "sigma_heading_deg")  # fmt: skip
+_SIGMAS = (
+    "sigma_north_m",
+    "sigma_east_m",
+    "sigma_down_m",
+    "sigma_roll_deg",
+    "sigma_pitch_deg",
+    "sigma_heading_deg",
+)
 
 
 def _read_nav_and_events(session: Path, progress) -> tuple[_Nav, list]:
@@ -122,8 +128,7 @@ def _read_nav_and_events(session: Path, progress) -> tuple[_Nav, list]:
             raw_events.append((env.log_time_ns, env.host_ns, env.clock, d))
             continue
         t = d.get("time_gps_ns")
-        vals = [d.get(k) for k in ("lat_deg", "lon_deg", "height_m", "roll_deg", "pitch_deg",
-                                   "heading_deg")]  # fmt: skip
+        vals = [d.get(k) for k in ("lat_deg", "lon_deg", "height_m", "roll_deg", "pitch_deg", "heading_deg")]
         if t is None:
             continue
         from_clock = d.get("time_source") == "clock"
@@ -137,8 +142,10 @@ def _read_nav_and_events(session: Path, progress) -> tuple[_Nav, list]:
         sig = [np.nan if d.get(k) is None else d[k] for k in _SIGMAS]
         rows.append([int(t), *vals, *sig, from_clock])
     if len(rows) < 2:
-        raise ExportError(f"{session}: {len(rows)} INS epochs with position and attitude in "
-                          f"/ins/nav; a trajectory needs at least 2")  # fmt: skip
+        raise ExportError(
+            f"{session}: {len(rows)} INS epochs with position and attitude in "
+            f"/ins/nav; a trajectory needs at least 2"
+        )
     ins_time = _InsTime(np.array(sync_host, np.int64), np.array(sync_t, np.int64))
     retimed = 0
     for i, host_ns in unlocked:
@@ -210,11 +217,17 @@ def _trajectory(nav: _Nav, sig: np.ndarray | None, frame, max_gap_s: float):
 
     with_sig = sig is not None
     return Trajectory.from_geodetic(
-        frames.gps_ns_to_seconds(nav.t_ns), nav.lat, nav.lon, nav.h, np.radians(nav.rpy_deg), frame,
+        frames.gps_ns_to_seconds(nav.t_ns),
+        nav.lat,
+        nav.lon,
+        nav.h,
+        np.radians(nav.rpy_deg),
+        frame,
         sigma_p_m=sig[:, :3] if with_sig else None,
         sigma_rpy_rad=np.radians(sig[:, 3:]) if with_sig else None,
-        max_gap_s=max_gap_s, name="/ins/nav",
-    )  # fmt: skip
+        max_gap_s=max_gap_s,
+        name="/ins/nav",
+    )
 
 
 # -- passes -------------------------------------------------------------------------------------
@@ -224,13 +237,17 @@ def passes_from_events(events: list, end_ns: int) -> tuple[list[PassWindow], lis
     """``pass_start``/``pass_end`` marks (``(gps_ns, how, data)``) → windows; a start without
     its end ends at the next start or at ``end_ns``."""
     warnings: list[str] = []
-    marks = [(t, how, d) for t, how, d in events if d.get("event") in ("pass_start", "pass_end")
-             and isinstance(d.get("pass_id"), int)]  # fmt: skip
+    marks = [
+        (t, how, d)
+        for t, how, d in events
+        if d.get("event") in ("pass_start", "pass_end") and isinstance(d.get("pass_id"), int)
+    ]
     for how, text in (("ins", "the INS time tags around them"), ("system", "the system clock")):
         n = sum(1 for _, h, _ in marks if h == how)
         if n:
-            warnings.append(f"{n} pass marks were logged while the clock model was UNLOCKED: "
-                            f"timed from {text}")  # fmt: skip
+            warnings.append(
+                f"{n} pass marks were logged while the clock model was UNLOCKED: timed from {text}"
+            )
     marks = sorted(((t, d) for t, _, d in marks), key=lambda m: m[0])
     out: list[PassWindow] = []
     open_: tuple[int, int, str] | None = None  # (pass id, start, source)
@@ -266,9 +283,12 @@ def passes_from_plan(traj, site, t_ns: np.ndarray, options: ExportOptions) -> li
         rel = p - pp.start_lgf_m
         along = rel @ d
         cross = np.hypot(*(rel - along[:, None] * d)[:, :2].T)
-        on = ((along >= -END_SLACK_M) & (along <= pp.length_m + END_SLACK_M)
-              & (cross <= options.max_cross_track_m)
-              & (np.abs(frames.wrap_pi(heading - pp.heading_rad)) <= max_dh))  # fmt: skip
+        on = (
+            (along >= -END_SLACK_M)
+            & (along <= pp.length_m + END_SLACK_M)
+            & (cross <= options.max_cross_track_m)
+            & (np.abs(frames.wrap_pi(heading - pp.heading_rad)) <= max_dh)
+        )
         if not on.any():
             continue
         # runs of consecutive epochs on the line (a short dropout does not split a pass)
@@ -289,8 +309,9 @@ def _codec(protocol: str):
 
     codecs = {"zfp1": ZFP1}
     if protocol not in codecs:
-        raise ExportError(f"/lidar/raw: protocol {protocol!r} has no decoder here (known: "
-                          f"{', '.join(codecs)})")  # fmt: skip
+        raise ExportError(
+            f"/lidar/raw: protocol {protocol!r} has no decoder here (known: {', '.join(codecs)})"
+        )
     return codecs[protocol]
 
 
@@ -344,13 +365,25 @@ def _read_points(session: Path, windows: list[PassWindow], protocol: str, progre
         if not inside.any():
             continue
         ang_udeg = (pk.angle0_udeg + i[hit] * pk.dangle_udeg)[inside]
-        parts.append((ids[k[inside]], t[inside], r[hit][inside].astype(np.float64) * RANGE_UNIT_M,
-                      np.mod(ang_udeg * 1e-6, 360.0), pk.intensity[hit][inside].astype(np.float32)))  # fmt: skip
+        parts.append(
+            (
+                ids[k[inside]],
+                t[inside],
+                r[hit][inside].astype(np.float64) * RANGE_UNIT_M,
+                np.mod(ang_udeg * 1e-6, 360.0),
+                pk.intensity[hit][inside].astype(np.float32),
+            )
+        )
     if parts:
         cols = [np.concatenate([p[j] for p in parts]) for j in range(5)]
     else:
-        cols = [np.zeros(0, np.int32), np.zeros(0, np.int64), np.zeros(0), np.zeros(0),
-                np.zeros(0, np.float32)]  # fmt: skip
+        cols = [
+            np.zeros(0, np.int32),
+            np.zeros(0, np.int64),
+            np.zeros(0),
+            np.zeros(0),
+            np.zeros(0, np.float32),
+        ]
     return cols, packets, unsynced, bad, outside
 
 
@@ -358,35 +391,45 @@ def _read_points(session: Path, windows: list[PassWindow], protocol: str, progre
 
 
 def _site(session: Path, options: ExportOptions, summary: dict):
-    from calib.io.configfile import ConfigError
     from calib.core.georef import Mount
+    from calib.io.configfile import ConfigError
     from calib.io.site import load_site
 
     path = options.site_file or (session / "site.yaml")
     if not path.is_file():
-        raise ExportError(f"{session}: no site file in the session (the vessel config had no "
-                          f"site_file): give one with --site site.yaml")  # fmt: skip
+        raise ExportError(
+            f"{session}: no site file in the session (the vessel config had no "
+            f"site_file): give one with --site site.yaml"
+        )
     try:
         site = load_site(path)
     except ConfigError as e:
         raise ExportError(str(e)) from None
     m = summary.get("mount")
     if m is not None:  # the vessel config's mount is what was installed during the session
-        site = replace(site, mount=Mount(lever_arm_m=np.asarray(m["lever_arm_m"], float),
-                                         nominal_rad=np.radians(m["nominal_deg"]),
-                                         boresight_rad=np.radians(m["boresight_apriori_deg"])))  # fmt: skip
+        site = replace(
+            site,
+            mount=Mount(
+                lever_arm_m=np.asarray(m["lever_arm_m"], float),
+                nominal_rad=np.radians(m["nominal_deg"]),
+                boresight_rad=np.radians(m["boresight_apriori_deg"]),
+            ),
+        )
     return site, path
 
 
 # -- the export ---------------------------------------------------------------------------------
 
 
-def export_session(session_dir: str | Path, bundle_dir: str | Path,
-                   options: ExportOptions = ExportOptions(),
-                   progress: Callable[[str, float, float | None], None] | None = None) -> ExportResult:  # fmt: skip
+def export_session(
+    session_dir: str | Path,
+    bundle_dir: str | Path,
+    options: ExportOptions = ExportOptions(),
+    progress: Callable[[str, float, float | None], None] | None = None,
+) -> ExportResult:
     """Write the calibration bundle of a session (module docstring); returns what it wrote."""
-    from calib.io.bundle import ScanPoints, write_bundle
     from calib.core.trajectory import TrajectoryError
+    from calib.io.bundle import ScanPoints, write_bundle
 
     session = Path(session_dir)
 
@@ -412,8 +455,10 @@ def export_session(session_dir: str | Path, bundle_dir: str | Path,
         windows, w = passes_from_events(events, int(nav.t_ns[-1]))
         warnings += w
         if source == "events" and not windows:
-            raise ExportError(f"{session}: no pass_start/pass_end marks in /events (use "
-                              f"--passes plan to take the passes from the site's pass plan)")  # fmt: skip
+            raise ExportError(
+                f"{session}: no pass_start/pass_end marks in /events (use "
+                f"--passes plan to take the passes from the site's pass plan)"
+            )
         source = "events" if windows else "plan"
     if source == "plan":
         windows = passes_from_plan(traj, site, nav.t_ns, options)
@@ -421,10 +466,12 @@ def export_session(session_dir: str | Path, bundle_dir: str | Path,
             raise ExportError(
                 f"{session}: no marks in /events and the trajectory never runs along a planned "
                 f"line of {site_path} (within {options.max_cross_track_m:g} m and "
-                f"{options.max_heading_error_deg:g}° for {options.min_pass_s:g} s)")  # fmt: skip
+                f"{options.max_heading_error_deg:g}° for {options.min_pass_s:g} s)"
+            )
     protocol = meta.get("/lidar/raw", {}).get("protocol", "zfp1")
     (pid, t_ns, rng, ang, inten), packets, unsynced, bad, outside = _read_points(
-        session, windows, protocol, step("decoding the profiler packets"))  # fmt: skip
+        session, windows, protocol, step("decoding the profiler packets")
+    )
     if t_ns.size == 0:
         raise ExportError(f"{session}: no profiler return inside the {len(windows)} passes")
     order = np.lexsort((t_ns, pid))
@@ -432,26 +479,48 @@ def export_session(session_dir: str | Path, bundle_dir: str | Path,
     if bad:
         warnings.append(f"{bad} /lidar/raw datagrams did not decode ({protocol})")
     if unsynced:
-        warnings.append(f"{unsynced} profiler packets had no PPS-locked time tag: their points "
-                        f"were timed by the clock model (receipt time)")  # fmt: skip
+        warnings.append(
+            f"{unsynced} profiler packets had no PPS-locked time tag: their points "
+            f"were timed by the clock model (receipt time)"
+        )
     if filled:
-        warnings.append(f"{filled} of {nav.t_ns.size} INS epochs had no sigmas: interpolated "
-                        f"from the neighbouring epochs")  # fmt: skip
+        warnings.append(
+            f"{filled} of {nav.t_ns.size} INS epochs had no sigmas: interpolated from the neighbouring epochs"
+        )
     elif sig is None:
-        warnings.append("the INS epochs carry no sigmas (or fewer than half do): the trajectory "
-                        "is written without them and the calibration uses the site's pos_sigmas")  # fmt: skip
+        warnings.append(
+            "the INS epochs carry no sigmas (or fewer than half do): the trajectory "
+            "is written without them and the calibration uses the site's pos_sigmas"
+        )
     if nav.from_clock:
-        warnings.append(f"{nav.from_clock} INS epochs were timed by the clock model (INS not on "
-                        f"UTC + PPS)" + (f", {nav.retimed} of them, received while the clock was "
-                                         f"unlocked, through the INS time tags around them"
-                                         if nav.retimed else ""))  # fmt: skip
+        warnings.append(
+            f"{nav.from_clock} INS epochs were timed by the clock model (INS not on "
+            f"UTC + PPS)"
+            + (
+                f", {nav.retimed} of them, received while the clock was "
+                f"unlocked, through the INS time tags around them"
+                if nav.retimed
+                else ""
+            )
+        )
     points = ScanPoints(pid, frames.gps_ns_to_seconds(t_ns), rng, np.radians(ang), inten)
     if progress is not None:
         progress("writing the bundle", 0, None)
     bundle = write_bundle(bundle_dir, site, traj, points)
     counts = {int(k): int(v) for k, v in zip(*np.unique(pid, return_counts=True))}
-    result = ExportResult(bundle, int(nav.t_ns.size), nav.from_clock, int(t_ns.size), counts,
-                          outside, packets, unsynced, source, windows, warnings)  # fmt: skip
+    result = ExportResult(
+        bundle,
+        int(nav.t_ns.size),
+        nav.from_clock,
+        int(t_ns.size),
+        counts,
+        outside,
+        packets,
+        unsynced,
+        source,
+        windows,
+        warnings,
+    )
     if options.sbet_path is not None:
         result.sbet = write_sbet(traj, options.sbet_path)
     if options.laz_dir is not None:

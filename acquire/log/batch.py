@@ -16,14 +16,20 @@ device's burst in one call; :meth:`flush` hands over what is waiting (shutdown).
 from __future__ import annotations
 
 import asyncio
-from typing import Any, Callable
+from collections.abc import Callable
+from typing import Any
 
 from acquire.timing.timekeeper import ClockCache
 
 
 class LogBatcher:
-    def __init__(self, submit_batch: Callable[[list[tuple]], int], clock: ClockCache, period_s: float = 0.005,
-                 max_items: int = 1024) -> None:  # fmt: skip
+    def __init__(
+        self,
+        submit_batch: Callable[[list[tuple]], int],
+        clock: ClockCache,
+        period_s: float = 0.005,
+        max_items: int = 1024,
+    ) -> None:
         self._submit_batch = submit_batch
         self._clock = clock
         self.period_s = period_s
@@ -39,7 +45,9 @@ class LogBatcher:
         self._appended()
         return True
 
-    def submit_many(self, topic: str, payloads: list, host_ns: list[int], device_ns: list[int | None]) -> None:
+    def submit_many(
+        self, topic: str, payloads: list, host_ns: list[int], device_ns: list[int | None]
+    ) -> None:
         """:meth:`submit` of each (payload, host stamp, device stamp), in order (a device's burst)."""
         estimate = self._clock.estimate
         items = self._items

@@ -26,9 +26,13 @@ from mcap.opcode import Opcode
 from mcap.records import MessageIndex
 from mcap.writer import Writer
 
-_MESSAGE_HEAD = struct.Struct("<BQHIQQ")  # opcode, record length, channel id, sequence, log time, publish time
+_MESSAGE_HEAD = struct.Struct(
+    "<BQHIQQ"
+)  # opcode, record length, channel id, sequence, log time, publish time
 _MESSAGE_FIXED = 2 + 4 + 8 + 8  # the record's bytes before the data
-MESSAGE_RECORD_BYTES = 1 + 8 + _MESSAGE_FIXED  # a Message record without its data (opcode, length, fixed fields)
+MESSAGE_RECORD_BYTES = (
+    1 + 8 + _MESSAGE_FIXED
+)  # a Message record without its data (opcode, length, fixed fields)
 
 
 class _MessageIndex(MessageIndex):
@@ -43,8 +47,15 @@ class _MessageIndex(MessageIndex):
 
 
 class SegmentWriter(Writer):
-    def add_message(self, channel_id: int, log_time: int, data: bytes, publish_time: int, sequence: int = 0,
-                    head: bytes = b"") -> None:  # fmt: skip
+    def add_message(
+        self,
+        channel_id: int,
+        log_time: int,
+        data: bytes,
+        publish_time: int,
+        sequence: int = 0,
+        head: bytes = b"",
+    ) -> None:
         """The library's ``add_message`` of ``head + data`` (``head``: a prefix written without
         joining the two first, the raw records' envelope header)."""
         self.add_run(channel_id, [(log_time, publish_time, sequence, head, data)])
@@ -87,7 +98,13 @@ class SegmentWriter(Writer):
             index = chunk.message_indices[channel_id] = _MessageIndex(channel_id=channel_id, records=[])
         buf = chunk.record_writer._buffer
         pos = buf.tell()
-        parts, entries, pack, message, fixed = [], index.records, _MESSAGE_HEAD.pack, Opcode.MESSAGE, _MESSAGE_FIXED
+        parts, entries, pack, message, fixed = (
+            [],
+            index.records,
+            _MESSAGE_HEAD.pack,
+            Opcode.MESSAGE,
+            _MESSAGE_FIXED,
+        )
         for log_time, publish_time, sequence, head, data in messages:
             size = fixed + len(head) + len(data)
             entries.append((log_time, pos))

@@ -33,8 +33,9 @@ def _segments(session_dir: Path) -> list[Path]:
     return paths
 
 
-def iter_messages(session_dir: str | Path, topics: Iterable[str] | None = None,
-                  progress=None) -> Iterator[Envelope]:  # fmt: skip
+def iter_messages(
+    session_dir: str | Path, topics: Iterable[str] | None = None, progress=None
+) -> Iterator[Envelope]:
     """Every message of ``topics`` (all when None), decoded, segment after segment.
 
     ``progress(done_bytes, total_bytes)`` is called after each segment.

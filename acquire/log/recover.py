@@ -25,9 +25,9 @@ import io as _io
 import os
 import struct
 from collections import Counter
+from collections.abc import Callable, Iterator
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Callable, Iterator
 
 from mcap.data_stream import ReadDataStream
 from mcap.opcode import Opcode
@@ -62,8 +62,9 @@ class SegmentScan:
         return self.footer and self.problem is None
 
 
-def scan_segment(path: Path, scan: SegmentScan | None = None
-                 ) -> Iterator[Schema | Channel | Message | Metadata]:  # fmt: skip
+def scan_segment(
+    path: Path, scan: SegmentScan | None = None
+) -> Iterator[Schema | Channel | Message | Metadata]:
     """Yield the schemas, channels, messages and metadata of a segment's data section, in file
     order, stopping at the first torn or corrupt record. Fills ``scan`` as it goes."""
     path = Path(path)
@@ -88,8 +89,10 @@ def scan_segment(path: Path, scan: SegmentScan | None = None
                 scan.problem = f"invalid record (opcode 0x{opcode:02x}) at byte {pos}"
                 return
             if length > size - pos - _HEAD.size:
-                scan.problem = (f"torn {Opcode(opcode).name.lower()} record at byte {pos} "
-                                f"({length} bytes announced, {size - pos - _HEAD.size} present)")  # fmt: skip
+                scan.problem = (
+                    f"torn {Opcode(opcode).name.lower()} record at byte {pos} "
+                    f"({length} bytes announced, {size - pos - _HEAD.size} present)"
+                )
                 return
             body = f.read(length)
             stream = ReadDataStream(_io.BytesIO(body))
@@ -193,22 +196,32 @@ def recover_segment(path: Path, keep_original: bool = True) -> RecoveryReport:
             if isinstance(rec, Schema):
                 schema_ids[rec.id] = w.register_schema(rec.name, rec.encoding, rec.data)
             elif isinstance(rec, Channel):
-                channel_ids[rec.id] = w.register_channel(rec.topic, rec.message_encoding,
-                                                         schema_ids.get(rec.schema_id, 0),
-                                                         dict(rec.metadata))  # fmt: skip
+                channel_ids[rec.id] = w.register_channel(
+                    rec.topic, rec.message_encoding, schema_ids.get(rec.schema_id, 0), dict(rec.metadata)
+                )
                 topics[rec.id] = rec.topic
             elif isinstance(rec, Metadata):
                 w.add_metadata(rec.name, dict(rec.metadata))
             elif isinstance(rec, Message) and rec.channel_id in channel_ids:
-                w.add_message(channel_ids[rec.channel_id], log_time=rec.log_time, data=rec.data,
-                              publish_time=rec.publish_time, sequence=rec.sequence)  # fmt: skip
+                w.add_message(
+                    channel_ids[rec.channel_id],
+                    log_time=rec.log_time,
+                    data=rec.data,
+                    publish_time=rec.publish_time,
+                    sequence=rec.sequence,
+                )
                 counts[topics[rec.channel_id]] += 1
-        w.add_metadata("mls.recovery", {
-            "source": path.name, "good_bytes": str(scan.good_bytes),
-            "torn_bytes": str(scan.torn_bytes), "problem": scan.problem or "no footer",
-            "messages": str(sum(counts.values())),
-            "recovered_utc": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
-        })  # fmt: skip
+        w.add_metadata(
+            "mls.recovery",
+            {
+                "source": path.name,
+                "good_bytes": str(scan.good_bytes),
+                "torn_bytes": str(scan.torn_bytes),
+                "problem": scan.problem or "no footer",
+                "messages": str(sum(counts.values())),
+                "recovered_utc": _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds"),
+            },
+        )
         w.finish()
         out.flush()
         os.fsync(out.fileno())
@@ -219,9 +232,16 @@ def recover_segment(path: Path, keep_original: bool = True) -> RecoveryReport:
     if not keep_original:
         torn_copy.unlink()
         fsync_dir(path.parent)
-    return RecoveryReport(path.name, sum(counts.values()), dict(counts), scan.good_bytes,
-                          scan.torn_bytes, scan.problem, str(path),
-                          str(torn_copy) if keep_original else None)  # fmt: skip
+    return RecoveryReport(
+        path.name,
+        sum(counts.values()),
+        dict(counts),
+        scan.good_bytes,
+        scan.torn_bytes,
+        scan.problem,
+        str(path),
+        str(torn_copy) if keep_original else None,
+    )
 
 
 def unfinished_segments(session_dir: Path) -> list[Path]:
@@ -238,8 +258,10 @@ def unfinished_segments(session_dir: Path) -> list[Path]:
 def salvage_session(session_dir: Path, keep_original: bool = True) -> list[RecoveryReport]:
     session_dir = Path(session_dir)
     if is_locked(session_dir):
-        raise LogError(f"{session_dir}: the session is being written by a running daemon "
-                       f"(pid {(session_dir / LOCK_NAME).read_text().strip() or '?'})")  # fmt: skip
+        raise LogError(
+            f"{session_dir}: the session is being written by a running daemon "
+            f"(pid {(session_dir / LOCK_NAME).read_text().strip() or '?'})"
+        )
     return [recover_segment(p, keep_original) for p in unfinished_segments(session_dir)]
 
 
@@ -321,9 +343,13 @@ class SessionInfo:
             d = asdict(c)
             d.pop("_period_ns")
             chans[t] = d
-        return {"session": self.session, "messages": self.messages,
-                "span_ns": list(self.span_ns),
-                "segments": [asdict(s) for s in self.segments], "channels": chans}  # fmt: skip
+        return {
+            "session": self.session,
+            "messages": self.messages,
+            "span_ns": list(self.span_ns),
+            "segments": [asdict(s) for s in self.segments],
+            "channels": chans,
+        }
 
 
 def _unlocked(encoding: str, data: bytes) -> bool:
@@ -334,8 +360,9 @@ def _unlocked(encoding: str, data: bytes) -> bool:
     return b'"clock":"UNLOCKED"' in data
 
 
-def session_info(session_dir: Path, gap_s: float = 1.0,
-                 progress: Callable[[int, int], None] | None = None) -> SessionInfo:  # fmt: skip
+def session_info(
+    session_dir: Path, gap_s: float = 1.0, progress: Callable[[int, int], None] | None = None
+) -> SessionInfo:
     """Read every segment of a session (in order) and summarize it.
 
     A gap is a pause in a channel longer than ``max(gap_s, 5 × its typical period)``
@@ -381,8 +408,20 @@ def session_info(session_dir: Path, gap_s: float = 1.0,
             state = "unreadable"
         else:
             state = "unfinished"
-        segments.append(SegmentInfo(path.name, state, scan.size, n, first, last, scan.torn_bytes,
-                                    scan.problem, recovery, end_reason))  # fmt: skip
+        segments.append(
+            SegmentInfo(
+                path.name,
+                state,
+                scan.size,
+                n,
+                first,
+                last,
+                scan.torn_bytes,
+                scan.problem,
+                recovery,
+                end_reason,
+            )
+        )
         done += scan.size
         if progress is not None:
             progress(done, total)

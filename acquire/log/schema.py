@@ -88,12 +88,10 @@ def channel_kind(topic: str) -> str:
     kind = CHANNELS.get(topic)
     if kind is not None:
         return kind
-    name = topic[len("/can/"):] if topic.startswith("/can/") else ""
+    name = topic[len("/can/") :] if topic.startswith("/can/") else ""
     if name and "/" not in name:
         return RAW
-    raise ValueError(
-        f"session channel {topic!r}: expected one of {', '.join(CHANNELS)} or /can/<name>"
-    )
+    raise ValueError(f"session channel {topic!r}: expected one of {', '.join(CHANNELS)} or /can/<name>")
 
 
 def clock_flags(clock_state: str) -> int:
@@ -133,8 +131,7 @@ def dumps(obj: Any) -> bytes:
 
 
 def encode_json(seq: int, host_ns: int, device_ns: int | None, clock_state: str, data: dict) -> bytes:
-    return dumps({"seq": seq, "host_ns": host_ns, "device_ns": device_ns, "clock": clock_state,
-                  "data": data})  # fmt: skip
+    return dumps({"seq": seq, "host_ns": host_ns, "device_ns": device_ns, "clock": clock_state, "data": data})
 
 
 @dataclass(frozen=True)
@@ -155,8 +152,9 @@ class FormatError(ValueError):
     """A session message that does not follow this module's encodings."""
 
 
-def decode(topic: str, message_encoding: str, log_time_ns: int, publish_time_ns: int,
-           data: bytes) -> Envelope:  # fmt: skip
+def decode(
+    topic: str, message_encoding: str, log_time_ns: int, publish_time_ns: int, data: bytes
+) -> Envelope:
     if message_encoding == RAW_ENCODING:
         if len(data) < RAW_HEADER.size:
             raise FormatError(f"{topic}: raw message of {len(data)} bytes, shorter than its header")
@@ -164,13 +162,29 @@ def decode(topic: str, message_encoding: str, log_time_ns: int, publish_time_ns:
         if version != RAW_VERSION or size < RAW_HEADER.size or size > len(data):
             raise FormatError(f"{topic}: raw header version {version}, size {size}: not mls.raw.v1")
         clock = "LOCKED" if flags & FLAG_LOCKED else "HOLDOVER" if flags & FLAG_HOLDOVER else "UNLOCKED"
-        return Envelope(topic, seq, host_ns, device_ns if flags & FLAG_DEVICE_TIME else None, clock,
-                        log_time_ns, publish_time_ns, bytes(data[size:]))  # fmt: skip
+        return Envelope(
+            topic,
+            seq,
+            host_ns,
+            device_ns if flags & FLAG_DEVICE_TIME else None,
+            clock,
+            log_time_ns,
+            publish_time_ns,
+            bytes(data[size:]),
+        )
     if message_encoding == JSON_ENCODING:
         try:
             obj = json.loads(data)
-            return Envelope(topic, int(obj["seq"]), int(obj["host_ns"]), obj["device_ns"],
-                            str(obj["clock"]), log_time_ns, publish_time_ns, obj["data"])  # fmt: skip
+            return Envelope(
+                topic,
+                int(obj["seq"]),
+                int(obj["host_ns"]),
+                obj["device_ns"],
+                str(obj["clock"]),
+                log_time_ns,
+                publish_time_ns,
+                obj["data"],
+            )
         except (ValueError, KeyError, TypeError) as e:
             raise FormatError(f"{topic}: JSON envelope unreadable ({e})") from None
     raise FormatError(f"{topic}: message encoding {message_encoding!r} is not a session encoding")

@@ -9,9 +9,9 @@ import errno
 import os
 import socket
 from collections import Counter
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Callable
 
 from mcap.data_stream import RecordBuilder
 from mcap.opcode import Opcode
@@ -117,12 +117,18 @@ class WriterStats:
 
     def as_dict(self) -> dict:
         return {
-            "state": self.state, "segment": self.segment, "segments": self.segments,
-            "messages_written": self.messages_written, "bytes_written": self.bytes_written,
-            "dropped": dict(self.dropped), "lost": dict(self.lost), "failures": self.failures,
-            "last_error": self.last_error, "queue_depth": self.queue_depth,
+            "state": self.state,
+            "segment": self.segment,
+            "segments": self.segments,
+            "messages_written": self.messages_written,
+            "bytes_written": self.bytes_written,
+            "dropped": dict(self.dropped),
+            "lost": dict(self.lost),
+            "failures": self.failures,
+            "last_error": self.last_error,
+            "queue_depth": self.queue_depth,
             "free_bytes": self.free_bytes,
-        }  # fmt: skip
+        }
 
 
 def _errtext(e: OSError) -> str:
@@ -135,8 +141,13 @@ def _message(seq: int, device_ns: int | None, log_time_ns: int, head: bytes, dat
     head, data); the publish time is the device's stamp when it has one, times before the GPS
     epoch are 0, the sequence its low 32 bits."""
     publish = device_ns if device_ns is not None else log_time_ns
-    return (log_time_ns if log_time_ns > 0 else 0, publish if publish > 0 else 0,
-            seq & 0xFFFFFFFF, head, data)  # fmt: skip
+    return (
+        log_time_ns if log_time_ns > 0 else 0,
+        publish if publish > 0 else 0,
+        seq & 0xFFFFFFFF,
+        head,
+        data,
+    )
 
 
 class SegmentLog:
@@ -284,8 +295,9 @@ class SegmentLog:
             cid = self._mcap.register_channel(topic, RAW_ENCODING, 0, md)
         else:
             if not self._schema_id:
-                self._schema_id = self._mcap.register_schema(ENVELOPE_SCHEMA_NAME, "jsonschema",
-                                                             ENVELOPE_SCHEMA)  # fmt: skip
+                self._schema_id = self._mcap.register_schema(
+                    ENVELOPE_SCHEMA_NAME, "jsonschema", ENVELOPE_SCHEMA
+                )
             cid = self._mcap.register_channel(topic, JSON_ENCODING, self._schema_id, md)
         self._channels[topic] = cid
         return cid
@@ -339,24 +351,34 @@ class SegmentLog:
         free = self._free_bytes()
         self._stats.free_bytes = free
         if free is not None and free < self.options.min_free_bytes:
-            self._stats.last_error = (f"{path.name}: not opened, {free / 2**20:.1f} MiB free on the "
-                                      f"log file system (at least "
-                                      f"{self.options.min_free_bytes / 2**20:.1f} MiB needed)")  # fmt: skip
+            self._stats.last_error = (
+                f"{path.name}: not opened, {free / 2**20:.1f} MiB free on the "
+                f"log file system (at least "
+                f"{self.options.min_free_bytes / 2**20:.1f} MiB needed)"
+            )
             return False
         try:
             self._ensure_reserve()
             io = self._io_factory(path)
-            mcap = SegmentWriter(_ChunkWatch(io, self._chunk_written), chunk_size=self.options.chunk_bytes,
-                          compression=COMPRESSIONS[self.options.compression])  # fmt: skip
+            mcap = SegmentWriter(
+                _ChunkWatch(io, self._chunk_written),
+                chunk_size=self.options.chunk_bytes,
+                compression=COMPRESSIONS[self.options.compression],
+            )
             from acquire import __version__
 
             mcap.start(profile="", library=f"marine-mls {__version__}")
-            mcap.add_metadata("mls.session", {
-                "vessel": self.vessel, "session": self.session_dir.name,
-                "segment": str(self._index + 1), "software": __version__,
-                "host": socket.gethostname(),
-                "opened_utc": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
-            })  # fmt: skip
+            mcap.add_metadata(
+                "mls.session",
+                {
+                    "vessel": self.vessel,
+                    "session": self.session_dir.name,
+                    "segment": str(self._index + 1),
+                    "software": __version__,
+                    "host": socket.gethostname(),
+                    "opened_utc": _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds"),
+                },
+            )
             io.fsync()
             fsync_dir(self.session_dir)
         except OSError as e:
@@ -448,21 +470,31 @@ class SegmentLog:
         self._stats.last_error = f"{name}: {op} failed ({_errtext(err)})"
         self._failed_since = now
         self._next_retry_ns = now + int(self.options.retry_s * NS_PER_S)
-        self._failure_note = {"segment": name, "operation": op, "error": _errtext(err),
-                              "segment_end": closed}  # fmt: skip
+        self._failure_note = {"segment": name, "operation": op, "error": _errtext(err), "segment_end": closed}
         self.alarms.raise_now(
-            "disk_write_failed", "log", now, severity=CRITICAL,
+            "disk_write_failed",
+            "log",
+            now,
+            severity=CRITICAL,
             message=f"{self._stats.last_error}; segment {closed}; writing paused, "
-                    f"retrying every {self.options.retry_s:g} s",
-        )  # fmt: skip
+            f"retrying every {self.options.retry_s:g} s",
+        )
 
     def _fail_open(self, now: int) -> None:
         self._stats.state = "failed"
         self._stats.failures += 1
         self._failed_since = now
         self._next_retry_ns = now + int(self.options.retry_s * NS_PER_S)
-        self._failure_note = {"segment": None, "operation": "open",
-                              "error": self._stats.last_error, "segment_end": None}  # fmt: skip
-        self.alarms.raise_now("disk_write_failed", "log", now, severity=CRITICAL,
-                              message=f"{self._stats.last_error}; retrying every "
-                                      f"{self.options.retry_s:g} s")  # fmt: skip
+        self._failure_note = {
+            "segment": None,
+            "operation": "open",
+            "error": self._stats.last_error,
+            "segment_end": None,
+        }
+        self.alarms.raise_now(
+            "disk_write_failed",
+            "log",
+            now,
+            severity=CRITICAL,
+            message=f"{self._stats.last_error}; retrying every {self.options.retry_s:g} s",
+        )

@@ -55,4 +55,4 @@ def fsync_dir(path: Path) -> None:
 
 
 def session_name(vessel: str, start_utc: _dt.datetime) -> str:
-    return f"{start_utc.astimezone(_dt.timezone.utc):%Y%m%dT%H%M%SZ}_{vessel}"
+    return f"{start_utc.astimezone(_dt.UTC):%Y%m%dT%H%M%SZ}_{vessel}"

@@ -44,8 +44,9 @@ import re
 import threading
 import time
 from collections import Counter
+from collections.abc import Callable
 from pathlib import Path
-from typing import Any, Callable, Protocol
+from typing import Any, Protocol
 
 from acquire.alarms import WARNING, AlarmBook
 from acquire.log.schema import RAW
@@ -106,7 +107,7 @@ class SessionWriter(SegmentLog):
     def start(self) -> Path:
         """Create and lock the session directory, open the first segment, start the thread."""
         self.root.mkdir(parents=True, exist_ok=True)
-        start = self._start_utc or _dt.datetime.now(_dt.timezone.utc)
+        start = self._start_utc or _dt.datetime.now(_dt.UTC)
         for k in range(100):
             d = self.root / session_name(self.vessel, start + _dt.timedelta(seconds=k))
             try:
@@ -128,8 +129,16 @@ class SessionWriter(SegmentLog):
         self._thread.start()
         return d
 
-    def submit(self, topic: str, payload: bytes | dict, *, host_ns: int, device_ns: int | None = None,
-               log_time_ns: int | None = None, clock_state: str | None = None) -> bool:  # fmt: skip
+    def submit(
+        self,
+        topic: str,
+        payload: bytes | dict,
+        *,
+        host_ns: int,
+        device_ns: int | None = None,
+        log_time_ns: int | None = None,
+        clock_state: str | None = None,
+    ) -> bool:
         """Queue one record; never blocks. Returns False when it was dropped (queue full).
 
         ``payload``: the exact received bytes (raw channels) or a JSON-able dict (must not be
@@ -165,8 +174,18 @@ class SessionWriter(SegmentLog):
                 seq = seqs.get(topic, 0) + 1
                 seqs[topic] = seq
                 if len(items) < room:
-                    items.append((topic, seq, payload, int(host_ns), device_ns, int(log_time_ns),
-                                  clock_state or "UNLOCKED", now))  # fmt: skip
+                    items.append(
+                        (
+                            topic,
+                            seq,
+                            payload,
+                            int(host_ns),
+                            device_ns,
+                            int(log_time_ns),
+                            clock_state or "UNLOCKED",
+                            now,
+                        )
+                    )
                 else:
                     if dropped is None:
                         dropped = Counter()
@@ -178,9 +197,13 @@ class SessionWriter(SegmentLog):
             self._stats.dropped.update(dropped)
             self._last_drop_ns = now
             total = sum(self._stats.dropped.values())
-            self.alarms.raise_now("log_queue_overflow", "log", now, severity=WARNING,
-                                  message=f"log queue full ({self.options.queue_size}): "
-                                          f"{total} records dropped")  # fmt: skip
+            self.alarms.raise_now(
+                "log_queue_overflow",
+                "log",
+                now,
+                severity=WARNING,
+                message=f"log queue full ({self.options.queue_size}): {total} records dropped",
+            )
         return len(items)
 
     def rotate(self) -> None:
@@ -286,18 +309,31 @@ class SessionWriter(SegmentLog):
         if self._last_drop_ns is not None and now - self._last_drop_ns >= 5 * NS_PER_S:
             self._last_drop_ns = None
             total = sum(self._stats.dropped.values())
-            self.alarms.clear_now("log_queue_overflow", "log", now,
-                                  message=f"log queue drained; {total} records dropped in total")  # fmt: skip
+            self.alarms.clear_now(
+                "log_queue_overflow",
+                "log",
+                now,
+                message=f"log queue drained; {total} records dropped in total",
+            )
 
     def _resumed(self, now: int) -> None:
         paused_s = (now - (self._failed_since or now)) / NS_PER_S
         lost = sum(self._lost_at_failure.values())
         note = dict(self._failure_note or {})
-        note.update({"event": "log_write_failed", "resumed_segment": self._stats.segment,
-                     "paused_s": round(paused_s, 3), "records_lost": dict(self._lost_at_failure)})  # fmt: skip
-        self.alarms.clear_now("disk_write_failed", "log", now,
-                              message=f"writing resumed in {self._stats.segment} after "
-                                      f"{paused_s:.1f} s; {lost} records lost")  # fmt: skip
+        note.update(
+            {
+                "event": "log_write_failed",
+                "resumed_segment": self._stats.segment,
+                "paused_s": round(paused_s, 3),
+                "records_lost": dict(self._lost_at_failure),
+            }
+        )
+        self.alarms.clear_now(
+            "disk_write_failed",
+            "log",
+            now,
+            message=f"writing resumed in {self._stats.segment} after {paused_s:.1f} s; {lost} records lost",
+        )
         self._lost_at_failure = Counter()
         self._failed_since = None
         self._failure_note = None

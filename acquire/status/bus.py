@@ -55,8 +55,9 @@ def topic_policy(topic: str) -> tuple[bool, int]:
     head, _, rest = topic.partition("/")
     if head in _POLICY and (bool(rest) == (head == "sensors")) and "/" not in rest:
         return _POLICY[head]
-    raise ValueError(f"status topic {topic!r}: expected status, sensors/<name>, checklist, "
-                     "clock, metrics or alarms")  # fmt: skip
+    raise ValueError(
+        f"status topic {topic!r}: expected status, sensors/<name>, checklist, clock, metrics or alarms"
+    )
 
 
 class Sink(Protocol):
@@ -135,7 +136,7 @@ class StatusServer:
         with contextlib.suppress(FileNotFoundError):
             self.path.unlink()
 
-    async def __aenter__(self) -> "StatusServer":
+    async def __aenter__(self) -> StatusServer:
         await self.start()
         return self
 
@@ -171,8 +172,13 @@ class StatusServer:
         c.task = asyncio.current_task()
         for line in self._retained.values():
             c.queue.put_nowait(line)
-        c.queue.put_nowait(b'{"topic":"' + SNAPSHOT_END.encode() + b'","data":{"retained":'
-                           + str(len(self._retained)).encode() + b"}}\n")  # fmt: skip
+        c.queue.put_nowait(
+            b'{"topic":"'
+            + SNAPSHOT_END.encode()
+            + b'","data":{"retained":'
+            + str(len(self._retained)).encode()
+            + b"}}\n"
+        )
         self._clients.add(c)
         self.clients_served += 1
         try:
@@ -265,7 +271,7 @@ class StatusListener(threading.Thread):
             while not self._halt.is_set():
                 try:
                     chunk = s.recv(1 << 20)
-                except socket.timeout:
+                except TimeoutError:
                     continue
                 except OSError:
                     break

@@ -11,9 +11,9 @@ from __future__ import annotations
 
 import asyncio
 import json
+from collections.abc import AsyncIterator
 from dataclasses import dataclass
 from pathlib import Path
-from typing import AsyncIterator
 
 LINK = "_link"
 SNAPSHOT_END = "_snapshot_end"  # as acquire.status.bus sends it
@@ -51,8 +51,7 @@ class SocketFeed:
         delay = self.retry_min_s
         while True:
             try:
-                reader, writer = await asyncio.open_unix_connection(str(self.path),
-                                                                    limit=1 << 22)  # fmt: skip
+                reader, writer = await asyncio.open_unix_connection(str(self.path), limit=1 << 22)
             except OSError as e:
                 yield LINK, {"up": False, "detail": f"{self.path}: {e.strerror or e}"}
                 await asyncio.sleep(delay)
@@ -103,8 +102,9 @@ class MqttFeed:
         depth = len(self.prefix.split("/")) + 1  # prefix parts + the vessel
         while True:
             try:
-                async with aiomqtt.Client(self.host, self.port, username=self.username,
-                                          password=self.password) as client:  # fmt: skip
+                async with aiomqtt.Client(
+                    self.host, self.port, username=self.username, password=self.password
+                ) as client:
                     await client.subscribe(f"{self.prefix}/{self.vessel}/#", qos=1)
                     delay = self.retry_min_s
                     yield LINK, {"up": True, "detail": self.describe()}

@@ -29,8 +29,9 @@ import inspect
 import json
 import logging
 from collections import deque
+from collections.abc import Awaitable, Callable
 from dataclasses import dataclass
-from typing import Any, Awaitable, Callable
+from typing import Any
 
 import aiomqtt
 
@@ -135,7 +136,7 @@ class MqttPublisher:
                 backoff = s.backoff_min_s
             try:
                 await asyncio.wait_for(self._stop.wait(), backoff)
-            except asyncio.TimeoutError:
+            except TimeoutError:
                 pass
             backoff = min(backoff * 2, s.backoff_max_s)
 
@@ -157,10 +158,15 @@ class MqttPublisher:
         s = self.settings
         will = aiomqtt.Will(f"{self.base}/status", LOST, qos=1, retain=True)
         async with aiomqtt.Client(
-            s.host, s.port, username=s.username, password=s.password,
-            identifier=self.client_id, will=will, keepalive=s.keepalive_s,
+            s.host,
+            s.port,
+            username=s.username,
+            password=s.password,
+            identifier=self.client_id,
+            will=will,
+            keepalive=s.keepalive_s,
             timeout=s.publish_timeout_s,
-        ) as client:  # fmt: skip
+        ) as client:
             self.connected = True
             self.connects += 1
             self.last_error = None
@@ -173,8 +179,7 @@ class MqttPublisher:
             listener = asyncio.create_task(self._listen(client))
             publisher = asyncio.create_task(self._publish_loop(client))
             try:
-                done, _ = await asyncio.wait({listener, publisher},
-                                             return_when=asyncio.FIRST_COMPLETED)  # fmt: skip
+                done, _ = await asyncio.wait({listener, publisher}, return_when=asyncio.FIRST_COMPLETED)
                 for task in done:
                     task.result()  # re-raises the broker error that ended the session
             finally:
@@ -192,16 +197,16 @@ class MqttPublisher:
                     payload, qos = self._retained[topic]
                     del self._dirty[topic]
                     try:
-                        await client.publish(f"{self.base}/{topic}", payload, qos=qos,
-                                             retain=True, timeout=timeout)  # fmt: skip
+                        await client.publish(
+                            f"{self.base}/{topic}", payload, qos=qos, retain=True, timeout=timeout
+                        )
                     except BaseException:
                         self._dirty[topic] = None  # publish it on the next connection
                         raise
                 else:
                     topic, payload, qos = self._queue.popleft()
                     try:
-                        await client.publish(f"{self.base}/{topic}", payload, qos=qos,
-                                             timeout=timeout)  # fmt: skip
+                        await client.publish(f"{self.base}/{topic}", payload, qos=qos, timeout=timeout)
                     except BaseException:
                         self._queue.appendleft((topic, payload, qos))
                         raise
@@ -218,7 +223,7 @@ class MqttPublisher:
             topic = str(message.topic)
             if not (self.settings.commands_enabled and topic.startswith(prefix)):
                 continue
-            name = topic[len(prefix):]
+            name = topic[len(prefix) :]
             if name == "result":
                 continue
             try:

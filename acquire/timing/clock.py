@@ -109,9 +109,10 @@ class ClockStatus:
             "edges_accepted": self.edges_accepted,
             "edges_rejected": dict(self.edges_rejected),
             "steps": self.steps,
-            "last_edge_age_s": None if self.last_edge_age_ns is None
+            "last_edge_age_s": None
+            if self.last_edge_age_ns is None
             else round(self.last_edge_age_ns / NS_PER_S, 3),
-        }  # fmt: skip
+        }
 
 
 @dataclass(frozen=True)
@@ -264,8 +265,7 @@ class ClockModel:
             offset = self.coarse_offset_ns or 0
             return GpsEstimate(int(host_ns) + offset, ClockState.UNLOCKED, None)
         state, bound = self._state(fit, host_ns)
-        return GpsEstimate(fit.predict(int(host_ns)), state,
-                           None if bound is None else round(bound))  # fmt: skip
+        return GpsEstimate(fit.predict(int(host_ns)), state, None if bound is None else round(bound))
 
     def gps_ns(self, host_ns: int) -> int:
         """Just the GPS ns (for :class:`acquire.alarms.AlarmBook`'s ``to_gps``)."""
@@ -280,8 +280,9 @@ class ClockModel:
         est = self.to_gps(now_host_ns)
         return ClockStatus(
             state=state,
-            offset_ns=est.gps_ns - int(now_host_ns) if fit is not None or self.coarse_offset_ns
-            is not None else None,
+            offset_ns=est.gps_ns - int(now_host_ns)
+            if fit is not None or self.coarse_offset_ns is not None
+            else None,
             drift_ppm=None if fit is None or fit.n < 2 else fit.d * 1e6,
             jitter_rms_ns=None if fit is None or fit.n < 3 else fit.rms_ns,
             jitter_max_ns=None if fit is None or fit.n < 3 else fit.max_ns,
@@ -291,4 +292,4 @@ class ClockModel:
             edges_rejected=dict(self.edges_rejected),
             steps=self.steps,
             last_edge_age_ns=None if not self._edges else int(now_host_ns) - self._edges[-1][0],
-        )  # fmt: skip
+        )

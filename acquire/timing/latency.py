@@ -93,17 +93,21 @@ class LatencyStats:
             return None if v is None else round(v / MS, 4)
 
         return {
-            "device": self.device, "sync": self.sync, "n": self.n,
-            "latency_mean_ms": ms(self.mean_ns), "latency_sigma_ms": ms(self.sigma_ns),
-            "latency_p99_ms": ms(self.p99_ns), "latency_max_ms": ms(self.max_ns),
+            "device": self.device,
+            "sync": self.sync,
+            "n": self.n,
+            "latency_mean_ms": ms(self.mean_ns),
+            "latency_sigma_ms": ms(self.sigma_ns),
+            "latency_p99_ms": ms(self.p99_ns),
+            "latency_max_ms": ms(self.max_ns),
             "baseline_ms": ms(self.baseline_ns),
             "drift_ppm": None if self.drift_ppm is None else round(self.drift_ppm, 3),
-            "drift_sigma_ppm": None if self.drift_sigma_ppm is None
-            else round(self.drift_sigma_ppm, 3),
+            "drift_sigma_ppm": None if self.drift_sigma_ppm is None else round(self.drift_sigma_ppm, 3),
             "rate_hz": None if self.rate_hz is None else round(self.rate_hz, 2),
             "last_age_s": None if self.last_age_ns is None else round(self.last_age_ns / NS_PER_S, 3),
-            "pps_flag": self.pps_flag, "records": self.records,
-        }  # fmt: skip
+            "pps_flag": self.pps_flag,
+            "records": self.records,
+        }
 
 
 def _fmt_ms(ns: float) -> str:
@@ -140,8 +144,7 @@ class _Device:
 class LatencyMonitor:
     """Per-device latency statistics and sync alarms against a clock model."""
 
-    def __init__(self, clock: Clock, alarms: AlarmBook | None = None,
-                 params: MonitorParams | None = None):  # fmt: skip
+    def __init__(self, clock: Clock, alarms: AlarmBook | None = None, params: MonitorParams | None = None):
         self.clock = clock
         self.alarms = alarms if alarms is not None else AlarmBook()
         self.params = params or MonitorParams()
@@ -154,8 +157,9 @@ class LatencyMonitor:
     def devices(self) -> list[str]:
         return list(self._devices)
 
-    def observe(self, device: str, host_ns: int, device_ns: int | None = None, *,
-                pps_flag: bool | None = None) -> list[AlarmEvent]:  # fmt: skip
+    def observe(
+        self, device: str, host_ns: int, device_ns: int | None = None, *, pps_flag: bool | None = None
+    ) -> list[AlarmEvent]:
         """One record: its host receive stamp, its device time tag as GPS ns (None when the
         device has no valid time tag), and the device's PPS/sync flag when it reports one."""
         d = self._devices[device]
@@ -193,8 +197,22 @@ class LatencyMonitor:
     def stats(self, device: str) -> LatencyStats:
         d = self._devices[device]
         if d.stats is None:
-            return LatencyStats(device, "waiting", 0, None, None, None, None, None, None, None,
-                                None, None, d.pps_flag, d.records)  # fmt: skip
+            return LatencyStats(
+                device,
+                "waiting",
+                0,
+                None,
+                None,
+                None,
+                None,
+                None,
+                None,
+                None,
+                None,
+                None,
+                d.pps_flag,
+                d.records,
+            )
         return d.stats
 
     def snapshot(self) -> dict[str, dict]:
@@ -219,9 +237,16 @@ class LatencyMonitor:
         events: list[AlarmEvent] = []
 
         def update(name, cond, message, severity=WARNING, raise_s=0.0, clear_s=0.0):
-            ev = self.alarms.update(name, d.name, bool(cond), now, message=message,
-                                    severity=severity, raise_after_ns=int(raise_s * NS_PER_S),
-                                    clear_after_ns=int(clear_s * NS_PER_S))  # fmt: skip
+            ev = self.alarms.update(
+                name,
+                d.name,
+                bool(cond),
+                now,
+                message=message,
+                severity=severity,
+                raise_after_ns=int(raise_s * NS_PER_S),
+                clear_after_ns=int(clear_s * NS_PER_S),
+            )
             if ev is not None:
                 events.append(ev)
             return ev
@@ -232,8 +257,14 @@ class LatencyMonitor:
         # data flow: gap, rate, PPS flag
         age = None if d.last_host is None else now - d.last_host
         gap = age is not None and age > lim.gap_ns
-        update("data_gap", gap, f"no record for {age / NS_PER_S:.2f} s" if gap else
-               f"records again after {d.last_gap_ns / NS_PER_S:.2f} s", CRITICAL)  # fmt: skip
+        update(
+            "data_gap",
+            gap,
+            f"no record for {age / NS_PER_S:.2f} s"
+            if gap
+            else f"records again after {d.last_gap_ns / NS_PER_S:.2f} s",
+            CRITICAL,
+        )
         rate = None
         if d.first_host is not None and now - d.first_host >= p.rate_window_ns:
             rate = len(d.recent) * NS_PER_S / p.rate_window_ns
@@ -241,13 +272,22 @@ class LatencyMonitor:
             low = 0.8 if not active("rate_drop") else 0.9
             settled = d.resumed is None or now - d.resumed >= p.rate_window_ns  # not the gap again
             drop = rate is not None and rate < low * lim.rate_hz and not gap and settled
-            update("rate_drop", drop,
-                   f"{rate:.1f} records/s, nominal {lim.rate_hz:g}/s" if rate is not None else "",
-                   WARNING, raise_s=1.0, clear_s=2.0)  # fmt: skip
+            update(
+                "rate_drop",
+                drop,
+                f"{rate:.1f} records/s, nominal {lim.rate_hz:g}/s" if rate is not None else "",
+                WARNING,
+                raise_s=1.0,
+                clear_s=2.0,
+            )
         if lim.expect_pps_flag and d.pps_flag is not None:
-            update("pps_flag_lost", not d.pps_flag,
-                   "device reports no PPS/UTC sync" if not d.pps_flag else "device PPS flag back",
-                   CRITICAL, clear_s=2.0)  # fmt: skip
+            update(
+                "pps_flag_lost",
+                not d.pps_flag,
+                "device reports no PPS/UTC sync" if not d.pps_flag else "device PPS flag back",
+                CRITICAL,
+                clear_s=2.0,
+            )
 
         # sync check on the latency samples
         t, lat = d.win_t, d.win_lat
@@ -259,10 +299,11 @@ class LatencyMonitor:
             stats_mask &= t >= d.discontinuity
         st = lat[stats_mask]
         i_short = int(np.searchsorted(t, now - p.short_ns, side="right"))
-        short = lat[min(i_short, max(t.size - 3, 0)):]
+        short = lat[min(i_short, max(t.size - 3, 0)) :]
         # the lower median is always one of the samples: never a value between two levels
-        short_med = float(np.partition(short, (short.size - 1) // 2)[(short.size - 1) // 2]) \
-            if short.size else None
+        short_med = (
+            float(np.partition(short, (short.size - 1) // 2)[(short.size - 1) // 2]) if short.size else None
+        )
 
         step_on, jump_on = active("time_step"), active("latency_jump")
         if not (step_on or jump_on):
@@ -277,9 +318,11 @@ class LatencyMonitor:
             outside = max(lo - short_med, short_med - hi, 0.0)
             is_step = abs(dev) >= STEP_NS or outside >= STEP_NS
             if is_step:
-                msg = (f"time tags stepped: latency {_fmt_ms(short_med)}"
-                       + (f", baseline {_fmt_ms(d.baseline)}" if d.baseline is not None else "")
-                       + f", band [{lo / MS:g}, {hi / MS:g}] ms")  # fmt: skip
+                msg = (
+                    f"time tags stepped: latency {_fmt_ms(short_med)}"
+                    + (f", baseline {_fmt_ms(d.baseline)}" if d.baseline is not None else "")
+                    + f", band [{lo / MS:g}, {hi / MS:g}] ms"
+                )
             else:
                 msg = f"latency back at {_fmt_ms(short_med)}"
             update("time_step", is_step, msg, CRITICAL, clear_s=3.0)
@@ -291,8 +334,10 @@ class LatencyMonitor:
                 if recent.size >= 3 and abs(float(np.median(recent)) - short_med) < lim.jump_ns / 2:
                     d.baseline, dev, is_jump, relearned = short_med, 0.0, False, True
             if is_jump:
-                msg = (f"latency {_fmt_ms(short_med)}, baseline {_fmt_ms(d.baseline)} "
-                       f"({_fmt_ms(dev)}, threshold {lim.jump_ns / MS:g} ms)")
+                msg = (
+                    f"latency {_fmt_ms(short_med)}, baseline {_fmt_ms(d.baseline)} "
+                    f"({_fmt_ms(dev)}, threshold {lim.jump_ns / MS:g} ms)"
+                )
             elif relearned:
                 msg = f"latency settled at {_fmt_ms(short_med)}: new baseline"
             else:
@@ -310,29 +355,55 @@ class LatencyMonitor:
             p99, mx = float(np.percentile(st, 99)), float(st.max())
             step_now = active("time_step")
             oob = not step_now and (mean < lo or mean > hi or p99 > hi)
-            update("latency_out_of_band", oob,
-                   f"mean {_fmt_ms(mean)}, p99 {_fmt_ms(p99)}, band [{lo / MS:g}, {hi / MS:g}] ms",
-                   WARNING, raise_s=1.0, clear_s=3.0)  # fmt: skip
+            update(
+                "latency_out_of_band",
+                oob,
+                f"mean {_fmt_ms(mean)}, p99 {_fmt_ms(p99)}, band [{lo / MS:g}, {hi / MS:g}] ms",
+                WARNING,
+                raise_s=1.0,
+                clear_s=3.0,
+            )
             jit_lim = lim.max_sigma_ns if not active("latency_jitter") else 0.8 * lim.max_sigma_ns
-            update("latency_jitter", not step_now and sigma > jit_lim,
-                   f"σ {sigma / MS:.3f} ms, limit {lim.max_sigma_ns / MS:g} ms",
-                   WARNING, raise_s=2.0, clear_s=5.0)  # fmt: skip
+            update(
+                "latency_jitter",
+                not step_now and sigma > jit_lim,
+                f"σ {sigma / MS:.3f} ms, limit {lim.max_sigma_ns / MS:g} ms",
+                WARNING,
+                raise_s=2.0,
+                clear_s=5.0,
+            )
 
         self._close_bins(d, now)
         drift, drift_sigma = self._drift_ppm(d)
         if drift is not None:
             # only a drift that exceeds the limit by more than 2σ of its own estimate
             drift_lim = lim.max_drift_ppm if not active("clock_drift") else 0.7 * lim.max_drift_ppm
-            update("clock_drift", abs(drift) - 2.0 * drift_sigma > drift_lim,
-                   f"device time tags drift {drift:+.2f} ± {drift_sigma:.2f} ppm against the PPS "
-                   f"clock (limit {lim.max_drift_ppm:g} ppm)", WARNING, raise_s=5.0, clear_s=5.0)  # fmt: skip
+            update(
+                "clock_drift",
+                abs(drift) - 2.0 * drift_sigma > drift_lim,
+                f"device time tags drift {drift:+.2f} ± {drift_sigma:.2f} ppm against the PPS "
+                f"clock (limit {lim.max_drift_ppm:g} ppm)",
+                WARNING,
+                raise_s=5.0,
+                clear_s=5.0,
+            )
 
         d.stats = LatencyStats(
-            device=d.name, sync=sync if st.size >= 3 or sync != "ok" else "waiting", n=int(st.size),
-            mean_ns=mean, sigma_ns=sigma, p99_ns=p99, max_ns=mx, baseline_ns=d.baseline,
-            drift_ppm=drift, drift_sigma_ppm=drift_sigma, rate_hz=rate, last_age_ns=age, pps_flag=d.pps_flag,
+            device=d.name,
+            sync=sync if st.size >= 3 or sync != "ok" else "waiting",
+            n=int(st.size),
+            mean_ns=mean,
+            sigma_ns=sigma,
+            p99_ns=p99,
+            max_ns=mx,
+            baseline_ns=d.baseline,
+            drift_ppm=drift,
+            drift_sigma_ppm=drift_sigma,
+            rate_hz=rate,
+            last_age_ns=age,
+            pps_flag=d.pps_flag,
             records=d.records,
-        )  # fmt: skip
+        )
         return events
 
     def _close_bins(self, d: _Device, now: int) -> None:

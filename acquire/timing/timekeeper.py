@@ -40,16 +40,20 @@ def coarse_gps_offset_ns() -> int:
 
     offset = realtime_minus_monotonic_ns()
     real = time.monotonic_ns() + offset
-    leap = leap_seconds_at_utc(_dt.datetime.fromtimestamp(real / NS_PER_S, _dt.timezone.utc))
+    leap = leap_seconds_at_utc(_dt.datetime.fromtimestamp(real / NS_PER_S, _dt.UTC))
     return offset - UNIX_TO_GPS_EPOCH_S * NS_PER_S + leap * NS_PER_S
 
 
 class TimeKeeper:
     """Labels PPS pulses with time messages and feeds the clock model (module docstring)."""
 
-    def __init__(self, clock: ClockModel, submit: Submit | None = None,
-                 on_state: Callable[[ClockState, ClockState, int], None] | None = None,
-                 on_edge_added: Callable[[], None] | None = None) -> None:  # fmt: skip
+    def __init__(
+        self,
+        clock: ClockModel,
+        submit: Submit | None = None,
+        on_state: Callable[[ClockState, ClockState, int], None] | None = None,
+        on_edge_added: Callable[[], None] | None = None,
+    ) -> None:
         self.clock = clock
         self.on_edge_added = on_edge_added
         self.labeler = PpsLabeler()
@@ -115,11 +119,16 @@ class TimeKeeper:
     def _log(self, edge: PpsEdge, result, reason: str) -> None:
         if self.submit is None:
             return
-        data = {"source": edge.source, "sequence": edge.sequence, "host_ns": edge.host_ns,
-                "gps_s": edge.gps_s, "reason": reason,
-                "accepted": bool(result.accepted) if result is not None else False,
-                "residual_ns": None if result is None else result.residual_ns,
-                "step_ns": None if result is None else result.step_ns}  # fmt: skip
+        data = {
+            "source": edge.source,
+            "sequence": edge.sequence,
+            "host_ns": edge.host_ns,
+            "gps_s": edge.gps_s,
+            "reason": reason,
+            "accepted": bool(result.accepted) if result is not None else False,
+            "residual_ns": None if result is None else result.residual_ns,
+            "step_ns": None if result is None else result.step_ns,
+        }
         if edge.realtime_ns is not None:
             data["realtime_ns"] = edge.realtime_ns
         device_ns = None if edge.gps_s is None else edge.gps_s * NS_PER_S
@@ -127,9 +136,14 @@ class TimeKeeper:
 
     def status(self) -> dict:
         ev = self.labeler.stats.events
-        return {"pulses": self.pulses, "labelled": self.labeler.stats.records,
-                "time_messages": self.time_messages, "unlabelled": ev["unlabelled"],
-                "duplicate_edges": ev["duplicate_edge"], "time_without_edge": ev["time_without_edge"]}  # fmt: skip
+        return {
+            "pulses": self.pulses,
+            "labelled": self.labeler.stats.records,
+            "time_messages": self.time_messages,
+            "unlabelled": ev["unlabelled"],
+            "duplicate_edges": ev["duplicate_edge"],
+            "time_without_edge": ev["time_without_edge"],
+        }
 
 
 class ClockCache:

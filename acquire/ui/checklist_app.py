@@ -26,9 +26,10 @@ import json
 import math
 import subprocess
 import sys
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
 
 from rich.table import Table
 from rich.text import Text
@@ -39,16 +40,23 @@ from textual.screen import ModalScreen
 from textual.widgets import Footer, Static
 from textual.worker import Worker, WorkerState
 
-from acquire.ui.planview import render_plan
 from acquire.status.feed import LINK, SNAPSHOT_END, guidance_of
+from acquire.ui.planview import render_plan
 
 OK, FAIL, WAIT = "✔", "✘", "…"
 #: Short labels of the daemon's pre-survey check names (acquire.daemon.reports.StatusReports.presurvey).
-CHECK_LABELS = {"ins_navigating": "INS nav+fine", "gnss_fix": "GNSS fix", "ins_pps": "INS PPS+UTC",
-                "pps_locked": "PPS locked", "profiler_data": "Profiler data",
-                "clock_locked": "Clock LOCKED", "latency_in_band": "Latency",
-                "disk_space": "Disk space", "mount_configured": "Mount",
-                "mount_targets": "Mount+targets"}  # fmt: skip
+CHECK_LABELS = {
+    "ins_navigating": "INS nav+fine",
+    "gnss_fix": "GNSS fix",
+    "ins_pps": "INS PPS+UTC",
+    "pps_locked": "PPS locked",
+    "profiler_data": "Profiler data",
+    "clock_locked": "Clock LOCKED",
+    "latency_in_band": "Latency",
+    "disk_space": "Disk space",
+    "mount_configured": "Mount",
+    "mount_targets": "Mount+targets",
+}
 PRECHECK_ROWS = 7
 STATUS_STYLE = {"accepted": "green", "rejected": "red", "capturing": "yellow", "pending": "dim"}
 
@@ -73,9 +81,12 @@ def run_calib_cli(session: str | None) -> CalibrationOutcome:
     """The default calibrator: ``mls calib run SESSION --out SESSION/calib-<UTC>`` in a
     subprocess, then its ``result.json``."""
     if not session:
-        return CalibrationOutcome(False, "no session directory: the daemon publishes none in "
-                                  "its status; start mls checklist with --session DIR")  # fmt: skip
-    stamp = _dt.datetime.now(_dt.timezone.utc).strftime("%Y%m%dT%H%M%SZ")
+        return CalibrationOutcome(
+            False,
+            "no session directory: the daemon publishes none in "
+            "its status; start mls checklist with --session DIR",
+        )
+    stamp = _dt.datetime.now(_dt.UTC).strftime("%Y%m%dT%H%M%SZ")
     out = Path(session) / f"calib-{stamp}"
     cmd = [sys.executable, "-m", "cli.app", "calib", "run", str(session), "--out", str(out)]
     try:
@@ -84,8 +95,7 @@ def run_calib_cli(session: str | None) -> CalibrationOutcome:
         return CalibrationOutcome(False, f"mls calib run failed to run: {e}")
     if proc.returncode != 0:
         tail = (proc.stderr or proc.stdout).strip().splitlines()[-3:]
-        return CalibrationOutcome(False, f"mls calib run exited with {proc.returncode}: "
-                                  + " / ".join(tail))  # fmt: skip
+        return CalibrationOutcome(False, f"mls calib run exited with {proc.returncode}: " + " / ".join(tail))
     try:
         result = json.loads((out / "result.json").read_text(encoding="utf-8"))
     except (OSError, ValueError) as e:
@@ -130,8 +140,12 @@ class ChecklistState:
         merged: dict[str, dict] = {}
         for name, v in (c.get("presurvey") or {}).items():
             if isinstance(v, dict):
-                merged[name] = {"name": name, "label": CHECK_LABELS.get(name, name.replace(
-                    "_", " ")), "ok": v.get("ok"), "detail": str(v.get("detail", ""))}
+                merged[name] = {
+                    "name": name,
+                    "label": CHECK_LABELS.get(name, name.replace("_", " ")),
+                    "ok": v.get("ok"),
+                    "detail": str(v.get("detail", "")),
+                }
         for v in self.checklist.get("prechecks") or []:
             merged[v.get("name", v.get("label", "?"))] = dict(v)
         return list(merged.values())
@@ -182,13 +196,14 @@ def render_prechecks(st: ChecklistState, width: int = 38, rows: int = PRECHECK_R
         return t
     shown = sorted(checks, key=lambda c: c.get("ok") is True)  # stable: failing first
     if len(shown) > rows:
-        rest = shown[rows - 1:]
+        rest = shown[rows - 1 :]
         shown = shown[: rows - 1]
     else:
         rest = []
     for i, c in enumerate(shown):
-        mark, style = (OK, "green") if c.get("ok") else (WAIT, "yellow") if c.get("ok") is None \
-            else (FAIL, "bold red")  # fmt: skip
+        mark, style = (
+            (OK, "green") if c.get("ok") else (WAIT, "yellow") if c.get("ok") is None else (FAIL, "bold red")
+        )
         label = str(c.get("label", c.get("name", "?")))[:13]
         t.append(f"{mark} ", style)
         t.append(f"{label:<13} ", "bold" if not c.get("ok") else "")
@@ -197,9 +212,12 @@ def render_prechecks(st: ChecklistState, width: int = 38, rows: int = PRECHECK_R
             t.append("\n")
     if rest:
         n_ok = sum(c.get("ok") is True for c in rest)
-        t.append(f"{OK} {n_ok} more ok" if n_ok == len(rest) else
-                 f"… {len(rest)} more ({len(rest) - n_ok} not ok)", "green" if n_ok == len(rest)
-                 else "yellow")  # fmt: skip
+        t.append(
+            f"{OK} {n_ok} more ok"
+            if n_ok == len(rest)
+            else f"… {len(rest)} more ({len(rest) - n_ok} not ok)",
+            "green" if n_ok == len(rest) else "yellow",
+        )
         t.append(" — d: all", "dim")
     return t
 
@@ -212,7 +230,8 @@ def render_passes(st: ChecklistState, selected: int = 0) -> Text:
         t.append("no pass plan yet", "dim")
         return t
     names = list((passes[0].get("hits") or {}).keys()) or [
-        x["name"] for x in (st.checklist.get("plan") or {}).get("targets", [])]
+        x["name"] for x in (st.checklist.get("plan") or {}).get("targets", [])
+    ]
     t.append(f"  # rel°  status    {' '.join(n[:5].rjust(5) for n in names[:2])}\n", "dim")
     for i, p in enumerate(passes):
         style = STATUS_STYLE.get(p.get("status"), "")
@@ -237,8 +256,10 @@ def _sigma_line(d: dict | None) -> str:
         return "—"
     r = d.get("realistic_deg") or {}
     rose = set(d.get("rose") or ())  # ↑: the last pass made this angle's realistic σ larger
-    parts = [f"{a[0]} {_fmt(r.get(a), '.3f', '°', 'n/o')}" + ("↑" if a in rose else "")
-             for a in ("roll", "pitch", "yaw")]  # fmt: skip
+    parts = [
+        f"{a[0]} {_fmt(r.get(a), '.3f', '°', 'n/o')}" + ("↑" if a in rose else "")
+        for a in ("roll", "pitch", "yaw")
+    ]
     return " ".join(parts)
 
 
@@ -260,8 +281,9 @@ def render_sigma(st: ChecklistState) -> Text:
         t.append("next best: ", "dim")
         t.append(f"pass {nb['pass_id']}" + (f" ({rel:.0f}°)" if rel is not None else ""), "bold")
         worst = nb.get("worst_deg")
-        t.append(f" → σ ≤ {worst:.3f}°" if worst is not None
-                 else f" → {3 - nb.get('undetermined', 3)}/3 angles")  # fmt: skip
+        t.append(
+            f" → σ ≤ {worst:.3f}°" if worst is not None else f" → {3 - nb.get('undetermined', 3)}/3 angles"
+        )
     elif st.checklist.get("calibration_ready"):
         t.append("ready: press c to calibrate", "bold green")
     return t
@@ -273,8 +295,7 @@ def render_live(st: ChecklistState) -> Text:
     tol = st.checklist.get("tolerances") or {}
     t = Text(no_wrap=True, overflow="ellipsis")
     if not a:
-        t.append("all passes accepted" if st.checklist.get("passes") else "no active pass",
-                 "dim")  # fmt: skip
+        t.append("all passes accepted" if st.checklist.get("passes") else "no active pass", "dim")
         return t
     state = a.get("state", "approach")
     t.append(f"pass {a['pass_id']} ", "bold")
@@ -297,12 +318,16 @@ def render_live(st: ChecklistState) -> Text:
         t.append(f" steer {'L' if xte > 0 else 'R'}" if abs(xte) >= 0.05 else " on line")
         he = a["heading_error_deg"]
         t.append("\nHDG err ")
-        t.append(f"{he:+5.1f}°", "bold red" if abs(he) > tol.get("max_heading_error_deg", 1e9)
-                 else "bold green")  # fmt: skip
+        t.append(
+            f"{he:+5.1f}°", "bold red" if abs(he) > tol.get("max_heading_error_deg", 1e9) else "bold green"
+        )
         sp, plan_sp = a.get("speed_mps"), a.get("planned_speed_mps")
         t.append("  SOG ")
-        bad_sp = plan_sp is not None and sp is not None and abs(sp - plan_sp) > tol.get(
-            "max_speed_error_mps", math.inf)
+        bad_sp = (
+            plan_sp is not None
+            and sp is not None
+            and abs(sp - plan_sp) > tol.get("max_speed_error_mps", math.inf)
+        )
         t.append(_fmt(sp, ".2f", " m/s"), "bold red" if bad_sp else "bold green")
         t.append(f"\nrange to targets {a.get('range_to_targets_m', math.nan):.1f} m")
         hits = a.get("hits")
@@ -328,11 +353,12 @@ def render_result(outcome: CalibrationOutcome) -> Table | Text:
     for a in ("roll", "pitch", "yaw"):
         tab.add_row(a, _fmt(b.get(a), "+.4f"), _fmt(sr.get(a), ".4f"), _fmt(sf.get(a), ".4f"))
     chi = r.get("chi2_test") or {}
-    tab.caption = (f"σ0² {_fmt(r.get('sigma0_squared'), '.2f')} "
-                   f"(χ² {'passed' if chi.get('passed') else 'FAILED'}) · "
-                   f"{r.get('n_points', '?')} points · {r.get('iterations', '?')} it · "
-                   f"{_fmt(r.get('runtime_s'), '.2f', ' s')}"
-                   + (f"\n{outcome.out_dir}" if outcome.out_dir else ""))  # fmt: skip
+    tab.caption = (
+        f"σ0² {_fmt(r.get('sigma0_squared'), '.2f')} "
+        f"(χ² {'passed' if chi.get('passed') else 'FAILED'}) · "
+        f"{r.get('n_points', '?')} points · {r.get('iterations', '?')} it · "
+        f"{_fmt(r.get('runtime_s'), '.2f', ' s')}" + (f"\n{outcome.out_dir}" if outcome.out_dir else "")
+    )
     return tab
 
 
@@ -394,8 +420,13 @@ class ChecklistApp(App):
         Binding("q", "quit", "quit"),
     ]
 
-    def __init__(self, feed, calibrator: Calibrator = run_calib_cli, session: str | None = None,
-                 session_root: str | None = None):  # fmt: skip
+    def __init__(
+        self,
+        feed,
+        calibrator: Calibrator = run_calib_cli,
+        session: str | None = None,
+        session_root: str | None = None,
+    ):
         super().__init__()
         self.feed = feed
         self.calibrator = calibrator
@@ -420,8 +451,13 @@ class ChecklistApp(App):
         yield Footer()
 
     def on_mount(self) -> None:
-        titles = {"prechecks": "pre-survey", "passes": "passes", "sigma": "predicted σ",
-                  "plan": "plan view", "live": "guidance"}  # fmt: skip
+        titles = {
+            "prechecks": "pre-survey",
+            "passes": "passes",
+            "sigma": "predicted σ",
+            "plan": "plan view",
+            "live": "guidance",
+        }
         for wid, title in titles.items():
             self.query_one(f"#{wid}", Static).border_title = title
         self.refresh_view()
@@ -480,9 +516,11 @@ class ChecklistApp(App):
             return
         p = passes[self.selected]
         body = Text()
-        body.append(f"pass {p['id']} ({p['relative_heading_deg']:.0f}° to the wall, heading "
-                    f"{p['heading_deg']:.1f}°): {p['status']}, {p['attempts']} attempt(s)\n",
-                    "bold")  # fmt: skip
+        body.append(
+            f"pass {p['id']} ({p['relative_heading_deg']:.0f}° to the wall, heading "
+            f"{p['heading_deg']:.1f}°): {p['status']}, {p['attempts']} attempt(s)\n",
+            "bold",
+        )
         for r in p.get("reasons") or []:
             body.append(f"✘ {r}\n", "red")
         for k, v in (p.get("stats") or {}).items():
@@ -499,8 +537,11 @@ class ChecklistApp(App):
             body.append(f"{mark} {c.get('label')}: ", "bold")
             body.append(f"{c.get('detail')}\n")
         for a in (self.state.topics.get("status") or {}).get("alarms") or []:
-            body.append(f"{a.get('severity', '?')} alarm {a.get('name')} ({a.get('device')}): "
-                        f"{a.get('message', '')}\n", "red")
+            body.append(
+                f"{a.get('severity', '?')} alarm {a.get('name')} ({a.get('device')}): "
+                f"{a.get('message', '')}\n",
+                "red",
+            )
         self.push_screen(TextScreen("pre-survey checks", body or "no checks yet"))
 
     def action_calibrate(self) -> None:
@@ -510,8 +551,7 @@ class ChecklistApp(App):
         self._calibrating = True
         self.refresh_view()
         session = self.session or self.state.session_dir(self.session_root)
-        self.run_worker(lambda: self.calibrator(session), name="calibrate", thread=True,
-                        exit_on_error=False)  # fmt: skip
+        self.run_worker(lambda: self.calibrator(session), name="calibrate", thread=True, exit_on_error=False)
 
     def on_worker_state_changed(self, event: Worker.StateChanged) -> None:
         w = event.worker

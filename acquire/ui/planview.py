@@ -16,8 +16,13 @@ from rich.text import Text
 
 #: Dot (column, row) within a cell → bit of the braille pattern (U+2800 + bits).
 _BITS = ((0x01, 0x02, 0x04, 0x40), (0x08, 0x10, 0x20, 0x80))
-STYLES = {"other": "grey37", "line": "cyan", "capture": "bold bright_cyan", "target": "bold red",
-          "vessel": "bold yellow"}  # fmt: skip
+STYLES = {
+    "other": "grey37",
+    "line": "cyan",
+    "capture": "bold bright_cyan",
+    "target": "bold red",
+    "vessel": "bold yellow",
+}
 
 
 @dataclass
@@ -41,8 +46,10 @@ class Canvas:
             self._style[cy][cx] = style
 
     def to_dots(self, n: float, e: float) -> tuple[int, int]:
-        return (int(math.floor((e - self.e0) / self.m_per_dot)),
-                int(math.floor((self.n0 - n) / self.m_per_dot)))  # fmt: skip
+        return (
+            int(math.floor((e - self.e0) / self.m_per_dot)),
+            int(math.floor((self.n0 - n) / self.m_per_dot)),
+        )
 
     def point(self, n: float, e: float, style: str) -> None:
         self._dot(*self.to_dots(n, e), style)
@@ -77,8 +84,7 @@ class Canvas:
         return out
 
 
-def fit(points: list[tuple[float, float]], width: int, height: int,
-        margin_frac: float = 0.08) -> Canvas:  # fmt: skip
+def fit(points: list[tuple[float, float]], width: int, height: int, margin_frac: float = 0.08) -> Canvas:
     """A canvas whose square dots show all ``points`` (n, e) with a margin."""
     ns = [p[0] for p in points] or [0.0]
     es = [p[1] for p in points] or [0.0]
@@ -89,8 +95,9 @@ def fit(points: list[tuple[float, float]], width: int, height: int,
     return Canvas(width, height, cn + 2 * height * m, ce - width * m, m)
 
 
-def render_plan(plan: dict, vessel: dict | None, active_id: int | None, width: int,
-                height: int) -> tuple[Text, float]:  # fmt: skip
+def render_plan(
+    plan: dict, vessel: dict | None, active_id: int | None, width: int, height: int
+) -> tuple[Text, float]:
     """The plan view as styled text and its scale (metres per dot)."""
     passes = {p["id"]: p for p in plan.get("passes", [])}
     targets = plan.get("targets", [])
@@ -115,8 +122,7 @@ def render_plan(plan: dict, vessel: dict | None, active_id: int | None, width: i
         length = math.hypot(b[0] - a[0], b[1] - a[1]) or 1.0
         u = ((b[0] - a[0]) / length, (b[1] - a[1]) / length)
         c0, c1 = act["capture_m"]
-        cv.line((a[0] + c0 * u[0], a[1] + c0 * u[1]), (a[0] + c1 * u[0], a[1] + c1 * u[1]),
-                "capture")  # fmt: skip
+        cv.line((a[0] + c0 * u[0], a[1] + c0 * u[1]), (a[0] + c1 * u[0], a[1] + c1 * u[1]), "capture")
     for t in targets:
         cv.polygon([tuple(c) for c in t["corners_ne_m"]], "target")
     if vessel is not None:

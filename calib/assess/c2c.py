@@ -59,8 +59,8 @@ closed-form 3×3 symmetric eigen solution (see :func:`smallest_eigenvector`).
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Callable
 
 import numpy as np
 
@@ -194,9 +194,11 @@ def smallest_eigenvector(xx, yy, zz, xy, xz, yz) -> np.ndarray:
     # one inverse-iteration step: v ← adj(A − ρI)·v with ρ the Rayleigh quotient of v
     rho = a * x * x + b * y * y + c * z * z + 2.0 * (d * x * y + e * x * z + f * y * z)
     a1, b1, c1 = a - rho, b - rho, c - rho
-    x, y, z = ((b1 * c1 - f * f) * x + (e * f - d * c1) * y + (d * f - b1 * e) * z,
-               (e * f - d * c1) * x + (a1 * c1 - e * e) * y + (d * e - a1 * f) * z,
-               (d * f - b1 * e) * x + (d * e - a1 * f) * y + (a1 * b1 - d * d) * z)  # fmt: skip
+    x, y, z = (
+        (b1 * c1 - f * f) * x + (e * f - d * c1) * y + (d * f - b1 * e) * z,
+        (e * f - d * c1) * x + (a1 * c1 - e * e) * y + (d * e - a1 * f) * z,
+        (d * f - b1 * e) * x + (d * e - a1 * f) * y + (a1 * b1 - d * d) * z,
+    )
     norm = np.sqrt(x * x + y * y + z * z)
     inv = 1.0 / np.where(norm > 0, norm, 1.0)
     out = np.stack([x * inv, y * inv, z * inv], axis=-1)
@@ -325,6 +327,7 @@ def c2c(
     toward_point = orient_toward_m is not None
 
     n, n_ref = q_all.shape[0], ref.shape[0]
+
     # both clouds are taken in the order of a KD-tree's leaves: neighbouring queries then touch
     # neighbouring memory (the reference is copied in that order, the tree built on the copy)
     def leaf_order(p):

@@ -97,8 +97,9 @@ def _truth_rectangles(truth: dict) -> list[tuple[str, Rectangle]]:
             n = np.asarray(t["normal"], float)
             incl = np.arccos(np.clip(-n[2], -1.0, 1.0))
             az = np.arctan2(n[1], n[0]) if np.hypot(n[0], n[1]) > 1e-9 else 0.0
-            r = Rectangle.from_orientation(t["name"], t["center_lgf_m"], t["width_m"],
-                                           t["height_m"], incl, az)  # fmt: skip
+            r = Rectangle.from_orientation(
+                t["name"], t["center_lgf_m"], t["width_m"], t["height_m"], incl, az
+            )
             out.append((t["name"], r))
     return out
 
@@ -125,13 +126,26 @@ def _height_fit(pair, state, h, d, bin_m: float = 2.0) -> HeightFit:
         if sel.sum() >= 5:
             centres.append((v + 0.5) * bin_m)
             medians.append(float(np.median(d[sel])))
-    return HeightFit(tuple(pair), state, float(slope), float(intercept), int(h.size),
-                     (float(h.min()), float(h.max())), np.array(centres), np.array(medians))  # fmt: skip
+    return HeightFit(
+        tuple(pair),
+        state,
+        float(slope),
+        float(intercept),
+        int(h.size),
+        (float(h.min()), float(h.max())),
+        np.array(centres),
+        np.array(medians),
+    )
 
 
-def assess(bundle, result: dict, pairs: Sequence[tuple[int, int]] | None = None,
-           options: AssessOptions = AssessOptions(), truth: dict | None | str = "auto",
-           progress: Callable[[str], None] | None = None) -> Assessment:  # fmt: skip
+def assess(
+    bundle,
+    result: dict,
+    pairs: Sequence[tuple[int, int]] | None = None,
+    options: AssessOptions = AssessOptions(),
+    truth: dict | None | str = "auto",
+    progress: Callable[[str], None] | None = None,
+) -> Assessment:
     """Compare passes before and after a calibration (see the module docstring).
 
     ``bundle``: a :class:`calib.io.bundle.Bundle` or its directory; ``result``: the result.json
@@ -164,22 +178,27 @@ def assess(bundle, result: dict, pairs: Sequence[tuple[int, int]] | None = None,
     if isinstance(apriori, dict):
         site_deg = _angles_deg(site.mount.boresight_rad)
         if any(abs(float(apriori.get(a, site_deg[a])) - site_deg[a]) > 1e-6 for a in ANGLES):
-            notes.append("the result's a-priori boresight differs from site.yaml's; 'before' "
-                         "uses site.yaml's")  # fmt: skip
+            notes.append(
+                "the result's a-priori boresight differs from site.yaml's; 'before' uses site.yaml's"
+            )
     headings = pass_headings_deg(bundle)
     if pairs is None:
         pairs = reciprocal_pairs(headings)
         if not pairs:
             raise AssessError(
                 "no reciprocal passes (headings 180° ± 20° apart) in the bundle; sailed "
-                "headings: " + ", ".join(f"{k}: {v:.0f}°" for k, v in sorted(headings.items()))
-                + "; name the pairs to compare (e.g. --pairs 1:2)")  # fmt: skip
+                "headings: "
+                + ", ".join(f"{k}: {v:.0f}°" for k, v in sorted(headings.items()))
+                + "; name the pairs to compare (e.g. --pairs 1:2)"
+            )
     pairs = [(int(a), int(b)) for a, b in pairs]
     for p in pairs:
         for pid in p:
             if pid not in headings:
-                raise AssessError(f"pass {pid} (pair {p[0]}:{p[1]}) has no returns covered by the "
-                                  f"trajectory; passes: {', '.join(map(str, sorted(headings)))}")  # fmt: skip
+                raise AssessError(
+                    f"pass {pid} (pair {p[0]}:{p[1]}) has no returns covered by the "
+                    f"trajectory; passes: {', '.join(map(str, sorted(headings)))}"
+                )
     rng = np.random.default_rng(options.seed)
     cache: dict[int, _Pass] = {}
 
@@ -195,12 +214,12 @@ def assess(bundle, result: dict, pairs: Sequence[tuple[int, int]] | None = None,
             notes.append(f"pass {pid}: {int(bad.sum())} returns outside the trajectory left out")
             idx = idx[~bad]
         if idx.size > options.max_points_per_pass:
-            notes.append(f"pass {pid}: a random {options.max_points_per_pass:,} of its "
-                         f"{idx.size:,} returns used")  # fmt: skip
+            notes.append(
+                f"pass {pid}: a random {options.max_points_per_pass:,} of its {idx.size:,} returns used"
+            )
             idx = np.sort(rng.choice(idx, options.max_points_per_pass, replace=False))
         t, rho, alpha = pts.t_gps_s[idx], pts.range_m[idx], pts.scan_angle_rad[idx]
-        geo = {s: np.ascontiguousarray(georeference(t, rho, alpha, traj, m))
-               for s, m in mounts.items()}  # fmt: skip
+        geo = {s: np.ascontiguousarray(georeference(t, rho, alpha, traj, m)) for s, m in mounts.items()}
         sub = slice(None, None, max(1, idx.size // 5000))
         origin = georeference(t[sub], np.zeros(t[sub].size), alpha[sub], traj, mounts["after"])
         cache[pid] = _Pass(idx, geo, origin.mean(axis=0))
@@ -230,8 +249,20 @@ def assess(bundle, result: dict, pairs: Sequence[tuple[int, int]] | None = None,
         pair_cmp = []
         for rect in rects:
             say(f"passes {pair[0]}:{pair[1]}: {rect.name}")
-            c = _compare_surface(rect, source, pair, A, B, scanner_down, bundle, mounts["after"],
-                                 cov_bs, options, truth_rects, notes)  # fmt: skip
+            c = _compare_surface(
+                rect,
+                source,
+                pair,
+                A,
+                B,
+                scanner_down,
+                bundle,
+                mounts["after"],
+                cov_bs,
+                options,
+                truth_rects,
+                notes,
+            )
             if c is not None:
                 pair_cmp.append(c)
         if pair_cmp:
@@ -246,14 +277,18 @@ def assess(bundle, result: dict, pairs: Sequence[tuple[int, int]] | None = None,
             if c is not None:
                 comparisons.append(c)
     return Assessment(
-        bundle_path=Path(bundle.path), pairs=tuple(pairs), headings_deg=headings,
+        bundle_path=Path(bundle.path),
+        pairs=tuple(pairs),
+        headings_deg=headings,
         boresight_before_deg=_angles_deg(mounts["before"].boresight_rad),
         boresight_after_deg=_angles_deg(mounts["after"].boresight_rad),
-        truth_boresight_deg=_angles_deg(mounts["true"].boresight_rad) if "true" in mounts
-        else None,
-        plane_source="auto" if use_auto else "site", comparisons=tuple(comparisons),
-        height_fits=tuple(fits), notes=tuple(notes), options=options,
-    )  # fmt: skip
+        truth_boresight_deg=_angles_deg(mounts["true"].boresight_rad) if "true" in mounts else None,
+        plane_source="auto" if use_auto else "site",
+        comparisons=tuple(comparisons),
+        height_fits=tuple(fits),
+        notes=tuple(notes),
+        options=options,
+    )
 
 
 def _covering(traj, t_gps_s: np.ndarray):
@@ -274,15 +309,29 @@ def _c2c_states(A: _Pass, B: _Pass, ia, ib, k, normal=None) -> dict:
     return {s: c2c(A.geo[s][ia], B.geo[s][ib], k, orient_direction=normal) for s in A.geo}
 
 
-def _compare_surface(rect, source, pair, A: _Pass, B: _Pass, scanner_down, bundle, after_mount,
-                     cov_bs_rad2, options: AssessOptions, truth_rects, notes) -> Comparison | None:  # fmt: skip
+def _compare_surface(
+    rect,
+    source,
+    pair,
+    A: _Pass,
+    B: _Pass,
+    scanner_down,
+    bundle,
+    after_mount,
+    cov_bs_rad2,
+    options: AssessOptions,
+    truth_rects,
+    notes,
+) -> Comparison | None:
     sel = {}
     for pid, P in zip(pair, (A, B)):
         cand = plane_candidates(P.after, rect, options.gate_m, options.margin_m)
         keep = clean_patch(P.after, cand, options.clean_sigma, options.clean_floor_m)
         if keep.sum() < options.min_points:
-            notes.append(f"{rect.name}: pass {pid} has {int(keep.sum())} returns on it (fewer "
-                         f"than {options.min_points}); not compared for passes {pair[0]}:{pair[1]}")  # fmt: skip
+            notes.append(
+                f"{rect.name}: pass {pid} has {int(keep.sum())} returns on it (fewer "
+                f"than {options.min_points}); not compared for passes {pair[0]}:{pair[1]}"
+            )
             return None
         sel[pid] = np.flatnonzero(keep)
     ia, ib = sel[pair[0]], sel[pair[1]]
@@ -292,17 +341,21 @@ def _compare_surface(rect, source, pair, A: _Pass, B: _Pass, scanner_down, bundl
     for s in A.geo:
         inside &= within_coverage(A.geo[s][ia], B.geo[s][ib], rect.normal)
     if inside.sum() < options.min_points:
-        notes.append(f"{rect.name}: passes {pair[0]}:{pair[1]} overlap on {int(inside.sum())} "
-                     f"returns (fewer than {options.min_points}); not compared")  # fmt: skip
+        notes.append(
+            f"{rect.name}: passes {pair[0]}:{pair[1]} overlap on {int(inside.sum())} "
+            f"returns (fewer than {options.min_points}); not compared"
+        )
         return None
     ia = ia[inside]
     qa, qb = A.after[ia], B.after[ib]
     k = options.k
     collinear = collinear_fraction(qa, qb, rect.normal, k)
     if collinear > 0.1:
-        notes.append(f"{rect.name} (passes {pair[0]}:{pair[1]}): {collinear:.0%} of the local "
-                     f"planes (k = {k}) rest on nearly collinear neighbours (scan lines); C2C "
-                     f"understates large offsets there: compare with a larger --knn (e.g. 12)")  # fmt: skip
+        notes.append(
+            f"{rect.name} (passes {pair[0]}:{pair[1]}): {collinear:.0%} of the local "
+            f"planes (k = {k}) rest on nearly collinear neighbours (scan lines); C2C "
+            f"understates large offsets there: compare with a larger --knn (e.g. 12)"
+        )
     fa = fit_plane(qa, orient_like=rect.normal)
     fb = fit_plane(qb, orient_like=rect.normal)
     res = _c2c_states(A, B, ia, ib, k, rect.normal)
@@ -321,8 +374,9 @@ def _compare_surface(rect, source, pair, A: _Pass, B: _Pass, scanner_down, bundl
         sub = _covering(traj, t + after_mount.time_offset_s)
         obs = (t, pts.range_m[j], pts.scan_angle_rad[j], sub, after_mount, fa.normal)
         scan = scanner_normal_variance(*obs, site.sigma_range_m, site.sigma_scan_angle_rad)
-        pos = pos_normal_variance(t, q, sub, after_mount, fa.normal, site.sigma_position_m,
-                                  site.sigma_attitude_rad)  # fmt: skip
+        pos = pos_normal_variance(
+            t, q, sub, after_mount, fa.normal, site.sigma_position_m, site.sigma_attitude_rad
+        )
         return scan, float(np.mean(pos)), boresight_normal_jacobian(*obs)
 
     var_a, pos_a, jac_a = errors(A, ia, qa)
@@ -334,8 +388,10 @@ def _compare_surface(rect, source, pair, A: _Pass, B: _Pass, scanner_down, bundl
     w, v = np.linalg.eigh(cov_bs_rad2)
     bs_basis = jac_rel @ (v * np.sqrt(np.clip(w, 0.0, None)))
     pos_basis = np.full((len(qa), 1), math.sqrt(pos_a + pos_b))
-    expect = lambda basis=None: expected_c2c(qa, qb, fa.normal, var_a, var_b, k, basis,  # noqa: E731
-                                             seed=options.seed)  # fmt: skip
+
+    def expect(basis=None):
+        return expected_c2c(qa, qb, fa.normal, var_a, var_b, k, basis, seed=options.seed)
+
     exp_scan = expect()[0]
     exp_total, upper = expect(pos_basis)
     upper_cal = max(expect(np.column_stack([pos_basis, bs_basis]))[1], upper)
@@ -344,27 +400,45 @@ def _compare_surface(rect, source, pair, A: _Pass, B: _Pass, scanner_down, bundl
         tr = _match_truth(rect.name, source, np.concatenate([qa, qb]), truth_rects)
         if tr is not None:
             truth_name = tr.name
-            truth_stats = {s: {pid: distance_stats(tr.signed_distance(P.geo[s][idx]))
-                               for pid, P, idx in ((pair[0], A, ia), (pair[1], B, ib))}
-                           for s in A.geo}  # fmt: skip
+            truth_stats = {
+                s: {
+                    pid: distance_stats(tr.signed_distance(P.geo[s][idx]))
+                    for pid, P, idx in ((pair[0], A, ia), (pair[1], B, ib))
+                }
+                for s in A.geo
+            }
     heights = _heights(qa, scanner_down, options)
     return Comparison(
-        name=rect.name, source=source, pair=tuple(pair), height_m=float(np.median(heights)),
-        n_reference=int(ib.size), collinear_fraction=collinear, before=res["before"].stats(),
-        after=res["after"].stats(), true_mount=res["true"].stats() if "true" in res else None,
+        name=rect.name,
+        source=source,
+        pair=tuple(pair),
+        height_m=float(np.median(heights)),
+        n_reference=int(ib.size),
+        collinear_fraction=collinear,
+        before=res["before"].stats(),
+        after=res["after"].stats(),
+        true_mount=res["true"].stats() if "true" in res else None,
         before_signed_mean_m=res["before"].stats(signed=True).mean_m,
-        after_signed_mean_m=res["after"].stats(signed=True).mean_m, floor_median_m=floor,
-        expected_scanner_median_m=exp_scan, expected_median_m=exp_total, expected_upper_m=upper,
-        expected_upper_calibration_m=upper_cal, pos_offset_sigma_m=math.sqrt(pos_a + pos_b),
+        after_signed_mean_m=res["after"].stats(signed=True).mean_m,
+        floor_median_m=floor,
+        expected_scanner_median_m=exp_scan,
+        expected_median_m=exp_total,
+        expected_upper_m=upper,
+        expected_upper_calibration_m=upper_cal,
+        pos_offset_sigma_m=math.sqrt(pos_a + pos_b),
         boresight_offset_sigma_m=float(np.sqrt(np.mean(np.sum(bs_basis**2, axis=1)))),
         rectangle=rect,
-        truth_plane=truth_name, truth=truth_stats, d_before_m=res["before"].distance_m,
-        d_after_m=res["after"].distance_m, heights_m=heights,
-    )  # fmt: skip
+        truth_plane=truth_name,
+        truth=truth_stats,
+        d_before_m=res["before"].distance_m,
+        d_after_m=res["after"].distance_m,
+        heights_m=heights,
+    )
 
 
-def _compare_overlap(pair, A: _Pass, B: _Pass, scanner_down, options: AssessOptions, rng,
-                     notes) -> Comparison | None:  # fmt: skip
+def _compare_overlap(
+    pair, A: _Pass, B: _Pass, scanner_down, options: AssessOptions, rng, notes
+) -> Comparison | None:
     from scipy.spatial import cKDTree
 
     def subsample(n):
@@ -378,18 +452,36 @@ def _compare_overlap(pair, A: _Pass, B: _Pass, scanner_down, options: AssessOpti
     db, _ = cKDTree(A.after[ia]).query(B.after[ib], k=1, distance_upper_bound=r)
     ia, ib = ia[np.isfinite(da)], ib[np.isfinite(db)]
     if ia.size < options.min_points or ib.size < options.min_points:
-        notes.append(f"passes {pair[0]}:{pair[1]}: overlap too small ({ia.size} and {ib.size} "
-                     f"returns within {r:g} m of the other pass)")  # fmt: skip
+        notes.append(
+            f"passes {pair[0]}:{pair[1]}: overlap too small ({ia.size} and {ib.size} "
+            f"returns within {r:g} m of the other pass)"
+        )
         return None
     res = _c2c_states(A, B, ia, ib, options.k)
     heights = _heights(A.after[ia], scanner_down, options)
     return Comparison(
-        name="overlap", source="overlap", pair=tuple(pair), height_m=float(np.median(heights)),
-        n_reference=int(ib.size), collinear_fraction=None, before=res["before"].stats(),
-        after=res["after"].stats(), true_mount=res["true"].stats() if "true" in res else None,
-        before_signed_mean_m=None, after_signed_mean_m=None, floor_median_m=None,
-        expected_scanner_median_m=None, expected_median_m=None, expected_upper_m=None,
-        expected_upper_calibration_m=None, pos_offset_sigma_m=None,
-        boresight_offset_sigma_m=None, rectangle=None, truth_plane=None, truth=None,
-        d_before_m=res["before"].distance_m, d_after_m=res["after"].distance_m, heights_m=heights,
-    )  # fmt: skip
+        name="overlap",
+        source="overlap",
+        pair=tuple(pair),
+        height_m=float(np.median(heights)),
+        n_reference=int(ib.size),
+        collinear_fraction=None,
+        before=res["before"].stats(),
+        after=res["after"].stats(),
+        true_mount=res["true"].stats() if "true" in res else None,
+        before_signed_mean_m=None,
+        after_signed_mean_m=None,
+        floor_median_m=None,
+        expected_scanner_median_m=None,
+        expected_median_m=None,
+        expected_upper_m=None,
+        expected_upper_calibration_m=None,
+        pos_offset_sigma_m=None,
+        boresight_offset_sigma_m=None,
+        rectangle=None,
+        truth_plane=None,
+        truth=None,
+        d_before_m=res["before"].distance_m,
+        d_after_m=res["after"].distance_m,
+        heights_m=heights,
+    )

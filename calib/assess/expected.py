@@ -41,9 +41,18 @@ from calib.core.georef import Mount, georeference
 _ALPHA_STEP_RAD = 1e-6
 
 
-def expected_c2c(q_m: np.ndarray, ref_m: np.ndarray, normal, var_q_m2: np.ndarray,
-                 var_ref_m2: np.ndarray, k: int, offset_basis_m: np.ndarray | None = None,
-                 draws: int = 8, offset_draws: int = 256, seed: int = 0) -> tuple[float, float]:  # fmt: skip
+def expected_c2c(
+    q_m: np.ndarray,
+    ref_m: np.ndarray,
+    normal,
+    var_q_m2: np.ndarray,
+    var_ref_m2: np.ndarray,
+    k: int,
+    offset_basis_m: np.ndarray | None = None,
+    draws: int = 8,
+    offset_draws: int = 256,
+    seed: int = 0,
+) -> tuple[float, float]:
     """(median, 95th percentile of the patch's median) of the C2C of two patches that agree
     exactly but for their errors.
 
@@ -85,8 +94,9 @@ def boresight_covariance(result: dict) -> tuple[np.ndarray, str]:
     return np.asarray(v["correlation"]) * np.outer(sig, sig), kind
 
 
-def boresight_normal_jacobian(t_gps_s, range_m, scan_angle_rad, traj, mount: Mount, normal,
-                              step_rad: float = 1e-6) -> np.ndarray:  # fmt: skip
+def boresight_normal_jacobian(
+    t_gps_s, range_m, scan_angle_rad, traj, mount: Mount, normal, step_rad: float = 1e-6
+) -> np.ndarray:
     """(n, 3) derivative of each return's position along ``normal`` by the boresight roll,
     pitch and yaw (central differences)."""
     n = np.asarray(normal, float)
@@ -94,29 +104,41 @@ def boresight_normal_jacobian(t_gps_s, range_m, scan_angle_rad, traj, mount: Mou
     for j in range(3):
         e = np.zeros(3)
         e[j] = step_rad
-        hi = georeference(t_gps_s, range_m, scan_angle_rad, traj,
-                          mount.with_boresight(mount.boresight_rad + e))  # fmt: skip
-        lo = georeference(t_gps_s, range_m, scan_angle_rad, traj,
-                          mount.with_boresight(mount.boresight_rad - e))  # fmt: skip
+        hi = georeference(
+            t_gps_s, range_m, scan_angle_rad, traj, mount.with_boresight(mount.boresight_rad + e)
+        )
+        lo = georeference(
+            t_gps_s, range_m, scan_angle_rad, traj, mount.with_boresight(mount.boresight_rad - e)
+        )
         out[:, j] = ((hi - lo) @ n) / (2.0 * step_rad)
     return out
 
 
-def scanner_normal_variance(t_gps_s, range_m, scan_angle_rad, traj, mount: Mount, normal,
-                            sigma_range_m: float, sigma_scan_angle_rad: float) -> np.ndarray:  # fmt: skip
+def scanner_normal_variance(
+    t_gps_s,
+    range_m,
+    scan_angle_rad,
+    traj,
+    mount: Mount,
+    normal,
+    sigma_range_m: float,
+    sigma_scan_angle_rad: float,
+) -> np.ndarray:
     """Variance of each return along ``normal`` from the range and scan-angle noise:
     ``σ_ρ² (n·∂x/∂ρ)² + σ_α² (n·∂x/∂α)²`` (the derivatives by georeferencing)."""
     n = np.asarray(normal, float)
     x = georeference(t_gps_s, range_m, scan_angle_rad, traj, mount)
     dx_rho = x - georeference(t_gps_s, np.zeros_like(range_m), scan_angle_rad, traj, mount)
     dx_rho /= np.maximum(np.asarray(range_m, float), 1e-9)[:, None]
-    dx_alpha = (georeference(t_gps_s, range_m, np.asarray(scan_angle_rad) + _ALPHA_STEP_RAD, traj,
-                             mount) - x) / _ALPHA_STEP_RAD  # fmt: skip
+    dx_alpha = (
+        georeference(t_gps_s, range_m, np.asarray(scan_angle_rad) + _ALPHA_STEP_RAD, traj, mount) - x
+    ) / _ALPHA_STEP_RAD
     return (sigma_range_m * (dx_rho @ n)) ** 2 + (sigma_scan_angle_rad * (dx_alpha @ n)) ** 2
 
 
-def pos_normal_variance(t_gps_s, p_m, traj, mount: Mount, normal, sigma_position_m,
-                        sigma_attitude_rad) -> np.ndarray:  # fmt: skip
+def pos_normal_variance(
+    t_gps_s, p_m, traj, mount: Mount, normal, sigma_position_m, sigma_attitude_rad
+) -> np.ndarray:
     """Variance along ``normal`` of each return's displacement by the POS errors (position
     N, E, D and roll, pitch, heading; the trajectory's per-epoch σ when it has them, else the
     given ones)."""
@@ -124,15 +146,17 @@ def pos_normal_variance(t_gps_s, p_m, traj, mount: Mount, normal, sigma_position
     poses = traj.interpolate(np.asarray(t_gps_s, float) + mount.time_offset_s)
     shape = (len(p_m), 3)
     sp = poses.sigma_p_m if poses.sigma_p_m is not None else np.broadcast_to(sigma_position_m, shape)
-    sa = poses.sigma_rpy_rad if poses.sigma_rpy_rad is not None else \
-        np.broadcast_to(sigma_attitude_rad, shape)
+    sa = (
+        poses.sigma_rpy_rad if poses.sigma_rpy_rad is not None else np.broadcast_to(sigma_attitude_rad, shape)
+    )
     var = (sp**2) @ (n**2)
     rxn = np.cross(np.asarray(p_m, float) - poses.p_lgf_m, n)
     h, pitch = poses.rpy_rad[:, 2], poses.rpy_rad[:, 1]
     a_head = np.broadcast_to([0.0, 0.0, 1.0], rxn.shape)
     a_pitch = np.stack([-np.sin(h), np.cos(h), np.zeros_like(h)], axis=1)  # Rz(ψ)·e_y
-    a_roll = np.stack([np.cos(h) * np.cos(pitch), np.sin(h) * np.cos(pitch), -np.sin(pitch)],
-                      axis=1)  # Rz(ψ)·Ry(θ)·e_x
+    a_roll = np.stack(
+        [np.cos(h) * np.cos(pitch), np.sin(h) * np.cos(pitch), -np.sin(pitch)], axis=1
+    )  # Rz(ψ)·Ry(θ)·e_x
     for j, a in enumerate((a_roll, a_pitch, a_head)):
         var = var + (sa[:, j] * np.einsum("ij,ij->i", rxn, a)) ** 2
     return var

@@ -55,8 +55,9 @@ def _angles(d: dict, key: str, source: str, positive: bool) -> dict[str, float]:
     if isinstance(v, (list, tuple)) and len(v) == 3:  # roll, pitch, yaw order
         v = dict(zip(ANGLES, v))
     if not isinstance(v, dict):
-        raise ResultFormatError(f"{source}: {key} is {v!r}, expected an object "
-                                f"{{roll, pitch, yaw}} in degrees")  # fmt: skip
+        raise ResultFormatError(
+            f"{source}: {key} is {v!r}, expected an object {{roll, pitch, yaw}} in degrees"
+        )
     out = {}
     for a in ANGLES:
         if a not in v:
@@ -70,8 +71,7 @@ def _angles(d: dict, key: str, source: str, positive: bool) -> dict[str, float]:
     return out
 
 
-def _number(d: dict, key: str, source: str, minimum: float | None = None,
-            integer: bool = False) -> float:  # fmt: skip
+def _number(d: dict, key: str, source: str, minimum: float | None = None, integer: bool = False) -> float:
     x = d[key]
     ok = (isinstance(x, int) if integer else isinstance(x, (int, float))) and not isinstance(x, bool)
     if not ok or not math.isfinite(x) or (minimum is not None and x < minimum):
@@ -88,8 +88,15 @@ def validate_result(result: dict, source: str = "result") -> dict:
     :class:`ResultFormatError` naming the first missing or bad field."""
     if not isinstance(result, dict):
         raise ResultFormatError(f"{source}: expected a JSON object, got {type(result).__name__}")
-    required = ("boresight_deg", "sigma_deg", "sigma_scaled_deg", "correlation",
-                "sigma0_squared", "n_points", "software_version")  # fmt: skip
+    required = (
+        "boresight_deg",
+        "sigma_deg",
+        "sigma_scaled_deg",
+        "correlation",
+        "sigma0_squared",
+        "n_points",
+        "software_version",
+    )
     for key in required:
         if key not in result:
             raise ResultFormatError(f"{source}: required field {key!r} is missing")
@@ -102,21 +109,26 @@ def validate_result(result: dict, source: str = "result") -> dict:
     if result.get("sigma_realistic_deg") is not None:
         out["sigma_realistic_deg"] = _angles(result, "sigma_realistic_deg", source, positive=True)
     corr = result["correlation"]
-    if not (isinstance(corr, list) and len(corr) == 3
-            and all(isinstance(r, list) and len(r) == 3 for r in corr)):  # fmt: skip
-        raise ResultFormatError(f"{source}: correlation is {corr!r}, expected a 3×3 list of lists "
-                                f"(roll, pitch, yaw)")  # fmt: skip
+    if not (
+        isinstance(corr, list) and len(corr) == 3 and all(isinstance(r, list) and len(r) == 3 for r in corr)
+    ):
+        raise ResultFormatError(
+            f"{source}: correlation is {corr!r}, expected a 3×3 list of lists (roll, pitch, yaw)"
+        )
     for i in range(3):
         for j in range(3):
             x = corr[i][j]
             if isinstance(x, bool) or not isinstance(x, (int, float)) or not -1.000001 <= x <= 1.000001:
-                raise ResultFormatError(f"{source}: correlation[{i}][{j}] is {x!r}, expected a "
-                                        f"number in [−1, 1]")  # fmt: skip
+                raise ResultFormatError(
+                    f"{source}: correlation[{i}][{j}] is {x!r}, expected a number in [−1, 1]"
+                )
             if i == j and abs(x - 1.0) > 1e-6:
                 raise ResultFormatError(f"{source}: correlation[{i}][{i}] is {x!r}, expected 1")
             if abs(x - corr[j][i]) > 1e-6:
-                raise ResultFormatError(f"{source}: correlation is not symmetric "
-                                        f"([{i}][{j}] = {x!r}, [{j}][{i}] = {corr[j][i]!r})")  # fmt: skip
+                raise ResultFormatError(
+                    f"{source}: correlation is not symmetric "
+                    f"([{i}][{j}] = {x!r}, [{j}][{i}] = {corr[j][i]!r})"
+                )
     out["correlation"] = [[float(x) for x in r] for r in corr]
     out["sigma0_squared"] = float(_number(result, "sigma0_squared", source, minimum=0.0))
     out["n_points"] = int(_number(result, "n_points", source, minimum=0, integer=True))
@@ -193,7 +205,7 @@ def bundle_survey_utc(bundle_path) -> str | None:
 
 
 def _iso(t: _dt.datetime) -> str:
-    return t.astimezone(_dt.timezone.utc).replace(microsecond=0).isoformat().replace("+00:00", "Z")
+    return t.astimezone(_dt.UTC).replace(microsecond=0).isoformat().replace("+00:00", "Z")
 
 
 # -- database -------------------------------------------------------------------------------
@@ -244,8 +256,10 @@ def _connect(db) -> sqlite3.Connection:
         con = sqlite3.connect(path, timeout=10.0)
         version = con.execute("PRAGMA user_version").fetchone()[0]
         if version > _SCHEMA_VERSION:
-            raise HistoryError(f"{path}: history schema version {version} is newer than this "
-                               f"software's ({_SCHEMA_VERSION}); upgrade marine-mls")  # fmt: skip
+            raise HistoryError(
+                f"{path}: history schema version {version} is newer than this "
+                f"software's ({_SCHEMA_VERSION}); upgrade marine-mls"
+            )
         con.executescript(_SCHEMA)
         con.execute(f"PRAGMA user_version = {_SCHEMA_VERSION}")
         return con
@@ -254,8 +268,11 @@ def _connect(db) -> sqlite3.Connection:
             con.close()
         if isinstance(e, HistoryError):
             raise
-        what = "not a usable history database" if isinstance(e, sqlite3.DatabaseError) else \
-            "cannot open the history database"
+        what = (
+            "not a usable history database"
+            if isinstance(e, sqlite3.DatabaseError)
+            else "cannot open the history database"
+        )
         raise HistoryError(f"{path}: {what} ({e})") from None
 
 
@@ -288,16 +305,36 @@ class HistoryRecord:
 
 
 def _record(row) -> HistoryRecord:
-    return HistoryRecord(row[0], row[1], row[2], row[3], row[4], row[5], row[6], row[7],
-                         int(row[8]), float(row[9]), json.loads(row[10]))  # fmt: skip
+    return HistoryRecord(
+        row[0],
+        row[1],
+        row[2],
+        row[3],
+        row[4],
+        row[5],
+        row[6],
+        row[7],
+        int(row[8]),
+        float(row[9]),
+        json.loads(row[10]),
+    )
 
 
-_COLUMNS = ("id, vessel, mount_id, survey_utc, recorded_utc, software_version, bundle_path, "
-            "bundle_fingerprint, n_points, sigma0_squared, result_json")  # fmt: skip
+_COLUMNS = (
+    "id, vessel, mount_id, survey_utc, recorded_utc, software_version, bundle_path, "
+    "bundle_fingerprint, n_points, sigma0_squared, result_json"
+)
 
 
-def record_result(result_dict: dict, bundle_path, vessel: str | None, mount_id: str, db=None, *,
-                  survey_utc: str | None = None) -> int:  # fmt: skip
+def record_result(
+    result_dict: dict,
+    bundle_path,
+    vessel: str | None,
+    mount_id: str,
+    db=None,
+    *,
+    survey_utc: str | None = None,
+) -> int:
     """Record a validated result of the bundle at ``bundle_path``; returns the row id.
 
     ``vessel=None`` takes the vessel named in the bundle's site.yaml. ``survey_utc`` defaults to
@@ -328,24 +365,30 @@ def record_result(result_dict: dict, bundle_path, vessel: str | None, mount_id: 
             return int(row[0])
         real = norm["sigma_realistic_deg"] or {}
         row = {
-            "vessel": vessel, "mount_id": mount_id, "survey_utc": survey_utc,
-            "recorded_utc": _iso(_dt.datetime.now(_dt.timezone.utc)),
-            "software_version": norm["software_version"], "bundle_path": str(bundle),
-            "bundle_fingerprint": fingerprint, "n_points": norm["n_points"],
+            "vessel": vessel,
+            "mount_id": mount_id,
+            "survey_utc": survey_utc,
+            "recorded_utc": _iso(_dt.datetime.now(_dt.UTC)),
+            "software_version": norm["software_version"],
+            "bundle_path": str(bundle),
+            "bundle_fingerprint": fingerprint,
+            "n_points": norm["n_points"],
             "sigma0_squared": norm["sigma0_squared"],
             **{f"{a}_deg": norm["boresight_deg"][a] for a in ANGLES},
             **{f"sigma_{a}_deg": norm["sigma_deg"][a] for a in ANGLES},
             **{f"sigma_scaled_{a}_deg": norm["sigma_scaled_deg"][a] for a in ANGLES},
             **{f"sigma_realistic_{a}_deg": real.get(a) for a in ANGLES},
-            "correlation_json": json.dumps(norm["correlation"]), "result_json": blob,
-        }  # fmt: skip
-        cur = con.execute(f"INSERT INTO calibrations ({', '.join(row)}) "
-                          f"VALUES ({', '.join('?' * len(row))})", tuple(row.values()))  # fmt: skip
+            "correlation_json": json.dumps(norm["correlation"]),
+            "result_json": blob,
+        }
+        cur = con.execute(
+            f"INSERT INTO calibrations ({', '.join(row)}) VALUES ({', '.join('?' * len(row))})",
+            tuple(row.values()),
+        )
         return int(cur.lastrowid)
 
 
-def list_results(vessel: str | None = None, db=None, mount_id: str | None = None
-                 ) -> list[HistoryRecord]:  # fmt: skip
+def list_results(vessel: str | None = None, db=None, mount_id: str | None = None) -> list[HistoryRecord]:
     """Recorded results, oldest survey first (optionally of one vessel / mount)."""
     where, args = [], []
     if vessel is not None:
@@ -368,8 +411,7 @@ def get_result(record_id: int, db=None) -> HistoryRecord:
     if not _db_path(db).exists():
         raise HistoryError(f"no calibration #{record_id}: no history database at {_db_path(db)}")
     with closing(_connect(db)) as con:
-        row = con.execute(f"SELECT {_COLUMNS} FROM calibrations WHERE id = ?",
-                          (int(record_id),)).fetchone()  # fmt: skip
+        row = con.execute(f"SELECT {_COLUMNS} FROM calibrations WHERE id = ?", (int(record_id),)).fetchone()
     if row is None:
         raise HistoryError(f"no calibration #{record_id} in the history")
     return _record(row)
@@ -394,8 +436,9 @@ def records_of_bundle(fingerprint: str, db=None) -> list[HistoryRecord]:
     if not _db_path(db).exists():
         return []
     with closing(_connect(db)) as con:
-        rows = con.execute(f"SELECT {_COLUMNS} FROM calibrations WHERE bundle_fingerprint = ? "
-                           f"ORDER BY id", (fingerprint,)).fetchall()  # fmt: skip
+        rows = con.execute(
+            f"SELECT {_COLUMNS} FROM calibrations WHERE bundle_fingerprint = ? ORDER BY id", (fingerprint,)
+        ).fetchall()
     return [_record(r) for r in rows]
 
 
@@ -449,8 +492,9 @@ def _side(x, name: str) -> tuple[dict, str, str | None]:
     return validate_result(x, name), name, None
 
 
-def compare(a, b, k_sigma: float = DEFAULT_K_SIGMA, *, a_label: str | None = None,
-            b_label: str | None = None) -> Comparison:  # fmt: skip
+def compare(
+    a, b, k_sigma: float = DEFAULT_K_SIGMA, *, a_label: str | None = None, b_label: str | None = None
+) -> Comparison:
     """Whether calibration ``b`` differs from ``a`` (each a HistoryRecord or a result dict)."""
     if not (k_sigma > 0):
         raise ValueError(f"k_sigma = {k_sigma!r}: expected a positive number")
@@ -471,17 +515,19 @@ def compare(a, b, k_sigma: float = DEFAULT_K_SIGMA, *, a_label: str | None = Non
         changes.append(AngleChange(ang, va, vb, vb - va, sa, sb, sc, n, n > k_sigma))
     moved = [c for c in changes if c.changed]
     if moved:
-        what = ", ".join(f"{c.angle} changed by {_fmt_deg(c.difference_deg)}, "
-                         f"{_fmt_sigma(c.n_sigma)}" for c in moved)  # fmt: skip
+        what = ", ".join(
+            f"{c.angle} changed by {_fmt_deg(c.difference_deg)}, {_fmt_sigma(c.n_sigma)}" for c in moved
+        )
         message = f"{what}: the mount has moved; recalibrate after each re-installation"
     else:
         top = max(changes, key=lambda c: c.n_sigma)
-        message = (f"no angle changed beyond {k_sigma:g}σ (largest: {top.angle} "
-                   f"{_fmt_sigma(top.n_sigma)})")  # fmt: skip
+        message = f"no angle changed beyond {k_sigma:g}σ (largest: {top.angle} {_fmt_sigma(top.n_sigma)})"
     if "scaled" in kinds:
-        message += ("; note: scaled σ (no realistic σ in " +
-                    " and ".join(lbl for lbl, k in zip((la, lb), kinds) if k == "scaled") +
-                    ") is optimistic when POS errors are correlated in time")  # fmt: skip
+        message += (
+            "; note: scaled σ (no realistic σ in "
+            + " and ".join(lbl for lbl, k in zip((la, lb), kinds) if k == "scaled")
+            + ") is optimistic when POS errors are correlated in time"
+        )
     same = None if fa is None or fb is None else fa == fb
     if same:
         message += "; both results come from the same bundle"

@@ -13,8 +13,7 @@ from calib.assess.results import ANGLES, AssessError
 from calib.core.georef import Mount
 
 
-def mount_from_result(apriori: Mount, result: dict, source: str = "result"
-                      ) -> tuple[Mount, list[str]]:  # fmt: skip
+def mount_from_result(apriori: Mount, result: dict, source: str = "result") -> tuple[Mount, list[str]]:
     """The mount a calibration result describes: the a-priori one with the estimated boresight
     and the estimated extras (range offset, lever arm x/y, latency) applied; plus notes on what
     was not applied (per-pass trajectory offsets correct the trajectory, not the mount)."""
@@ -50,8 +49,10 @@ def mount_from_result(apriori: Mount, result: dict, source: str = "result"
         elif not (key.startswith("pass") and key.endswith("_offset_m")):
             notes.append(f"{source}: extra {key!r} is not a mount parameter; not applied")
     if any(k.startswith("pass") and k.endswith("_offset_m") for k in extras):
-        notes.append("the result's per-pass trajectory offsets are not applied (they correct "
-                     "the calibration passes' trajectory, not the mount)")  # fmt: skip
+        notes.append(
+            "the result's per-pass trajectory offsets are not applied (they correct "
+            "the calibration passes' trajectory, not the mount)"
+        )
     return replace(mount, lever_arm_m=lever, **kw), notes
 
 
@@ -66,6 +67,6 @@ def mount_from_truth(truth: dict, apriori: Mount) -> Mount:
             range_offset_m=float(truth.get("range_offset_m", 0.0)),
             scan_angle_offset_rad=float(np.radians(truth.get("scan_angle_offset_deg", 0.0))),
             time_offset_s=float(truth.get("time_offset_s", 0.0)),
-        )  # fmt: skip
+        )
     except (KeyError, TypeError, ValueError) as e:
         raise AssessError(f"truth.json: no usable true mount ({e!r})") from None

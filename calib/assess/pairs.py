@@ -32,13 +32,17 @@ def _heading_gap_deg(a: float, b: float) -> float:
     return abs((a - b) % 360.0 - 180.0)
 
 
-def reciprocal_pairs(headings_deg: dict[int, float],
-                     tolerance_deg: float = RECIPROCAL_TOLERANCE_DEG) -> list[tuple[int, int]]:  # fmt: skip
+def reciprocal_pairs(
+    headings_deg: dict[int, float], tolerance_deg: float = RECIPROCAL_TOLERANCE_DEG
+) -> list[tuple[int, int]]:
     """Pairs of passes sailed in opposite directions (each pass in at most one pair, the closest
     to 180° first), lower pass id first."""
     ids = sorted(headings_deg)
-    cands = sorted((_heading_gap_deg(headings_deg[a], headings_deg[b]), a, b)
-                   for i, a in enumerate(ids) for b in ids[i + 1:])  # fmt: skip
+    cands = sorted(
+        (_heading_gap_deg(headings_deg[a], headings_deg[b]), a, b)
+        for i, a in enumerate(ids)
+        for b in ids[i + 1 :]
+    )
     used, pairs = set(), []
     for gap, a, b in cands:
         if gap <= tolerance_deg and a not in used and b not in used:

@@ -94,10 +94,15 @@ class Comparison:
 
     def to_dict(self) -> dict:
         d = {
-            "name": self.name, "source": self.source, "pair": list(self.pair),
-            "height_m": self.height_m, "n_compared": self.after.count,
-            "n_reference": self.n_reference, "collinear_fraction": self.collinear_fraction,
-            "before": self.before.as_dict(), "after": self.after.as_dict(),
+            "name": self.name,
+            "source": self.source,
+            "pair": list(self.pair),
+            "height_m": self.height_m,
+            "n_compared": self.after.count,
+            "n_reference": self.n_reference,
+            "collinear_fraction": self.collinear_fraction,
+            "before": self.before.as_dict(),
+            "after": self.after.as_dict(),
             "true_mount": None if self.true_mount is None else self.true_mount.as_dict(),
             "before_signed_mean_m": self.before_signed_mean_m,
             "after_signed_mean_m": self.after_signed_mean_m,
@@ -110,14 +115,17 @@ class Comparison:
             "pos_offset_sigma_m": self.pos_offset_sigma_m,
             "boresight_offset_sigma_m": self.boresight_offset_sigma_m,
             "truth_plane": self.truth_plane,
-        }  # fmt: skip
+        }
         if self.rectangle is not None:
             r = self.rectangle
-            d["rectangle"] = {"center_lgf_m": r.center_m.tolist(), "normal": r.normal.tolist(),
-                              "width_m": r.width_m, "height_m": r.height_m}  # fmt: skip
+            d["rectangle"] = {
+                "center_lgf_m": r.center_m.tolist(),
+                "normal": r.normal.tolist(),
+                "width_m": r.width_m,
+                "height_m": r.height_m,
+            }
         if self.truth is not None:
-            d["truth"] = {s: {str(p): st.as_dict() for p, st in v.items()}
-                          for s, v in self.truth.items()}  # fmt: skip
+            d["truth"] = {s: {str(p): st.as_dict() for p, st in v.items()} for s, v in self.truth.items()}
         return d
 
 
@@ -135,9 +143,14 @@ class HeightFit:
     bin_medians_m: np.ndarray = field(repr=False)
 
     def to_dict(self) -> dict:
-        return {"pair": list(self.pair), "state": self.state, "slope_m_per_m": self.slope_m_per_m,
-                "intercept_m": self.intercept_m, "n": self.n,
-                "height_span_m": list(self.height_span_m)}  # fmt: skip
+        return {
+            "pair": list(self.pair),
+            "state": self.state,
+            "slope_m_per_m": self.slope_m_per_m,
+            "intercept_m": self.intercept_m,
+            "n": self.n,
+            "height_span_m": list(self.height_span_m),
+        }
 
 
 @dataclass(frozen=True)
@@ -162,8 +175,9 @@ class Assessment:
 
     def planes(self, pair: tuple[int, int] | None = None) -> list[Comparison]:
         """The surface comparisons (not the overlaps), lowest first."""
-        out = [c for c in self.comparisons if c.source != "overlap"
-               and (pair is None or c.pair == tuple(pair))]  # fmt: skip
+        out = [
+            c for c in self.comparisons if c.source != "overlap" and (pair is None or c.pair == tuple(pair))
+        ]
         return sorted(out, key=lambda c: (c.pair, c.height_m))
 
     def height_fit(self, pair: tuple[int, int], state: str) -> HeightFit:

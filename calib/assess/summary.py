@@ -44,13 +44,19 @@ def verdict(c: Comparison) -> str:
     if c.expected_upper_m is None:
         return ""
     if after <= c.expected_upper_m:
-        return (f"at the noise level of the scanner and the POS (expected "
-                f"{fmt_length(c.expected_median_m)}, 95 % bound {fmt_length(c.expected_upper_m)})")
+        return (
+            f"at the noise level of the scanner and the POS (expected "
+            f"{fmt_length(c.expected_median_m)}, 95 % bound {fmt_length(c.expected_upper_m)})"
+        )
     if after <= c.expected_upper_calibration_m:
-        return (f"above the sensors' noise level ({fmt_length(c.expected_upper_m)}) but within "
-                f"what the calibration's own σ allows ({fmt_length(c.expected_upper_calibration_m)})")
-    return (f"larger than the sensors' noise ({fmt_length(c.expected_upper_m)}) and the "
-            f"calibration's σ ({fmt_length(c.expected_upper_calibration_m)}) explain")
+        return (
+            f"above the sensors' noise level ({fmt_length(c.expected_upper_m)}) but within "
+            f"what the calibration's own σ allows ({fmt_length(c.expected_upper_calibration_m)})"
+        )
+    return (
+        f"larger than the sensors' noise ({fmt_length(c.expected_upper_m)}) and the "
+        f"calibration's σ ({fmt_length(c.expected_upper_calibration_m)}) explain"
+    )
 
 
 def _pair_label(a: Assessment, pair) -> str:
@@ -75,17 +81,30 @@ def plot_histograms(a: Assessment, out_dir: Path) -> list[Path]:
         fig = Figure(figsize=(7.5, 4.2))
         ax = fig.subplots()
         where = "whole overlap" if c.source == "overlap" else f"{c.name} ({c.height_m:.0f} m)"
-        for d, label, color in ((d0, "before (a-priori mount)", "tab:blue"),
-                                (d1, "after (estimated mount)", "tab:brown")):  # fmt: skip
+        for d, label, color in (
+            (d0, "before (a-priori mount)", "tab:blue"),
+            (d1, "after (estimated mount)", "tab:brown"),
+        ):
             med = float(np.median(d))
-            ax.hist(np.clip(d, lo, hi), bins=bins, histtype="stepfilled", alpha=0.45, color=color,
-                    label=f"{label}: median {fmt_length(med / 1e3)}")  # fmt: skip
+            ax.hist(
+                np.clip(d, lo, hi),
+                bins=bins,
+                histtype="stepfilled",
+                alpha=0.45,
+                color=color,
+                label=f"{label}: median {fmt_length(med / 1e3)}",
+            )
             ax.axvline(med, color=color, lw=1.5, ls="--")
         if c.expected_median_m:
-            ax.axvline(c.expected_median_m * 1e3, color="k", lw=1.0, ls=":",
-                       label=f"expected (scanner + POS): {fmt_length(c.expected_median_m)}")  # fmt: skip
+            ax.axvline(
+                c.expected_median_m * 1e3,
+                color="k",
+                lw=1.0,
+                ls=":",
+                label=f"expected (scanner + POS): {fmt_length(c.expected_median_m)}",
+            )
         ax.set_xscale("log")
-        ax.set_xlabel("cloud-to-cloud distance (mm, local LS plane, k = %d)" % a.options.k)
+        ax.set_xlabel(f"cloud-to-cloud distance (mm, local LS plane, k = {a.options.k})")
         ax.set_ylabel("returns")
         ax.set_title(f"{where} — passes {_pair_label(a, c.pair)}")
         ax.legend(fontsize=8)
@@ -115,11 +134,23 @@ def plot_heights(a: Assessment, out_dir: Path, max_points: int = 20000) -> list[
             d = np.concatenate([getattr(c, f"d_{state}_m") for c in planes]) * 1e3
             fit = a.height_fit(pair, state)
             ax.scatter(d[sub], h[sub], s=2, alpha=0.25, color=color, lw=0)
-            ax.plot(fit.bin_medians_m * 1e3, fit.bin_heights_m, "o-", color="k", ms=3, lw=1,
-                    label="median per 2 m of height")  # fmt: skip
+            ax.plot(
+                fit.bin_medians_m * 1e3,
+                fit.bin_heights_m,
+                "o-",
+                color="k",
+                ms=3,
+                lw=1,
+                label="median per 2 m of height",
+            )
             hh = np.linspace(*fit.height_span_m, 20)
-            ax.plot((fit.intercept_m + fit.slope_m_per_m * hh) * 1e3, hh, "--", color="tab:red",
-                    label=f"fit: {fit.slope_m_per_m * 1e3:.1f} mm per m of height")  # fmt: skip
+            ax.plot(
+                (fit.intercept_m + fit.slope_m_per_m * hh) * 1e3,
+                hh,
+                "--",
+                color="tab:red",
+                label=f"fit: {fit.slope_m_per_m * 1e3:.1f} mm per m of height",
+            )
             ax.set_xlabel(f"C2C distance {state} (mm)")
             ax.set_title(f"{state} the calibration")
             ax.set_xlim(left=0)
@@ -140,14 +171,18 @@ def summary_lines(a: Assessment) -> list[str]:
         label = _pair_label(a, pair)
         planes = sorted(a.planes(pair), key=lambda c: -c.height_m)
         for c in planes:
-            lines.append(f"Passes {label}: median C2C on {c.name} ({c.height_m:.0f} m) went from "
-                         f"{fmt_length(c.before.median_m)} to {fmt_length(c.after.median_m)} "
-                         f"({fmt_ratio(c.improvement)} smaller); {verdict(c)}.")  # fmt: skip
+            lines.append(
+                f"Passes {label}: median C2C on {c.name} ({c.height_m:.0f} m) went from "
+                f"{fmt_length(c.before.median_m)} to {fmt_length(c.after.median_m)} "
+                f"({fmt_ratio(c.improvement)} smaller); {verdict(c)}."
+            )
         for c in a.comparisons:
             if c.source == "overlap" and c.pair == pair:
-                lines.append(f"Passes {label}, whole overlap ({c.after.count:,} returns): median "
-                             f"from {fmt_length(c.before.median_m)} to "
-                             f"{fmt_length(c.after.median_m)}.")  # fmt: skip
+                lines.append(
+                    f"Passes {label}, whole overlap ({c.after.count:,} returns): median "
+                    f"from {fmt_length(c.before.median_m)} to "
+                    f"{fmt_length(c.after.median_m)}."
+                )
         try:
             b, f = a.height_fit(pair, "before"), a.height_fit(pair, "after")
         except KeyError:
@@ -158,15 +193,25 @@ def summary_lines(a: Assessment) -> list[str]:
                 f"Passes {label}: before the calibration the distances {grow} by "
                 f"{b.slope_m_per_m * 1e3:.1f} mm per metre of height ({b.height_span_m[0]:.0f}–"
                 f"{b.height_span_m[1]:.0f} m), after by {f.slope_m_per_m * 1e3:.1f} mm per metre"
-                + ("; a boresight error moves reciprocal passes apart in proportion to the range, "
-                   "so this growth is its signature." if b.slope_m_per_m > 2e-3 else "."))  # fmt: skip
+                + (
+                    "; a boresight error moves reciprocal passes apart in proportion to the range, "
+                    "so this growth is its signature."
+                    if b.slope_m_per_m > 2e-3
+                    else "."
+                )
+            )
             if abs(f.slope_m_per_m) > max(2e-3, 0.2 * abs(b.slope_m_per_m)):
-                lines.append(f"Passes {label}: the distances after still change with height: a "
-                             f"boresight error remains.")  # fmt: skip
+                lines.append(
+                    f"Passes {label}: the distances after still change with height: a "
+                    f"boresight error remains."
+                )
     if a.truth_boresight_deg is not None:
         err = {k: a.boresight_after_deg[k] - a.truth_boresight_deg[k] for k in ANGLES}
-        lines.append("Simulated bundle: the estimate differs from the true boresight by " +
-                     ", ".join(f"{k} {err[k]:+.4f}°" for k in ANGLES) + ".")  # fmt: skip
+        lines.append(
+            "Simulated bundle: the estimate differs from the true boresight by "
+            + ", ".join(f"{k} {err[k]:+.4f}°" for k in ANGLES)
+            + "."
+        )
     return lines
 
 
@@ -188,50 +233,87 @@ def assessment_markdown(a: Assessment, figures: Sequence[Path] = ()) -> str:
         f"with cloud-to-cloud distances to local least-squares planes (k = {a.options.k}; "
         f"CloudCompare's C2C `-MODEL LS KNN {a.options.k}`), the first pass of a pair against "
         f"the second. Surfaces: "
-        + ("the site's validation planes" if a.plane_source == "site"
-           else "planar patches found automatically in both passes (the site lists no "
-                "validation planes, or --auto-planes)")
+        + (
+            "the site's validation planes"
+            if a.plane_source == "site"
+            else "planar patches found automatically in both passes (the site lists no "
+            "validation planes, or --auto-planes)"
+        )
         + f", and the whole overlap of the passes. Heights are above the water line "
-          f"(the scanner's mean height + {a.options.scanner_height_m:g} m).",
-        "", "## Summary", "",
-    ]  # fmt: skip
+        f"(the scanner's mean height + {a.options.scanner_height_m:g} m).",
+        "",
+        "## Summary",
+        "",
+    ]
     out += [f"- {line}" for line in summary_lines(a)]
-    out += ["", "*Expected*: the median C2C the scanner sigmas and the POS sigmas of site.yaml "
-            "give for these very returns and C2C's local planes (POS errors as one offset per "
-            "pass); *floor*: the median once the two patches' planes coincide (their own scatter "
-            "kept); *calib. σ*: the σ of the relative offset the result's own boresight σ "
-            "allows.", ""]  # fmt: skip
+    out += [
+        "",
+        "*Expected*: the median C2C the scanner sigmas and the POS sigmas of site.yaml "
+        "give for these very returns and C2C's local planes (POS errors as one offset per "
+        "pass); *floor*: the median once the two patches' planes coincide (their own scatter "
+        "kept); *calib. σ*: the σ of the relative offset the result's own boresight σ "
+        "allows.",
+        "",
+    ]
     for pair in a.pairs:
         rows = [c for c in a.comparisons if c.pair == pair]
         if not rows:
             continue
         out += [f"## Passes {_pair_label(a, pair)}", ""]
-        head = ["surface", "height", "returns", "before mean", "before median", "before RMS",
-                "before p95", "after mean", "after median", "after RMS", "after p95", "×",
-                "expected", "floor", "calib. σ"]  # fmt: skip
+        head = [
+            "surface",
+            "height",
+            "returns",
+            "before mean",
+            "before median",
+            "before RMS",
+            "before p95",
+            "after mean",
+            "after median",
+            "after RMS",
+            "after p95",
+            "×",
+            "expected",
+            "floor",
+            "calib. σ",
+        ]
         truth_col = any(c.true_mount is not None for c in rows)
         if truth_col:
             head.append("true mount median")
         out += ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
         for c in sorted(rows, key=lambda c: (c.source == "overlap", -c.height_m)):
-            cells = [c.name if c.source != "overlap" else "whole overlap", f"{c.height_m:.1f} m",
-                     f"{c.after.count:,}", *_stats_cells(c.before), *_stats_cells(c.after),
-                     fmt_ratio(c.improvement), fmt_length(c.expected_median_m),
-                     fmt_length(c.floor_median_m), fmt_length(c.boresight_offset_sigma_m)]  # fmt: skip
+            cells = [
+                c.name if c.source != "overlap" else "whole overlap",
+                f"{c.height_m:.1f} m",
+                f"{c.after.count:,}",
+                *_stats_cells(c.before),
+                *_stats_cells(c.after),
+                fmt_ratio(c.improvement),
+                fmt_length(c.expected_median_m),
+                fmt_length(c.floor_median_m),
+                fmt_length(c.boresight_offset_sigma_m),
+            ]
             if truth_col:
                 cells.append(fmt_length(c.true_mount.median_m if c.true_mount else None))
             out.append("| " + " | ".join(cells) + " |")
         out.append("")
         truth_rows = [c for c in rows if c.truth]
         if truth_rows:
-            out += ["Against the true planes (simulated bundle): signed distance of each pass's "
-                    "returns, mean ± standard deviation.", "",
-                    "| surface | true plane | pass | before | after | true mount |",
-                    "|---|---|---|---|---|---|"]  # fmt: skip
+            out += [
+                "Against the true planes (simulated bundle): signed distance of each pass's "
+                "returns, mean ± standard deviation.",
+                "",
+                "| surface | true plane | pass | before | after | true mount |",
+                "|---|---|---|---|---|---|",
+            ]
             for c in sorted(truth_rows, key=lambda c: -c.height_m):
                 for pid in c.pair:
-                    cells = [f"{fmt_length(c.truth[s][pid].mean_m)} ± {fmt_length(c.truth[s][pid].std_m)}"
-                             if s in c.truth else "—" for s in ("before", "after", "true")]  # fmt: skip
+                    cells = [
+                        f"{fmt_length(c.truth[s][pid].mean_m)} ± {fmt_length(c.truth[s][pid].std_m)}"
+                        if s in c.truth
+                        else "—"
+                        for s in ("before", "after", "true")
+                    ]
                     out.append(f"| {c.name} | {c.truth_plane} | {pid} | " + " | ".join(cells) + " |")
             out.append("")
     if a.notes:

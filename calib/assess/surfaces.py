@@ -14,15 +14,15 @@ from calib.assess.results import AssessOptions
 from calib.core.geometry import Rectangle, fit_plane
 
 
-def plane_candidates(p_m: np.ndarray, rect: Rectangle, gate_m: float, margin_m: float = 0.0
-                     ) -> np.ndarray:  # fmt: skip
+def plane_candidates(p_m: np.ndarray, rect: Rectangle, gate_m: float, margin_m: float = 0.0) -> np.ndarray:
     """Mask of points inside the rectangle (grown by ``margin_m``) within ``gate_m`` of its
     plane."""
     return (np.abs(rect.signed_distance(p_m)) <= gate_m) & rect.contains(p_m, margin_m)
 
 
-def clean_patch(p_m: np.ndarray, mask: np.ndarray, n_sigma: float = 4.0, floor_m: float = 0.02,
-                iterations: int = 8) -> np.ndarray:  # fmt: skip
+def clean_patch(
+    p_m: np.ndarray, mask: np.ndarray, n_sigma: float = 4.0, floor_m: float = 0.02, iterations: int = 8
+) -> np.ndarray:
     """The points of ``mask`` on their own least-squares plane: refit and drop those farther than
     ``max(n_sigma · σ, floor_m)`` (σ = 1.4826 × the median distance) until nothing changes."""
     keep = np.asarray(mask, bool).copy()
@@ -54,8 +54,7 @@ def within_coverage(q_m: np.ndarray, ref_m: np.ndarray, normal, factor: float = 
     return tree.query(q2, k=1)[0] <= factor * spacing
 
 
-def collinear_fraction(q_m: np.ndarray, ref_m: np.ndarray, normal, k: int,
-                       ratio: float = 0.1) -> float:  # fmt: skip
+def collinear_fraction(q_m: np.ndarray, ref_m: np.ndarray, normal, k: int, ratio: float = 0.1) -> float:
     """Fraction of the compared points whose local plane rests on nearly collinear neighbours:
     the k neighbours of the nearest reference point spread less than ``ratio`` times as much
     across as along (in the plane). A profiler samples along scan lines, so with a small k the
@@ -102,8 +101,9 @@ def _rectangle_of(points: np.ndarray, normal: np.ndarray, name: str) -> Rectangl
     return Rectangle(name, center, n, u, v, float(np.ptp(cu)), float(np.ptp(cv)))
 
 
-def extract_common_patches(p_a: np.ndarray, p_b: np.ndarray, toward_m: np.ndarray,
-                           options: AssessOptions = AssessOptions()) -> list[Rectangle]:  # fmt: skip
+def extract_common_patches(
+    p_a: np.ndarray, p_b: np.ndarray, toward_m: np.ndarray, options: AssessOptions = AssessOptions()
+) -> list[Rectangle]:
     """Planar patches seen by both clouds: cells of ``auto_cell_m`` whose points of both clouds
     lie on one plane (RMS ≤ ``auto_max_rms_m``, not a line), grown into regions of neighbouring
     cells that agree with the region's plane (normal within ``auto_max_angle_deg``, centroid
@@ -178,15 +178,16 @@ def extract_common_patches(p_a: np.ndarray, p_b: np.ndarray, toward_m: np.ndarra
         cell_region[members] = r
     point_region = cell_region[inv]
     out = []
-    for r, members in enumerate(regions):
+    for r in range(len(regions)):
         sel = point_region == r
-        if np.count_nonzero(sel & (which == 0)) < options.min_points or \
-                np.count_nonzero(sel & (which == 1)) < options.min_points:
+        if (
+            np.count_nonzero(sel & (which == 0)) < options.min_points
+            or np.count_nonzero(sel & (which == 1)) < options.min_points
+        ):
             continue
         rp = pts[sel]
         f = fit_plane(rp)
         toward = np.asarray(toward_m, float) - f.centroid_m
-        out.append((int(sel.sum()), _rectangle_of(rp, f.normal if f.normal @ toward >= 0
-                                                  else -f.normal, "")))  # fmt: skip
+        out.append((int(sel.sum()), _rectangle_of(rp, f.normal if f.normal @ toward >= 0 else -f.normal, "")))
     out.sort(key=lambda x: -x[0])
     return [replace(r, name=f"P{i + 1}") for i, (_, r) in enumerate(out[: options.auto_max_patches])]

@@ -84,8 +84,7 @@ class AdjustmentResult:
     def chi2_test(self, alpha: float = 0.05) -> dict:
         lo = float(stats.chi2.ppf(alpha / 2, self.df) / self.df)
         hi = float(stats.chi2.ppf(1 - alpha / 2, self.df) / self.df)
-        return {"df": int(self.df), "lower": lo, "upper": hi,
-                "passed": bool(lo <= self.sigma0_squared <= hi)}  # fmt: skip
+        return {"df": int(self.df), "lower": lo, "upper": hi, "passed": bool(lo <= self.sigma0_squared <= hi)}
 
 
 # ---------------------------------------------------------------------------------------------
@@ -97,16 +96,26 @@ def _plane_pass_stats(obs: Observations, residual: np.ndarray, state: State):
     planes, passes = [], []
     for j, name in enumerate(obs.plane_names):
         r = residual[obs.plane_index == j]
-        planes.append({"name": name, "normal": [float(x) for x in state.normals[j]],
-                       "d": float(state.d_lgf_m[j]), "n_points": int(r.size),
-                       "rms_m": float(np.sqrt(np.mean(r**2))) if r.size else float("nan")})  # fmt: skip
+        planes.append(
+            {
+                "name": name,
+                "normal": [float(x) for x in state.normals[j]],
+                "d": float(state.d_lgf_m[j]),
+                "n_points": int(r.size),
+                "rms_m": float(np.sqrt(np.mean(r**2))) if r.size else float("nan"),
+            }
+        )
     for k, pid in enumerate(obs.pass_ids):
         r = residual[obs.pass_index == k]
         h = obs.pass_headings_rad.get(pid)
-        passes.append({"id": int(pid),
-                       "heading_deg": None if h is None else float(np.degrees(h) % 360.0),
-                       "n_points": int(r.size),
-                       "rms_m": float(np.sqrt(np.mean(r**2))) if r.size else float("nan")})  # fmt: skip
+        passes.append(
+            {
+                "id": int(pid),
+                "heading_deg": None if h is None else float(np.degrees(h) % 360.0),
+                "n_points": int(r.size),
+                "rms_m": float(np.sqrt(np.mean(r**2))) if r.size else float("nan"),
+            }
+        )
     return planes, passes
 
 
@@ -116,8 +125,9 @@ def _snooping_threshold(n: int, alpha: float) -> float:
     return max(float(stats.norm.isf(per_test / 2.0)), 3.29)
 
 
-def adjust(obs: Observations, mount, planes_init, options: AdjustOptions = AdjustOptions()
-           ) -> AdjustmentResult:  # fmt: skip
+def adjust(
+    obs: Observations, mount, planes_init, options: AdjustOptions = AdjustOptions()
+) -> AdjustmentResult:
     """Estimate the boresight (and the requested extras) from plane observations.
 
     ``mount`` is the a-priori :class:`calib.core.georef.Mount`; ``planes_init`` a list of
@@ -126,8 +136,7 @@ def adjust(obs: Observations, mount, planes_init, options: AdjustOptions = Adjus
     t_start = time.perf_counter()
     validate_input(obs)
     r_nom = frames.rotation_zyx(*mount.nominal_rad)
-    state0 = initial_state(mount, planes_init, len(obs.pass_ids),
-                           plane_centers(obs, mount, r_nom))  # fmt: skip
+    state0 = initial_state(mount, planes_init, len(obs.pass_ids), plane_centers(obs, mount, r_nom))
     active = np.ones(len(obs), bool)
     # observability is judged on the geometry at the a-priori values: an unobservable angle
     # would otherwise wander during the iterations and make the verdict arbitrary
@@ -153,16 +162,23 @@ def adjust(obs: Observations, mount, planes_init, options: AdjustOptions = Adjus
             validate_input(used)
             sol = solve(used, sol.state, r_nom, options)
     # signed distances of the points georeferenced from the raw observations
-    lin_raw = linearize(sol.state, r_nom, used.plane_index, used.pass_index,
-                        observations_at(used, sol.state, "latency" in sol.layout.extras))  # fmt: skip
+    lin_raw = linearize(
+        sol.state,
+        r_nom,
+        used.plane_index,
+        used.pass_index,
+        observations_at(used, sol.state, "latency" in sol.layout.extras),
+    )
     residual = lin_raw.F
     cov_formal_all = sol.Ninv
     # the realistic covariance of the boresight and of every extra unknown (not the planes):
     # an extra's formal σ is as optimistic as the boresight's under time-correlated POS errors
     rows = reported_rows(sol.layout)
-    cov_real_rows = (propagated_covariance(sol, used, options.error_model, rows)
-                     if options.error_model.kind != "white"
-                     else sol.Ninv[np.ix_(rows, rows)])  # fmt: skip
+    cov_real_rows = (
+        propagated_covariance(sol, used, options.error_model, rows)
+        if options.error_model.kind != "white"
+        else sol.Ninv[np.ix_(rows, rows)]
+    )
     cov_real = cov_real_rows[0:3, 0:3].copy()
     sd_real = np.sqrt(np.diag(cov_real_rows))  # in the order of ``rows``
     cov_jack = _jackknife(used, sol.state, r_nom, options) if options.jackknife else None
@@ -175,21 +191,27 @@ def adjust(obs: Observations, mount, planes_init, options: AdjustOptions = Adjus
 
     for i, name in enumerate(sol.layout.extras):
         j = sol.layout.i_extra + i
-        value = {"range_offset": sol.state.range_offset_m,
-                 "scan_angle_offset": sol.state.scan_angle_offset_rad,
-                 "lever_arm_x": sol.state.lever_arm_m[0], "lever_arm_y": sol.state.lever_arm_m[1],
-                 "latency": sol.state.latency_s}[name]  # fmt: skip
-        extras[name] = {"value": float(value), "sigma": float(sd[j]),
-                        "sigma_realistic": float(sd_real[3 + i]),
-                        "correlation_with_boresight": corr_with_boresight(j)}  # fmt: skip
+        value = {
+            "range_offset": sol.state.range_offset_m,
+            "scan_angle_offset": sol.state.scan_angle_offset_rad,
+            "lever_arm_x": sol.state.lever_arm_m[0],
+            "lever_arm_y": sol.state.lever_arm_m[1],
+            "latency": sol.state.latency_s,
+        }[name]
+        extras[name] = {
+            "value": float(value),
+            "sigma": float(sd[j]),
+            "sigma_realistic": float(sd_real[3 + i]),
+            "correlation_with_boresight": corr_with_boresight(j),
+        }
     if sol.layout.offsets:
         r0 = 3 + len(sol.layout.extras)  # first pass offset in ``rows``
         for k, pid in enumerate(used.pass_ids):
             j = sol.layout.i_offset + 3 * k
             extras[f"pass{pid}_offset_m"] = {
                 "value": [float(x) for x in sol.state.pass_offsets_m[k]],
-                "sigma": [float(x) for x in sd[j: j + 3]],
-                "sigma_realistic": [float(x) for x in sd_real[r0 + 3 * k: r0 + 3 * k + 3]],
+                "sigma": [float(x) for x in sd[j : j + 3]],
+                "sigma_realistic": [float(x) for x in sd_real[r0 + 3 * k : r0 + 3 * k + 3]],
                 # rows north, east, down; columns roll, pitch, yaw
                 "correlation_with_boresight": [corr_with_boresight(j + c) for c in range(3)],
             }
@@ -221,8 +243,9 @@ def adjust(obs: Observations, mount, planes_init, options: AdjustOptions = Adjus
 def _jackknife(obs: Observations, state: State, r_nom, options: AdjustOptions):
     """Delete-one-pass jackknife covariance of the boresight (None with < 3 usable passes)."""
     est = []
-    quick = AdjustOptions(estimate=options.estimate, tol_angle_rad=1e-9, tol_m=1e-7,
-                          max_iterations=options.max_iterations)  # fmt: skip
+    quick = AdjustOptions(
+        estimate=options.estimate, tol_angle_rad=1e-9, tol_m=1e-7, max_iterations=options.max_iterations
+    )
     for k in range(len(obs.pass_ids)):
         sub = obs.select(obs.pass_index != k)
         keep = np.unique(sub.pass_index)

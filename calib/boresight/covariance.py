@@ -35,10 +35,10 @@ def _rows_of_inverse(lin, layout, obs, Ninv_rows, M) -> np.ndarray:
     out = lin.A_boresight @ Ninv_rows[:, 0:3].T
     for i, name in enumerate(layout.extras):
         out += lin.A_extra[name][:, None] * Ninv_rows[:, layout.i_extra + i][None, :]
-    P = Ninv_rows[:, layout.i_plane: layout.i_offset].T.reshape(-1, 3, r)  # (planes, 3, r)
+    P = Ninv_rows[:, layout.i_plane : layout.i_offset].T.reshape(-1, 3, r)  # (planes, 3, r)
     out += np.einsum("ic,icr->ir", lin.A_plane, P[obs.plane_index])
     if layout.offsets:
-        O = Ninv_rows[:, layout.i_offset:].T.reshape(-1, 3, r)
+        O = Ninv_rows[:, layout.i_offset :].T.reshape(-1, 3, r)
         out += np.einsum("ic,icr->ir", lin.A_offset, O[obs.pass_index])
     return out / M[:, None]
 
@@ -57,8 +57,9 @@ def reported_rows(layout: Layout) -> np.ndarray:
     return idx
 
 
-def propagated_covariance(sol: Solution, obs: Observations, model: ErrorModel,
-                          rows: slice | np.ndarray = slice(0, 3)) -> np.ndarray:  # fmt: skip
+def propagated_covariance(
+    sol: Solution, obs: Observations, model: ErrorModel, rows: slice | np.ndarray = slice(0, 3)
+) -> np.ndarray:
     """Covariance of the unknowns in ``rows`` (a slice or an index array) when the POS channels
     (0–5) follow ``model`` and range and scan angle are white: ``N⁻¹ H N⁻¹`` with
     H = Σ_c Σ_ij g_ic g_jcᵀ ρ_c(i, j). O(n·r²) for r rows."""
@@ -87,8 +88,7 @@ def information(obs: Observations, state: State, r_nom, estimate) -> Solution:
     """One linearization at ``state`` and the normal matrix (with the offset prior), wrapped as
     a solution so that the covariance machinery applies to it."""
     layout = Layout(len(obs.plane_names), len(obs.pass_ids), estimate)
-    rates = pose_rates(obs.trajectory, obs.t_gps_s + state.latency_s) \
-        if "latency" in layout.extras else None
+    rates = pose_rates(obs.trajectory, obs.t_gps_s + state.latency_s) if "latency" in layout.extras else None
     bases = np.stack([tangent_basis(n) for n in state.normals])
     lin = linearize(state, r_nom, obs.plane_index, obs.pass_index, obs.l, rates, bases)
     M = np.einsum("ij,ij->i", lin.B**2, obs.sigma_l**2)
@@ -101,12 +101,12 @@ def information(obs: Observations, state: State, r_nom, estimate) -> Solution:
         Ninv = np.linalg.inv(N)
     except np.linalg.LinAlgError:
         Ninv = np.linalg.pinv(N)
-    return Solution(state, N, Ninv, lin, M, np.zeros(len(obs)), 0.0, len(obs) - layout.n, 0,
-                    True, layout)  # fmt: skip
+    return Solution(state, N, Ninv, lin, M, np.zeros(len(obs)), 0.0, len(obs) - layout.n, 0, True, layout)
 
 
-def predict_covariance(obs: Observations, mount, planes, estimate: tuple[str, ...] = (),
-                       model: ErrorModel = ErrorModel("white")) -> dict:  # fmt: skip
+def predict_covariance(
+    obs: Observations, mount, planes, estimate: tuple[str, ...] = (), model: ErrorModel = ErrorModel("white")
+) -> dict:
     """Boresight covariance the geometry in ``obs`` would give, without adjusting.
 
     ``obs`` holds noise-free observations (e.g. simulated for hypothetical passes and targets)

@@ -30,13 +30,13 @@ class ErrorModel:
 
     def __post_init__(self):
         if self.kind not in ("white", "gauss_markov", "pass_bias"):
-            raise ValueError(f"ErrorModel.kind {self.kind!r}: expected white, gauss_markov or "
-                             f"pass_bias")  # fmt: skip
+            raise ValueError(f"ErrorModel.kind {self.kind!r}: expected white, gauss_markov or pass_bias")
         tau = np.atleast_1d(np.asarray(self.correlation_time_s, float))
         if tau.size not in (1, 6) or not np.all(tau > 0):
             raise ValueError("ErrorModel.correlation_time_s: one or six positive values (s)")
-        object.__setattr__(self, "correlation_time_s",
-                           float(tau[0]) if tau.size == 1 else tuple(float(x) for x in tau))
+        object.__setattr__(
+            self, "correlation_time_s", float(tau[0]) if tau.size == 1 else tuple(float(x) for x in tau)
+        )
 
     def tau_s(self, channel: int) -> float:
         """Correlation time of POS channel 0–5 (N, E, D, roll, pitch, heading)."""

@@ -77,11 +77,11 @@ class ExtractOptions:
         for name in ("search_radius_m", "ransac_distance_m", "min_contrast"):
             v = getattr(self, name)
             if not (np.isfinite(v) and v > 0):
-                raise ExtractionError(f"extraction option {name} = {v!r}: expected a positive "
-                                      f"number")  # fmt: skip
+                raise ExtractionError(f"extraction option {name} = {v!r}: expected a positive number")
         if not 0.0 < self.ransac_stop_fraction <= 1.0:
-            raise ExtractionError(f"ransac_stop_fraction = {self.ransac_stop_fraction!r}: "
-                                  f"expected a fraction in (0, 1]")  # fmt: skip
+            raise ExtractionError(
+                f"ransac_stop_fraction = {self.ransac_stop_fraction!r}: expected a fraction in (0, 1]"
+            )
         if self.edge_margin_m < 0:
             raise ExtractionError(f"edge_margin_m = {self.edge_margin_m!r}: expected ≥ 0")
 
@@ -105,10 +105,16 @@ _SCORE_POINTS = 20_000  # hypotheses are scored on at most this many points
 _BATCH = 128  # hypotheses per vectorized batch
 
 
-def ransac_plane(p_m, distance_m: float = 0.01, stop_fraction: float = 0.98,
-                 max_iterations: int = 2000, rng: np.random.Generator | None = None,
-                 normal_hint=None, max_tilt_rad: float | None = None,
-                 confidence: float = 0.999) -> RansacPlane | None:  # fmt: skip
+def ransac_plane(
+    p_m,
+    distance_m: float = 0.01,
+    stop_fraction: float = 0.98,
+    max_iterations: int = 2000,
+    rng: np.random.Generator | None = None,
+    normal_hint=None,
+    max_tilt_rad: float | None = None,
+    confidence: float = 0.999,
+) -> RansacPlane | None:
     """RANSAC plane of points (n, 3), or None when no admissible plane has 3 inliers.
 
     Hypotheses from random triplets are scored by their inlier count (|distance| ≤
@@ -270,8 +276,7 @@ def clusters(p_m, link_m: float) -> np.ndarray:
     cell = np.floor(p / (0.5 * link_m)).astype(np.int64)
     cells, inverse = np.unique(cell, axis=0, return_inverse=True)
     m = cells.shape[0]
-    pairs = cKDTree(cells * (0.5 * link_m)).query_pairs(link_m * (1 + 1e-9),
-                                                        output_type="ndarray")  # fmt: skip
+    pairs = cKDTree(cells * (0.5 * link_m)).query_pairs(link_m * (1 + 1e-9), output_type="ndarray")
     graph = sparse.coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(m, m))
     return connected_components(graph, directed=False)[1][inverse.ravel()]
 
@@ -316,13 +321,22 @@ class TargetPass:
 
 
 def _missing(target, pass_id, n_cand, n_class, contrast, note) -> TargetPass:
-    return TargetPass(target, pass_id, np.empty(0, np.int64), n_cand, n_class, contrast, None,
-                      float("nan"), None, note)  # fmt: skip
+    return TargetPass(
+        target, pass_id, np.empty(0, np.int64), n_cand, n_class, contrast, None, float("nan"), None, note
+    )
 
 
-def extract_target(p_m: np.ndarray, intensity: np.ndarray, idx: np.ndarray, rect: Rectangle,
-                   pass_id: int, opts: ExtractOptions, rng: np.random.Generator,
-                   seed_m=None, origin_m: np.ndarray | None = None) -> TargetPass:  # fmt: skip
+def extract_target(
+    p_m: np.ndarray,
+    intensity: np.ndarray,
+    idx: np.ndarray,
+    rect: Rectangle,
+    pass_id: int,
+    opts: ExtractOptions,
+    rng: np.random.Generator,
+    seed_m=None,
+    origin_m: np.ndarray | None = None,
+) -> TargetPass:
     """Steps 1–4 of the module docstring for one target (``rect``: configured size,
     orientation and approximate centre) among the points ``idx`` of one pass. With the beam
     origins ``origin_m`` (n, 3) the intensities are corrected for incidence first."""
@@ -333,37 +347,68 @@ def extract_target(p_m: np.ndarray, intensity: np.ndarray, idx: np.ndarray, rect
     cand = idx[near]
     n_cand = cand.size
     if n_cand < opts.min_points_per_pass:
-        return _missing(rect.name, pass_id, n_cand, 0, 1.0,
-                        f"{n_cand} points within {radius:.1f} m of its centre")  # fmt: skip
-    refl = intensity[cand] if origin_m is None else \
-        incidence_corrected(p_m[cand], intensity[cand], origin_m[cand])  # fmt: skip
+        return _missing(
+            rect.name, pass_id, n_cand, 0, 1.0, f"{n_cand} points within {radius:.1f} m of its centre"
+        )
+    refl = (
+        intensity[cand]
+        if origin_m is None
+        else incidence_corrected(p_m[cand], intensity[cand], origin_m[cand])
+    )
     split = intensity_split(refl, opts.min_contrast)
     note = ""
     if split.threshold is None:
         cls = cand
-        note = (f"no reflectivity contrast around it (ratio {split.contrast:.2f} < "
-                f"{opts.min_contrast:g}): separated from its surroundings by geometry only")
+        note = (
+            f"no reflectivity contrast around it (ratio {split.contrast:.2f} < "
+            f"{opts.min_contrast:g}): separated from its surroundings by geometry only"
+        )
     elif rect.reflectivity >= 0.5:
         cls = cand[refl >= split.threshold]
     else:
         cls = cand[refl < split.threshold]
     if cls.size < opts.min_points_per_pass:
-        return _missing(rect.name, pass_id, n_cand, cls.size, split.contrast,
-                        f"{cls.size} of {n_cand} nearby points have its reflectivity")  # fmt: skip
+        return _missing(
+            rect.name,
+            pass_id,
+            n_cand,
+            cls.size,
+            split.contrast,
+            f"{cls.size} of {n_cand} nearby points have its reflectivity",
+        )
     q = p_m[cls]
-    plane = ransac_plane(q, opts.ransac_distance_m, opts.ransac_stop_fraction,
-                         opts.ransac_max_iterations, rng, rect.normal, opts.max_tilt_rad)  # fmt: skip
+    plane = ransac_plane(
+        q,
+        opts.ransac_distance_m,
+        opts.ransac_stop_fraction,
+        opts.ransac_max_iterations,
+        rng,
+        rect.normal,
+        opts.max_tilt_rad,
+    )
     if plane is None or plane.inliers.sum() < opts.min_points_per_pass:
-        return _missing(rect.name, pass_id, n_cand, cls.size, split.contrast,
-                        "no plane with its orientation among its points")  # fmt: skip
+        return _missing(
+            rect.name,
+            pass_id,
+            n_cand,
+            cls.size,
+            split.contrast,
+            "no plane with its orientation among its points",
+        )
     normal, d = plane.normal, plane.d
     keep = plane.inliers
     cos_tilt = np.cos(opts.max_tilt_rad)
     for _ in range(3):  # least squares on the band, then a band of five robust σ
         fit = fit_plane(q[keep], orient_like=normal)
         if abs(fit.normal @ rect.normal) < cos_tilt:  # the points are not a plane of that
-            return _missing(rect.name, pass_id, n_cand, cls.size, split.contrast,  # tilt
-                            "no plane with its orientation among its points")  # fmt: skip
+            return _missing(
+                rect.name,
+                pass_id,
+                n_cand,
+                cls.size,
+                split.contrast,  # tilt
+                "no plane with its orientation among its points",
+            )
         normal, d = fit.normal, fit.d
         dist = q @ normal + d
         sigma = 1.4826 * np.median(np.abs(dist[keep] - np.median(dist[keep])))
@@ -386,19 +431,33 @@ def extract_target(p_m: np.ndarray, intensity: np.ndarray, idx: np.ndarray, rect
         if best_key is None or key < best_key:
             best, best_key = m, key
     if best is None:
-        return _missing(rect.name, pass_id, n_cand, cls.size, split.contrast,
-                        "its points form no cluster of at least "
-                        f"{opts.min_points_per_pass} points")  # fmt: skip
+        return _missing(
+            rect.name,
+            pass_id,
+            n_cand,
+            cls.size,
+            split.contrast,
+            f"its points form no cluster of at least {opts.min_points_per_pass} points",
+        )
     ext = _extent(ab[best])
     too_big = np.any(ext > size * (1.0 + opts.size_tolerance) + 0.05)
     if too_big:
         # the cluster is more than the target (no contrast, or a bright neighbour touching
         # it): centre a target-sized box on the cluster's median point
         mid = np.median(ab[best], axis=0)
-        note = "; ".join(filter(None, [note, (
-            f"its cluster measures {ext[0]:.2f} × {ext[1]:.2f} m against the configured "
-            f"{size[0]:.2f} × {size[1]:.2f} m: a box of the configured size around its median "
-            f"point was kept")]))  # fmt: skip
+        note = "; ".join(
+            filter(
+                None,
+                [
+                    note,
+                    (
+                        f"its cluster measures {ext[0]:.2f} × {ext[1]:.2f} m against the configured "
+                        f"{size[0]:.2f} × {size[1]:.2f} m: a box of the configured size around its median "
+                        f"point was kept"
+                    ),
+                ],
+            )
+        )
     else:
         # the middle of the robust span (stray points do not pull it); on a partial view
         # (extent below the size) the box still holds the whole cluster
@@ -407,23 +466,37 @@ def extract_target(p_m: np.ndarray, intensity: np.ndarray, idx: np.ndarray, rect
     inside = np.all(np.abs(ab - mid) <= half, axis=1) & best
     sel = sel[inside]
     if sel.size < opts.min_points_per_pass:
-        return _missing(rect.name, pass_id, n_cand, cls.size, split.contrast,
-                        f"only {sel.size} points inside its rectangle")  # fmt: skip
+        return _missing(
+            rect.name,
+            pass_id,
+            n_cand,
+            cls.size,
+            split.contrast,
+            f"only {sel.size} points inside its rectangle",
+        )
     rms = float(np.sqrt(np.mean((p_m[sel] @ normal + d) ** 2)))
-    return TargetPass(rect.name, pass_id, np.sort(sel), n_cand, cls.size, split.contrast,
-                      normal, rms, ext, note)  # fmt: skip
+    return TargetPass(
+        rect.name, pass_id, np.sort(sel), n_cand, cls.size, split.contrast, normal, rms, ext, note
+    )
 
 
 # -- automatic seeds -----------------------------------------------------------------------
 
 
-def auto_seeds(p_m: np.ndarray, intensity: np.ndarray, idx: np.ndarray,
-               rects: list[Rectangle], opts: ExtractOptions, rng: np.random.Generator,
-               origin_m: np.ndarray | None = None) -> dict[str, np.ndarray]:  # fmt: skip
+def auto_seeds(
+    p_m: np.ndarray,
+    intensity: np.ndarray,
+    idx: np.ndarray,
+    rects: list[Rectangle],
+    opts: ExtractOptions,
+    rng: np.random.Generator,
+    origin_m: np.ndarray | None = None,
+) -> dict[str, np.ndarray]:
     """Seeds (cluster centres) of the configured targets found without their centres in one
     pass: bright planar clusters matched to the targets by size and inclination."""
-    refl = intensity[idx] if origin_m is None else \
-        incidence_corrected(p_m[idx], intensity[idx], origin_m[idx])  # fmt: skip
+    refl = (
+        intensity[idx] if origin_m is None else incidence_corrected(p_m[idx], intensity[idx], origin_m[idx])
+    )
     split = intensity_split(refl, opts.min_contrast)
     if split.threshold is None:
         return {}
@@ -438,15 +511,15 @@ def auto_seeds(p_m: np.ndarray, intensity: np.ndarray, idx: np.ndarray,
         if m.sum() < opts.min_points_per_pass:
             continue
         c = q[m]
-        plane = ransac_plane(c, max(opts.ransac_distance_m, 0.02), opts.ransac_stop_fraction,
-                             opts.ransac_max_iterations, rng)  # fmt: skip
+        plane = ransac_plane(
+            c, max(opts.ransac_distance_m, 0.02), opts.ransac_stop_fraction, opts.ransac_max_iterations, rng
+        )
         if plane is None or plane.inliers.sum() < opts.min_points_per_pass:
             continue
         n = plane.normal if plane.normal[2] <= 0 else -plane.normal  # up-facing (NED)
         incl = float(np.arccos(np.clip(-n[2], -1.0, 1.0)))
         horiz = np.cross([0.0, 0.0, 1.0], n)
-        horiz = horiz / np.linalg.norm(horiz) if np.linalg.norm(horiz) > 1e-6 else \
-            np.array([1.0, 0.0, 0.0])  # fmt: skip
+        horiz = horiz / np.linalg.norm(horiz) if np.linalg.norm(horiz) > 1e-6 else np.array([1.0, 0.0, 0.0])
         u, v = in_plane_axes(n, horiz)
         inl = c[plane.inliers]
         ctr = inl.mean(axis=0)
@@ -460,8 +533,7 @@ def auto_seeds(p_m: np.ndarray, intensity: np.ndarray, idx: np.ndarray,
         for j, (ctr, incl, ext) in enumerate(found):
             size_err = np.abs(np.log(np.maximum(ext, 1e-3) / size))
             incl_err = abs(incl - abs(r.inclination_rad))
-            if np.all(size_err <= np.log(1.0 + opts.size_tolerance) + 0.1) and \
-                    incl_err <= np.radians(15.0):  # fmt: skip
+            if np.all(size_err <= np.log(1.0 + opts.size_tolerance) + 0.1) and incl_err <= np.radians(15.0):
                 # alike targets are told apart by their configured centres (the 1e-4 weight
                 # keeps distance a tie-breaker only)
                 cost[i, j] = size_err.sum() + incl_err + 1e-4 * np.linalg.norm(ctr - r.center_m)
@@ -504,9 +576,15 @@ class Extraction:
         return out
 
 
-def extract(p_lgf_m, intensity, pass_id, rects: list[Rectangle],
-            options: ExtractOptions = ExtractOptions(), origin_lgf_m=None,
-            progress=None) -> Extraction:  # fmt: skip
+def extract(
+    p_lgf_m,
+    intensity,
+    pass_id,
+    rects: list[Rectangle],
+    options: ExtractOptions = ExtractOptions(),
+    origin_lgf_m=None,
+    progress=None,
+) -> Extraction:
     """Extract every target (``rects``: configured size, orientation, approximate centre in
     the LGF) from every pass of georeferenced points ``p_lgf_m`` (n, 3) with their
     ``intensity`` and ``pass_id``; ``origin_lgf_m`` (n, 3), the scanner's position at each
@@ -529,15 +607,14 @@ def extract(p_lgf_m, intensity, pass_id, rects: list[Rectangle],
             seeds = auto_seeds(p, inten, idx, rects, options, rng, origin)
         for r in rects:
             if options.mode == "auto" and r.name not in seeds:
-                tp = _missing(r.name, pass_no, 0, 0, 1.0, "no bright planar cluster of its size "
-                              "and inclination")  # fmt: skip
+                tp = _missing(
+                    r.name, pass_no, 0, 0, 1.0, "no bright planar cluster of its size and inclination"
+                )
             else:
-                tp = extract_target(p, inten, idx, r, pass_no, options, rng, seeds.get(r.name),
-                                    origin)  # fmt: skip
+                tp = extract_target(p, inten, idx, r, pass_no, options, rng, seeds.get(r.name), origin)
             out.found.append(tp)
             if tp.n_points == 0:
-                out.warnings.append(f"target {r.name} is missing from pass {pass_no}: "
-                                    f"{tp.note}")  # fmt: skip
+                out.warnings.append(f"target {r.name} is missing from pass {pass_no}: {tp.note}")
             elif tp.note:
                 out.warnings.append(f"target {r.name} in pass {pass_no}: {tp.note}")
         if progress is not None:
@@ -549,8 +626,7 @@ def subsample(ext: Extraction, p_lgf_m, voxel_m: float) -> Extraction:
     """The extraction with each target's points of each pass thinned by
     :func:`voxel_subsample` (passes are thinned separately: each keeps its own view)."""
     p = np.asarray(p_lgf_m, float)
-    found = [replace(f, indices=f.indices[voxel_subsample(p[f.indices], voxel_m)])
-             for f in ext.found]  # fmt: skip
+    found = [replace(f, indices=f.indices[voxel_subsample(p[f.indices], voxel_m)]) for f in ext.found]
     return Extraction(ext.target_names, ext.pass_ids, found, voxel_m, list(ext.warnings))
 
 
@@ -564,15 +640,18 @@ def from_labels(target_index, pass_id, target_names: list[str]) -> Extraction:
     for pass_no in pass_ids:
         for j, name in enumerate(target_names):
             sel = np.flatnonzero((pid == pass_no) & (ti == j))
-            found.append(TargetPass(name, pass_no, sel, sel.size, sel.size, 1.0, None,
-                                    float("nan"), None, "labelled"))  # fmt: skip
-    warnings = [f"target {f.target} is missing from pass {f.pass_id}: no labelled point"
-                for f in found if f.n_points == 0]  # fmt: skip
+            found.append(
+                TargetPass(name, pass_no, sel, sel.size, sel.size, 1.0, None, float("nan"), None, "labelled")
+            )
+    warnings = [
+        f"target {f.target} is missing from pass {f.pass_id}: no labelled point"
+        for f in found
+        if f.n_points == 0
+    ]
     return Extraction(list(target_names), pass_ids, found, None, warnings)
 
 
-def initial_planes(ext: Extraction, p_lgf_m, rects: list[Rectangle]
-                   ) -> list[tuple[np.ndarray, float] | None]:  # fmt: skip
+def initial_planes(ext: Extraction, p_lgf_m, rects: list[Rectangle]) -> list[tuple[np.ndarray, float] | None]:
     """A-priori plane of each target (normal, d; None with < 3 points), from its points over
     all passes: the centroid of the combined points (thesis §4.4.4) and the mean of the
     per-pass least-squares normals (oriented like the configured one). The thesis fits the

@@ -93,10 +93,10 @@ def _a_times(lin, layout, obs, dx) -> np.ndarray:
     out = lin.A_boresight @ dx[0:3]
     for i, name in enumerate(layout.extras):
         out += lin.A_extra[name] * dx[layout.i_extra + i]
-    dp = dx[layout.i_plane: layout.i_offset].reshape(-1, 3)[obs.plane_index]
+    dp = dx[layout.i_plane : layout.i_offset].reshape(-1, 3)[obs.plane_index]
     out += np.einsum("ij,ij->i", lin.A_plane, dp)
     if layout.offsets:
-        do = dx[layout.i_offset:].reshape(-1, 3)[obs.pass_index]
+        do = dx[layout.i_offset :].reshape(-1, 3)[obs.pass_index]
         out += np.einsum("ij,ij->i", lin.A_offset, do)
     return out
 
@@ -152,12 +152,17 @@ def initial_state(mount, planes_init, n_passes, centers=None) -> State:
 
 def plane_centers(obs: Observations, mount, r_nom) -> np.ndarray:
     """Centroid of each plane's points georeferenced with the a-priori mount."""
-    lin = linearize(initial_state(mount, [(np.array([0.0, 0.0, 1.0]), 0.0)] *
-                                  len(obs.plane_names), len(obs.pass_ids)),
-                    r_nom, obs.plane_index, obs.pass_index, obs.l)  # fmt: skip
+    lin = linearize(
+        initial_state(mount, [(np.array([0.0, 0.0, 1.0]), 0.0)] * len(obs.plane_names), len(obs.pass_ids)),
+        r_nom,
+        obs.plane_index,
+        obs.pass_index,
+        obs.l,
+    )
     cnt = np.bincount(obs.plane_index, minlength=len(obs.plane_names))[:, None]
-    sums = np.stack([np.bincount(obs.plane_index, lin.x_lgf_m[:, c],
-                                 minlength=len(obs.plane_names)) for c in range(3)], 1)  # fmt: skip
+    sums = np.stack(
+        [np.bincount(obs.plane_index, lin.x_lgf_m[:, c], minlength=len(obs.plane_names)) for c in range(3)], 1
+    )
     return sums / np.maximum(cnt, 1)
 
 
@@ -176,12 +181,12 @@ def _apply(state: State, dx: np.ndarray, layout: Layout, bases) -> State:
             s.lever_arm_m[1] += v
         elif name == "latency":
             s.latency_s += v
-    dp = dx[layout.i_plane: layout.i_offset].reshape(-1, 3)
+    dp = dx[layout.i_plane : layout.i_offset].reshape(-1, 3)
     n_new = s.normals + np.einsum("mij,mj->mi", bases, dp[:, 0:2])
     s.normals = n_new / np.linalg.norm(n_new, axis=1, keepdims=True)
     s.d_m = s.d_m + dp[:, 2]
     if layout.offsets:
-        s.pass_offsets_m = s.pass_offsets_m + dx[layout.i_offset:].reshape(-1, 3)
+        s.pass_offsets_m = s.pass_offsets_m + dx[layout.i_offset :].reshape(-1, 3)
     return s
 
 
@@ -203,8 +208,7 @@ class Solution:
 def offset_prior_sigma(obs: Observations, options: AdjustOptions) -> np.ndarray:
     """(K, 3) prior σ of the per-pass translations: the mean position σ of each pass."""
     if options.pass_offset_sigma_m is not None:
-        return np.broadcast_to(np.asarray(options.pass_offset_sigma_m, float),
-                               (len(obs.pass_ids), 3))  # fmt: skip
+        return np.broadcast_to(np.asarray(options.pass_offset_sigma_m, float), (len(obs.pass_ids), 3))
     out = np.empty((len(obs.pass_ids), 3))
     for k in range(len(obs.pass_ids)):
         out[k] = obs.sigma_l[obs.pass_index == k, 0:3].mean(axis=0)
@@ -224,8 +228,7 @@ def observations_at(obs: Observations, state: State, estimate_latency: bool) -> 
     return l
 
 
-def solve(obs: Observations, state: State, r_nom: np.ndarray, options: AdjustOptions
-          ) -> Solution:  # fmt: skip
+def solve(obs: Observations, state: State, r_nom: np.ndarray, options: AdjustOptions) -> Solution:
     layout = Layout(len(obs.plane_names), len(obs.pass_ids), options.estimate)
     est_latency = "latency" in layout.extras
     Q = obs.sigma_l**2
@@ -260,7 +263,7 @@ def solve(obs: Observations, state: State, r_nom: np.ndarray, options: AdjustOpt
             # far from the solution the residuals of a linear step are not residuals of the
             # solution: keep linearizing at the observations until the boresight settles
             v[:] = 0.0
-        plane_steps = dx[layout.i_plane: layout.i_offset].reshape(-1, 3)
+        plane_steps = dx[layout.i_plane : layout.i_offset].reshape(-1, 3)
         metric_step = np.max(np.abs(plane_steps[:, 2]))
         angle_step = max(angle_step, np.max(np.abs(plane_steps[:, 0:2])))
         for i, name in enumerate(layout.extras):
@@ -272,7 +275,7 @@ def solve(obs: Observations, state: State, r_nom: np.ndarray, options: AdjustOpt
             else:
                 metric_step = max(metric_step, step)
         if layout.offsets:
-            metric_step = max(metric_step, np.max(np.abs(dx[layout.i_offset:])))
+            metric_step = max(metric_step, np.max(np.abs(dx[layout.i_offset :])))
         if angle_step < options.tol_angle_rad and metric_step < options.tol_m:
             converged = True
             break
@@ -309,6 +312,8 @@ def singular_message(N, obs, layout) -> str:
     v = vecs[:, 0]
     top = np.argsort(-np.abs(v))[:3]
     combo = " + ".join(f"{v[i]:.2f}·{names[i]}" for i in top if abs(v[i]) > 0.1)
-    return (f"the normal equations are singular: the data do not determine {combo}. "
-            f"Check that every plane has points from several passes and that extra unknowns "
-            f"({', '.join(layout.extras) or 'none'}) are observable with this geometry.")
+    return (
+        f"the normal equations are singular: the data do not determine {combo}. "
+        f"Check that every plane has points from several passes and that extra unknowns "
+        f"({', '.join(layout.extras) or 'none'}) are observable with this geometry."
+    )

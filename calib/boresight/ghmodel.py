@@ -38,9 +38,14 @@ def tangent_basis(normal: np.ndarray) -> np.ndarray:
 
 def _cross(a, b):
     """Row-wise cross product of (n, 3) arrays (faster than np.cross for this shape)."""
-    return np.stack([a[:, 1] * b[:, 2] - a[:, 2] * b[:, 1],
-                     a[:, 2] * b[:, 0] - a[:, 0] * b[:, 2],
-                     a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0]], axis=1)  # fmt: skip
+    return np.stack(
+        [
+            a[:, 1] * b[:, 2] - a[:, 2] * b[:, 1],
+            a[:, 2] * b[:, 0] - a[:, 0] * b[:, 2],
+            a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0],
+        ],
+        axis=1,
+    )
 
 
 @dataclass
@@ -62,10 +67,18 @@ class State:
         """Plane offsets in the LGF: nᵀx + d = 0."""
         return self.d_m - np.einsum("ij,ij->i", self.normals, self.centers_m)
 
-    def copy(self) -> "State":
-        return State(self.boresight_rad.copy(), self.normals.copy(), self.d_m.copy(),
-                     self.centers_m.copy(), self.pass_offsets_m.copy(), self.lever_arm_m.copy(), self.range_offset_m,
-                     self.scan_angle_offset_rad, self.latency_s)  # fmt: skip
+    def copy(self) -> State:
+        return State(
+            self.boresight_rad.copy(),
+            self.normals.copy(),
+            self.d_m.copy(),
+            self.centers_m.copy(),
+            self.pass_offsets_m.copy(),
+            self.lever_arm_m.copy(),
+            self.range_offset_m,
+            self.scan_angle_offset_rad,
+            self.latency_s,
+        )
 
 
 @dataclass
@@ -178,7 +191,8 @@ def _linearize_block(
         vel, omega_b = rates
         w_x_v = _cross(omega_b, np.stack(v_b, axis=1))
         extra["latency"][:] = n_dot(tuple(vel[:, i] for i in range(3))) + n_dot_R(
-            tuple(w_x_v[:, i] for i in range(3)))
+            tuple(w_x_v[:, i] for i in range(3))
+        )
     E = bases[plane_index]  # (n, 3, 2)
     out.A_plane[:, 0:2] = np.einsum("ni,nij->nj", x_rel, E)
     out.A_plane[:, 2] = 1.0
@@ -207,15 +221,25 @@ def linearize(
         bases = np.stack([tangent_basis(nn) for nn in state.normals])
     names = list(EXTRA_NAMES[:4]) + (["latency"] if rates is not None else [])
     res = Linearization(
-        F=np.empty(n), x_lgf_m=np.empty((n, 3)), A_boresight=np.empty((n, 3)),
-        A_extra={k: np.empty(n) for k in names}, A_plane=np.empty((n, 3)),
-        A_offset=np.empty((n, 3)), B=np.empty((n, 8)),
-    )  # fmt: skip
+        F=np.empty(n),
+        x_lgf_m=np.empty((n, 3)),
+        A_boresight=np.empty((n, 3)),
+        A_extra={k: np.empty(n) for k in names},
+        A_plane=np.empty((n, 3)),
+        A_offset=np.empty((n, 3)),
+        B=np.empty((n, 8)),
+    )
     for lo in range(0, n, _BLOCK):
         sl = slice(lo, min(lo + _BLOCK, n))
         r = None if rates is None else (rates[0][sl], rates[1][sl])
-        view = Linearization(res.F[sl], res.x_lgf_m[sl], res.A_boresight[sl],
-                             {k: v[sl] for k, v in res.A_extra.items()}, res.A_plane[sl],
-                             res.A_offset[sl], res.B[sl])  # fmt: skip
+        view = Linearization(
+            res.F[sl],
+            res.x_lgf_m[sl],
+            res.A_boresight[sl],
+            {k: v[sl] for k, v in res.A_extra.items()},
+            res.A_plane[sl],
+            res.A_offset[sl],
+            res.B[sl],
+        )
         _linearize_block(state, r_nom, plane_index[sl], pass_index[sl], l[sl], r, bases, view)
     return res

@@ -42,8 +42,9 @@ def sailed_headings(obs: Observations) -> set[int]:
     return out
 
 
-def check_observability(cov_bs: np.ndarray, obs: Observations, max_sigma_rad: float,
-                        estimate: tuple[str, ...] = ()) -> None:  # fmt: skip
+def check_observability(
+    cov_bs: np.ndarray, obs: Observations, max_sigma_rad: float, estimate: tuple[str, ...] = ()
+) -> None:
     """Raise :class:`ObservabilityError` when a boresight angle (or a combination) is weak,
     naming the angle(s) and what would observe them."""
     sig = np.sqrt(np.clip(np.diag(cov_bs), 0, None))
@@ -51,25 +52,37 @@ def check_observability(cov_bs: np.ndarray, obs: Observations, max_sigma_rad: fl
     weak_dirs = [vecs[:, i] for i in range(3) if np.sqrt(max(vals[i], 0)) > max_sigma_rad]
     if not weak_dirs:
         return
-    weak = sorted({int(np.argmax(np.abs(v))) for v in weak_dirs} |
-                  {i for i in range(3) if sig[i] > max_sigma_rad})  # fmt: skip
+    weak = sorted(
+        {int(np.argmax(np.abs(v))) for v in weak_dirs} | {i for i in range(3) if sig[i] > max_sigma_rad}
+    )
     sailed = sailed_headings(obs)
     passes = ", ".join(
-        f"{pid}" + (f" ({round(float(np.degrees(obs.pass_headings_rad[pid]))) % 360}°)"
-                    if pid in obs.pass_headings_rad else "")
+        f"{pid}"
+        + (
+            f" ({round(float(np.degrees(obs.pass_headings_rad[pid]))) % 360}°)"
+            if pid in obs.pass_headings_rad
+            else ""
+        )
         for pid in obs.pass_ids
-    )  # fmt: skip
+    )
     advice = []
     for i in weak:
         label, pairs = OBSERVING_PAIRS[i]
         if sailed and not any(a in sailed and b in sailed for a, b in pairs):
             advice.append(f"for {ANGLE_NAMES[i]} sail {label}")
     if not advice:
-        cause = ("the per-pass trajectory offsets look like a boresight rotation with these "
-                 "targets: spread targets in range, height and along the wall, or do not "
-                 "estimate pass_offsets") if "pass_offsets" in estimate else (
-                 "the targets do not separate the angles: use at least two targets with "
-                 "different inclinations (vertical and 45°), spread along the wall")  # fmt: skip
+        cause = (
+            (
+                "the per-pass trajectory offsets look like a boresight rotation with these "
+                "targets: spread targets in range, height and along the wall, or do not "
+                "estimate pass_offsets"
+            )
+            if "pass_offsets" in estimate
+            else (
+                "the targets do not separate the angles: use at least two targets with "
+                "different inclinations (vertical and 45°), spread along the wall"
+            )
+        )
         extra = [e for e in estimate if e != "pass_offsets"]
         if extra:
             cause += f"; the extra unknowns {', '.join(extra)} may also absorb the boresight"

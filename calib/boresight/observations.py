@@ -44,10 +44,18 @@ class Observations:
         return self.t_gps_s.shape[0]
 
     def select(self, mask: np.ndarray) -> Observations:
-        return Observations(self.t_gps_s[mask], self.l[mask], self.sigma_l[mask],
-                            self.plane_index[mask], self.pass_index[mask], self.plane_names,
-                            self.pass_ids, self.point_ids[mask], self.trajectory,
-                            self.pass_headings_rad)  # fmt: skip
+        return Observations(
+            self.t_gps_s[mask],
+            self.l[mask],
+            self.sigma_l[mask],
+            self.plane_index[mask],
+            self.pass_index[mask],
+            self.plane_names,
+            self.pass_ids,
+            self.point_ids[mask],
+            self.trajectory,
+            self.pass_headings_rad,
+        )
 
 
 def build_observations(
@@ -81,12 +89,13 @@ def build_observations(
     back = same & (np.diff(t) < 0)
     if back.any():
         i = int(np.argmax(back)) + 1
-        raise AdjustmentError(f"point times go backwards within pass {int(pid[i])} at point {i} "
-                              f"({t[i]:.6f} s after {t[i - 1]:.6f} s)")  # fmt: skip
+        raise AdjustmentError(
+            f"point times go backwards within pass {int(pid[i])} at point {i} "
+            f"({t[i]:.6f} s after {t[i - 1]:.6f} s)"
+        )
     for name, arr in (("range", range_m), ("scan angle", scan_angle_rad)):
         if not np.all(np.isfinite(arr)):
-            raise AdjustmentError(f"{name} is NaN or infinite for {int(np.sum(~np.isfinite(arr)))} "
-                                  f"point(s)")  # fmt: skip
+            raise AdjustmentError(f"{name} is NaN or infinite for {int(np.sum(~np.isfinite(arr)))} point(s)")
     try:
         poses = trajectory.interpolate(t + time_offset_s)
     except TrajectoryError as e:
@@ -104,19 +113,27 @@ def build_observations(
     pass_ids = sorted(int(p) for p in np.unique(pid))
     pass_index = np.searchsorted(pass_ids, pid)
     return Observations(
-        t, l, sig, np.asarray(plane_index, int), pass_index, list(plane_names), pass_ids,
-        np.arange(n) if point_ids is None else np.asarray(point_ids), trajectory,
+        t,
+        l,
+        sig,
+        np.asarray(plane_index, int),
+        pass_index,
+        list(plane_names),
+        pass_ids,
+        np.arange(n) if point_ids is None else np.asarray(point_ids),
+        trajectory,
         dict(pass_headings_rad or {}),
-    )  # fmt: skip
+    )
 
 
 def validate_input(obs: Observations) -> None:
     counts = np.bincount(obs.plane_index, minlength=len(obs.plane_names))
-    few = [f"{name} ({c} points)" for name, c in zip(obs.plane_names, counts)
-           if c < MIN_POINTS_PER_PLANE]  # fmt: skip
+    few = [f"{name} ({c} points)" for name, c in zip(obs.plane_names, counts) if c < MIN_POINTS_PER_PLANE]
     if few:
-        raise AdjustmentError(f"target(s) with fewer than {MIN_POINTS_PER_PLANE} points: "
-                              f"{', '.join(few)}; re-extract them or remove them from the site")  # fmt: skip
+        raise AdjustmentError(
+            f"target(s) with fewer than {MIN_POINTS_PER_PLANE} points: "
+            f"{', '.join(few)}; re-extract them or remove them from the site"
+        )
     if len(obs.plane_names) < 2:
         raise AdjustmentError(
             f"only one target ({obs.plane_names[0]}) has points: a single plane cannot separate "
@@ -144,13 +161,15 @@ class AdjustOptions:
     def __post_init__(self):
         unknown = [e for e in self.estimate if e not in ESTIMABLE]
         if unknown:
-            raise AdjustmentError(f"unknown extra unknown(s) {', '.join(unknown)}; choose from "
-                                  f"{', '.join(ESTIMABLE)}")  # fmt: skip
+            raise AdjustmentError(
+                f"unknown extra unknown(s) {', '.join(unknown)}; choose from {', '.join(ESTIMABLE)}"
+            )
         if "scan_angle_offset" in self.estimate:
             raise AdjustmentError(
                 "scan_angle_offset cannot be estimated with the boresight: a scan-angle offset "
                 "is a rotation about the scanner's own x axis, which the boresight rotation "
                 "already contains for any mount (thesis §3.5.2 finds them correlated; here they "
-                "are identical), so the estimated boresight absorbs it")
+                "are identical), so the estimated boresight absorbs it"
+            )
         if self.outliers not in ("snooping", "none"):
             raise AdjustmentError(f"outliers={self.outliers!r}: expected 'snooping' or 'none'")

@@ -31,17 +31,14 @@ time given by the caller, else the site's ``pos_sigmas.correlation_time_s``, els
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Callable
 
 import numpy as np
 
-from calib.core import frames
 from calib.boresight.adjust import AdjustmentResult, adjust
 from calib.boresight.errormodel import DEFAULT_POS_CORRELATION_S, ErrorModel
-from calib.boresight.observations import AdjustOptions, Observations, build_observations, validate_input
-from calib.io.bundle import ScanPoints, read_bundle
 from calib.boresight.extract import (
     Extraction,
     ExtractOptions,
@@ -50,11 +47,14 @@ from calib.boresight.extract import (
     initial_planes,
     subsample,
 )
-from calib.core.georef import Mount, georeference, georeference_poses
+from calib.boresight.observations import AdjustOptions, Observations, build_observations, validate_input
 from calib.boresight.result import result_to_dict, write_result
-from calib.io.site import Site
+from calib.core import frames
+from calib.core.georef import Mount, georeference, georeference_poses
 from calib.core.trajectory import Poses, Trajectory
 from calib.core.version import software_version as _software_version
+from calib.io.bundle import ScanPoints, read_bundle
+from calib.io.site import Site
 
 Progress = Callable[[str, float, float | None], None]
 ERROR_MODELS = ("gauss_markov", "pass_bias", "white")
@@ -85,24 +85,31 @@ class CalibrationOptions:
     def __post_init__(self):
         self.adjust_options(ErrorModel("white"))  # unknown or refused extra unknowns: now
         if self.error_model not in ERROR_MODELS:
-            raise CalibrationError(f"error model {self.error_model!r}: expected one of "
-                                   f"{', '.join(ERROR_MODELS)}")  # fmt: skip
-        if self.subsample_m is not None and not (np.isfinite(self.subsample_m)
-                                                 and self.subsample_m > 0):  # fmt: skip
-            raise CalibrationError(f"subsampling voxel {self.subsample_m!r} m: expected a "
-                                   f"positive size in metres, e.g. 0.05")  # fmt: skip
+            raise CalibrationError(
+                f"error model {self.error_model!r}: expected one of {', '.join(ERROR_MODELS)}"
+            )
+        if self.subsample_m is not None and not (np.isfinite(self.subsample_m) and self.subsample_m > 0):
+            raise CalibrationError(
+                f"subsampling voxel {self.subsample_m!r} m: expected a positive size in metres, e.g. 0.05"
+            )
         if self.correlation_time_s is not None:
             tau = np.atleast_1d(np.asarray(self.correlation_time_s, float))
             if tau.size not in (1, 6) or not np.all(np.isfinite(tau) & (tau > 0)):
-                raise CalibrationError(f"correlation time {self.correlation_time_s!r} s: "
-                                       f"expected one positive number (or six)")  # fmt: skip
+                raise CalibrationError(
+                    f"correlation time {self.correlation_time_s!r} s: expected one positive number (or six)"
+                )
 
     def adjust_options(self, model: ErrorModel) -> AdjustOptions:
-        return AdjustOptions(estimate=tuple(self.estimate), error_model=model,
-                             jackknife=self.jackknife, outliers=self.outliers,
-                             tol_angle_rad=self.tol_angle_rad, tol_m=self.tol_m,
-                             rel_tol=self.rel_tol,
-                             max_iterations=self.max_iterations)  # fmt: skip
+        return AdjustOptions(
+            estimate=tuple(self.estimate),
+            error_model=model,
+            jackknife=self.jackknife,
+            outliers=self.outliers,
+            tol_angle_rad=self.tol_angle_rad,
+            tol_m=self.tol_m,
+            rel_tol=self.rel_tol,
+            max_iterations=self.max_iterations,
+        )
 
 
 @dataclass
@@ -134,38 +141,48 @@ def check_points(points: ScanPoints, trajectory: Trajectory, time_offset_s: floa
     bad = ~np.isfinite(t)
     if bad.any():
         i = int(np.argmax(bad))
-        raise CalibrationError(f"{int(bad.sum())} point time(s) are NaN or infinite (first: "
-                               f"point {i}, pass {int(pid[i])}); fix or drop them")  # fmt: skip
+        raise CalibrationError(
+            f"{int(bad.sum())} point time(s) are NaN or infinite (first: "
+            f"point {i}, pass {int(pid[i])}); fix or drop them"
+        )
     for name, arr in (("range", points.range_m), ("scan angle", points.scan_angle_rad)):
         bad = ~np.isfinite(arr)
         if bad.any():
             i = int(np.argmax(bad))
-            raise CalibrationError(f"{name} is NaN or infinite for {int(bad.sum())} point(s) "
-                                   f"(first: point {i}, pass {int(pid[i])})")  # fmt: skip
+            raise CalibrationError(
+                f"{name} is NaN or infinite for {int(bad.sum())} point(s) "
+                f"(first: point {i}, pass {int(pid[i])})"
+            )
     back = (pid[1:] == pid[:-1]) & (np.diff(t) < 0)
     if back.any():
         i = int(np.argmax(back)) + 1
-        raise CalibrationError(f"point times go backwards within pass {int(pid[i])} at point {i} "
-                               f"({t[i]:.6f} s after {t[i - 1]:.6f} s): the points of a pass "
-                               f"must be in time order")  # fmt: skip
+        raise CalibrationError(
+            f"point times go backwards within pass {int(pid[i])} at point {i} "
+            f"({t[i]:.6f} s after {t[i - 1]:.6f} s): the points of a pass "
+            f"must be in time order"
+        )
     uncovered = trajectory.uncovered(t + time_offset_s)
     if uncovered.any():
         parts = []
         for p in np.unique(pid[uncovered]):
             m = uncovered & (pid == p)
-            parts.append(f"pass {int(p)}: {int(m.sum())} of {int(np.sum(pid == p))} points, "
-                         f"{t[m].min():.3f}…{t[m].max():.3f} s")  # fmt: skip
+            parts.append(
+                f"pass {int(p)}: {int(m.sum())} of {int(np.sum(pid == p))} points, "
+                f"{t[m].min():.3f}…{t[m].max():.3f} s"
+            )
         raise CalibrationError(
             f"the trajectory does not cover the points (it spans {trajectory.t_gps_s[0]:.3f}…"
             f"{trajectory.t_gps_s[-1]:.3f} s, gaps > {trajectory.max_gap_s:g} s refused): "
-            f"{'; '.join(parts)}. Export the trajectory over every pass.")  # fmt: skip
+            f"{'; '.join(parts)}. Export the trajectory over every pass."
+        )
 
 
 # -- the steps ------------------------------------------------------------------------------
 
 
-def _georeference(points: ScanPoints, trajectory: Trajectory, mount: Mount, poses: Poses | None,
-                  progress: Progress | None) -> tuple[np.ndarray, np.ndarray]:  # fmt: skip
+def _georeference(
+    points: ScanPoints, trajectory: Trajectory, mount: Mount, poses: Poses | None, progress: Progress | None
+) -> tuple[np.ndarray, np.ndarray]:
     """Points and beam origins (the scanner's position) in the LGF, pass by pass."""
     n = len(points)
     p, origin = np.empty((n, 3)), np.empty((n, 3))
@@ -186,8 +203,9 @@ def _georeference(points: ScanPoints, trajectory: Trajectory, mount: Mount, pose
     return p, origin
 
 
-def pass_headings(obs_heading_rad: np.ndarray, pass_id: np.ndarray, wall_azimuth_rad: float
-                  ) -> dict[int, float]:  # fmt: skip
+def pass_headings(
+    obs_heading_rad: np.ndarray, pass_id: np.ndarray, wall_azimuth_rad: float
+) -> dict[int, float]:
     """Heading of each pass relative to the wall direction: the circular mean of the vessel's
     heading at the pass's points."""
     out = {}
@@ -215,11 +233,18 @@ def error_model(options: CalibrationOptions, site: Site) -> tuple[ErrorModel, st
     return ErrorModel("gauss_markov", value), source
 
 
-def calibrate(site: Site, trajectory: Trajectory, points: ScanPoints,
-              options: CalibrationOptions = CalibrationOptions(), *,
-              poses: Poses | None = None, labels: np.ndarray | None = None,
-              progress: Progress | None = None, source: str = "in memory",
-              software_version: str | None = None) -> CalibrationRun:  # fmt: skip
+def calibrate(
+    site: Site,
+    trajectory: Trajectory,
+    points: ScanPoints,
+    options: CalibrationOptions = CalibrationOptions(),
+    *,
+    poses: Poses | None = None,
+    labels: np.ndarray | None = None,
+    progress: Progress | None = None,
+    source: str = "in memory",
+    software_version: str | None = None,
+) -> CalibrationRun:
     """Calibrate the boresight from raw scanner ``points`` and the ``trajectory``.
 
     ``poses``: per-point POS observations that replace the trajectory's interpolation (a
@@ -233,16 +258,17 @@ def calibrate(site: Site, trajectory: Trajectory, points: ScanPoints,
     clock = time.perf_counter()
     notes: list[str] = []
     if not site.targets:
-        raise CalibrationError("site.yaml configures no targets: list the planar targets "
-                               "(name, centre, size, inclination, facing) under 'targets'")  # fmt: skip
+        raise CalibrationError(
+            "site.yaml configures no targets: list the planar targets "
+            "(name, centre, size, inclination, facing) under 'targets'"
+        )
     mount = site.mount
     if options.apriori_rad is not None:
         mount = mount.with_boresight(np.asarray(options.apriori_rad, float))
     if len(points) == 0:
         raise CalibrationError("the bundle holds no points")
     if poses is not None and poses.p_lgf_m.shape != (len(points), 3):
-        raise CalibrationError(f"per-point poses for {poses.p_lgf_m.shape[0]} points, expected "
-                               f"{len(points)}")  # fmt: skip
+        raise CalibrationError(f"per-point poses for {poses.p_lgf_m.shape[0]} points, expected {len(points)}")
     check_points(points, trajectory, mount.time_offset_s)
     frame = trajectory.frame
     rects = site.target_rectangles(frame)
@@ -253,9 +279,17 @@ def calibrate(site: Site, trajectory: Trajectory, points: ScanPoints,
 
     clock = time.perf_counter()
     if labels is None:
-        ext = extract(p, points.intensity, points.pass_id, rects, options.extraction, origin,
-                      progress=None if progress is None else
-                      (lambda done, total: progress("extracting targets", done, total)))  # fmt: skip
+        ext = extract(
+            p,
+            points.intensity,
+            points.pass_id,
+            rects,
+            options.extraction,
+            origin,
+            progress=None
+            if progress is None
+            else (lambda done, total: progress("extracting targets", done, total)),
+        )
     else:
         lab = np.asarray(labels)
         if lab.shape != (len(points),):
@@ -272,7 +306,8 @@ def calibrate(site: Site, trajectory: Trajectory, points: ScanPoints,
         raise CalibrationError(
             f"no target found in any pass ({', '.join(names)}): check the targets' centres "
             f"and sizes in site.yaml (search radius {options.extraction.search_radius_m:g} m "
-            f"beyond each target), or try the automatic extraction")  # fmt: skip
+            f"beyond each target), or try the automatic extraction"
+        )
     pid = points.pass_id[idx]
     if poses is None:
         heading = trajectory.interpolate(points.t_gps_s[idx] + mount.time_offset_s).rpy_rad[:, 2]
@@ -280,11 +315,21 @@ def calibrate(site: Site, trajectory: Trajectory, points: ScanPoints,
         heading = poses.rpy_rad[idx, 2]
     headings = pass_headings(heading, pid, site.wall_azimuth_rad)
     obs = build_observations(
-        trajectory, points.t_gps_s[idx], points.range_m[idx], points.scan_angle_rad[idx], tgt,
-        pid, names, site.sigma_range_m, site.sigma_scan_angle_rad, site.sigma_position_m,
-        site.sigma_attitude_rad, point_ids=idx, time_offset_s=mount.time_offset_s,
+        trajectory,
+        points.t_gps_s[idx],
+        points.range_m[idx],
+        points.scan_angle_rad[idx],
+        tgt,
+        pid,
+        names,
+        site.sigma_range_m,
+        site.sigma_scan_angle_rad,
+        site.sigma_position_m,
+        site.sigma_attitude_rad,
+        point_ids=idx,
+        time_offset_s=mount.time_offset_s,
         pass_headings_rad=headings,
-    )  # fmt: skip
+    )
     if poses is not None:
         obs.l[:, 0:3] = poses.p_lgf_m[idx]
         obs.l[:, 3:6] = poses.rpy_rad[idx]
@@ -299,9 +344,11 @@ def calibrate(site: Site, trajectory: Trajectory, points: ScanPoints,
     planes = initial_planes(ext, p, rects)
     model, tau_source = error_model(options, site)
     if tau_source.startswith("default"):
-        notes.append(f"no POS correlation time configured (site.yaml pos_sigmas."
-                     f"correlation_time_s): sigma_realistic assumes {DEFAULT_POS_CORRELATION_S:g} "
-                     f"s")  # fmt: skip
+        notes.append(
+            f"no POS correlation time configured (site.yaml pos_sigmas."
+            f"correlation_time_s): sigma_realistic assumes {DEFAULT_POS_CORRELATION_S:g} "
+            f"s"
+        )
     timings["observations_s"] = time.perf_counter() - clock
 
     clock = time.perf_counter()
@@ -312,9 +359,11 @@ def calibrate(site: Site, trajectory: Trajectory, points: ScanPoints,
         progress("adjusting", 1, 1)
     timings["adjust_s"] = time.perf_counter() - clock
     if not res.converged:
-        warnings.append(f"the adjustment did not converge in {res.iterations} iterations: do "
-                        f"not use the result; check the a-priori boresight and the "
-                        f"extraction")  # fmt: skip
+        warnings.append(
+            f"the adjustment did not converge in {res.iterations} iterations: do "
+            f"not use the result; check the a-priori boresight and the "
+            f"extraction"
+        )
 
     formal = res.sigma_formal_rad
     ratio = res.sigma_realistic_rad / formal
@@ -327,28 +376,36 @@ def calibrate(site: Site, trajectory: Trajectory, points: ScanPoints,
             "points_per_target": ext.totals(),
         },
         "realistic_correlation_time_source": tau_source,
-        "sigma_realistic_over_formal": {a: float(r) for a, r in
-                                        zip(("roll", "pitch", "yaw"), ratio)},  # fmt: skip
+        "sigma_realistic_over_formal": {a: float(r) for a, r in zip(("roll", "pitch", "yaw"), ratio)},
         "outlier_point_ids_refer_to": "0-based data rows of points.csv (after the header)",
         "warnings": warnings,
         "notes": notes,
     }
-    doc = result_to_dict(res, mount.boresight_rad, software_version or _software_version(),
-                         extra)  # fmt: skip
+    doc = result_to_dict(res, mount.boresight_rad, software_version or _software_version(), extra)
     timings["total_s"] = sum(timings.values())
-    return CalibrationRun(source, site, frame, mount, options, ext, obs, planes, res, doc,
-                          warnings, notes, timings)  # fmt: skip
+    return CalibrationRun(
+        source, site, frame, mount, options, ext, obs, planes, res, doc, warnings, notes, timings
+    )
 
 
-def calibrate_bundle(bundle_path: str | Path, options: CalibrationOptions = CalibrationOptions(),
-                     progress: Progress | None = None, max_gap_s: float = 1.0
-                     ) -> CalibrationRun:  # fmt: skip
+def calibrate_bundle(
+    bundle_path: str | Path,
+    options: CalibrationOptions = CalibrationOptions(),
+    progress: Progress | None = None,
+    max_gap_s: float = 1.0,
+) -> CalibrationRun:
     """Read a bundle directory (docs/architecture.md §4) and calibrate it; ``truth.json`` is never read."""
     if progress is not None:
         progress("reading the bundle", 0, None)
     bundle = read_bundle(bundle_path, max_gap_s=max_gap_s)
-    return calibrate(bundle.site, bundle.trajectory, bundle.points, options, progress=progress,
-                     source=str(Path(bundle_path)))  # fmt: skip
+    return calibrate(
+        bundle.site,
+        bundle.trajectory,
+        bundle.points,
+        options,
+        progress=progress,
+        source=str(Path(bundle_path)),
+    )
 
 
 def write_outputs(run: CalibrationRun, out_dir: str | Path, plots: bool = True) -> list[Path]:
@@ -361,10 +418,13 @@ def write_outputs(run: CalibrationRun, out_dir: str | Path, plots: bool = True) 
     return [write_result(out / "result.json", run.doc), *write_report(run, out, plots=plots)]
 
 
-def run_bundle(bundle_path: str | Path, out_dir: str | Path | None = None,
-               options: CalibrationOptions = CalibrationOptions(),
-               progress: Progress | None = None, plots: bool = True
-               ) -> tuple[CalibrationRun, list[Path]]:  # fmt: skip
+def run_bundle(
+    bundle_path: str | Path,
+    out_dir: str | Path | None = None,
+    options: CalibrationOptions = CalibrationOptions(),
+    progress: Progress | None = None,
+    plots: bool = True,
+) -> tuple[CalibrationRun, list[Path]]:
     """What ``mls calib run`` does: calibrate a bundle and write its outputs into ``out_dir``
     (default ``BUNDLE/calib``)."""
     run = calibrate_bundle(bundle_path, options, progress)

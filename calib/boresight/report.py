@@ -22,10 +22,10 @@ from pathlib import Path
 
 import numpy as np
 
-from calib.core import frames
 from calib.boresight.observability import ANGLE_NAMES, OBSERVING_PAIRS, sailed_headings
-from calib.core.georef import Mount, georeference_poses
 from calib.boresight.result import OFFSET_COMPONENTS
+from calib.core import frames
+from calib.core.georef import Mount, georeference_poses
 from calib.core.trajectory import Poses
 
 PLOT_DPI = 110
@@ -69,8 +69,13 @@ def edge_on(run) -> dict[str, dict]:
     used = _used(run)
     poses = _poses(obs)
     st = res.state
-    after_mount = Mount(st.lever_arm_m, run.mount_apriori.nominal_rad, st.boresight_rad,
-                        st.range_offset_m, st.scan_angle_offset_rad)  # fmt: skip
+    after_mount = Mount(
+        st.lever_arm_m,
+        run.mount_apriori.nominal_rad,
+        st.boresight_rad,
+        st.range_offset_m,
+        st.scan_angle_offset_rad,
+    )
     p0 = georeference_poses(poses, obs.l[:, 6], obs.l[:, 7], run.mount_apriori)[used]
     p1 = georeference_poses(poses, obs.l[:, 6], obs.l[:, 7], after_mount)[used]
     plane_index, pass_index = obs.plane_index[used], obs.pass_index[used]
@@ -83,9 +88,13 @@ def edge_on(run) -> dict[str, dict]:
         horiz = horiz / np.linalg.norm(horiz) if np.linalg.norm(horiz) > 1e-6 else np.eye(3)[0]
         q0, q1 = p0[m], p1[m]
         centre = q1.mean(axis=0)
-        out[name] = {"along_before_m": (q0 - centre) @ horiz, "before_m": q0 @ n0 + d0,
-                     "along_after_m": (q1 - centre) @ horiz, "after_m": res.residual_m[m],
-                     "pass_index": pass_index[m]}  # fmt: skip
+        out[name] = {
+            "along_before_m": (q0 - centre) @ horiz,
+            "before_m": q0 @ n0 + d0,
+            "along_after_m": (q1 - centre) @ horiz,
+            "after_m": res.residual_m[m],
+            "pass_index": pass_index[m],
+        }
     return out
 
 
@@ -100,8 +109,9 @@ def _figure(n_panels: int, width_in: float = 4.2, height_in: float = 3.0):
     w, h = width_in * cols, height_in * rows + 0.4
     fig = Figure(figsize=(w, h))
     # fixed margins (in inches): a constrained layout would cost a second per figure
-    fig.subplots_adjust(left=0.75 / w, right=1 - 0.2 / w, bottom=0.55 / h, top=1 - 0.75 / h,
-                        wspace=0.35, hspace=0.55)  # fmt: skip
+    fig.subplots_adjust(
+        left=0.75 / w, right=1 - 0.2 / w, bottom=0.55 / h, top=1 - 0.75 / h, wspace=0.35, hspace=0.55
+    )
     axes = np.atleast_1d(fig.subplots(rows, cols, squeeze=False).ravel())
     for ax in axes[n_panels:]:
         ax.set_visible(False)
@@ -117,8 +127,13 @@ def _histograms(values_mm: list[np.ndarray], titles: list[str], path: Path, supt
             ax.stairs(dens, edges, fill=True, color="tab:blue", alpha=0.75)  # one artist: fast
             if std > 0:
                 x = np.linspace(v.min(), v.max(), 200)
-                ax.plot(x, np.exp(-0.5 * ((x - mean) / std) ** 2) / (std * np.sqrt(2 * np.pi)),
-                        "k-", lw=1, label=f"mean {mean:+.2f}, σ {std:.2f} mm")  # fmt: skip
+                ax.plot(
+                    x,
+                    np.exp(-0.5 * ((x - mean) / std) ** 2) / (std * np.sqrt(2 * np.pi)),
+                    "k-",
+                    lw=1,
+                    label=f"mean {mean:+.2f}, σ {std:.2f} mm",
+                )
                 ax.legend(fontsize=8)
         ax.set_title(f"{title} ({v.size} points)", fontsize=10)
         ax.set_xlabel("residual (mm)")
@@ -141,13 +156,19 @@ def write_plots(run, out_dir: Path) -> list[Path]:
     plane_index, pass_index = obs.plane_index[used], obs.pass_index[used]
     t = obs.t_gps_s[used]
     paths = [
-        _histograms([r_mm[plane_index == j] for j in range(len(obs.plane_names))],
-                    list(obs.plane_names), out_dir / "residuals_by_plane.png",
-                    "Residuals per target (distance to the adjusted plane)"),
-        _histograms([r_mm[pass_index == k] for k in range(len(obs.pass_ids))],
-                    [f"pass {p}" for p in obs.pass_ids], out_dir / "residuals_by_pass.png",
-                    "Residuals per pass"),
-    ]  # fmt: skip
+        _histograms(
+            [r_mm[plane_index == j] for j in range(len(obs.plane_names))],
+            list(obs.plane_names),
+            out_dir / "residuals_by_plane.png",
+            "Residuals per target (distance to the adjusted plane)",
+        ),
+        _histograms(
+            [r_mm[pass_index == k] for k in range(len(obs.pass_ids))],
+            [f"pass {p}" for p in obs.pass_ids],
+            out_dir / "residuals_by_pass.png",
+            "Residuals per pass",
+        ),
+    ]
     # along time, one panel per pass (passes last seconds, the gaps between them minutes),
     # one colour per target: a drift within a pass is the POS error the formal σ ignores
     colours = _pass_colours(max(len(obs.pass_ids), len(obs.plane_names)))
@@ -169,12 +190,20 @@ def write_plots(run, out_dir: Path) -> list[Path]:
     colours = _pass_colours(len(obs.pass_ids))
     for name, e in edge_on(run).items():
         fig, axes = _figure(2, 5.0, 3.4)
-        for ax, key, title in ((axes[0], "before", "before: a-priori boresight"),
-                               (axes[1], "after", "after: estimated boresight")):  # fmt: skip
+        for ax, key, title in (
+            (axes[0], "before", "before: a-priori boresight"),
+            (axes[1], "after", "after: estimated boresight"),
+        ):
             for k, pid in enumerate(obs.pass_ids):
                 m = e["pass_index"] == k
-                ax.plot(e[f"along_{key}_m"][m], e[f"{key}_m"][m] * 1e3, ".", ms=2,
-                        color=colours[k], label=f"pass {pid}")  # fmt: skip
+                ax.plot(
+                    e[f"along_{key}_m"][m],
+                    e[f"{key}_m"][m] * 1e3,
+                    ".",
+                    ms=2,
+                    color=colours[k],
+                    label=f"pass {pid}",
+                )
             ax.set_title(title, fontsize=10)
             ax.set_xlabel("along the target (m)")
             ax.set_ylabel("distance to the plane (mm)")
@@ -192,18 +221,24 @@ def write_plots(run, out_dir: Path) -> list[Path]:
 def _chi2_sentence(res) -> str:
     c = res.chi2_test()
     s0 = res.sigma0_squared
-    head = (f"σ̂0² = {s0:.3f} with {c['df']} degrees of freedom; the two-sided χ² test at 5 % "
-            f"accepts [{c['lower']:.3f}, {c['upper']:.3f}]: ")  # fmt: skip
+    head = (
+        f"σ̂0² = {s0:.3f} with {c['df']} degrees of freedom; the two-sided χ² test at 5 % "
+        f"accepts [{c['lower']:.3f}, {c['upper']:.3f}]: "
+    )
     if c["passed"]:
         return head + "**passed** — the observation sigmas agree with the residuals."
     if s0 > c["upper"]:
-        return head + (f"**failed (high)** — the residuals are {np.sqrt(s0):.2f}× larger than "
-                       f"the sigmas say: the sigmas are optimistic, or something is not "
-                       f"modelled (range offset, lever arm, latency, a poor extraction). The "
-                       f"scaled σ accounts for it.")  # fmt: skip
-    return head + (f"**failed (low)** — the residuals are {np.sqrt(s0):.2f}× the sigmas: the "
-                   f"sigmas are pessimistic (or the POS errors are correlated in time, which "
-                   f"within a pass the residuals do not show).")  # fmt: skip
+        return head + (
+            f"**failed (high)** — the residuals are {np.sqrt(s0):.2f}× larger than "
+            f"the sigmas say: the sigmas are optimistic, or something is not "
+            f"modelled (range offset, lever arm, latency, a poor extraction). The "
+            f"scaled σ accounts for it."
+        )
+    return head + (
+        f"**failed (low)** — the residuals are {np.sqrt(s0):.2f}× the sigmas: the "
+        f"sigmas are pessimistic (or the POS errors are correlated in time, which "
+        f"within a pass the residuals do not show)."
+    )
 
 
 def _observability(run) -> list[str]:
@@ -211,26 +246,34 @@ def _observability(run) -> list[str]:
     sailed = sailed_headings(obs)
     lines = []
     headings = ", ".join(
-        f"{pid} ({round(np.degrees(obs.pass_headings_rad[pid])) % 360}°)" for pid in obs.pass_ids
-        if pid in obs.pass_headings_rad)  # fmt: skip
+        f"{pid} ({round(np.degrees(obs.pass_headings_rad[pid])) % 360}°)"
+        for pid in obs.pass_ids
+        if pid in obs.pass_headings_rad
+    )
     lines.append(f"Passes and their headings relative to the wall: {headings}.")
     for i, angle in enumerate(ANGLE_NAMES):
         label, pairs = OBSERVING_PAIRS[i]
         have = [f"{a}°/{b}°" for a, b in pairs if a in sailed and b in sailed]
-        lines.append(f"- {angle}: observed best by {label}; "
-                     + (f"sailed: {', '.join(have)}." if have else "**none sailed**."))  # fmt: skip
+        lines.append(
+            f"- {angle}: observed best by {label}; "
+            + (f"sailed: {', '.join(have)}." if have else "**none sailed**.")
+        )
     corr = res.correlation
     for i in range(3):
         for j in range(i + 1, 3):
             if abs(corr[i, j]) > 0.7:
-                lines.append(f"- {ANGLE_NAMES[i]} and {ANGLE_NAMES[j]} are strongly correlated "
-                             f"(ρ = {corr[i, j]:+.2f}): the targets and passes do not separate "
-                             f"them well.")  # fmt: skip
+                lines.append(
+                    f"- {ANGLE_NAMES[i]} and {ANGLE_NAMES[j]} are strongly correlated "
+                    f"(ρ = {corr[i, j]:+.2f}): the targets and passes do not separate "
+                    f"them well."
+                )
     if len(obs.plane_names) <= 2 and int(np.argmax(res.sigma_realistic_rad)) == 1:
-        lines.append("- pitch is the weakest angle here: with the targets at one range and "
-                     "height, an along-track POS position error (or lever-arm x error) looks "
-                     "like a pitch rotation. A third target at another range or height (the "
-                     "design study) separates them.")  # fmt: skip
+        lines.append(
+            "- pitch is the weakest angle here: with the targets at one range and "
+            "height, an along-track POS position error (or lever-arm x error) looks "
+            "like a pitch rotation. A third target at another range or height (the "
+            "design study) separates them."
+        )
     return lines
 
 
@@ -238,27 +281,40 @@ def extras_table(extras: dict) -> list[str]:
     """The extra unknowns of result.json's ``extras`` as a table: value, formal and realistic
     σ, and the correlation with each boresight angle; a pass offset gets a row per component
     (north, east, down)."""
-    L = ["| unknown | value | σ formal | σ realistic | ρ roll | ρ pitch | ρ yaw |",
-         "|---|---:|---:|---:|---:|---:|---:|"]  # fmt: skip
+    L = [
+        "| unknown | value | σ formal | σ realistic | ρ roll | ρ pitch | ρ yaw |",
+        "|---|---:|---:|---:|---:|---:|---:|",
+    ]
 
     def row(label, value, sigma, sigma_real, c):
-        return (f"| {label} | {value:+.6g} | {sigma:.3g} | **{_sig(sigma_real)}** | "
-                f"{c['roll']:+.2f} | {c['pitch']:+.2f} | {c['yaw']:+.2f} |")  # fmt: skip
+        return (
+            f"| {label} | {value:+.6g} | {sigma:.3g} | **{_sig(sigma_real)}** | "
+            f"{c['roll']:+.2f} | {c['pitch']:+.2f} | {c['yaw']:+.2f} |"
+        )
 
     for name, e in extras.items():
         real = e.get("sigma_realistic")
         c = e["correlation_with_boresight"]
         if isinstance(e["value"], list):  # pass<id>_offset_m: north, east, down
             for k, comp in enumerate(OFFSET_COMPONENTS):
-                L.append(row(f"{name} {comp}", e["value"][k], e["sigma"][k],
-                             None if real is None else real[k], c[comp]))  # fmt: skip
+                L.append(
+                    row(
+                        f"{name} {comp}",
+                        e["value"][k],
+                        e["sigma"][k],
+                        None if real is None else real[k],
+                        c[comp],
+                    )
+                )
         else:
             L.append(row(name, e["value"], e["sigma"], real, c))
     L.append("")
-    L.append("ρ: correlation with the boresight angle (formal covariance); |ρ| near 1 means the "
-             "unknown and that angle trade against each other. Judge whether an unknown "
-             "differs from zero by its realistic σ: the formal σ is as optimistic for it as "
-             "for the boresight when POS errors are correlated in time.")  # fmt: skip
+    L.append(
+        "ρ: correlation with the boresight angle (formal covariance); |ρ| near 1 means the "
+        "unknown and that angle trade against each other. Judge whether an unknown "
+        "differs from zero by its realistic σ: the formal σ is as optimistic for it as "
+        "for the boresight when POS errors are correlated in time."
+    )
     return L
 
 
@@ -277,62 +333,84 @@ def report_markdown(run, plot_names: list[str] | None = None) -> str:
     L.append(f"# Boresight calibration — {site.vessel}")
     L.append("")
     L.append(f"- Bundle: `{run.source}`")
-    L.append(f"- Survey: {when}; {len(obs.pass_ids)} passes, {len(obs.plane_names)} targets "
-             f"({', '.join(obs.plane_names)})")  # fmt: skip
-    L.append(f"- Software: {doc['software_version']}; adjustment {res.runtime_s:.2f} s, whole "
-             f"run {run.timings_s.get('total_s', float('nan')):.2f} s")  # fmt: skip
+    L.append(
+        f"- Survey: {when}; {len(obs.pass_ids)} passes, {len(obs.plane_names)} targets "
+        f"({', '.join(obs.plane_names)})"
+    )
+    L.append(
+        f"- Software: {doc['software_version']}; adjustment {res.runtime_s:.2f} s, whole "
+        f"run {run.timings_s.get('total_s', float('nan')):.2f} s"
+    )
     ap = np.degrees(run.mount_apriori.boresight_rad)
-    L.append(f"- A-priori boresight (canonical): roll {ap[0]:.4f}°, pitch {ap[1]:.4f}°, "
-             f"yaw {ap[2]:.4f}°")  # fmt: skip
+    L.append(f"- A-priori boresight (canonical): roll {ap[0]:.4f}°, pitch {ap[1]:.4f}°, yaw {ap[2]:.4f}°")
     L.append("")
     L.append("## Boresight")
     L.append("")
-    L.append("Canonical convention (docs/architecture.md §3: rotations about the body's forward, starboard "
-             "and down axes); the thesis convention negates pitch.")  # fmt: skip
+    L.append(
+        "Canonical convention (docs/architecture.md §3: rotations about the body's forward, starboard "
+        "and down axes); the thesis convention negates pitch."
+    )
     L.append("")
-    L.append("| angle | estimate (°) | thesis conv. (°) | σ formal (°) | σ scaled (°) | "
-             "σ realistic (°) | σ jackknife (°) | realistic / formal |")  # fmt: skip
+    L.append(
+        "| angle | estimate (°) | thesis conv. (°) | σ formal (°) | σ scaled (°) | "
+        "σ realistic (°) | σ jackknife (°) | realistic / formal |"
+    )
     L.append("|---|---:|---:|---:|---:|---:|---:|---:|")
     for i, a in enumerate(ANGLE_NAMES):
-        L.append(f"| {a} | {_fmt(_deg(res.boresight_rad[i]))} | {_fmt(_deg(thesis[i]))} | "
-                 f"{_sig(_deg(formal[i]))} | {_sig(_deg(scaled[i]))} | "
-                 f"**{_sig(_deg(real[i]))}** | "
-                 f"{_sig(_deg(jack[i])) if jack is not None else '—'} | {ratio[i]:.1f} |")  # fmt: skip
+        L.append(
+            f"| {a} | {_fmt(_deg(res.boresight_rad[i]))} | {_fmt(_deg(thesis[i]))} | "
+            f"{_sig(_deg(formal[i]))} | {_sig(_deg(scaled[i]))} | "
+            f"**{_sig(_deg(real[i]))}** | "
+            f"{_sig(_deg(jack[i])) if jack is not None else '—'} | {ratio[i]:.1f} |"
+        )
     L.append("")
     if em.kind == "gauss_markov":
         tau = em.correlation_time_s
-        tau_s = f"{tau:g} s" if isinstance(tau, float) else \
-            "/".join(f"{x:g}" for x in tau) + " s (N/E/D/roll/pitch/heading)"  # fmt: skip
-        model = (f"first-order Gauss–Markov POS errors with correlation time {tau_s} "
-                 f"(from {doc.get('realistic_correlation_time_source', 'the caller')})")
+        tau_s = (
+            f"{tau:g} s"
+            if isinstance(tau, float)
+            else "/".join(f"{x:g}" for x in tau) + " s (N/E/D/roll/pitch/heading)"
+        )
+        model = (
+            f"first-order Gauss–Markov POS errors with correlation time {tau_s} "
+            f"(from {doc.get('realistic_correlation_time_source', 'the caller')})"
+        )
     elif em.kind == "pass_bias":
         model = "POS errors constant within each pass and independent between passes"
     else:
         model = "independent POS errors per point (the formal model itself)"
     if em.kind == "white":
-        L.append("**Use the realistic σ** — here it equals the formal σ, because the white "
-                 "error model was chosen: POS errors correlated in time would make it "
-                 "optimistic.")  # fmt: skip
+        L.append(
+            "**Use the realistic σ** — here it equals the formal σ, because the white "
+            "error model was chosen: POS errors correlated in time would make it "
+            "optimistic."
+        )
     else:
-        L.append(f"**Use the realistic σ.** The formal σ (σ0 = 1) assumes every point's POS "
-                 f"error is independent; it is optimistic by a factor of {ratio[0]:.1f} for "
-                 f"roll, {ratio[1]:.1f} for pitch and {ratio[2]:.1f} for yaw (realistic / "
-                 f"formal). The realistic σ propagates {model} through the estimator: within "
-                 f"a pass such errors act almost as a bias, which more points do not average "
-                 f"out.")  # fmt: skip
+        L.append(
+            f"**Use the realistic σ.** The formal σ (σ0 = 1) assumes every point's POS "
+            f"error is independent; it is optimistic by a factor of {ratio[0]:.1f} for "
+            f"roll, {ratio[1]:.1f} for pitch and {ratio[2]:.1f} for yaw (realistic / "
+            f"formal). The realistic σ propagates {model} through the estimator: within "
+            f"a pass such errors act almost as a bias, which more points do not average "
+            f"out."
+        )
     if jack is not None:
         L.append("")
-        L.append("The delete-one-pass jackknife σ is an empirical check from the spread of the "
-                 "estimates without each pass (few passes: itself uncertain by ±30–50 %).")  # fmt: skip
+        L.append(
+            "The delete-one-pass jackknife σ is an empirical check from the spread of the "
+            "estimates without each pass (few passes: itself uncertain by ±30–50 %)."
+        )
     L.append("")
     L.append(_chi2_sentence(res))
     L.append("")
     conv = "converged" if res.converged else "**did not converge**"
     opts = run.options
-    L.append(f"The adjustment {conv} in {res.iterations} iterations (steps below "
-             f"{opts.tol_angle_rad:g} rad and {opts.tol_m * 1e3:g} mm, or below "
-             f"{opts.rel_tol:g} of each unknown's σ; {len(obs)} observations, "
-             f"{res.n_points} kept).")  # fmt: skip
+    L.append(
+        f"The adjustment {conv} in {res.iterations} iterations (steps below "
+        f"{opts.tol_angle_rad:g} rad and {opts.tol_m * 1e3:g} mm, or below "
+        f"{opts.rel_tol:g} of each unknown's σ; {len(obs)} observations, "
+        f"{res.n_points} kept)."
+    )
     L.append("")
     L.append("## Correlations")
     L.append("")
@@ -356,26 +434,36 @@ def report_markdown(run, plot_names: list[str] | None = None) -> str:
     L.append("|---|---:|---:|---|---:|")
     for p in res.plane_stats:
         n = ", ".join(f"{x:+.4f}" for x in p["normal"])
-        L.append(f"| {p['name']} | {p['n_points']} | {p['rms_m'] * 1e3:.2f} | {n} | "
-                 f"{p['d']:.4f} |")  # fmt: skip
+        L.append(f"| {p['name']} | {p['n_points']} | {p['rms_m'] * 1e3:.2f} | {n} | {p['d']:.4f} |")
     L.append("")
     L.append("## Passes")
     L.append("")
     counts = run.extraction.counts()
     names = run.extraction.target_names
-    L.append("| pass | heading vs wall (°) | " + " | ".join(f"{n} extracted" for n in names)
-             + " | kept | RMS (mm) |")  # fmt: skip
+    L.append(
+        "| pass | heading vs wall (°) | "
+        + " | ".join(f"{n} extracted" for n in names)
+        + " | kept | RMS (mm) |"
+    )
     L.append("|---:|---:|" + "---:|" * len(names) + "---:|---:|")
     for p in res.pass_stats:
         h = "—" if p["heading_deg"] is None else f"{p['heading_deg']:.1f}"
         row = counts.get(p["id"], {})
-        L.append(f"| {p['id']} | {h} | " + " | ".join(str(row.get(n, 0)) for n in names)
-                 + f" | {p['n_points']} | {p['rms_m'] * 1e3:.2f} |")  # fmt: skip
+        L.append(
+            f"| {p['id']} | {h} | "
+            + " | ".join(str(row.get(n, 0)) for n in names)
+            + f" | {p['n_points']} | {p['rms_m'] * 1e3:.2f} |"
+        )
     ex = doc.get("extraction", {})
     L.append("")
-    L.append(f"Extraction: {ex.get('mode', '?')}; "
-             + (f"voxel subsampling {ex['subsample_m']:g} m (one point per voxel, the "
-                f"nearest its centre)." if ex.get("subsample_m") else "no subsampling."))  # fmt: skip
+    L.append(
+        f"Extraction: {ex.get('mode', '?')}; "
+        + (
+            f"voxel subsampling {ex['subsample_m']:g} m (one point per voxel, the nearest its centre)."
+            if ex.get("subsample_m")
+            else "no subsampling."
+        )
+    )
     L.append("")
     L.append("## Outliers")
     L.append("")
@@ -383,8 +471,10 @@ def report_markdown(run, plot_names: list[str] | None = None) -> str:
     if n_out:
         ids = ", ".join(str(int(i)) for i in res.outlier_point_ids[:50])
         more = f" … and {n_out - 50} more" if n_out > 50 else ""
-        L.append(f"{n_out} point(s) failed the data-snooping test on normalized residuals and "
-                 f"were removed (0-based data rows of points.csv): {ids}{more}.")  # fmt: skip
+        L.append(
+            f"{n_out} point(s) failed the data-snooping test on normalized residuals and "
+            f"were removed (0-based data rows of points.csv): {ids}{more}."
+        )
     else:
         L.append("No point failed the data-snooping test on normalized residuals.")
     if run.warnings or run.notes:

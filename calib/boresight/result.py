@@ -43,8 +43,9 @@ def _angles_deg(v_rad) -> dict:
     return {name: float(np.degrees(x)) for name, x in zip(ANGLE_NAMES, v_rad)}
 
 
-def result_to_dict(res: AdjustmentResult, apriori_rad, software_version: str,
-                   extra: dict | None = None) -> dict:  # fmt: skip
+def result_to_dict(
+    res: AdjustmentResult, apriori_rad, software_version: str, extra: dict | None = None
+) -> dict:
     """The result.json document for an adjustment result."""
     thesis = boresight_to_thesis(*res.boresight_rad)
     d = {
@@ -53,15 +54,18 @@ def result_to_dict(res: AdjustmentResult, apriori_rad, software_version: str,
         "sigma_deg": _angles_deg(res.sigma_formal_rad),
         "sigma_scaled_deg": _angles_deg(res.sigma_scaled_rad),
         "sigma_realistic_deg": _angles_deg(res.sigma_realistic_rad),
-        "sigma_jackknife_deg": None if res.cov_jackknife is None
+        "sigma_jackknife_deg": None
+        if res.cov_jackknife is None
         else _angles_deg(np.sqrt(np.diag(res.cov_jackknife))),
         "realistic_error_model": {
             "kind": res.error_model.kind,
             "correlation_time_s": (
-                res.error_model.correlation_time_s if isinstance(
-                    res.error_model.correlation_time_s, float)
-                else list(res.error_model.correlation_time_s))
-            if res.error_model.kind == "gauss_markov" else None,
+                res.error_model.correlation_time_s
+                if isinstance(res.error_model.correlation_time_s, float)
+                else list(res.error_model.correlation_time_s)
+            )
+            if res.error_model.kind == "gauss_markov"
+            else None,
         },
         "correlation": [[float(x) for x in row] for row in res.correlation],
         "sigma0_squared": float(res.sigma0_squared),
@@ -91,14 +95,20 @@ def _extras(res: AdjustmentResult) -> dict:
     for name, e in res.extras.items():
         if name in _EXTRA_UNITS:
             key, scale = _EXTRA_UNITS[name]
-            out[key] = {"value": e["value"] * scale, "sigma": e["sigma"] * scale,
-                        "sigma_realistic": e["sigma_realistic"] * scale,
-                        "correlation_with_boresight": dict(zip(
-                            ANGLE_NAMES, e["correlation_with_boresight"]))}  # fmt: skip
+            out[key] = {
+                "value": e["value"] * scale,
+                "sigma": e["sigma"] * scale,
+                "sigma_realistic": e["sigma_realistic"] * scale,
+                "correlation_with_boresight": dict(zip(ANGLE_NAMES, e["correlation_with_boresight"])),
+            }
         else:  # pass<id>_offset_m: metres already, one correlation row per component
-            out[name] = {**e, "correlation_with_boresight": {
-                c: dict(zip(ANGLE_NAMES, row))
-                for c, row in zip(OFFSET_COMPONENTS, e["correlation_with_boresight"])}}  # fmt: skip
+            out[name] = {
+                **e,
+                "correlation_with_boresight": {
+                    c: dict(zip(ANGLE_NAMES, row))
+                    for c, row in zip(OFFSET_COMPONENTS, e["correlation_with_boresight"])
+                },
+            }
     return out
 
 

@@ -304,7 +304,7 @@ class LocalFrame:
         return ecef_to_geodetic(p @ self.r_ecef_to_ned + self.origin_ecef_m)
 
     @classmethod
-    def at_mean(cls, lat_deg, lon_deg, height_m) -> "LocalFrame":
+    def at_mean(cls, lat_deg, lon_deg, height_m) -> LocalFrame:
         """The thesis's default reference: the mean of the trajectory's coordinates."""
         return cls(float(np.mean(lat_deg)), float(np.mean(lon_deg)), float(np.mean(height_m)))
 
@@ -322,7 +322,7 @@ def utm_epsg(lat_deg: float, lon_deg: float) -> int:
 # GPS time.
 # ---------------------------------------------------------------------------------------------
 
-GPS_EPOCH = _dt.datetime(1980, 1, 6, tzinfo=_dt.timezone.utc)
+GPS_EPOCH = _dt.datetime(1980, 1, 6, tzinfo=_dt.UTC)
 NS_PER_S = 1_000_000_000
 SECONDS_PER_WEEK = 604_800
 #: LAS "adjusted standard GPS time" is GPS seconds minus this offset.
@@ -331,17 +331,31 @@ LAS_GPS_OFFSET_S = 1e9
 #: UTC instants at which GPS − UTC increased by one second (IERS bulletin C); GPS − UTC was 0 at
 #: the GPS epoch. After 2016-12-31 no leap second has been inserted up to the date of this table.
 _LEAP_UTC = [
-    _dt.datetime(y, m, 1, tzinfo=_dt.timezone.utc)
+    _dt.datetime(y, m, 1, tzinfo=_dt.UTC)
     for y, m in [
-        (1981, 7), (1982, 7), (1983, 7), (1985, 7), (1988, 1), (1990, 1), (1991, 1), (1992, 7),
-        (1993, 7), (1994, 7), (1996, 1), (1997, 7), (1999, 1), (2006, 1), (2009, 1), (2012, 7),
-        (2015, 7), (2017, 1),
+        (1981, 7),
+        (1982, 7),
+        (1983, 7),
+        (1985, 7),
+        (1988, 1),
+        (1990, 1),
+        (1991, 1),
+        (1992, 7),
+        (1993, 7),
+        (1994, 7),
+        (1996, 1),
+        (1997, 7),
+        (1999, 1),
+        (2006, 1),
+        (2009, 1),
+        (2012, 7),
+        (2015, 7),
+        (2017, 1),
     ]
-]  # fmt: skip
+]
 #: The same instants on the GPS time scale, in ns since the GPS epoch.
 _LEAP_GPS_NS = [
-    int((t - GPS_EPOCH).total_seconds()) * NS_PER_S + (i + 1) * NS_PER_S
-    for i, t in enumerate(_LEAP_UTC)
+    int((t - GPS_EPOCH).total_seconds()) * NS_PER_S + (i + 1) * NS_PER_S for i, t in enumerate(_LEAP_UTC)
 ]
 
 
@@ -358,7 +372,7 @@ def leap_seconds_at_gps_ns(gps_ns: int) -> int:
 def _as_utc(d: _dt.datetime) -> _dt.datetime:
     if d.tzinfo is None:
         raise ValueError(f"naive datetime {d!r}: give an explicit UTC timezone")
-    return d.astimezone(_dt.timezone.utc)
+    return d.astimezone(_dt.UTC)
 
 
 def utc_to_gps_ns(utc: _dt.datetime, extra_ns: int = 0) -> int:
@@ -371,7 +385,7 @@ def utc_to_gps_ns(utc: _dt.datetime, extra_ns: int = 0) -> int:
 
 def utc_fields_to_gps_ns(year: int, month: int, day: int, seconds_of_day_ns: int) -> int:
     """UTC date + nanoseconds of the day → GPS ns (what NMEA ZDA/TIME__ and STDBIN UTC give)."""
-    midnight = _dt.datetime(year, month, day, tzinfo=_dt.timezone.utc)
+    midnight = _dt.datetime(year, month, day, tzinfo=_dt.UTC)
     return utc_to_gps_ns(midnight, int(seconds_of_day_ns))
 
 

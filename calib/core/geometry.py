@@ -39,13 +39,14 @@ class Rectangle:
         inclination_rad: float,
         facing_azimuth_rad: float,
         reflectivity: float = 0.9,
-    ) -> "Rectangle":
+    ) -> Rectangle:
         i, az = float(inclination_rad), float(facing_azimuth_rad)
         n = np.array([np.sin(i) * np.cos(az), np.sin(i) * np.sin(az), -np.cos(i)])
         u = np.array([-np.sin(az), np.cos(az), 0.0])
         v = np.cross(u, n)
-        return cls(name, np.asarray(center_m, float), n, u, v, float(width_m), float(height_m),
-                   float(reflectivity))  # fmt: skip
+        return cls(
+            name, np.asarray(center_m, float), n, u, v, float(width_m), float(height_m), float(reflectivity)
+        )
 
     @property
     def d(self) -> float:
@@ -77,10 +78,17 @@ class Rectangle:
             np.abs(uv[:, 1]) <= 0.5 * self.height_m + margin_m
         )
 
-    def translated(self, offset_m) -> "Rectangle":
-        return Rectangle(self.name, self.center_m + np.asarray(offset_m, float), self.normal,
-                         self.u_axis, self.v_axis, self.width_m, self.height_m,
-                         self.reflectivity)  # fmt: skip
+    def translated(self, offset_m) -> Rectangle:
+        return Rectangle(
+            self.name,
+            self.center_m + np.asarray(offset_m, float),
+            self.normal,
+            self.u_axis,
+            self.v_axis,
+            self.width_m,
+            self.height_m,
+            self.reflectivity,
+        )
 
 
 @dataclass(frozen=True)

@@ -53,7 +53,7 @@ class Mount:
         """``R_S^b = R_bs · R_nom``."""
         return frames.mount_matrix(self.boresight_rad, self.nominal_rad)
 
-    def with_boresight(self, boresight_rad) -> "Mount":
+    def with_boresight(self, boresight_rad) -> Mount:
         return replace(self, boresight_rad=np.asarray(boresight_rad, dtype=float))
 
 
@@ -105,10 +105,13 @@ def _interval_tables(traj: Trajectory, mount: Mount) -> _Tables:
         np.diff(traj.p_lgf_m, axis=0),  # w
         RK @ lever,  # s
         RKK @ lever,  # c
-        R @ m2, R @ m3,  # e1, e2
-        RK @ m2, RK @ m3,  # s·e1, s·e2
-        RKK @ m2, RKK @ m3,  # c·e1, c·e2
-    ]  # fmt: skip
+        R @ m2,
+        R @ m3,  # e1, e2
+        RK @ m2,
+        RK @ m3,  # s·e1, s·e2
+        RKK @ m2,
+        RKK @ m3,  # c·e1, c·e2
+    ]
     return _Tables(t[:-1], 1.0 / np.diff(t), theta, np.stack(columns, axis=-1))
 
 

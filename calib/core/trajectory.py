@@ -58,17 +58,13 @@ class Trajectory:
                 continue
             v = np.asarray(v, dtype=float)
             if v.shape != (t.size, 3):
-                raise TrajectoryError(
-                    f"{self.name}: {attr} has shape {v.shape}, expected ({t.size}, 3)"
-                )
+                raise TrajectoryError(f"{self.name}: {attr} has shape {v.shape}, expected ({t.size}, 3)")
             object.__setattr__(self, attr, v)
         if t.ndim != 1 or t.size < 2:
             raise TrajectoryError(f"{self.name}: needs at least 2 epochs, got {t.size}")
         bad = ~np.isfinite(t)
         if bad.any():
-            raise TrajectoryError(
-                f"{self.name}: non-finite time at epoch {int(np.argmax(bad))}"
-            )
+            raise TrajectoryError(f"{self.name}: non-finite time at epoch {int(np.argmax(bad))}")
         steps = np.diff(t)
         if np.any(steps <= 0):
             i = int(np.argmax(steps <= 0))
@@ -94,7 +90,7 @@ class Trajectory:
         rpy_rad,
         frame: frames.LocalFrame | None = None,
         **kwargs,
-    ) -> "Trajectory":
+    ) -> Trajectory:
         """Build from geodetic positions; the LGF reference defaults to the mean position."""
         if frame is None:
             frame = frames.LocalFrame.at_mean(lat_deg, lon_deg, height_m)
@@ -105,24 +101,35 @@ class Trajectory:
         """(lat_deg, lon_deg, height_m) of every epoch."""
         return self.frame.to_geodetic(self.p_lgf_m)
 
-    def with_frame(self, frame: frames.LocalFrame) -> "Trajectory":
+    def with_frame(self, frame: frames.LocalFrame) -> Trajectory:
         """The same trajectory expressed in another LGF (attitude is kept: the frames are
         assumed close enough that the tangent-plane rotation between them is negligible)."""
         if frame == self.frame:
             return self
         lat, lon, h = self.geodetic()
         return Trajectory(
-            self.t_gps_s, frame.to_lgf(lat, lon, h), self.rpy_rad, frame,
-            self.sigma_p_m, self.sigma_rpy_rad, self.max_gap_s, self.name,
-        )  # fmt: skip
+            self.t_gps_s,
+            frame.to_lgf(lat, lon, h),
+            self.rpy_rad,
+            frame,
+            self.sigma_p_m,
+            self.sigma_rpy_rad,
+            self.max_gap_s,
+            self.name,
+        )
 
-    def select(self, mask_or_slice) -> "Trajectory":
+    def select(self, mask_or_slice) -> Trajectory:
         sel = lambda a: None if a is None else a[mask_or_slice]  # noqa: E731
         return Trajectory(
-            self.t_gps_s[mask_or_slice], self.p_lgf_m[mask_or_slice],
-            self.rpy_rad[mask_or_slice], self.frame, sel(self.sigma_p_m),
-            sel(self.sigma_rpy_rad), self.max_gap_s, self.name,
-        )  # fmt: skip
+            self.t_gps_s[mask_or_slice],
+            self.p_lgf_m[mask_or_slice],
+            self.rpy_rad[mask_or_slice],
+            self.frame,
+            sel(self.sigma_p_m),
+            sel(self.sigma_rpy_rad),
+            self.max_gap_s,
+            self.name,
+        )
 
     @property
     def has_sigmas(self) -> bool:
@@ -160,8 +167,7 @@ class Trajectory:
         bad = ~np.isfinite(t) | (t < tt[0]) | (t > tt[-1])
         gaps = np.diff(tt) > self.max_gap_s
         if gaps.any():
-            k = np.clip(np.searchsorted(tt, np.where(bad, tt[0], t), side="right") - 1,
-                        0, tt.size - 2)  # fmt: skip
+            k = np.clip(np.searchsorted(tt, np.where(bad, tt[0], t), side="right") - 1, 0, tt.size - 2)
             bad |= gaps[k] & (t != tt[k]) & (t != tt[k + 1])  # a gap's end samples are fine
         return bad
 

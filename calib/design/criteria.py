@@ -31,8 +31,16 @@ from calib.sim.scenario import InjectedErrors
 from calib.sim.simulate import SimResult
 
 #: The eight systematic errors of the thesis (Table 3.2, Appendix C), in its order.
-SYSTEMATIC_ERRORS = ("boresight_roll", "boresight_pitch", "boresight_yaw", "lever_arm_x",
-                     "lever_arm_y", "lever_arm_z", "range_offset", "scan_angle_offset")  # fmt: skip
+SYSTEMATIC_ERRORS = (
+    "boresight_roll",
+    "boresight_pitch",
+    "boresight_yaw",
+    "lever_arm_x",
+    "lever_arm_y",
+    "lever_arm_z",
+    "range_offset",
+    "scan_angle_offset",
+)
 ANGULAR_ERRORS = ("boresight_roll", "boresight_pitch", "boresight_yaw", "scan_angle_offset")
 
 #: Below these pass-to-pass spreads (between the passes with a usable copy) an error is invisible.
@@ -70,8 +78,9 @@ def is_angular(error: str) -> bool:
 
 def _check(error: str) -> None:
     if error not in SYSTEMATIC_ERRORS:
-        raise CriteriaError(f"unknown systematic error {error!r}; expected one of "
-                            f"{', '.join(SYSTEMATIC_ERRORS)}")  # fmt: skip
+        raise CriteriaError(
+            f"unknown systematic error {error!r}; expected one of {', '.join(SYSTEMATIC_ERRORS)}"
+        )
 
 
 def injected(error: str, magnitude: float, apriori_boresight_rad=np.zeros(3)) -> InjectedErrors:
@@ -105,7 +114,7 @@ class PlaneCriteria:
     normal: np.ndarray  # fitted unit normal, oriented like the true one
 
     @staticmethod
-    def missing() -> "PlaneCriteria":
+    def missing() -> PlaneCriteria:
         nan = float("nan")
         return PlaneCriteria(0, nan, nan, nan, nan, np.full(3, np.nan))
 
@@ -154,8 +163,7 @@ def pass_spread(normals, signed_distances_m) -> tuple[float, float]:
     n, d = n[ok], d[ok]
     if d.size < 2:
         return 0.0, 0.0
-    angle = max(float(np.arctan2(np.linalg.norm(np.cross(a, b)), a @ b))
-                for a, b in combinations(n, 2))  # fmt: skip
+    angle = max(float(np.arctan2(np.linalg.norm(np.cross(a, b)), a @ b)) for a, b in combinations(n, 2))
     return angle, float(d.max() - d.min())
 
 
@@ -170,17 +178,40 @@ def thesis_tilt_deg(inclination_deg: float) -> float:
 # Tables of a study: per pass, per inclination
 # ---------------------------------------------------------------------------------------------
 
-CRITERIA_COLUMNS = ("scenario", "error", "magnitude_deg", "magnitude_m", "inclination_deg",
-                    "thesis_tilt_deg", "pass_id", "heading_deg", "n_points", "planarity",
-                    "centroidal_distance_m", "type1", "angular_deviation_deg",
-                    "signed_distance_m", "normal_n", "normal_e", "normal_d")  # fmt: skip
-VISIBILITY_COLUMNS = ("scenario", "error", "inclination_deg", "thesis_tilt_deg", "passes_used",
-                      "type1_mean", "type1_min", "angle_spread_deg", "distance_spread_m",
-                      "visible")  # fmt: skip
+CRITERIA_COLUMNS = (
+    "scenario",
+    "error",
+    "magnitude_deg",
+    "magnitude_m",
+    "inclination_deg",
+    "thesis_tilt_deg",
+    "pass_id",
+    "heading_deg",
+    "n_points",
+    "planarity",
+    "centroidal_distance_m",
+    "type1",
+    "angular_deviation_deg",
+    "signed_distance_m",
+    "normal_n",
+    "normal_e",
+    "normal_d",
+)
+VISIBILITY_COLUMNS = (
+    "scenario",
+    "error",
+    "inclination_deg",
+    "thesis_tilt_deg",
+    "passes_used",
+    "type1_mean",
+    "type1_min",
+    "angle_spread_deg",
+    "distance_spread_m",
+    "visible",
+)
 
 
-def criteria_rows(sim: SimResult, error: str, magnitude: float, inclination_deg: float
-                  ) -> list[dict]:  # fmt: skip
+def criteria_rows(sim: SimResult, error: str, magnitude: float, inclination_deg: float) -> list[dict]:
     """One row per pass (:data:`CRITERIA_COLUMNS`; Type I still NaN, see :func:`summarize`) for
     a simulation of one target with ``error`` injected: its returns georeferenced with the
     a-priori (error-free) mount and the true trajectory, compared with the true rectangle."""
@@ -190,20 +221,27 @@ def criteria_rows(sim: SimResult, error: str, magnitude: float, inclination_deg:
     rows = []
     for q in sim.plan.passes:
         c = plane_criteria(x[(sim.target_index == 0) & (p.pass_id == q.id)], rect)
-        rows.append({
-            "scenario": sim.scenario.name, "error": error,
-            "magnitude_deg": float(np.degrees(magnitude)) if is_angular(error) else "",
-            "magnitude_m": "" if is_angular(error) else float(magnitude),
-            "inclination_deg": float(inclination_deg),
-            "thesis_tilt_deg": thesis_tilt_deg(inclination_deg),
-            "pass_id": q.id, "heading_deg": float(np.degrees(q.relative_heading_rad)) % 360.0,
-            "n_points": c.n_points, "planarity": c.planarity,
-            "centroidal_distance_m": c.centroidal_distance_m, "type1": float("nan"),
-            "angular_deviation_deg": float(np.degrees(c.angular_deviation_rad)),
-            "signed_distance_m": c.signed_distance_m,
-            "normal_n": float(c.normal[0]), "normal_e": float(c.normal[1]),
-            "normal_d": float(c.normal[2]),
-        })  # fmt: skip
+        rows.append(
+            {
+                "scenario": sim.scenario.name,
+                "error": error,
+                "magnitude_deg": float(np.degrees(magnitude)) if is_angular(error) else "",
+                "magnitude_m": "" if is_angular(error) else float(magnitude),
+                "inclination_deg": float(inclination_deg),
+                "thesis_tilt_deg": thesis_tilt_deg(inclination_deg),
+                "pass_id": q.id,
+                "heading_deg": float(np.degrees(q.relative_heading_rad)) % 360.0,
+                "n_points": c.n_points,
+                "planarity": c.planarity,
+                "centroidal_distance_m": c.centroidal_distance_m,
+                "type1": float("nan"),
+                "angular_deviation_deg": float(np.degrees(c.angular_deviation_rad)),
+                "signed_distance_m": c.signed_distance_m,
+                "normal_n": float(c.normal[0]),
+                "normal_e": float(c.normal[1]),
+                "normal_d": float(c.normal[2]),
+            }
+        )
     return rows
 
 
@@ -219,17 +257,30 @@ def summarize(rows: list[dict]) -> list[dict]:
             r["type1"] = float(v)
         for inc in dict.fromkeys(r["inclination_deg"] for r in sel):
             here = [r for r in sel if r["inclination_deg"] == inc]
-            used = [r for r in here if r["n_points"] >= MIN_CRITERIA_POINTS
-                    and r["planarity"] >= MIN_CRITERIA_PLANARITY]  # fmt: skip
-            ang, dist = pass_spread([[r["normal_n"], r["normal_e"], r["normal_d"]] for r in used],
-                                    [r["signed_distance_m"] for r in used])  # fmt: skip
+            used = [
+                r
+                for r in here
+                if r["n_points"] >= MIN_CRITERIA_POINTS and r["planarity"] >= MIN_CRITERIA_PLANARITY
+            ]
+            ang, dist = pass_spread(
+                [[r["normal_n"], r["normal_e"], r["normal_d"]] for r in used],
+                [r["signed_distance_m"] for r in used],
+            )
             t1s = [r["type1"] for r in here]
-            out.append({"scenario": sel[0]["scenario"], "error": error, "inclination_deg": inc,
-                        "thesis_tilt_deg": thesis_tilt_deg(inc),
-                        "passes_used": tuple(r["pass_id"] for r in used),
-                        "type1_mean": float(np.mean(t1s)), "type1_min": float(np.min(t1s)),
-                        "angle_spread_deg": float(np.degrees(ang)), "distance_spread_m": dist,
-                        "visible": bool(dist >= VISIBLE_DISTANCE_M or ang >= VISIBLE_ANGLE_RAD)})  # fmt: skip
+            out.append(
+                {
+                    "scenario": sel[0]["scenario"],
+                    "error": error,
+                    "inclination_deg": inc,
+                    "thesis_tilt_deg": thesis_tilt_deg(inc),
+                    "passes_used": tuple(r["pass_id"] for r in used),
+                    "type1_mean": float(np.mean(t1s)),
+                    "type1_min": float(np.min(t1s)),
+                    "angle_spread_deg": float(np.degrees(ang)),
+                    "distance_spread_m": dist,
+                    "visible": bool(dist >= VISIBLE_DISTANCE_M or ang >= VISIBLE_ANGLE_RAD),
+                }
+            )
     return out
 
 
@@ -239,8 +290,7 @@ def best_inclinations(visibility, error: str, type1_threshold: float) -> tuple[d
     differ most and the one where their normals do."""
     vs = [v for v in visibility if v["error"] == error]
     good = [v for v in vs if v["type1_mean"] >= type1_threshold] or vs
-    return (max(good, key=lambda v: v["distance_spread_m"]),
-            max(good, key=lambda v: v["angle_spread_deg"]))
+    return (max(good, key=lambda v: v["distance_spread_m"]), max(good, key=lambda v: v["angle_spread_deg"]))
 
 
 #: Colours of the six passes in the thesis's order (0°, 180°, 45°, 225°, 315°, 135°).
@@ -263,8 +313,13 @@ def plot_criteria(rows, error: str, path, title: str = ""):
     for k, pid in enumerate(passes):
         sel = sorted((r for r in rows if r["pass_id"] == pid), key=lambda r: r["inclination_deg"])
         x = [r["inclination_deg"] for r in sel]
-        kw = dict(color=PASS_COLOURS[k % 6], marker="o", ms=3, lw=1.2,
-                  label=f"pass {pid} ({sel[0]['heading_deg']:g}°)")  # fmt: skip
+        kw = dict(
+            color=PASS_COLOURS[k % 6],
+            marker="o",
+            ms=3,
+            lw=1.2,
+            label=f"pass {pid} ({sel[0]['heading_deg']:g}°)",
+        )
         axes[0].plot(x, [r["type1"] for r in sel], **kw)
         axes[1].plot(x, [1e3 * r["signed_distance_m"] for r in sel], **kw)
         axes[2].plot(x, [r["angular_deviation_deg"] for r in sel], **kw)
@@ -274,8 +329,7 @@ def plot_criteria(rows, error: str, path, title: str = ""):
     axes[2].set_xlabel("plane inclination (°, 90 = vertical)")
     mag = rows[0]["magnitude_deg"] if is_angular(error) else rows[0]["magnitude_m"]
     unit = "°" if is_angular(error) else " m"
-    axes[0].set_title(f"{title}{error.replace('_', ' ')} {mag:g}{unit} — visibility criteria "
-                      f"per pass")  # fmt: skip
+    axes[0].set_title(f"{title}{error.replace('_', ' ')} {mag:g}{unit} — visibility criteria per pass")
     axes[0].legend(fontsize=7, ncol=3)
     for ax in axes:
         ax.grid(alpha=0.3)

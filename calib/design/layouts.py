@@ -75,8 +75,7 @@ class StudySpec:
     def __post_init__(self):
         bad = [g for g in self.groups if g not in GROUPS]
         if bad:
-            raise DesignError(f"unknown study group(s) {', '.join(bad)}; expected "
-                              f"{', '.join(GROUPS)}")  # fmt: skip
+            raise DesignError(f"unknown study group(s) {', '.join(bad)}; expected {', '.join(GROUPS)}")
         bad = [e for e in self.errors if e not in SYSTEMATIC_ERRORS]
         if bad:
             raise DesignError(f"unknown systematic error(s) {', '.join(bad)}")
@@ -87,32 +86,43 @@ def default_spec(base: Scenario, **changes) -> StudySpec:
     own site (number of targets, largest target dimension, all passes). ``changes`` override
     fields (``n_targets``, ``max_size_m`` and ``passes`` go to the constraint)."""
     tg = scenario_targets(base)
-    cons = {"n_targets": len(tg), "max_size_m": max(max(s.width_m, s.height_m) for s in tg),
-            "passes": tuple(p.id for p in base.passes)}  # fmt: skip
+    cons = {
+        "n_targets": len(tg),
+        "max_size_m": max(max(s.width_m, s.height_m) for s in tg),
+        "passes": tuple(p.id for p in base.passes),
+    }
     for k in list(cons):
         v = changes.pop(k, None)
         if v is not None:
             cons[k] = tuple(int(x) for x in v) if k == "passes" else v
     unknown = sorted(set(cons["passes"]) - {p.id for p in base.passes})
     if unknown:
-        raise DesignError(f"constraint: pass(es) {', '.join(map(str, unknown))} are not in "
-                          f"scenario {base.name!r} (passes "
-                          f"{', '.join(str(p.id) for p in base.passes)})")  # fmt: skip
+        raise DesignError(
+            f"constraint: pass(es) {', '.join(map(str, unknown))} are not in "
+            f"scenario {base.name!r} (passes "
+            f"{', '.join(str(p.id) for p in base.passes)})"
+        )
     along = sorted(s.along_m for s in tg)
     spacing = (along[-1] - along[0]) / (len(along) - 1) if len(along) > 1 else 3.5
     S = base.standoff_m
-    kw: dict = dict(spacing_m=max(spacing, 2.5),
-                    layout_spreads_m=(0.0, max(spacing, 2.5)),
-                    layout_setbacks_m=(0.0, round(0.4 * S, 1)),
-                    standoffs_m=tuple(round(S * f, 1) for f in (2 / 3, 1.0, 4 / 3, 5 / 3, 2.0)))  # fmt: skip
+    kw: dict = dict(
+        spacing_m=max(spacing, 2.5),
+        layout_spreads_m=(0.0, max(spacing, 2.5)),
+        layout_setbacks_m=(0.0, round(0.4 * S, 1)),
+        standoffs_m=tuple(round(S * f, 1) for f in (2 / 3, 1.0, 4 / 3, 5 / 3, 2.0)),
+    )
     if ground_based(base):  # targets on the ground: the thesis's Chapter 3 sweep, raised stands
-        kw.update(criteria_inclinations_deg=tuple(range(-90, 91, 10)),
-                  inclinations_deg=tuple(range(-75, 91, 15)),  # vertical once
-                  height_shifts_m=(0.0, 0.5, 1.0, 1.5, 2.0),
-                  layout_staggers_m=(0.0, round(0.25 * S, 1)))  # fmt: skip
+        kw.update(
+            criteria_inclinations_deg=tuple(range(-90, 91, 10)),
+            inclinations_deg=tuple(range(-75, 91, 15)),  # vertical once
+            height_shifts_m=(0.0, 0.5, 1.0, 1.5, 2.0),
+            layout_staggers_m=(0.0, round(0.25 * S, 1)),
+        )
     else:
-        kw.update(layout_staggers_m=(0.0, round(0.25 * S, 1)),
-                  height_shifts_m=tuple(round(f * S, 1) for f in (-0.25, -0.125, 0.0, 0.125, 0.25)))
+        kw.update(
+            layout_staggers_m=(0.0, round(0.25 * S, 1)),
+            height_shifts_m=tuple(round(f * S, 1) for f in (-0.25, -0.125, 0.0, 0.125, 0.25)),
+        )
     kw.update(changes)
     return StudySpec(constraint=Constraint(**cons), **kw)
 
@@ -142,29 +152,32 @@ def layouts(base: Scenario, spec: StudySpec) -> list[Layout]:
     """All configurations of the study, group by group."""
     all_passes = tuple(p.id for p in base.passes)
     every = (all_passes,)
-    subsets = tuple(c for k in range(1, len(all_passes) + 1)
-                    for c in itertools.combinations(all_passes, k))  # fmt: skip
+    subsets = tuple(c for k in range(1, len(all_passes) + 1) for c in itertools.combinations(all_passes, k))
     S, size = base.standoff_m, spec.plane_size_m
     own = tuple(scenario_targets(base))
     out: list[Layout] = []
     for g in spec.groups:
         if g == "passes":
-            out.append(Layout(g, f"vertical {size:g} m", (square_target(base, "P", 90.0, size),), S,
-                              subsets))  # fmt: skip
+            out.append(Layout(g, f"vertical {size:g} m", (square_target(base, "P", 90.0, size),), S, subsets))
         elif g == "site_passes":
             out.append(Layout(g, base.name, own, S, subsets))
         elif g == "inclination":
-            out += [Layout(g, f"{i:g}°", (square_target(base, "P", i, size),), S, every)
-                    for i in spec.inclinations_deg]  # fmt: skip
+            out += [
+                Layout(g, f"{i:g}°", (square_target(base, "P", i, size),), S, every)
+                for i in spec.inclinations_deg
+            ]
         elif g == "size":
-            out += [Layout(g, f"{s:g} m", (square_target(base, "P", 90.0, s),), S, every)
-                    for s in spec.sizes_m]  # fmt: skip
+            out += [
+                Layout(g, f"{s:g} m", (square_target(base, "P", 90.0, s),), S, every) for s in spec.sizes_m
+            ]
         elif g == "planes":
             incs = sorted(set(spec.combo_inclinations_deg), reverse=True)
             for k in (2, 3):
                 for combo in itertools.combinations(incs, k):
-                    tg = tuple(square_target(base, f"P{j + 1}", inc, size, x)
-                               for j, (inc, x) in enumerate(zip(combo, _row_positions(k, spec.spacing_m))))
+                    tg = tuple(
+                        square_target(base, f"P{j + 1}", inc, size, x)
+                        for j, (inc, x) in enumerate(zip(combo, _row_positions(k, spec.spacing_m)))
+                    )
                     out.append(Layout(g, "/".join(f"{c:g}" for c in combo), tg, S, every))
         elif g == "standoff":
             out += [Layout(g, f"{s:g} m", own, s, every) for s in spec.standoffs_m]
@@ -182,8 +195,11 @@ def _overlap(targets: Sequence[Surface], size_m: float) -> bool:
     """Whether two targets of a layout would intersect (their centres closer than the size,
     with a 0.2 m gap, along the wall and in height, at the same setback)."""
     for a, b in itertools.combinations(targets, 2):
-        if (abs(a.along_m - b.along_m) < size_m + 0.2 and abs(a.up_m - b.up_m) < size_m + 0.2
-                and abs(a.out_m - b.out_m) < size_m):  # fmt: skip
+        if (
+            abs(a.along_m - b.along_m) < size_m + 0.2
+            and abs(a.up_m - b.up_m) < size_m + 0.2
+            and abs(a.out_m - b.out_m) < size_m
+        ):
             return True
     return False
 
@@ -196,15 +212,15 @@ def _layout_candidates(base: Scenario, spec: StudySpec) -> list[Layout]:
     c = spec.constraint
     n, size = c.n_targets, c.max_size_m
     incs = spec.layout_inclinations_deg
-    combos = (itertools.product(incs, repeat=n) if n <= 2
-              else itertools.combinations_with_replacement(incs, n))  # fmt: skip
+    combos = itertools.product(incs, repeat=n) if n <= 2 else itertools.combinations_with_replacement(incs, n)
     ground = ground_based(base)
     out = []
     for combo in combos:
         for spread, stagger, setback in itertools.product(
-                spec.layout_spreads_m if n > 1 else (0.0,),
-                spec.layout_staggers_m if n > 1 else (0.0,),
-                spec.layout_setbacks_m if n > 1 else (0.0,)):  # fmt: skip
+            spec.layout_spreads_m if n > 1 else (0.0,),
+            spec.layout_staggers_m if n > 1 else (0.0,),
+            spec.layout_setbacks_m if n > 1 else (0.0,),
+        ):
             tg = []
             for j, (inc, x) in enumerate(zip(combo, _row_positions(n, spread / max(n - 1, 1)))):
                 high = j % 2 == 1
@@ -212,8 +228,18 @@ def _layout_candidates(base: Scenario, spec: StudySpec) -> list[Layout]:
                 tg.append(square_target(base, f"T{j + 1}", inc, size, x, lift, setback if high else 0.0))
             if _overlap(tg, size):
                 continue
-            label = ("/".join(f"{i:g}" for i in combo)
-                     + f" spread {spread:g} stagger {stagger:g} setback {setback:g}")  # fmt: skip
-            out.append(Layout("layout", label, tuple(tg), base.standoff_m, (c.passes,),
-                              {"spread_m": spread, "stagger_m": stagger, "setback_m": setback}))
+            label = (
+                "/".join(f"{i:g}" for i in combo)
+                + f" spread {spread:g} stagger {stagger:g} setback {setback:g}"
+            )
+            out.append(
+                Layout(
+                    "layout",
+                    label,
+                    tuple(tg),
+                    base.standoff_m,
+                    (c.passes,),
+                    {"spread_m": spread, "stagger_m": stagger, "setback_m": setback},
+                )
+            )
     return out

@@ -30,16 +30,23 @@ def _mc_task(scenario: Scenario, seed: int, estimates: tuple[tuple[str, ...], ..
     obs = observations(sim, Sigmas.of_scenario(scenario), noisy=True)
     out = []
     for est in estimates:
-        res = adjust(obs, sim.site.mount, target_planes(sim),
-                     AdjustOptions(estimate=est, outliers="none", jackknife=False,
-                                   max_sigma_rad=UNOBSERVABLE_RAD))  # fmt: skip
+        res = adjust(
+            obs,
+            sim.site.mount,
+            target_planes(sim),
+            AdjustOptions(estimate=est, outliers="none", jackknife=False, max_sigma_rad=UNOBSERVABLE_RAD),
+        )
         out.append(res.boresight_rad - sim.mount_true.boresight_rad)
     return np.array(out)
 
 
-def empirical_errors(scenario: Scenario, seeds: Sequence[int],
-                     estimates: Sequence[tuple[str, ...]] = ((),), jobs: int = 1,
-                     progress=None) -> dict[tuple[str, ...], np.ndarray]:  # fmt: skip
+def empirical_errors(
+    scenario: Scenario,
+    seeds: Sequence[int],
+    estimates: Sequence[tuple[str, ...]] = ((),),
+    jobs: int = 1,
+    progress=None,
+) -> dict[tuple[str, ...], np.ndarray]:
     """Boresight errors (estimate − truth, rad; (len(seeds), 3) per adjustment option) of the
     scenario simulated with its noise, one simulation per seed adjusted with each of
     ``estimates`` (``AdjustOptions.estimate`` values)."""

@@ -21,23 +21,23 @@ below the correlation time).
 
 from __future__ import annotations
 
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, replace
-from typing import Mapping, Sequence
 
 import numpy as np
 
-from calib.core import frames
 from calib.boresight.covariance import predict_covariance
 from calib.boresight.errormodel import DEFAULT_POS_CORRELATION_S, ErrorModel
 from calib.boresight.observations import AdjustmentError, Observations, build_observations
+from calib.core import frames
 from calib.core.geometry import Rectangle
 from calib.core.georef import Mount
-from calib.survey.passplan import PlannedPass
+from calib.core.trajectory import Trajectory
+from calib.io.site import Site
 from calib.sim.scenario import ScannerModel
 from calib.sim.scene import Scene
 from calib.sim.simulate import scan
-from calib.io.site import Site
-from calib.core.trajectory import Trajectory
+from calib.survey.passplan import PlannedPass
 
 ANGLES = ("roll", "pitch", "yaw")
 #: A boresight angle whose predicted σ exceeds this is "not determined" (the adjustment's own
@@ -64,20 +64,33 @@ class PassGeometry:
     def t_end_gps_s(self) -> float:
         return float(self.trajectory.t_gps_s[-1])
 
-    def shifted(self, dt_s: float) -> "PassGeometry":
+    def shifted(self, dt_s: float) -> PassGeometry:
         """The same pass ``dt_s`` later (for placing a candidate after the passes sailed)."""
         tr = self.trajectory
-        moved = Trajectory(tr.t_gps_s + dt_s, tr.p_lgf_m, tr.rpy_rad, tr.frame, tr.sigma_p_m,
-                           tr.sigma_rpy_rad, tr.max_gap_s, tr.name)  # fmt: skip
+        moved = Trajectory(
+            tr.t_gps_s + dt_s,
+            tr.p_lgf_m,
+            tr.rpy_rad,
+            tr.frame,
+            tr.sigma_p_m,
+            tr.sigma_rpy_rad,
+            tr.max_gap_s,
+            tr.name,
+        )
         return replace(self, trajectory=moved, t_gps_s=self.t_gps_s + dt_s)
 
-    def thinned(self, step: int) -> "PassGeometry":
+    def thinned(self, step: int) -> PassGeometry:
         """Every ``step``-th point (in time order)."""
         if step <= 1:
             return self
         s = slice(0, None, int(step))
-        return replace(self, t_gps_s=self.t_gps_s[s], range_m=self.range_m[s],
-                       scan_angle_rad=self.scan_angle_rad[s], target_index=self.target_index[s])
+        return replace(
+            self,
+            t_gps_s=self.t_gps_s[s],
+            range_m=self.range_m[s],
+            scan_angle_rad=self.scan_angle_rad[s],
+            target_index=self.target_index[s],
+        )
 
     def counts(self, n_targets: int) -> np.ndarray:
         return np.bincount(self.target_index, minlength=n_targets)
@@ -94,13 +107,18 @@ class ObservationModel:
     error_model: ErrorModel
 
     @classmethod
-    def from_site(cls, site: Site) -> "ObservationModel":
+    def from_site(cls, site: Site) -> ObservationModel:
         tau = site.pos_correlation_time_s
-        model = ErrorModel("gauss_markov", DEFAULT_POS_CORRELATION_S if tau is None
-                           else tuple(float(x) for x in tau))  # fmt: skip
-        return cls(site.sigma_range_m, site.sigma_scan_angle_rad,
-                   np.asarray(site.sigma_position_m, float),
-                   np.asarray(site.sigma_attitude_rad, float), model)  # fmt: skip
+        model = ErrorModel(
+            "gauss_markov", DEFAULT_POS_CORRELATION_S if tau is None else tuple(float(x) for x in tau)
+        )
+        return cls(
+            site.sigma_range_m,
+            site.sigma_scan_angle_rad,
+            np.asarray(site.sigma_position_m, float),
+            np.asarray(site.sigma_attitude_rad, float),
+            model,
+        )
 
 
 @dataclass(frozen=True)
@@ -160,15 +178,21 @@ class SigmaPrediction:
 
 def _unknown(pass_ids, n_points, limit_rad, note) -> SigmaPrediction:
     nan = np.full(3, np.nan)
-    return SigmaPrediction(tuple(pass_ids), nan, nan.copy(), np.full((3, 3), np.nan), n_points,
-                           limit_rad, note)  # fmt: skip
+    return SigmaPrediction(
+        tuple(pass_ids), nan, nan.copy(), np.full((3, 3), np.nan), n_points, limit_rad, note
+    )
 
 
 # -- candidate passes -------------------------------------------------------------------------
 
 
-def line_trajectory(pp: PlannedPass, frame: frames.LocalFrame, t_start_gps_s: float,
-                    track_down_m: float, rate_hz: float = 10.0) -> Trajectory:  # fmt: skip
+def line_trajectory(
+    pp: PlannedPass,
+    frame: frames.LocalFrame,
+    t_start_gps_s: float,
+    track_down_m: float,
+    rate_hz: float = 10.0,
+) -> Trajectory:
     """A level vessel sailing the whole line at its heading and speed from ``t_start_gps_s``."""
     n = max(int(np.ceil(pp.duration_s * rate_hz)), 1)
     t_rel = np.linspace(0.0, pp.duration_s, n + 1)
@@ -178,9 +202,16 @@ def line_trajectory(pp: PlannedPass, frame: frames.LocalFrame, t_start_gps_s: fl
     return Trajectory(t_start_gps_s + t_rel, p, rpy, frame, name=f"planned line {pp.id}")
 
 
-def predict_pass(pp: PlannedPass, targets: Sequence[Rectangle], mount: Mount,
-                 scanner: ScannerModel, frame: frames.LocalFrame, *,
-                 t_start_gps_s: float = 0.0, track_down_m: float | None = None) -> PassGeometry:  # fmt: skip
+def predict_pass(
+    pp: PlannedPass,
+    targets: Sequence[Rectangle],
+    mount: Mount,
+    scanner: ScannerModel,
+    frame: frames.LocalFrame,
+    *,
+    t_start_gps_s: float = 0.0,
+    track_down_m: float | None = None,
+) -> PassGeometry:
     """The noise-free target returns of the planned line ``pp`` (capture window only), with the
     scanner mounted as ``mount`` (the a-priori mount: what the survey will see)."""
     down = float(pp.start_lgf_m[2]) if track_down_m is None else float(track_down_m)
@@ -191,16 +222,23 @@ def predict_pass(pp: PlannedPass, targets: Sequence[Rectangle], mount: Mount,
     t1 = t_start_gps_s + min(cw1, pp.duration_s - guard)
     scene = Scene(tuple(targets), ("target",) * len(targets))
     ret = scan(scanner, scene, traj, mount, t0, t1)
-    return PassGeometry(pp.id, pp.relative_heading_rad, traj, ret.t_gps_s,
-                        ret.range_true_m - mount.range_offset_m, frames.wrap_2pi(ret.alpha_rad),
-                        ret.surface.astype(np.int64))  # fmt: skip
+    return PassGeometry(
+        pp.id,
+        pp.relative_heading_rad,
+        traj,
+        ret.t_gps_s,
+        ret.range_true_m - mount.range_offset_m,
+        frames.wrap_2pi(ret.alpha_rad),
+        ret.surface.astype(np.int64),
+    )
 
 
 # -- the prediction ---------------------------------------------------------------------------
 
 
-def build_pass_observations(passes: Sequence[PassGeometry], target_names: Sequence[str],
-                            model: ObservationModel) -> tuple[Observations, list[int]]:  # fmt: skip
+def build_pass_observations(
+    passes: Sequence[PassGeometry], target_names: Sequence[str], model: ObservationModel
+) -> tuple[Observations, list[int]]:
     """The adjustment's observations of ``passes`` and the target indices that have points
     (the planes of the observations, in that order)."""
     n_t = len(target_names)
@@ -212,26 +250,47 @@ def build_pass_observations(passes: Sequence[PassGeometry], target_names: Sequen
     for p in passes:
         if len(p) == 0:
             continue
-        parts.append(build_observations(
-            p.trajectory, p.t_gps_s, p.range_m, p.scan_angle_rad, remap[p.target_index],
-            np.full(len(p), p.pass_id), [target_names[j] for j in used], model.sigma_range_m,
-            model.sigma_scan_angle_rad, model.sigma_position_m, model.sigma_attitude_rad,
-        ))  # fmt: skip
+        parts.append(
+            build_observations(
+                p.trajectory,
+                p.t_gps_s,
+                p.range_m,
+                p.scan_angle_rad,
+                remap[p.target_index],
+                np.full(len(p), p.pass_id),
+                [target_names[j] for j in used],
+                model.sigma_range_m,
+                model.sigma_scan_angle_rad,
+                model.sigma_position_m,
+                model.sigma_attitude_rad,
+            )
+        )
     pass_ids = sorted({p.pass_id for p in passes if len(p)})
     cat = lambda name: np.concatenate([getattr(o, name) for o in parts])  # noqa: E731
     pid = np.concatenate([np.full(len(o), o.pass_ids[0]) for o in parts])
     obs = Observations(
-        cat("t_gps_s"), cat("l"), cat("sigma_l"), cat("plane_index"),
-        np.searchsorted(pass_ids, pid), [target_names[j] for j in used], pass_ids,
+        cat("t_gps_s"),
+        cat("l"),
+        cat("sigma_l"),
+        cat("plane_index"),
+        np.searchsorted(pass_ids, pid),
+        [target_names[j] for j in used],
+        pass_ids,
         np.arange(pid.size),
         pass_headings_rad={p.pass_id: p.relative_heading_rad for p in passes},
-    )  # fmt: skip
+    )
     return obs, used
 
 
-def predict_sigma(passes: Sequence[PassGeometry], targets: Sequence[Rectangle], mount: Mount,
-                  model: ObservationModel, *, thin_step: int = 1,
-                  limit_rad: float = DEFAULT_LIMIT_RAD) -> SigmaPrediction:  # fmt: skip
+def predict_sigma(
+    passes: Sequence[PassGeometry],
+    targets: Sequence[Rectangle],
+    mount: Mount,
+    model: ObservationModel,
+    *,
+    thin_step: int = 1,
+    limit_rad: float = DEFAULT_LIMIT_RAD,
+) -> SigmaPrediction:
     """Boresight σ that ``passes`` would give (points thinned by ``thin_step``, corrected to the
     full density as the module docstring says)."""
     ids = tuple(sorted({p.pass_id for p in passes}))
@@ -259,10 +318,17 @@ def predict_sigma(passes: Sequence[PassGeometry], targets: Sequence[Rectangle], 
     return SigmaPrediction(ids, sf, sr, cov["correlation"], n, limit_rad)
 
 
-def rank_candidates(accepted: Sequence[PassGeometry], candidates: Mapping[int, PassGeometry],
-                    targets: Sequence[Rectangle], mount: Mount, model: ObservationModel, *,
-                    thin_step: int = 1, gap_s: float = 60.0,
-                    limit_rad: float = DEFAULT_LIMIT_RAD) -> list[tuple[int, SigmaPrediction]]:  # fmt: skip
+def rank_candidates(
+    accepted: Sequence[PassGeometry],
+    candidates: Mapping[int, PassGeometry],
+    targets: Sequence[Rectangle],
+    mount: Mount,
+    model: ObservationModel,
+    *,
+    thin_step: int = 1,
+    gap_s: float = 60.0,
+    limit_rad: float = DEFAULT_LIMIT_RAD,
+) -> list[tuple[int, SigmaPrediction]]:
     """For each candidate (pass id → its predicted geometry, any start time), the prediction
     with the accepted passes plus that one, sailed ``gap_s`` after the last accepted pass;
     best first (see :meth:`SigmaPrediction.rank_key`)."""
@@ -270,7 +336,13 @@ def rank_candidates(accepted: Sequence[PassGeometry], candidates: Mapping[int, P
     out = []
     for pid, cand in candidates.items():
         moved = cand.shifted(t_next - float(cand.trajectory.t_gps_s[0]))
-        out.append((pid, predict_sigma([*accepted, moved], targets, mount, model,
-                                       thin_step=thin_step, limit_rad=limit_rad)))  # fmt: skip
+        out.append(
+            (
+                pid,
+                predict_sigma(
+                    [*accepted, moved], targets, mount, model, thin_step=thin_step, limit_rad=limit_rad
+                ),
+            )
+        )
     out.sort(key=lambda item: (item[1].rank_key(), item[0]))
     return out

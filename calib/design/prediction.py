@@ -74,37 +74,40 @@ class Sigmas:
     correlation_time_s: tuple[float, ...] = (DEFAULT_POS_CORRELATION_S,) * 6
 
     @classmethod
-    def of_scenario(cls, sc: Scenario) -> "Sigmas":
+    def of_scenario(cls, sc: Scenario) -> Sigmas:
         """The scenario's noise models; where one is off, the site-config defaults (and the
         adjustment's default correlation time unless the POS errors are Gauss–Markov)."""
         dflt = Site(mount=Mount(), targets=())
         s = sc.scanner_noise
         if s.is_zero:
-            s = ScannerNoise(sigma_range_m=dflt.sigma_range_m,
-                             sigma_scan_angle_rad=dflt.sigma_scan_angle_rad)  # fmt: skip
+            s = ScannerNoise(sigma_range_m=dflt.sigma_range_m, sigma_scan_angle_rad=dflt.sigma_scan_angle_rad)
         p = sc.pos_noise
         on = p.model != "none"
-        tau = (tuple(float(x) for x in p.tau) if p.model == "gauss_markov"
-               else (DEFAULT_POS_CORRELATION_S,) * 6)  # fmt: skip
-        return cls(s,
-                   p.sigma_position_m if on and np.all(p.sigma_position_m > 0) else dflt.sigma_position_m,
-                   p.sigma_attitude_rad if on and np.all(p.sigma_attitude_rad > 0) else dflt.sigma_attitude_rad,
-                   tau)  # fmt: skip
+        tau = (
+            tuple(float(x) for x in p.tau) if p.model == "gauss_markov" else (DEFAULT_POS_CORRELATION_S,) * 6
+        )
+        return cls(
+            s,
+            p.sigma_position_m if on and np.all(p.sigma_position_m > 0) else dflt.sigma_position_m,
+            p.sigma_attitude_rad if on and np.all(p.sigma_attitude_rad > 0) else dflt.sigma_attitude_rad,
+            tau,
+        )
 
     @classmethod
-    def of_site(cls, site: Site) -> "Sigmas":
-        return cls(ScannerNoise(sigma_range_m=site.sigma_range_m,
-                                sigma_scan_angle_rad=site.sigma_scan_angle_rad),
-                   np.asarray(site.sigma_position_m, float),
-                   np.asarray(site.sigma_attitude_rad, float),
-                   (DEFAULT_POS_CORRELATION_S,) * 6 if site.pos_correlation_time_s is None
-                   else tuple(float(x) for x in np.broadcast_to(site.pos_correlation_time_s, 6)))  # fmt: skip
+    def of_site(cls, site: Site) -> Sigmas:
+        return cls(
+            ScannerNoise(sigma_range_m=site.sigma_range_m, sigma_scan_angle_rad=site.sigma_scan_angle_rad),
+            np.asarray(site.sigma_position_m, float),
+            np.asarray(site.sigma_attitude_rad, float),
+            (DEFAULT_POS_CORRELATION_S,) * 6
+            if site.pos_correlation_time_s is None
+            else tuple(float(x) for x in np.broadcast_to(site.pos_correlation_time_s, 6)),
+        )
 
 
 def target_planes(sim: SimResult) -> list[tuple[np.ndarray, float]]:
     """The true (normal, d) of the simulation's targets, in target order."""
-    return [(sim.scene.rectangles[i].normal, sim.scene.rectangles[i].d)
-            for i in sim.scene.indices("target")]  # fmt: skip
+    return [(sim.scene.rectangles[i].normal, sim.scene.rectangles[i].d) for i in sim.scene.indices("target")]
 
 
 def observations(sim: SimResult, sigmas: Sigmas, noisy: bool = True) -> Observations:
@@ -121,12 +124,20 @@ def observations(sim: SimResult, sigmas: Sigmas, noisy: bool = True) -> Observat
     p = sim.points
     names = [t.name for t in sim.site.targets]
     obs = build_observations(
-        sim.trajectory_observed if noisy else sim.trajectory_true, p.t_gps_s[sel], p.range_m[sel],
-        p.scan_angle_rad[sel], sim.target_index[sel], p.pass_id[sel], names,
-        sigmas.scanner.sigma_range_m, sigmas.scanner.sigma_scan_angle_rad, sigmas.position_m,
-        sigmas.attitude_rad, point_ids=sel,
+        sim.trajectory_observed if noisy else sim.trajectory_true,
+        p.t_gps_s[sel],
+        p.range_m[sel],
+        p.scan_angle_rad[sel],
+        sim.target_index[sel],
+        p.pass_id[sel],
+        names,
+        sigmas.scanner.sigma_range_m,
+        sigmas.scanner.sigma_scan_angle_rad,
+        sigmas.position_m,
+        sigmas.attitude_rad,
+        point_ids=sel,
         pass_headings_rad={q.id: q.relative_heading_rad for q in sim.plan.passes},
-    )  # fmt: skip
+    )
     if noisy and sim.pose_errors is not None:
         poses = sim.observed_poses()
         obs.l[:, 0:3] = poses.p_lgf_m[sel]
@@ -134,13 +145,13 @@ def observations(sim: SimResult, sigmas: Sigmas, noisy: bool = True) -> Observat
     obs.sigma_l[:, 0:3] = sigmas.position_m
     obs.sigma_l[:, 3:6] = sigmas.attitude_rad
     cos_incidence = p.intensity[sel] / sim.scene.reflectivity[sim.surface_index[sel]]
-    obs.sigma_l[:, 6] = np.maximum(sigmas.scanner.range_sigma(p.range_m[sel], cos_incidence),
-                                   _RANGE_SIGMA_FLOOR_M)  # fmt: skip
+    obs.sigma_l[:, 6] = np.maximum(
+        sigmas.scanner.range_sigma(p.range_m[sel], cos_incidence), _RANGE_SIGMA_FLOOR_M
+    )
     return obs
 
 
-def select_passes(obs: Observations, planes: list, pass_ids: Sequence[int]
-                  ) -> tuple[Observations, list]:  # fmt: skip
+def select_passes(obs: Observations, planes: list, pass_ids: Sequence[int]) -> tuple[Observations, list]:
     """The observations of the given passes, re-indexed; planes without points are dropped."""
     keep = np.isin(np.asarray(obs.pass_ids)[obs.pass_index], list(pass_ids))
     sub = obs.select(keep)
@@ -165,8 +176,7 @@ def prepare(scenario: Scenario, sigmas: Sigmas, seed: int = 0):
 # ---------------------------------------------------------------------------------------------
 
 
-def reduced_information(obs: Observations, mount: Mount, planes, extras: Sequence[str] = ()
-                        ) -> np.ndarray:  # fmt: skip
+def reduced_information(obs: Observations, mount: Mount, planes, extras: Sequence[str] = ()) -> np.ndarray:
     """White-noise information of the boresight (and ``extras``, columns of
     :func:`calib.boresight.ghmodel.linearize`) with the planes' parameters eliminated (Schur complement),
     linearized at the truth: its inverse is the formal covariance, its eigenvalues say what is
@@ -177,10 +187,17 @@ def reduced_information(obs: Observations, mount: Mount, planes, extras: Sequenc
     d_lgf = np.array([float(d) / np.linalg.norm(n) for n, d in planes])
 
     def state(centers):
-        return State(np.asarray(mount.boresight_rad, float).copy(), normals,
-                     d_lgf + np.einsum("ij,ij->i", normals, centers), centers,
-                     np.zeros((len(obs.pass_ids), 3)), np.asarray(mount.lever_arm_m, float).copy(),
-                     mount.range_offset_m, mount.scan_angle_offset_rad, mount.time_offset_s)  # fmt: skip
+        return State(
+            np.asarray(mount.boresight_rad, float).copy(),
+            normals,
+            d_lgf + np.einsum("ij,ij->i", normals, centers),
+            centers,
+            np.zeros((len(obs.pass_ids), 3)),
+            np.asarray(mount.lever_arm_m, float).copy(),
+            mount.range_offset_m,
+            mount.scan_angle_offset_rad,
+            mount.time_offset_s,
+        )
 
     x = linearize(state(np.zeros((m, 3))), r_nom, obs.plane_index, obs.pass_index, obs.l).x_lgf_m
     cnt = np.maximum(np.bincount(obs.plane_index, minlength=m), 1)[:, None]
@@ -203,8 +220,11 @@ def scan_angle_roll_correlation(obs: Observations, mount: Mount, planes) -> floa
     for a profiler: a scan-angle offset is a rotation about the scanner's x axis)."""
     S = reduced_information(obs, mount, planes, ("scan_angle_offset",))
     keep, other = [0, 3], [1, 2]
-    S2 = S[np.ix_(keep, keep)] - S[np.ix_(keep, other)] @ np.linalg.lstsq(
-        S[np.ix_(other, other)], S[np.ix_(other, keep)], rcond=None)[0]  # fmt: skip
+    S2 = (
+        S[np.ix_(keep, keep)]
+        - S[np.ix_(keep, other)]
+        @ np.linalg.lstsq(S[np.ix_(other, other)], S[np.ix_(other, keep)], rcond=None)[0]
+    )
     return float(min(abs(S2[0, 1]) / np.sqrt(S2[0, 0] * S2[1, 1]), 1.0))
 
 
@@ -244,9 +264,13 @@ class Prediction:
         return min(REALISTIC, key=self.total_deg)
 
 
-def predict(obs: Observations, mount: Mount, planes,
-            correlation_time_s: float | Sequence[float] = DEFAULT_POS_CORRELATION_S,
-            models: Sequence[str] = MODELS) -> Prediction:  # fmt: skip
+def predict(
+    obs: Observations,
+    mount: Mount,
+    planes,
+    correlation_time_s: float | Sequence[float] = DEFAULT_POS_CORRELATION_S,
+    models: Sequence[str] = MODELS,
+) -> Prediction:
     """Predicted covariance of the boresight from noise-free ``obs`` at the true ``mount`` and
     ``planes`` under ``models`` (of :data:`MODELS`; Gauss–Markov with ``correlation_time_s``,
     one value or six for north, east, down, roll, pitch, heading)."""
@@ -266,7 +290,10 @@ def predict(obs: Observations, mount: Mount, planes,
         if model not in MODELS:
             raise DesignError(f"unknown error model {model!r}; expected one of {', '.join(MODELS)}")
         est = ("pass_offsets",) if model.endswith("_offsets") else ()
-        em = (ErrorModel("pass_bias") if model.startswith("pass_bias")
-              else ErrorModel("gauss_markov", tuple(np.atleast_1d(correlation_time_s))))  # fmt: skip
+        em = (
+            ErrorModel("pass_bias")
+            if model.startswith("pass_bias")
+            else ErrorModel("gauss_markov", tuple(np.atleast_1d(correlation_time_s)))
+        )
         covs[model] = predict_covariance(obs, mount, planes, est, em)["realistic"]
     return Prediction(**counts, observable=True, covariances=covs)

@@ -53,8 +53,16 @@ def scenario_targets(base: Scenario) -> list[Surface]:
     return out
 
 
-def target(base: Scenario, name: str, inclination_rad: float, width_m: float, height_m: float,
-           along_m: float = 0.0, raise_m: float = 0.0, setback_m: float = 0.0) -> Surface:
+def target(
+    base: Scenario,
+    name: str,
+    inclination_rad: float,
+    width_m: float,
+    height_m: float,
+    along_m: float = 0.0,
+    raise_m: float = 0.0,
+    setback_m: float = 0.0,
+) -> Surface:
     """A target for a design scene of ``base``: on a ground-based site (one with a ground
     surface) it stands on the ground, else its centre is at the mean height of ``base``'s
     targets; ``raise_m`` lifts it, ``setback_m`` moves it back from the wall line (away from
@@ -66,8 +74,18 @@ def target(base: Scenario, name: str, inclination_rad: float, width_m: float, he
     else:
         up = float(np.mean([s.up_m for s in scenario_targets(base)]))
     out = 0.5 * height_m * abs(np.cos(i)) + _CLEARANCE_M - setback_m
-    return Surface(name, "target", float(along_m), float(out), float(up + raise_m), float(width_m),
-                   float(height_m), float(i), 0.0, 0.9)  # fmt: skip
+    return Surface(
+        name,
+        "target",
+        float(along_m),
+        float(out),
+        float(up + raise_m),
+        float(width_m),
+        float(height_m),
+        float(i),
+        0.0,
+        0.9,
+    )
 
 
 def square_target(base, name, incl_deg, size, along=0.0, raise_m=0.0, setback=0.0) -> Surface:
@@ -75,23 +93,33 @@ def square_target(base, name, incl_deg, size, along=0.0, raise_m=0.0, setback=0.
     return target(base, name, np.radians(incl_deg), size, size, along, raise_m, setback)
 
 
-def design_scenario(base: Scenario, targets: Sequence[Surface], *, standoff_m: float | None = None,
-                    level: bool = False, truth=None) -> Scenario:  # fmt: skip
+def design_scenario(
+    base: Scenario,
+    targets: Sequence[Surface],
+    *,
+    standoff_m: float | None = None,
+    level: bool = False,
+    truth=None,
+) -> Scenario:
     """``base`` with only ``targets`` in the scene, no noise, every scan angle recorded;
     ``level`` stills the waves (the thesis's criteria isolate the error); ``truth`` replaces
     the injected errors."""
     motion = base.motion
     if level:
         motion = replace(motion, roll=Wave(), pitch=Wave(), heave=Wave(), yaw=Wave())
-    return replace(base, surfaces=tuple(targets), scanner_noise=ScannerNoise(),
-                   pos_noise=PosNoise("none"), motion=motion,
-                   scanner=replace(base.scanner, angular_windows_rad=()),
-                   standoff_m=base.standoff_m if standoff_m is None else float(standoff_m),
-                   truth=base.truth if truth is None else truth)  # fmt: skip
+    return replace(
+        base,
+        surfaces=tuple(targets),
+        scanner_noise=ScannerNoise(),
+        pos_noise=PosNoise("none"),
+        motion=motion,
+        scanner=replace(base.scanner, angular_windows_rad=()),
+        standoff_m=base.standoff_m if standoff_m is None else float(standoff_m),
+        truth=base.truth if truth is None else truth,
+    )
 
 
 def site_scenario(base: Scenario, targets: Sequence[Surface]) -> Scenario:
     """``base`` (its noise, motion, passes) with only ``targets`` in the scene and every scan
     angle recorded: a planned site to simulate with noise."""
-    return replace(base, surfaces=tuple(targets),
-                   scanner=replace(base.scanner, angular_windows_rad=()))  # fmt: skip
+    return replace(base, surfaces=tuple(targets), scanner=replace(base.scanner, angular_windows_rad=()))

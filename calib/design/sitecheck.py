@@ -31,10 +31,15 @@ def compare_sites(base, rec, seeds: int, jobs: int, progress) -> dict:
     for name, (sc, est) in runs.items():
         e = (errs_new if sc is new else errs_own)[est]
         rms[name] = np.degrees(np.sqrt(np.mean(e**2, axis=0)))
-    lines = [f"{n} simulations of each site with the scenario's noise ({base.pos_noise.model} POS "
-             f"errors), adjusted; RMS error of the estimates:", "",
-             "| site and adjustment | roll | pitch | yaw | total |", "|---|---|---|---|---|"]  # fmt: skip
+    lines = [
+        f"{n} simulations of each site with the scenario's noise ({base.pos_noise.model} POS "
+        f"errors), adjusted; RMS error of the estimates:",
+        "",
+        "| site and adjustment | roll | pitch | yaw | total |",
+        "|---|---|---|---|---|",
+    ]
     for name, r in rms.items():
-        lines.append(f"| {name} | {r[0]:.4f}° | {r[1]:.4f}° | {r[2]:.4f}° | "
-                     f"{float(np.sqrt(np.sum(r**2))):.4f}° |")
+        lines.append(
+            f"| {name} | {r[0]:.4f}° | {r[1]:.4f}° | {r[2]:.4f}° | {float(np.sqrt(np.sum(r**2))):.4f}° |"
+        )
     return {"rms_deg": rms, "seeds": n, "text": "\n".join(lines)}

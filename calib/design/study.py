@@ -49,24 +49,50 @@ from calib.survey.passplan import PassPlanError
 # ---------------------------------------------------------------------------------------------
 
 SIGMA_COLUMNS = (
-    ["scenario", "group", "label", "n_targets", "inclinations_deg", "sizes_m", "standoff_m",
-     "height_m", "spread_m", "stagger_m", "setback_m", "passes", "headings_deg", "n_points",
-     "observable", "correlation_time_s"]
+    [
+        "scenario",
+        "group",
+        "label",
+        "n_targets",
+        "inclinations_deg",
+        "sizes_m",
+        "standoff_m",
+        "height_m",
+        "spread_m",
+        "stagger_m",
+        "setback_m",
+        "passes",
+        "headings_deg",
+        "n_points",
+        "observable",
+        "correlation_time_s",
+    ]
     + [f"sigma_{m}_{a}_deg" for m in MODELS for a in ANGLES + ("total",)]
     + ["realistic_total_deg", "estimator"]
-    + [f"corr_{m}_{a}_{b}" for m in ("white", "realistic")
-       for a, b in (("roll", "pitch"), ("roll", "yaw"), ("pitch", "yaw"))]
+    + [
+        f"corr_{m}_{a}_{b}"
+        for m in ("white", "realistic")
+        for a, b in (("roll", "pitch"), ("roll", "yaw"), ("pitch", "yaw"))
+    ]
     + ["note"]
-)  # fmt: skip
+)
 
 
-def sigma_row(scenario: str, layout: Layout, pred: Prediction | None, subset: Sequence[int],
-              headings: dict, correlation_time_s: float | Sequence[float],
-              note: str = "") -> dict:  # fmt: skip
+def sigma_row(
+    scenario: str,
+    layout: Layout,
+    pred: Prediction | None,
+    subset: Sequence[int],
+    headings: dict,
+    correlation_time_s: float | Sequence[float],
+    note: str = "",
+) -> dict:
     """One line of ``sigma.csv``."""
     tg = layout.targets
     row = {
-        "scenario": scenario, "group": layout.group, "label": layout.label,
+        "scenario": scenario,
+        "group": layout.group,
+        "label": layout.label,
         "n_targets": len(tg),
         "inclinations_deg": tuple(round(surface_inclination_deg(s), 6) for s in tg),
         "sizes_m": tuple((s.width_m, s.height_m) for s in tg),
@@ -81,7 +107,7 @@ def sigma_row(scenario: str, layout: Layout, pred: Prediction | None, subset: Se
         "observable": bool(pred is not None and pred.observable),
         "correlation_time_s": tuple(float(x) for x in np.atleast_1d(correlation_time_s)),
         "note": note,
-    }  # fmt: skip
+    }
     for m in MODELS:
         s = np.full(3, np.inf) if pred is None or not pred.observable else pred.sigma_deg(m)
         for a, v in zip(ANGLES, s):
@@ -93,8 +119,9 @@ def sigma_row(scenario: str, layout: Layout, pred: Prediction | None, subset: Se
     row["estimator"] = ("pass_offsets" if real.endswith("_offsets") else "none") if ok else ""
     for name, m in (("white", "white"), ("realistic", real)):
         c = pred.correlation(m) if ok else np.full((3, 3), np.nan)
-        for (a, b), v in zip((("roll", "pitch"), ("roll", "yaw"), ("pitch", "yaw")),
-                             (c[0, 1], c[0, 2], c[1, 2])):  # fmt: skip
+        for (a, b), v in zip(
+            (("roll", "pitch"), ("roll", "yaw"), ("pitch", "yaw")), (c[0, 1], c[0, 2], c[1, 2])
+        ):
             row[f"corr_{name}_{a}_{b}"] = float(v)
     return row
 
@@ -108,34 +135,36 @@ def headings_deg(base: Scenario) -> dict:
 _SEARCH_MODELS = ("white",) + REALISTIC
 
 
-def _sigma_task(base: Scenario, layout: Layout, sigmas: Sigmas, seed: int,
-                models: Sequence[str] = MODELS) -> list[dict]:  # fmt: skip
+def _sigma_task(
+    base: Scenario, layout: Layout, sigmas: Sigmas, seed: int, models: Sequence[str] = MODELS
+) -> list[dict]:
     sc = design_scenario(base, layout.targets, standoff_m=layout.standoff_m)
     headings, tau = headings_deg(base), sigmas.correlation_time_s
     try:
         sim, obs, planes = prepare(sc, sigmas, seed)
     except (PassPlanError, SimulationError, DesignError) as e:
-        return [sigma_row(base.name, layout, None, s, headings, tau, str(e))
-                for s in layout.pass_subsets]  # fmt: skip
+        return [sigma_row(base.name, layout, None, s, headings, tau, str(e)) for s in layout.pass_subsets]
     rows = []
     for subset in layout.pass_subsets:
         o, p = select_passes(obs, planes, subset)
-        rows.append(sigma_row(base.name, layout, predict(o, sim.mount_true, p, tau, models),
-                              subset, headings, tau))  # fmt: skip
+        rows.append(
+            sigma_row(base.name, layout, predict(o, sim.mount_true, p, tau, models), subset, headings, tau)
+        )
     return rows
 
 
-def _criteria_task(base: Scenario, error: str, magnitude: float, inclination_deg: float,
-                   size_m: float, seed: int) -> list[dict]:  # fmt: skip
+def _criteria_task(
+    base: Scenario, error: str, magnitude: float, inclination_deg: float, size_m: float, seed: int
+) -> list[dict]:
     """One target at one inclination, one error injected, a level vessel, no noise."""
     tg = square_target(base, "P", inclination_deg, size_m)
-    sc = design_scenario(base, [tg], level=True,
-                         truth=injected(error, magnitude, base.mount.boresight_rad))  # fmt: skip
+    sc = design_scenario(base, [tg], level=True, truth=injected(error, magnitude, base.mount.boresight_rad))
     return criteria_rows(simulate(sc, seed), error, magnitude, inclination_deg)
 
 
-def run_tasks(tasks: list[tuple[Callable, tuple]], jobs: int,
-         progress: Callable[[int, int], None] | None) -> list:  # fmt: skip
+def run_tasks(
+    tasks: list[tuple[Callable, tuple]], jobs: int, progress: Callable[[int, int], None] | None
+) -> list:
     """Run ``func(*args)`` for every task, in ``jobs`` processes; results in task order."""
     n = len(tasks)
     out: list = [None] * n
@@ -180,14 +209,20 @@ class Recommendation:
         return ("pass_offsets",) if self.row["estimator"] == "pass_offsets" else ()
 
 
-def recommend(rows: Sequence[dict], layouts_: Sequence[Layout], constraint: Constraint,
-              baseline_rows: Sequence[dict] = ()) -> Recommendation:  # fmt: skip
+def recommend(
+    rows: Sequence[dict],
+    layouts_: Sequence[Layout],
+    constraint: Constraint,
+    baseline_rows: Sequence[dict] = (),
+) -> Recommendation:
     """The ``layout`` row with the smallest realistic σ (ties: the smaller white σ)."""
     cands = [(r, lay) for r, lay in zip(rows, layouts_) if r["group"] == "layout" and r["observable"]]
     if not cands:
-        raise DesignError("no observable layout satisfies the constraint "
-                          f"({constraint.n_targets} targets ≤ {constraint.max_size_m:g} m, passes "
-                          f"{', '.join(map(str, constraint.passes))})")  # fmt: skip
+        raise DesignError(
+            "no observable layout satisfies the constraint "
+            f"({constraint.n_targets} targets ≤ {constraint.max_size_m:g} m, passes "
+            f"{', '.join(map(str, constraint.passes))})"
+        )
     row, lay = min(cands, key=lambda c: (c[0]["realistic_total_deg"], c[0]["sigma_white_total_deg"]))
     base = [r for r in baseline_rows if tuple(sorted(r["passes"])) == tuple(sorted(constraint.passes))]
     return Recommendation(constraint, lay, row, base[0] if base else None)
@@ -211,8 +246,13 @@ class StudyResult:
         return [r for r in self.sigma if r["group"] == group]
 
 
-def run_study(scenario: Scenario | str, spec: StudySpec | None = None, *, jobs: int = 1,
-              progress: Callable[[int, int], None] | None = None) -> StudyResult:  # fmt: skip
+def run_study(
+    scenario: Scenario | str,
+    spec: StudySpec | None = None,
+    *,
+    jobs: int = 1,
+    progress: Callable[[int, int], None] | None = None,
+) -> StudyResult:
     """The whole study of a scenario (a :class:`Scenario` or a shipped name / YAML path)."""
     t0 = time.perf_counter()
     base = scenario if isinstance(scenario, Scenario) else load_scenario(scenario)
@@ -221,11 +261,14 @@ def run_study(scenario: Scenario | str, spec: StudySpec | None = None, *, jobs: 
     lays = layouts(base, spec)
     tasks: list[tuple[Callable, tuple]] = [
         (_criteria_task, (base, e, spec.magnitudes[e], inc, spec.criteria_size_m, spec.seed))
-        for e in spec.errors for inc in spec.criteria_inclinations_deg
-    ]  # fmt: skip
+        for e in spec.errors
+        for inc in spec.criteria_inclinations_deg
+    ]
     n_crit = len(tasks)
-    tasks += [(_sigma_task, (base, lay, sigmas, spec.seed,
-                             _SEARCH_MODELS if lay.group == "layout" else MODELS)) for lay in lays]
+    tasks += [
+        (_sigma_task, (base, lay, sigmas, spec.seed, _SEARCH_MODELS if lay.group == "layout" else MODELS))
+        for lay in lays
+    ]
     results = run_tasks(tasks, jobs, progress)
     criteria = [r for part in results[:n_crit] for r in part]
     visibility = summarize(criteria)
@@ -238,11 +281,16 @@ def run_study(scenario: Scenario | str, spec: StudySpec | None = None, *, jobs: 
     rho = scan_angle_roll_correlation(obs, sim.mount_true, planes)
     rec = None
     if "layout" in spec.groups:
-        rec = recommend(sigma, [lays[k] for k in owner], spec.constraint,
-                        [r for r in sigma if r["group"] == "site_passes"])  # fmt: skip
+        rec = recommend(
+            sigma,
+            [lays[k] for k in owner],
+            spec.constraint,
+            [r for r in sigma if r["group"] == "site_passes"],
+        )
         # the winner with every model
         full = _sigma_task(base, rec.layout, sigmas, spec.seed)[0]
         sigma[next(i for i, r in enumerate(sigma) if r is rec.row)] = full
         rec = replace(rec, row=full)
-    return StudyResult(base, spec, sigmas, criteria, visibility, sigma, lays, owner, rho, rec,
-                       time.perf_counter() - t0)
+    return StudyResult(
+        base, spec, sigmas, criteria, visibility, sigma, lays, owner, rho, rec, time.perf_counter() - t0
+    )

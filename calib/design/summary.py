@@ -31,8 +31,7 @@ _MAX_LAYOUT_BARS = 25
 
 def _fmt(v) -> str:
     if isinstance(v, tuple):  # a list; a list of pairs (sizes) as 1.23x0.76;…
-        return ";".join("x".join(_fmt(y) for y in x) if isinstance(x, tuple) else _fmt(x)
-                        for x in v)  # fmt: skip
+        return ";".join("x".join(_fmt(y) for y in x) if isinstance(x, tuple) else _fmt(x) for x in v)
     if isinstance(v, float):
         return f"{v:.6g}"
     return str(v)
@@ -73,9 +72,10 @@ def plot_sigma_group(rows: Sequence[dict], group: str, path: Path, title: str = 
         return r[f"sigma_{REALISTIC[1] if r['estimator'] == 'pass_offsets' else REALISTIC[0]}_{a}_deg"]
 
     tau = _tau_text(rows[0]) if rows else "?"
-    for ax, what, key in ((axes[0], "white noise (formal)", lambda r, a: r[f"sigma_white_{a}_deg"]),
-                          (axes[1], f"realistic (Gauss–Markov POS errors, τ = {tau} s, better "
-                                    f"adjustment)", realistic)):  # fmt: skip
+    for ax, what, key in (
+        (axes[0], "white noise (formal)", lambda r, a: r[f"sigma_white_{a}_deg"]),
+        (axes[1], f"realistic (Gauss–Markov POS errors, τ = {tau} s, better adjustment)", realistic),
+    ):
         for k, (a, colour) in enumerate(zip(ANGLES, ("tab:blue", "tab:orange", "tab:green"))):
             ax.bar(x + (k - 1) * width, [key(r, a) for r in rows], width, label=a, color=colour)
         ax.set_ylabel("σ (°)")
@@ -84,8 +84,9 @@ def plot_sigma_group(rows: Sequence[dict], group: str, path: Path, title: str = 
         ax.legend(fontsize=8)
     axes[1].set_xticks(x)
     axes[1].set_xticklabels(labels, rotation=90, fontsize=7)
-    fig.subplots_adjust(left=0.8 / fig_w, right=1 - 0.15 / fig_w, top=1 - 0.35 / fig_h, hspace=0.2,
-                        bottom=label_in / fig_h)  # fmt: skip
+    fig.subplots_adjust(
+        left=0.8 / fig_w, right=1 - 0.15 / fig_w, top=1 - 0.35 / fig_h, hspace=0.2, bottom=label_in / fig_h
+    )
     fig.savefig(path, dpi=100)
     plt.close(fig)
     return path
@@ -106,50 +107,80 @@ def findings(result: StudyResult) -> list[dict]:
     passes = result.rows("passes")
     if passes:
         b = best(passes)
-        out.append({"name": "all six passes give the smallest σ (one vertical plane, white)",
-                    "holds": len(b["passes"]) == max(len(r["passes"]) for r in passes),
-                    "ours": f"best subset {b['passes']}: {b['sigma_white_total_deg']:.4f}°"})
+        out.append(
+            {
+                "name": "all six passes give the smallest σ (one vertical plane, white)",
+                "holds": len(b["passes"]) == max(len(r["passes"]) for r in passes),
+                "ours": f"best subset {b['passes']}: {b['sigma_white_total_deg']:.4f}°",
+            }
+        )
     for g, what in (("passes", "one vertical plane"), ("site_passes", "the scenario's targets")):
         rows = result.rows(g)
         if rows:
             br = best(rows, "realistic_total_deg")
-            out.append({"name": f"… realistic σ (time-correlated POS errors), {what}",
-                        "holds": len(br["passes"]) == max(len(r["passes"]) for r in rows),
-                        "ours": f"best subset {br['passes']}: {br['realistic_total_deg']:.4f}°"})
+            out.append(
+                {
+                    "name": f"… realistic σ (time-correlated POS errors), {what}",
+                    "holds": len(br["passes"]) == max(len(r["passes"]) for r in rows),
+                    "ours": f"best subset {br['passes']}: {br['realistic_total_deg']:.4f}°",
+                }
+            )
     inc = result.rows("inclination")
     if inc:
         b = best(inc)
-        out.append({"name": "a vertical plane is best among single planes (white)",
-                    "holds": abs(b["inclinations_deg"][0]) == 90.0,
-                    "ours": f"best {b['label']}: {b['sigma_white_total_deg']:.4f}°"})
+        out.append(
+            {
+                "name": "a vertical plane is best among single planes (white)",
+                "holds": abs(b["inclinations_deg"][0]) == 90.0,
+                "ours": f"best {b['label']}: {b['sigma_white_total_deg']:.4f}°",
+            }
+        )
     size = sorted(result.rows("size"), key=lambda r: r["sizes_m"][0][0])
     if len(size) > 1:
         s = [r["sigma_white_total_deg"] for r in size]
-        out.append({"name": "σ decreases with the plane size",
-                    "holds": all(a > b for a, b in zip(s, s[1:])),
-                    "ours": ", ".join(f"{r['label']}: {r['sigma_white_total_deg']:.4f}°" for r in size)})
+        out.append(
+            {
+                "name": "σ decreases with the plane size",
+                "holds": all(a > b for a, b in zip(s, s[1:])),
+                "ours": ", ".join(f"{r['label']}: {r['sigma_white_total_deg']:.4f}°" for r in size),
+            }
+        )
     planes = {tuple(r["inclinations_deg"]): r for r in result.rows("planes") if r["observable"]}
     k3, k2 = (90.0, 60.0, 30.0), (90.0, 30.0)
     if k3 in planes and k2 in planes:
-        for model, key in (("white", "sigma_white_total_deg"),
-                           ("per-pass biases, thesis adjustment", "sigma_pass_bias_total_deg"),
-                           ("Gauss–Markov, thesis adjustment", "sigma_gauss_markov_total_deg")):
+        for model, key in (
+            ("white", "sigma_white_total_deg"),
+            ("per-pass biases, thesis adjustment", "sigma_pass_bias_total_deg"),
+            ("Gauss–Markov, thesis adjustment", "sigma_gauss_markov_total_deg"),
+        ):
             triples = [r for k, r in planes.items() if len(k) == 3]
             b = min(triples, key=lambda r: r[key])
             r3, r2 = planes[k3][key], planes[k2][key]
-            out.append({"name": f"three planes 90/60/30 near the best, 90/30 within 20% ({model})",
-                        "holds": r3 <= 1.10 * b[key] and r2 <= 1.20 * r3,
-                        "ours": f"best triple {b['label']} {b[key]:.4f}°, 90/60/30 {r3:.4f}° "
-                                f"(×{r3 / b[key]:.2f}), 90/30 {r2:.4f}° (×{r2 / r3:.2f} of 90/60/30)"})
+            out.append(
+                {
+                    "name": f"three planes 90/60/30 near the best, 90/30 within 20% ({model})",
+                    "holds": r3 <= 1.10 * b[key] and r2 <= 1.20 * r3,
+                    "ours": f"best triple {b['label']} {b[key]:.4f}°, 90/60/30 {r3:.4f}° "
+                    f"(×{r3 / b[key]:.2f}), 90/30 {r2:.4f}° (×{r2 / r3:.2f} of 90/60/30)",
+                }
+            )
     vis = [v for v in result.visibility if v["error"] == "lever_arm_z"]
     if vis:
-        out.append({"name": "a Z lever-arm error is invisible in every configuration",
-                    "holds": not any(v["visible"] for v in vis),
-                    "ours": f"largest pass-to-pass spread {max(v['distance_spread_m'] for v in vis):.2e} m, "
-                            f"{max(v['angle_spread_deg'] for v in vis):.2e}°"})
-    out.append({"name": "roll boresight and scan-angle offset strongly correlated",
-                "holds": result.roll_scan_correlation > 0.99,
-                "ours": f"|ρ| = {result.roll_scan_correlation:.6f}"})
+        out.append(
+            {
+                "name": "a Z lever-arm error is invisible in every configuration",
+                "holds": not any(v["visible"] for v in vis),
+                "ours": f"largest pass-to-pass spread {max(v['distance_spread_m'] for v in vis):.2e} m, "
+                f"{max(v['angle_spread_deg'] for v in vis):.2e}°",
+            }
+        )
+    out.append(
+        {
+            "name": "roll boresight and scan-angle offset strongly correlated",
+            "holds": result.roll_scan_correlation > 0.99,
+            "ours": f"|ρ| = {result.roll_scan_correlation:.6f}",
+        }
+    )
     return out
 
 
@@ -182,63 +213,84 @@ def _why(rec: Recommendation, sc: Scenario) -> str:
         "a few hundredths of a degree. Adjusting per-pass trajectory offsets removes a "
         "translation only where the targets can tell it from a rotation: with two targets of "
         "different normals a per-pass translation explains both targets' offsets at once, so "
-        "the offsets take the boresight's signal with them."]
+        "the offsets take the boresight's signal with them."
+    ]
     if rec.estimator and same_normal:
-        txt.append("The recommended targets share one normal: a translation moves both alike, "
-                   "a rotation moves them by amounts that grow with their lever from the scanner, "
-                   "so the per-pass offsets absorb the POS error and leave the rotation.")
+        txt.append(
+            "The recommended targets share one normal: a translation moves both alike, "
+            "a rotation moves them by amounts that grow with their lever from the scanner, "
+            "so the per-pass offsets absorb the POS error and leave the rotation."
+        )
     if p.get("spread_m", 1.0) == 0.0 and p.get("stagger_m", 0.0) > 0:
-        txt.append(f"They stand one above the other ({p['stagger_m']:g} m apart): every profile "
-                   "crosses both at the same instant, so the POS error's drift within a pass "
-                   "cancels between them too (targets spread along the wall or in range are "
-                   "crossed seconds apart, and the drift over those seconds — half the POS σ for "
-                   f"correlation times of {_tau_text(rec.row)} s — corrupts exactly the difference "
-                   "the design relies on). The height difference turns roll (a displacement across the "
-                   "track proportional to the height) and pitch (along the track, proportional "
-                   "to the height, seen at 45° by the oblique passes) into differences between "
-                   "the targets that no translation produces.")
+        txt.append(
+            f"They stand one above the other ({p['stagger_m']:g} m apart): every profile "
+            "crosses both at the same instant, so the POS error's drift within a pass "
+            "cancels between them too (targets spread along the wall or in range are "
+            "crossed seconds apart, and the drift over those seconds — half the POS σ for "
+            f"correlation times of {_tau_text(rec.row)} s — corrupts exactly the difference "
+            "the design relies on). The height difference turns roll (a displacement across the "
+            "track proportional to the height) and pitch (along the track, proportional "
+            "to the height, seen at 45° by the oblique passes) into differences between "
+            "the targets that no translation produces."
+        )
     if p.get("setback_m", 0.0) > 0:
-        txt.append(f"One target is set back {p['setback_m']:g} m: a yaw moves points along the "
-                   "track in proportion to their horizontal range, a translation does not.")
+        txt.append(
+            f"One target is set back {p['setback_m']:g} m: a yaw moves points along the "
+            "track in proportion to their horizontal range, a translation does not."
+        )
     r, b = rec.row, rec.baseline_row
     real = REALISTIC[1] if rec.estimator else REALISTIC[0]
     if p.get("setback_m", 0.0) == 0 and max(ANGLES, key=lambda a: r[f"sigma_{real}_{a}_deg"]) == "yaw":
-        txt.append("Yaw stays the weakest angle: a profiler's yaw moves points along the track "
-                   "by their horizontal range, the same for targets at one range, so only the "
-                   "targets' own extent and the pass headings separate it from an along-track "
-                   "translation.")
+        txt.append(
+            "Yaw stays the weakest angle: a profiler's yaw moves points along the track "
+            "by their horizontal range, the same for targets at one range, so only the "
+            "targets' own extent and the pass headings separate it from an along-track "
+            "translation."
+        )
     if b:
-        txt.append(f"Predicted realistic σ: {r['realistic_total_deg']:.4f}° against "
-                   f"{b['realistic_total_deg']:.4f}° for the scenario's own site.")
+        txt.append(
+            f"Predicted realistic σ: {r['realistic_total_deg']:.4f}° against "
+            f"{b['realistic_total_deg']:.4f}° for the scenario's own site."
+        )
     return " ".join(txt)
 
 
 def _summary(result: StudyResult, empirical: dict | None) -> str:
     sc, spec, sg = result.scenario, result.spec, result.sigmas
-    L = [f"# Site design study — {sc.name}", "",
-         f"{sc.description.strip()}", "",
-         f"Standoff {sc.standoff_m:g} m, passes "
-         + ", ".join(f"{p.id} ({np.degrees(p.relative_heading_rad) % 360:g}°)" for p in sc.passes)
-         + f"; profiler at {sc.scanner.effective_profile_rate_hz:.0f} profiles/s × "
-         f"{sc.scanner.effective_points_per_360} points/360°. Sigmas assumed: range "
-         f"{sg.scanner.sigma_range_m * 1e3:g} mm (+ beam divergence "
-         f"{sg.scanner.beam_divergence_rad * 1e3:g} mrad), scan angle "
-         f"{np.degrees(sg.scanner.sigma_scan_angle_rad):g}°, POS position "
-         f"{', '.join(f'{x * 100:g}' for x in sg.position_m)} cm, attitude "
-         f"{', '.join(f'{x:g}' for x in np.degrees(sg.attitude_rad))}°. "
-         f"Study time {result.runtime_s:.1f} s.", ""]  # fmt: skip
+    L = [
+        f"# Site design study — {sc.name}",
+        "",
+        f"{sc.description.strip()}",
+        "",
+        f"Standoff {sc.standoff_m:g} m, passes "
+        + ", ".join(f"{p.id} ({np.degrees(p.relative_heading_rad) % 360:g}°)" for p in sc.passes)
+        + f"; profiler at {sc.scanner.effective_profile_rate_hz:.0f} profiles/s × "
+        f"{sc.scanner.effective_points_per_360} points/360°. Sigmas assumed: range "
+        f"{sg.scanner.sigma_range_m * 1e3:g} mm (+ beam divergence "
+        f"{sg.scanner.beam_divergence_rad * 1e3:g} mrad), scan angle "
+        f"{np.degrees(sg.scanner.sigma_scan_angle_rad):g}°, POS position "
+        f"{', '.join(f'{x * 100:g}' for x in sg.position_m)} cm, attitude "
+        f"{', '.join(f'{x:g}' for x in np.degrees(sg.attitude_rad))}°. "
+        f"Study time {result.runtime_s:.1f} s.",
+        "",
+    ]
     L += ["## Thesis findings on this model", "", "| finding | holds | ours |", "|---|---|---|"]
-    L += [f"| {f['name']} | {'yes' if f['holds'] else '**no**'} | {f['ours']} |"
-          for f in findings(result)]  # fmt: skip
+    L += [f"| {f['name']} | {'yes' if f['holds'] else '**no**'} | {f['ours']} |" for f in findings(result)]
     if result.visibility:
-        L += ["", "## Visibility criteria (thesis Table 3.2)", "",
-              "Each error alone at the thesis's magnitude, a level vessel, one "
-              f"{spec.criteria_size_m:g} m target per inclination, georeferenced with the "
-              "error-free mount. An error is visible where the passes' copies disagree (a "
-              "plane-based adjustment sees nothing else); the best inclination is chosen among "
-              f"those whose mean Type I reaches {spec.type1_threshold:g}.", "",
-              "| error | magnitude | best inclination (distance) | spread | best inclination (angle) | spread |",
-              "|---|---|---|---|---|---|"]  # fmt: skip
+        L += [
+            "",
+            "## Visibility criteria (thesis Table 3.2)",
+            "",
+            "Each error alone at the thesis's magnitude, a level vessel, one "
+            f"{spec.criteria_size_m:g} m target per inclination, georeferenced with the "
+            "error-free mount. An error is visible where the passes' copies disagree (a "
+            "plane-based adjustment sees nothing else); the best inclination is chosen among "
+            f"those whose mean Type I reaches {spec.type1_threshold:g}.",
+            "",
+            "| error | magnitude | best inclination (distance) | spread | best inclination (angle) | spread |",
+            "|---|---|---|---|---|---|",
+        ]
+
         def incl(v):  # the thesis's Chapter 3 angle beside ours on a ground-based site
             tilt = f" (thesis {v['thesis_tilt_deg']:g}°)" if ground_based(sc) else ""
             return f"{v['inclination_deg']:g}°{tilt}"
@@ -246,25 +298,40 @@ def _summary(result: StudyResult, empirical: dict | None) -> str:
         for e in dict.fromkeys(v["error"] for v in result.visibility):
             vs = [v for v in result.visibility if v["error"] == e]
             bd, ba = best_inclinations(vs, e, spec.type1_threshold)
-            mag = (f"{np.degrees(spec.magnitudes[e]):g}°" if is_angular(e)
-                   else f"{spec.magnitudes[e] * 100:g} cm")  # fmt: skip
+            mag = (
+                f"{np.degrees(spec.magnitudes[e]):g}°"
+                if is_angular(e)
+                else f"{spec.magnitudes[e] * 100:g} cm"
+            )
             if not any(v["visible"] for v in vs):
-                L.append(f"| {e} | {mag} | invisible | {bd['distance_spread_m']:.1e} m | invisible | "
-                         f"{ba['angle_spread_deg']:.1e}° |")
+                L.append(
+                    f"| {e} | {mag} | invisible | {bd['distance_spread_m']:.1e} m | invisible | "
+                    f"{ba['angle_spread_deg']:.1e}° |"
+                )
                 continue
-            L.append(f"| {e} | {mag} | {incl(bd)} | {bd['distance_spread_m'] * 1e3:.1f} mm | "
-                     f"{incl(ba)} | {ba['angle_spread_deg']:.3f}° |")
-        L += ["", "A Z lever-arm error moves every point of every pass by the same vertical "
-              "vector (the vessel is level), which the plane's own offset absorbs: no plane, "
-              "inclination or pass pattern sees it (thesis C.2.5); measure it by survey. A "
-              "scan-angle offset is a rotation about the scanner's x axis, i.e. a boresight "
-              f"rotation: |ρ(roll, scan-angle offset)| = {result.roll_scan_correlation:.6f}; the "
-              "boresight absorbs it."]  # fmt: skip
-    L += ["", "## Predicted σ (thesis Fig. 4.12)", "",
-          "Per group the configuration with the smallest white-noise σ and the one with the "
-          "smallest realistic σ (σ total = √(σ_roll² + σ_pitch² + σ_yaw²)).", "",
-          "| group | best (white) | σ white | best (realistic) | σ realistic | adjustment |",
-          "|---|---|---|---|---|---|"]  # fmt: skip
+            L.append(
+                f"| {e} | {mag} | {incl(bd)} | {bd['distance_spread_m'] * 1e3:.1f} mm | "
+                f"{incl(ba)} | {ba['angle_spread_deg']:.3f}° |"
+            )
+        L += [
+            "",
+            "A Z lever-arm error moves every point of every pass by the same vertical "
+            "vector (the vessel is level), which the plane's own offset absorbs: no plane, "
+            "inclination or pass pattern sees it (thesis C.2.5); measure it by survey. A "
+            "scan-angle offset is a rotation about the scanner's x axis, i.e. a boresight "
+            f"rotation: |ρ(roll, scan-angle offset)| = {result.roll_scan_correlation:.6f}; the "
+            "boresight absorbs it.",
+        ]
+    L += [
+        "",
+        "## Predicted σ (thesis Fig. 4.12)",
+        "",
+        "Per group the configuration with the smallest white-noise σ and the one with the "
+        "smallest realistic σ (σ total = √(σ_roll² + σ_pitch² + σ_yaw²)).",
+        "",
+        "| group | best (white) | σ white | best (realistic) | σ realistic | adjustment |",
+        "|---|---|---|---|---|---|",
+    ]
     for g in spec.groups:
         rows = [r for r in result.rows(g) if r["observable"]]
         if not rows:
@@ -272,48 +339,69 @@ def _summary(result: StudyResult, empirical: dict | None) -> str:
         bw = min(rows, key=lambda r: r["sigma_white_total_deg"])
         br = min(rows, key=lambda r: r["realistic_total_deg"])
         lab = (lambda r: str(r["passes"])) if g.endswith("passes") else (lambda r: r["label"])
-        L.append(f"| {g} | {lab(bw)} | {bw['sigma_white_total_deg']:.4f}° | {lab(br)} | "
-                 f"{br['realistic_total_deg']:.4f}° | {br['estimator']} |")
+        L.append(
+            f"| {g} | {lab(bw)} | {bw['sigma_white_total_deg']:.4f}° | {lab(br)} | "
+            f"{br['realistic_total_deg']:.4f}° | {br['estimator']} |"
+        )
     if result.sigma:
-        L += ["", "Models: *white* treats every observation as independent (the thesis's "
-              "implicit model, the adjustment's formal σ); *per-pass biases* hold the POS errors "
-              "constant within a pass and independent between passes; *Gauss–Markov* correlates "
-              "them in time with the trajectory's correlation times "
-              f"({_tau_text(result.sigma[0])} s for north, east, down, roll, pitch, heading), "
-              "across passes too. Each realistic model is predicted for the thesis's "
-              "adjustment and for one with per-pass trajectory offsets. The realistic σ — what "
-              "the recommendation minimizes — is the better Gauss–Markov one: per-pass biases "
-              "are its limit of an infinite correlation time and miss the POS drift within a "
-              "pass, which decides between layouts whose targets are crossed at different "
-              "moments (a Gauss–Markov Monte Carlo follows the Gauss–Markov prediction)."]  # fmt: skip
+        L += [
+            "",
+            "Models: *white* treats every observation as independent (the thesis's "
+            "implicit model, the adjustment's formal σ); *per-pass biases* hold the POS errors "
+            "constant within a pass and independent between passes; *Gauss–Markov* correlates "
+            "them in time with the trajectory's correlation times "
+            f"({_tau_text(result.sigma[0])} s for north, east, down, roll, pitch, heading), "
+            "across passes too. Each realistic model is predicted for the thesis's "
+            "adjustment and for one with per-pass trajectory offsets. The realistic σ — what "
+            "the recommendation minimizes — is the better Gauss–Markov one: per-pass biases "
+            "are its limit of an infinite correlation time and miss the POS drift within a "
+            "pass, which decides between layouts whose targets are crossed at different "
+            "moments (a Gauss–Markov Monte Carlo follows the Gauss–Markov prediction).",
+        ]
     rec = result.recommendation
     if rec is not None:
         c, r, b = rec.constraint, rec.row, rec.baseline_row
-        L += ["", "## Recommended site", "",
-              f"Constraint: {c.n_targets} target(s) of at most {c.max_size_m:g} m, passes "
-              f"{', '.join(map(str, c.passes))}. Adjust with "
-              f"{'per-pass trajectory offsets (estimate pass_offsets)' if rec.estimator else 'the boresight and planes only'}.", "",
-              "| target | inclination | size | along the wall | out from the wall line | above the scanner |",
-              "|---|---|---|---|---|---|"]  # fmt: skip
+        L += [
+            "",
+            "## Recommended site",
+            "",
+            f"Constraint: {c.n_targets} target(s) of at most {c.max_size_m:g} m, passes "
+            f"{', '.join(map(str, c.passes))}. Adjust with "
+            f"{'per-pass trajectory offsets (estimate pass_offsets)' if rec.estimator else 'the boresight and planes only'}.",
+            "",
+            "| target | inclination | size | along the wall | out from the wall line | above the scanner |",
+            "|---|---|---|---|---|---|",
+        ]
         for s in rec.layout.targets:
-            L.append(f"| {s.name} | {surface_inclination_deg(s):g}° | {s.width_m:g} × {s.height_m:g} m "
-                     f"| {s.along_m + 0.0:+.2f} m | {s.out_m + 0.0:+.2f} m | {s.up_m:.2f} m |")
+            L.append(
+                f"| {s.name} | {surface_inclination_deg(s):g}° | {s.width_m:g} × {s.height_m:g} m "
+                f"| {s.along_m + 0.0:+.2f} m | {s.out_m + 0.0:+.2f} m | {s.up_m:.2f} m |"
+            )
         L += ["", "| model | recommended | scenario's own site |", "|---|---|---|"]
         for m in MODELS:
-            L.append(f"| {_MODEL_NAMES[m]} | {_deg3(r, m)} (total {r[f'sigma_{m}_total_deg']:.4f}°) | "
-                     + (f"{_deg3(b, m)} (total {b[f'sigma_{m}_total_deg']:.4f}°) |" if b else "— |"))
-        corr = lambda x: ", ".join(f"{a}–{c} {x[f'corr_realistic_{a}_{c}']:+.2f}"  # noqa: E731
-                                   for a, c in (("roll", "pitch"), ("roll", "yaw"), ("pitch", "yaw")))
+            L.append(
+                f"| {_MODEL_NAMES[m]} | {_deg3(r, m)} (total {r[f'sigma_{m}_total_deg']:.4f}°) | "
+                + (f"{_deg3(b, m)} (total {b[f'sigma_{m}_total_deg']:.4f}°) |" if b else "— |")
+            )
+
+        def corr(x):
+            pairs = (("roll", "pitch"), ("roll", "yaw"), ("pitch", "yaw"))
+            return ", ".join(f"{a}–{c} {x[f'corr_realistic_{a}_{c}']:+.2f}" for a, c in pairs)
+
         L.append(f"| correlation (realistic) | {corr(r)} | {corr(b) if b else '—'} |")
         L += ["", "### Why it differs from the thesis's site", "", _why(rec, sc)]
     if empirical:
         L += ["", "## Monte Carlo check", "", empirical.get("text", "")]
-    L += ["", "## Files", "",
-          "`criteria.csv` (per error, inclination and pass), `visibility.csv` (per error and "
-          "inclination), `sigma.csv` (per configuration and pass subset; σ in degrees under "
-          "each model — the search's layouts under white noise and Gauss–Markov only, the "
-          "recommended one under all), `recommendation.json`, "
-          "`criteria_<error>.png`, `sigma_<group>.png`."]  # fmt: skip
+    L += [
+        "",
+        "## Files",
+        "",
+        "`criteria.csv` (per error, inclination and pass), `visibility.csv` (per error and "
+        "inclination), `sigma.csv` (per configuration and pass subset; σ in degrees under "
+        "each model — the search's layouts under white noise and Gauss–Markov only, the "
+        "recommended one under all), `recommendation.json`, "
+        "`criteria_<error>.png`, `sigma_<group>.png`.",
+    ]
     return "\n".join(L) + "\n"
 
 
@@ -321,6 +409,7 @@ def recommendation_json(result: StudyResult) -> dict:
     rec = result.recommendation
     if rec is None:
         return {}
+
     def value(v):  # JSON has no tuple, inf or NaN
         if isinstance(v, tuple):
             return [value(x) for x in v]
@@ -333,25 +422,39 @@ def recommendation_json(result: StudyResult) -> dict:
         "scenario": result.scenario.name,
         "constraint": asdict(rec.constraint),
         "estimate": list(rec.estimator),
-        "targets": [{"name": s.name, "inclination_deg": surface_inclination_deg(s),
-                     "size_m": [s.width_m, s.height_m], "along_m": round(s.along_m, 6) + 0.0,
-                     "out_m": round(s.out_m, 6) + 0.0, "up_m": round(s.up_m, 6)}
-                    for s in rec.layout.targets],
+        "targets": [
+            {
+                "name": s.name,
+                "inclination_deg": surface_inclination_deg(s),
+                "size_m": [s.width_m, s.height_m],
+                "along_m": round(s.along_m, 6) + 0.0,
+                "out_m": round(s.out_m, 6) + 0.0,
+                "up_m": round(s.up_m, 6),
+            }
+            for s in rec.layout.targets
+        ],
         "predicted": clean(rec.row),
         "scenario_site": clean(rec.baseline_row) if rec.baseline_row else None,
         "roll_scan_angle_correlation": result.roll_scan_correlation,
-    }  # fmt: skip
+    }
 
 
-def write_study(result: StudyResult, out_dir: str | Path, empirical: dict | None = None,
-                figures: bool = True, jobs: int = 1) -> list[Path]:  # fmt: skip
+def write_study(
+    result: StudyResult,
+    out_dir: str | Path,
+    empirical: dict | None = None,
+    figures: bool = True,
+    jobs: int = 1,
+) -> list[Path]:
     """CSV tables, PNG figures (drawn in ``jobs`` processes) and ``summary.md`` into
     ``out_dir`` (created)."""
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    files = [write_csv(out / "criteria.csv", result.criteria, CRITERIA_COLUMNS),
-             write_csv(out / "visibility.csv", result.visibility, VISIBILITY_COLUMNS),
-             write_csv(out / "sigma.csv", result.sigma, SIGMA_COLUMNS)]  # fmt: skip
+    files = [
+        write_csv(out / "criteria.csv", result.criteria, CRITERIA_COLUMNS),
+        write_csv(out / "visibility.csv", result.visibility, VISIBILITY_COLUMNS),
+        write_csv(out / "sigma.csv", result.sigma, SIGMA_COLUMNS),
+    ]
     if result.recommendation is not None:
         p = out / "recommendation.json"
         p.write_text(json.dumps(recommendation_json(result), indent=2, default=float) + "\n")
@@ -359,11 +462,17 @@ def write_study(result: StudyResult, out_dir: str | Path, empirical: dict | None
     if figures:
         title = f"{result.scenario.name}: "
         tasks: list[tuple[Callable, tuple]] = [
-            (plot_criteria, ([r for r in result.criteria if r["error"] == e], e,
-                             out / f"criteria_{e}.png", title))
-            for e in dict.fromkeys(r["error"] for r in result.criteria)]  # fmt: skip
-        tasks += [(plot_sigma_group, (result.rows(g), g, out / f"sigma_{g}.png", title))
-                  for g in result.spec.groups if any(r["observable"] for r in result.rows(g))]
+            (
+                plot_criteria,
+                ([r for r in result.criteria if r["error"] == e], e, out / f"criteria_{e}.png", title),
+            )
+            for e in dict.fromkeys(r["error"] for r in result.criteria)
+        ]
+        tasks += [
+            (plot_sigma_group, (result.rows(g), g, out / f"sigma_{g}.png", title))
+            for g in result.spec.groups
+            if any(r["observable"] for r in result.rows(g))
+        ]
         files += run_tasks(tasks, jobs, None)
     p = out / "summary.md"
     p.write_text(_summary(result, empirical), encoding="utf-8")

@@ -27,16 +27,19 @@ from calib.sim.noise import PosNoise, ScannerNoise
 from calib.sim.scenario import Scenario, Surface, load_scenario
 
 
-def site_as_scenario(site: Site, template: Scenario | str = "montreal",
-                     scanner_height_m: float | None = None) -> Scenario:  # fmt: skip
+def site_as_scenario(
+    site: Site, template: Scenario | str = "montreal", scanner_height_m: float | None = None
+) -> Scenario:
     """A site config as a design scenario: its targets, wall azimuth, standoff, passes, mount
     and sigmas; the profiler, the motion and the noise models' kinds from ``template``. The
     vessel's scanner sails at ``scanner_height_m`` (ellipsoidal; default: the reference
     height)."""
     tpl = template if isinstance(template, Scenario) else load_scenario(template)
     if site.reference is None:
-        raise DesignError("the site config has no 'reference': the what-if needs the LGF origin "
-                          "(and, by default, the scanner's height) from it")  # fmt: skip
+        raise DesignError(
+            "the site config has no 'reference': the what-if needs the LGF origin "
+            "(and, by default, the scanner's height) from it"
+        )
     if not site.targets:
         raise DesignError("the site config has no targets")
     ref = site.reference
@@ -47,24 +50,45 @@ def site_as_scenario(site: Site, template: Scenario | str = "montreal",
     surfaces = []
     for t in site.targets:
         c = t.rectangle(frame).center_m
-        surfaces.append(Surface(
-            t.name, "target", float(c[0] * np.cos(wall) + c[1] * np.sin(wall)),
-            float(c[0] * np.cos(water) + c[1] * np.sin(water)), float(-c[2]), t.width_m,
-            t.height_along_slope_m, t.inclination_rad,
-            float(frames.wrap_pi(t.facing_azimuth_rad - water)), t.reflectivity))  # fmt: skip
+        surfaces.append(
+            Surface(
+                t.name,
+                "target",
+                float(c[0] * np.cos(wall) + c[1] * np.sin(wall)),
+                float(c[0] * np.cos(water) + c[1] * np.sin(water)),
+                float(-c[2]),
+                t.width_m,
+                t.height_along_slope_m,
+                t.inclination_rad,
+                float(frames.wrap_pi(t.facing_azimuth_rad - water)),
+                t.reflectivity,
+            )
+        )
     tau = Sigmas.of_site(site).correlation_time_s
     pos = PosNoise("gauss_markov", site.sigma_position_m, site.sigma_attitude_rad, tau[0:3], tau[3:6])
     return replace(
-        tpl, name="site", description="site config what-if", reference=frame,
-        wall_azimuth_rad=float(wall), standoff_m=float(site.standoff_m), passes=site.passes,
-        surfaces=tuple(surfaces), mount=site.mount,
-        truth=replace(tpl.truth, boresight_rad=np.asarray(site.mount.boresight_rad, float),
-                      lever_arm_error_m=np.zeros(3), range_offset_m=0.0,
-                      scan_angle_offset_rad=0.0, time_offset_s=0.0),
-        scanner_noise=ScannerNoise(sigma_range_m=site.sigma_range_m,
-                                   sigma_scan_angle_rad=site.sigma_scan_angle_rad),
+        tpl,
+        name="site",
+        description="site config what-if",
+        reference=frame,
+        wall_azimuth_rad=float(wall),
+        standoff_m=float(site.standoff_m),
+        passes=site.passes,
+        surfaces=tuple(surfaces),
+        mount=site.mount,
+        truth=replace(
+            tpl.truth,
+            boresight_rad=np.asarray(site.mount.boresight_rad, float),
+            lever_arm_error_m=np.zeros(3),
+            range_offset_m=0.0,
+            scan_angle_offset_rad=0.0,
+            time_offset_s=0.0,
+        ),
+        scanner_noise=ScannerNoise(
+            sigma_range_m=site.sigma_range_m, sigma_scan_angle_rad=site.sigma_scan_angle_rad
+        ),
         pos_noise=pos,
-    )  # fmt: skip
+    )
 
 
 @dataclass(frozen=True)
@@ -77,8 +101,9 @@ class WhatIf:
     roll_scan_correlation: float
 
 
-def what_if(site: Site, template: Scenario | str = "montreal",
-            scanner_height_m: float | None = None, seed: int = 0) -> WhatIf:  # fmt: skip
+def what_if(
+    site: Site, template: Scenario | str = "montreal", scanner_height_m: float | None = None, seed: int = 0
+) -> WhatIf:
     sc = site_as_scenario(site, template, scanner_height_m)
     sigmas = Sigmas.of_site(site)
     sim, obs, planes = prepare(design_scenario(sc, sc.surfaces), sigmas, seed)

@@ -24,17 +24,27 @@ from pathlib import Path
 import numpy as np
 
 from calib.core import frames
+from calib.core.trajectory import Trajectory, TrajectoryError
 from calib.io.configfile import ConfigError
 from calib.io.site import Site, load_site
-from calib.core.trajectory import Trajectory, TrajectoryError
 
-TRAJECTORY_COLUMNS = ("gps_time", "lat_deg", "lon_deg", "height_m", "roll_deg", "pitch_deg",
-                      "heading_deg")  # fmt: skip
-TRAJECTORY_SIGMA_COLUMNS = ("sigma_north_m", "sigma_east_m", "sigma_down_m", "sigma_roll_deg",
-                            "sigma_pitch_deg", "sigma_heading_deg")  # fmt: skip
+TRAJECTORY_COLUMNS = ("gps_time", "lat_deg", "lon_deg", "height_m", "roll_deg", "pitch_deg", "heading_deg")
+TRAJECTORY_SIGMA_COLUMNS = (
+    "sigma_north_m",
+    "sigma_east_m",
+    "sigma_down_m",
+    "sigma_roll_deg",
+    "sigma_pitch_deg",
+    "sigma_heading_deg",
+)
 #: (column index, name, lowest, highest) of the trajectory.csv values with a range.
-TRAJECTORY_RANGES = ((1, "lat_deg", -90, 90), (2, "lon_deg", -180, 360), (4, "roll_deg", -180, 180),
-                     (5, "pitch_deg", -90, 90), (6, "heading_deg", -360, 360))  # fmt: skip
+TRAJECTORY_RANGES = (
+    (1, "lat_deg", -90, 90),
+    (2, "lon_deg", -180, 360),
+    (4, "roll_deg", -180, 180),
+    (5, "pitch_deg", -90, 90),
+    (6, "heading_deg", -360, 360),
+)
 POINT_COLUMNS = ("pass_id", "gps_time", "range_m", "scan_angle_deg", "intensity")
 
 
@@ -54,9 +64,13 @@ class ScanPoints:
 
     def __post_init__(self):
         n = np.asarray(self.t_gps_s).shape[0]
-        for name, dtype in (("pass_id", np.int32), ("t_gps_s", np.float64),
-                            ("range_m", np.float64), ("scan_angle_rad", np.float64),
-                            ("intensity", np.float32)):  # fmt: skip
+        for name, dtype in (
+            ("pass_id", np.int32),
+            ("t_gps_s", np.float64),
+            ("range_m", np.float64),
+            ("scan_angle_rad", np.float64),
+            ("intensity", np.float32),
+        ):
             a = np.asarray(getattr(self, name), dtype=dtype)
             if a.shape != (n,):
                 raise ValueError(f"ScanPoints.{name} has shape {a.shape}, expected ({n},)")
@@ -65,14 +79,23 @@ class ScanPoints:
     def __len__(self) -> int:
         return self.t_gps_s.shape[0]
 
-    def select(self, mask) -> "ScanPoints":
-        return ScanPoints(self.pass_id[mask], self.t_gps_s[mask], self.range_m[mask],
-                          self.scan_angle_rad[mask], self.intensity[mask])  # fmt: skip
+    def select(self, mask) -> ScanPoints:
+        return ScanPoints(
+            self.pass_id[mask],
+            self.t_gps_s[mask],
+            self.range_m[mask],
+            self.scan_angle_rad[mask],
+            self.intensity[mask],
+        )
 
     @staticmethod
-    def concatenate(parts: list["ScanPoints"]) -> "ScanPoints":
-        return ScanPoints(*(np.concatenate([getattr(p, f) for p in parts]) for f in
-                            ("pass_id", "t_gps_s", "range_m", "scan_angle_rad", "intensity")))
+    def concatenate(parts: list[ScanPoints]) -> ScanPoints:
+        return ScanPoints(
+            *(
+                np.concatenate([getattr(p, f) for p in parts])
+                for f in ("pass_id", "t_gps_s", "range_m", "scan_angle_rad", "intensity")
+            )
+        )
 
     def pass_ids(self) -> list[int]:
         return [int(p) for p in np.unique(self.pass_id)]
@@ -131,8 +154,9 @@ def _fast_floats(body: str, n_lines: int, k: int) -> np.ndarray | None:
     return values[:, :k]
 
 
-def _parse_csv(path: Path, text: str, required: tuple[str, ...], optional: tuple[str, ...] = ()
-               ) -> tuple[list[str], np.ndarray]:  # fmt: skip
+def _parse_csv(
+    path: Path, text: str, required: tuple[str, ...], optional: tuple[str, ...] = ()
+) -> tuple[list[str], np.ndarray]:
     """Parse a numeric CSV with a header; returns (columns, (n, k) float64 array).
 
     A fast C-level parse is tried first; when it fails, a line-by-line pass finds the first bad
@@ -142,14 +166,15 @@ def _parse_csv(path: Path, text: str, required: tuple[str, ...], optional: tuple
     header = (text if header_end < 0 else text[:header_end]).strip().lstrip("\ufeff")
     columns = [c.strip() for c in header.split(",")]
     if columns[: len(required)] != list(required):
-        raise BundleError(f"{path}:1: header is {header!r}, expected it to start with "
-                          f"{','.join(required)!r}")  # fmt: skip
-    extra = columns[len(required):]
+        raise BundleError(f"{path}:1: header is {header!r}, expected it to start with {','.join(required)!r}")
+    extra = columns[len(required) :]
     if extra and extra != list(optional):
-        raise BundleError(f"{path}:1: unexpected columns {','.join(extra)!r}; after "
-                          f"{','.join(required)!r} only {','.join(optional)!r} may follow")  # fmt: skip
+        raise BundleError(
+            f"{path}:1: unexpected columns {','.join(extra)!r}; after "
+            f"{','.join(required)!r} only {','.join(optional)!r} may follow"
+        )
     k = len(columns)
-    body = "" if header_end < 0 else text[header_end + 1:]
+    body = "" if header_end < 0 else text[header_end + 1 :]
     body = body.replace("\r", "")
     n_lines = body.count("\n") + (0 if body.endswith("\n") or not body else 1)
     if n_lines == 0:
@@ -162,21 +187,21 @@ def _parse_csv(path: Path, text: str, required: tuple[str, ...], optional: tuple
         if not line and i == n_lines:
             break
         if not line.strip():
-            raise BundleError(f"{path}:{i + 2}: empty line, expected {k} fields "
-                              f"({','.join(columns)})")  # fmt: skip
+            raise BundleError(f"{path}:{i + 2}: empty line, expected {k} fields ({','.join(columns)})")
         fields = line.split(",")
         if len(fields) != k:
-            raise BundleError(f"{path}:{i + 2}: {len(fields)} fields, expected {k} "
-                              f"({','.join(columns)})")  # fmt: skip
+            raise BundleError(f"{path}:{i + 2}: {len(fields)} fields, expected {k} ({','.join(columns)})")
         for j, f in enumerate(fields):
             try:
                 v = float(f)
             except ValueError:
-                raise BundleError(f"{path}:{i + 2}:{j + 1}: column {columns[j]!r} is {f!r}, "
-                                  f"expected a number") from None  # fmt: skip
+                raise BundleError(
+                    f"{path}:{i + 2}:{j + 1}: column {columns[j]!r} is {f!r}, expected a number"
+                ) from None
             if not np.isfinite(v):
-                raise BundleError(f"{path}:{i + 2}:{j + 1}: column {columns[j]!r} is {f!r}, "
-                                  f"expected a finite number")  # fmt: skip
+                raise BundleError(
+                    f"{path}:{i + 2}:{j + 1}: column {columns[j]!r} is {f!r}, expected a finite number"
+                )
     raise BundleError(f"{path}: could not parse as CSV with columns {','.join(columns)}")
 
 
@@ -192,8 +217,9 @@ def _write_csv(path: Path, header: tuple[str, ...], fmt: str, cols: list[np.ndar
     path.write_bytes(data)
 
 
-def _check_sorted_column(path: Path, values: np.ndarray, column: str, col_index: int,
-                         group: np.ndarray | None = None) -> None:  # fmt: skip
+def _check_sorted_column(
+    path: Path, values: np.ndarray, column: str, col_index: int, group: np.ndarray | None = None
+) -> None:
     if values.size < 2:
         return
     d = np.diff(values)
@@ -201,12 +227,15 @@ def _check_sorted_column(path: Path, values: np.ndarray, column: str, col_index:
     if np.any(bad):
         i = int(np.argmax(bad)) + 1
         what = "increase strictly" if group is None else "not decrease within a pass"
-        raise BundleError(f"{path}:{i + 2}:{col_index + 1}: {column} {float(values[i])!r} follows "
-                          f"{float(values[i - 1])!r}; times must {what}")  # fmt: skip
+        raise BundleError(
+            f"{path}:{i + 2}:{col_index + 1}: {column} {float(values[i])!r} follows "
+            f"{float(values[i - 1])!r}; times must {what}"
+        )
 
 
-def read_trajectory_csv(path: Path, frame: frames.LocalFrame | None = None,
-                        max_gap_s: float = 1.0) -> Trajectory:  # fmt: skip
+def read_trajectory_csv(
+    path: Path, frame: frames.LocalFrame | None = None, max_gap_s: float = 1.0
+) -> Trajectory:
     path = Path(path)
     columns, a = _parse_csv(path, _open_text(path), TRAJECTORY_COLUMNS, TRAJECTORY_SIGMA_COLUMNS)
     if a.shape[0] < 2:
@@ -216,22 +245,30 @@ def read_trajectory_csv(path: Path, frame: frames.LocalFrame | None = None,
         bad = ~((a[:, j] >= lo) & (a[:, j] <= hi))
         if bad.any():
             i = int(np.argmax(bad))
-            raise BundleError(f"{path}:{i + 2}:{j + 1}: {name} is {float(a[i, j])!r}, expected "
-                              f"{lo}…{hi}")  # fmt: skip
+            raise BundleError(f"{path}:{i + 2}:{j + 1}: {name} is {float(a[i, j])!r}, expected {lo}…{hi}")
     sig_p = sig_a = None
     if len(columns) > len(TRAJECTORY_COLUMNS):
         sig = a[:, 7:]
         bad = sig <= 0
         if bad.any():
             i, j = np.argwhere(bad)[0]
-            raise BundleError(f"{path}:{i + 2}:{j + 8}: {columns[j + 7]} is {float(sig[i, j])!r}, "
-                              f"expected a positive sigma")  # fmt: skip
+            raise BundleError(
+                f"{path}:{i + 2}:{j + 8}: {columns[j + 7]} is {float(sig[i, j])!r}, expected a positive sigma"
+            )
         sig_p, sig_a = sig[:, :3], np.radians(sig[:, 3:])
     try:
         return Trajectory.from_geodetic(
-            a[:, 0], a[:, 1], a[:, 2], a[:, 3], np.radians(a[:, 4:7]), frame,
-            sigma_p_m=sig_p, sigma_rpy_rad=sig_a, max_gap_s=max_gap_s, name=str(path),
-        )  # fmt: skip
+            a[:, 0],
+            a[:, 1],
+            a[:, 2],
+            a[:, 3],
+            np.radians(a[:, 4:7]),
+            frame,
+            sigma_p_m=sig_p,
+            sigma_rpy_rad=sig_a,
+            max_gap_s=max_gap_s,
+            name=str(path),
+        )
     except TrajectoryError as e:
         raise BundleError(str(e)) from None
 
@@ -244,8 +281,14 @@ def write_trajectory_csv(path: Path, traj: Trajectory) -> None:
     fmt = "%.9f,%.12f,%.12f,%.6f,%.12g,%.12g,%.12g"
     if traj.has_sigmas:
         sa = np.degrees(traj.sigma_rpy_rad)
-        cols += [traj.sigma_p_m[:, 0], traj.sigma_p_m[:, 1], traj.sigma_p_m[:, 2],
-                 sa[:, 0], sa[:, 1], sa[:, 2]]  # fmt: skip
+        cols += [
+            traj.sigma_p_m[:, 0],
+            traj.sigma_p_m[:, 1],
+            traj.sigma_p_m[:, 2],
+            sa[:, 0],
+            sa[:, 1],
+            sa[:, 2],
+        ]
         header = header + TRAJECTORY_SIGMA_COLUMNS
         fmt += ",%.6g,%.6g,%.6g,%.6g,%.6g,%.6g"
     _write_csv(Path(path), header, fmt, cols)
@@ -260,8 +303,7 @@ def read_points_csv(path: Path) -> ScanPoints:
     bad = (pid != np.round(pid)) | (pid < 0)
     if bad.any():
         i = int(np.argmax(bad))
-        raise BundleError(f"{path}:{i + 2}:1: pass_id is {float(pid[i])!r}, expected a non-negative "
-                          f"integer")  # fmt: skip
+        raise BundleError(f"{path}:{i + 2}:1: pass_id is {float(pid[i])!r}, expected a non-negative integer")
     bad = a[:, 2] < 0
     if bad.any():
         i = int(np.argmax(bad))
@@ -271,9 +313,12 @@ def read_points_csv(path: Path) -> ScanPoints:
 
 
 def write_points_csv(path: Path, pts: ScanPoints) -> None:
-    _write_csv(Path(path), POINT_COLUMNS, "%d,%.9f,%.17g,%.17g,%.6g",
-               [pts.pass_id, pts.t_gps_s, pts.range_m, np.degrees(pts.scan_angle_rad),
-                pts.intensity])  # fmt: skip
+    _write_csv(
+        Path(path),
+        POINT_COLUMNS,
+        "%d,%.9f,%.17g,%.17g,%.6g",
+        [pts.pass_id, pts.t_gps_s, pts.range_m, np.degrees(pts.scan_angle_rad), pts.intensity],
+    )
 
 
 # -- the bundle -----------------------------------------------------------------------------
@@ -290,8 +335,10 @@ def read_bundle(path: str | Path, max_gap_s: float = 1.0) -> Bundle:
     """Read a bundle directory; the LGF is the site's reference, else the trajectory mean."""
     d = Path(path)
     if not d.is_dir():
-        raise BundleError(f"{d}: not a directory (a calibration bundle is a directory with "
-                          f"site.yaml, trajectory.csv and points.csv)")  # fmt: skip
+        raise BundleError(
+            f"{d}: not a directory (a calibration bundle is a directory with "
+            f"site.yaml, trajectory.csv and points.csv)"
+        )
     try:
         site = load_site(d / "site.yaml")
     except ConfigError as e:
@@ -305,10 +352,12 @@ def read_bundle(path: str | Path, max_gap_s: float = 1.0) -> Bundle:
         smrmsg = d / "trajectory.smrmsg"
         try:  # SBET times are seconds of the week: the week is the one of the points
             traj = read_sbet_trajectory(
-                d / "trajectory.sbet", site.reference, max_gap_s,
+                d / "trajectory.sbet",
+                site.reference,
+                max_gap_s,
                 near_gps_s=float(points.t_gps_s[0]),
                 smrmsg_path=smrmsg if smrmsg.exists() else None,
-            )  # fmt: skip
+            )
         except SbetError as e:
             raise BundleError(str(e)) from None
     else:
@@ -316,8 +365,14 @@ def read_bundle(path: str | Path, max_gap_s: float = 1.0) -> Bundle:
     return Bundle(d, site, traj, points)
 
 
-def write_bundle(path: str | Path, site: Site, trajectory: Trajectory, points: ScanPoints,
-                 truth: dict | None = None, compress_points: bool = False) -> Path:  # fmt: skip
+def write_bundle(
+    path: str | Path,
+    site: Site,
+    trajectory: Trajectory,
+    points: ScanPoints,
+    truth: dict | None = None,
+    compress_points: bool = False,
+) -> Path:
     """Write a bundle directory (created if needed); returns its path."""
     d = Path(path)
     d.mkdir(parents=True, exist_ok=True)

@@ -107,8 +107,11 @@ def _write_las(path: Path, cloud: PointCloud, extra: dict[str, np.ndarray]) -> N
         cols = {(f"ascii_{k}" if k.lower() in standard else k)[:32]: v for k, v in cloud.columns.items()}
         extra = {**cols, **extra}
     existing = set(las.point_format.extra_dimension_names)
-    new = [laspy.ExtraBytesParams(name=name, type=np.float64, description=name[:31])
-           for name in extra if name not in existing]  # fmt: skip
+    new = [
+        laspy.ExtraBytesParams(name=name, type=np.float64, description=name[:31])
+        for name in extra
+        if name not in existing
+    ]
     if new:
         las.add_extra_dims(new)
     for name, values in extra.items():
@@ -138,8 +141,9 @@ def _read_ascii(p: Path) -> PointCloud:
     try:
         text = p.read_text(encoding="utf-8")
     except UnicodeDecodeError as e:
-        raise CloudError(f"{p}: not a text file (byte {e.start} is not UTF-8); LAS/LAZ files "
-                         f"must end in .las or .laz") from None  # fmt: skip
+        raise CloudError(
+            f"{p}: not a text file (byte {e.start} is not UTF-8); LAS/LAZ files must end in .las or .laz"
+        ) from None
     lines = text.splitlines()
     names: list[str] | None = None
     first = None  # index of the first data line
@@ -172,8 +176,9 @@ def _read_ascii(p: Path) -> PointCloud:
         _locate_ascii_error(p, lines, first, delimiter, ncol)  # raises, naming the line
         raise CloudError(f"{p}: could not parse as {ncol} columns of finite numbers")
     if names is not None and len(names) != ncol:
-        raise CloudError(f"{p}: the header names {len(names)} columns ({' '.join(names)}) but the "
-                         f"data has {ncol}")  # fmt: skip
+        raise CloudError(
+            f"{p}: the header names {len(names)} columns ({' '.join(names)}) but the data has {ncol}"
+        )
     if names is None:
         names = ["x", "y", "z"] + [f"column_{j + 1}" for j in range(3, ncol)]
     columns = {names[j]: a[:, j].copy() for j in range(3, ncol)}
@@ -188,8 +193,7 @@ def _locate_ascii_error(p: Path, lines: list[str], first: int, delimiter, ncol: 
             continue
         fields = _split(s, delimiter)
         if len(fields) != ncol:
-            raise CloudError(f"{p}:{i + 1}: {len(fields)} columns, expected {ncol} like line "
-                             f"{first + 1}")  # fmt: skip
+            raise CloudError(f"{p}:{i + 1}: {len(fields)} columns, expected {ncol} like line {first + 1}")
         for j, f in enumerate(fields):
             try:
                 v = float(f)
@@ -207,8 +211,9 @@ def _write_ascii(path: Path, cloud: PointCloud, extra: dict[str, np.ndarray]) ->
     cols += [np.asarray(c, dtype=float) for c in extra.values()]
     fmt = ["%.6f"] * 3 + ["%.10g"] * len(cloud.columns) + ["%.6f"] * len(extra)
     try:
-        np.savetxt(path, np.column_stack(cols), fmt=fmt, delimiter=sep,
-                   header="//" + sep.join(names), comments="")  # fmt: skip
+        np.savetxt(
+            path, np.column_stack(cols), fmt=fmt, delimiter=sep, header="//" + sep.join(names), comments=""
+        )
     except OSError as e:
         raise CloudError(f"{path}: could not write ({e})") from None
 
@@ -220,8 +225,7 @@ def write_cloud(path, cloud: PointCloud, extra: dict[str, np.ndarray] | None = N
     extra = dict(extra or {})
     for name, values in extra.items():
         if np.shape(values) != (len(cloud),):
-            raise CloudError(f"{p}: column {name!r} has shape {np.shape(values)}, expected "
-                             f"({len(cloud)},)")  # fmt: skip
+            raise CloudError(f"{p}: column {name!r} has shape {np.shape(values)}, expected ({len(cloud)},)")
     if is_las(p):
         _write_las(p, cloud, extra)
     else:

@@ -11,9 +11,10 @@ Every accessor raises :class:`ConfigError` whose message reads
 from __future__ import annotations
 
 import math
+from collections.abc import Iterable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Iterable
+from typing import Any
 
 import numpy as np
 import yaml
@@ -36,7 +37,7 @@ class Node:
     def where(self) -> str:
         return f"{self.source}:{self.line}:{self.column}: {self.path or '<top level>'}"
 
-    def fail(self, expected: str) -> "ConfigError":
+    def fail(self, expected: str) -> ConfigError:
         return ConfigError(f"{self.where()}: got {self.plain()!r}, expected {expected}")
 
     def plain(self) -> Any:
@@ -49,9 +50,7 @@ class Node:
 
     # -- typed accessors --------------------------------------------------------------------
 
-    def mapping(
-        self, required: Iterable[str] = (), optional: Iterable[str] = ()
-    ) -> dict[str, "Node"]:
+    def mapping(self, required: Iterable[str] = (), optional: Iterable[str] = ()) -> dict[str, Node]:
         if not isinstance(self.value, dict):
             raise self.fail("a mapping")
         required, optional = set(required), set(optional)
@@ -69,15 +68,16 @@ class Node:
             raise ConfigError(f"{self.where()}: missing required key {missing[0]!r}")
         return dict(self.value)
 
-    def sequence(self, min_len: int = 0) -> list["Node"]:
+    def sequence(self, min_len: int = 0) -> list[Node]:
         if self.value is None and min_len == 0:
             return []
         if not isinstance(self.value, list) or len(self.value) < min_len:
             raise self.fail(f"a list of at least {min_len} item(s)" if min_len else "a list")
         return list(self.value)
 
-    def number(self, minimum: float | None = None, maximum: float | None = None,
-               exclusive_minimum: bool = False) -> float:  # fmt: skip
+    def number(
+        self, minimum: float | None = None, maximum: float | None = None, exclusive_minimum: bool = False
+    ) -> float:
         v = self.value
         if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
             raise self.fail("a finite number")
@@ -124,13 +124,15 @@ def _to_node(node: yaml.Node, path: str, source: str) -> Node:
             key = str(key)
             child_path = f"{path}.{key}" if path else key
             if key in out:
-                raise ConfigError(f"{source}:{k.start_mark.line + 1}:{k.start_mark.column + 1}: "
-                                  f"{child_path}: duplicate key")  # fmt: skip
+                raise ConfigError(
+                    f"{source}:{k.start_mark.line + 1}:{k.start_mark.column + 1}: {child_path}: duplicate key"
+                )
             out[key] = _to_node(v, child_path, source)
         return Node(out, path, source, line, col)
     if isinstance(node, yaml.SequenceNode):
-        return Node([_to_node(v, f"{path}[{i}]", source) for i, v in enumerate(node.value)],
-                    path, source, line, col)  # fmt: skip
+        return Node(
+            [_to_node(v, f"{path}[{i}]", source) for i, v in enumerate(node.value)], path, source, line, col
+        )
     value = yaml.safe_load(yaml.serialize(node))
     return Node(value, path, source, line, col)
 

@@ -98,11 +98,16 @@ def georeference_bundle(
         if task is not None and idx.size == 0:
             progress.advance(task, 1)
         t_pass = pts.t_gps_s[idx]
-        outputs.append(PassOutput(
-            pass_id, int(idx.size), int(bad.sum()),
-            float(t_pass.min()) if t_pass.size else float("nan"),
-            float(t_pass.max()) if t_pass.size else float("nan"), path,
-        ))  # fmt: skip
+        outputs.append(
+            PassOutput(
+                pass_id,
+                int(idx.size),
+                int(bad.sum()),
+                float(t_pass.min()) if t_pass.size else float("nan"),
+                float(t_pass.max()) if t_pass.size else float("nan"),
+                path,
+            )
+        )
     facts = {
         "crs": out_crs.name,
         "boresight_deg": tuple(float(v) for v in np.degrees(mount.boresight_rad)),

@@ -58,8 +58,9 @@ class OutputCrs:
         x, y, z = self.transformer.transform(ecef[:, 0], ecef[:, 1], ecef[:, 2])
         xyz = np.stack([np.asarray(x), np.asarray(y), np.asarray(z)], axis=1)
         if not np.all(np.isfinite(xyz)):
-            raise LasOutputError(f"{self.name}: pyproj returned non-finite coordinates (is a "
-                                 f"transformation grid missing?)")  # fmt: skip
+            raise LasOutputError(
+                f"{self.name}: pyproj returned non-finite coordinates (is a transformation grid missing?)"
+            )
         return xyz
 
 
@@ -70,34 +71,41 @@ def output_crs(spec: str | None, frame: frames.LocalFrame) -> OutputCrs:
 
     key = (spec or "utm").strip()
     if key.lower() == "lgf":
-        name = (f"marine-mls LGF (x east, y north, z up) at lat {frame.lat_deg:.9f}, "
-                f"lon {frame.lon_deg:.9f}, h {frame.height_m:.3f} m WGS84")  # fmt: skip
+        name = (
+            f"marine-mls LGF (x east, y north, z up) at lat {frame.lat_deg:.9f}, "
+            f"lon {frame.lon_deg:.9f}, h {frame.height_m:.3f} m WGS84"
+        )
         axes = ",".join(
             f'AXIS["{a} ({c})",{d},ORDER[{i + 1}],LENGTHUNIT["metre",1]]'
-            for i, (a, c, d) in enumerate([("easting", "E", "east"), ("northing", "N", "north"),
-                                           ("up", "U", "up")])
-        )  # fmt: skip
+            for i, (a, c, d) in enumerate(
+                [("easting", "E", "east"), ("northing", "N", "north"), ("up", "U", "up")]
+            )
+        )
         crs = CRS.from_wkt(f'ENGCRS["{name}",EDATUM["{name}"],CS[Cartesian,3],{axes}]')
         return OutputCrs("LGF", _wkt1(crs), (SCALE_M,) * 3, (0.0, 0.0, 0.0), frame, None)
     try:
-        crs = CRS.from_epsg(frames.utm_epsg(frame.lat_deg, frame.lon_deg)) \
-            if key.lower() == "utm" else CRS.from_user_input(key)  # fmt: skip
+        crs = (
+            CRS.from_epsg(frames.utm_epsg(frame.lat_deg, frame.lon_deg))
+            if key.lower() == "utm"
+            else CRS.from_user_input(key)
+        )
     except CRSError as e:
         raise LasOutputError(f"CRS {spec!r}: not a CRS pyproj knows ({e})") from None
     target = crs if len(crs.axis_info) == 3 else crs.to_3d()
     try:
         transformer = Transformer.from_crs("EPSG:4978", target, always_xy=True, only_best=True)
     except ProjError as e:
-        raise LasOutputError(f"CRS {spec!r}: no usable transformation from WGS84 ({e})") \
-            from None  # fmt: skip
+        raise LasOutputError(f"CRS {spec!r}: no usable transformation from WGS84 ({e})") from None
     degrees = crs.is_geographic
     scales = (SCALE_DEG, SCALE_DEG, SCALE_M) if degrees else (SCALE_M,) * 3
     out = OutputCrs(crs.to_string(), _wkt1(crs), scales, (0.0, 0.0, 0.0), frame, transformer)
     origin = out.from_lgf(np.zeros((1, 3)))[0]  # (PROJ settles the operation on first use)
     if "ballpark vertical" in transformer.description.lower():
-        raise LasOutputError(f"CRS {spec!r}: its heights need a geoid model that PROJ does not "
-                             f"have here ({transformer.description}); use a CRS with "
-                             f"ellipsoidal heights or install the grid")  # fmt: skip
+        raise LasOutputError(
+            f"CRS {spec!r}: its heights need a geoid model that PROJ does not "
+            f"have here ({transformer.description}); use a CRS with "
+            f"ellipsoidal heights or install the grid"
+        )
     steps = np.array([1.0, 1.0, 1000.0] if degrees else [1000.0] * 3)
     offsets = tuple(float(v) + 0.0 for v in np.round(origin / steps) * steps)  # no −0.0
     return OutputCrs(out.name, out.wkt, scales, offsets, frame, transformer)
@@ -146,8 +154,9 @@ class LasPassWriter:
         header.vlrs.append(WktCoordinateSystemVlr(crs.wkt))
         self._header = header
         self._laspy = laspy
-        self._writer = laspy.open(self.path, mode="w", header=header,
-                                  do_compress=self.path.suffix.lower() == ".laz")  # fmt: skip
+        self._writer = laspy.open(
+            self.path, mode="w", header=header, do_compress=self.path.suffix.lower() == ".laz"
+        )
         self.n_points = 0
 
     def write(self, p_lgf_m, t_gps_s, intensity_u16, scan_angle_rad) -> None:
@@ -174,7 +183,7 @@ class LasPassWriter:
     def close(self) -> None:
         self._writer.close()
 
-    def __enter__(self) -> "LasPassWriter":
+    def __enter__(self) -> LasPassWriter:
         return self
 
     def __exit__(self, *exc) -> None:

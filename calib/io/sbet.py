@@ -26,15 +26,36 @@ from calib.core import frames
 from calib.core.trajectory import Trajectory, TrajectoryError
 
 SBET_FIELDS = (
-    "time_sow", "lat_rad", "lon_rad", "height_m", "vel_x_mps", "vel_y_mps", "vel_z_mps",
-    "roll_rad", "pitch_rad", "platform_heading_rad", "wander_rad",
-    "acc_x_mps2", "acc_y_mps2", "acc_z_mps2", "rate_x_radps", "rate_y_radps", "rate_z_radps",
-)  # fmt: skip
+    "time_sow",
+    "lat_rad",
+    "lon_rad",
+    "height_m",
+    "vel_x_mps",
+    "vel_y_mps",
+    "vel_z_mps",
+    "roll_rad",
+    "pitch_rad",
+    "platform_heading_rad",
+    "wander_rad",
+    "acc_x_mps2",
+    "acc_y_mps2",
+    "acc_z_mps2",
+    "rate_x_radps",
+    "rate_y_radps",
+    "rate_z_radps",
+)
 SMRMSG_FIELDS = (
-    "time_sow", "sigma_north_m", "sigma_east_m", "sigma_down_m",
-    "sigma_vel_north_mps", "sigma_vel_east_mps", "sigma_vel_down_mps",
-    "sigma_roll_arcmin", "sigma_pitch_arcmin", "sigma_heading_arcmin",
-)  # fmt: skip
+    "time_sow",
+    "sigma_north_m",
+    "sigma_east_m",
+    "sigma_down_m",
+    "sigma_vel_north_mps",
+    "sigma_vel_east_mps",
+    "sigma_vel_down_mps",
+    "sigma_roll_arcmin",
+    "sigma_pitch_arcmin",
+    "sigma_heading_arcmin",
+)
 #: One record each; ``np.zeros(n, SBET_DTYPE)`` makes n records to fill.
 SBET_DTYPE = np.dtype([(name, "<f8") for name in SBET_FIELDS])
 SMRMSG_DTYPE = np.dtype([(name, "<f8") for name in SMRMSG_FIELDS])
@@ -68,14 +89,18 @@ def _read_records(path: str | Path, dtype: np.dtype, kind: str) -> np.ndarray:
         bad = ~np.isfinite(records[name])
         if bad.any():
             i = int(np.argmax(bad))
-            raise SbetError(f"{path}: record {i} (byte {i * dtype.itemsize}): {name} is "
-                            f"{float(records[name][i])!r}, expected a finite number")  # fmt: skip
+            raise SbetError(
+                f"{path}: record {i} (byte {i * dtype.itemsize}): {name} is "
+                f"{float(records[name][i])!r}, expected a finite number"
+            )
     bad = (records["time_sow"] < 0) | (records["time_sow"] > _WEEK_S)
     if bad.any():
         i = int(np.argmax(bad))
         t = float(records["time_sow"][i])
-        raise SbetError(f"{path}: record {i}: time {t!r} s is not a GPS second of the week "
-                        f"(0 … {_WEEK_S}); not an {kind} file?")  # fmt: skip
+        raise SbetError(
+            f"{path}: record {i}: time {t!r} s is not a GPS second of the week "
+            f"(0 … {_WEEK_S}); not an {kind} file?"
+        )
     return records
 
 
@@ -86,8 +111,10 @@ def read_sbet(path: str | Path) -> np.ndarray:
     if bad.any():
         i = int(np.argmax(bad))
         lat, lon = float(records["lat_rad"][i]), float(records["lon_rad"][i])
-        raise SbetError(f"{path}: record {i}: latitude {lat!r} rad, longitude {lon!r} rad are "
-                        f"out of range; not an SBET file?")  # fmt: skip
+        raise SbetError(
+            f"{path}: record {i}: latitude {lat!r} rad, longitude {lon!r} rad are "
+            f"out of range; not an SBET file?"
+        )
     return records
 
 
@@ -166,8 +193,10 @@ def read_sbet_trajectory(
     start_sow = float(rec["time_sow"][0])
     if week is None:
         if near_gps_s is None:
-            raise SbetError(f"{path}: SBET times are seconds of the GPS week; give the week, or "
-                            f"a GPS time near the data to infer it from")  # fmt: skip
+            raise SbetError(
+                f"{path}: SBET times are seconds of the GPS week; give the week, or "
+                f"a GPS time near the data to infer it from"
+            )
         week = infer_week(start_sow, near_gps_s)
     t = sow_to_gps_seconds(rec["time_sow"], week, start_sow)
     heading = frames.wrap_2pi(rec["platform_heading_rad"] - rec["wander_rad"])
@@ -177,9 +206,17 @@ def read_sbet_trajectory(
         sig_p, sig_a = _sigmas_at(Path(smrmsg_path), t, week, start_sow, max_gap_s)
     try:
         return Trajectory.from_geodetic(
-            t, np.degrees(rec["lat_rad"]), np.degrees(rec["lon_rad"]), rec["height_m"], rpy,
-            frame, sigma_p_m=sig_p, sigma_rpy_rad=sig_a, max_gap_s=max_gap_s, name=str(path),
-        )  # fmt: skip
+            t,
+            np.degrees(rec["lat_rad"]),
+            np.degrees(rec["lon_rad"]),
+            rec["height_m"],
+            rpy,
+            frame,
+            sigma_p_m=sig_p,
+            sigma_rpy_rad=sig_a,
+            max_gap_s=max_gap_s,
+            name=str(path),
+        )
     except TrajectoryError as e:
         raise SbetError(f"{e} (epochs are the file's records, counted from 0)") from None
 
@@ -206,8 +243,10 @@ def _sigmas_at(path: Path, t: np.ndarray, week: int, start_sow: float, max_gap_s
         return np.interp(t, ts, rec[name])
 
     sig_p = np.stack([at("sigma_north_m"), at("sigma_east_m"), at("sigma_down_m")], axis=1)
-    sig_a = np.stack([at("sigma_roll_arcmin"), at("sigma_pitch_arcmin"),
-                      at("sigma_heading_arcmin")], axis=1) * _ARCMIN_RAD  # fmt: skip
+    sig_a = (
+        np.stack([at("sigma_roll_arcmin"), at("sigma_pitch_arcmin"), at("sigma_heading_arcmin")], axis=1)
+        * _ARCMIN_RAD
+    )
     return sig_p, sig_a
 
 

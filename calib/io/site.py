@@ -20,9 +20,9 @@ import numpy as np
 import yaml
 
 from calib.core import frames
-from calib.io.configfile import ConfigError, Node, load_yaml
 from calib.core.geometry import Rectangle
 from calib.core.georef import Mount
+from calib.io.configfile import ConfigError, Node, load_yaml
 
 #: The six-fold line pattern (thesis Fig. 3.3): headings relative to the wall direction, in the
 #: order they are sailed.
@@ -48,15 +48,23 @@ class Target:
     def rectangle(self, frame: frames.LocalFrame) -> Rectangle:
         c = frame.to_lgf([self.lat_deg], [self.lon_deg], [self.height_m])[0]
         return Rectangle.from_orientation(
-            self.name, c, self.width_m, self.height_along_slope_m, self.inclination_rad,
-            self.facing_azimuth_rad, self.reflectivity,
-        )  # fmt: skip
+            self.name,
+            c,
+            self.width_m,
+            self.height_along_slope_m,
+            self.inclination_rad,
+            self.facing_azimuth_rad,
+            self.reflectivity,
+        )
 
     def to_yaml(self) -> dict:
         return {
             "name": self.name,
-            "center": {"lat_deg": float(self.lat_deg), "lon_deg": float(self.lon_deg),
-                       "height_m": float(self.height_m)},
+            "center": {
+                "lat_deg": float(self.lat_deg),
+                "lon_deg": float(self.lon_deg),
+                "height_m": float(self.height_m),
+            },
             "size_m": [float(self.width_m), float(self.height_along_slope_m)],
             "inclination_deg": float(np.degrees(self.inclination_rad)),
             "facing_azimuth_deg": float(np.degrees(self.facing_azimuth_rad)),
@@ -80,8 +88,9 @@ class PassSpec:
         }
 
 
-def six_fold_passes(length_m: float = DEFAULT_PASS_LENGTH_M,
-                    speed_mps: float = DEFAULT_PASS_SPEED_MPS) -> tuple[PassSpec, ...]:  # fmt: skip
+def six_fold_passes(
+    length_m: float = DEFAULT_PASS_LENGTH_M, speed_mps: float = DEFAULT_PASS_SPEED_MPS
+) -> tuple[PassSpec, ...]:
     return tuple(
         PassSpec(i + 1, float(np.radians(h)), length_m, speed_mps)
         for i, h in enumerate(SIX_FOLD_RELATIVE_HEADINGS_DEG)
@@ -97,9 +106,7 @@ class Site:
     sigma_range_m: float = 0.003
     sigma_scan_angle_rad: float = float(np.radians(0.005))
     sigma_position_m: np.ndarray = field(default_factory=lambda: np.array([0.02, 0.02, 0.03]))
-    sigma_attitude_rad: np.ndarray = field(
-        default_factory=lambda: np.radians([0.012, 0.012, 0.012])
-    )
+    sigma_attitude_rad: np.ndarray = field(default_factory=lambda: np.radians([0.012, 0.012, 0.012]))
     #: correlation times (s) of the POS errors (first-order Gauss–Markov) for north, east,
     #: down, roll, pitch, heading; None: not configured
     pos_correlation_time_s: np.ndarray | None = None
@@ -208,12 +215,22 @@ def _targets(node: Node, what: str) -> tuple[Target, ...]:
 def site_from_node(root: Node) -> Site:
     top = root.mapping(
         required={"mount", "targets"},
-        optional={"vessel", "reference", "scanner", "pos_sigmas", "wall_azimuth_deg",
-                  "standoff_m", "passes", "validation_planes"},
-    )  # fmt: skip
+        optional={
+            "vessel",
+            "reference",
+            "scanner",
+            "pos_sigmas",
+            "wall_azimuth_deg",
+            "standoff_m",
+            "passes",
+            "validation_planes",
+        },
+    )
     mm = top["mount"].mapping(optional={"lever_arm_m", "nominal_deg", "boresight_apriori_deg"})
-    vec = lambda key, conv=float: np.array(  # noqa: E731
-        [conv(x) for x in mm[key].vector(3)]) if key in mm else np.zeros(3)
+
+    def vec(key, conv=float):
+        return np.array([conv(x) for x in mm[key].vector(3)]) if key in mm else np.zeros(3)
+
     mount = Mount(
         lever_arm_m=vec("lever_arm_m"),
         nominal_rad=np.radians(vec("nominal_deg")),
@@ -229,15 +246,17 @@ def site_from_node(root: Node) -> Site:
         if "sigma_range_m" in sm:
             kw["sigma_range_m"] = sm["sigma_range_m"].number(0.0, exclusive_minimum=True)
         if "sigma_scan_angle_deg" in sm:
-            kw["sigma_scan_angle_rad"] = float(np.radians(
-                sm["sigma_scan_angle_deg"].number(0.0, exclusive_minimum=True)))  # fmt: skip
+            kw["sigma_scan_angle_rad"] = float(
+                np.radians(sm["sigma_scan_angle_deg"].number(0.0, exclusive_minimum=True))
+            )
     if "pos_sigmas" in top:
-        pm = top["pos_sigmas"].mapping(optional={"position_m", "attitude_deg",
-                                                  "correlation_time_s"})  # fmt: skip
+        pm = top["pos_sigmas"].mapping(optional={"position_m", "attitude_deg", "correlation_time_s"})
         if "correlation_time_s" in pm:
             kw["pos_correlation_time_s"] = _correlation_times(pm["correlation_time_s"])
-        for key, attr, conv in (("position_m", "sigma_position_m", lambda v: v),
-                                ("attitude_deg", "sigma_attitude_rad", np.radians)):  # fmt: skip
+        for key, attr, conv in (
+            ("position_m", "sigma_position_m", lambda v: v),
+            ("attitude_deg", "sigma_attitude_rad", np.radians),
+        ):
             if key in pm:
                 v = pm[key].vector(3)
                 if np.any(v <= 0):
@@ -250,16 +269,19 @@ def site_from_node(root: Node) -> Site:
     if "passes" in top and top["passes"].value is not None:
         passes = []
         for pn in top["passes"].sequence(min_len=1):
-            pm = pn.mapping(required={"id", "relative_heading_deg"},
-                            optional={"length_m", "speed_mps"})  # fmt: skip
-            passes.append(PassSpec(
-                id=pm["id"].integer(minimum=0),
-                relative_heading_rad=float(np.radians(pm["relative_heading_deg"].number())),
-                length_m=pm["length_m"].number(0.0, exclusive_minimum=True)
-                if "length_m" in pm else DEFAULT_PASS_LENGTH_M,
-                speed_mps=pm["speed_mps"].number(0.0, exclusive_minimum=True)
-                if "speed_mps" in pm else DEFAULT_PASS_SPEED_MPS,
-            ))  # fmt: skip
+            pm = pn.mapping(required={"id", "relative_heading_deg"}, optional={"length_m", "speed_mps"})
+            passes.append(
+                PassSpec(
+                    id=pm["id"].integer(minimum=0),
+                    relative_heading_rad=float(np.radians(pm["relative_heading_deg"].number())),
+                    length_m=pm["length_m"].number(0.0, exclusive_minimum=True)
+                    if "length_m" in pm
+                    else DEFAULT_PASS_LENGTH_M,
+                    speed_mps=pm["speed_mps"].number(0.0, exclusive_minimum=True)
+                    if "speed_mps" in pm
+                    else DEFAULT_PASS_SPEED_MPS,
+                )
+            )
         ids = [p.id for p in passes]
         if len(set(ids)) != len(ids):
             raise top["passes"].fail("unique pass ids")

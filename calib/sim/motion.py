@@ -18,8 +18,8 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from calib.core import frames
-from calib.survey.passplan import PassPlan
 from calib.core.trajectory import Trajectory
+from calib.survey.passplan import PassPlan
 
 
 @dataclass(frozen=True)
@@ -49,8 +49,9 @@ class MotionModel:
     pass_gap_s: float = 30.0  # without turns: time between the end of a line and the next
 
     def to_dict(self) -> dict:
-        deg = lambda w: {"amplitude_deg": float(np.degrees(w.amplitude)),  # noqa: E731
-                         "period_s": w.period_s}  # fmt: skip
+        def deg(w):
+            return {"amplitude_deg": float(np.degrees(w.amplitude)), "period_s": w.period_s}
+
         return {
             "rate_hz": self.rate_hz,
             "roll": deg(self.roll),
@@ -142,16 +143,22 @@ def _to_math(p_ne, heading_rad):
 # -- the run --------------------------------------------------------------------------------
 
 
-def sail(plan: PassPlan, motion: MotionModel, t_start_gps_s: float, frame: frames.LocalFrame,
-         rng: np.random.Generator) -> VesselRun:  # fmt: skip
+def sail(
+    plan: PassPlan,
+    motion: MotionModel,
+    t_start_gps_s: float,
+    frame: frames.LocalFrame,
+    rng: np.random.Generator,
+) -> VesselRun:
     """Sail the plan's lines in order from ``t_start_gps_s``; returns the true trajectory."""
     rate = float(motion.rate_hz)
     if not rate >= 2.0 or (not motion.turns and motion.pass_gap_s <= 1.0):
-        raise ValueError(f"MotionModel: rate_hz must be ≥ 2 (got {rate!r}) and pass_gap_s > 1 s "
-                         f"(got {motion.pass_gap_s!r}): the trajectory interpolates steps up to "
-                         f"1 s and no more")  # fmt: skip
-    phases = {name: float(rng.uniform(0.0, 2.0 * np.pi))
-              for name in ("roll", "pitch", "heave", "yaw")}  # fmt: skip
+        raise ValueError(
+            f"MotionModel: rate_hz must be ≥ 2 (got {rate!r}) and pass_gap_s > 1 s "
+            f"(got {motion.pass_gap_s!r}): the trajectory interpolates steps up to "
+            f"1 s and no more"
+        )
+    phases = {name: float(rng.uniform(0.0, 2.0 * np.pi)) for name in ("roll", "pitch", "heave", "yaw")}
     k_parts, ne_parts, track_parts = [], [], []
     line_times, capture_times = {}, {}
     k0 = 0
@@ -177,8 +184,7 @@ def sail(plan: PassPlan, motion: MotionModel, t_start_gps_s: float, frame: frame
             length = sum(sg[1] for sg in segs)
             n_turn = max(int(np.ceil(length / p.speed_mps * rate - 1e-9)), 1)
             kt = np.arange(k_end + 1, k_end + n_turn)
-            xy, th = sample_path(q0, th0, segs, motion.turn_radius_m,
-                                 (kt - k_end) * (length / n_turn))  # fmt: skip
+            xy, th = sample_path(q0, th0, segs, motion.turn_radius_m, (kt - k_end) * (length / n_turn))
             k_parts.append(kt)
             ne_parts.append(xy[:, ::-1])
             track_parts.append(np.pi / 2 - th)
@@ -192,10 +198,12 @@ def sail(plan: PassPlan, motion: MotionModel, t_start_gps_s: float, frame: frame
     tau = k / rate
     down = plan.aim_lgf_m[2] - motion.heave(tau, phases["heave"])
     p_lgf = np.column_stack([ne, down])
-    rpy = np.column_stack([
-        motion.roll(tau, phases["roll"]),
-        motion.pitch(tau, phases["pitch"]),
-        frames.wrap_2pi(track + motion.yaw(tau, phases["yaw"])),
-    ])  # fmt: skip
+    rpy = np.column_stack(
+        [
+            motion.roll(tau, phases["roll"]),
+            motion.pitch(tau, phases["pitch"]),
+            frames.wrap_2pi(track + motion.yaw(tau, phases["yaw"])),
+        ]
+    )
     traj = Trajectory(t, p_lgf, rpy, frame, name="true trajectory")
     return VesselRun(traj, line_times, capture_times, phases)

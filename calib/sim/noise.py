@@ -61,8 +61,7 @@ def gauss_markov(t_s, sigma, tau_s, rng: np.random.Generator) -> np.ndarray:
                 out[i] = phi * out[i - 1] + drive[i - a - 1]
             continue
         for j in range(k):
-            out[a + 1 : b + 1, j], _ = lfilter([1.0], [1.0, -phi[j]], drive[:, j],
-                                               zi=[phi[j] * out[a, j]])  # fmt: skip
+            out[a + 1 : b + 1, j], _ = lfilter([1.0], [1.0, -phi[j]], drive[:, j], zi=[phi[j] * out[a, j]])
     return out
 
 
@@ -78,10 +77,10 @@ class PosNoise:
 
     def __post_init__(self):
         if self.model not in POS_NOISE_MODELS:
-            raise ValueError(f"PosNoise.model is {self.model!r}, expected one of "
-                             f"{', '.join(POS_NOISE_MODELS)}")  # fmt: skip
-        for attr in ("sigma_position_m", "sigma_attitude_rad", "tau_position_s",
-                     "tau_attitude_s"):  # fmt: skip
+            raise ValueError(
+                f"PosNoise.model is {self.model!r}, expected one of {', '.join(POS_NOISE_MODELS)}"
+            )
+        for attr in ("sigma_position_m", "sigma_attitude_rad", "tau_position_s", "tau_attitude_s"):
             v = np.broadcast_to(np.asarray(getattr(self, attr), float), (3,)).copy()
             if np.any(v < 0) or not np.all(np.isfinite(v)):
                 raise ValueError(f"PosNoise.{attr} must be 3 finite numbers ≥ 0, got {v!r}")
@@ -141,8 +140,7 @@ class ScannerNoise:
     sigma_scan_angle_rad: float = 0.0
 
     def __post_init__(self):
-        for attr in ("sigma_range_m", "sigma_range_per_m", "beam_divergence_rad",
-                     "sigma_scan_angle_rad"):  # fmt: skip
+        for attr in ("sigma_range_m", "sigma_range_per_m", "beam_divergence_rad", "sigma_scan_angle_rad"):
             v = float(getattr(self, attr))
             if not np.isfinite(v) or v < 0:
                 raise ValueError(f"ScannerNoise.{attr} must be a finite number ≥ 0, got {v!r}")
@@ -150,8 +148,12 @@ class ScannerNoise:
 
     @property
     def is_zero(self) -> bool:
-        return not (self.sigma_range_m or self.sigma_range_per_m or self.beam_divergence_rad
-                    or self.sigma_scan_angle_rad)  # fmt: skip
+        return not (
+            self.sigma_range_m
+            or self.sigma_range_per_m
+            or self.beam_divergence_rad
+            or self.sigma_scan_angle_rad
+        )
 
     def range_sigma(self, range_m, cos_incidence) -> np.ndarray:
         rho = np.asarray(range_m, float)
@@ -165,8 +167,7 @@ class ScannerNoise:
             sigma = sigma + tan
         return np.broadcast_to(sigma, rho.shape)
 
-    def draw(self, range_m, cos_incidence, rng: np.random.Generator
-             ) -> tuple[np.ndarray, np.ndarray]:  # fmt: skip
+    def draw(self, range_m, cos_incidence, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
         """Range and scan-angle errors for returns at the given ranges and incidences."""
         rho = np.asarray(range_m, float)
         d_range = rng.standard_normal(rho.size) * self.range_sigma(rho, cos_incidence)

@@ -14,27 +14,35 @@ The shipped scenarios (``calib/sim/scenarios/*.yaml``) document every key.
 from __future__ import annotations
 
 import datetime as _dt
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Mapping, Sequence
+from typing import Any
 
 import numpy as np
 import yaml
 
 from calib.core import frames
-from calib.io.configfile import ConfigError, Node, load_yaml
 from calib.core.geometry import Rectangle
 from calib.core.georef import Mount
+from calib.io.configfile import ConfigError, Node, load_yaml
+from calib.io.site import (
+    DEFAULT_PASS_LENGTH_M,
+    DEFAULT_PASS_SPEED_MPS,
+    PassSpec,
+    Site,
+    Target,
+    six_fold_passes,
+)
 from calib.sim.motion import MotionModel, Wave
 from calib.sim.noise import POS_NOISE_MODELS, PosNoise, ScannerNoise
 from calib.sim.scene import BACKGROUND_KINDS, Scene
-from calib.io.site import (DEFAULT_PASS_LENGTH_M, DEFAULT_PASS_SPEED_MPS, PassSpec, Site, Target,
-                        six_fold_passes)  # fmt: skip
 
 SCENARIO_DIR = Path(__file__).resolve().parent / "scenarios"
 #: When a scenario gives no ``start_utc``: the day of the thesis's Montreal survey.
 DEFAULT_START_GPS_S = frames.gps_ns_to_seconds(
-    frames.utc_to_gps_ns(_dt.datetime(2019, 7, 9, 14, tzinfo=_dt.timezone.utc)))
+    frames.utc_to_gps_ns(_dt.datetime(2019, 7, 9, 14, tzinfo=_dt.UTC))
+)
 
 
 # -- the scenario ---------------------------------------------------------------------------
@@ -125,12 +133,13 @@ class ScannerModel:
             "points_per_360": self.points_per_360,
             "max_range_m": self.max_range_m,
             "min_range_m": self.min_range_m,
-            "angular_windows_deg": [[float(np.degrees(a)), float(np.degrees(b))]
-                                    for a, b in self.angular_windows_rad],
+            "angular_windows_deg": [
+                [float(np.degrees(a)), float(np.degrees(b))] for a, b in self.angular_windows_rad
+            ],
             "point_rate_scale": self.point_rate_scale,
             "effective_profile_rate_hz": float(self.effective_profile_rate_hz),
             "effective_points_per_360": self.effective_points_per_360,
-        }  # fmt: skip
+        }
 
 
 @dataclass(frozen=True)
@@ -164,17 +173,24 @@ class Scenario:
         """Site-frame coordinates → (n, 3) LGF (NED) metres."""
         a, w = self.wall_azimuth_rad, self.water_azimuth_rad
         along, out, up = (np.atleast_1d(np.asarray(x, float)) for x in (along_m, out_m, up_m))
-        return np.column_stack([along * np.cos(a) + out * np.cos(w),
-                                along * np.sin(a) + out * np.sin(w), -up])  # fmt: skip
+        return np.column_stack(
+            [along * np.cos(a) + out * np.cos(w), along * np.sin(a) + out * np.sin(w), -up]
+        )
 
     def rectangle(self, s: Surface) -> Rectangle:
         c = self.site_to_lgf(s.along_m, s.out_m, s.up_m)[0]
-        return Rectangle.from_orientation(s.name, c, s.width_m, s.height_m, s.inclination_rad,
-                                          self.water_azimuth_rad + s.facing_rad, s.reflectivity)
+        return Rectangle.from_orientation(
+            s.name,
+            c,
+            s.width_m,
+            s.height_m,
+            s.inclination_rad,
+            self.water_azimuth_rad + s.facing_rad,
+            s.reflectivity,
+        )
 
     def scene(self) -> Scene:
-        return Scene(tuple(self.rectangle(s) for s in self.surfaces),
-                     tuple(s.kind for s in self.surfaces))  # fmt: skip
+        return Scene(tuple(self.rectangle(s) for s in self.surfaces), tuple(s.kind for s in self.surfaces))
 
     def _targets(self, kind: str) -> tuple[Target, ...]:
         out = []
@@ -183,10 +199,19 @@ class Scenario:
                 continue
             r = self.rectangle(s)
             lat, lon, h = self.reference.to_geodetic(r.center_m[None])
-            out.append(Target(s.name, float(lat[0]), float(lon[0]), float(h[0]), s.width_m,
-                              s.height_m, s.inclination_rad,
-                              float(frames.wrap_2pi(self.water_azimuth_rad + s.facing_rad)),
-                              s.reflectivity))  # fmt: skip
+            out.append(
+                Target(
+                    s.name,
+                    float(lat[0]),
+                    float(lon[0]),
+                    float(h[0]),
+                    s.width_m,
+                    s.height_m,
+                    s.inclination_rad,
+                    float(frames.wrap_2pi(self.water_azimuth_rad + s.facing_rad)),
+                    s.reflectivity,
+                )
+            )
         return tuple(out)
 
     def site(self) -> Site:
@@ -203,12 +228,20 @@ class Scenario:
         if pn.model != "none" and np.all(pn.sigma_attitude_rad > 0):
             kw["sigma_attitude_rad"] = pn.sigma_attitude_rad
         if pn.model == "gauss_markov":
-            kw["pos_correlation_time_s"] = np.concatenate([
-                np.broadcast_to(pn.tau_position_s, 3), np.broadcast_to(pn.tau_attitude_s, 3)])
-        return Site(mount=self.mount, targets=self._targets("target"), reference=self.reference,
-                    vessel=self.vessel, wall_azimuth_rad=self.wall_azimuth_rad,
-                    standoff_m=self.standoff_m, passes=self.passes,
-                    validation_planes=self._targets("validation"), **kw)  # fmt: skip
+            kw["pos_correlation_time_s"] = np.concatenate(
+                [np.broadcast_to(pn.tau_position_s, 3), np.broadcast_to(pn.tau_attitude_s, 3)]
+            )
+        return Site(
+            mount=self.mount,
+            targets=self._targets("target"),
+            reference=self.reference,
+            vessel=self.vessel,
+            wall_azimuth_rad=self.wall_azimuth_rad,
+            standoff_m=self.standoff_m,
+            passes=self.passes,
+            validation_planes=self._targets("validation"),
+            **kw,
+        )
 
     def to_dict(self) -> dict:
         """The resolved settings (for truth.json)."""
@@ -249,12 +282,12 @@ def resolve_scenario(name_or_path: str | Path) -> Path:
     p = Path(s)
     if p.is_file():
         return p
-    raise ConfigError(f"scenario {s!r}: neither a shipped scenario "
-                      f"({', '.join(scenario_names())}) nor an existing file")  # fmt: skip
+    raise ConfigError(
+        f"scenario {s!r}: neither a shipped scenario ({', '.join(scenario_names())}) nor an existing file"
+    )
 
 
-def load_scenario(name_or_path: str | Path,
-                  overrides: Sequence[str] | Mapping[str, Any] = ()) -> Scenario:  # fmt: skip
+def load_scenario(name_or_path: str | Path, overrides: Sequence[str] | Mapping[str, Any] = ()) -> Scenario:
     """Load and validate a scenario; ``overrides`` are ``"dotted.key=value"`` strings (the value
     is YAML: ``0.5``, ``[1, 2, 3]``, ``white``) or a mapping of dotted keys to values."""
     path = resolve_scenario(name_or_path)
@@ -264,8 +297,9 @@ def load_scenario(name_or_path: str | Path,
     return _scenario(root, default_name=path.stem)
 
 
-def parse_scenario(text: str, source: str = "scenario.yaml",
-                   overrides: Sequence[str] | Mapping[str, Any] = ()) -> Scenario:  # fmt: skip
+def parse_scenario(
+    text: str, source: str = "scenario.yaml", overrides: Sequence[str] | Mapping[str, Any] = ()
+) -> Scenario:
     root = load_yaml(text, source=source)
     for key, node in _override_nodes(overrides):
         root = _set(root, key, node)
@@ -278,15 +312,15 @@ def parse_scenario(text: str, source: str = "scenario.yaml",
 def _override_nodes(overrides) -> list[tuple[str, Node]]:
     items: list[tuple[str, str]] = []
     if isinstance(overrides, Mapping):
-        items = [(str(k), yaml.safe_dump(v, default_flow_style=True)) for k, v in
-                 overrides.items()]  # fmt: skip
+        items = [(str(k), yaml.safe_dump(v, default_flow_style=True)) for k, v in overrides.items()]
     else:
         for item in overrides:
             key, sep, text = str(item).partition("=")
             key = key.strip()
             if not sep or not key:
-                raise ConfigError(f"--set {item!r}: expected key=value with a dotted key, "
-                                  f"e.g. noise.pos.model=white")  # fmt: skip
+                raise ConfigError(
+                    f"--set {item!r}: expected key=value with a dotted key, e.g. noise.pos.model=white"
+                )
             items.append((key, text))
     out = []
     for key, text in items:
@@ -323,15 +357,18 @@ def _set(node: Node, key: str, value: Node, full_key: str | None = None) -> Node
         return Node({**node.value, head: new}, node.path, node.source, node.line, node.column)
     if isinstance(node.value, list):
         if not head.isdigit() or int(head) >= len(node.value):
-            raise ConfigError(f"--set {full_key}: {head!r} is not an index of the "
-                              f"{len(node.value)}-item list at {node.where()}")  # fmt: skip
+            raise ConfigError(
+                f"--set {full_key}: {head!r} is not an index of the "
+                f"{len(node.value)}-item list at {node.where()}"
+            )
         i = int(head)
         items = list(node.value)
-        items[i] = (_set(items[i], rest, value, full_key) if rest
-                    else _reroot(value, f"{node.path}[{i}]"))  # fmt: skip
+        items[i] = _set(items[i], rest, value, full_key) if rest else _reroot(value, f"{node.path}[{i}]")
         return Node(items, node.path, node.source, node.line, node.column)
-    raise ConfigError(f"--set {full_key}: {node.path!r} is a value ({node.plain()!r} at "
-                      f"{node.where()}), not a mapping or a list")  # fmt: skip
+    raise ConfigError(
+        f"--set {full_key}: {node.path!r} is a value ({node.plain()!r} at "
+        f"{node.where()}), not a mapping or a list"
+    )
 
 
 # -- validation -----------------------------------------------------------------------------
@@ -367,30 +404,34 @@ def _start_gps_s(n: Node) -> float:
     if not isinstance(v, _dt.datetime):
         raise n.fail("an ISO 8601 UTC time such as 2019-07-09T14:00:00Z")
     if v.tzinfo is None:
-        v = v.replace(tzinfo=_dt.timezone.utc)
+        v = v.replace(tzinfo=_dt.UTC)
     return frames.gps_ns_to_seconds(frames.utc_to_gps_ns(v))
 
 
-_SURFACE_KEYS = {"along_m", "out_m", "up_m", "size_m", "inclination_deg", "facing_deg",
-                 "reflectivity"}  # fmt: skip
+_SURFACE_KEYS = {"along_m", "out_m", "up_m", "size_m", "inclination_deg", "facing_deg", "reflectivity"}
 
 
 def _surface(n: Node, kind: str | None, default_reflectivity: float) -> Surface:
-    m = n.mapping(required={"name", "up_m", "size_m"},
-                  optional=_SURFACE_KEYS | ({"kind"} if kind is None else set()))  # fmt: skip
+    m = n.mapping(
+        required={"name", "up_m", "size_m"}, optional=_SURFACE_KEYS | ({"kind"} if kind is None else set())
+    )
     if kind is None:
         kind = m["kind"].string(BACKGROUND_KINDS) if "kind" in m else "other"
     size = m["size_m"].vector(2)
     if np.any(size <= 0):
         raise m["size_m"].fail("2 positive numbers (width, height along the slope)")
     return Surface(
-        name=m["name"].string(), kind=kind,
-        along_m=_opt(m, "along_m", Node.number, 0.0), out_m=_opt(m, "out_m", Node.number, 0.0),
-        up_m=m["up_m"].number(), width_m=float(size[0]), height_m=float(size[1]),
+        name=m["name"].string(),
+        kind=kind,
+        along_m=_opt(m, "along_m", Node.number, 0.0),
+        out_m=_opt(m, "out_m", Node.number, 0.0),
+        up_m=m["up_m"].number(),
+        width_m=float(size[0]),
+        height_m=float(size[1]),
         inclination_rad=float(np.radians(_opt(m, "inclination_deg", _number(-90.0, 90.0), 90.0))),
         facing_rad=float(np.radians(_opt(m, "facing_deg", _number(-360.0, 360.0), 0.0))),
         reflectivity=_opt(m, "reflectivity", _number(0.0, 1.0), default_reflectivity),
-    )  # fmt: skip
+    )
 
 
 def _scene(n: Node) -> tuple[Surface, ...]:
@@ -417,12 +458,15 @@ def _passes(m: dict[str, Node]) -> tuple[PassSpec, ...]:
         raise node.fail("six_fold or a list of {id, relative_heading_deg[, length_m, speed_mps]}")
     out = []
     for pn in node.sequence(min_len=1):
-        pm = pn.mapping(required={"id", "relative_heading_deg"},
-                        optional={"length_m", "speed_mps"})  # fmt: skip
-        out.append(PassSpec(pm["id"].integer(minimum=0),
-                            float(np.radians(pm["relative_heading_deg"].number(-360.0, 360.0))),
-                            _opt(pm, "length_m", _positive, length),
-                            _opt(pm, "speed_mps", _positive, speed)))  # fmt: skip
+        pm = pn.mapping(required={"id", "relative_heading_deg"}, optional={"length_m", "speed_mps"})
+        out.append(
+            PassSpec(
+                pm["id"].integer(minimum=0),
+                float(np.radians(pm["relative_heading_deg"].number(-360.0, 360.0))),
+                _opt(pm, "length_m", _positive, length),
+                _opt(pm, "speed_mps", _positive, speed),
+            )
+        )
     ids = [p.id for p in out]
     if len(set(ids)) != len(ids):
         raise node.fail("unique pass ids")
@@ -431,14 +475,23 @@ def _passes(m: dict[str, Node]) -> tuple[PassSpec, ...]:
 
 def _mount(n: Node) -> Mount:
     m = n.mapping(optional={"lever_arm_m", "nominal_deg", "boresight_apriori_deg"})
-    return Mount(lever_arm_m=_opt(m, "lever_arm_m", lambda x: x.vector(3), np.zeros(3)),
-                 nominal_rad=_opt(m, "nominal_deg", _vec_deg, np.zeros(3)),
-                 boresight_rad=_opt(m, "boresight_apriori_deg", _vec_deg, np.zeros(3)))  # fmt: skip
+    return Mount(
+        lever_arm_m=_opt(m, "lever_arm_m", lambda x: x.vector(3), np.zeros(3)),
+        nominal_rad=_opt(m, "nominal_deg", _vec_deg, np.zeros(3)),
+        boresight_rad=_opt(m, "boresight_apriori_deg", _vec_deg, np.zeros(3)),
+    )
 
 
 def _truth(n: Node) -> InjectedErrors:
-    m = n.mapping(optional={"boresight_deg", "lever_arm_error_m", "range_offset_m",
-                            "scan_angle_offset_deg", "time_offset_s"})  # fmt: skip
+    m = n.mapping(
+        optional={
+            "boresight_deg",
+            "lever_arm_error_m",
+            "range_offset_m",
+            "scan_angle_offset_deg",
+            "time_offset_s",
+        }
+    )
     bs = _opt(m, "boresight_deg", _vec_deg, np.zeros(3))
     if np.any(np.abs(bs) > np.radians(20.0)):
         raise m["boresight_deg"].fail("boresight angles within ±20°")
@@ -446,10 +499,9 @@ def _truth(n: Node) -> InjectedErrors:
         boresight_rad=bs,
         lever_arm_error_m=_opt(m, "lever_arm_error_m", lambda x: x.vector(3), np.zeros(3)),
         range_offset_m=_opt(m, "range_offset_m", _number(-10.0, 10.0), 0.0),
-        scan_angle_offset_rad=float(np.radians(_opt(m, "scan_angle_offset_deg",
-                                                    _number(-20.0, 20.0), 0.0))),
+        scan_angle_offset_rad=float(np.radians(_opt(m, "scan_angle_offset_deg", _number(-20.0, 20.0), 0.0))),
         time_offset_s=_opt(m, "time_offset_s", _number(-1.0, 1.0), 0.0),
-    )  # fmt: skip
+    )
 
 
 def _windows(n: Node) -> tuple[tuple[float, float], ...]:
@@ -463,8 +515,16 @@ def _windows(n: Node) -> tuple[tuple[float, float], ...]:
 
 
 def _scanner(n: Node) -> ScannerModel:
-    m = n.mapping(optional={"profile_rate_hz", "points_per_360", "max_range_m", "min_range_m",
-                            "angular_windows_deg", "point_rate_scale"})  # fmt: skip
+    m = n.mapping(
+        optional={
+            "profile_rate_hz",
+            "points_per_360",
+            "max_range_m",
+            "min_range_m",
+            "angular_windows_deg",
+            "point_rate_scale",
+        }
+    )
     d = ScannerModel()
     out = ScannerModel(
         profile_rate_hz=_opt(m, "profile_rate_hz", _positive, d.profile_rate_hz),
@@ -473,7 +533,7 @@ def _scanner(n: Node) -> ScannerModel:
         min_range_m=_opt(m, "min_range_m", _nonneg, d.min_range_m),
         angular_windows_rad=_opt(m, "angular_windows_deg", _windows, ()),
         point_rate_scale=_opt(m, "point_rate_scale", _number(0.0, 1.0, exclusive=True), 1.0),
-    )  # fmt: skip
+    )
     if out.min_range_m >= out.max_range_m:
         raise m["min_range_m"].fail(f"a number below max_range_m ({out.max_range_m:g})")
     return out
@@ -482,13 +542,16 @@ def _scanner(n: Node) -> ScannerModel:
 def _wave(n: Node, amp_key: str) -> Wave:
     m = n.mapping(required={amp_key, "period_s"})
     amp = m[amp_key].number(0.0)
-    return Wave(float(np.radians(amp)) if amp_key.endswith("_deg") else amp,
-                m["period_s"].number(0.0, exclusive_minimum=True))  # fmt: skip
+    return Wave(
+        float(np.radians(amp)) if amp_key.endswith("_deg") else amp,
+        m["period_s"].number(0.0, exclusive_minimum=True),
+    )
 
 
 def _motion(n: Node) -> MotionModel:
-    m = n.mapping(optional={"rate_hz", "roll", "pitch", "heave", "yaw", "turns", "turn_radius_m",
-                            "pass_gap_s"})  # fmt: skip
+    m = n.mapping(
+        optional={"rate_hz", "roll", "pitch", "heave", "yaw", "turns", "turn_radius_m", "pass_gap_s"}
+    )
     d = MotionModel()
     return MotionModel(
         rate_hz=_opt(m, "rate_hz", _number(2.0, 1000.0), d.rate_hz),
@@ -499,31 +562,35 @@ def _motion(n: Node) -> MotionModel:
         turns=_opt(m, "turns", Node.boolean, d.turns),
         turn_radius_m=_opt(m, "turn_radius_m", _positive, d.turn_radius_m),
         pass_gap_s=_opt(m, "pass_gap_s", _number(2.0), d.pass_gap_s),
-    )  # fmt: skip
+    )
 
 
 def _noise(n: Node) -> tuple[ScannerNoise, PosNoise]:
     m = n.mapping(optional={"scanner", "pos"})
     sn = ScannerNoise()
     if "scanner" in m:
-        s = m["scanner"].mapping(optional={"sigma_range_m", "sigma_range_per_m",
-                                           "beam_divergence_mrad", "sigma_scan_angle_deg"})
+        s = m["scanner"].mapping(
+            optional={"sigma_range_m", "sigma_range_per_m", "beam_divergence_mrad", "sigma_scan_angle_deg"}
+        )
         sn = ScannerNoise(
             sigma_range_m=_opt(s, "sigma_range_m", _nonneg, 0.0),
             sigma_range_per_m=_opt(s, "sigma_range_per_m", _nonneg, 0.0),
             beam_divergence_rad=_opt(s, "beam_divergence_mrad", _nonneg, 0.0) * 1e-3,
             sigma_scan_angle_rad=float(np.radians(_opt(s, "sigma_scan_angle_deg", _nonneg, 0.0))),
-        )  # fmt: skip
+        )
     pn = PosNoise()
     if "pos" in m:
-        p = m["pos"].mapping(required={"model"},
-                             optional={"sigma_position_m", "sigma_attitude_deg",
-                                       "tau_position_s", "tau_attitude_s"})  # fmt: skip
+        p = m["pos"].mapping(
+            required={"model"},
+            optional={"sigma_position_m", "sigma_attitude_deg", "tau_position_s", "tau_attitude_s"},
+        )
         kw = {}
-        for key, attr, conv in (("sigma_position_m", "sigma_position_m", np.asarray),
-                                ("sigma_attitude_deg", "sigma_attitude_rad", np.radians),
-                                ("tau_position_s", "tau_position_s", np.asarray),
-                                ("tau_attitude_s", "tau_attitude_s", np.asarray)):
+        for key, attr, conv in (
+            ("sigma_position_m", "sigma_position_m", np.asarray),
+            ("sigma_attitude_deg", "sigma_attitude_rad", np.radians),
+            ("tau_position_s", "tau_position_s", np.asarray),
+            ("tau_attitude_s", "tau_attitude_s", np.asarray),
+        ):
             if key in p:
                 kw[attr] = conv(p[key].vector(3, minimum=0.0))
         model = p["model"].string(POS_NOISE_MODELS)
@@ -535,29 +602,50 @@ def _noise(n: Node) -> tuple[ScannerNoise, PosNoise]:
     return sn, pn
 
 
-_TOP_KEYS = {"name", "description", "reference", "start_utc", "vessel", "site", "scene", "mount",
-             "truth", "scanner", "motion", "noise"}  # fmt: skip
+_TOP_KEYS = {
+    "name",
+    "description",
+    "reference",
+    "start_utc",
+    "vessel",
+    "site",
+    "scene",
+    "mount",
+    "truth",
+    "scanner",
+    "motion",
+    "noise",
+}
 
 
 def _scenario(root: Node, default_name: str) -> Scenario:
     top = root.mapping(required={"reference", "site", "scene"}, optional=_TOP_KEYS)
     ref = top["reference"].mapping(required={"lat_deg", "lon_deg"}, optional={"height_m"})
-    reference = frames.LocalFrame(ref["lat_deg"].number(-90.0, 90.0),
-                                  ref["lon_deg"].number(-180.0, 180.0),
-                                  _opt(ref, "height_m", Node.number, 0.0))  # fmt: skip
+    reference = frames.LocalFrame(
+        ref["lat_deg"].number(-90.0, 90.0),
+        ref["lon_deg"].number(-180.0, 180.0),
+        _opt(ref, "height_m", Node.number, 0.0),
+    )
     sm = top["site"].mapping(
-        optional={"wall_azimuth_deg", "standoff_m", "passes", "pass_length_m", "speed_mps",
-                  "safe_wall_distance_m", "capture_margin_m", "capture_validation_planes"})
-    scanner_noise, pos_noise = _noise(top["noise"]) if "noise" in top else (ScannerNoise(),
-                                                                             PosNoise())
+        optional={
+            "wall_azimuth_deg",
+            "standoff_m",
+            "passes",
+            "pass_length_m",
+            "speed_mps",
+            "safe_wall_distance_m",
+            "capture_margin_m",
+            "capture_validation_planes",
+        }
+    )
+    scanner_noise, pos_noise = _noise(top["noise"]) if "noise" in top else (ScannerNoise(), PosNoise())
     return Scenario(
         name=_opt(top, "name", Node.string, default_name),
         description=_opt(top, "description", Node.string, ""),
         reference=reference,
         start_gps_s=_opt(top, "start_utc", _start_gps_s, DEFAULT_START_GPS_S),
         vessel=_opt(top, "vessel", Node.string, "sim-vessel"),
-        wall_azimuth_rad=float(np.radians(_opt(sm, "wall_azimuth_deg", _number(-360.0, 360.0),
-                                               0.0))),
+        wall_azimuth_rad=float(np.radians(_opt(sm, "wall_azimuth_deg", _number(-360.0, 360.0), 0.0))),
         standoff_m=_opt(sm, "standoff_m", _positive, 15.0),
         passes=_passes(sm),
         safe_wall_distance_m=_opt(sm, "safe_wall_distance_m", _nonneg, 5.0),
@@ -570,4 +658,4 @@ def _scenario(root: Node, default_name: str) -> Scenario:
         motion=_opt(top, "motion", _motion, MotionModel()),
         scanner_noise=scanner_noise,
         pos_noise=pos_noise,
-    )  # fmt: skip
+    )

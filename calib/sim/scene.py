@@ -64,12 +64,12 @@ class Scene:
         object.__setattr__(self, "rectangles", tuple(self.rectangles))
         object.__setattr__(self, "kinds", tuple(self.kinds))
         if len(self.rectangles) != len(self.kinds):
-            raise ValueError(f"Scene: {len(self.rectangles)} rectangles but "
-                             f"{len(self.kinds)} kinds")  # fmt: skip
+            raise ValueError(f"Scene: {len(self.rectangles)} rectangles but {len(self.kinds)} kinds")
         for r, k in zip(self.rectangles, self.kinds):
             if k not in SURFACE_KINDS:
-                raise ValueError(f"Scene: surface {r.name!r} has kind {k!r}, expected one of "
-                                 f"{', '.join(SURFACE_KINDS)}")  # fmt: skip
+                raise ValueError(
+                    f"Scene: surface {r.name!r} has kind {k!r}, expected one of {', '.join(SURFACE_KINDS)}"
+                )
         names = [r.name for r in self.rectangles]
         dup = sorted({n for n in names if names.count(n) > 1})
         if dup:
@@ -123,8 +123,9 @@ class Scene:
         inside = (np.abs(a) <= g["hw"][j]) & (np.abs(b) <= g["hh"][j])
         return rho, inside
 
-    def intersect(self, origins_m, directions, min_range_m: float = 0.0,
-                  max_range_m: float = np.inf) -> RayHits:  # fmt: skip
+    def intersect(
+        self, origins_m, directions, min_range_m: float = 0.0, max_range_m: float = np.inf
+    ) -> RayHits:
         """Cast rays (``origins_m`` (n, 3) or (3,), unit ``directions`` (n, 3)); the nearest hit
         with ``min_range_m < ρ ≤ max_range_m`` wins."""
         d = np.atleast_2d(np.asarray(directions, float))
@@ -161,9 +162,11 @@ class Scene:
         g = self._packed
         su = np.array([-1.0, 1.0, 1.0, -1.0])[:, None]  # corner signs, counter-clockwise
         sv = np.array([-1.0, -1.0, 1.0, 1.0])[:, None]
-        corners = (g["c"][:, None, :]
-                   + su * (g["hw"] + grow_m)[:, None, None] * g["u"][:, None, :]
-                   + sv * (g["hh"] + grow_m)[:, None, None] * g["v"][:, None, :])  # (R, 4, 3)
+        corners = (
+            g["c"][:, None, :]
+            + su * (g["hw"] + grow_m)[:, None, None] * g["u"][:, None, :]
+            + sv * (g["hh"] + grow_m)[:, None, None] * g["v"][:, None, :]
+        )  # (R, 4, 3)
         rel = corners[None] - o  # (P, R, 4, 3)
         s = np.sum(rel * ex, axis=-1)  # signed distances to the scan plane
         s_next = np.roll(s, -1, axis=-1)

@@ -23,21 +23,22 @@ can occupy (:meth:`calib.sim.scene.Scene.scan_sectors`); only those rays are cas
 
 from __future__ import annotations
 
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import Any, Callable, Mapping, Sequence
+from typing import Any
 
 import numpy as np
 
 from calib.core import frames
-from calib.io.bundle import ScanPoints, write_bundle
 from calib.core.georef import Mount, georeference
-from calib.sim.motion import sail
-from calib.survey.passplan import PassPlan, plan_passes
-from calib.sim.scenario import Scenario, ScannerModel, load_scenario
-from calib.sim.scene import BACKGROUND_KINDS, Scene
-from calib.io.site import Site
 from calib.core.trajectory import Poses, Trajectory
+from calib.io.bundle import ScanPoints, write_bundle
+from calib.io.site import Site
+from calib.sim.motion import sail
+from calib.sim.scenario import ScannerModel, Scenario, load_scenario
+from calib.sim.scene import BACKGROUND_KINDS, Scene
+from calib.survey.passplan import PassPlan, plan_passes
 
 #: Ray slots (profiles × points per 360°) handled per batch.
 _BATCH_SLOTS = 1 << 20
@@ -79,14 +80,21 @@ class SimResult:
             return poses
         rpy = poses.rpy_rad + e[:, 3:]
         rpy[:, 2] = frames.wrap_2pi(rpy[:, 2])
-        return Poses(poses.p_lgf_m + e[:, :3], rpy, frames.attitude_matrix(*rpy.T),
-                     poses.sigma_p_m, poses.sigma_rpy_rad)  # fmt: skip
+        return Poses(
+            poses.p_lgf_m + e[:, :3],
+            rpy,
+            frames.attitude_matrix(*rpy.T),
+            poses.sigma_p_m,
+            poses.sigma_rpy_rad,
+        )
 
     def point_counts(self) -> dict[int, dict[str, int]]:
         """Returns per pass and per named surface (targets, validation planes); every other
         surface is counted as ``background``."""
-        names = ["background" if k in BACKGROUND_KINDS else r.name
-                 for r, k in zip(self.scene.rectangles, self.scene.kinds)]  # fmt: skip
+        names = [
+            "background" if k in BACKGROUND_KINDS else r.name
+            for r, k in zip(self.scene.rectangles, self.scene.kinds)
+        ]
         keys = list(dict.fromkeys(names + ["background"]))
         out = {}
         for p in self.plan.passes:
@@ -106,8 +114,14 @@ class SimResult:
                 "trajectory file cannot carry; it exists only in memory "
                 "(SimResult.observed_poses()). Use 'white' or 'gauss_markov' for a bundle."
             )
-        return write_bundle(path, self.site, self.trajectory_observed, self.points, self.truth,
-                            compress_points=compress_points)  # fmt: skip
+        return write_bundle(
+            path,
+            self.site,
+            self.trajectory_observed,
+            self.points,
+            self.truth,
+            compress_points=compress_points,
+        )
 
 
 # -- the scanner ----------------------------------------------------------------------------
@@ -125,10 +139,13 @@ class ScanReturns:
     p_lgf_m: np.ndarray  # (n, 3)
 
     @staticmethod
-    def concatenate(parts: list["ScanReturns"]) -> "ScanReturns":
-        return ScanReturns(*(np.concatenate([getattr(p, f) for p in parts]) for f in
-                          ("t_gps_s", "alpha_rad", "range_true_m", "surface", "cos_incidence",
-                           "p_lgf_m")))  # fmt: skip
+    def concatenate(parts: list[ScanReturns]) -> ScanReturns:
+        return ScanReturns(
+            *(
+                np.concatenate([getattr(p, f) for p in parts])
+                for f in ("t_gps_s", "alpha_rad", "range_true_m", "surface", "cos_incidence", "p_lgf_m")
+            )
+        )
 
 
 def _expand_ranges(lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
@@ -157,8 +174,9 @@ def _motion_bounds(traj: Trajectory) -> tuple[float, float]:
     return float(v.max()), float(w.max())
 
 
-def scan(scanner: ScannerModel, scene: Scene, traj: Trajectory, mount: Mount, t_start_s: float,
-         t_end_s: float) -> ScanReturns:  # fmt: skip
+def scan(
+    scanner: ScannerModel, scene: Scene, traj: Trajectory, mount: Mount, t_start_s: float, t_end_s: float
+) -> ScanReturns:
     """Exact returns of the profiles fired in [t_start_s, t_end_s) (reported time) from the
     vessel on ``traj`` with the scanner mounted as ``mount`` (the truth)."""
     parts = list(_scan_batches(scanner, scene, traj, mount, t_start_s, t_end_s))
@@ -199,8 +217,9 @@ def _scan_batches(scanner, scene, traj, mount, t_start_s, t_end_s):
         # that passes K wraps to [0, end − K)
         start = sec.start_rad[b_idx, r_idx] - mount.scan_angle_offset_rad - pad_rad
         lo = np.mod(np.floor(start / d_alpha).astype(np.int64), K)
-        end = lo + np.minimum(np.ceil((sec.width_rad[b_idx, r_idx] + 2 * pad_rad) / d_alpha)
-                              .astype(np.int64) + 2, K)  # fmt: skip
+        end = lo + np.minimum(
+            np.ceil((sec.width_rad[b_idx, r_idx] + 2 * pad_rad) / d_alpha).astype(np.int64) + 2, K
+        )
         wrap = end > K
         row = b_idx * K
         keys_lo = np.concatenate([row + lo, row[wrap]])
@@ -228,8 +247,7 @@ def _scan_batches(scanner, scene, traj, mount, t_start_s, t_end_s):
             if idx.size == 0:
                 continue
             rho, inside = scene.hit_range(j, *(c[idx] for c in comps))
-            ok = (inside & (rho > scanner.min_range_m) & (rho <= scanner.max_range_m)
-                  & (rho < best[idx]))  # fmt: skip
+            ok = inside & (rho > scanner.min_range_m) & (rho <= scanner.max_range_m) & (rho < best[idx])
             best[idx[ok]] = rho[ok]
             surf[idx[ok]] = j
         keep = np.flatnonzero(surf >= 0)
@@ -237,9 +255,14 @@ def _scan_batches(scanner, scene, traj, mount, t_start_s, t_end_s):
             continue
         rho, s = best[keep], surf[keep]
         dk = d[keep]
-        yield ScanReturns(t_rep[keep], alpha[keep], rho, s,
-                          np.abs(np.einsum("ij,ij->i", dk, normals[s])),
-                          o[keep] + rho[:, None] * dk)  # fmt: skip
+        yield ScanReturns(
+            t_rep[keep],
+            alpha[keep],
+            rho,
+            s,
+            np.abs(np.einsum("ij,ij->i", dk, normals[s])),
+            o[keep] + rho[:, None] * dk,
+        )
 
 
 # -- orchestration --------------------------------------------------------------------------
@@ -264,8 +287,16 @@ def _plane(rect, kind: str) -> dict:
     }
 
 
-def _truth(sc: Scenario, seed: int, overrides: list[str], scene: Scene, plan: PassPlan,
-           mount: Mount, run, counts: dict[int, dict[str, int]]) -> dict:  # fmt: skip
+def _truth(
+    sc: Scenario,
+    seed: int,
+    overrides: list[str],
+    scene: Scene,
+    plan: PassPlan,
+    mount: Mount,
+    run,
+    counts: dict[int, dict[str, int]],
+) -> dict:
     t = sc.truth
 
     def planes(*kinds: str) -> list[dict]:
@@ -277,7 +308,7 @@ def _truth(sc: Scenario, seed: int, overrides: list[str], scene: Scene, plan: Pa
         "seed": int(seed),
         "overrides": list(overrides),
         "convention": "canonical (docs/architecture.md §3): R_bs = Rz(yaw)·Ry(pitch)·Rx(roll) about the body "
-                      "FRD axes; thesis pitch = −canonical pitch",
+        "FRD axes; thesis pitch = −canonical pitch",
         "boresight_deg": _deg3(mount.boresight_rad),
         "boresight_thesis_deg": _deg3(frames.boresight_to_thesis(*mount.boresight_rad)),
         "boresight_apriori_deg": _deg3(sc.mount.boresight_rad),
@@ -293,45 +324,60 @@ def _truth(sc: Scenario, seed: int, overrides: list[str], scene: Scene, plan: Pa
         "targets": planes("target"),
         "validation_planes": planes("validation"),
         "background": planes(*BACKGROUND_KINDS),
-        "passes": [{
-            "id": p.id,
-            "order": p.order,
-            "relative_heading_deg": float(np.degrees(p.relative_heading_rad)),
-            "heading_deg": float(np.degrees(p.heading_rad)),
-            "start_lgf_m": [float(x) for x in p.start_lgf_m],
-            "end_lgf_m": [float(x) for x in p.end_lgf_m],
-            "line_gps_s": [float(x) for x in run.line_times[p.id]],
-            "capture_gps_s": [float(x) for x in run.capture_times[p.id]],
-            "points": counts[p.id],
-        } for p in plan.passes],
+        "passes": [
+            {
+                "id": p.id,
+                "order": p.order,
+                "relative_heading_deg": float(np.degrees(p.relative_heading_rad)),
+                "heading_deg": float(np.degrees(p.heading_rad)),
+                "start_lgf_m": [float(x) for x in p.start_lgf_m],
+                "end_lgf_m": [float(x) for x in p.end_lgf_m],
+                "line_gps_s": [float(x) for x in run.line_times[p.id]],
+                "capture_gps_s": [float(x) for x in run.capture_times[p.id]],
+                "points": counts[p.id],
+            }
+            for p in plan.passes
+        ],
         "wave_phases_deg": {k: float(np.degrees(v)) for k, v in run.phases_rad.items()},
         "settings": sc.to_dict(),
-    }  # fmt: skip
+    }
 
 
-def simulate(scenario: Scenario | str | Path, seed: int = 0, *,
-             overrides: Sequence[str] | Mapping[str, Any] = (),
-             progress: Callable[[int, int], None] | None = None) -> SimResult:  # fmt: skip
+def simulate(
+    scenario: Scenario | str | Path,
+    seed: int = 0,
+    *,
+    overrides: Sequence[str] | Mapping[str, Any] = (),
+    progress: Callable[[int, int], None] | None = None,
+) -> SimResult:
     """Simulate a scenario (a :class:`Scenario`, or a shipped name / YAML path loaded with
     ``overrides``). ``progress(done, total)`` is called after each pass."""
     if not isinstance(scenario, Scenario):
         scenario = load_scenario(scenario, overrides)
     elif overrides:
         raise SimulationError("overrides apply when the scenario is loaded by name or path")
-    applied = ([f"{k}={v!r}" for k, v in overrides.items()] if isinstance(overrides, Mapping)
-               else [str(o) for o in overrides])  # fmt: skip
+    applied = (
+        [f"{k}={v!r}" for k, v in overrides.items()]
+        if isinstance(overrides, Mapping)
+        else [str(o) for o in overrides]
+    )
     sc = scenario
     rng_motion, rng_pos, rng_scan, rng_point = (
-        np.random.default_rng(s) for s in np.random.SeedSequence(seed).spawn(4))
+        np.random.default_rng(s) for s in np.random.SeedSequence(seed).spawn(4)
+    )
     site = sc.site()
     scene = sc.scene()
     rects = lambda kind: [scene.rectangles[i] for i in scene.indices(kind)]  # noqa: E731
     plan = plan_passes(
-        rects("target"), sc.wall_azimuth_rad, sc.standoff_m, sc.passes,
+        rects("target"),
+        sc.wall_azimuth_rad,
+        sc.standoff_m,
+        sc.passes,
         track_down_m=-float(sc.mount.lever_arm_m[2]),  # the scanner at up = 0 on a level vessel
-        safe_wall_distance_m=sc.safe_wall_distance_m, capture_margin_m=sc.capture_margin_m,
+        safe_wall_distance_m=sc.safe_wall_distance_m,
+        capture_margin_m=sc.capture_margin_m,
         also_capture=rects("validation") if sc.capture_validation_planes else (),
-    )  # fmt: skip
+    )
     run = sail(plan, sc.motion, sc.start_gps_s, sc.reference, rng_motion)
     traj = run.trajectory
     mount = sc.truth.true_mount(sc.mount)
@@ -341,15 +387,16 @@ def simulate(scenario: Scenario | str | Path, seed: int = 0, *,
     for i, p in enumerate(plan.passes):
         t0, t1 = run.capture_times[p.id]
         l0, l1 = run.line_times[p.id]
-        for part in _scan_batches(sc.scanner, scene, traj, mount, max(t0, l0 + guard),
-                                  min(t1, l1 - guard)):  # fmt: skip
+        for part in _scan_batches(sc.scanner, scene, traj, mount, max(t0, l0 + guard), min(t1, l1 - guard)):
             parts.append(part)
             pass_ids.append(np.full(part.t_gps_s.size, p.id, np.int32))
         if progress is not None:
             progress(i + 1, len(plan.passes))
     if not parts:
-        raise SimulationError(f"scenario {sc.name!r}: no return in any pass (check the scene, "
-                              f"the angular windows and the range limits)")  # fmt: skip
+        raise SimulationError(
+            f"scenario {sc.name!r}: no return in any pass (check the scene, "
+            f"the angular windows and the range limits)"
+        )
     ret = ScanReturns.concatenate(parts)
     n = ret.t_gps_s.size
 
@@ -360,7 +407,7 @@ def simulate(scenario: Scenario | str | Path, seed: int = 0, *,
         range_m=ret.range_true_m - mount.range_offset_m + d_range,
         scan_angle_rad=frames.wrap_2pi(ret.alpha_rad + d_angle),
         intensity=scene.reflectivity[ret.surface] * ret.cos_incidence,
-    )  # fmt: skip
+    )
 
     pos = sc.pos_noise
     e = pos.epoch_errors(traj.t_gps_s, rng_pos)
@@ -369,19 +416,33 @@ def simulate(scenario: Scenario | str | Path, seed: int = 0, *,
     sig = None if pos.model == "none" else np.maximum(pos.sigma, _SIGMA_FLOOR)
     m = traj.t_gps_s.size
     observed = Trajectory(
-        traj.t_gps_s, traj.p_lgf_m + e[:, :3], rpy, traj.frame,
+        traj.t_gps_s,
+        traj.p_lgf_m + e[:, :3],
+        rpy,
+        traj.frame,
         sigma_p_m=None if sig is None else np.tile(sig[:3], (m, 1)),
         sigma_rpy_rad=None if sig is None else np.tile(sig[3:], (m, 1)),
-        max_gap_s=traj.max_gap_s, name="observed trajectory",
-    )  # fmt: skip
+        max_gap_s=traj.max_gap_s,
+        name="observed trajectory",
+    )
 
     target_of_surface = np.full(len(scene), -1, np.int64)
     target_of_surface[scene.indices("target")] = np.arange(len(scene.indices("target")))
     result = SimResult(
-        scenario=sc, seed=int(seed), site=site, scene=scene, plan=plan, mount_true=mount,
-        trajectory_true=traj, trajectory_observed=observed, points=points,
-        surface_index=ret.surface, target_index=target_of_surface[ret.surface],
-        p_true_lgf_m=ret.p_lgf_m, pose_errors=pos.point_errors(n, rng_point), truth={},
-    )  # fmt: skip
+        scenario=sc,
+        seed=int(seed),
+        site=site,
+        scene=scene,
+        plan=plan,
+        mount_true=mount,
+        trajectory_true=traj,
+        trajectory_observed=observed,
+        points=points,
+        surface_index=ret.surface,
+        target_index=target_of_surface[ret.surface],
+        p_true_lgf_m=ret.p_lgf_m,
+        pose_errors=pos.point_errors(n, rng_point),
+        truth={},
+    )
     truth = _truth(sc, seed, applied, scene, plan, mount, run, result.point_counts())
     return replace(result, truth=truth)

@@ -15,8 +15,8 @@ All geometry is in the LGF (NED); lines are horizontal at ``track_down_m``.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Sequence
 
 import numpy as np
 
@@ -188,20 +188,37 @@ def plan_passes(
         starboard = np.array([-np.sin(heading), np.cos(heading), 0.0])
         side = "starboard" if float(-perp @ starboard) > 0 else "port"
         end_wall = min(d0 + s_a * approach, d0 + s_b * approach)
-        out.append(PlannedPass(
-            id=spec.id, order=order, relative_heading_rad=float(spec.relative_heading_rad),
-            heading_rad=heading, start_lgf_m=cpa + s_a * h, end_lgf_m=cpa + s_b * h,
-            closest_approach_lgf_m=cpa, speed_mps=float(spec.speed_mps),
-            capture_start_m=cap_a - s_a, capture_end_m=cap_b - s_a, targets_side=side,
-            end_wall_distance_m=float(end_wall),
-        ))  # fmt: skip
-    return PassPlan(tuple(out), aim, water, float(wall_azimuth_rad), float(standoff_m),
-                    float(safe_wall_distance_m), wall_offset)  # fmt: skip
+        out.append(
+            PlannedPass(
+                id=spec.id,
+                order=order,
+                relative_heading_rad=float(spec.relative_heading_rad),
+                heading_rad=heading,
+                start_lgf_m=cpa + s_a * h,
+                end_lgf_m=cpa + s_b * h,
+                closest_approach_lgf_m=cpa,
+                speed_mps=float(spec.speed_mps),
+                capture_start_m=cap_a - s_a,
+                capture_end_m=cap_b - s_a,
+                targets_side=side,
+                end_wall_distance_m=float(end_wall),
+            )
+        )
+    return PassPlan(
+        tuple(out),
+        aim,
+        water,
+        float(wall_azimuth_rad),
+        float(standoff_m),
+        float(safe_wall_distance_m),
+        wall_offset,
+    )
 
 
 def plan_site(site: Site, frame: frames.LocalFrame | None = None, **kwargs) -> PassPlan:
     """The plan of a site config: its targets, wall azimuth, standoff and passes (in the site's
     LGF unless ``frame`` is given). Keyword arguments go to :func:`plan_passes`."""
     frame = site.frame(frame)
-    return plan_passes(site.target_rectangles(frame), site.wall_azimuth_rad, site.standoff_m,
-                       site.passes, **kwargs)  # fmt: skip
+    return plan_passes(
+        site.target_rectangles(frame), site.wall_azimuth_rad, site.standoff_m, site.passes, **kwargs
+    )

@@ -19,22 +19,21 @@ from __future__ import annotations
 
 import json
 import math
+from collections.abc import Sequence
 from pathlib import Path
-from typing import Sequence
 
 import numpy as np
 
 from calib.core import frames
-from calib.survey.passplan import PassPlan, PlannedPass
 from calib.io.site import Target
+from calib.survey.passplan import PassPlan, PlannedPass
 
 FORMAT = "marine-mls pass plan v1"
 
 
 def _coords(frame: frames.LocalFrame, p_lgf_m) -> list[list[float]]:
     lat, lon, h = frame.to_geodetic(np.atleast_2d(np.asarray(p_lgf_m, float)))
-    return [[round(float(x), 10), round(float(y), 10), round(float(z), 4)]
-            for x, y, z in zip(lon, lat, h)]  # fmt: skip
+    return [[round(float(x), 10), round(float(y), 10), round(float(z), 4)] for x, y, z in zip(lon, lat, h)]
 
 
 def _pass_properties(p: PlannedPass) -> dict:
@@ -55,30 +54,50 @@ def _pass_properties(p: PlannedPass) -> dict:
     }
 
 
-def plan_geojson(plan: PassPlan, frame: frames.LocalFrame, targets: Sequence[Target] = (),
-                 name: str | None = None) -> dict:  # fmt: skip
+def plan_geojson(
+    plan: PassPlan, frame: frames.LocalFrame, targets: Sequence[Target] = (), name: str | None = None
+) -> dict:
     """The plan (lines in the LGF of ``frame``) as a GeoJSON FeatureCollection (a dict)."""
     features = []
     for p in plan.passes:
         props = _pass_properties(p)
-        features.append({"type": "Feature", "id": f"pass-{p.id}",
-                         "properties": {"kind": "line", **props},
-                         "geometry": {"type": "LineString",
-                                      "coordinates": _coords(frame, [p.start_lgf_m, p.end_lgf_m])}})  # fmt: skip
+        features.append(
+            {
+                "type": "Feature",
+                "id": f"pass-{p.id}",
+                "properties": {"kind": "line", **props},
+                "geometry": {
+                    "type": "LineString",
+                    "coordinates": _coords(frame, [p.start_lgf_m, p.end_lgf_m]),
+                },
+            }
+        )
         cap = p.position_at([p.capture_start_m, p.capture_end_m])
-        features.append({"type": "Feature", "id": f"pass-{p.id}-capture",
-                         "properties": {"kind": "capture", **props},
-                         "geometry": {"type": "LineString", "coordinates": _coords(frame, cap)}})
+        features.append(
+            {
+                "type": "Feature",
+                "id": f"pass-{p.id}-capture",
+                "properties": {"kind": "capture", **props},
+                "geometry": {"type": "LineString", "coordinates": _coords(frame, cap)},
+            }
+        )
     for t in targets:
-        features.append({
-            "type": "Feature", "id": f"target-{t.name}",
-            "properties": {"kind": "target", "name": t.name, "width_m": t.width_m,
-                           "height_m": t.height_along_slope_m,
-                           "inclination_deg": round(math.degrees(t.inclination_rad), 6),
-                           "facing_azimuth_deg": round(math.degrees(t.facing_azimuth_rad), 6),
-                           "reflectivity": t.reflectivity},
-            "geometry": {"type": "Point", "coordinates": [t.lon_deg, t.lat_deg, t.height_m]},
-        })  # fmt: skip
+        features.append(
+            {
+                "type": "Feature",
+                "id": f"target-{t.name}",
+                "properties": {
+                    "kind": "target",
+                    "name": t.name,
+                    "width_m": t.width_m,
+                    "height_m": t.height_along_slope_m,
+                    "inclination_deg": round(math.degrees(t.inclination_rad), 6),
+                    "facing_azimuth_deg": round(math.degrees(t.facing_azimuth_rad), 6),
+                    "reflectivity": t.reflectivity,
+                },
+                "geometry": {"type": "Point", "coordinates": [t.lon_deg, t.lat_deg, t.height_m]},
+            }
+        )
     return {
         "type": "FeatureCollection",
         "name": name or "mls pass plan",
@@ -96,8 +115,13 @@ def plan_geojson(plan: PassPlan, frame: frames.LocalFrame, targets: Sequence[Tar
     }
 
 
-def write_plan_geojson(path: str | Path, plan: PassPlan, frame: frames.LocalFrame,
-                       targets: Sequence[Target] = (), name: str | None = None) -> Path:  # fmt: skip
+def write_plan_geojson(
+    path: str | Path,
+    plan: PassPlan,
+    frame: frames.LocalFrame,
+    targets: Sequence[Target] = (),
+    name: str | None = None,
+) -> Path:
     """Write :func:`plan_geojson` to ``path`` (its folder created), UTF-8; returns the path."""
     path = Path(path)
     doc = plan_geojson(plan, frame, targets, name=name)

@@ -26,12 +26,15 @@ HELP = (
 
 
 def acquire(
-    config: Path = typer.Option(..., "--config", "-c", help="Vessel config (YAML), see "
-                                "systemd/vessel.example.yaml."),
-    check: bool = typer.Option(False, "--check", help="Validate the config, print a summary "
-                               "of the devices and exit."),
-    log_level: str = typer.Option("info", "--log-level", help="Log level on stderr: debug, "
-                                  "info, warning, error."),
+    config: Path = typer.Option(
+        ..., "--config", "-c", help="Vessel config (YAML), see systemd/vessel.example.yaml."
+    ),
+    check: bool = typer.Option(
+        False, "--check", help="Validate the config, print a summary of the devices and exit."
+    ),
+    log_level: str = typer.Option(
+        "info", "--log-level", help="Log level on stderr: debug, info, warning, error."
+    ),
 ) -> None:
     """``mls acquire`` (its help text is :data:`HELP`)."""
     import asyncio
@@ -46,15 +49,18 @@ def acquire(
     except VesselConfigError as e:
         for err in e.errors:
             print(err, file=sys.stderr)
-        print(f"mls acquire: {config}: {len(e.errors)} error{'s' if len(e.errors) != 1 else ''} "
-              f"in the vessel config", file=sys.stderr)  # fmt: skip
+        print(
+            f"mls acquire: {config}: {len(e.errors)} error{'s' if len(e.errors) != 1 else ''} "
+            f"in the vessel config",
+            file=sys.stderr,
+        )
         raise typer.Exit(EXIT_CONFIG) from None
     except (ConfigError, OSError) as e:
         print(f"mls acquire: {e}", file=sys.stderr)
         raise typer.Exit(EXIT_CONFIG) from None
 
-    from acquire.guidance.daemon import GuidanceSetupError, guidance_consumer
     from acquire.daemon.supervisor import StartupError, Supervisor
+    from acquire.guidance.daemon import GuidanceSetupError, guidance_consumer
 
     try:
         sup = Supervisor(cfg)
@@ -77,15 +83,20 @@ def acquire(
         Console().print(t)
         if guidance is not None:
             g, tol = guidance.guidance, cfg.guidance
-            print(f"guidance: {len(g.plan.passes)} passes around {len(g.target_names)} targets "
-                  f"({', '.join(g.target_names)}) of {cfg.site_file}; accepted within "
-                  f"{tol.max_xte_m:g} m XTE, {tol.max_heading_error_deg:g}° heading, "
-                  f"±{tol.max_speed_error_mps:g} m/s, ≥ {tol.min_points_per_target} points per "
-                  f"target, gaps ≤ {tol.max_gap_s:g} s")  # fmt: skip
+            print(
+                f"guidance: {len(g.plan.passes)} passes around {len(g.target_names)} targets "
+                f"({', '.join(g.target_names)}) of {cfg.site_file}; accepted within "
+                f"{tol.max_xte_m:g} m XTE, {tol.max_heading_error_deg:g}° heading, "
+                f"±{tol.max_speed_error_mps:g} m/s, ≥ {tol.min_points_per_target} points per "
+                f"target, gaps ≤ {tol.max_gap_s:g} s"
+            )
         raise typer.Exit(EXIT_OK)
 
-    logging.basicConfig(level=getattr(logging, log_level.upper(), logging.INFO), stream=sys.stderr,
-                        format="%(asctime)s %(name)s %(levelname)s: %(message)s")  # fmt: skip
+    logging.basicConfig(
+        level=getattr(logging, log_level.upper(), logging.INFO),
+        stream=sys.stderr,
+        format="%(asctime)s %(name)s %(levelname)s: %(message)s",
+    )
     try:
         code = asyncio.run(sup.run())
     except StartupError as e:

@@ -7,7 +7,6 @@ The commands are added to the ``mls calib`` group of :mod:`cli.commands.calib_cm
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Optional
 
 import typer
 
@@ -35,35 +34,64 @@ def _mm(x: float) -> str:
 
 @app.command("c2c")
 def c2c_cmd(
-    compared: Path = typer.Argument(..., help="Compared cloud (LAS/LAZ, or ASCII 'x y z' per "
-                                    "line): every point of it gets a distance."),  # fmt: skip
+    compared: Path = typer.Argument(
+        ..., help="Compared cloud (LAS/LAZ, or ASCII 'x y z' per line): every point of it gets a distance."
+    ),
     reference: Path = typer.Argument(..., help="Reference cloud the local planes are fitted to."),
-    knn: int = typer.Option(6, "--knn", min=3, help="Neighbours of the nearest reference point "
-                            "in each local least-squares plane (CloudCompare's '-MODEL LS KNN k')."),  # fmt: skip
-    out: Optional[Path] = typer.Option(None, "--out", help="Write the compared cloud with its "
-                                       "distances: .las/.laz get the extra dimension "
-                                       "'c2c_distance_m' (and 'c2c_signed_distance_m' with "
-                                       "--signed); any other suffix is ASCII with the distance "
-                                       "columns appended."),  # fmt: skip
-    signed: bool = typer.Option(False, "--signed", help="Also compute signed distances, the "
-                                "local normals oriented along --toward-direction (default 0,0,1: "
-                                "up in a z-up cloud) or toward --toward-point."),  # fmt: skip
-    toward_direction: Optional[str] = typer.Option(None, "--toward-direction", metavar="DX,DY,DZ",
-                                                   help="Orientation of the normals for --signed."),  # fmt: skip
-    toward_point: Optional[str] = typer.Option(None, "--toward-point", metavar="X,Y,Z",
-                                               help="Orient the normals for --signed toward this "
-                                               "point (e.g. the scanner's position: positive = in "
-                                               "front of the reference surface)."),  # fmt: skip
-    max_dist: Optional[float] = typer.Option(None, "--max-dist", min=0.0, help="Maximum search "
-                                             "distance (m; CloudCompare's -MAX_DIST): farther "
-                                             "points get this value and are left out of the "
-                                             "statistics."),  # fmt: skip
-    collinear_tol: float = typer.Option(1e-5, "--collinear-tol", min=0.0, max=0.99, help="A "
-                                        "neighbourhood narrower than this fraction of its length "
-                                        "is a line: no plane, the nearest-neighbour distance is "
-                                        "used. Raise it (e.g. 0.05) for single scan lines."),  # fmt: skip
-    workers: int = typer.Option(1, "--workers", help="Threads for the KD-tree queries (-1: all "
-                                "cores)."),  # fmt: skip
+    knn: int = typer.Option(
+        6,
+        "--knn",
+        min=3,
+        help="Neighbours of the nearest reference point "
+        "in each local least-squares plane (CloudCompare's '-MODEL LS KNN k').",
+    ),
+    out: Path | None = typer.Option(
+        None,
+        "--out",
+        help="Write the compared cloud with its "
+        "distances: .las/.laz get the extra dimension "
+        "'c2c_distance_m' (and 'c2c_signed_distance_m' with "
+        "--signed); any other suffix is ASCII with the distance "
+        "columns appended.",
+    ),
+    signed: bool = typer.Option(
+        False,
+        "--signed",
+        help="Also compute signed distances, the "
+        "local normals oriented along --toward-direction (default 0,0,1: "
+        "up in a z-up cloud) or toward --toward-point.",
+    ),
+    toward_direction: str | None = typer.Option(
+        None, "--toward-direction", metavar="DX,DY,DZ", help="Orientation of the normals for --signed."
+    ),
+    toward_point: str | None = typer.Option(
+        None,
+        "--toward-point",
+        metavar="X,Y,Z",
+        help="Orient the normals for --signed toward this "
+        "point (e.g. the scanner's position: positive = in "
+        "front of the reference surface).",
+    ),
+    max_dist: float | None = typer.Option(
+        None,
+        "--max-dist",
+        min=0.0,
+        help="Maximum search "
+        "distance (m; CloudCompare's -MAX_DIST): farther "
+        "points get this value and are left out of the "
+        "statistics.",
+    ),
+    collinear_tol: float = typer.Option(
+        1e-5,
+        "--collinear-tol",
+        min=0.0,
+        max=0.99,
+        help="A "
+        "neighbourhood narrower than this fraction of its length "
+        "is a line: no plane, the nearest-neighbour distance is "
+        "used. Raise it (e.g. 0.05) for single scan lines.",
+    ),
+    workers: int = typer.Option(1, "--workers", help="Threads for the KD-tree queries (-1: all cores)."),
 ) -> None:
     """Cloud-to-cloud distances to local least-squares planes (CloudCompare's C2C).
 
@@ -89,18 +117,32 @@ def c2c_cmd(
 
     err = Console(stderr=True)
     try:
-        with Progress(TextColumn("{task.description}"), BarColumn(), TextColumn("{task.percentage:>3.0f}%"),
-                      TimeElapsedColumn(), console=err, transient=True) as progress:  # fmt: skip
+        with Progress(
+            TextColumn("{task.description}"),
+            BarColumn(),
+            TextColumn("{task.percentage:>3.0f}%"),
+            TimeElapsedColumn(),
+            console=err,
+            transient=True,
+        ) as progress:
             t = progress.add_task("reading clouds", total=2)
             cmp_cloud = read_cloud(compared)
             progress.advance(t)
             ref_cloud = read_cloud(reference)
             progress.advance(t)
-            t = progress.add_task(f"C2C ({len(cmp_cloud):,} → {len(ref_cloud):,} points)", total=len(cmp_cloud))
-            result = c2c(cmp_cloud.xyz_m, ref_cloud.xyz_m, knn, max_distance_m=max_dist,
-                         collinear_tol=collinear_tol, workers=workers,
-                         progress=lambda done, total: progress.update(t, completed=done),
-                         **orient)  # fmt: skip
+            t = progress.add_task(
+                f"C2C ({len(cmp_cloud):,} → {len(ref_cloud):,} points)", total=len(cmp_cloud)
+            )
+            result = c2c(
+                cmp_cloud.xyz_m,
+                ref_cloud.xyz_m,
+                knn,
+                max_distance_m=max_dist,
+                collinear_tol=collinear_tol,
+                workers=workers,
+                progress=lambda done, total: progress.update(t, completed=done),
+                **orient,
+            )
             if out is not None:
                 progress.add_task(f"writing {out}", total=None)
                 write_cloud(out, cmp_cloud, result.extra_dimensions())
@@ -115,20 +157,32 @@ def c2c_cmd(
         rows.append(("signed", result.stats(signed=True)))
     rows.append(("nearest neighbour", result.nn_stats()))
     for name, s in rows:
-        table.add_row(name, f"{s.count:,}", _mm(s.mean_m), _mm(s.median_m), _mm(s.rms_m), _mm(s.std_m),
-                      _mm(s.p95_m), _mm(s.max_m))  # fmt: skip
+        table.add_row(
+            name,
+            f"{s.count:,}",
+            _mm(s.mean_m),
+            _mm(s.median_m),
+            _mm(s.rms_m),
+            _mm(s.std_m),
+            _mm(s.p95_m),
+            _mm(s.max_m),
+        )
     console = Console()
     console.print(table)
     notes = []
     if result.n_fallback:
-        notes.append(f"{result.n_fallback:,} points without a plane (fewer than 3 or collinear "
-                     f"neighbours): nearest-neighbour distance used")  # fmt: skip
+        notes.append(
+            f"{result.n_fallback:,} points without a plane (fewer than 3 or collinear "
+            f"neighbours): nearest-neighbour distance used"
+        )
     beyond = len(result) - int(result.within_max.sum())
     if beyond:
         notes.append(f"{beyond:,} points beyond --max-dist {max_dist:g} m: not in the statistics")
     if result.n_ambiguous_sign:
-        notes.append(f"{result.n_ambiguous_sign:,} signed distances have an ambiguous sign (local "
-                     f"normal nearly perpendicular to the orientation)")  # fmt: skip
+        notes.append(
+            f"{result.n_ambiguous_sign:,} signed distances have an ambiguous sign (local "
+            f"normal nearly perpendicular to the orientation)"
+        )
     if out is not None:
         notes.append(f"distances written to {out}")
     for n in notes:
@@ -137,15 +191,14 @@ def c2c_cmd(
 
 # -- history --------------------------------------------------------------------------------
 
-_DB_HELP = ("History database (default: $MLS_HISTORY_DB, else "
-            "~/.local/share/marine-mls/history.sqlite).")  # fmt: skip
+_DB_HELP = "History database (default: $MLS_HISTORY_DB, else ~/.local/share/marine-mls/history.sqlite)."
 
 
 @app.command("history")
 def history_cmd(
-    vessel: Optional[str] = typer.Option(None, "--vessel", help="Only this vessel's calibrations."),
-    mount: Optional[str] = typer.Option(None, "--mount", help="Only this mount id."),
-    db: Optional[Path] = typer.Option(None, "--db", help=_DB_HELP),
+    vessel: str | None = typer.Option(None, "--vessel", help="Only this vessel's calibrations."),
+    mount: str | None = typer.Option(None, "--mount", help="Only this mount id."),
+    db: Path | None = typer.Option(None, "--db", help=_DB_HELP),
 ) -> None:
     """List the recorded boresight calibrations, oldest survey first."""
     from rich.console import Console
@@ -163,17 +216,38 @@ def history_cmd(
         console.print(f"no calibrations recorded in {where}" + (f" for vessel {vessel!r}" if vessel else ""))
         return
     table = Table(title=f"Calibration history ({where})")
-    for col in ("id", "survey (UTC)", "vessel", "mount", "roll ± σ (°)", "pitch ± σ (°)",
-                "yaw ± σ (°)", "σ", "σ̂0²", "points", "bundle", "version"):  # fmt: skip
+    for col in (
+        "id",
+        "survey (UTC)",
+        "vessel",
+        "mount",
+        "roll ± σ (°)",
+        "pitch ± σ (°)",
+        "yaw ± σ (°)",
+        "σ",
+        "σ̂0²",
+        "points",
+        "bundle",
+        "version",
+    ):
         table.add_column(col, justify="right" if col in ("id", "σ̂0²", "points") else "left")
     for r in records:
         v = validate_result(r.result, r.label)
         real = v["sigma_realistic_deg"]
         sig, kind = (real, "realistic") if real is not None else (v["sigma_scaled_deg"], "scaled")
         cells = [f"{v['boresight_deg'][a]:.4f} ± {sig[a]:.4f}" for a in ANGLES]
-        table.add_row(str(r.id), r.date_utc[:16].replace("T", " "), r.vessel, r.mount_id, *cells,
-                      kind, f"{r.sigma0_squared:.3g}", f"{r.n_points:,}",
-                      r.bundle_fingerprint[:10], r.software_version)  # fmt: skip
+        table.add_row(
+            str(r.id),
+            r.date_utc[:16].replace("T", " "),
+            r.vessel,
+            r.mount_id,
+            *cells,
+            kind,
+            f"{r.sigma0_squared:.3g}",
+            f"{r.n_points:,}",
+            r.bundle_fingerprint[:10],
+            r.software_version,
+        )
     console.print(table)
 
 
@@ -181,9 +255,8 @@ def history_cmd(
 def compare_cmd(
     a: str = typer.Argument(..., help="First calibration: a history id or a result.json path."),
     b: str = typer.Argument(..., help="Second calibration: a history id or a result.json path."),
-    k_sigma: float = typer.Option(3.0, "--k", min=0.1, help="Flag a change beyond k times the "
-                                  "combined σ."),  # fmt: skip
-    db: Optional[Path] = typer.Option(None, "--db", help=_DB_HELP),
+    k_sigma: float = typer.Option(3.0, "--k", min=0.1, help="Flag a change beyond k times the combined σ."),
+    db: Path | None = typer.Option(None, "--db", help=_DB_HELP),
 ) -> None:
     """Has the mount moved? Test two calibrations against their combined σ.
 
@@ -201,13 +274,30 @@ def compare_cmd(
     except (HistoryError, ResultFormatError) as e:
         _fail(str(e))
     table = Table(title=f"A = {cmp.a_label}, B = {cmp.b_label}")
-    for col in ("angle", "A (°)", "B (°)", "B − A (°)", f"σA {cmp.sigma_kind_a} (°)",
-                f"σB {cmp.sigma_kind_b} (°)", "combined σ (°)", "|Δ|/σ", ""):  # fmt: skip
+    for col in (
+        "angle",
+        "A (°)",
+        "B (°)",
+        "B − A (°)",
+        f"σA {cmp.sigma_kind_a} (°)",
+        f"σB {cmp.sigma_kind_b} (°)",
+        "combined σ (°)",
+        "|Δ|/σ",
+        "",
+    ):
         table.add_column(col, justify="left" if col in ("angle", "") else "right")
     for c in cmp.angles:
-        table.add_row(c.angle, f"{c.a_deg:.4f}", f"{c.b_deg:.4f}", f"{c.difference_deg:+.4f}",
-                      f"{c.sigma_a_deg:.4f}", f"{c.sigma_b_deg:.4f}", f"{c.sigma_combined_deg:.4f}",
-                      f"{c.n_sigma:.1f}", "CHANGED" if c.changed else "ok")  # fmt: skip
+        table.add_row(
+            c.angle,
+            f"{c.a_deg:.4f}",
+            f"{c.b_deg:.4f}",
+            f"{c.difference_deg:+.4f}",
+            f"{c.sigma_a_deg:.4f}",
+            f"{c.sigma_b_deg:.4f}",
+            f"{c.sigma_combined_deg:.4f}",
+            f"{c.n_sigma:.1f}",
+            "CHANGED" if c.changed else "ok",
+        )
     console = Console()
     console.print(table)
     console.print(cmp.message)

@@ -6,7 +6,6 @@
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Optional
 
 import typer
 
@@ -36,28 +35,58 @@ def _mm(x_m) -> str:
 
 @app.command("assess", help=ASSESS_HELP)
 def assess_cmd(
-    bundle: Path = typer.Argument(..., metavar="BUNDLE", help="Calibration bundle directory "
-                                  "(site.yaml, trajectory, points; truth.json when simulated)."),  # fmt: skip
-    result: Path = typer.Option(..., "--result", "-r", help="Calibration result (result.json, "
-                                "or the directory holding it) whose boresight is assessed."),  # fmt: skip
-    out: Path = typer.Option(..., "--out", "-o", help="Output directory (created) for "
-                             "assessment.md, assessment.json and the figures."),  # fmt: skip
-    pairs: Optional[str] = typer.Option(None, "--pairs", metavar="A:B[,C:D]", help="Pass pairs "
-                                        "to compare, compared pass first (e.g. 1:2,5:6); "
-                                        "default: the reciprocal pairs."),  # fmt: skip
-    knn: int = typer.Option(6, "--knn", min=3, help="Neighbours of each local least-squares "
-                            "plane (CloudCompare's '-MODEL LS KNN k'). On sparse scan lines "
-                            "6 neighbours can be collinear; the run says so: then try 12."),  # fmt: skip
-    gate_m: float = typer.Option(1.0, "--gate", min=0.001, help="Returns within this distance "
-                                 "(m) of a validation plane belong to it (after the "
-                                 "calibration; then trimmed per pass to its own plane)."),  # fmt: skip
-    auto_planes: bool = typer.Option(False, "--auto-planes", help="Find planar patches seen by "
-                                     "both passes even when site.yaml lists validation planes."),  # fmt: skip
-    scanner_height_m: float = typer.Option(0.0, "--scanner-height", help="Height of the scanner "
-                                           "above the water line (m); heights are reported "
-                                           "above the water."),  # fmt: skip
-    overlap: bool = typer.Option(True, "--overlap/--no-overlap", help="Also compare the whole "
-                                 "overlap of each pair."),  # fmt: skip
+    bundle: Path = typer.Argument(
+        ...,
+        metavar="BUNDLE",
+        help="Calibration bundle directory (site.yaml, trajectory, points; truth.json when simulated).",
+    ),
+    result: Path = typer.Option(
+        ...,
+        "--result",
+        "-r",
+        help="Calibration result (result.json, or the directory holding it) whose boresight is assessed.",
+    ),
+    out: Path = typer.Option(
+        ...,
+        "--out",
+        "-o",
+        help="Output directory (created) for assessment.md, assessment.json and the figures.",
+    ),
+    pairs: str | None = typer.Option(
+        None,
+        "--pairs",
+        metavar="A:B[,C:D]",
+        help="Pass pairs to compare, compared pass first (e.g. 1:2,5:6); default: the reciprocal pairs.",
+    ),
+    knn: int = typer.Option(
+        6,
+        "--knn",
+        min=3,
+        help="Neighbours of each local least-squares "
+        "plane (CloudCompare's '-MODEL LS KNN k'). On sparse scan lines "
+        "6 neighbours can be collinear; the run says so: then try 12.",
+    ),
+    gate_m: float = typer.Option(
+        1.0,
+        "--gate",
+        min=0.001,
+        help="Returns within this distance "
+        "(m) of a validation plane belong to it (after the "
+        "calibration; then trimmed per pass to its own plane).",
+    ),
+    auto_planes: bool = typer.Option(
+        False,
+        "--auto-planes",
+        help="Find planar patches seen by both passes even when site.yaml lists validation planes.",
+    ),
+    scanner_height_m: float = typer.Option(
+        0.0,
+        "--scanner-height",
+        help="Height of the scanner above the water line (m); heights are reported above the water.",
+    ),
+    overlap: bool = typer.Option(
+        True, "--overlap/--no-overlap", help="Also compare the whole overlap of each pair."
+    ),
 ) -> None:
     """``mls calib assess`` (its help text is :data:`ASSESS_HELP`)."""
     from rich.console import Console
@@ -66,13 +95,13 @@ def assess_cmd(
     from rich.table import Table
 
     from calib.assess.comparison import assess
+    from calib.assess.history import ResultFormatError, load_result
     from calib.assess.pairs import parse_pairs
     from calib.assess.results import AssessError, AssessOptions
     from calib.assess.summary import fmt_ratio, summary_lines, write_assessment
+    from calib.core.trajectory import TrajectoryError
     from calib.io.bundle import BundleError
     from calib.io.configfile import ConfigError
-    from calib.assess.history import ResultFormatError, load_result
-    from calib.core.trajectory import TrajectoryError
 
     err = Console(stderr=True)
     try:
@@ -80,14 +109,21 @@ def assess_cmd(
     except AssessError as e:
         raise typer.BadParameter(str(e), param_hint="--pairs") from None
     try:
-        options = AssessOptions(k=knn, gate_m=gate_m, auto_planes=auto_planes,
-                                scanner_height_m=scanner_height_m, overlap=overlap)  # fmt: skip
+        options = AssessOptions(
+            k=knn, gate_m=gate_m, auto_planes=auto_planes, scanner_height_m=scanner_height_m, overlap=overlap
+        )
         doc = load_result(result)
-        with Progress(SpinnerColumn(), TextColumn("{task.description}"), TimeElapsedColumn(),
-                      console=err, transient=True) as progress:  # fmt: skip
+        with Progress(
+            SpinnerColumn(),
+            TextColumn("{task.description}"),
+            TimeElapsedColumn(),
+            console=err,
+            transient=True,
+        ) as progress:
             task = progress.add_task("assessing", total=None)
-            a = assess(bundle, doc, pair_list, options,
-                       progress=lambda msg: progress.update(task, description=msg))  # fmt: skip
+            a = assess(
+                bundle, doc, pair_list, options, progress=lambda msg: progress.update(task, description=msg)
+            )
             progress.update(task, description="writing figures and assessment.md")
             written = write_assessment(a, out)
     except (AssessError, BundleError, ConfigError, ResultFormatError, TrajectoryError) as e:
@@ -102,22 +138,33 @@ def assess_cmd(
     truth = a.truth_boresight_deg is not None
     tables = []
     for pair in a.pairs:
-        rows = sorted((c for c in a.comparisons if c.pair == pair),
-                      key=lambda c: (c.source == "overlap", -c.height_m))  # fmt: skip
+        rows = sorted(
+            (c for c in a.comparisons if c.pair == pair), key=lambda c: (c.source == "overlap", -c.height_m)
+        )
         if not rows:
             continue
         h = a.headings_deg
-        table = Table(title=f"passes {pair[0]} ({h[pair[0]]:.0f}°) ↔ {pair[1]} ({h[pair[1]]:.0f}°): "
-                            f"median C2C (mm), local LS planes k = {knn}")  # fmt: skip
-        cols = ["surface", "height m", "returns", "before", "after", "×", "expected", "95 %",
-                "floor"] + (["true mount"] if truth else [])  # fmt: skip
+        table = Table(
+            title=f"passes {pair[0]} ({h[pair[0]]:.0f}°) ↔ {pair[1]} ({h[pair[1]]:.0f}°): "
+            f"median C2C (mm), local LS planes k = {knn}"
+        )
+        cols = ["surface", "height m", "returns", "before", "after", "×", "expected", "95 %", "floor"] + (
+            ["true mount"] if truth else []
+        )
         for col in cols:
             table.add_column(col, justify="left" if col == "surface" else "right", no_wrap=True)
         for c in rows:
-            cells = [c.name if c.source != "overlap" else "overlap", f"{c.height_m:.1f}",
-                     f"{c.after.count:,}", _mm(c.before.median_m), _mm(c.after.median_m),
-                     fmt_ratio(c.improvement), _mm(c.expected_median_m), _mm(c.expected_upper_m),
-                     _mm(c.floor_median_m)]  # fmt: skip
+            cells = [
+                c.name if c.source != "overlap" else "overlap",
+                f"{c.height_m:.1f}",
+                f"{c.after.count:,}",
+                _mm(c.before.median_m),
+                _mm(c.after.median_m),
+                fmt_ratio(c.improvement),
+                _mm(c.expected_median_m),
+                _mm(c.expected_upper_m),
+                _mm(c.floor_median_m),
+            ]
             if truth:
                 cells.append(_mm(c.true_mount.median_m if c.true_mount else None))
             table.add_row(*cells)
@@ -131,13 +178,19 @@ def assess_cmd(
                 b, f = a.height_fit(pair, "before"), a.height_fit(pair, "after")
             except KeyError:
                 continue
-            table.add_row(f"{pair[0]}:{pair[1]}", f"{b.slope_m_per_m * 1e3:.1f}",
-                          f"{f.slope_m_per_m * 1e3:.1f}",
-                          f"{b.height_span_m[0]:.0f}–{b.height_span_m[1]:.0f} m")  # fmt: skip
+            table.add_row(
+                f"{pair[0]}:{pair[1]}",
+                f"{b.slope_m_per_m * 1e3:.1f}",
+                f"{f.slope_m_per_m * 1e3:.1f}",
+                f"{b.height_span_m[0]:.0f}–{b.height_span_m[1]:.0f} m",
+            )
         tables.append(table)
     if tables:
-        tables[-1].caption = (f"wrote {written['markdown'][0]}, {written['json'][0].name} and "
-                              f"{len(written['figures'])} figures")  # fmt: skip
+        tables[
+            -1
+        ].caption = (
+            f"wrote {written['markdown'][0]}, {written['json'][0].name} and {len(written['figures'])} figures"
+        )
     for table in tables:
         console.print(table)
     if not tables:

@@ -25,8 +25,10 @@ def parse_triple_deg(text: str, option: str) -> tuple[float, float, float]:
     except ValueError:
         values = ()
     if len(values) != 3 or not all(math.isfinite(v) for v in values):
-        raise typer.BadParameter(f"got {text!r}, expected three numbers 'roll,pitch,yaw' in "
-                                 f"degrees, e.g. 0.208,1.245,0.149", param_hint=option)  # fmt: skip
+        raise typer.BadParameter(
+            f"got {text!r}, expected three numbers 'roll,pitch,yaw' in degrees, e.g. 0.208,1.245,0.149",
+            param_hint=option,
+        )
     return values  # type: ignore[return-value]
 
 
@@ -39,10 +41,12 @@ def summary_table(outputs: list[PassOutput], facts: dict, out_dir: Path):
     b = facts["boresight_deg"]
     table = Table(
         title=f"georeferenced passes → {out_dir}",
-        caption=(f"CRS {facts['crs']} · boresight roll {b[0]:.4f}°, pitch {b[1]:.4f}°, "
-                 f"yaw {b[2]:.4f}° (canonical, from {facts['boresight_source']}) · "
-                 f"intensity {facts['intensity']}"),
-    )  # fmt: skip
+        caption=(
+            f"CRS {facts['crs']} · boresight roll {b[0]:.4f}°, pitch {b[1]:.4f}°, "
+            f"yaw {b[2]:.4f}° (canonical, from {facts['boresight_source']}) · "
+            f"intensity {facts['intensity']}"
+        ),
+    )
     dropped = any(o.n_dropped for o in outputs)
     table.add_column("pass", justify="right")
     table.add_column("points", justify="right")
@@ -71,24 +75,35 @@ def run_georef(bundle: Path, out: Path, **kwargs) -> list[PassOutput]:
     with a one-line message and exit status 1."""
     from rich.console import Console
     from rich.markup import escape
-    from rich.progress import (BarColumn, MofNCompleteColumn, Progress, TextColumn,
-                               TimeElapsedColumn, TimeRemainingColumn)  # fmt: skip
+    from rich.progress import (
+        BarColumn,
+        MofNCompleteColumn,
+        Progress,
+        TextColumn,
+        TimeElapsedColumn,
+        TimeRemainingColumn,
+    )
 
+    from calib.core.trajectory import TrajectoryError
     from calib.io.bundle import BundleError
     from calib.io.configfile import ConfigError
     from calib.io.georef_bundle import georeference_bundle
     from calib.io.laz import LasOutputError
-    from calib.core.trajectory import TrajectoryError
 
     console = Console()
-    columns = (TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(),
-               TextColumn("points"), TimeElapsedColumn(), TimeRemainingColumn())  # fmt: skip
+    columns = (
+        TextColumn("[bold]{task.description}"),
+        BarColumn(),
+        MofNCompleteColumn(),
+        TextColumn("points"),
+        TimeElapsedColumn(),
+        TimeRemainingColumn(),
+    )
     try:
         with Progress(*columns, console=console) as progress:
             outputs, facts = georeference_bundle(bundle, out, progress=progress, **kwargs)
     except (BundleError, ConfigError, LasOutputError, TrajectoryError) as e:
-        Console(stderr=True).print(f"[red]error:[/red] {escape(str(e))}", highlight=False,
-                                   soft_wrap=True)  # fmt: skip
+        Console(stderr=True).print(f"[red]error:[/red] {escape(str(e))}", highlight=False, soft_wrap=True)
         raise typer.Exit(1) from None
     console.print(summary_table(outputs, facts, out))
     return outputs
@@ -108,29 +123,55 @@ GEOREF_HELP = (
 @app.command("georef", help=GEOREF_HELP)
 def georef(
     bundle: Path = typer.Argument(
-        ..., metavar="BUNDLE", help="Calibration bundle directory: site.yaml, trajectory.csv (or trajectory.sbet "
-                  "[+ trajectory.smrmsg]) and points.csv[.gz]."),  # fmt: skip
-    out: Path = typer.Option(..., "--out", "-o", help="Output directory (created); one file "
-                             "pass-<id>.laz per pass."),  # fmt: skip
+        ...,
+        metavar="BUNDLE",
+        help="Calibration bundle directory: site.yaml, trajectory.csv (or trajectory.sbet "
+        "[+ trajectory.smrmsg]) and points.csv[.gz].",
+    ),
+    out: Path = typer.Option(
+        ..., "--out", "-o", help="Output directory (created); one file pass-<id>.laz per pass."
+    ),
     crs: str = typer.Option(
-        "utm", "--crs", help="Output CRS: 'utm' (the UTM zone of the reference point, WGS84 "
+        "utm",
+        "--crs",
+        help="Output CRS: 'utm' (the UTM zone of the reference point, WGS84 "
         "ellipsoidal heights), 'lgf' (the local frame as x east, y north, z up), or any "
-        "pyproj CRS such as EPSG:2950 (a 2D CRS keeps ellipsoidal heights)."),  # fmt: skip
+        "pyproj CRS such as EPSG:2950 (a 2D CRS keeps ellipsoidal heights).",
+    ),
     boresight_deg: str = typer.Option(
-        None, "--boresight-deg", metavar="R,P,Y", help="Boresight roll,pitch,yaw in degrees, "
+        None,
+        "--boresight-deg",
+        metavar="R,P,Y",
+        help="Boresight roll,pitch,yaw in degrees, "
         "canonical convention (docs/architecture.md §3; thesis pitch is negated); default: site.yaml's "
-        "mount.boresight_apriori_deg."),  # fmt: skip
+        "mount.boresight_apriori_deg.",
+    ),
     las: bool = typer.Option(False, "--las", help="Write uncompressed .las instead of .laz."),
     max_gap_s: float = typer.Option(
-        1.0, "--max-gap-s", min=0.0, help="Longest trajectory gap to interpolate across (s)."),
+        1.0, "--max-gap-s", min=0.0, help="Longest trajectory gap to interpolate across (s)."
+    ),
     skip_uncovered: bool = typer.Option(
-        False, "--skip-uncovered", help="Drop points outside the trajectory or in its gaps "
-        "(counted in the table) instead of stopping with an error."),  # fmt: skip
+        False,
+        "--skip-uncovered",
+        help="Drop points outside the trajectory or in its gaps "
+        "(counted in the table) instead of stopping with an error.",
+    ),
     chunk_points: int = typer.Option(
-        DEFAULT_CHUNK_POINTS, "--chunk-points", min=1, help="Points georeferenced and written "
-        "per step; bounds the memory one pass needs."),  # fmt: skip
+        DEFAULT_CHUNK_POINTS,
+        "--chunk-points",
+        min=1,
+        help="Points georeferenced and written per step; bounds the memory one pass needs.",
+    ),
 ) -> None:
     """``mls calib georef`` (its help text is :data:`GEOREF_HELP`)."""
     bs = parse_triple_deg(boresight_deg, "--boresight-deg") if boresight_deg else None
-    run_georef(bundle, out, crs=crs, boresight_deg=bs, compress=not las, max_gap_s=max_gap_s,
-               skip_uncovered=skip_uncovered, chunk_points=chunk_points)  # fmt: skip
+    run_georef(
+        bundle,
+        out,
+        crs=crs,
+        boresight_deg=bs,
+        compress=not las,
+        max_gap_s=max_gap_s,
+        skip_uncovered=skip_uncovered,
+        chunk_points=chunk_points,
+    )

@@ -20,22 +20,36 @@ HELP = (
 
 
 def checklist(
-    socket: Path = typer.Option(None, "--socket", help="Status socket of the daemon (default: "
-                                "the config's status.socket, else /run/mls/status.sock)."),
-    mqtt: str = typer.Option(None, "--mqtt", metavar="HOST:PORT", help="Read the status from "
-                             "an MQTT broker instead of the socket."),  # fmt: skip
-    vessel: str = typer.Option("+", "--vessel", help="Vessel name in the MQTT topics "
-                               "(<prefix>/<vessel>/…); + for any."),  # fmt: skip
+    socket: Path = typer.Option(
+        None,
+        "--socket",
+        help="Status socket of the daemon (default: the config's status.socket, else /run/mls/status.sock).",
+    ),
+    mqtt: str = typer.Option(
+        None, "--mqtt", metavar="HOST:PORT", help="Read the status from an MQTT broker instead of the socket."
+    ),
+    vessel: str = typer.Option(
+        "+", "--vessel", help="Vessel name in the MQTT topics (<prefix>/<vessel>/…); + for any."
+    ),
     prefix: str = typer.Option("mls", "--prefix", help="MQTT topic prefix."),
-    config: Path = typer.Option(None, "--config", "-c", help="Vessel config: the socket path, "
-                                "the MQTT credentials, prefix and vessel, the session directory."),
-    session: Path = typer.Option(None, "--session", help="Session directory that \"calibrate "
-                                 "now\" runs on (default: the one the daemon reports, under "
-                                 "the config's session directory)."),
+    config: Path = typer.Option(
+        None,
+        "--config",
+        "-c",
+        help="Vessel config: the socket path, "
+        "the MQTT credentials, prefix and vessel, the session directory.",
+    ),
+    session: Path = typer.Option(
+        None,
+        "--session",
+        help='Session directory that "calibrate '
+        'now" runs on (default: the one the daemon reports, under '
+        "the config's session directory).",
+    ),
 ) -> None:
     """``mls checklist`` (its help text is :data:`HELP`)."""
-    from acquire.ui.checklist_app import ChecklistApp
     from acquire.status.feed import MqttFeed, SocketFeed, parse_host_port
+    from acquire.ui.checklist_app import ChecklistApp
 
     username = password = None
     session_root = None
@@ -62,5 +76,4 @@ def checklist(
         feed = MqttFeed(host, port, prefix, vessel, username, password)
     else:
         feed = SocketFeed(socket or Path("/run/mls/status.sock"))
-    ChecklistApp(feed, session=str(session) if session else None,
-                 session_root=session_root).run()
+    ChecklistApp(feed, session=str(session) if session else None, session_root=session_root).run()

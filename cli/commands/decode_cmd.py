@@ -25,13 +25,21 @@ class Payload(str, Enum):
 
 
 def decode(
-    file: Path = typer.Argument(..., help="The recorded file: a raw stream, a stamped log or a packet capture."),
-    fmt: Format = typer.Option(..., "--format", "-f", help="What the file holds: nmea, stdbin, zfp or pcapng."),
+    file: Path = typer.Argument(
+        ..., help="The recorded file: a raw stream, a stamped log or a packet capture."
+    ),
+    fmt: Format = typer.Option(
+        ..., "--format", "-f", help="What the file holds: nmea, stdbin, zfp or pcapng."
+    ),
     payload: Payload = typer.Option(
         Payload.stdbin, "--payload", help="pcapng only: the protocol carried in the UDP payloads."
     ),
-    port: int | None = typer.Option(None, "--port", help="pcapng only: keep UDP datagrams to or from this port."),
-    as_json: bool = typer.Option(False, "--json", help="Print one JSON object per record (summary on stderr)."),
+    port: int | None = typer.Option(
+        None, "--port", help="pcapng only: keep UDP datagrams to or from this port."
+    ),
+    as_json: bool = typer.Option(
+        False, "--json", help="Print one JSON object per record (summary on stderr)."
+    ),
     nav: bool = typer.Option(
         False, "--nav", help="INS formats: print canonical navigation records (radians → degrees, NED, FRD)."
     ),
@@ -39,7 +47,9 @@ def decode(
         False, "--timing", help="Fit the device time tags against the receive stamps: drift, offset, jitter."
     ),
     date: str | None = typer.Option(
-        None, "--date", help="UTC date YYYY-MM-DD for time tags when the file carries none (no ZDA/system date)."
+        None,
+        "--date",
+        help="UTC date YYYY-MM-DD for time tags when the file carries none (no ZDA/system date).",
     ),
 ) -> None:
     """Decode a recorded device file; end with a summary: records, bytes, rejected frames and why."""
@@ -63,9 +73,13 @@ def decode(
     samples: list[tuple[int, int]] = []
     try:
         with Progress(
-            TextColumn("decoding"), BarColumn(), TextColumn("{task.percentage:>3.0f}%"),
-            console=err, transient=True, disable=as_json or not err.is_terminal,
-        ) as progress:  # fmt: skip
+            TextColumn("decoding"),
+            BarColumn(),
+            TextColumn("{task.percentage:>3.0f}%"),
+            console=err,
+            transient=True,
+            disable=as_json or not err.is_terminal,
+        ) as progress:
             task = progress.add_task("decode", total=max(fd.size, 1))
             for rec in fd:
                 d = record_to_dict(rec)
@@ -87,7 +101,9 @@ def decode(
 
     summary = f"summary: {fd.stats.summary()}"
     if fd.capture_stats is not None:
-        summary += f"; capture: {fd.capture_stats.records} packets, {fd.udp_stats.records} UDP datagrams decoded"
+        summary += (
+            f"; capture: {fd.capture_stats.records} packets, {fd.udp_stats.records} UDP datagrams decoded"
+        )
         skipped = {**fd.capture_stats.rejected, **fd.udp_stats.events}
         if skipped:
             summary += " (skipped " + ", ".join(f"{k}: {v}" for k, v in sorted(skipped.items())) + ")"

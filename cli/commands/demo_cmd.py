@@ -4,7 +4,6 @@
 from __future__ import annotations
 
 from pathlib import Path
-from typing import List
 
 import typer
 
@@ -28,20 +27,43 @@ HELP = (
 
 
 def demo(
-    out: Path = typer.Option(Path("demo-out"), "--out", "-o", help="Run directory (emptied of "
-                             "a previous demo's files; a non-empty directory of anything else "
-                             "is refused)."),  # fmt: skip
+    out: Path = typer.Option(
+        Path("demo-out"),
+        "--out",
+        "-o",
+        help="Run directory (emptied of "
+        "a previous demo's files; a non-empty directory of anything else "
+        "is refused).",
+    ),
     seed: int = typer.Option(0, "--seed", help="Random seed of the simulation."),
-    line_m: float = typer.Option(18.0, "--line-m", min=10.0, max=200.0, help="Length of lines "
-                                 "2–6 (m); each must hold its ~10 m capture window."),
-    first_line_m: float = typer.Option(44.0, "--first-line-m", min=30.0, max=300.0,
-                                       help="Length of line 1 (m): the daemon starts and its "
-                                       "clock locks before its capture window."),
-    pass_gap_s: float = typer.Option(3.0, "--pass-gap-s", min=2.0, max=120.0, help="Transit "
-                                     "time from the end of a line to the start of the next."),
-    set_: List[str] = typer.Option([], "--set", metavar="KEY=VALUE", help="Further scenario "
-                                   "override (repeatable), e.g. scanner.point_rate_scale=0.05."),
-) -> None:  # fmt: skip
+    line_m: float = typer.Option(
+        18.0,
+        "--line-m",
+        min=10.0,
+        max=200.0,
+        help="Length of lines 2–6 (m); each must hold its ~10 m capture window.",
+    ),
+    first_line_m: float = typer.Option(
+        44.0,
+        "--first-line-m",
+        min=30.0,
+        max=300.0,
+        help="Length of line 1 (m): the daemon starts and its clock locks before its capture window.",
+    ),
+    pass_gap_s: float = typer.Option(
+        3.0,
+        "--pass-gap-s",
+        min=2.0,
+        max=120.0,
+        help="Transit time from the end of a line to the start of the next.",
+    ),
+    set_: list[str] = typer.Option(
+        [],
+        "--set",
+        metavar="KEY=VALUE",
+        help="Further scenario override (repeatable), e.g. scanner.point_rate_scale=0.05.",
+    ),
+) -> None:
     """``mls demo`` (its help text is :data:`HELP`)."""
     import signal
     import time
@@ -64,35 +86,53 @@ def demo(
 
     # Ctrl-C, SIGTERM and a closed terminal (SIGHUP) all stop the children before exiting
     previous = {s: signal.signal(s, on_signal) for s in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)}
-    settings = DemoSettings(out=out, seed=seed, first_line_m=first_line_m, line_m=line_m,
-                            pass_gap_s=pass_gap_s, extra_overrides=tuple(set_))  # fmt: skip
+    settings = DemoSettings(
+        out=out,
+        seed=seed,
+        first_line_m=first_line_m,
+        line_m=line_m,
+        pass_gap_s=pass_gap_s,
+        extra_overrides=tuple(set_),
+    )
     code = EXIT_OK
     try:
         res = run_demo(settings, console, interrupted)
     except DemoError as e:
-        console.print(f"[bold red]mls demo failed[/bold red] at step [bold]{escape(e.step)}[/bold]: "
-                      f"{escape(e.message)}", highlight=False)  # fmt: skip
+        console.print(
+            f"[bold red]mls demo failed[/bold red] at step [bold]{escape(e.step)}[/bold]: "
+            f"{escape(e.message)}",
+            highlight=False,
+        )
         if e.log is not None:
             console.print(f"  its log: {e.log}; all logs: {(out / 'logs').resolve()}", highlight=False)
         code = EXIT_FAILED
     except Interrupted as e:
-        console.print(f"mls demo: interrupted ({e.signame}); every child process was stopped",
-                      highlight=False)  # fmt: skip
+        console.print(
+            f"mls demo: interrupted ({e.signame}); every child process was stopped", highlight=False
+        )
         code = EXIT_INTERRUPTED if e.signame == "SIGINT" else 128 + int(signal.Signals[e.signame])
     else:
         console.print()
         console.print(comparison_table(res.rows))
         within = all(abs(r.error_sigmas) <= 3 for r in res.rows)
-        console.print(("[green]recovered within 3σ (realistic) of the truth on every angle[/green]"
-                       if within else "[bold red]NOT within 3σ (realistic) of the truth[/bold red]")
-                      + f" · {res.accepted}/{res.n_passes} passes accepted live · "
-                      f"{res.result.get('n_points', '?')} target points", highlight=False)  # fmt: skip
+        console.print(
+            (
+                "[green]recovered within 3σ (realistic) of the truth on every angle[/green]"
+                if within
+                else "[bold red]NOT within 3σ (realistic) of the truth[/bold red]"
+            )
+            + f" · {res.accepted}/{res.n_passes} passes accepted live · "
+            f"{res.result.get('n_points', '?')} target points",
+            highlight=False,
+        )
         console.print(f"result.json  {res.calib / 'result.json'}", highlight=False)
         console.print(f"report.md    {res.calib / 'report.md'}", highlight=False)
         for p in res.plots:
             console.print(f"plot         {p}", highlight=False)
-        console.print(f"session      {res.session}\nbundle       {res.bundle}\nlogs         "
-                      f"{res.out / 'logs'}", highlight=False)  # fmt: skip
+        console.print(
+            f"session      {res.session}\nbundle       {res.bundle}\nlogs         {res.out / 'logs'}",
+            highlight=False,
+        )
     finally:
         for s, h in previous.items():
             signal.signal(s, h)

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 from pathlib import Path
-from typing import List, Optional
 
 import typer
 
@@ -28,82 +27,107 @@ def _passes(text: str | None) -> tuple[int, ...] | None:
     try:
         ids = tuple(int(x) for x in text.replace(" ", "").split(",") if x)
     except ValueError:
-        raise typer.BadParameter(f"{text!r}: expected pass ids separated by commas, e.g. 1,2,3,4",
-                                 param_hint="--passes") from None  # fmt: skip
+        raise typer.BadParameter(
+            f"{text!r}: expected pass ids separated by commas, e.g. 1,2,3,4", param_hint="--passes"
+        ) from None
     if not ids:
         raise typer.BadParameter("at least one pass id", param_hint="--passes")
     return ids
 
 
 def design(
-    scenario: Optional[str] = typer.Option(
-        None, "--scenario", "-s", metavar="NAME|PATH",
+    scenario: str | None = typer.Option(
+        None,
+        "--scenario",
+        "-s",
+        metavar="NAME|PATH",
         help="Study a shipped scenario (montreal, terrestrial, tower) or a scenario YAML file.",
     ),
-    site: Optional[Path] = typer.Option(
-        None, "--site", metavar="SITE.YAML",
+    site: Path | None = typer.Option(
+        None,
+        "--site",
+        metavar="SITE.YAML",
         help="Predict σ for the planned site and pattern of a site config (what-if).",
     ),
-    out: Optional[Path] = typer.Option(
-        None, "--out", "-o",
+    out: Path | None = typer.Option(
+        None,
+        "--out",
+        "-o",
         help="Output directory (created): CSV tables, PNG figures, summary.md. Required with "
-             "--scenario; with --site it receives whatif.csv.",
+        "--scenario; with --site it receives whatif.csv.",
     ),
-    jobs: int = typer.Option(1, "--jobs", "-j", min=1,
-                             help="Worker processes (results do not depend on it)."),
-    targets: Optional[int] = typer.Option(
-        None, "--targets", min=1,
+    jobs: int = typer.Option(
+        1, "--jobs", "-j", min=1, help="Worker processes (results do not depend on it)."
+    ),
+    targets: int | None = typer.Option(
+        None,
+        "--targets",
+        min=1,
         help="Constraint of the recommendation: number of targets (default: the scenario's).",
     ),
-    max_size: Optional[float] = typer.Option(
-        None, "--max-size", min=0.05,
+    max_size: float | None = typer.Option(
+        None,
+        "--max-size",
+        min=0.05,
         help="Constraint: largest target dimension in metres (default: the scenario's largest).",
     ),
-    passes: Optional[str] = typer.Option(
-        None, "--passes", metavar="IDS",
+    passes: str | None = typer.Option(
+        None,
+        "--passes",
+        metavar="IDS",
         help="Constraint: pass ids the survey may sail, e.g. 1,2,3,4 (default: all).",
     ),
-    group: List[str] = typer.Option(
-        [], "--group", metavar="GROUP",
+    group: list[str] = typer.Option(
+        [],
+        "--group",
+        metavar="GROUP",
         help="Only these σ sweeps (repeatable): passes, site_passes, inclination, size, planes, "
-             "standoff, height, layout (the recommendation's search).",
+        "standoff, height, layout (the recommendation's search).",
     ),
-    error: List[str] = typer.Option(
-        [], "--error", metavar="ERROR",
+    error: list[str] = typer.Option(
+        [],
+        "--error",
+        metavar="ERROR",
         help="Only these systematic errors in the visibility criteria (repeatable): "
-             "boresight_roll, boresight_pitch, boresight_yaw, lever_arm_x, lever_arm_y, "
-             "lever_arm_z, range_offset, scan_angle_offset; 'none' skips the criteria.",
+        "boresight_roll, boresight_pitch, boresight_yaw, lever_arm_x, lever_arm_y, "
+        "lever_arm_z, range_offset, scan_angle_offset; 'none' skips the criteria.",
     ),
     seeds: int = typer.Option(
-        0, "--seeds", min=0,
+        0,
+        "--seeds",
+        min=0,
         help="Monte Carlo check: simulate the recommended site and the scenario's own site with "
-             "the scenario's noise this many times, adjust, and report the errors side by side.",
+        "the scenario's noise this many times, adjust, and report the errors side by side.",
     ),
     template: str = typer.Option(
-        "montreal", "--template", metavar="NAME|PATH",
-        help="With --site: the scenario that supplies the profiler, its rates and the vessel "
-             "motion.",
+        "montreal",
+        "--template",
+        metavar="NAME|PATH",
+        help="With --site: the scenario that supplies the profiler, its rates and the vessel motion.",
     ),
-    scanner_height_m: Optional[float] = typer.Option(
-        None, "--scanner-height-m",
+    scanner_height_m: float | None = typer.Option(
+        None,
+        "--scanner-height-m",
         help="With --site: ellipsoidal height of the scanner on the water (default: the site's "
-             "reference height).",
+        "reference height).",
     ),
     seed: int = typer.Option(0, "--seed", help="Simulation seed (vessel motion phases)."),
-    set_: List[str] = typer.Option(
-        [], "--set", metavar="KEY=VALUE",
+    set_: list[str] = typer.Option(
+        [],
+        "--set",
+        metavar="KEY=VALUE",
         help="Override a scenario value by dotted key, as for mls sim dataset (repeatable).",
     ),
     figures: bool = typer.Option(True, "--figures/--no-figures", help="Write the PNG figures."),
-) -> None:  # fmt: skip
+) -> None:
     """``mls design`` (its help text is :data:`HELP`)."""
     from rich.console import Console
     from rich.markup import escape
 
-    from calib.io.configfile import ConfigError
     from calib.design.prediction import DesignError
-    from calib.survey.passplan import PassPlanError
+    from calib.io.configfile import ConfigError
     from calib.sim.simulate import SimulationError
+    from calib.survey.passplan import PassPlanError
 
     console = Console()
     if (scenario is None) == (site is None):
@@ -116,25 +140,44 @@ def design(
         if site is not None:
             _what_if(console, site, out, template, scanner_height_m, seed)
         else:
-            _study(console, scenario, out, jobs, targets, max_size, _passes(passes), group, error,
-                   seeds, seed, set_, figures)  # fmt: skip
+            _study(
+                console,
+                scenario,
+                out,
+                jobs,
+                targets,
+                max_size,
+                _passes(passes),
+                group,
+                error,
+                seeds,
+                seed,
+                set_,
+                figures,
+            )
     except (ConfigError, DesignError, PassPlanError, SimulationError, OSError) as e:
         console.print(f"[red]error:[/red] {escape(str(e))}", highlight=False)
         raise typer.Exit(2) from None
 
 
 def _progress(console):
-    from rich.progress import (BarColumn, MofNCompleteColumn, Progress, TextColumn,
-                               TimeElapsedColumn)  # fmt: skip
+    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
-    return Progress(TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(),
-                    TimeElapsedColumn(), console=console, transient=True)  # fmt: skip
+    return Progress(
+        TextColumn("[bold]{task.description}"),
+        BarColumn(),
+        MofNCompleteColumn(),
+        TimeElapsedColumn(),
+        console=console,
+        transient=True,
+    )
 
 
-def _study(console, scenario, out, jobs, targets, max_size, passes, group, error, seeds, seed,
-           overrides, figures) -> None:  # fmt: skip
-    from calib.design.sitecheck import compare_sites
+def _study(
+    console, scenario, out, jobs, targets, max_size, passes, group, error, seeds, seed, overrides, figures
+) -> None:
     from calib.design.layouts import default_spec
+    from calib.design.sitecheck import compare_sites
     from calib.design.study import run_study
     from calib.design.summary import write_study
     from calib.sim.scenario import load_scenario
@@ -148,19 +191,24 @@ def _study(console, scenario, out, jobs, targets, max_size, passes, group, error
     spec = default_spec(base, **changes)
     with _progress(console) as bar:
         task = bar.add_task(f"design study of {base.name}", total=None)
-        result = run_study(base, spec, jobs=jobs,
-                           progress=lambda d, n: bar.update(task, completed=d, total=n))  # fmt: skip
+        result = run_study(
+            base, spec, jobs=jobs, progress=lambda d, n: bar.update(task, completed=d, total=n)
+        )
         empirical = None
         rec = result.recommendation
         if seeds and rec is not None:
             bar.update(task, description=f"Monte Carlo, {seeds} seeds", completed=0, total=None)
-            empirical = compare_sites(base, rec, seeds, jobs,
-                                      lambda d, n: bar.update(task, completed=d, total=n))  # fmt: skip
+            empirical = compare_sites(
+                base, rec, seeds, jobs, lambda d, n: bar.update(task, completed=d, total=n)
+            )
         bar.update(task, description="writing tables and figures", completed=0, total=None)
         files = write_study(result, out, empirical, figures=figures, jobs=jobs)
     _study_table(console, result, empirical)
-    console.print(f"wrote {len(files)} files to {out} in {result.runtime_s:.1f} s of study "
-                  f"(summary: {Path(out) / 'summary.md'})", highlight=False)  # fmt: skip
+    console.print(
+        f"wrote {len(files)} files to {out} in {result.runtime_s:.1f} s of study "
+        f"(summary: {Path(out) / 'summary.md'})",
+        highlight=False,
+    )
 
 
 def _study_table(console, result, empirical) -> None:
@@ -170,8 +218,12 @@ def _study_table(console, result, empirical) -> None:
     from calib.design.scenes import surface_inclination_deg
 
     rec = result.recommendation
-    t = Table(title=f"{result.scenario.name}: predicted boresight σ (°)", title_justify="left",
-              box=box.SIMPLE_HEAD, pad_edge=False)  # fmt: skip
+    t = Table(
+        title=f"{result.scenario.name}: predicted boresight σ (°)",
+        title_justify="left",
+        box=box.SIMPLE_HEAD,
+        pad_edge=False,
+    )
     for col in ("site", "model", "roll", "pitch", "yaw", "total"):
         t.add_column(col, justify="left" if col in ("site", "model") else "right", no_wrap=True)
     if rec is not None:
@@ -180,22 +232,36 @@ def _study_table(console, result, empirical) -> None:
             if row is None:
                 continue
             for m, label in (("white", "white"), (real, "realistic")):
-                t.add_row(name, label, *(f"{row[f'sigma_{m}_{a}_deg']:.4f}" for a in
-                                         ("roll", "pitch", "yaw", "total")))  # fmt: skip
+                t.add_row(
+                    name,
+                    label,
+                    *(f"{row[f'sigma_{m}_{a}_deg']:.4f}" for a in ("roll", "pitch", "yaw", "total")),
+                )
         console.print(t)
-        console.print("recommended: " + ", ".join(
-            f"{s.name} {surface_inclination_deg(s):g}° {s.width_m:g}×{s.height_m:g} m at along {s.along_m + 0.0:+.2f} m, "
-            f"up {s.up_m:.2f} m, out {s.out_m + 0.0:+.2f} m" for s in rec.layout.targets)
-            + (" — adjust with pass offsets" if rec.estimator else ""), highlight=False)  # fmt: skip
+        console.print(
+            "recommended: "
+            + ", ".join(
+                f"{s.name} {surface_inclination_deg(s):g}° {s.width_m:g}×{s.height_m:g} m at along {s.along_m + 0.0:+.2f} m, "
+                f"up {s.up_m:.2f} m, out {s.out_m + 0.0:+.2f} m"
+                for s in rec.layout.targets
+            )
+            + (" — adjust with pass offsets" if rec.estimator else ""),
+            highlight=False,
+        )
     from calib.design.summary import findings
 
     for f in findings(result):
-        console.print(f"  {'[green]yes[/green]' if f['holds'] else '[yellow]no[/yellow]'}  "
-                      f"{f['name']}: {f['ours']}", highlight=False)  # fmt: skip
+        console.print(
+            f"  {'[green]yes[/green]' if f['holds'] else '[yellow]no[/yellow]'}  {f['name']}: {f['ours']}",
+            highlight=False,
+        )
     if empirical:
         for name, r in empirical["rms_deg"].items():
-            console.print(f"  Monte Carlo ({empirical['seeds']} seeds) {name}: RMS roll "
-                          f"{r[0]:.4f}°, pitch {r[1]:.4f}°, yaw {r[2]:.4f}°", highlight=False)  # fmt: skip
+            console.print(
+                f"  Monte Carlo ({empirical['seeds']} seeds) {name}: RMS roll "
+                f"{r[0]:.4f}°, pitch {r[1]:.4f}°, yaw {r[2]:.4f}°",
+                highlight=False,
+            )
 
 
 def _what_if(console, site_path, out, template, scanner_height_m, seed) -> None:
@@ -209,20 +275,41 @@ def _what_if(console, site_path, out, template, scanner_height_m, seed) -> None:
     with _progress(console) as bar:
         bar.add_task(f"predicting σ for {site_path}", total=None)
         w = what_if(site, template, scanner_height_m, seed)
-    t = Table(title=f"{site_path}: predicted boresight σ (°) after each pass", title_justify="left",
-              box=box.SIMPLE_HEAD, pad_edge=False)  # fmt: skip
-    for col in ("passes", "points", "white roll", "pitch", "yaw", "realistic roll", "pitch",
-                "yaw", "adjust", "next best"):  # fmt: skip
+    t = Table(
+        title=f"{site_path}: predicted boresight σ (°) after each pass",
+        title_justify="left",
+        box=box.SIMPLE_HEAD,
+        pad_edge=False,
+    )
+    for col in (
+        "passes",
+        "points",
+        "white roll",
+        "pitch",
+        "yaw",
+        "realistic roll",
+        "pitch",
+        "yaw",
+        "adjust",
+        "next best",
+    ):
         t.add_column(col, justify="right", no_wrap=True)
     for r in w.rows:
         real = "gauss_markov_offsets" if r["estimator"] == "pass_offsets" else "gauss_markov"
-        cells = [f"{r[f'sigma_{m}_{a}_deg']:.4f}" for m in ("white", real)
-                 for a in ("roll", "pitch", "yaw")]  # fmt: skip
-        t.add_row(",".join(map(str, r["passes"])), str(r["n_points"]), *cells,
-                  r["estimator"] or "—", str(r["next_best_pass"] or "—"))  # fmt: skip
+        cells = [f"{r[f'sigma_{m}_{a}_deg']:.4f}" for m in ("white", real) for a in ("roll", "pitch", "yaw")]
+        t.add_row(
+            ",".join(map(str, r["passes"])),
+            str(r["n_points"]),
+            *cells,
+            r["estimator"] or "—",
+            str(r["next_best_pass"] or "—"),
+        )
     console.print(t)
-    console.print(f"|ρ(roll, scan-angle offset)| = {w.roll_scan_correlation:.4f}: the boresight "
-                  f"absorbs a scan-angle offset", highlight=False)  # fmt: skip
+    console.print(
+        f"|ρ(roll, scan-angle offset)| = {w.roll_scan_correlation:.4f}: the boresight "
+        f"absorbs a scan-angle offset",
+        highlight=False,
+    )
     if out is not None:
         files = write_what_if(w, out)
         console.print(f"wrote {', '.join(str(f) for f in files)}", highlight=False)

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Optional
 
 import typer
 
@@ -25,19 +24,27 @@ HELP = (
 def export(
     session: Path = typer.Argument(..., help="Session directory (YYYYmmddTHHMMSSZ_<vessel>)."),
     bundle: Path = typer.Option(..., "--bundle", "-o", help="Bundle directory to write (created)."),
-    laz: Optional[Path] = typer.Option(None, "--laz", help="Also write one LAZ per pass here "
-                                       "(UTM, a-priori mount)."),
-    sbet: Optional[Path] = typer.Option(None, "--sbet", help="Also write the trajectory as an "
-                                        "Applanix SBET (and .smrmsg with the sigmas)."),
-    site: Optional[Path] = typer.Option(None, "--site", help="Site file (targets, pass plan) "
-                                        "instead of the one stored in the session."),
-    passes: str = typer.Option("auto", "--passes", help="Where the passes come from: auto "
-                               "(event marks, else the plan), events, plan."),
-    cross_track_m: float = typer.Option(5.0, "--max-cross-track", min=0.1, help="Plan passes: "
-                                        "largest distance from the planned line (m)."),
-    heading_deg: float = typer.Option(20.0, "--max-heading-error", min=0.1, max=90.0,
-                                      help="Plan passes: largest heading error (deg)."),
-) -> None:  # fmt: skip
+    laz: Path | None = typer.Option(
+        None, "--laz", help="Also write one LAZ per pass here (UTM, a-priori mount)."
+    ),
+    sbet: Path | None = typer.Option(
+        None, "--sbet", help="Also write the trajectory as an Applanix SBET (and .smrmsg with the sigmas)."
+    ),
+    site: Path | None = typer.Option(
+        None, "--site", help="Site file (targets, pass plan) instead of the one stored in the session."
+    ),
+    passes: str = typer.Option(
+        "auto",
+        "--passes",
+        help="Where the passes come from: auto (event marks, else the plan), events, plan.",
+    ),
+    cross_track_m: float = typer.Option(
+        5.0, "--max-cross-track", min=0.1, help="Plan passes: largest distance from the planned line (m)."
+    ),
+    heading_deg: float = typer.Option(
+        20.0, "--max-heading-error", min=0.1, max=90.0, help="Plan passes: largest heading error (deg)."
+    ),
+) -> None:
     """``mls export`` (its help text is :data:`HELP`)."""
     import time
 
@@ -47,27 +54,45 @@ def export(
     from rich.table import Table
 
     from acquire.jobs.export import ExportError, ExportOptions, export_session
+    from calib.core.trajectory import TrajectoryError
     from calib.io.bundle import BundleError
     from calib.io.configfile import ConfigError
     from calib.io.laz import LasOutputError
     from calib.survey.passplan import PassPlanError
-    from calib.core.trajectory import TrajectoryError
 
     console = Console()
     t0 = time.perf_counter()
     try:
-        opts = ExportOptions(passes=passes, site_file=site, max_cross_track_m=cross_track_m,
-                             max_heading_error_deg=heading_deg, laz_dir=laz, sbet_path=sbet)  # fmt: skip
-        with Progress(TextColumn("[bold]{task.description}"), BarColumn(), TimeElapsedColumn(),
-                      console=console, transient=True) as bar:  # fmt: skip
+        opts = ExportOptions(
+            passes=passes,
+            site_file=site,
+            max_cross_track_m=cross_track_m,
+            max_heading_error_deg=heading_deg,
+            laz_dir=laz,
+            sbet_path=sbet,
+        )
+        with Progress(
+            TextColumn("[bold]{task.description}"),
+            BarColumn(),
+            TimeElapsedColumn(),
+            console=console,
+            transient=True,
+        ) as bar:
             task = bar.add_task("reading the session", total=None)
 
             def progress(stage: str, done: float, total: float | None) -> None:
                 bar.update(task, description=stage, completed=done, total=total)
 
             res = export_session(session, bundle, opts, progress)
-    except (ExportError, BundleError, ConfigError, LasOutputError, PassPlanError,
-            TrajectoryError, OSError) as e:  # fmt: skip
+    except (
+        ExportError,
+        BundleError,
+        ConfigError,
+        LasOutputError,
+        PassPlanError,
+        TrajectoryError,
+        OSError,
+    ) as e:
         Console(stderr=True).print(f"[red]error:[/red] {escape(str(e))}", highlight=False, soft_wrap=True)
         raise typer.Exit(1) from None
     from calib.core import frames
@@ -77,8 +102,13 @@ def export(
         t.add_column(col, justify="right" if col in ("pass", "span s", "points") else "left")
     for w in res.passes:
         start = frames.gps_ns_to_utc(w.start_gps_ns).strftime("%H:%M:%S.%f")[:-3]
-        t.add_row(str(w.pass_id), w.source, start, f"{(w.end_gps_ns - w.start_gps_ns) / 1e9:.1f}",
-                  f"{res.points_per_pass.get(w.pass_id, 0):,}")  # fmt: skip
+        t.add_row(
+            str(w.pass_id),
+            w.source,
+            start,
+            f"{(w.end_gps_ns - w.start_gps_ns) / 1e9:.1f}",
+            f"{res.points_per_pass.get(w.pass_id, 0):,}",
+        )
     console.print(t)
     for w in res.warnings:
         console.print(f"[yellow]warning:[/yellow] {escape(w)}", highlight=False)
@@ -87,6 +117,9 @@ def export(
         extra += f"; {len(res.laz)} LAZ files in {laz}"
     if res.sbet is not None:
         extra += f"; SBET {res.sbet}"
-    console.print(f"{res.epochs:,} INS epochs, {res.points:,} points from {res.packets:,} packets "
-                  f"({res.returns_outside_passes:,} returns outside the passes){extra} in "
-                  f"{time.perf_counter() - t0:.1f} s", highlight=False)  # fmt: skip
+    console.print(
+        f"{res.epochs:,} INS epochs, {res.points:,} points from {res.packets:,} packets "
+        f"({res.returns_outside_passes:,} returns outside the passes){extra} in "
+        f"{time.perf_counter() - t0:.1f} s",
+        highlight=False,
+    )

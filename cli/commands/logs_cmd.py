@@ -6,8 +6,9 @@ from pathlib import Path
 
 import typer
 
-app = typer.Typer(help="Session logs: summary (info) and salvage of torn segments (recover).",
-                  no_args_is_help=True)  # fmt: skip
+app = typer.Typer(
+    help="Session logs: summary (info) and salvage of torn segments (recover).", no_args_is_help=True
+)
 
 
 def _utc(gps_ns: int | None) -> str:
@@ -28,8 +29,9 @@ def _session_arg(session: Path) -> Path:
 @app.command("info")
 def info(
     session: Path = typer.Argument(..., help="Session directory (YYYYmmddTHHMMSSZ_<vessel>)."),
-    gap_s: float = typer.Option(1.0, "--gap", help="Report pauses longer than this (s) and "
-                                "than 5 × the channel's typical period."),
+    gap_s: float = typer.Option(
+        1.0, "--gap", help="Report pauses longer than this (s) and than 5 × the channel's typical period."
+    ),
     as_json: bool = typer.Option(False, "--json", help="Print the summary as JSON."),
 ) -> None:
     """Segments, channels, message counts, time span, gaps and sequence continuity of a session.
@@ -47,9 +49,9 @@ def info(
     session = _session_arg(session)
     with Progress(transient=True, disable=as_json) as progress:
         task = progress.add_task(f"reading {session.name}", total=None)
-        info_ = session_info(session, gap_s,
-                             progress=lambda done, total: progress.update(task, completed=done,
-                                                                          total=total))  # fmt: skip
+        info_ = session_info(
+            session, gap_s, progress=lambda done, total: progress.update(task, completed=done, total=total)
+        )
     bad_segments = [s for s in info_.segments if s.state != "complete"]
     discontinuous = [c for c in info_.channels.values() if c.missing or c.duplicates or c.backwards]
     if as_json:
@@ -69,23 +71,39 @@ def info(
             note.append(f"recovered (torn {s.recovery.get('torn_bytes')} B)")
         if s.end_reason:
             note.append(s.end_reason)
-        st.add_row(s.name, s.state, f"{s.bytes / 2**20:.2f}", str(s.messages), _utc(s.first_log_ns),
-                   _utc(s.last_log_ns), "; ".join(note))  # fmt: skip
+        st.add_row(
+            s.name,
+            s.state,
+            f"{s.bytes / 2**20:.2f}",
+            str(s.messages),
+            _utc(s.first_log_ns),
+            _utc(s.last_log_ns),
+            "; ".join(note),
+        )
     con.print(st)
     ct = Table(title="channels")
     for c in ("channel", "messages", "seq", "missing", "dup", "gaps", "longest gap s", "unlocked"):
         ct.add_column(c, justify="left" if c == "channel" else "right")
     for t, c in sorted(info_.channels.items()):
         longest = max((g[1] for g in c.gaps), default=0.0)
-        ct.add_row(t, str(c.messages), f"{c.seq_first}–{c.seq_last}", str(c.missing),
-                   str(c.duplicates + c.backwards), str(len(c.gaps)),
-                   f"{longest:.2f}" if c.gaps else "-", str(c.unlocked))  # fmt: skip
+        ct.add_row(
+            t,
+            str(c.messages),
+            f"{c.seq_first}–{c.seq_last}",
+            str(c.missing),
+            str(c.duplicates + c.backwards),
+            str(len(c.gaps)),
+            f"{longest:.2f}" if c.gaps else "-",
+            str(c.unlocked),
+        )
     con.print(ct)
     first, last = info_.span_ns
     span = (last - first) / 1e9 if first is not None and last is not None else 0.0
-    con.print(f"{len(info_.segments)} segments, {info_.messages} messages, {_utc(first)} → "
-              f"{_utc(last)} UTC ({span:.1f} s); {len(bad_segments)} segment(s) not complete, "
-              f"{sum(c.missing for c in info_.channels.values())} sequence number(s) missing")  # fmt: skip
+    con.print(
+        f"{len(info_.segments)} segments, {info_.messages} messages, {_utc(first)} → "
+        f"{_utc(last)} UTC ({span:.1f} s); {len(bad_segments)} segment(s) not complete, "
+        f"{sum(c.missing for c in info_.channels.values())} sequence number(s) missing"
+    )
     for c in info_.channels.values():
         for a, b in c.missing_ranges[:5]:
             con.print(f"  {c.topic}: sequence {a}–{b} missing")
@@ -97,8 +115,9 @@ def info(
 @app.command("recover")
 def recover(
     session: Path = typer.Argument(..., help="Session directory to salvage."),
-    keep_torn: bool = typer.Option(True, "--keep-torn/--delete-torn",
-                                   help="Keep each original torn segment as seg-NNNNNN.mcap.torn."),
+    keep_torn: bool = typer.Option(
+        True, "--keep-torn/--delete-torn", help="Keep each original torn segment as seg-NNNNNN.mcap.torn."
+    ),
 ) -> None:
     """Rewrite every unfinished segment as a valid MCAP with all its complete messages.
 
@@ -124,6 +143,12 @@ def recover(
     for c in ("segment", "messages", "kept bytes", "torn bytes", "why it stopped", "original"):
         t.add_column(c)
     for r in reports:
-        t.add_row(r.segment, str(r.messages), str(r.good_bytes), str(r.torn_bytes),
-                  r.problem or "no footer (clean end of file)", r.original or "deleted")  # fmt: skip
+        t.add_row(
+            r.segment,
+            str(r.messages),
+            str(r.good_bytes),
+            str(r.torn_bytes),
+            r.problem or "no footer (clean end of file)",
+            r.original or "deleted",
+        )
     Console().print(t)

@@ -27,45 +27,68 @@ def _latlon(text: str) -> tuple[float, float]:
     try:
         lat, lon = (float(x) for x in text.split(","))
     except ValueError:
-        raise typer.BadParameter(f"got {text!r}, expected LAT,LON in degrees, e.g. "
-                                 f"45.5065,-73.5518", param_hint="--position") from None  # fmt: skip
+        raise typer.BadParameter(
+            f"got {text!r}, expected LAT,LON in degrees, e.g. 45.5065,-73.5518", param_hint="--position"
+        ) from None
     if not (-90 <= lat <= 90 and -180 <= lon <= 360):
-        raise typer.BadParameter(f"{text!r}: latitude or longitude out of range",
-                                 param_hint="--position")  # fmt: skip
+        raise typer.BadParameter(f"{text!r}: latitude or longitude out of range", param_hint="--position")
     return lat, lon
 
 
 def _say_link(data: dict) -> None:
     """The status feed's link events, on stderr (``mls plan --follow``)."""
-    typer.echo(f"mls plan: {'connected to' if data['up'] else 'waiting for'} "
-               f"{data['detail']}", err=True)  # fmt: skip
+    typer.echo(f"mls plan: {'connected to' if data['up'] else 'waiting for'} {data['detail']}", err=True)
 
 
 def plan(
-    site_file: Path = typer.Argument(..., metavar="SITE", help="Site config (site.yaml) with "
-                                     "reference, targets, wall azimuth, standoff and passes."),
-    out: Path = typer.Option(None, "--out", "-o", help="GeoJSON file to write (the lines, "
-                             "capture windows and targets)."),  # fmt: skip
-    capture_margin_m: float = typer.Option(3.0, "--capture-margin-m", min=0.0, help="Along-track "
-                                           "margin of the capture window around the targets."),
-    safe_wall_distance_m: float = typer.Option(5.0, "--safe-wall-distance-m", min=0.0,
-                                               help="Closest a line may come to the wall."),
-    nmea: bool = typer.Option(False, "--nmea", help="Emit NMEA $--XTE and $--APB for the "
-                              "active line (with --position or --follow)."),  # fmt: skip
-    active_pass: int = typer.Option(None, "--active-pass", "-p", help="Pass id the autopilot "
-                                    "follows (default: the daemon's active pass with --follow, "
-                                    "else the first pass)."),  # fmt: skip
-    position: str = typer.Option(None, "--position", metavar="LAT,LON", help="Vessel position "
-                                 "(degrees) for a one-shot XTE/APB."),  # fmt: skip
-    follow: bool = typer.Option(False, "--follow", help="Follow the vessel from the daemon's "
-                                "status socket and emit at every update until Ctrl-C."),
-    socket: Path = typer.Option(Path("/run/mls/status.sock"), "--socket",
-                                help="Status socket of the daemon (with --follow)."),
-    nmea_out: str = typer.Option("-", "--nmea-out", help="Where the sentences go: - (stdout), "
-                                 "a file or serial device path, or udp://HOST:PORT."),
+    site_file: Path = typer.Argument(
+        ...,
+        metavar="SITE",
+        help="Site config (site.yaml) with reference, targets, wall azimuth, standoff and passes.",
+    ),
+    out: Path = typer.Option(
+        None, "--out", "-o", help="GeoJSON file to write (the lines, capture windows and targets)."
+    ),
+    capture_margin_m: float = typer.Option(
+        3.0,
+        "--capture-margin-m",
+        min=0.0,
+        help="Along-track margin of the capture window around the targets.",
+    ),
+    safe_wall_distance_m: float = typer.Option(
+        5.0, "--safe-wall-distance-m", min=0.0, help="Closest a line may come to the wall."
+    ),
+    nmea: bool = typer.Option(
+        False, "--nmea", help="Emit NMEA $--XTE and $--APB for the active line (with --position or --follow)."
+    ),
+    active_pass: int = typer.Option(
+        None,
+        "--active-pass",
+        "-p",
+        help="Pass id the autopilot "
+        "follows (default: the daemon's active pass with --follow, "
+        "else the first pass).",
+    ),
+    position: str = typer.Option(
+        None, "--position", metavar="LAT,LON", help="Vessel position (degrees) for a one-shot XTE/APB."
+    ),
+    follow: bool = typer.Option(
+        False,
+        "--follow",
+        help="Follow the vessel from the daemon's status socket and emit at every update until Ctrl-C.",
+    ),
+    socket: Path = typer.Option(
+        Path("/run/mls/status.sock"), "--socket", help="Status socket of the daemon (with --follow)."
+    ),
+    nmea_out: str = typer.Option(
+        "-",
+        "--nmea-out",
+        help="Where the sentences go: - (stdout), a file or serial device path, or udp://HOST:PORT.",
+    ),
     talker: str = typer.Option("GP", "--talker", help="NMEA talker id of the sentences."),
-    lookahead_m: float = typer.Option(20.0, "--lookahead-m", min=1.0, help="Look-ahead distance "
-                                      "of the heading-to-steer law."),  # fmt: skip
+    lookahead_m: float = typer.Option(
+        20.0, "--lookahead-m", min=1.0, help="Look-ahead distance of the heading-to-steer law."
+    ),
 ) -> None:
     """``mls plan`` (its help text is :data:`HELP`)."""
     import numpy as np
@@ -74,24 +97,25 @@ def plan(
     from rich.table import Table
 
     from calib.io.configfile import ConfigError
+    from calib.io.site import load_site
     from calib.survey.passplan import PassPlanError, plan_site
     from calib.survey.planexport import write_plan_geojson
-    from calib.io.site import load_site
 
     err = Console(stderr=True)
     if not re.fullmatch(r"[A-Z]{2}", talker):
-        raise typer.BadParameter(f"got {talker!r}, expected two capital letters such as GP, "
-                                 f"II or IN", param_hint="--talker")  # fmt: skip
+        raise typer.BadParameter(
+            f"got {talker!r}, expected two capital letters such as GP, II or IN", param_hint="--talker"
+        )
     if nmea and not (position or follow):
-        raise typer.BadParameter("--nmea needs --position LAT,LON (once) or --follow (live)",
-                                 param_hint="--nmea")  # fmt: skip
+        raise typer.BadParameter(
+            "--nmea needs --position LAT,LON (once) or --follow (live)", param_hint="--nmea"
+        )
     if (position or follow) and not nmea:
         raise typer.BadParameter("--position and --follow go with --nmea", param_hint="--nmea")
     try:
         site = load_site(site_file)
         frame = site.frame()
-        pp = plan_site(site, capture_margin_m=capture_margin_m,
-                       safe_wall_distance_m=safe_wall_distance_m)  # fmt: skip
+        pp = plan_site(site, capture_margin_m=capture_margin_m, safe_wall_distance_m=safe_wall_distance_m)
         if active_pass is not None:
             pp.by_id(active_pass)
     except (ConfigError, PassPlanError, KeyError, OSError) as e:
@@ -116,15 +140,17 @@ def plan(
             if lat_lon:
                 lat, lon = lat_lon
                 line = pp.by_id(active_pass if active_pass is not None else pp.passes[0].id)
-                for s in sentences_at(frame, line, lat, lon, talker=talker,
-                                      lookahead_m=lookahead_m):  # fmt: skip
+                for s in sentences_at(frame, line, lat, lon, talker=talker, lookahead_m=lookahead_m):
                     dest.write(s)
             else:
                 import asyncio
 
                 try:
-                    asyncio.run(follow_daemon(socket, pp, frame, active_pass, dest, talker,
-                                              lookahead_m, on_link=_say_link))  # fmt: skip
+                    asyncio.run(
+                        follow_daemon(
+                            socket, pp, frame, active_pass, dest, talker, lookahead_m, on_link=_say_link
+                        )
+                    )
                 except KeyboardInterrupt:
                     pass
         finally:
@@ -134,15 +160,25 @@ def plan(
 
     from rich import box
 
-    table = Table(title=f"calibration lines of {site_file}" + (f" → {out}" if out else ""),
-                  caption="hdg: true heading; rel: to the wall; window: the capture window "
-                  "from the line's start; side: where the targets are", box=box.SIMPLE_HEAD)
+    table = Table(
+        title=f"calibration lines of {site_file}" + (f" → {out}" if out else ""),
+        caption="hdg: true heading; rel: to the wall; window: the capture window "
+        "from the line's start; side: where the targets are",
+        box=box.SIMPLE_HEAD,
+    )
     for col in ("pass", "#", "hdg", "rel", "len m", "m/s", "window m", "window s", "side"):
         table.add_column(col, justify="left" if col == "side" else "right", no_wrap=True)
     for p in pp.passes:
         cw = p.capture_window_s
-        table.add_row(str(p.id), str(p.order), f"{np.degrees(p.heading_rad):.1f}°",
-                      f"{np.degrees(p.relative_heading_rad):.0f}°", f"{p.length_m:.1f}",
-                      f"{p.speed_mps:g}", f"{p.capture_start_m:.1f}–{p.capture_end_m:.1f}",
-                      f"{cw[0]:.1f}–{cw[1]:.1f}", p.targets_side)  # fmt: skip
+        table.add_row(
+            str(p.id),
+            str(p.order),
+            f"{np.degrees(p.heading_rad):.1f}°",
+            f"{np.degrees(p.relative_heading_rad):.0f}°",
+            f"{p.length_m:.1f}",
+            f"{p.speed_mps:g}",
+            f"{p.capture_start_m:.1f}–{p.capture_end_m:.1f}",
+            f"{cw[0]:.1f}–{cw[1]:.1f}",
+            p.targets_side,
+        )
     Console().print(table)

@@ -4,7 +4,6 @@ group of :mod:`cli.commands.calib_cmd`; the work is :func:`calib.boresight.pipel
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Optional
 
 import typer
 
@@ -28,16 +27,18 @@ def _fail(message: str, code: int = 1) -> None:
     from rich.console import Console
     from rich.markup import escape
 
-    Console(stderr=True).print(f"[red]error:[/red] {escape(message)}", highlight=False,
-                               soft_wrap=True)  # fmt: skip
+    Console(stderr=True).print(f"[red]error:[/red] {escape(message)}", highlight=False, soft_wrap=True)
     raise typer.Exit(code)
 
 
 def _is_session(path: Path) -> bool:
     """An acquisition session directory (MCAP segments; the daemon also keeps a copy of the
     site file there) rather than a bundle (points.csv)."""
-    return path.is_dir() and any(path.glob("*.mcap")) and \
-        not any((path / n).exists() for n in ("points.csv", "points.csv.gz"))  # fmt: skip
+    return (
+        path.is_dir()
+        and any(path.glob("*.mcap"))
+        and not any((path / n).exists() for n in ("points.csv", "points.csv.gz"))
+    )
 
 
 def _progress_callback(progress):
@@ -62,16 +63,21 @@ def _table(run, out_dir: Path):
     chi2 = res.chi2_test()
     table = Table(
         title=f"boresight → {out_dir / 'result.json'}",
-        caption=(f"σ̂0² {res.sigma0_squared:.3f} (χ² test "
-                 f"{'passed' if chi2['passed'] else 'FAILED'}) · {res.iterations} iterations · {res.n_points:,} points, "
-                 f"{res.outlier_point_ids.size} outliers · {run.timings_s['total_s']:.1f} s"),
-    )  # fmt: skip
+        caption=(
+            f"σ̂0² {res.sigma0_squared:.3f} (χ² test "
+            f"{'passed' if chi2['passed'] else 'FAILED'}) · {res.iterations} iterations · {res.n_points:,} points, "
+            f"{res.outlier_point_ids.size} outliers · {run.timings_s['total_s']:.1f} s"
+        ),
+    )
     table.add_column("angle")
     for col in ("estimate °", "σ formal °", "σ realistic °"):
         table.add_column(col, justify="right")
-    for name, b, sf, sr in zip(("roll", "pitch", "yaw"), np.degrees(res.boresight_rad),
-                               np.degrees(res.sigma_formal_rad),
-                               np.degrees(res.sigma_realistic_rad)):  # fmt: skip
+    for name, b, sf, sr in zip(
+        ("roll", "pitch", "yaw"),
+        np.degrees(res.boresight_rad),
+        np.degrees(res.sigma_formal_rad),
+        np.degrees(res.sigma_realistic_rad),
+    ):
         table.add_row(name, f"{b:.4f}", f"{sf:.4f}", f"{sr:.4f}")
     return table
 
@@ -82,20 +88,25 @@ def _export(session: Path, bundle_dir: Path, console, columns) -> Path:
     from rich.progress import Progress
 
     from acquire.jobs.export import ExportError, export_session
+    from calib.core.trajectory import TrajectoryError
     from calib.io.bundle import BundleError
     from calib.io.configfile import ConfigError
     from calib.survey.passplan import PassPlanError
-    from calib.core.trajectory import TrajectoryError
 
     try:
         with Progress(*columns, console=console, transient=True) as progress:
             res = export_session(session, bundle_dir, progress=_progress_callback(progress))
     except (ExportError, BundleError, ConfigError, PassPlanError, TrajectoryError, OSError) as e:
-        _fail(f"{session} is a recorded session and could not be exported to a bundle: {e} "
-              f"(run 'mls export {session} --bundle DIR' with its options, then 'mls calib run "
-              f"DIR')")  # fmt: skip
-    console.print(f"exported the session to {res.bundle} ({res.points:,} points, "
-                  f"{len(res.passes)} passes from {res.pass_source})", highlight=False)  # fmt: skip
+        _fail(
+            f"{session} is a recorded session and could not be exported to a bundle: {e} "
+            f"(run 'mls export {session} --bundle DIR' with its options, then 'mls calib run "
+            f"DIR')"
+        )
+    console.print(
+        f"exported the session to {res.bundle} ({res.points:,} points, "
+        f"{len(res.passes)} passes from {res.pass_source})",
+        highlight=False,
+    )
     for w in res.warnings:
         console.print(f"[yellow]warning:[/yellow] {escape(w)}", highlight=False, soft_wrap=True)
     return Path(res.bundle)
@@ -103,48 +114,88 @@ def _export(session: Path, bundle_dir: Path, console, columns) -> Path:
 
 @app.command("run", help=RUN_HELP)
 def run(
-    bundle: Path = typer.Argument(..., metavar="BUNDLE|SESSION", help="Calibration bundle "
-                                  "directory (site.yaml, trajectory.csv or .sbet, "
-                                  "points.csv[.gz]), or a recorded session directory."),  # fmt: skip
-    out: Optional[Path] = typer.Option(None, "--out", "-o", help="Output directory (created); "
-                                       "default BUNDLE/calib/."),  # fmt: skip
-    subsample: Optional[float] = typer.Option(
-        None, "--subsample", metavar="M", help="Voxel subsampling of each target per pass (m), "
+    bundle: Path = typer.Argument(
+        ...,
+        metavar="BUNDLE|SESSION",
+        help="Calibration bundle "
+        "directory (site.yaml, trajectory.csv or .sbet, "
+        "points.csv[.gz]), or a recorded session directory.",
+    ),
+    out: Path | None = typer.Option(
+        None, "--out", "-o", help="Output directory (created); default BUNDLE/calib/."
+    ),
+    subsample: float | None = typer.Option(
+        None,
+        "--subsample",
+        metavar="M",
+        help="Voxel subsampling of each target per pass (m), "
         "e.g. 0.05: one point per voxel, the nearest its centre (thesis §4.4.4). Default: "
-        "every extracted point."),  # fmt: skip
+        "every extracted point.",
+    ),
     estimate: str = typer.Option(
-        "", "--estimate", metavar="LIST", help="Extra unknowns, comma-separated: range_offset, "
+        "",
+        "--estimate",
+        metavar="LIST",
+        help="Extra unknowns, comma-separated: range_offset, "
         "lever_arm_x, lever_arm_y, latency, pass_offsets (each reported with its correlation "
-        "to the boresight; refused with an explanation when not observable)."),  # fmt: skip
-    apriori_deg: Optional[str] = typer.Option(
-        None, "--apriori-deg", metavar="R,P,Y", help="A-priori boresight roll,pitch,yaw in "
-        "degrees (canonical convention); default site.yaml's mount.boresight_apriori_deg."),  # fmt: skip
-    correlation_time_s: Optional[float] = typer.Option(
-        None, "--correlation-time-s", metavar="S", help="Correlation time of the POS errors "
+        "to the boresight; refused with an explanation when not observable).",
+    ),
+    apriori_deg: str | None = typer.Option(
+        None,
+        "--apriori-deg",
+        metavar="R,P,Y",
+        help="A-priori boresight roll,pitch,yaw in "
+        "degrees (canonical convention); default site.yaml's mount.boresight_apriori_deg.",
+    ),
+    correlation_time_s: float | None = typer.Option(
+        None,
+        "--correlation-time-s",
+        metavar="S",
+        help="Correlation time of the POS errors "
         "that the realistic σ assumes (first-order Gauss–Markov); default site.yaml's "
-        "pos_sigmas.correlation_time_s, else 60 s (the report says so)."),  # fmt: skip
+        "pos_sigmas.correlation_time_s, else 60 s (the report says so).",
+    ),
     error_model: str = typer.Option(
-        "gauss_markov", "--error-model", metavar="MODEL", help="POS error model of the "
+        "gauss_markov",
+        "--error-model",
+        metavar="MODEL",
+        help="POS error model of the "
         "realistic σ: gauss_markov (correlated in time), pass_bias (constant within each "
-        "pass) or white (independent: realistic = formal)."),  # fmt: skip
+        "pass) or white (independent: realistic = formal).",
+    ),
     extraction: str = typer.Option(
-        "seeded", "--extraction", metavar="MODE", help="seeded: search around each target's "
-        "centre in site.yaml; auto: find bright planar rectangles of the configured sizes."),  # fmt: skip
+        "seeded",
+        "--extraction",
+        metavar="MODE",
+        help="seeded: search around each target's "
+        "centre in site.yaml; auto: find bright planar rectangles of the configured sizes.",
+    ),
     search_radius_m: float = typer.Option(
-        2.0, "--search-radius-m", help="Seeded search radius beyond each target's half-diagonal "
-        "(m): covers a wrong a-priori boresight and approximate centres."),  # fmt: skip
-    mount: str = typer.Option("default", "--mount", metavar="ID", help="Mount id the result "
-                              "is recorded under in the history (a new id after every "
-                              "re-installation of the scanner)."),  # fmt: skip
-    vessel: Optional[str] = typer.Option(None, "--vessel", help="Vessel name for the history; "
-                                         "default site.yaml's vessel."),  # fmt: skip
-    db: Optional[Path] = typer.Option(None, "--db", help="History database (default "
-                                      "$MLS_HISTORY_DB, else ~/.local/share/marine-mls/"
-                                      "history.sqlite)."),  # fmt: skip
-    no_history: bool = typer.Option(False, "--no-history", help="Do not record the result in "
-                                    "the calibration history."),  # fmt: skip
-    no_plots: bool = typer.Option(False, "--no-plots", help="Write result.json and report.md "
-                                  "only (faster)."),  # fmt: skip
+        2.0,
+        "--search-radius-m",
+        help="Seeded search radius beyond each target's half-diagonal "
+        "(m): covers a wrong a-priori boresight and approximate centres.",
+    ),
+    mount: str = typer.Option(
+        "default",
+        "--mount",
+        metavar="ID",
+        help="Mount id the result "
+        "is recorded under in the history (a new id after every "
+        "re-installation of the scanner).",
+    ),
+    vessel: str | None = typer.Option(
+        None, "--vessel", help="Vessel name for the history; default site.yaml's vessel."
+    ),
+    db: Path | None = typer.Option(
+        None,
+        "--db",
+        help="History database (default $MLS_HISTORY_DB, else ~/.local/share/marine-mls/history.sqlite).",
+    ),
+    no_history: bool = typer.Option(
+        False, "--no-history", help="Do not record the result in the calibration history."
+    ),
+    no_plots: bool = typer.Option(False, "--no-plots", help="Write result.json and report.md only (faster)."),
 ) -> None:
     """``mls calib run`` (its help text is :data:`RUN_HELP`)."""
     import math
@@ -153,53 +204,60 @@ def run(
     import numpy as np
     from rich.console import Console
     from rich.markup import escape
-    from rich.progress import (BarColumn, MofNCompleteColumn, Progress, TextColumn,
-                               TimeElapsedColumn)  # fmt: skip
+    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
-    from calib.boresight.observations import AdjustmentError
-    from calib.io.bundle import BundleError
-    from calib.io.configfile import ConfigError
-    from calib.boresight.extract import ExtractionError, ExtractOptions
     from calib.assess.history import HistoryError, ResultFormatError, record_result
+    from calib.boresight.extract import ExtractionError, ExtractOptions
+    from calib.boresight.observations import AdjustmentError
     from calib.boresight.pipeline import CalibrationError, CalibrationOptions, run_bundle
     from calib.core.trajectory import TrajectoryError
+    from calib.io.bundle import BundleError
+    from calib.io.configfile import ConfigError
 
     if not bundle.is_dir():
-        _fail(f"{bundle}: not a directory (a calibration bundle is a directory with site.yaml, "
-              f"trajectory.csv and points.csv)")  # fmt: skip
+        _fail(
+            f"{bundle}: not a directory (a calibration bundle is a directory with site.yaml, "
+            f"trajectory.csv and points.csv)"
+        )
     try:
         apriori = parse_triple_deg(apriori_deg, "--apriori-deg") if apriori_deg else None
     except typer.BadParameter as e:
         _fail(f"--apriori-deg: {e.message}", 2)
     if subsample is not None and not (math.isfinite(subsample) and subsample > 0):
         _fail(f"--subsample {subsample!r}: expected a positive voxel size in metres, e.g. 0.05", 2)
-    if correlation_time_s is not None and not (math.isfinite(correlation_time_s)
-                                               and correlation_time_s > 0):  # fmt: skip
-        _fail(f"--correlation-time-s {correlation_time_s!r}: expected a positive number of "
-              f"seconds", 2)  # fmt: skip
+    if correlation_time_s is not None and not (math.isfinite(correlation_time_s) and correlation_time_s > 0):
+        _fail(f"--correlation-time-s {correlation_time_s!r}: expected a positive number of seconds", 2)
     extras = tuple(e.strip() for e in estimate.split(",") if e.strip())
     try:
         options = CalibrationOptions(
-            subsample_m=subsample, estimate=extras,
+            subsample_m=subsample,
+            estimate=extras,
             apriori_rad=None if apriori is None else tuple(np.radians(apriori)),
-            error_model=error_model, correlation_time_s=correlation_time_s,
+            error_model=error_model,
+            correlation_time_s=correlation_time_s,
             extraction=ExtractOptions(mode=extraction, search_radius_m=search_radius_m),
-        )  # fmt: skip
+        )
     except (CalibrationError, AdjustmentError, ExtractionError) as e:
         _fail(str(e), 2)
     out_dir = out if out is not None else bundle / "calib"
 
     console = Console()
-    columns = (TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(),
-               TimeElapsedColumn())  # fmt: skip
+    columns = (TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn())
     if _is_session(bundle):
         bundle = _export(bundle, out_dir / "bundle", console, columns)
     try:
         with Progress(*columns, console=console, transient=True) as progress:
-            cal, paths = run_bundle(bundle, out_dir, options, _progress_callback(progress),
-                                    plots=not no_plots)  # fmt: skip
-    except (BundleError, ConfigError, CalibrationError, ExtractionError, AdjustmentError,
-            TrajectoryError) as e:  # fmt: skip
+            cal, paths = run_bundle(
+                bundle, out_dir, options, _progress_callback(progress), plots=not no_plots
+            )
+    except (
+        BundleError,
+        ConfigError,
+        CalibrationError,
+        ExtractionError,
+        AdjustmentError,
+        TrajectoryError,
+    ) as e:
         _fail(str(e))
     except OSError as e:  # reading the bundle or writing into out_dir
         _fail(str(e))
@@ -207,12 +265,12 @@ def run(
     for w in cal.warnings:
         console.print(f"[yellow]warning:[/yellow] {escape(w)}", highlight=False, soft_wrap=True)
     pngs = sum(p.suffix == ".png" for p in paths)
-    console.print(f"wrote result.json, report.md{f' and {pngs} plots' if pngs else ''} to "
-                  f"{out_dir}", highlight=False)  # fmt: skip
+    console.print(
+        f"wrote result.json, report.md{f' and {pngs} plots' if pngs else ''} to {out_dir}", highlight=False
+    )
     if not no_history:
         try:
             row = record_result(cal.doc, bundle, vessel, mount, db=db)
         except (HistoryError, ResultFormatError, ConfigError, OSError, sqlite3.Error) as e:
             _fail(f"the result is in {out_dir} but was not recorded in the history: {e}")
-        console.print(f"recorded in the calibration history as #{row} (mount {mount})",
-                      highlight=False)  # fmt: skip
+        console.print(f"recorded in the calibration history as #{row} (mount {mount})", highlight=False)

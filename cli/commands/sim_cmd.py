@@ -5,7 +5,6 @@ group from their own modules."""
 from __future__ import annotations
 
 from pathlib import Path
-from typing import List, Optional
 
 import typer
 
@@ -18,22 +17,30 @@ app = typer.Typer(
 @app.command("dataset")
 def dataset(
     scenario: str = typer.Option(
-        ..., "--scenario", "-s", metavar="NAME|PATH",
+        ...,
+        "--scenario",
+        "-s",
+        metavar="NAME|PATH",
         help="A shipped scenario (montreal, terrestrial, tower) or a scenario YAML file.",
     ),
     out: Path = typer.Option(..., "--out", "-o", help="Bundle directory to write (created)."),
     seed: int = typer.Option(0, "--seed", help="Random seed: the same seed gives the same bytes."),
-    point_rate_scale: Optional[float] = typer.Option(
-        None, "--point-rate-scale", min=1e-6, max=1.0,
+    point_rate_scale: float | None = typer.Option(
+        None,
+        "--point-rate-scale",
+        min=1e-6,
+        max=1.0,
         help="Scale the profiler's point rate (1 = the full Z+F rate); overrides the scenario.",
     ),
-    set_: List[str] = typer.Option(
-        [], "--set", metavar="KEY=VALUE",
+    set_: list[str] = typer.Option(
+        [],
+        "--set",
+        metavar="KEY=VALUE",
         help="Override a scenario value by dotted key, e.g. --set noise.pos.model=white "
-             "--set truth.boresight_deg=[0.2,1.2,0.15] (repeatable; values are YAML).",
+        "--set truth.boresight_deg=[0.2,1.2,0.15] (repeatable; values are YAML).",
     ),
     compress: bool = typer.Option(False, "--gzip", help="Write points.csv.gz instead of points.csv."),
-) -> None:  # fmt: skip
+) -> None:
     """Simulate a calibration bundle with its truth.json.
 
     The vessel sails the scenario's passes around its targets with the injected systematic
@@ -48,8 +55,8 @@ def dataset(
     from rich.table import Table
 
     from calib.io.configfile import ConfigError
-    from calib.survey.passplan import PassPlanError
     from calib.sim.simulate import SimulationError, simulate
+    from calib.survey.passplan import PassPlanError
 
     console = Console()
     overrides = list(set_)
@@ -57,12 +64,20 @@ def dataset(
         overrides.append(f"scanner.point_rate_scale={point_rate_scale!r}")
     t0 = time.perf_counter()
     try:
-        with Progress(TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(),
-                      console=console, transient=True) as bar:  # fmt: skip
+        with Progress(
+            TextColumn("[bold]{task.description}"),
+            BarColumn(),
+            MofNCompleteColumn(),
+            console=console,
+            transient=True,
+        ) as bar:
             task = bar.add_task(f"simulating {scenario}", total=None)
-            result = simulate(scenario, seed, overrides=overrides,
-                              progress=lambda done, total: bar.update(task, completed=done,
-                                                                      total=total))  # fmt: skip
+            result = simulate(
+                scenario,
+                seed,
+                overrides=overrides,
+                progress=lambda done, total: bar.update(task, completed=done, total=total),
+            )
             bar.update(task, description="writing the bundle")
             path = result.write(out, compress_points=compress)
     except (ConfigError, PassPlanError, SimulationError, OSError) as e:
@@ -72,18 +87,25 @@ def dataset(
 
     counts = result.point_counts()
     names = list(next(iter(counts.values())))
-    table = Table(title=f"{result.scenario.name}, seed {seed}: returns per pass and surface",
-                  title_justify="left", box=box.SIMPLE_HEAD, pad_edge=False,
-                  collapse_padding=True)  # fmt: skip
+    table = Table(
+        title=f"{result.scenario.name}, seed {seed}: returns per pass and surface",
+        title_justify="left",
+        box=box.SIMPLE_HEAD,
+        pad_edge=False,
+        collapse_padding=True,
+    )
     for col in ("pass", "hdg", *("other" if n == "background" else n for n in names), "total"):
         table.add_column(col, justify="right", no_wrap=True)
     for p in result.plan.passes:
         row = counts[p.id]
-        table.add_row(str(p.id), f"{math.degrees(p.relative_heading_rad):g}°",
-                      *(str(row[n]) for n in names), str(sum(row.values())))  # fmt: skip
+        table.add_row(
+            str(p.id),
+            f"{math.degrees(p.relative_heading_rad):g}°",
+            *(str(row[n]) for n in names),
+            str(sum(row.values())),
+        )
     totals = {n: sum(c[n] for c in counts.values()) for n in names}
-    table.add_row("all", "", *(str(totals[n]) for n in names), str(sum(totals.values())),
-                  style="bold")  # fmt: skip
+    table.add_row("all", "", *(str(totals[n]) for n in names), str(sum(totals.values())), style="bold")
     console.print(table)
     size = sum(f.stat().st_size for f in path.iterdir() if f.is_file())
     b = result.truth["boresight_deg"]
@@ -92,4 +114,3 @@ def dataset(
         f"{b['roll']:.4f}°, pitch {b['pitch']:.4f}°, yaw {b['yaw']:.4f}° (truth.json)",
         highlight=False,
     )
-

@@ -12,7 +12,6 @@ from __future__ import annotations
 import signal
 import threading
 from pathlib import Path
-from typing import List, Optional
 
 import typer
 
@@ -39,7 +38,9 @@ def _locations_table(locations: dict, run_dir: Path, title: str):
     for name, loc in locations.items():
         if name == "ins":
             where = f"{loc['link']} → {loc['pty']}"
-            what = f"{loc.get('protocol') or 'raw'}" + (f" {loc['rate_hz']:g} Hz" if loc.get("rate_hz") else "")
+            what = f"{loc.get('protocol') or 'raw'}" + (
+                f" {loc['rate_hz']:g} Hz" if loc.get("rate_hz") else ""
+            )
         elif name == "can":
             where = f"{loc['interface']} {loc['channel']}" + (f" port {loc['port']}" if "port" in loc else "")
             what = f"event markers ({loc['markers']})" if "markers" in loc else "recorded CAN frames"
@@ -48,8 +49,10 @@ def _locations_table(locations: dict, run_dir: Path, title: str):
             where = f"udp {host}:{port}"
             what = loc.get("protocol") or loc.get("format", "")
             if "profile_rate_hz" in loc:
-                what += (f" {loc['profile_rate_hz']:.1f} profiles/s × {loc['points_per_profile']} pts "
-                         f"({loc['packets_per_profile']} packets)")  # fmt: skip
+                what += (
+                    f" {loc['profile_rate_hz']:.1f} profiles/s × {loc['points_per_profile']} pts "
+                    f"({loc['packets_per_profile']} packets)"
+                )
             if "jitter_s" in loc:
                 what += f" pulses, stamp jitter σ {loc['jitter_s'] * 1e6:g} µs"
         t.add_row(name, where, what)
@@ -67,12 +70,30 @@ def _stats_table(stats: dict, title: str):
         t.add_column(col, justify="left" if col in ("device", "status", "faults applied") else "right")
     for name, st in stats.items():
         s, tm = st.get("stats", {}), st.get("timing", {})
-        sent = {"ins": f"{s.get('epochs', s.get('messages', 0))} epochs", "profiler": f"{s.get('packets', s.get('messages', 0))} datagrams",
-                "pps": f"{s.get('pulses', s.get('messages', 0))} pulses", "can": f"{s.get('markers', s.get('messages', 0))} frames"}[name]  # fmt: skip
-        faults = ", ".join(f"{k} {s[k]}" for k in ("lost", "reordered", "duplicated", "corrupted", "garbage_bytes",
-                                                    "unplugs", "suppressed") if s.get(k))  # fmt: skip
-        timing = (f"{tm['error_median_us'] / 1e3:.2f} / {tm['error_p99_us'] / 1e3:.2f} ms"
-                  if "error_median_us" in tm else "–")  # fmt: skip
+        sent = {
+            "ins": f"{s.get('epochs', s.get('messages', 0))} epochs",
+            "profiler": f"{s.get('packets', s.get('messages', 0))} datagrams",
+            "pps": f"{s.get('pulses', s.get('messages', 0))} pulses",
+            "can": f"{s.get('markers', s.get('messages', 0))} frames",
+        }[name]
+        faults = ", ".join(
+            f"{k} {s[k]}"
+            for k in (
+                "lost",
+                "reordered",
+                "duplicated",
+                "corrupted",
+                "garbage_bytes",
+                "unplugs",
+                "suppressed",
+            )
+            if s.get(k)
+        )
+        timing = (
+            f"{tm['error_median_us'] / 1e3:.2f} / {tm['error_p99_us'] / 1e3:.2f} ms"
+            if "error_median_us" in tm
+            else "–"
+        )
         cpu = f"{100 * tm['cpu_fraction']:.0f} %" if tm.get("wall_s", 0) > 0.5 else "–"
         t.add_row(name, st.get("status", "?"), sent, faults or "–", timing, cpu)
     return t
@@ -82,9 +103,14 @@ def _run_until_done(run, console, total_s: float, label: str, stop: threading.Ev
     """Progress bar until every emulator ends; True if ``stop`` was set (Ctrl-C / SIGTERM)."""
     from rich.progress import BarColumn, Progress, TextColumn, TimeRemainingColumn
 
-    with Progress(TextColumn("[bold]{task.description}"), BarColumn(),
-                  TextColumn("{task.completed:.1f}/{task.total:.1f} s"), TimeRemainingColumn(),
-                  console=console, transient=True) as bar:  # fmt: skip
+    with Progress(
+        TextColumn("[bold]{task.description}"),
+        BarColumn(),
+        TextColumn("{task.completed:.1f}/{task.total:.1f} s"),
+        TimeRemainingColumn(),
+        console=console,
+        transient=True,
+    ) as bar:
         task = bar.add_task(label, total=total_s)
         while not stop.is_set() and not run.wait(0.2):
             bar.update(task, completed=run.elapsed_s())
@@ -136,59 +162,124 @@ def _check_config(path: Path, console) -> None:
 
 @app.command("devices")
 def devices(
-    scenario: str = typer.Option(..., "--scenario", "-s", metavar="NAME|PATH",
-                                 help="A shipped scenario (montreal, terrestrial, tower) or a scenario YAML file."),
+    scenario: str = typer.Option(
+        ...,
+        "--scenario",
+        "-s",
+        metavar="NAME|PATH",
+        help="A shipped scenario (montreal, terrestrial, tower) or a scenario YAML file.",
+    ),
     seed: int = typer.Option(0, "--seed", help="Random seed of the simulation, the jitters and the faults."),
-    speed: float = typer.Option(1.0, "--speed", min=0.01, max=100.0,
-                                help="Scenario seconds per real second (2 = twice as fast; the GPS clock then "
-                                     "runs 2× the host's, and above 2 the PPS comes faster than gpsd's rules "
-                                     "accept, so a daemon's clock model will not lock)."),
-    faults: Optional[Path] = typer.Option(None, "--faults", metavar="FILE",
-                                          help="Fault timeline (YAML): unplug, garbage, bad checksums, UDP "
-                                               "loss/reorder/duplication, PPS loss, profiler clock offset/drift, "
-                                               "INS latency jump, GNSS outage."),
-    write_config: Optional[Path] = typer.Option(None, "--write-config", metavar="vessel.yaml",
-                                                help="Write a vessel config for `mls acquire` that uses these devices."),
-    run_dir: Path = typer.Option(Path("mls-sim"), "--run-dir",
-                                 help="Run directory: the INS link 'ins', truth_clock.json, faults.json, stats/."),
-    start: Optional[str] = typer.Option(None, "--start", metavar="SECONDS|pass:N",
-                                        help="Start the run this many scenario seconds after the scenario's start, "
-                                             "or at the line start of pass N (default: the beginning)."),
-    duration: Optional[float] = typer.Option(None, "--duration", min=0.001,
-                                             help="Scenario seconds to run (default: to the scenario's end)."),
-    point_rate_scale: Optional[float] = typer.Option(
-        None, "--point-rate-scale", min=1e-6, max=1.0,
-        help="Scale the profiler's point rate (1 = the full Z+F rate); overrides the scenario."),
-    set_: List[str] = typer.Option([], "--set", metavar="KEY=VALUE",
-                                   help="Override a scenario value by dotted key (repeatable; values are YAML)."),
-    only: str = typer.Option("ins,profiler,pps,can", "--devices", metavar="LIST",
-                             help="The emulators to run (comma-separated subset of ins,profiler,pps,can)."),
-    ins_protocol: str = typer.Option("nmea", "--ins-protocol", help="INS output: nmea (PHINS standard + ZDA) or stdbin."),
+    speed: float = typer.Option(
+        1.0,
+        "--speed",
+        min=0.01,
+        max=100.0,
+        help="Scenario seconds per real second (2 = twice as fast; the GPS clock then "
+        "runs 2× the host's, and above 2 the PPS comes faster than gpsd's rules "
+        "accept, so a daemon's clock model will not lock).",
+    ),
+    faults: Path | None = typer.Option(
+        None,
+        "--faults",
+        metavar="FILE",
+        help="Fault timeline (YAML): unplug, garbage, bad checksums, UDP "
+        "loss/reorder/duplication, PPS loss, profiler clock offset/drift, "
+        "INS latency jump, GNSS outage.",
+    ),
+    write_config: Path | None = typer.Option(
+        None,
+        "--write-config",
+        metavar="vessel.yaml",
+        help="Write a vessel config for `mls acquire` that uses these devices.",
+    ),
+    run_dir: Path = typer.Option(
+        Path("mls-sim"),
+        "--run-dir",
+        help="Run directory: the INS link 'ins', truth_clock.json, faults.json, stats/.",
+    ),
+    start: str | None = typer.Option(
+        None,
+        "--start",
+        metavar="SECONDS|pass:N",
+        help="Start the run this many scenario seconds after the scenario's start, "
+        "or at the line start of pass N (default: the beginning).",
+    ),
+    duration: float | None = typer.Option(
+        None, "--duration", min=0.001, help="Scenario seconds to run (default: to the scenario's end)."
+    ),
+    point_rate_scale: float | None = typer.Option(
+        None,
+        "--point-rate-scale",
+        min=1e-6,
+        max=1.0,
+        help="Scale the profiler's point rate (1 = the full Z+F rate); overrides the scenario.",
+    ),
+    set_: list[str] = typer.Option(
+        [],
+        "--set",
+        metavar="KEY=VALUE",
+        help="Override a scenario value by dotted key (repeatable; values are YAML).",
+    ),
+    only: str = typer.Option(
+        "ins,profiler,pps,can",
+        "--devices",
+        metavar="LIST",
+        help="The emulators to run (comma-separated subset of ins,profiler,pps,can).",
+    ),
+    ins_protocol: str = typer.Option(
+        "nmea", "--ins-protocol", help="INS output: nmea (PHINS standard + ZDA) or stdbin."
+    ),
     ins_rate: float = typer.Option(100.0, "--ins-rate", min=1.0, max=200.0, help="INS output rate (Hz)."),
     ins_latency_ms: float = typer.Option(3.0, "--ins-latency-ms", min=0.0, help="INS output latency (ms)."),
-    ins_jitter_ms: float = typer.Option(0.5, "--ins-jitter-ms", min=0.0, help="INS output jitter, uniform (ms)."),
-    ins_alignment_s: float = typer.Option(0.0, "--ins-alignment-s", min=0.0,
-                                          help="Seconds of INS alignment at the start (status: aligning)."),
+    ins_jitter_ms: float = typer.Option(
+        0.5, "--ins-jitter-ms", min=0.0, help="INS output jitter, uniform (ms)."
+    ),
+    ins_alignment_s: float = typer.Option(
+        0.0, "--ins-alignment-s", min=0.0, help="Seconds of INS alignment at the start (status: aligning)."
+    ),
     stdbin_version: int = typer.Option(3, "--stdbin-version", min=2, max=5, help="STDBIN protocol version."),
-    profiler_host: str = typer.Option("127.0.0.1", "--profiler-host", help="Where the profiler sends its datagrams."),
-    profiler_port: int = typer.Option(0, "--profiler-port", min=0, max=65535, help="Profiler UDP port (0: a free one)."),
+    profiler_host: str = typer.Option(
+        "127.0.0.1", "--profiler-host", help="Where the profiler sends its datagrams."
+    ),
+    profiler_port: int = typer.Option(
+        0, "--profiler-port", min=0, max=65535, help="Profiler UDP port (0: a free one)."
+    ),
     pps_port: int = typer.Option(0, "--pps-port", min=0, max=65535, help="PPS UDP port (0: a free one)."),
     pps_jitter_us: float = typer.Option(20.0, "--pps-jitter-us", min=0.0, help="PPS stamp jitter σ (µs)."),
     can_channel: str = typer.Option("239.74.163.2", "--can-channel", help="CAN udp_multicast group."),
-    can_port: int = typer.Option(43113, "--can-port", min=1, max=65535,
-                                 help="CAN udp_multicast port (a vessel config can only use 43113)."),
-    clock_drift_ppm: float = typer.Option(0.0, "--clock-drift-ppm",
-                                          help="Truth clock: GPS time runs this much faster than the host clock."),
-    realtime: bool = typer.Option(False, "--realtime",
-                                  help="Run the emulators SCHED_FIFO where permitted (root or RLIMIT_RTPRIO): "
-                                       "sub-millisecond timing on a busy machine."),
-    lead_s: float = typer.Option(0.25, "--lead-s", min=0.05, max=60.0,
-                                 help="Seconds between the emulators being ready (and the vessel config written) "
-                                      "and the first byte of the run: time for a daemon to start."),
-    time_base: str = typer.Option("now", "--time", metavar="now|scenario",
-                                  help="Devices send today's date and time (now: the scenario moved by whole "
-                                       "seconds, recorded in truth_clock.json) or the scenario's own."),
-) -> None:  # fmt: skip
+    can_port: int = typer.Option(
+        43113,
+        "--can-port",
+        min=1,
+        max=65535,
+        help="CAN udp_multicast port (a vessel config can only use 43113).",
+    ),
+    clock_drift_ppm: float = typer.Option(
+        0.0, "--clock-drift-ppm", help="Truth clock: GPS time runs this much faster than the host clock."
+    ),
+    realtime: bool = typer.Option(
+        False,
+        "--realtime",
+        help="Run the emulators SCHED_FIFO where permitted (root or RLIMIT_RTPRIO): "
+        "sub-millisecond timing on a busy machine.",
+    ),
+    lead_s: float = typer.Option(
+        0.25,
+        "--lead-s",
+        min=0.05,
+        max=60.0,
+        help="Seconds between the emulators being ready (and the vessel config written) "
+        "and the first byte of the run: time for a daemon to start.",
+    ),
+    time_base: str = typer.Option(
+        "now",
+        "--time",
+        metavar="now|scenario",
+        help="Devices send today's date and time (now: the scenario moved by whole "
+        "seconds, recorded in truth_clock.json) or the scenario's own.",
+    ),
+) -> None:
     """Run the simulated INS, profiler, PPS and CAN devices in real time.
 
     The scenario is simulated, then each device runs in its own process: the INS writes NMEA or
@@ -199,8 +290,8 @@ def devices(
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn
 
     from calib.io.configfile import ConfigError
-    from calib.survey.passplan import PassPlanError
     from calib.sim.simulate import SimulationError, simulate
+    from calib.survey.passplan import PassPlanError
     from sim_devices.canbus import CanSettings
     from sim_devices.faults import FaultPlan, load_faults
     from sim_devices.feed import FeedError, make_feed
@@ -219,20 +310,40 @@ def devices(
     with _SigtermAsInterrupt():
         try:
             spec = DevicesSpec(
-                run_dir=run_dir, devices=names, speed=speed, drift_ppm=clock_drift_ppm, seed=seed,
-                ins=InsSettings(protocol=ins_protocol, rate_hz=ins_rate, stdbin_version=stdbin_version,
-                                latency_s=ins_latency_ms / 1e3, jitter_s=ins_jitter_ms / 1e3,
-                                alignment_s=ins_alignment_s),
+                run_dir=run_dir,
+                devices=names,
+                speed=speed,
+                drift_ppm=clock_drift_ppm,
+                seed=seed,
+                ins=InsSettings(
+                    protocol=ins_protocol,
+                    rate_hz=ins_rate,
+                    stdbin_version=stdbin_version,
+                    latency_s=ins_latency_ms / 1e3,
+                    jitter_s=ins_jitter_ms / 1e3,
+                    alignment_s=ins_alignment_s,
+                ),
                 profiler=ProfilerSettings(host=profiler_host, port=profiler_port),
                 pps=PpsSettings(port=pps_port, jitter_s=pps_jitter_us / 1e6),
-                can=CanSettings(channel=can_channel, port=can_port), realtime=realtime, lead_s=lead_s,
-            )  # fmt: skip
+                can=CanSettings(channel=can_channel, port=can_port),
+                realtime=realtime,
+                lead_s=lead_s,
+            )
             plan = load_faults(faults) if faults is not None else FaultPlan()
-            with Progress(TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(),
-                          console=console, transient=True) as bar:  # fmt: skip
+            with Progress(
+                TextColumn("[bold]{task.description}"),
+                BarColumn(),
+                MofNCompleteColumn(),
+                console=console,
+                transient=True,
+            ) as bar:
                 task = bar.add_task(f"simulating {scenario}", total=None)
-                sim = simulate(scenario, seed, overrides=overrides,
-                               progress=lambda done, total: bar.update(task, completed=done, total=total))  # fmt: skip
+                sim = simulate(
+                    scenario,
+                    seed,
+                    overrides=overrides,
+                    progress=lambda done, total: bar.update(task, completed=done, total=total),
+                )
                 feed = make_feed(sim, start, duration, ins_rate, "now" if time_base == "now" else 0)
             run = DeviceRun(feed, spec, plan)
         except (ConfigError, PassPlanError, SimulationError, FeedError, ValueError, OSError) as e:
@@ -241,14 +352,36 @@ def devices(
         except KeyboardInterrupt:
             raise typer.Exit(130) from None
         title = f"{feed.name} (seed {seed}): {feed.duration_s:g} scenario s at ×{speed:g}"
-        notes = [f"{len(plan.faults)} faults scheduled (faults.json): "
-                 + ", ".join(f"{f.kind} at {f.at_s:g} s" for f in plan.faults)] if plan.faults else []  # fmt: skip
-        _serve(run, console, lambda loc: _locations_table(loc, run.run_dir, title), notes, write_config,
-               feed.duration_s, f"{feed.name} scenario time", "emulators")  # fmt: skip
+        notes = (
+            [
+                f"{len(plan.faults)} faults scheduled (faults.json): "
+                + ", ".join(f"{f.kind} at {f.at_s:g} s" for f in plan.faults)
+            ]
+            if plan.faults
+            else []
+        )
+        _serve(
+            run,
+            console,
+            lambda loc: _locations_table(loc, run.run_dir, title),
+            notes,
+            write_config,
+            feed.duration_s,
+            f"{feed.name} scenario time",
+            "emulators",
+        )
 
 
-def _serve(run, console, locations_table, notes: list[str], write_config: Path | None, total_s: float,
-           label: str, title: str) -> None:  # fmt: skip
+def _serve(
+    run,
+    console,
+    locations_table,
+    notes: list[str],
+    write_config: Path | None,
+    total_s: float,
+    label: str,
+    title: str,
+) -> None:
     """Start the run, say where the devices are, wait for its end or Ctrl-C / SIGTERM
     (:class:`_StopOnSignal`), stop it, and print what each emulator did (exit 1 if one crashed)."""
     from sim_devices.runner import SimDevicesError
@@ -289,24 +422,39 @@ def read_session(session_dir: Path):
         for env in iter_messages(raw.path, topics):
             yield RecordedMessage(env.topic, env.host_ns, env.payload)
 
-    return RecordedSession(raw.name, raw.channels, raw.counts, raw.first_host_ns, raw.last_host_ns,
-                           messages, raw.gps_fit)  # fmt: skip
+    return RecordedSession(
+        raw.name, raw.channels, raw.counts, raw.first_host_ns, raw.last_host_ns, messages, raw.gps_fit
+    )
 
 
 @app.command("replay")
 def replay(
-    session: Path = typer.Argument(..., help="A session directory (YYYYmmddTHHMMSSZ_<vessel>/ with seg-*.mcap)."),
-    speed: float = typer.Option(1.0, "--speed", min=0.01, max=100.0, help="Replay speed (2 = twice as fast)."),
-    run_dir: Path = typer.Option(Path("mls-replay"), "--run-dir", help="Run directory: the INS link 'ins', devices.json."),
-    write_config: Optional[Path] = typer.Option(None, "--write-config", metavar="vessel.yaml",
-                                                help="Write a vessel config for `mls acquire` that uses the replay."),
-    profiler_host: str = typer.Option("127.0.0.1", "--profiler-host", help="Where the profiler datagrams go."),
-    profiler_port: int = typer.Option(0, "--profiler-port", min=0, max=65535, help="Profiler UDP port (0: a free one)."),
+    session: Path = typer.Argument(
+        ..., help="A session directory (YYYYmmddTHHMMSSZ_<vessel>/ with seg-*.mcap)."
+    ),
+    speed: float = typer.Option(
+        1.0, "--speed", min=0.01, max=100.0, help="Replay speed (2 = twice as fast)."
+    ),
+    run_dir: Path = typer.Option(
+        Path("mls-replay"), "--run-dir", help="Run directory: the INS link 'ins', devices.json."
+    ),
+    write_config: Path | None = typer.Option(
+        None,
+        "--write-config",
+        metavar="vessel.yaml",
+        help="Write a vessel config for `mls acquire` that uses the replay.",
+    ),
+    profiler_host: str = typer.Option(
+        "127.0.0.1", "--profiler-host", help="Where the profiler datagrams go."
+    ),
+    profiler_port: int = typer.Option(
+        0, "--profiler-port", min=0, max=65535, help="Profiler UDP port (0: a free one)."
+    ),
     pps_port: int = typer.Option(0, "--pps-port", min=0, max=65535, help="PPS UDP port (0: a free one)."),
     can_channel: str = typer.Option("239.74.163.2", "--can-channel", help="CAN udp_multicast group."),
     can_port: int = typer.Option(43113, "--can-port", min=1, max=65535, help="CAN udp_multicast port."),
     realtime: bool = typer.Option(False, "--realtime", help="Run the replay SCHED_FIFO where permitted."),
-) -> None:  # fmt: skip
+) -> None:
     """Re-emit a recorded session's raw channels with their original timing.
 
     /ins/raw goes to a pty behind RUN_DIR/ins, /lidar/raw to the profiler UDP port, /pps as PPS
@@ -322,9 +470,14 @@ def replay(
         try:
             with console.status(f"reading {session}"):
                 rec = read_session(session)
-            spec = ReplaySpec(run_dir=run_dir, speed=speed, profiler=(profiler_host, profiler_port),
-                              pps=("127.0.0.1", pps_port), can=CanSettings(channel=can_channel, port=can_port),
-                              realtime=realtime)  # fmt: skip
+            spec = ReplaySpec(
+                run_dir=run_dir,
+                speed=speed,
+                profiler=(profiler_host, profiler_port),
+                pps=("127.0.0.1", pps_port),
+                can=CanSettings(channel=can_channel, port=can_port),
+                realtime=realtime,
+            )
             run = ReplayRun(rec, spec)
         except (LogError, ValueError, OSError) as e:
             console.print(f"[red]error:[/red] {e}", highlight=False)
@@ -333,5 +486,13 @@ def replay(
             raise typer.Exit(130) from None
         counts = ", ".join(f"{t} {rec.counts[t]}" for t in sorted(rec.channels))
         title = f"replay of {rec.name}: {rec.duration_s:.1f} s at ×{speed:g} ({counts})"
-        _serve(run, console, lambda loc: _locations_table(loc, run.run_dir, title), [], write_config,
-               rec.duration_s / speed, "replay", "replay")  # fmt: skip
+        _serve(
+            run,
+            console,
+            lambda loc: _locations_table(loc, run.run_dir, title),
+            [],
+            write_config,
+            rec.duration_s / speed,
+            "replay",
+            "replay",
+        )

@@ -23,8 +23,11 @@ def _fmt(value: Any) -> str:
 
 
 def status(
-    socket: Path = typer.Option(None, "--socket", help="Status socket of the daemon "
-                                f"[default: the config's status.socket, else {DEFAULT_SOCKET}]."),
+    socket: Path = typer.Option(
+        None,
+        "--socket",
+        help=f"Status socket of the daemon [default: the config's status.socket, else {DEFAULT_SOCKET}].",
+    ),
     config: Path = typer.Option(None, "--config", "-c", help="Vessel config: take the socket path from it."),
     as_json: bool = typer.Option(False, "--json", help="Print the raw snapshot as JSON."),
     timeout_s: float = typer.Option(3.0, "--timeout", help="Seconds to wait for the daemon."),

@@ -41,9 +41,9 @@ from typing import Any
 import numpy as np
 
 from drivers.base import DecoderStats, DriverError
+from drivers.capture.pcapng import CaptureReader, udp_datagrams
 from drivers.hydrins.nmea_decode import NmeaDecoder, NmeaNavAssembler
 from drivers.hydrins.stdbin_decode import StdbinDecoder, StdbinNavDecoder
-from drivers.capture.pcapng import CaptureReader, udp_datagrams
 from drivers.pps import decode_pps_datagram
 from drivers.zf.assembler import ProfileAssembler
 from drivers.zf.codec import Profile
@@ -173,7 +173,9 @@ class FileDecoder:
         reader = CaptureReader(self.path)
         self.capture_stats, self.udp_stats = reader.stats, DecoderStats()
         for dg in udp_datagrams(reader, self.port, self.udp_stats):
-            yield from self._feed(dg.payload, dg.timestamp_ns, dg.timestamp_ns if self.date_hint_ns is None else None)
+            yield from self._feed(
+                dg.payload, dg.timestamp_ns, dg.timestamp_ns if self.date_hint_ns is None else None
+            )
         self.bytes_done = self.size
 
 

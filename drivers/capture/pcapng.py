@@ -96,7 +96,9 @@ class CaptureReader:
                 interfaces = []  # interface ids restart in each section
             btype, blen = struct.unpack_from(e + "II", d, pos)
             if blen < 12 or blen % 4:
-                raise PcapError(f"{self.name}: offset {pos}: block length {blen} (expected a multiple of 4, >= 12)")
+                raise PcapError(
+                    f"{self.name}: offset {pos}: block length {blen} (expected a multiple of 4, >= 12)"
+                )
             if pos + blen > len(d):
                 self.stats.rejected["truncated"] += 1
                 self.stats.skipped_bytes += len(d) - pos

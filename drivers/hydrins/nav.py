@@ -174,4 +174,6 @@ def wrap_heading_rad(heading_rad: float) -> float:
 
 
 # (field, its name in degrees for a ``*_rad`` field else None), in declaration order
-_FIELD_NAMES = tuple((f.name, f.name[:-4] + "_deg" if f.name.endswith("_rad") else None) for f in fields(NavRecord))
+_FIELD_NAMES = tuple(
+    (f.name, f.name[:-4] + "_deg" if f.name.endswith("_rad") else None) for f in fields(NavRecord)
+)

@@ -187,7 +187,9 @@ class NmeaNavAssembler:
     def stats(self) -> DecoderStats:
         return self.decoder.stats
 
-    def feed(self, data: bytes, host_ns: int | None = None, utc_hint_ns: int | None = None) -> list[NavRecord]:
+    def feed(
+        self, data: bytes, host_ns: int | None = None, utc_hint_ns: int | None = None
+    ) -> list[NavRecord]:
         self._hint = utc_hint_ns
         out: list[NavRecord] = []
         for rec in self.decoder.feed(data, host_ns):
@@ -237,7 +239,9 @@ class NmeaNavAssembler:
             if isinstance(r, Hdt):
                 nav.heading_rad = wrap_heading_rad(math.radians(r.heading_deg))
             elif isinstance(r, PixseAtitud):
-                roll, pitch, _ = attitude_from_ixblue(math.radians(r.roll_deg), math.radians(r.pitch_deg), 0.0)
+                roll, pitch, _ = attitude_from_ixblue(
+                    math.radians(r.roll_deg), math.radians(r.pitch_deg), 0.0
+                )
                 nav.roll_rad, nav.pitch_rad = float(roll), float(pitch)
             elif isinstance(r, PixsePositi):
                 nav.lat_deg, nav.lon_deg, nav.height_m = r.lat_deg, wrap_lon_deg(r.lon_deg), r.altitude_m
@@ -254,7 +258,11 @@ class NmeaNavAssembler:
             elif isinstance(r, PixseStdpos):
                 nav.sigma_north_m, nav.sigma_east_m, nav.sigma_down_m = r.north_m, r.east_m, r.altitude_m
             elif isinstance(r, PixseStdspd):
-                nav.sigma_v_north_m_s, nav.sigma_v_east_m_s, nav.sigma_v_down_m_s = r.north_m_s, r.east_m_s, r.up_m_s
+                nav.sigma_v_north_m_s, nav.sigma_v_east_m_s, nav.sigma_v_down_m_s = (
+                    r.north_m_s,
+                    r.east_m_s,
+                    r.up_m_s,
+                )
             elif isinstance(r, PixseAlgsts):
                 if r.status1 is not None and r.status2 is not None:
                     nav.algorithm_status = (r.status1, r.status2)
@@ -270,8 +278,11 @@ class NmeaNavAssembler:
                         nav.height_m, nav.height_ref = r.altitude_msl_m + r.geoid_separation_m, "ellipsoid"
                     elif not math.isnan(r.altitude_msl_m):
                         nav.height_m, nav.height_ref = r.altitude_msl_m, "geoid"
-        if tod is None and self._time_sentences and any(
-                isinstance(r, (Hdt, PixseAtitud, PixsePositi)) for r in epoch.values()):
+        if (
+            tod is None
+            and self._time_sentences
+            and any(isinstance(r, (Hdt, PixseAtitud, PixsePositi)) for r in epoch.values())
+        ):
             # the stream has TIME__ but this epoch lost its own (bytes lost on the line): a ZDA
             # or GGA next to it belongs to another instant, so its time is unknown
             self.decoder.stats.rejected["epoch_without_time"] += 1
@@ -288,7 +299,9 @@ class NmeaNavAssembler:
 
     def _resolve(self, nav: NavRecord, tod: int) -> None:
         zda_fresh = self._zda_utc_ns is not None and (
-            nav.host_ns is None or self._zda_host_ns is None or abs(nav.host_ns - self._zda_host_ns) < DAY_NS // 2
+            nav.host_ns is None
+            or self._zda_host_ns is None
+            or abs(nav.host_ns - self._zda_host_ns) < DAY_NS // 2
         )
         if zda_fresh:
             nav.gps_ns, nav.date_source = resolve_gps_ns(tod, self._zda_utc_ns), "zda"

@@ -72,4 +72,6 @@ def encode_zda(gps_ns: int, talker: str = "GP", decimals: int = 2) -> bytes:
     """``$--ZDA`` for a GPS instant (UTC on the wire; local zone 00,00)."""
     utc = gps_ns_to_utc(gps_ns)
     tod = utc_time_of_day_ns(gps_ns)
-    return encode_sentence(f"{talker}ZDA,{format_hhmmss(tod, decimals)},{utc.day:02d},{utc.month:02d},{utc.year:04d},00,00")
+    return encode_sentence(
+        f"{talker}ZDA,{format_hhmmss(tod, decimals)},{utc.day:02d},{utc.month:02d},{utc.year:04d},00,00"
+    )

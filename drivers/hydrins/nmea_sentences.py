@@ -237,9 +237,18 @@ def _p_zda(t, f, h):
 def _p_gga(t, f, h):
     f = _pad(f, 14)
     return Gga(
-        t, _tod(f[1]), _latlon(f[2], f[3]), _latlon(f[4], f[5]), _i(f[6]), _i(f[7]),
-        _f(f[8]), _f(f[9]), _f(f[11]), _f(f[13]), h,
-    )  # fmt: skip
+        t,
+        _tod(f[1]),
+        _latlon(f[2], f[3]),
+        _latlon(f[4], f[5]),
+        _i(f[6]),
+        _i(f[7]),
+        _f(f[8]),
+        _f(f[9]),
+        _f(f[11]),
+        _f(f[13]),
+        h,
+    )
 
 
 def _p_rmc(t, f, h):
@@ -251,9 +260,18 @@ def _p_rmc(t, f, h):
     valid = {"A": True, "V": False}.get(f[2])
     kn = _f(f[7])
     return Rmc(
-        t, _tod(f[1]), valid, _latlon(f[3], f[4]), _latlon(f[5], f[6]), kn * KNOT_M_S, _f(f[8]),
-        day, month, year, h,
-    )  # fmt: skip
+        t,
+        _tod(f[1]),
+        valid,
+        _latlon(f[3], f[4]),
+        _latlon(f[5], f[6]),
+        kn * KNOT_M_S,
+        _f(f[8]),
+        day,
+        month,
+        year,
+        h,
+    )
 
 
 def _p_hdt(t, f, h):

@@ -111,7 +111,9 @@ def _segment(offset: int, specs: list):
 _LAYOUTS: dict[tuple, _Layout] = {}
 
 
-def _layout(version: int, nav_mask: int, ext_nav_mask: int | None, ext_mask: int, nav_size: int | None) -> _Layout:
+def _layout(
+    version: int, nav_mask: int, ext_nav_mask: int | None, ext_mask: int, nav_size: int | None
+) -> _Layout:
     key = (version, nav_mask, ext_nav_mask, ext_mask, nav_size)
     lay = _LAYOUTS.get(key)
     if lay is not None:
@@ -404,7 +406,9 @@ class StdbinDecoder:
         blocks = _Blocks(lay.index, [st.unpack_from(buf, pos + offset) for offset, st, _ in lay.segments])
         if lay.unknown:
             self.stats.events["unknown_block"] += lay.unknown
-        out.append(StdbinFrame(version, counter, validity, blocks, nav_mask, ext_nav, ext_mask, size, host_ns))
+        out.append(
+            StdbinFrame(version, counter, validity, blocks, nav_mask, ext_nav, ext_mask, size, host_ns)
+        )
         return size
 
     def _answer(self, buf: bytes, pos: int, version: int, host_ns, out: list) -> int:
@@ -442,7 +446,9 @@ class StdbinNavDecoder:
     def stats(self) -> DecoderStats:
         return self.decoder.stats
 
-    def feed(self, data: bytes, host_ns: int | None = None, utc_hint_ns: int | None = None) -> list[NavRecord]:
+    def feed(
+        self, data: bytes, host_ns: int | None = None, utc_hint_ns: int | None = None
+    ) -> list[NavRecord]:
         return self._navs(self.decoder.feed(data, host_ns), utc_hint_ns)
 
     def _navs(self, records: list, utc_hint_ns: int | None) -> list[NavRecord]:

@@ -50,7 +50,9 @@ def encode_frame(frame: StdbinFrame) -> bytes:
         if spec is None:
             raise DriverError(f"STDBIN block {name!r} is unknown; known: {sorted(BLOCKS_BY_NAME)}")
         if spec[0] == 1 and version < 3:
-            raise DriverError(f"STDBIN block {name!r} (extended navigation) needs version >= 3, got {version}")
+            raise DriverError(
+                f"STDBIN block {name!r} (extended navigation) needs version >= 3, got {version}"
+            )
         masks[spec[0]] |= 1 << spec[1]
     parts: list[bytes] = []
     sizes = [0, 0, 0]
@@ -129,7 +131,11 @@ def frame_from_nav(nav: NavRecord, version: int = 3, counter: int = 0) -> Stdbin
         "north_east_corr": 0.0,
         "altitude_sd_m": nav.sigma_down_m,
     }
-    blocks["speed_geographic_frame"] = {"north_m_s": nav.v_north_m_s, "east_m_s": nav.v_east_m_s, "up_m_s": -nav.v_down_m_s}
+    blocks["speed_geographic_frame"] = {
+        "north_m_s": nav.v_north_m_s,
+        "east_m_s": nav.v_east_m_s,
+        "up_m_s": -nav.v_down_m_s,
+    }
     blocks["speed_geographic_frame_deviation"] = {
         "north_sd_m_s": nav.sigma_v_north_m_s,
         "east_sd_m_s": nav.sigma_v_east_m_s,

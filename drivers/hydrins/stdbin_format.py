@@ -62,13 +62,17 @@ NAVIGATION_BLOCKS: dict[int, tuple[str, str, tuple[str, ...]]] = {
     22: ("speed_vessel_frame", _F3, _v("m_s")),
     23: ("acceleration_geographic_frame", _F3, ("north_m_s2", "east_m_s2", "up_m_s2")),
     24: ("course_speed_over_ground", "ff", ("course_deg", "speed_m_s")),
-    25: ("temperatures", _F3, ("fog_temperature_degc", "accelerometer_temperature_degc", "board_temperature_degc")),
+    25: (
+        "temperatures",
+        _F3,
+        ("fog_temperature_degc", "accelerometer_temperature_degc", "board_temperature_degc"),
+    ),
     26: ("attitude_quaternion", "ffff", ("q0", "q1", "q2", "q3")),
     27: ("attitude_quaternion_deviation", _F3, ("xi1_sd_rad", "xi2_sd_rad", "xi3_sd_rad")),
     28: ("raw_acceleration_vessel_frame", _F3, _v("m_s2")),
     29: ("acceleration_vessel_frame_deviation", _F3, _v("sd_m_s2")),
     30: ("rotation_rate_vessel_frame_deviation", _F3, _v("sd_deg_s")),
-}  # fmt: skip
+}
 
 EXTENDED_NAVIGATION_BLOCKS: dict[int, tuple[str, str, tuple[str, ...]]] = {
     0: ("rotation_acceleration_vessel_frame", _F3, _v("deg_s2")),
@@ -77,22 +81,78 @@ EXTENDED_NAVIGATION_BLOCKS: dict[int, tuple[str, str, tuple[str, ...]]] = {
     3: ("vehicle_attitude_heading", _F3, ("heading_deg", "roll_deg", "pitch_deg")),
     4: ("vehicle_attitude_heading_deviation", _F3, ("heading_sd_deg", "roll_sd_deg", "pitch_sd_deg")),
     5: ("vehicle_position", "ddBf", ("latitude_deg", "longitude_deg", "altitude_ref", "altitude_m")),
-    6: ("vehicle_position_deviation", "ffff", ("north_sd_m", "east_sd_m", "north_east_corr", "altitude_sd_m")),
-}  # fmt: skip
+    6: (
+        "vehicle_position_deviation",
+        "ffff",
+        ("north_sd_m", "east_sd_m", "north_east_corr", "altitude_sd_m"),
+    ),
+}
 
-_GNSS = ("IBBddffffff", ("validity_time_100us", "gnss_id", "gnss_quality", "latitude_deg", "longitude_deg",
-         "altitude_m", "latitude_sd_m", "longitude_sd_m", "altitude_sd_m", "lat_lon_cov_m2", "geoidal_separation_m"))
+_GNSS = (
+    "IBBddffffff",
+    (
+        "validity_time_100us",
+        "gnss_id",
+        "gnss_quality",
+        "latitude_deg",
+        "longitude_deg",
+        "altitude_m",
+        "latitude_sd_m",
+        "longitude_sd_m",
+        "altitude_sd_m",
+        "lat_lon_cov_m2",
+        "geoidal_separation_m",
+    ),
+)
 _EMLOG = ("IBff", ("validity_time_100us", "emlog_id", "xv1_water_speed_m_s", "xv1_speed_sd_m_s"))
-_USBL = ("IB8sddfffff", ("validity_time_100us", "usbl_id", "beacon_id", "latitude_deg", "longitude_deg",
-         "altitude_m", "north_sd_m", "east_sd_m", "lat_lon_cov_m2", "altitude_sd_m"))
-_DVL_GROUND = ("IBffffffff", ("validity_time_100us", "dvl_id", *_v("ground_speed_m_s"), "speed_of_sound_m_s",
-               "dvl_altitude_m", *_v("speed_sd_m_s")))
-_DVL_WATER = ("IBfffffff", ("validity_time_100us", "dvl_id", *_v("water_speed_m_s"), "speed_of_sound_m_s",
-              *_v("speed_sd_m_s")))
-_LBL = ("IB8sddfff", ("validity_time_100us", "rfu", "beacon_id", "beacon_latitude_deg", "beacon_longitude_deg",
-        "beacon_altitude_m", "range_m", "range_sd_m"))
+_USBL = (
+    "IB8sddfffff",
+    (
+        "validity_time_100us",
+        "usbl_id",
+        "beacon_id",
+        "latitude_deg",
+        "longitude_deg",
+        "altitude_m",
+        "north_sd_m",
+        "east_sd_m",
+        "lat_lon_cov_m2",
+        "altitude_sd_m",
+    ),
+)
+_DVL_GROUND = (
+    "IBffffffff",
+    (
+        "validity_time_100us",
+        "dvl_id",
+        *_v("ground_speed_m_s"),
+        "speed_of_sound_m_s",
+        "dvl_altitude_m",
+        *_v("speed_sd_m_s"),
+    ),
+)
+_DVL_WATER = (
+    "IBfffffff",
+    ("validity_time_100us", "dvl_id", *_v("water_speed_m_s"), "speed_of_sound_m_s", *_v("speed_sd_m_s")),
+)
+_LBL = (
+    "IB8sddfff",
+    (
+        "validity_time_100us",
+        "rfu",
+        "beacon_id",
+        "beacon_latitude_deg",
+        "beacon_longitude_deg",
+        "beacon_altitude_m",
+        "range_m",
+        "range_sd_m",
+    ),
+)
 _EVENT = ("IBI", ("validity_time_100us", "event_id", "event_count"))
-_VTG = ("IBfff", ("validity_time_100us", "vtg_id", "true_course_deg", "magnetic_course_deg", "speed_over_ground_m_s"))
+_VTG = (
+    "IBfff",
+    ("validity_time_100us", "vtg_id", "true_course_deg", "magnetic_course_deg", "speed_over_ground_m_s"),
+)
 
 EXTERNAL_DATA_BLOCKS: dict[int, tuple[str, str, tuple[str, ...]]] = {
     0: ("utc", "IB", ("validity_time_100us", "source")),
@@ -118,11 +178,15 @@ EXTERNAL_DATA_BLOCKS: dict[int, tuple[str, str, tuple[str, ...]]] = {
     20: ("event_marker_c", *_EVENT),
     21: ("dvl_ground_speed2", *_DVL_GROUND),
     22: ("dvl_water_speed2", *_DVL_WATER),
-    24: ("turret_angles", "Ifff", ("validity_time_100us", "heading_bearing_drift_deg", "roll_deg", "elevation_pitch_deg")),
+    24: (
+        "turret_angles",
+        "Ifff",
+        ("validity_time_100us", "heading_bearing_drift_deg", "roll_deg", "elevation_pitch_deg"),
+    ),
     25: ("vtg1", *_VTG),
     26: ("vtg2", *_VTG),
     27: ("logbook", "II32s", ("validity_time_100us", "log_id", "custom_text")),
-}  # fmt: skip
+}
 
 BLOCK_TABLES = (NAVIGATION_BLOCKS, EXTENDED_NAVIGATION_BLOCKS, EXTERNAL_DATA_BLOCKS)
 #: block name → (mask index 0/1/2, bit, fmt, names)

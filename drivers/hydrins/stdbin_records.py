@@ -31,7 +31,11 @@ class StdbinAnswer:
     host_ns: int | None = None
 
     def to_dict(self) -> dict[str, Any]:
-        return {"type": "answer", "protocol_version": self.protocol_version, "payload_hex": self.payload.hex()}
+        return {
+            "type": "answer",
+            "protocol_version": self.protocol_version,
+            "payload_hex": self.payload.hex(),
+        }
 
 
 def _shortcut(block: str, name: str, doc: str | None = None) -> property:
@@ -86,7 +90,11 @@ class StdbinFrame:
             roll, pitch, heading = attitude_from_ixblue(
                 math.radians(a["roll_deg"]), math.radians(a["pitch_deg"]), math.radians(a["heading_deg"])
             )
-            nav.roll_rad, nav.pitch_rad, nav.heading_rad = float(roll), float(pitch), wrap_heading_rad(float(heading))
+            nav.roll_rad, nav.pitch_rad, nav.heading_rad = (
+                float(roll),
+                float(pitch),
+                wrap_heading_rad(float(heading)),
+            )
         if "attitude_heading_deviation" in b:
             a = b["attitude_heading_deviation"]
             nav.sigma_heading_rad = math.radians(a["heading_sd_deg"])
@@ -94,18 +102,29 @@ class StdbinFrame:
             nav.sigma_pitch_rad = math.radians(a["pitch_sd_deg"])
         if "position" in b:
             p = b["position"]
-            nav.lat_deg, nav.lon_deg, nav.height_m = p["latitude_deg"], wrap_lon_deg(p["longitude_deg"]), p["altitude_m"]
+            nav.lat_deg, nav.lon_deg, nav.height_m = (
+                p["latitude_deg"],
+                wrap_lon_deg(p["longitude_deg"]),
+                p["altitude_m"],
+            )
             nav.height_ref = {0: "geoid", 1: "ellipsoid"}.get(p["altitude_ref"])
         if "position_deviation" in b:
             p = b["position_deviation"]
-            nav.sigma_north_m, nav.sigma_east_m, nav.sigma_down_m = p["north_sd_m"], p["east_sd_m"], p["altitude_sd_m"]
+            nav.sigma_north_m, nav.sigma_east_m, nav.sigma_down_m = (
+                p["north_sd_m"],
+                p["east_sd_m"],
+                p["altitude_sd_m"],
+            )
         if "speed_geographic_frame" in b:
             v = b["speed_geographic_frame"]
             nav.v_north_m_s, nav.v_east_m_s, nav.v_down_m_s = v["north_m_s"], v["east_m_s"], -v["up_m_s"]
         if "speed_geographic_frame_deviation" in b:
             v = b["speed_geographic_frame_deviation"]
             nav.sigma_v_north_m_s, nav.sigma_v_east_m_s, nav.sigma_v_down_m_s = (
-                v["north_sd_m_s"], v["east_sd_m_s"], v["up_sd_m_s"])  # fmt: skip
+                v["north_sd_m_s"],
+                v["east_sd_m_s"],
+                v["up_sd_m_s"],
+            )
         if "realtime_heave_surge_sway" in b:
             h = b["realtime_heave_surge_sway"]
             nav.surge_m, nav.sway_m, nav.heave_m = h["surge_m"], -h["sway_m"], -h["heave_m"]
@@ -152,7 +171,14 @@ class StdbinFrame:
             "ins_system_status": _hexwords(self._words("ins_system_status")),
             "ins_user_status": _hexwords(self._words("ins_user_status")),
         }
-        for name in ("navigation", "alignment", "fine_alignment", "dead_reckoning", "utc_detected", "pps_detected"):
+        for name in (
+            "navigation",
+            "alignment",
+            "fine_alignment",
+            "dead_reckoning",
+            "utc_detected",
+            "pps_detected",
+        ):
             out[name] = getattr(nav_flags, name)
         out["blocks"] = {name: {k: _json(v) for k, v in blk.items()} for name, blk in self.blocks.items()}
         return out

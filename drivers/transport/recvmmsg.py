@@ -30,10 +30,15 @@ class _Iovec(ctypes.Structure):
 
 
 class _Msghdr(ctypes.Structure):
-    _fields_ = [("msg_name", ctypes.c_void_p), ("msg_namelen", ctypes.c_uint32),
-                ("msg_iov", ctypes.POINTER(_Iovec)), ("msg_iovlen", ctypes.c_size_t),
-                ("msg_control", ctypes.c_void_p), ("msg_controllen", ctypes.c_size_t),
-                ("msg_flags", ctypes.c_int)]  # fmt: skip
+    _fields_ = [
+        ("msg_name", ctypes.c_void_p),
+        ("msg_namelen", ctypes.c_uint32),
+        ("msg_iov", ctypes.POINTER(_Iovec)),
+        ("msg_iovlen", ctypes.c_size_t),
+        ("msg_control", ctypes.c_void_p),
+        ("msg_controllen", ctypes.c_size_t),
+        ("msg_flags", ctypes.c_int),
+    ]
 
 
 class _Mmsghdr(ctypes.Structure):
@@ -42,14 +47,28 @@ class _Mmsghdr(ctypes.Structure):
 
 _CMSG_SPACE = socket.CMSG_SPACE(16)  # one struct timespec
 # one control buffer per slot: struct cmsghdr (size_t len; int level; int type) + timespec
-_CMSG = np.dtype({"names": ["len", "level", "type", "sec", "nsec"],
-                  "formats": [np.uintp, np.int32, np.int32, np.int64, np.int64],
-                  "offsets": [0, ctypes.sizeof(ctypes.c_size_t), ctypes.sizeof(ctypes.c_size_t) + 4,
-                              socket.CMSG_LEN(0), socket.CMSG_LEN(0) + 8],
-                  "itemsize": _CMSG_SPACE})  # fmt: skip
-_HDR = np.dtype({"names": ["controllen", "flags", "len"], "formats": [np.uintp, np.int32, np.uint32],
-                 "offsets": [_Msghdr.msg_controllen.offset, _Msghdr.msg_flags.offset, _Mmsghdr.msg_len.offset],
-                 "itemsize": ctypes.sizeof(_Mmsghdr)})  # fmt: skip
+_CMSG = np.dtype(
+    {
+        "names": ["len", "level", "type", "sec", "nsec"],
+        "formats": [np.uintp, np.int32, np.int32, np.int64, np.int64],
+        "offsets": [
+            0,
+            ctypes.sizeof(ctypes.c_size_t),
+            ctypes.sizeof(ctypes.c_size_t) + 4,
+            socket.CMSG_LEN(0),
+            socket.CMSG_LEN(0) + 8,
+        ],
+        "itemsize": _CMSG_SPACE,
+    }
+)
+_HDR = np.dtype(
+    {
+        "names": ["controllen", "flags", "len"],
+        "formats": [np.uintp, np.int32, np.uint32],
+        "offsets": [_Msghdr.msg_controllen.offset, _Msghdr.msg_flags.offset, _Mmsghdr.msg_len.offset],
+        "itemsize": ctypes.sizeof(_Mmsghdr),
+    }
+)
 
 try:
     _libc = ctypes.CDLL(None, use_errno=True)
@@ -98,7 +117,11 @@ class MmsgReceiver:
                 raise BlockingIOError(err, os.strerror(err))
             raise OSError(err, os.strerror(err))
         hdr, cm = self._hdr[:n], self._cmsg[:n]
-        stamped = (hdr["controllen"] >= _CMSG_SPACE) & (cm["level"] == socket.SOL_SOCKET) & (cm["type"] == _SCM_TIMESTAMPNS)
+        stamped = (
+            (hdr["controllen"] >= _CMSG_SPACE)
+            & (cm["level"] == socket.SOL_SOCKET)
+            & (cm["type"] == _SCM_TIMESTAMPNS)
+        )
         stamps = np.where(stamped, cm["sec"] * 1_000_000_000 + cm["nsec"], -1).tolist()
         lens, truncated = hdr["len"].tolist(), (hdr["flags"] & MSG_TRUNC).astype(bool).tolist()
         hdr["controllen"] = _CMSG_SPACE  # the kernel wrote the length it used

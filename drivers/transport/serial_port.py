@@ -34,8 +34,15 @@ class _PortReader:
     kB, which at 100 kB/s is tens of milliseconds. At most ``max_waiting`` chunks wait for the
     consumer; beyond that the thread stops reading (the kernel buffers) until :meth:`resume`."""
 
-    def __init__(self, fd: int, loop: asyncio.AbstractEventLoop, deliver: Callable[[Chunk | str], None],
-                 waiting: Callable[[], int], max_waiting: int, name: str) -> None:  # fmt: skip
+    def __init__(
+        self,
+        fd: int,
+        loop: asyncio.AbstractEventLoop,
+        deliver: Callable[[Chunk | str], None],
+        waiting: Callable[[], int],
+        max_waiting: int,
+        name: str,
+    ) -> None:
         self.fd, self.loop, self.deliver = fd, loop, deliver
         self.waiting, self.max_waiting = waiting, max_waiting
         self.incoming: deque[Chunk | str] = deque()  # appended here, taken in the loop (deque ops are atomic)
@@ -150,8 +157,9 @@ class SerialTransport(Transport):
             else:
                 self._push(item.data, item.host_ns)
 
-        reader = self._reader = _PortReader(ser.fileno(), self._loop, deliver, self._chunks.__len__,
-                                            self.max_chunks, self.name)  # fmt: skip
+        reader = self._reader = _PortReader(
+            ser.fileno(), self._loop, deliver, self._chunks.__len__, self.max_chunks, self.name
+        )
 
     async def _disconnect(self) -> None:
         ser, reader = self._serial, self._reader

@@ -46,9 +46,17 @@ MAX_DATAGRAM = 65535
 class BatchUdpTransport(Transport):
     kind = "udp-batch"
 
-    def __init__(self, port: int, host: str = "0.0.0.0", rcvbuf_bytes: int = 32 * 1024 * 1024,
-                 coalesce_s: float = 0.005, burst: int = 4096, name: str | None = None,
-                 use_recvmmsg: bool = True, **kwargs) -> None:  # fmt: skip
+    def __init__(
+        self,
+        port: int,
+        host: str = "0.0.0.0",
+        rcvbuf_bytes: int = 32 * 1024 * 1024,
+        coalesce_s: float = 0.005,
+        burst: int = 4096,
+        name: str | None = None,
+        use_recvmmsg: bool = True,
+        **kwargs,
+    ) -> None:
         kwargs.setdefault("max_chunks", 16384)
         super().__init__(name or f"udp:{port}", **kwargs)
         self.host, self.port = host, port
@@ -65,8 +73,10 @@ class BatchUdpTransport(Transport):
         self._watching = False  # the socket is registered with the loop's selector
 
     def describe(self) -> str:
-        return (f"udp {self.host}:{self.port} (SO_RCVBUF {self.rcvbuf_bytes_granted} bytes, "
-                f"{'kernel' if self.kernel_stamps else 'loop'} receive stamps)")  # fmt: skip
+        return (
+            f"udp {self.host}:{self.port} (SO_RCVBUF {self.rcvbuf_bytes_granted} bytes, "
+            f"{'kernel' if self.kernel_stamps else 'loop'} receive stamps)"
+        )
 
     async def _connect(self) -> None:
         sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
@@ -113,7 +123,11 @@ class BatchUdpTransport(Transport):
         offset = realtime_minus_monotonic_ns()
         chunks = self._chunks
         room = min(self.burst, self.max_chunks - len(chunks))
-        got = self._read_many(room, mono, offset) if self._mmsg is not None else self._read_each(sock, room, mono, offset)
+        got = (
+            self._read_many(room, mono, offset)
+            if self._mmsg is not None
+            else self._read_each(sock, room, mono, offset)
+        )
         if got and self.coalesce_s > 0:  # let the next datagrams gather in the socket buffer:
             self._watch(False)  # while they flow, a timer polls (no epoll_ctl per round)
             self._timer = self._loop.call_later(self.coalesce_s, self._poll)

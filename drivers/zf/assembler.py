@@ -67,8 +67,10 @@ def build_profile(counter: int, packets: list[Packet], packet_count: int, host_n
     else:
         # per packet: t0, dt, angle0, dangle, n (a scanner's dt is fractional, so each packet
         # carries its own rounded t0 and the points of a profile are not one arithmetic series)
-        h = np.array([(p.t0_ns, p.dt_ns, p.angle0_udeg, p.dangle_udeg, p.range_01mm.shape[0]) for p in packets],
-                     dtype=np.int64)  # fmt: skip
+        h = np.array(
+            [(p.t0_ns, p.dt_ns, p.angle0_udeg, p.dangle_udeg, p.range_01mm.shape[0]) for p in packets],
+            dtype=np.int64,
+        )
         ns = h[:, 4]
         local = np.arange(int(ns.sum()), dtype=np.int64) - np.repeat(np.cumsum(ns) - ns, ns)
         if (h[:, 1] == h[0, 1]).all() and (h[:, 3] == h[0, 3]).all():  # one dt, one angle step
@@ -114,9 +116,15 @@ class AssembledProfile:
 
     __slots__ = ("profile_counter", "packet_count", "host_ns", "_items", "_decode", "_summary")
 
-    def __init__(self, counter: int, packets: list, packet_count: int, host_ns: int | None,
-                 decode: Callable[[bytes], Packet] | None = None,
-                 summary: tuple[int, int | None] | None = None) -> None:  # fmt: skip
+    def __init__(
+        self,
+        counter: int,
+        packets: list,
+        packet_count: int,
+        host_ns: int | None,
+        decode: Callable[[bytes], Packet] | None = None,
+        summary: tuple[int, int | None] | None = None,
+    ) -> None:
         self.profile_counter = counter
         self.packet_count = packet_count
         self.host_ns = host_ns
@@ -167,8 +175,9 @@ class _Run:
 
     __slots__ = ("counter", "count", "host_ns", "items", "flags", "t0_ns")
 
-    def __init__(self, counter: int, count: int, host_ns: int | None, items: list, flags: int,
-                 t0_ns: int | None) -> None:  # fmt: skip
+    def __init__(
+        self, counter: int, count: int, host_ns: int | None, items: list, flags: int, t0_ns: int | None
+    ) -> None:
         self.counter, self.count, self.host_ns = counter, count, host_ns
         self.items, self.flags, self.t0_ns = items, flags, t0_ns
 
@@ -211,8 +220,12 @@ class ProfileAssembler:
         self.last_packet = p
         c = p.profile_counter
         part = self._open.get(c)
-        if part is not None and p.packet_index == part.max_index + 1 and p.packet_count == part.count \
-                and len(self._open) == 1:  # the usual case: the next packet of the one profile in flight
+        if (
+            part is not None
+            and p.packet_index == part.max_index + 1
+            and p.packet_count == part.count
+            and len(self._open) == 1
+        ):  # the usual case: the next packet of the one profile in flight
             part.max_index = p.packet_index
             part.packets[p.packet_index] = p
             return [self._emit(c)] if len(part.packets) == part.count else []
@@ -287,7 +300,9 @@ class ProfileAssembler:
 
     # -- the batch path --------------------------------------------------------------------------
 
-    def feed_batch(self, datagrams: list[bytes], host_ns: list[int]) -> tuple[list[AssembledProfile], list[int | None]]:
+    def feed_batch(
+        self, datagrams: list[bytes], host_ns: list[int]
+    ) -> tuple[list[AssembledProfile], list[int | None]]:
         """:meth:`feed_assembled` over a batch, in order, and each datagram's device time tag (its
         t0 when PPS-locked and time-valid; None otherwise or when rejected).
 
@@ -367,8 +382,11 @@ class ProfileAssembler:
                 self._last = run.counter
                 self._complete_recent.append(run.counter)
                 stats.records += 1
-                out.append(AssembledProfile(run.counter, run.items, run.count, run.host_ns, self._decode,
-                                            (run.flags, run.t0_ns)))  # fmt: skip
+                out.append(
+                    AssembledProfile(
+                        run.counter, run.items, run.count, run.host_ns, self._decode, (run.flags, run.t0_ns)
+                    )
+                )
                 run = None
             a = b
         self._run = run

@@ -65,14 +65,19 @@ def parse_header(data: bytes) -> tuple:
     """
     n = len(data)
     if n < HEADER_SIZE + CRC_SIZE:
-        raise ZfpError("short", f"ZFP1 datagram of {n} bytes: a packet needs at least {HEADER_SIZE + CRC_SIZE}")
+        raise ZfpError(
+            "short", f"ZFP1 datagram of {n} bytes: a packet needs at least {HEADER_SIZE + CRC_SIZE}"
+        )
     h = HEADER.unpack_from(data, 0)
     if h[0] != MAGIC:
         raise ZfpError("bad_magic", f"ZFP1 magic {h[0]!r}: expected {MAGIC!r}")
     if h[1] != HEADER_SIZE:
         raise ZfpError("bad_header_size", f"ZFP1 header_size {h[1]}: expected {HEADER_SIZE}")
     if n != HEADER_SIZE + POINT_SIZE * h[10] + CRC_SIZE:
-        raise ZfpError("size_mismatch", f"ZFP1 n_points {h[10]} needs {HEADER_SIZE + POINT_SIZE * h[10] + CRC_SIZE} bytes, datagram has {n}")
+        raise ZfpError(
+            "size_mismatch",
+            f"ZFP1 n_points {h[10]} needs {HEADER_SIZE + POINT_SIZE * h[10] + CRC_SIZE} bytes, datagram has {n}",
+        )
     if zlib.crc32(memoryview(data)[: n - CRC_SIZE]) != int.from_bytes(data[n - CRC_SIZE :], "little"):
         raise ZfpError("bad_crc", "ZFP1 CRC-32 mismatch")
     if h[5] == 0 or h[4] >= h[5]:
@@ -80,10 +85,22 @@ def parse_header(data: bytes) -> tuple:
     return h
 
 
-HEADER_DTYPE = np.dtype([("magic", "S4"), ("header_size", "<u2"), ("flags", "<u2"), ("profile_counter", "<u4"),
-                         ("packet_index", "<u2"), ("packet_count", "<u2"), ("t0_ns", "<i8"), ("dt_ns", "<u4"),
-                         ("angle0_udeg", "<i4"), ("dangle_udeg", "<i4"), ("n_points", "<u2"),
-                         ("reserved", "<u2")])  # fmt: skip
+HEADER_DTYPE = np.dtype(
+    [
+        ("magic", "S4"),
+        ("header_size", "<u2"),
+        ("flags", "<u2"),
+        ("profile_counter", "<u4"),
+        ("packet_index", "<u2"),
+        ("packet_count", "<u2"),
+        ("t0_ns", "<i8"),
+        ("dt_ns", "<u4"),
+        ("angle0_udeg", "<i4"),
+        ("dangle_udeg", "<i4"),
+        ("n_points", "<u2"),
+        ("reserved", "<u2"),
+    ]
+)
 #: zlib.crc32 of a packet *with* its little-endian CRC-32 appended, whatever the packet: the check
 #: needs no slicing
 CRC_RESIDUE = 0x2144DF1C
@@ -130,22 +147,44 @@ def encode_packet(
 ) -> bytes:
     n = len(range_01mm)
     if n != len(intensity) or n > 0xFFFF:
-        raise DriverError(f"ZFP1 packet: {n} ranges and {len(intensity)} intensities (expected equal, <= 65535)")
+        raise DriverError(
+            f"ZFP1 packet: {n} ranges and {len(intensity)} intensities (expected equal, <= 65535)"
+        )
     pts = np.empty(n, dtype=POINT_DTYPE)
     pts["range_01mm"] = range_01mm
     pts["intensity"] = intensity
-    return pack_packet(flags, profile_counter, packet_index, packet_count, t0_ns, dt_ns, angle0_udeg,
-                       dangle_udeg, pts)  # fmt: skip
+    return pack_packet(
+        flags, profile_counter, packet_index, packet_count, t0_ns, dt_ns, angle0_udeg, dangle_udeg, pts
+    )
 
 
-def pack_packet(flags: int, profile_counter: int, packet_index: int, packet_count: int, t0_ns: int, dt_ns: int,
-                angle0_udeg: int, dangle_udeg: int, points: np.ndarray) -> bytes:  # fmt: skip
+def pack_packet(
+    flags: int,
+    profile_counter: int,
+    packet_index: int,
+    packet_count: int,
+    t0_ns: int,
+    dt_ns: int,
+    angle0_udeg: int,
+    dangle_udeg: int,
+    points: np.ndarray,
+) -> bytes:
     """:func:`encode_packet` for points already in :data:`POINT_DTYPE` (at most 65535; an
     emulator slices one profile-long array instead of building one per packet)."""
     head = HEADER.pack(
-        MAGIC, HEADER_SIZE, flags & 0xFFFF, profile_counter & 0xFFFFFFFF, packet_index, packet_count,
-        t0_ns, dt_ns, angle0_udeg, dangle_udeg, len(points), 0,
-    )  # fmt: skip
+        MAGIC,
+        HEADER_SIZE,
+        flags & 0xFFFF,
+        profile_counter & 0xFFFFFFFF,
+        packet_index,
+        packet_count,
+        t0_ns,
+        dt_ns,
+        angle0_udeg,
+        dangle_udeg,
+        len(points),
+        0,
+    )
     body = head + points.tobytes()
     return body + zlib.crc32(body).to_bytes(4, "little")
 
@@ -153,7 +192,9 @@ def pack_packet(flags: int, profile_counter: int, packet_index: int, packet_coun
 def points_per_packet(max_payload: int = DEFAULT_MAX_PAYLOAD) -> int:
     n = (max_payload - HEADER_SIZE - CRC_SIZE) // POINT_SIZE
     if n < 1:
-        raise DriverError(f"ZFP1 max_payload {max_payload}: must be at least {HEADER_SIZE + CRC_SIZE + POINT_SIZE} bytes")
+        raise DriverError(
+            f"ZFP1 max_payload {max_payload}: must be at least {HEADER_SIZE + CRC_SIZE + POINT_SIZE} bytes"
+        )
     return min(n, 0xFFFF)
 
 
@@ -178,7 +219,9 @@ def encode_profile(
     ranges = np.asarray(range_01mm, dtype=np.uint32)
     inten = np.asarray(intensity, dtype=np.uint16)
     if ranges.shape != inten.shape or ranges.ndim != 1:
-        raise DriverError(f"ZFP1 profile: ranges {ranges.shape} and intensities {inten.shape} must be equal 1-D arrays")
+        raise DriverError(
+            f"ZFP1 profile: ranges {ranges.shape} and intensities {inten.shape} must be equal 1-D arrays"
+        )
     per = points_per_packet(max_payload)
     count = max(1, -(-ranges.size // per))
     if count > 0xFFFF:
@@ -221,22 +264,37 @@ class Zfp1Codec:
         Raises :class:`DriverError` when the spacing is not uniform (within 1 ns and 1 µdeg).
         """
         t = np.asarray(profile.gps_ns, dtype=np.int64)
-        a_udeg = np.rint(np.degrees(np.asarray(profile.scan_angle_rad, dtype=np.float64)) * 1e6).astype(np.int64)
+        a_udeg = np.rint(np.degrees(np.asarray(profile.scan_angle_rad, dtype=np.float64)) * 1e6).astype(
+            np.int64
+        )
         n = t.size
         dt = int(t[1] - t[0]) if n > 1 else 0
         da = int(a_udeg[1] - a_udeg[0]) if n > 1 else 0
         idx = np.arange(n, dtype=np.int64)
-        if n and (np.any(np.abs(t - (t[0] + idx * dt)) > 1) or np.any(np.abs(a_udeg - (a_udeg[0] + idx * da)) > 1)):
-            raise DriverError(f"ZFP1 profile {profile.profile_counter}: points are not evenly spaced in time and angle")
+        if n and (
+            np.any(np.abs(t - (t[0] + idx * dt)) > 1) or np.any(np.abs(a_udeg - (a_udeg[0] + idx * da)) > 1)
+        ):
+            raise DriverError(
+                f"ZFP1 profile {profile.profile_counter}: points are not evenly spaced in time and angle"
+            )
         rng = np.asarray(profile.range_m, dtype=np.float64)
         r01 = np.where(np.isfinite(rng), np.rint(np.nan_to_num(rng) / RANGE_UNIT_M), 0)
         if np.any((r01 < 0) | (r01 > MAX_RANGE_01MM)):
-            raise DriverError(f"ZFP1 profile {profile.profile_counter}: range outside 0..{MAX_RANGE_01MM * RANGE_UNIT_M:.0f} m")
+            raise DriverError(
+                f"ZFP1 profile {profile.profile_counter}: range outside 0..{MAX_RANGE_01MM * RANGE_UNIT_M:.0f} m"
+            )
         return encode_profile(
-            profile.profile_counter, int(t[0]) if n else 0, dt, int(a_udeg[0]) if n else 0, da,
-            r01.astype(np.uint32), profile.intensity, pps_locked=profile.pps_locked,
-            time_valid=profile.time_valid, max_payload=max_payload,
-        )  # fmt: skip
+            profile.profile_counter,
+            int(t[0]) if n else 0,
+            dt,
+            int(a_udeg[0]) if n else 0,
+            da,
+            r01.astype(np.uint32),
+            profile.intensity,
+            pps_locked=profile.pps_locked,
+            time_valid=profile.time_valid,
+            max_payload=max_payload,
+        )
 
 
 ZFP1 = Zfp1Codec()

@@ -36,8 +36,14 @@ class Proc:
         self.log = log
         self.args = args
         with open(log, "ab") as f:
-            self.p = subprocess.Popen(args, stdout=f, stderr=subprocess.STDOUT, cwd=cwd or ROOT,
-                                      env={**os.environ, **(env or {})}, start_new_session=True)  # fmt: skip
+            self.p = subprocess.Popen(
+                args,
+                stdout=f,
+                stderr=subprocess.STDOUT,
+                cwd=cwd or ROOT,
+                env={**os.environ, **(env or {})},
+                start_new_session=True,
+            )
 
     @property
     def pid(self) -> int:
@@ -75,8 +81,10 @@ def wait_until(cond, timeout_s: float, what: str, proc: Proc | None = None, poll
         if proc is not None and not proc.alive():
             raise AssertionError(f"{what}: the process ended ({proc.p.returncode}):\n{proc.output()[-3000:]}")
         time.sleep(poll_s)
-    raise AssertionError(f"timed out after {timeout_s} s waiting for {what}"
-                         + (f"\n{proc.output()[-3000:]}" if proc is not None else ""))  # fmt: skip
+    raise AssertionError(
+        f"timed out after {timeout_s} s waiting for {what}"
+        + (f"\n{proc.output()[-3000:]}" if proc is not None else "")
+    )
 
 
 def sleep_until_host_ns(t_ns: int) -> None:
@@ -142,7 +150,7 @@ class MqttCollector(threading.Thread):
         except asyncio.CancelledError:
             pass
 
-    def start(self) -> "MqttCollector":
+    def start(self) -> MqttCollector:
         super().start()
         if not self._ready.wait(10):
             raise AssertionError(f"MQTT collector could not subscribe on {self.host}:{self.port}")
@@ -174,7 +182,7 @@ class NotifyCollector(threading.Thread):
         while not self._halt.is_set():
             try:
                 data = self.sock.recv(4096)
-            except socket.timeout:
+            except TimeoutError:
                 continue
             except OSError:
                 return
@@ -200,7 +208,7 @@ class TruthClock:
     window: dict = field(default_factory=dict)
 
     @classmethod
-    def read(cls, path: Path) -> "TruthClock":
+    def read(cls, path: Path) -> TruthClock:
         d = json.loads(path.read_text())
         return cls(int(d["host_anchor_ns"]), int(d["gps_anchor_ns"]), float(d["rate"]), d.get("window", {}))
 
@@ -208,7 +216,9 @@ class TruthClock:
         import numpy as np
 
         h = np.asarray(host_ns, dtype=np.int64)
-        return self.gps_anchor_ns + np.rint((h - self.host_anchor_ns).astype(np.float64) * self.rate).astype(np.int64)
+        return self.gps_anchor_ns + np.rint((h - self.host_anchor_ns).astype(np.float64) * self.rate).astype(
+            np.int64
+        )
 
 
 class Recording:
@@ -218,16 +228,20 @@ class Recording:
         self.items = items
 
     @classmethod
-    def of(cls, collector) -> "Recording":
+    def of(cls, collector) -> Recording:
         items = collector.lines if hasattr(collector, "lines") else collector.messages
-        return cls([Received(r.host_ns, r.topic, r.data if not isinstance(r.data, bytes) else r.data.hex())
-                    for r in list(items)])  # fmt: skip
+        return cls(
+            [
+                Received(r.host_ns, r.topic, r.data if not isinstance(r.data, bytes) else r.data.hex())
+                for r in list(items)
+            ]
+        )
 
     def to_json(self) -> list:
         return [[r.host_ns, r.topic, r.data] for r in self.items]
 
     @classmethod
-    def from_json(cls, rows: list) -> "Recording":
+    def from_json(cls, rows: list) -> Recording:
         return cls([Received(h, t, d) for h, t, d in rows])
 
     def topic(self, name: str) -> list[Received]:

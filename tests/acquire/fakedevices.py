@@ -30,33 +30,64 @@ POINTS = 600  # per profile: three ZFP1 packets
 def devices_yaml(tmp: Path, prof_port: int, pps_port: int) -> str:
     """The ``devices:`` entries of a vessel config reading these fakes (YAML, at column 0): the
     INS on the pty link ``tmp/ins``, the profiler and the PPS on their UDP ports."""
-    return (f"  - name: ins\n"
-            f"    kind: ins\n"
-            f"    protocol: nmea\n"
-            f"    transport: {{type: serial, port: {tmp}/ins, baud: 115200}}\n"
-            f"    latency: {{band_ms: [0.0, 20.0], rate_hz: 50.0, gap_s: 0.5}}\n"
-            f"  - name: profiler\n"
-            f"    kind: profiler\n"
-            f"    protocol: zfp1\n"
-            f"    transport: {{type: udp, host: 127.0.0.1, port: {prof_port}}}\n"
-            f"    latency: {{band_ms: [0.0, 60.0], rate_hz: 20.0, gap_s: 0.5}}\n"
-            f"  - name: pps\n"
-            f"    kind: pps\n"
-            f"    source: {{type: udp, host: 127.0.0.1, port: {pps_port}}}\n"
-            f"    time_device: ins\n"
-            f"    time_messages: [ZDA]\n")  # fmt: skip
+    return (
+        f"  - name: ins\n"
+        f"    kind: ins\n"
+        f"    protocol: nmea\n"
+        f"    transport: {{type: serial, port: {tmp}/ins, baud: 115200}}\n"
+        f"    latency: {{band_ms: [0.0, 20.0], rate_hz: 50.0, gap_s: 0.5}}\n"
+        f"  - name: profiler\n"
+        f"    kind: profiler\n"
+        f"    protocol: zfp1\n"
+        f"    transport: {{type: udp, host: 127.0.0.1, port: {prof_port}}}\n"
+        f"    latency: {{band_ms: [0.0, 60.0], rate_hz: 20.0, gap_s: 0.5}}\n"
+        f"  - name: pps\n"
+        f"    kind: pps\n"
+        f"    source: {{type: udp, host: 127.0.0.1, port: {pps_port}}}\n"
+        f"    time_device: ins\n"
+        f"    time_messages: [ZDA]\n"
+    )
 
 
 def nav_at(gps_ns: int, k: int) -> NavRecord:
-    algo, system = status_words(navigation=True, fine_alignment=True, gps_received=True, gps_valid=True,
-                                gps_detected=True, utc_detected=True, pps_detected=True)  # fmt: skip
-    return NavRecord("nmea", gps_ns=gps_ns, lat_deg=45.5 + 1e-6 * k, lon_deg=-73.55, height_m=-24.0,
-                     height_ref="ellipsoid", roll_rad=0.01, pitch_rad=-0.02, heading_rad=1.0,
-                     v_north_m_s=1.0, v_east_m_s=0.5, v_down_m_s=0.0, surge_m=0.0, sway_m=0.0,
-                     heave_m=0.01, sigma_roll_rad=2e-4, sigma_pitch_rad=2e-4, sigma_heading_rad=3e-4,
-                     sigma_north_m=0.02, sigma_east_m=0.02, sigma_down_m=0.03, sigma_v_north_m_s=0.01,
-                     sigma_v_east_m_s=0.01, sigma_v_down_m_s=0.01, algorithm_status=algo,
-                     system_status=system, user_status=0)  # fmt: skip
+    algo, system = status_words(
+        navigation=True,
+        fine_alignment=True,
+        gps_received=True,
+        gps_valid=True,
+        gps_detected=True,
+        utc_detected=True,
+        pps_detected=True,
+    )
+    return NavRecord(
+        "nmea",
+        gps_ns=gps_ns,
+        lat_deg=45.5 + 1e-6 * k,
+        lon_deg=-73.55,
+        height_m=-24.0,
+        height_ref="ellipsoid",
+        roll_rad=0.01,
+        pitch_rad=-0.02,
+        heading_rad=1.0,
+        v_north_m_s=1.0,
+        v_east_m_s=0.5,
+        v_down_m_s=0.0,
+        surge_m=0.0,
+        sway_m=0.0,
+        heave_m=0.01,
+        sigma_roll_rad=2e-4,
+        sigma_pitch_rad=2e-4,
+        sigma_heading_rad=3e-4,
+        sigma_north_m=0.02,
+        sigma_east_m=0.02,
+        sigma_down_m=0.03,
+        sigma_v_north_m_s=0.01,
+        sigma_v_east_m_s=0.01,
+        sigma_v_down_m_s=0.01,
+        algorithm_status=algo,
+        system_status=system,
+        user_status=0,
+    )
 
 
 class FakeDevices(threading.Thread):
@@ -126,8 +157,16 @@ class FakeDevices(threading.Thread):
                 r = rng.integers(0, 200_000, POINTS).astype(np.uint32)
                 r[::4] = 0  # no returns
                 i = rng.integers(1, 65535, POINTS).astype(np.uint16)
-                for d in encode_profile(counter, arg, PROFILE_PERIOD_NS // 5080, 0, 70866, r, i,
-                                        max_payload=40 + 4 + 6 * (POINTS // 3)):  # fmt: skip
+                for d in encode_profile(
+                    counter,
+                    arg,
+                    PROFILE_PERIOD_NS // 5080,
+                    0,
+                    70866,
+                    r,
+                    i,
+                    max_payload=40 + 4 + 6 * (POINTS // 3),
+                ):
                     self.sock.sendto(d, self.addr_prof)
                     self.datagrams.append(d)
             else:

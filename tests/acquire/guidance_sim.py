@@ -12,12 +12,12 @@ import numpy as np
 
 from acquire.guidance.lines import AcceptanceTolerances, prechecks
 from acquire.guidance.state import Guidance
-from calib.core import frames
 from calib.boresight.adjust import AdjustmentResult, adjust
 from calib.boresight.errormodel import ErrorModel
 from calib.boresight.observations import AdjustOptions, build_observations
-from calib.survey.passplan import plan_site
+from calib.core import frames
 from calib.sim.simulate import SimResult, simulate
+from calib.survey.passplan import plan_site
 from drivers.hydrins.nav import NavRecord, status_words
 from drivers.zf.codec import Profile
 
@@ -30,17 +30,34 @@ def nav_records(sim: SimResult) -> list[NavRecord]:
     obs, true = sim.trajectory_observed, sim.trajectory_true
     lat, lon, h = obs.frame.to_geodetic(obs.p_lgf_m)
     v = np.gradient(true.p_lgf_m, true.t_gps_s, axis=0)
-    alg, sys_ = status_words(navigation=True, fine_alignment=True, gps_received=True,
-                             gps_valid=True, utc_detected=True, pps_detected=True)  # fmt: skip
+    alg, sys_ = status_words(
+        navigation=True,
+        fine_alignment=True,
+        gps_received=True,
+        gps_valid=True,
+        utc_detected=True,
+        pps_detected=True,
+    )
     out = []
     for i, t in enumerate(obs.t_gps_s):
         r, p, y = obs.rpy_rad[i]
-        out.append(NavRecord(
-            "nmea", gps_ns=int(frames.seconds_to_gps_ns(t)), lat_deg=float(lat[i]),
-            lon_deg=float(lon[i]), height_m=float(h[i]), roll_rad=float(r), pitch_rad=float(p),
-            heading_rad=float(y), v_north_m_s=float(v[i, 0]), v_east_m_s=float(v[i, 1]),
-            v_down_m_s=float(v[i, 2]), algorithm_status=alg, system_status=sys_,
-        ))  # fmt: skip
+        out.append(
+            NavRecord(
+                "nmea",
+                gps_ns=int(frames.seconds_to_gps_ns(t)),
+                lat_deg=float(lat[i]),
+                lon_deg=float(lon[i]),
+                height_m=float(h[i]),
+                roll_rad=float(r),
+                pitch_rad=float(p),
+                heading_rad=float(y),
+                v_north_m_s=float(v[i, 0]),
+                v_east_m_s=float(v[i, 1]),
+                v_down_m_s=float(v[i, 2]),
+                algorithm_status=alg,
+                system_status=sys_,
+            )
+        )
     return out
 
 
@@ -60,18 +77,29 @@ def profiles(sim: SimResult) -> list[Profile]:
         k = np.floor((pts.t_gps_s[sel] - l0) * rate).astype(np.int64)
         bounds = np.searchsorted(k, np.arange(n_prof + 1))
         for j in range(n_prof):
-            idx = sel[bounds[j]:bounds[j + 1]]
+            idx = sel[bounds[j] : bounds[j + 1]]
             if idx.size:
                 t = pts.t_gps_s[idx]
-                prof = Profile(counter, frames.seconds_to_gps_ns(t).astype(np.int64),
-                               pts.scan_angle_rad[idx], pts.range_m[idx],
-                               np.round(pts.intensity[idx] * 65535).astype(np.uint16),
-                               packets_received=1, packet_count=1)  # fmt: skip
+                prof = Profile(
+                    counter,
+                    frames.seconds_to_gps_ns(t).astype(np.int64),
+                    pts.scan_angle_rad[idx],
+                    pts.range_m[idx],
+                    np.round(pts.intensity[idx] * 65535).astype(np.uint16),
+                    packets_received=1,
+                    packet_count=1,
+                )
             else:
                 t_mid = l0 + (j + 0.5) / rate
-                prof = Profile(counter, np.array([frames.seconds_to_gps_ns(t_mid)], np.int64),
-                               np.array([np.pi]), np.array([np.nan]), np.zeros(1, np.uint16),
-                               packets_received=1, packet_count=1)  # fmt: skip
+                prof = Profile(
+                    counter,
+                    np.array([frames.seconds_to_gps_ns(t_mid)], np.int64),
+                    np.array([np.pi]),
+                    np.array([np.nan]),
+                    np.zeros(1, np.uint16),
+                    packets_received=1,
+                    packet_count=1,
+                )
             out.append(prof)
             counter += 1
     return out
@@ -82,15 +110,24 @@ def adjust_simulated(sim: SimResult) -> AdjustmentResult:
     with the site's sigmas and its Gauss–Markov correlation times."""
     site, pts = sim.site, sim.points
     sel = sim.target_index >= 0
-    obs = build_observations(sim.trajectory_observed, pts.t_gps_s[sel], pts.range_m[sel],
-                             pts.scan_angle_rad[sel], sim.target_index[sel], pts.pass_id[sel],
-                             [t.name for t in site.targets], site.sigma_range_m,
-                             site.sigma_scan_angle_rad, site.sigma_position_m,
-                             site.sigma_attitude_rad)  # fmt: skip
+    obs = build_observations(
+        sim.trajectory_observed,
+        pts.t_gps_s[sel],
+        pts.range_m[sel],
+        pts.scan_angle_rad[sel],
+        sim.target_index[sel],
+        pts.pass_id[sel],
+        [t.name for t in site.targets],
+        site.sigma_range_m,
+        site.sigma_scan_angle_rad,
+        site.sigma_position_m,
+        site.sigma_attitude_rad,
+    )
     rects = site.target_rectangles(site.frame())
     model = ErrorModel("gauss_markov", tuple(site.pos_correlation_time_s))
-    return adjust(obs, site.mount, [(r.normal, r.d) for r in rects],
-                  AdjustOptions(jackknife=False, error_model=model))
+    return adjust(
+        obs, site.mount, [(r.normal, r.d) for r in rects], AdjustOptions(jackknife=False, error_model=model)
+    )
 
 
 @dataclass
@@ -102,13 +139,19 @@ class SimulatedSurvey:
 
 
 def green_checks(g: Guidance, nav: NavRecord):
-    return prechecks(nav, {"state": "LOCKED", "last_edge_age_s": 0.4, "jitter_rms_us": 2.1},
-                     {"ins": {"latency_mean_ms": 12.0, "latency_p99_ms": 14.0, "pps_flag": True},
-                      "profiler": {"latency_mean_ms": 3.0, "latency_p99_ms": 4.5,
-                                   "pps_flag": True}},
-                     {"ins": (0.0, 30.0), "profiler": (0.0, 20.0)}, free_bytes=80 * 10**9,
-                     needed_bytes=10 * 10**9, mount_configured=True,
-                     n_targets=len(g.target_names))  # fmt: skip
+    return prechecks(
+        nav,
+        {"state": "LOCKED", "last_edge_age_s": 0.4, "jitter_rms_us": 2.1},
+        {
+            "ins": {"latency_mean_ms": 12.0, "latency_p99_ms": 14.0, "pps_flag": True},
+            "profiler": {"latency_mean_ms": 3.0, "latency_p99_ms": 4.5, "pps_flag": True},
+        },
+        {"ins": (0.0, 30.0), "profiler": (0.0, 20.0)},
+        free_bytes=80 * 10**9,
+        needed_bytes=10 * 10**9,
+        mount_configured=True,
+        n_targets=len(g.target_names),
+    )
 
 
 @functools.lru_cache(maxsize=2)
@@ -120,17 +163,23 @@ def run_survey(seed: int = 3, holdover_pass: int | None = None) -> SimulatedSurv
     last one (its records replayed 60 s after the end of the survey)."""
     sim = simulate(SCENARIO, seed)
     sc = sim.scenario
-    plan = plan_site(sim.site, track_down_m=-float(sc.mount.lever_arm_m[2]),
-                     safe_wall_distance_m=sc.safe_wall_distance_m,
-                     capture_margin_m=sc.capture_margin_m)  # fmt: skip
+    plan = plan_site(
+        sim.site,
+        track_down_m=-float(sc.mount.lever_arm_m[2]),
+        safe_wall_distance_m=sc.safe_wall_distance_m,
+        capture_margin_m=sc.capture_margin_m,
+    )
     # the scenario thins the profiler to 1/10 of its point rate (point_rate_scale 0.1): ~120
     # points on the 45° target per oblique pass instead of ~1200, so ask for 50 rather than 100
-    g = Guidance(sim.site, plan, scanner=sc.scanner,
-                 tolerances=AcceptanceTolerances(min_points_per_target=50))
+    g = Guidance(
+        sim.site, plan, scanner=sc.scanner, tolerances=AcceptanceTolerances(min_points_per_target=50)
+    )
     g.on_clock("LOCKED")
     g.refresh_prediction()
-    items = sorted([(r.gps_ns, 0, r) for r in nav_records(sim)]
-                   + [(int(p.gps_ns[-1]), 1, p) for p in profiles(sim)], key=lambda x: x[:2])
+    items = sorted(
+        [(r.gps_ns, 0, r) for r in nav_records(sim)] + [(int(p.gps_ns[-1]), 1, p) for p in profiles(sim)],
+        key=lambda x: x[:2],
+    )
     if holdover_pass is not None:
         l0, l1 = sim.truth["passes"][plan.by_id(holdover_pass).order - 1]["line_gps_s"]
         again = [it for it in items if l0 - 1 <= it[0] * 1e-9 <= l1 + 1]
@@ -155,8 +204,7 @@ def run_survey(seed: int = 3, holdover_pass: int | None = None) -> SimulatedSurv
         if not stages:
             stages.append(("start", g.message(checks)))
         for v in done:
-            stages.append((f"pass-{v.pass_id}-{'accepted' if v.accepted else 'rejected'}",
-                           g.message(checks)))  # fmt: skip
+            stages.append((f"pass-{v.pass_id}-{'accepted' if v.accepted else 'rejected'}", g.message(checks)))
         msg = g.message(checks)
         a = msg["active"]
         if a and a.get("state") == "capture":

@@ -10,8 +10,8 @@ from __future__ import annotations
 import asyncio
 import sys
 
-from acquire.status.mqtt import MqttPublisher, MqttSettings
 from acquire.status.bus import StatusBus
+from acquire.status.mqtt import MqttPublisher, MqttSettings
 
 
 async def main() -> None:

@@ -23,17 +23,22 @@ def payload(seq: int, n: int) -> bytes:
 
 def main() -> None:
     root, ledger, flush_s, rotate_bytes = sys.argv[1], sys.argv[2], float(sys.argv[3]), int(sys.argv[4])
-    w = SessionWriter(root, "killtest", SessionOptions(flush_s=flush_s, fsync_s=1.0,
-                                                       rotate_bytes=rotate_bytes, compression="lz4"))
+    w = SessionWriter(
+        root,
+        "killtest",
+        SessionOptions(flush_s=flush_s, fsync_s=1.0, rotate_bytes=rotate_bytes, compression="lz4"),
+    )
     sd = w.start()
     fd = os.open(ledger, os.O_WRONLY | os.O_CREAT | os.O_APPEND, 0o644)
     print(f"READY {sd}", flush=True)
     seq = 0
     while True:
         seq += 1
-        for topic, data in (("/ins/raw", payload(seq, 80 + seq % 50)),
-                            ("/lidar/raw", payload(seq, 1400)),
-                            ("/ins/nav", {"seq": seq, "roll_rad": seq * 1e-4})):
+        for topic, data in (
+            ("/ins/raw", payload(seq, 80 + seq % 50)),
+            ("/lidar/raw", payload(seq, 1400)),
+            ("/ins/nav", {"seq": seq, "roll_rad": seq * 1e-4}),
+        ):
             t = time.monotonic_ns()
             w.submit(topic, data, host_ns=t)
             os.write(fd, f"{topic} {seq} {t}\n".encode())

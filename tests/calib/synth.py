@@ -10,8 +10,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from calib.core import frames
 from calib.boresight.observations import Observations
+from calib.core import frames
 from calib.core.geometry import Rectangle  # noqa: F401  (re-exported for tests)
 from calib.core.georef import Mount, inverse_georeference
 from calib.core.trajectory import Trajectory
@@ -25,16 +25,21 @@ def montreal_planes(spread_m: float = 3.0) -> list[Rectangle]:
     east of the pass lines' closest approach), 5 m above the scanner (D = −5)."""
     az = np.radians(270.0)
     return [
-        Rectangle.from_orientation("T1", [-spread_m / 2, 15.0, -5.0], 1.23, 1.22,
-                                   np.radians(90.0), az),
-        Rectangle.from_orientation("T2", [spread_m / 2, 15.0, -5.0], 1.23, 0.76,
-                                   np.radians(45.0), az),
-    ]  # fmt: skip
+        Rectangle.from_orientation("T1", [-spread_m / 2, 15.0, -5.0], 1.23, 1.22, np.radians(90.0), az),
+        Rectangle.from_orientation("T2", [spread_m / 2, 15.0, -5.0], 1.23, 0.76, np.radians(45.0), az),
+    ]
 
 
-def pass_trajectory(heading_deg: float, t0: float, standoff_m: float = 15.0,
-                    length_m: float = 60.0, speed_mps: float = 2.0, rate_hz: float = 50.0,
-                    roll_amp_deg: float = 2.0, pitch_amp_deg: float = 1.0) -> Trajectory:  # fmt: skip
+def pass_trajectory(
+    heading_deg: float,
+    t0: float,
+    standoff_m: float = 15.0,
+    length_m: float = 60.0,
+    speed_mps: float = 2.0,
+    rate_hz: float = 50.0,
+    roll_amp_deg: float = 2.0,
+    pitch_amp_deg: float = 1.0,
+) -> Trajectory:
     """A straight pass whose closest approach to (0, 15, ·) is the standoff (wall along north at
     east = 15 m); waves in roll and pitch."""
     h = np.radians(heading_deg)
@@ -46,9 +51,14 @@ def pass_trajectory(heading_deg: float, t0: float, standoff_m: float = 15.0,
     s = (t - t0 - duration / 2) * speed_mps
     p = centre + s[:, None] * d
     tau = t - t0
-    rpy = np.stack([np.radians(roll_amp_deg) * np.sin(2 * np.pi * tau / 6.0),
-                    np.radians(pitch_amp_deg) * np.sin(2 * np.pi * tau / 8.0 + 1.0),
-                    np.full_like(tau, h % (2 * np.pi))], axis=1)  # fmt: skip
+    rpy = np.stack(
+        [
+            np.radians(roll_amp_deg) * np.sin(2 * np.pi * tau / 6.0),
+            np.radians(pitch_amp_deg) * np.sin(2 * np.pi * tau / 8.0 + 1.0),
+            np.full_like(tau, h % (2 * np.pi)),
+        ],
+        axis=1,
+    )
     return Trajectory(t, p, rpy, FRAME, max_gap_s=1.0)
 
 
@@ -74,13 +84,21 @@ def observations(
     planes: list[Rectangle],
     headings_deg=SIX_FOLD_DEG,
     points_per_plane_per_pass: int = 100,
-    sigmas=(0.02, 0.02, 0.03, np.radians(0.012), np.radians(0.012), np.radians(0.012),
-            0.003, np.radians(0.005)),
+    sigmas=(
+        0.02,
+        0.02,
+        0.03,
+        np.radians(0.012),
+        np.radians(0.012),
+        np.radians(0.012),
+        0.003,
+        np.radians(0.005),
+    ),
     noise: bool = True,
     seed: int = 0,
     max_range_m: float = 119.0,
     t_base_s: float = 1000.0,
-) -> tuple[Observations, list[tuple[np.ndarray, float]], list[Trajectory]]:  # fmt: skip
+) -> tuple[Observations, list[tuple[np.ndarray, float]], list[Trajectory]]:
     """Observations with independent per-point noise (the adjustment's own stochastic model),
     the true planes as (normal, d), and the pass trajectories."""
     rng = np.random.default_rng(seed)
@@ -91,8 +109,7 @@ def observations(
         traj = pass_trajectory(hdg, t0=t_base_s + 200.0 * k)
         trajs.append(traj)
         for j, rect in enumerate(planes):
-            uv = rng.uniform(-0.5, 0.5, (points_per_plane_per_pass, 2)) * [rect.width_m,
-                                                                          rect.height_m]
+            uv = rng.uniform(-0.5, 0.5, (points_per_plane_per_pass, 2)) * [rect.width_m, rect.height_m]
             p = rect.center_m + uv[:, :1] * rect.u_axis + uv[:, 1:] * rect.v_axis
             t = _sweep_time(traj, mount_true, p)
             keep = np.isfinite(t)
@@ -112,10 +129,15 @@ def observations(
         l = l + rng.standard_normal(l.shape) * sig
     n = t.size
     obs = Observations(
-        t_gps_s=t, l=l, sigma_l=np.broadcast_to(sig, (n, 8)).copy(), plane_index=plane_index,
-        pass_index=pass_index, plane_names=[r.name for r in planes],
-        pass_ids=list(range(1, len(headings_deg) + 1)), point_ids=np.arange(n),
+        t_gps_s=t,
+        l=l,
+        sigma_l=np.broadcast_to(sig, (n, 8)).copy(),
+        plane_index=plane_index,
+        pass_index=pass_index,
+        plane_names=[r.name for r in planes],
+        pass_ids=list(range(1, len(headings_deg) + 1)),
+        point_ids=np.arange(n),
         pass_headings_rad={k + 1: np.radians(h) for k, h in enumerate(headings_deg)},
-    )  # fmt: skip
+    )
     truth_planes = [(r.normal.copy(), r.d) for r in planes]
     return obs, truth_planes, trajs

@@ -9,11 +9,10 @@ import numpy as np
 import pytest
 from typer.testing import CliRunner
 
-from cli.app import app
 from calib.assess.c2c import c2c
-from calib.io.cloudio import read_cloud, write_cloud
 from calib.assess.history import get_result, record_result
-
+from calib.io.cloudio import read_cloud, write_cloud
+from cli.app import app
 from tests.calib.assess.test_history import make_bundle, make_result
 
 ENV = {"COLUMNS": "200", "MLS_HISTORY_DB": "/nonexistent/never-used.sqlite"}
@@ -39,8 +38,7 @@ def planes(tmp_path):
 
     ref, cmp_ = plane(0.0), plane(0.020)
     np.savetxt(tmp_path / "reference.xyz", ref, fmt="%.6f")
-    np.savetxt(tmp_path / "compared.txt", cmp_, fmt="%.6f", delimiter=",",
-               header="x,y,z", comments="")  # fmt: skip
+    np.savetxt(tmp_path / "compared.txt", cmp_, fmt="%.6f", delimiter=",", header="x,y,z", comments="")
     return tmp_path / "compared.txt", tmp_path / "reference.xyz"
 
 
@@ -64,13 +62,23 @@ def test_c2c_las_to_laz_with_signed_distances_matches_the_api(planes, tmp_path):
     compared, reference = planes
     las_in = write_cloud(tmp_path / "compared.las", read_cloud(compared))
     out = tmp_path / "out.laz"
-    res = run("calib", "c2c", las_in, reference, "--signed", "--toward-direction", "0,0,-1",
-              "--out", out, "--knn", 8)  # fmt: skip
+    res = run(
+        "calib",
+        "c2c",
+        las_in,
+        reference,
+        "--signed",
+        "--toward-direction",
+        "0,0,-1",
+        "--out",
+        out,
+        "--knn",
+        8,
+    )
     assert res.exit_code == 0, res.output
     las = read_cloud(out).las
     assert set(las.point_format.extra_dimension_names) == {"c2c_distance_m", "c2c_signed_distance_m"}
-    expected = c2c(read_cloud(las_in).xyz_m, read_cloud(reference).xyz_m, 8,
-                   orient_direction=[0, 0, -1])  # fmt: skip
+    expected = c2c(read_cloud(las_in).xyz_m, read_cloud(reference).xyz_m, 8, orient_direction=[0, 0, -1])
     np.testing.assert_array_equal(np.asarray(las["c2c_distance_m"]), expected.distance_m)
     np.testing.assert_array_equal(np.asarray(las["c2c_signed_distance_m"]), expected.signed_distance_m)
     assert float(table_row(res.output, "signed")[2]) == pytest.approx(-20.0, abs=0.3)
@@ -86,11 +94,14 @@ def test_c2c_reports_fallbacks_and_points_beyond_the_maximum(tmp_path):
     assert "1 points beyond --max-dist 1 m" in res.output
 
 
-@pytest.mark.parametrize("extra,message", [
-    (["--toward-point", "0,0,1"], "only apply with --signed"),
-    (["--signed", "--toward-direction", "0,1"], "expected three comma-separated numbers"),
-    (["--signed", "--toward-direction", "0,0,1", "--toward-point", "1,2,3"], "not both"),
-])  # fmt: skip
+@pytest.mark.parametrize(
+    "extra,message",
+    [
+        (["--toward-point", "0,0,1"], "only apply with --signed"),
+        (["--signed", "--toward-direction", "0,1"], "expected three comma-separated numbers"),
+        (["--signed", "--toward-direction", "0,0,1", "--toward-point", "1,2,3"], "not both"),
+    ],
+)
 def test_c2c_option_errors(planes, extra, message):
     res = run("calib", "c2c", *planes, *extra)
     assert res.exit_code == 2 and message in res.output
@@ -114,10 +125,14 @@ def history(tmp_path):
     b2 = make_bundle(tmp_path / "oct", gps_s=1_254_042_018.0, points="2,0,15,90,0.9\n")
     sig = [0.011, 0.0155563, 0.011]
     ids = [
-        record_result(make_result([0.208, 1.245, 0.149], [0.001, 0.012, 0.001], sig), b1, "survey-1", "A", db=db),
-        record_result(make_result([0.210, 1.685, 0.151], [0.001, 0.012, 0.001], sig), b2, "survey-1", "A", db=db),
+        record_result(
+            make_result([0.208, 1.245, 0.149], [0.001, 0.012, 0.001], sig), b1, "survey-1", "A", db=db
+        ),
+        record_result(
+            make_result([0.210, 1.685, 0.151], [0.001, 0.012, 0.001], sig), b2, "survey-1", "A", db=db
+        ),
         record_result(make_result([0.1, 0.5, 0.2], [0.001, 0.012, 0.001]), b1, "survey-2", "B", db=db),
-    ]  # fmt: skip
+    ]
     return db, ids
 
 
@@ -163,4 +178,3 @@ def test_compare_errors(history, tmp_path):
     assert res.exit_code == 2 and "no calibration #999" in res.output
     res = run("calib", "compare", "1", "nonsense", "--db", db)
     assert res.exit_code == 2 and "neither a result.json path nor a history id" in res.output
-

@@ -10,8 +10,8 @@ import re
 import pytest
 from typer.testing import CliRunner
 
-from cli.app import app
 from calib.assess.summary import fmt_length
+from cli.app import app
 
 ENV = {"COLUMNS": "200", "MLS_HISTORY_DB": "/nonexistent/never-used.sqlite"}
 
@@ -29,8 +29,18 @@ def table_row(output: str, label: str) -> list[str]:
 def calibrated(tmp_path_factory):
     d = tmp_path_factory.mktemp("cli")
     bundle, calib = d / "tower", d / "calib"
-    r = run("sim", "dataset", "--scenario", "tower", "--seed", 5, "--out", bundle,
-            "--set", "truth.boresight_deg=[1.0, 1.0, 1.0]")  # fmt: skip
+    r = run(
+        "sim",
+        "dataset",
+        "--scenario",
+        "tower",
+        "--seed",
+        5,
+        "--out",
+        bundle,
+        "--set",
+        "truth.boresight_deg=[1.0, 1.0, 1.0]",
+    )
     assert r.exit_code == 0, r.output
     r = run("calib", "run", bundle, "--out", calib, "--no-history", "--no-plots")
     assert r.exit_code == 0, r.output
@@ -41,8 +51,7 @@ def calibrated(tmp_path_factory):
 def test_assess_prints_tables_and_writes_the_report(calibrated, tmp_path):
     bundle, result = calibrated
     out = tmp_path / "assess"
-    r = run("calib", "assess", bundle, "--result", result, "--out", out, "--pairs", "1:2",
-            "--knn", 12)  # fmt: skip
+    r = run("calib", "assess", bundle, "--result", result, "--out", out, "--pairs", "1:2", "--knn", 12)
     assert r.exit_code == 0, r.output
     assert "passes 1 (215°) ↔ 2 (35°): median C2C (mm), local LS planes k = 12" in r.output
     v3 = table_row(r.output, "V3")  # surface, height, returns, before, after, ×, …

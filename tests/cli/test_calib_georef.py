@@ -11,10 +11,10 @@ import pytest
 from pyproj import Transformer
 from typer.testing import CliRunner
 
-from cli.app import app
 from calib.core import frames
-from calib.io.bundle import read_bundle, read_truth
 from calib.core.georef import georeference_poses
+from calib.io.bundle import read_bundle, read_truth
+from cli.app import app
 
 runner = CliRunner()
 WIDE = {"COLUMNS": "250"}  # rich folds long paths at the default 80 columns
@@ -31,8 +31,7 @@ def truth_boresight_deg(bundle_dir):
 
 
 def georef(bundle_dir, out_dir, *args):
-    return runner.invoke(app, ["calib", "georef", str(bundle_dir), "--out", str(out_dir), *args],
-                         env=WIDE)  # fmt: skip
+    return runner.invoke(app, ["calib", "georef", str(bundle_dir), "--out", str(out_dir), *args], env=WIDE)
 
 
 def expected_lgf(bundle, pass_id, boresight_deg):
@@ -45,8 +44,9 @@ def expected_lgf(bundle, pass_id, boresight_deg):
 
 def test_utm_output_matches_georeference_and_pyproj(tmp_path, example_bundle):
     bs = truth_boresight_deg(example_bundle)
-    result = georef(example_bundle, tmp_path, "--boresight-deg", ",".join(map(str, bs)),
-                    "--chunk-points", "1000")  # several chunks per pass
+    result = georef(
+        example_bundle, tmp_path, "--boresight-deg", ",".join(map(str, bs)), "--chunk-points", "1000"
+    )  # several chunks per pass
     assert result.exit_code == 0, result.output
     assert "pass-1.laz" in result.output and "EPSG:32618" in result.output
     bundle = read_bundle(example_bundle)
@@ -72,8 +72,7 @@ def test_utm_output_matches_georeference_and_pyproj(tmp_path, example_bundle):
         assert np.all(las.return_number == 1) and np.all(las.number_of_returns == 1)
 
 
-def test_lgf_output_is_enu_and_true_boresight_puts_targets_on_their_planes(tmp_path,
-                                                                            example_bundle):
+def test_lgf_output_is_enu_and_true_boresight_puts_targets_on_their_planes(tmp_path, example_bundle):
     bundle = read_bundle(example_bundle)
     rects = {t.name: t.rectangle(bundle.frame) for t in bundle.site.targets}
 
@@ -83,8 +82,7 @@ def test_lgf_output_is_enu_and_true_boresight_puts_targets_on_their_planes(tmp_p
         worst = {}
         for pass_id in (1, 2):
             las = laspy.read(out_dir / f"pass-{pass_id}.laz")
-            assert "LOCAL_CS" in las.header.vlrs[0].string and "marine-mls LGF" in \
-                las.header.vlrs[0].string  # fmt: skip
+            assert "LOCAL_CS" in las.header.vlrs[0].string and "marine-mls LGF" in las.header.vlrs[0].string
             p_ned = np.stack([las.y, las.x, -np.asarray(las.z)], axis=1)  # x east, y north, z up
             for name, rect in rects.items():
                 d = rect.signed_distance(p_ned)
@@ -101,8 +99,9 @@ def test_lgf_output_is_enu_and_true_boresight_puts_targets_on_their_planes(tmp_p
 
 def test_lgf_coordinates_equal_the_ned_points(tmp_path, example_bundle):
     bs = truth_boresight_deg(example_bundle)
-    result = georef(example_bundle, tmp_path, "--crs", "lgf", "--las",
-                    "--boresight-deg", ",".join(map(str, bs)))  # fmt: skip
+    result = georef(
+        example_bundle, tmp_path, "--crs", "lgf", "--las", "--boresight-deg", ",".join(map(str, bs))
+    )
     assert result.exit_code == 0, result.output
     las = laspy.read(tmp_path / "pass-2.las")
     assert not las.header.are_points_compressed
@@ -149,12 +148,15 @@ def test_uncovered_points_stop_unless_skipped(tmp_path, example_bundle):
     assert 0 < n2 < int(np.sum(read_bundle(example_bundle).points.pass_id == 2))
 
 
-@pytest.mark.parametrize("args, code, message", [
-    (["--boresight-deg", "0.2,1.2"], 2, "expected three numbers 'roll,pitch,yaw'"),
-    (["--boresight-deg", "a,b,c"], 2, "expected three numbers"),
-    (["--crs", "EPSG:999999"], 1, "not a CRS pyproj knows"),
-    (["--crs", "EPSG:32618+5703"], 1, "its heights need a geoid model that PROJ does not have"),
-])  # fmt: skip
+@pytest.mark.parametrize(
+    "args, code, message",
+    [
+        (["--boresight-deg", "0.2,1.2"], 2, "expected three numbers 'roll,pitch,yaw'"),
+        (["--boresight-deg", "a,b,c"], 2, "expected three numbers"),
+        (["--crs", "EPSG:999999"], 1, "not a CRS pyproj knows"),
+        (["--crs", "EPSG:32618+5703"], 1, "its heights need a geoid model that PROJ does not have"),
+    ],
+)
 def test_bad_options(tmp_path, example_bundle, args, code, message):
     result = georef(example_bundle, tmp_path, *args)
     assert result.exit_code == code
@@ -176,8 +178,7 @@ def test_help_explains_the_commands():
     result = runner.invoke(app, ["calib", "georef", "--help"], env=WIDE)
     assert result.exit_code == 0
     text = plain(result.output)
-    for words in ("LAS 1.4", "--crs", "--boresight-deg", "--out", "point_source_id",
-                  "canonical convention"):  # fmt: skip
+    for words in ("LAS 1.4", "--crs", "--boresight-deg", "--out", "point_source_id", "canonical convention"):
         assert words in text
     result = runner.invoke(app, ["demo", "--help"], env=WIDE)
     text = plain(result.output)
@@ -196,6 +197,5 @@ def test_example_bundle_is_small_and_what_its_script_makes(tmp_path, example_bun
     np.testing.assert_array_equal(fresh.points.t_gps_s, shipped.points.t_gps_s)
     np.testing.assert_allclose(fresh.points.range_m, shipped.points.range_m, atol=1e-12)
     np.testing.assert_array_equal(fresh.trajectory.t_gps_s, shipped.trajectory.t_gps_s)
-    assert (tmp_path / "mini" / "site.yaml").read_text() == (example_bundle / "site.yaml") \
-        .read_text()  # fmt: skip
+    assert (tmp_path / "mini" / "site.yaml").read_text() == (example_bundle / "site.yaml").read_text()
     assert frames.gps_ns_to_utc(frames.seconds_to_gps_ns(shipped.points.t_gps_s[0])).year == 2021

@@ -13,19 +13,22 @@ import numpy as np
 import pytest
 from typer.testing import CliRunner
 
-from cli.app import app
-from calib.io.bundle import read_truth
 from calib.assess.history import list_results
 from calib.boresight.pipeline import run_bundle
+from calib.io.bundle import read_truth
 from calib.sim.simulate import simulate
+from cli.app import app
 
 runner = CliRunner()
 WIDE = {"COLUMNS": "250"}
 ANGLES = ("roll", "pitch", "yaw")
 #: First-order Gauss–Markov POS errors, attitude σ 0.012° with τ = 30 s, position as
 #: the scenario gives (2 cm, τ = 20 s).
-GAUSS_MARKOV = ("noise.pos.model=gauss_markov", "noise.pos.sigma_attitude_deg=[0.012,0.012,0.012]",
-                "noise.pos.tau_attitude_s=[30,30,30]")  # fmt: skip
+GAUSS_MARKOV = (
+    "noise.pos.model=gauss_markov",
+    "noise.pos.sigma_attitude_deg=[0.012,0.012,0.012]",
+    "noise.pos.tau_attitude_s=[30,30,30]",
+)
 
 
 def sim_dataset(out, seed=0, *sets):
@@ -82,22 +85,37 @@ def test_realistic_sigma_covers_the_truth_through_the_files(tmp_path):
     report = (tmp_path / "s0" / "calib" / "report.md").read_text()
     ratio = doc["sigma_realistic_over_formal"]
     assert min(ratio.values()) > 5
-    assert (f"optimistic by a factor of {ratio['roll']:.1f} for roll, {ratio['pitch']:.1f} for "
-            f"pitch and {ratio['yaw']:.1f} for yaw") in report  # fmt: skip
+    assert (
+        f"optimistic by a factor of {ratio['roll']:.1f} for roll, {ratio['pitch']:.1f} for "
+        f"pitch and {ratio['yaw']:.1f} for yaw"
+    ) in report
     assert [r.mount_id for r in list_results(db=db)] == ["mc"]
 
 
 def test_run_writes_the_result_report_and_plots_and_records_history(tmp_path, bundle):
     db = tmp_path / "h.sqlite"
     out = tmp_path / "out"
-    res = calib_run(bundle, "--out", str(out), "--db", str(db), "--vessel", "test-boat",
-                    "--mount", "m1")  # fmt: skip
+    res = calib_run(bundle, "--out", str(out), "--db", str(db), "--vessel", "test-boat", "--mount", "m1")
     assert res.exit_code == 0, res.output
     doc = json.loads((out / "result.json").read_text())
-    for key in ("boresight_deg", "sigma_deg", "sigma_scaled_deg", "sigma_realistic_deg",
-                "correlation", "sigma0_squared", "chi2_test", "iterations", "converged",
-                "planes", "passes", "n_points", "n_outliers", "runtime_s", "apriori_deg",
-                "software_version"):  # fmt: skip
+    for key in (
+        "boresight_deg",
+        "sigma_deg",
+        "sigma_scaled_deg",
+        "sigma_realistic_deg",
+        "correlation",
+        "sigma0_squared",
+        "chi2_test",
+        "iterations",
+        "converged",
+        "planes",
+        "passes",
+        "n_points",
+        "n_outliers",
+        "runtime_s",
+        "apriori_deg",
+        "software_version",
+    ):
         assert key in doc, key
     # the terse table: one row per angle with estimate, σ formal and σ realistic
     for a in ANGLES:
@@ -108,8 +126,13 @@ def test_run_writes_the_result_report_and_plots_and_records_history(tmp_path, bu
         assert formal == pytest.approx(doc["sigma_deg"][a], abs=5e-5)
         assert real == pytest.approx(doc["sigma_realistic_deg"][a], abs=5e-5)
     pngs = sorted(p.name for p in out.glob("*.png"))
-    assert pngs == ["residuals_by_pass.png", "residuals_by_plane.png", "residuals_time.png",
-                    "target_T1.png", "target_T2.png"]  # fmt: skip
+    assert pngs == [
+        "residuals_by_pass.png",
+        "residuals_by_plane.png",
+        "residuals_time.png",
+        "target_T1.png",
+        "target_T2.png",
+    ]
     assert all((out / p).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" for p in pngs)
     assert "![target_T2](target_T2.png)" in (out / "report.md").read_text()
     recs = list_results(db=db)
@@ -131,19 +154,24 @@ def test_a_target_missing_from_one_pass_warns_and_the_run_continues(tmp_path):
     assert res.exit_code == 0, res.output
     assert "warning: target T2 is missing from pass 3" in res.output
     doc = json.loads((b / "calib" / "result.json").read_text())
-    assert doc["extraction"]["points_per_pass"]["3"] == {"T1": doc["passes"][2]["n_points"],
-                                                         "T2": 0}  # fmt: skip
+    assert doc["extraction"]["points_per_pass"]["3"] == {"T1": doc["passes"][2]["n_points"], "T2": 0}
 
 
-@pytest.mark.parametrize("sets,pattern", [
-    (("site.passes=[{id: 1, relative_heading_deg: 0}, {id: 2, relative_heading_deg: 180}]",),
-     r"boresight pitch and yaw are not observable with passes 1 \(0°\), 2 \(180°\).*for pitch "
-     r"sail a side-looking reciprocal pair 45°/225° or 315°/135°; for yaw sail a crossing pair"),
-    (("scene.targets.1.size_m=[0.08, 0.08]",),
-     r"target\(s\) with fewer than 10 points: T2 \(0 points\)"),
-    (("scene.targets=[{name: T1, along_m: -1.75, out_m: 0.03, up_m: 5.0, size_m: [1.23, 1.22]}]",),
-     r"only one target \(T1\) has points"),
-])  # fmt: skip
+@pytest.mark.parametrize(
+    "sets,pattern",
+    [
+        (
+            ("site.passes=[{id: 1, relative_heading_deg: 0}, {id: 2, relative_heading_deg: 180}]",),
+            r"boresight pitch and yaw are not observable with passes 1 \(0°\), 2 \(180°\).*for pitch "
+            r"sail a side-looking reciprocal pair 45°/225° or 315°/135°; for yaw sail a crossing pair",
+        ),
+        (("scene.targets.1.size_m=[0.08, 0.08]",), r"target\(s\) with fewer than 10 points: T2 \(0 points\)"),
+        (
+            ("scene.targets=[{name: T1, along_m: -1.75, out_m: 0.03, up_m: 5.0, size_m: [1.23, 1.22]}]",),
+            r"only one target \(T1\) has points",
+        ),
+    ],
+)
 def test_adjustment_errors_are_one_clear_line(tmp_path, sets, pattern):
     b = sim_dataset(tmp_path / "b", 0, *sets)
     line = one_line_error(calib_run(b, "--no-history"))
@@ -180,15 +208,18 @@ def test_bad_times_and_an_uncovering_trajectory_are_one_clear_line(tmp_path, bun
     assert "the trajectory does not cover the points" in line and "pass 6:" in line
 
 
-@pytest.mark.parametrize("args,code,pattern", [
-    (["--apriori-deg", "1,2"], 2, r"--apriori-deg: got '1,2', expected three numbers"),
-    (["--estimate", "scan_angle_offset"], 2, r"scan_angle_offset cannot be estimated"),
-    (["--estimate", "lever_arm_z"], 2, r"unknown extra unknown\(s\) lever_arm_z"),
-    (["--error-model", "pink"], 2, r"error model 'pink': expected one of gauss_markov"),
-    (["--subsample", "-0.1"], 2, r"--subsample -0.1: expected a positive voxel size"),
-    (["--extraction", "manual"], 2, r"extraction mode 'manual'"),
-    (["--correlation-time-s", "0"], 2, r"--correlation-time-s 0.0: expected a positive"),
-])  # fmt: skip
+@pytest.mark.parametrize(
+    "args,code,pattern",
+    [
+        (["--apriori-deg", "1,2"], 2, r"--apriori-deg: got '1,2', expected three numbers"),
+        (["--estimate", "scan_angle_offset"], 2, r"scan_angle_offset cannot be estimated"),
+        (["--estimate", "lever_arm_z"], 2, r"unknown extra unknown\(s\) lever_arm_z"),
+        (["--error-model", "pink"], 2, r"error model 'pink': expected one of gauss_markov"),
+        (["--subsample", "-0.1"], 2, r"--subsample -0.1: expected a positive voxel size"),
+        (["--extraction", "manual"], 2, r"extraction mode 'manual'"),
+        (["--correlation-time-s", "0"], 2, r"--correlation-time-s 0.0: expected a positive"),
+    ],
+)
 def test_bad_options_are_one_clear_line(bundle, args, code, pattern):
     line = one_line_error(calib_run(bundle, *args), code)
     assert re.search(pattern, line), line
@@ -214,9 +245,18 @@ def test_a_session_is_exported_then_calibrated(tmp_path, monkeypatch, bundle):
     def fake_export(src, dst, options=None, progress=None):
         calls.append((Path(src), Path(dst)))
         shutil.copytree(bundle, dst, ignore=shutil.ignore_patterns("calib"))
-        return ExportResult(bundle=Path(dst), epochs=100, epochs_from_clock=0, points=1000,
-                            points_per_pass={1: 1000}, returns_outside_passes=0, packets=10,
-                            packets_unsynced=0, pass_source="events", passes=[])  # fmt: skip
+        return ExportResult(
+            bundle=Path(dst),
+            epochs=100,
+            epochs_from_clock=0,
+            points=1000,
+            points_per_pass={1: 1000},
+            returns_outside_passes=0,
+            packets=10,
+            packets_unsynced=0,
+            pass_source="events",
+            passes=[],
+        )
 
     monkeypatch.setattr(acquire.jobs.export, "export_session", fake_export)
     res = calib_run(session, "--no-history", "--no-plots")

@@ -19,27 +19,71 @@ def _json_lines(output: str) -> list[dict]:
 
 
 def test_stdbin_json_has_the_native_field_names():
-    res = runner.invoke(app, ["decode", str(real_file("ixblue-stdbin", "log_STDBIN_V2.log")), "--format", "stdbin", "--json"])
+    res = runner.invoke(
+        app, ["decode", str(real_file("ixblue-stdbin", "log_STDBIN_V2.log")), "--format", "stdbin", "--json"]
+    )
     assert res.exit_code == 0, res.output
     (rec,) = _json_lines(res.stdout)
-    for key in ("protocol_version", "counter", "validity_time_100us", "heading_deg", "roll_deg", "pitch_deg",
-                "latitude_deg", "longitude_deg", "altitude_m", "system_date", "ins_algorithm_status",
-                "ins_system_status", "ins_user_status", "utc_detected", "pps_detected"):  # fmt: skip
+    for key in (
+        "protocol_version",
+        "counter",
+        "validity_time_100us",
+        "heading_deg",
+        "roll_deg",
+        "pitch_deg",
+        "latitude_deg",
+        "longitude_deg",
+        "altitude_m",
+        "system_date",
+        "ins_algorithm_status",
+        "ins_system_status",
+        "ins_user_status",
+        "utc_detected",
+        "pps_detected",
+    ):
         assert key in rec, key
-    assert rec["system_date"] == {"day": 1, "month": 1, "year": 2006} and rec["validity_time_100us"] == 9215311
+    assert (
+        rec["system_date"] == {"day": 1, "month": 1, "year": 2006} and rec["validity_time_100us"] == 9215311
+    )
     assert abs(rec["heading_deg"] - 209.982) < 1e-4
     assert "summary: 1 records; 286 bytes; 0 rejected" in res.stderr
 
 
 def test_pcapng_summary_and_timing():
-    res = runner.invoke(app, ["decode", str(real_file("ixblue-stdbin", "stdbin_V5_2Hz.pcapng")), "-f", "pcapng", "--payload", "stdbin", "--port", "8200", "--timing"])
+    res = runner.invoke(
+        app,
+        [
+            "decode",
+            str(real_file("ixblue-stdbin", "stdbin_V5_2Hz.pcapng")),
+            "-f",
+            "pcapng",
+            "--payload",
+            "stdbin",
+            "--port",
+            "8200",
+            "--timing",
+        ],
+    )
     assert res.exit_code == 0, res.output
-    assert "summary: 40 records; 15680 bytes; 0 rejected; capture: 40 packets, 40 UDP datagrams decoded" in res.stdout
+    assert (
+        "summary: 40 records; 15680 bytes; 0 rejected; capture: 40 packets, 40 UDP datagrams decoded"
+        in res.stdout
+    )
     assert "drift_ppm" in res.stdout and "-38.1" in res.stdout
 
 
 def test_nmea_nav_records_in_degrees_at_the_edge():
-    res = runner.invoke(app, ["decode", str(real_file("openrvdas-nbp1406", "NBP1406_seap-2014-08-01")), "-f", "nmea", "--nav", "--json"])
+    res = runner.invoke(
+        app,
+        [
+            "decode",
+            str(real_file("openrvdas-nbp1406", "NBP1406_seap-2014-08-01")),
+            "-f",
+            "nmea",
+            "--nav",
+            "--json",
+        ],
+    )
     assert res.exit_code == 0, res.output
     recs = _json_lines(res.stdout)
     assert len(recs) > 700 and recs[0]["type"] == "nav" and recs[0]["date_source"] == "zda"
@@ -47,7 +91,9 @@ def test_nmea_nav_records_in_degrees_at_the_edge():
 
 
 def test_zfp_dump_and_rejections_reported(tmp_path):
-    dgs = encode_profile(1, 10**18, 1000, 0, 100, np.arange(1, 501, dtype=np.uint32), np.zeros(500, np.uint16))
+    dgs = encode_profile(
+        1, 10**18, 1000, 0, 100, np.arange(1, 501, dtype=np.uint32), np.zeros(500, np.uint16)
+    )
     bad = bytearray(dgs[1])
     bad[60] ^= 0xFF
     path = tmp_path / "scan.zfp"

@@ -7,11 +7,11 @@ import time
 
 from typer.testing import CliRunner
 
-from cli.app import app
-from acquire.timing.clock import ClockState, GpsEstimate
 from acquire.log.recover import SegmentScan, scan_segment, segment_paths
 from acquire.log.session import SessionOptions
 from acquire.log.sessionlog import SessionWriter
+from acquire.timing.clock import ClockState, GpsEstimate
+from cli.app import app
 
 NS = 1_000_000_000
 GPS0 = 1_400_000_000 * NS
@@ -25,8 +25,7 @@ class Clock:
 def _session(tmp_path):
     """Two segments; INS at 100 Hz with a 3 s hole and 5 lost sequence numbers; the second
     segment is torn in its last chunk (as a crash leaves it)."""
-    w = SessionWriter(tmp_path, "survey-1", SessionOptions(flush_s=0.05, compression="none"),
-                      clock=Clock())  # fmt: skip
+    w = SessionWriter(tmp_path, "survey-1", SessionOptions(flush_s=0.05, compression="none"), clock=Clock())
     sd = w.start()
     t = 0
     for i in range(300):
@@ -45,8 +44,9 @@ def _session(tmp_path):
     w.close()
     last = segment_paths(sd)[-1]
     scan = SegmentScan(last, 0)
-    end_of_last_chunk = max(scan.good_bytes for rec in scan_segment(last, scan)
-                            if type(rec).__name__ == "Message")  # fmt: skip
+    end_of_last_chunk = max(
+        scan.good_bytes for rec in scan_segment(last, scan) if type(rec).__name__ == "Message"
+    )
     # the footer, the summary and the last 20 bytes of the last chunk are gone
     last.write_bytes(last.read_bytes()[: end_of_last_chunk - 20])
     return sd

@@ -24,10 +24,33 @@ pytestmark = [pytest.mark.integration, pytest.mark.xdist_group("sim_devices_live
 
 def start_cli(run_dir: Path, *extra: str) -> subprocess.Popen:
     sets = [a for s in SHORT_PASSES for a in ("--set", s)]
-    cmd = [sys.executable, "-m", "cli.app", "sim", "devices", "-s", "montreal", *sets, "--start", "2.5",
-           "--duration", "60", "--run-dir", str(run_dir), "--can-port", str(free_udp_port()), *extra]  # fmt: skip
-    return subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True,
-                            env={**os.environ, "COLUMNS": "200"})  # fmt: skip
+    cmd = [
+        sys.executable,
+        "-m",
+        "cli.app",
+        "sim",
+        "devices",
+        "-s",
+        "montreal",
+        *sets,
+        "--start",
+        "2.5",
+        "--duration",
+        "60",
+        "--run-dir",
+        str(run_dir),
+        "--can-port",
+        str(free_udp_port()),
+        *extra,
+    ]
+    return subprocess.Popen(
+        cmd,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        start_new_session=True,
+        env={**os.environ, "COLUMNS": "200"},
+    )
 
 
 def wait_running(proc: subprocess.Popen, run_dir: Path, timeout_s: float = 60.0) -> dict:
@@ -91,7 +114,9 @@ def test_devices_say_where_they_are_write_a_valid_config_and_stop_on_ctrl_c(tmp_
     assert wait_gone(info["processes"].values()) == []
     assert not link.exists() and not link.is_symlink()
     stats = {p.stem: json.loads(p.read_text()) for p in (run_dir / "stats").glob("*.json")}
-    assert {n: s["status"] for n, s in stats.items()} == dict.fromkeys(("ins", "profiler", "pps", "can"), "stopped")
+    assert {n: s["status"] for n, s in stats.items()} == dict.fromkeys(
+        ("ins", "profiler", "pps", "can"), "stopped"
+    )
 
 
 def test_sigterm_stops_the_emulators(tmp_path):
@@ -118,23 +143,46 @@ def test_kill_9_of_the_command_takes_the_emulators_with_it(tmp_path):
 @pytest.mark.parametrize(
     "faults, args, message",
     [
-        ("faults:\n  - {at_s: 1, kind: udp_loss, duration_s: 1}\n", (),
-         "faults.yaml:2:5: faults[0]: a udp_loss fault needs 'device' (one of profiler, pps)"),
-        ("faults:\n  - {at_s: 99, kind: pps_loss}\n", ("--duration", "2"),
-         "faults[0].at_s: got 99, expected < 2 (the run window's length in scenario seconds)"),
+        (
+            "faults:\n  - {at_s: 1, kind: udp_loss, duration_s: 1}\n",
+            (),
+            "faults.yaml:2:5: faults[0]: a udp_loss fault needs 'device' (one of profiler, pps)",
+        ),
+        (
+            "faults:\n  - {at_s: 99, kind: pps_loss}\n",
+            ("--duration", "2"),
+            "faults[0].at_s: got 99, expected < 2 (the run window's length in scenario seconds)",
+        ),
         (None, ("--start", "pass:7"), "start 'pass:7': expected pass:N with N one of [1, 2, 3, 4, 5, 6]"),
-        (None, ("--ins-rate", "3"), "INS rate 3 Hz: expected a rate whose period is a whole number of nanoseconds"),
+        (
+            None,
+            ("--ins-rate", "3"),
+            "INS rate 3 Hz: expected a rate whose period is a whole number of nanoseconds",
+        ),
     ],
-)  # fmt: skip
+)
 def test_bad_input_exits_2_with_a_located_message(tmp_path, faults, args, message):
     extra = list(args)
     if faults is not None:
         (tmp_path / "faults.yaml").write_text(faults)
         extra += ["--faults", str(tmp_path / "faults.yaml")]
     sets = [a for s in SHORT_PASSES for a in ("--set", s)]
-    cmd = [sys.executable, "-m", "cli.app", "sim", "devices", "-s", "montreal", *sets, "--run-dir",
-           str(tmp_path / "r"), *extra]  # fmt: skip
-    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=60, env={**os.environ, "COLUMNS": "300"})
+    cmd = [
+        sys.executable,
+        "-m",
+        "cli.app",
+        "sim",
+        "devices",
+        "-s",
+        "montreal",
+        *sets,
+        "--run-dir",
+        str(tmp_path / "r"),
+        *extra,
+    ]
+    proc = subprocess.run(
+        cmd, capture_output=True, text=True, timeout=60, env={**os.environ, "COLUMNS": "300"}
+    )
     assert proc.returncode == 2, proc.stdout + proc.stderr
     assert message in " ".join(proc.stdout.split())
     assert not (tmp_path / "r" / "devices.json").exists()
@@ -148,9 +196,29 @@ def test_point_rate_scale_thins_the_profiler_to_that_fraction_of_its_points(tmp_
     points, infos = {}, {}
     for scale in ("1.0", "0.1"):
         run_dir = tmp_path / f"run-{scale}"
-        cmd = [sys.executable, "-m", "cli.app", "sim", "devices", "-s", "montreal", *sets, "--start", "2.5",
-               "--duration", "2", "--devices", "profiler", "--point-rate-scale", scale, "--run-dir", str(run_dir)]  # fmt: skip
-        proc = subprocess.run(cmd, capture_output=True, text=True, timeout=180, env={**os.environ, "COLUMNS": "200"})
+        cmd = [
+            sys.executable,
+            "-m",
+            "cli.app",
+            "sim",
+            "devices",
+            "-s",
+            "montreal",
+            *sets,
+            "--start",
+            "2.5",
+            "--duration",
+            "2",
+            "--devices",
+            "profiler",
+            "--point-rate-scale",
+            scale,
+            "--run-dir",
+            str(run_dir),
+        ]
+        proc = subprocess.run(
+            cmd, capture_output=True, text=True, timeout=180, env={**os.environ, "COLUMNS": "200"}
+        )
         assert proc.returncode == 0, proc.stdout + proc.stderr
         info = json.loads((run_dir / "devices.json").read_text())["devices"]["profiler"]
         result = json.loads((run_dir / "stats" / "profiler.json").read_text())

@@ -28,7 +28,11 @@ def test_event_marker_encoding():
     assert data == bytes([0xE1, 1, 3, 0, 17, 0, 0, 0])
     frame = CanFrame(EVENT_MARKER_ID, data, 123, 0.0)
     assert decode_event_marker(frame) == EventMarker("pass_start", 3, 17, 123)
-    for bad, msg in [(data[:7], "7 data bytes"), (b"\x00" + data[1:], "format byte"), (data[:1] + b"\x09" + data[2:], "kind code")]:
+    for bad, msg in [
+        (data[:7], "7 data bytes"),
+        (b"\x00" + data[1:], "format byte"),
+        (data[:1] + b"\x09" + data[2:], "kind code"),
+    ]:
         with pytest.raises(DriverError, match=msg):
             decode_event_marker(CanFrame(EVENT_MARKER_ID, bad, 0, 0.0))
     with pytest.raises(DriverError, match="kind 'start'"):
@@ -64,7 +68,9 @@ def _exchange(rx_config: dict, tx_config: dict):
 
 
 def test_virtual_bus_frames_are_stamped_and_decoded_per_arbitration_id():
-    before, frames, stats = _exchange({"interface": "virtual", "channel": "mls-test"}, {"interface": "virtual", "channel": "mls-test"})
+    before, frames, stats = _exchange(
+        {"interface": "virtual", "channel": "mls-test"}, {"interface": "virtual", "channel": "mls-test"}
+    )
     start, other, broken, end = frames
     assert start.decoded == EventMarker("pass_start", 2, 1, start.host_ns)
     assert end.decoded.kind == "pass_end" and end.decoded.sequence == 2
@@ -79,7 +85,9 @@ def test_udp_multicast_bus_between_two_buses_on_loopback():
     try:
         import msgpack  # noqa: F401
     except ImportError:
-        pytest.fail("python-can's udp_multicast interface needs msgpack: add python-can[multicast] to the dependencies")
+        pytest.fail(
+            "python-can's udp_multicast interface needs msgpack: add python-can[multicast] to the dependencies"
+        )
     cfg = {"interface": "udp_multicast", "channel": "239.74.163.2", "port": 43117}
     _, frames, stats = _exchange(cfg, cfg)
     assert [f.decoded.kind if f.decoded else None for f in frames] == ["pass_start", None, None, "pass_end"]
@@ -91,7 +99,9 @@ def test_multicast_socket_is_pinned_to_loopback():
     rx = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
     rx.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
     rx.bind(("", port))
-    rx.setsockopt(socket.IPPROTO_IP, socket.IP_ADD_MEMBERSHIP, socket.inet_aton(group) + socket.inet_aton("0.0.0.0"))
+    rx.setsockopt(
+        socket.IPPROTO_IP, socket.IP_ADD_MEMBERSHIP, socket.inet_aton(group) + socket.inet_aton("0.0.0.0")
+    )
     pin_multicast_to_loopback(rx, group)
     assert rx.getsockopt(socket.IPPROTO_IP, socket.IP_MULTICAST_IF, 4) == socket.inet_aton("127.0.0.1")
     tx = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)

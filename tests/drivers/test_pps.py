@@ -59,7 +59,9 @@ def test_duplicates_are_dropped_and_counted():
     lab.add_edge(edge(10.2, 2))  # a glitch 0.2 s after the pulse
     (e,) = lab.add_time(50, int(10.1 * S))
     assert e.sequence == 1
-    assert lab.add_time(50, int(10.3 * S)) == []  # a second message for the same second (e.g. ZDA after TIME__)
+    assert (
+        lab.add_time(50, int(10.3 * S)) == []
+    )  # a second message for the same second (e.g. ZDA after TIME__)
     assert lab.stats.events["duplicate_edge"] == 2
     lab.add_edge(edge(11.0, 3))
     assert lab.add_time(49, int(11.1 * S)) == []  # going back in time
@@ -101,7 +103,9 @@ def test_pps_fetch_ioctl_number_and_struct_layout():
     struct.pack_into("=i", kernel, 40, 0x1011)
     f = unpack_pps_fdata(kernel)
     assert (f.assert_sequence, f.clear_sequence, f.current_mode) == (42, 41, 0x1011)
-    assert f.assert_realtime_ns == 1_700_000_000_123_456_789 and f.clear_realtime_ns == 1_700_000_000_623_456_789
+    assert (
+        f.assert_realtime_ns == 1_700_000_000_123_456_789 and f.clear_realtime_ns == 1_700_000_000_623_456_789
+    )
 
 
 def test_kernel_source_turns_fetches_into_monotonic_edges(tmp_path):

@@ -29,16 +29,18 @@ from drivers.can import (
     parse_can_frame,
 )
 from drivers.capture.files import split_stamped_line
+from drivers.capture.pcapng import CaptureReader, PcapError, udp_datagrams
 from drivers.hydrins.nmea_decode import NmeaDecoder, NmeaNavAssembler
 from drivers.hydrins.stdbin_decode import StdbinDecoder, StdbinNavDecoder
-from drivers.capture.pcapng import CaptureReader, PcapError, udp_datagrams
 from drivers.pps import PpsEdge, PpsLabeler, UdpPpsSource, decode_pps_datagram, encode_pps_datagram
 from drivers.zf.assembler import ProfileAssembler
 from drivers.zf.zfp1 import CRC_SIZE, HEADER_SIZE, ZfpError, decode_packet, encode_profile
 from tests.drivers.helpers import PROPERTY, real_file
 
 NMEA_FRAME = b"$PIXSE,POSITI,53.10245714,8.83994382,-0.115*71\r\n"
-ZFP_FRAME = encode_profile(1, 10**18, 1000, 0, 70866, np.arange(40, dtype=np.uint32), np.arange(40, dtype=np.uint16))[0]
+ZFP_FRAME = encode_profile(
+    1, 10**18, 1000, 0, 70866, np.arange(40, dtype=np.uint32), np.arange(40, dtype=np.uint16)
+)[0]
 
 
 def _stdbin_frame() -> bytes:
@@ -63,7 +65,9 @@ def _decode_all(make, chunks):
     return dec, out
 
 
-@pytest.mark.parametrize("name, make, frame", stream_decoders(), ids=lambda v: v if isinstance(v, str) else "")
+@pytest.mark.parametrize(
+    "name, make, frame", stream_decoders(), ids=lambda v: v if isinstance(v, str) else ""
+)
 @PROPERTY
 @given(data=st.binary(max_size=2000), cuts=st.lists(st.integers(0, 2000), max_size=6))
 def test_random_bytes_never_raise(name, make, frame, data, cuts):
@@ -76,7 +80,9 @@ def test_random_bytes_never_raise(name, make, frame, data, cuts):
     assert dec.stats.bytes_in == len(data)
 
 
-@pytest.mark.parametrize("name, make, frame", stream_decoders(), ids=lambda v: v if isinstance(v, str) else "")
+@pytest.mark.parametrize(
+    "name, make, frame", stream_decoders(), ids=lambda v: v if isinstance(v, str) else ""
+)
 def test_truncation_at_every_offset_then_a_valid_frame(name, make, frame):
     complete = len(frame) - 2 if name.startswith("nmea") else len(frame)  # NMEA: CR already ends it
     for cut in range(complete):
@@ -89,7 +95,9 @@ def test_truncation_at_every_offset_then_a_valid_frame(name, make, frame):
             assert s.rejected_total == 0, cut
 
 
-@pytest.mark.parametrize("name, make, frame", stream_decoders(), ids=lambda v: v if isinstance(v, str) else "")
+@pytest.mark.parametrize(
+    "name, make, frame", stream_decoders(), ids=lambda v: v if isinstance(v, str) else ""
+)
 @PROPERTY
 @given(bit=st.integers(0, 10**6))
 def test_single_bit_flip_is_rejected_and_the_next_frame_decodes(name, make, frame, bit):
@@ -101,12 +109,16 @@ def test_single_bit_flip_is_rejected_and_the_next_frame_decodes(name, make, fram
     # (NMEA line ending); never two records, never a record from the damaged copy with the wrong data
     assert 1 <= len(out) <= 2
     if len(out) == 2:
-        assert name.startswith("nmea") and (bit // 8 >= len(frame) - 2 or bad[bit // 8 : bit // 8 + 1] in (b"\r", b"\n"))
+        assert name.startswith("nmea") and (
+            bit // 8 >= len(frame) - 2 or bad[bit // 8 : bit // 8 + 1] in (b"\r", b"\n")
+        )
     else:
         assert dec.stats.rejected_total + dec.stats.skipped_bytes >= 1
 
 
-@pytest.mark.parametrize("name, make, frame", stream_decoders(), ids=lambda v: v if isinstance(v, str) else "")
+@pytest.mark.parametrize(
+    "name, make, frame", stream_decoders(), ids=lambda v: v if isinstance(v, str) else ""
+)
 @PROPERTY
 @given(garbage=st.binary(max_size=600))
 def test_valid_frame_after_garbage_decodes(name, make, frame, garbage):
@@ -132,8 +144,9 @@ def test_profile_assembler_never_raises(data, flip, cut):
 
 
 # ZFP1 datagrams: truncation at every offset, every single-bit flip, each followed by a valid one.
-ZFP_NEXT = encode_profile(2, 10**18 + 5_000_000, 1000, 0, 70866, np.arange(40, 80, dtype=np.uint32),
-                          np.arange(40, dtype=np.uint16))[0]  # fmt: skip
+ZFP_NEXT = encode_profile(
+    2, 10**18 + 5_000_000, 1000, 0, 70866, np.arange(40, 80, dtype=np.uint32), np.arange(40, dtype=np.uint16)
+)[0]
 
 
 def _zfp_damaged_then_valid(bad: bytes):
@@ -156,7 +169,9 @@ def _assert_rejected_then_decoded(bad: bytes, reason: str, where) -> None:
 
 def test_zfp_datagram_truncated_at_every_offset_is_rejected_then_the_next_decodes():
     for cut in range(len(ZFP_FRAME)):
-        _assert_rejected_then_decoded(ZFP_FRAME[:cut], "short" if cut < HEADER_SIZE + CRC_SIZE else "size_mismatch", cut)
+        _assert_rejected_then_decoded(
+            ZFP_FRAME[:cut], "short" if cut < HEADER_SIZE + CRC_SIZE else "size_mismatch", cut
+        )
 
 
 def test_zfp_datagram_every_single_bit_flip_is_rejected_then_the_next_decodes():
@@ -167,14 +182,26 @@ def test_zfp_datagram_every_single_bit_flip_is_rejected_then_the_next_decodes():
         bad[bit // 8] ^= 1 << (bit % 8)
         byte = bit // 8
         # magic (bytes 0-3), header_size (4-5) and n_points (36-37) are checked before the CRC
-        reason = ("bad_magic" if byte < 4 else "bad_header_size" if byte < 6
-                  else "size_mismatch" if byte in (36, 37) else "bad_crc")  # fmt: skip
+        reason = (
+            "bad_magic"
+            if byte < 4
+            else "bad_header_size"
+            if byte < 6
+            else "size_mismatch"
+            if byte in (36, 37)
+            else "bad_crc"
+        )
         with pytest.raises(ZfpError) as exc:
             decode_packet(bytes(bad))
         assert exc.value.reason == reason, bit
         _assert_rejected_then_decoded(bytes(bad), reason, bit)
         reasons[reason] += 1
-    assert reasons == {"bad_magic": 32, "bad_header_size": 16, "size_mismatch": 16, "bad_crc": len(ZFP_FRAME) * 8 - 64}
+    assert reasons == {
+        "bad_magic": 32,
+        "bad_header_size": 16,
+        "size_mismatch": 16,
+        "bad_crc": len(ZFP_FRAME) * 8 - 64,
+    }
 
 
 @PROPERTY
@@ -188,7 +215,12 @@ def test_small_datagram_decoders_raise_only_driver_errors(data):
 
 
 @PROPERTY
-@given(seq=st.integers(0, 2**64 - 1), host=st.integers(-(2**63), 2**63 - 1), kind=st.sampled_from(["pass_start", "pass_end", "mark"]), pass_id=st.integers(0, 65535))
+@given(
+    seq=st.integers(0, 2**64 - 1),
+    host=st.integers(-(2**63), 2**63 - 1),
+    kind=st.sampled_from(["pass_start", "pass_end", "mark"]),
+    pass_id=st.integers(0, 65535),
+)
 def test_small_datagram_round_trips(seq, host, kind, pass_id):
     assert decode_pps_datagram(encode_pps_datagram(seq, host)).sequence == seq
     m = decode_event_marker(CanFrame(0x6E0, encode_event_marker(kind, pass_id, seq), 5, 0.0))
@@ -196,13 +228,15 @@ def test_small_datagram_round_trips(seq, host, kind, pass_id):
 
 
 @PROPERTY
-@given(events=st.lists(st.tuples(st.booleans(), st.integers(0, 5_000_000_000), st.integers(0, 50)), max_size=60))
+@given(
+    events=st.lists(st.tuples(st.booleans(), st.integers(0, 5_000_000_000), st.integers(0, 50)), max_size=60)
+)
 def test_pps_labeler_never_raises_and_labels_increase(events):
     lab = PpsLabeler()
     labels = []
     t = 0
-    for is_edge, dt, n in events:
-        t += dt
+    for is_edge, step, n in events:
+        t += step
         if is_edge:
             lab.add_edge(__import__("drivers.pps", fromlist=["PpsEdge"]).PpsEdge(t, "x", n))
         else:
@@ -232,6 +266,7 @@ PPS_DG = encode_pps_datagram(0x0123_4567_89AB_CDEF, 1_234_567_890_123_456_789)
 
 def _pps_udp_source_feed(datagrams):
     """Hand datagrams to a real UdpPpsSource's protocol (no network between): (edges, stats)."""
+
     async def run():
         src = UdpPpsSource("127.0.0.1", 0, "emu")
         edges = []
@@ -250,7 +285,9 @@ def test_pps_datagram_truncated_at_every_offset_is_rejected_and_counted():
     for cut in range(len(PPS_DG)):
         with pytest.raises(DriverError, match=f"PPS datagram of {cut} bytes: expected {len(PPS_DG)}"):
             decode_pps_datagram(PPS_DG[:cut])
-    edges, stats = _pps_udp_source_feed([PPS_DG[:cut] for cut in range(len(PPS_DG))] + [PPS_DG, PPS_DG + b"\0"])
+    edges, stats = _pps_udp_source_feed(
+        [PPS_DG[:cut] for cut in range(len(PPS_DG))] + [PPS_DG, PPS_DG + b"\0"]
+    )
     assert [e.sequence for e in edges] == [0x0123_4567_89AB_CDEF]
     assert stats.rejected["bad_datagram"] == len(PPS_DG) + 1 and stats.records == 1
 
@@ -323,8 +360,11 @@ def test_event_marker_every_single_bit_flip():
     assert reader.decode(CanFrame(0x6E0, good, 1, 0.0)).decoded.kind == "pass_start"
 
 
-CAN_RECORDS = [(0x6E0, encode_event_marker("mark", 1, 2), False), (0x1ABCDE, b"\x01\x02\x03", True),
-               (0x123, bytes(range(48)), False)]  # fmt: skip
+CAN_RECORDS = [
+    (0x6E0, encode_event_marker("mark", 1, 2), False),
+    (0x1ABCDE, b"\x01\x02\x03", True),
+    (0x123, bytes(range(48)), False),
+]
 
 
 @pytest.mark.parametrize("arb, data, ext", CAN_RECORDS)
@@ -376,8 +416,13 @@ def test_can_frame_record_round_trip(ext, arb, data):
 
 
 @PROPERTY
-@given(raw=st.one_of(st.binary(max_size=100), st.binary(min_size=16, max_size=16), st.binary(min_size=72, max_size=72)),
-       n=st.one_of(st.none(), st.integers(0, 70)), small_id=st.booleans())  # fmt: skip
+@given(
+    raw=st.one_of(
+        st.binary(max_size=100), st.binary(min_size=16, max_size=16), st.binary(min_size=72, max_size=72)
+    ),
+    n=st.one_of(st.none(), st.integers(0, 70)),
+    small_id=st.booleans(),
+)
 def test_can_frame_record_random_bytes_raise_only_driver_errors(raw, n, small_id):
     """Random records (some with a plausible length byte and an 11-bit id, so some parse)."""
     raw = bytearray(raw)
@@ -416,9 +461,12 @@ def test_split_stamped_line_random_bytes_never_raise(head, tail):
 
 
 @PROPERTY
-@given(when=st.datetimes(min_value=dt.datetime(1, 1, 1), max_value=dt.datetime(9999, 12, 31, 23, 59, 59)),
-       frac=st.one_of(st.none(), st.text("0123456789", min_size=1, max_size=9)), zulu=st.booleans(),
-       payload=st.binary(max_size=100))  # fmt: skip
+@given(
+    when=st.datetimes(min_value=dt.datetime(1, 1, 1), max_value=dt.datetime(9999, 12, 31, 23, 59, 59)),
+    frac=st.one_of(st.none(), st.text("0123456789", min_size=1, max_size=9)),
+    zulu=st.booleans(),
+    payload=st.binary(max_size=100),
+)
 def test_split_stamped_line_round_trip(when, frac, zulu, payload):
     stamp = when.replace(microsecond=0).isoformat() + ("." + frac if frac else "") + ("Z" if zulu else "")
     ns, rest = split_stamped_line(stamp.encode() + b" " + payload)
@@ -482,7 +530,9 @@ def test_pcapng_cut_at_many_offsets_keeps_every_whole_record(capture):
     data, grams, ends, complete = capture
     near = {o for e in [0, *ends[:6], *ends[-4:]] for o in range(e - 8, e + 32)}
     near |= {o for e in ends for o in (e - 1, e, e + 1)}
-    offsets = sorted(o for o in set(range(ends[1])) | near | set(range(0, len(data), 37)) if 0 <= o < len(data))
+    offsets = sorted(
+        o for o in set(range(ends[1])) | near | set(range(0, len(data), 37)) if 0 <= o < len(data)
+    )
     for cut in offsets:
         got, stats, err = _read(data[:cut])
         if cut < 4:

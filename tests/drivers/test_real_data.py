@@ -12,11 +12,11 @@ import numpy as np
 import pytest
 
 from drivers.capture.files import FileDecoder, split_stamped_line
+from drivers.capture.pcapng import CaptureReader, udp_datagrams
 from drivers.hydrins.nmea_decode import NmeaDecoder, NmeaNavAssembler
 from drivers.hydrins.nmea_sentences import Gga, Hdt, Vtg, Zda
 from drivers.hydrins.stdbin_decode import StdbinDecoder
 from drivers.hydrins.stdbin_records import StdbinFrame
-from drivers.capture.pcapng import CaptureReader, udp_datagrams
 from drivers.timing import fit_clock, unwrap_time_of_day_ns
 from tests.drivers.helpers import real_dir, real_file
 
@@ -51,7 +51,9 @@ def test_stdbin_v2_log_gives_the_readme_values():
     assert frame.pitch_deg == pytest.approx(0.206, abs=1e-6)
     assert frame.system_date == {"day": 1, "month": 1, "year": 2006}
     assert frame.validity_time_100us == 9215311
-    assert frame.telegram_size == 286 and frame.protocol_version == 2 and frame.extended_navigation_mask is None
+    assert (
+        frame.telegram_size == 286 and frame.protocol_version == 2 and frame.extended_navigation_mask is None
+    )
 
 
 def test_stdbin_v3_log_external_blocks_and_status_bits():
@@ -79,7 +81,16 @@ def test_stdbin_v3_log_external_blocks_and_status_bits():
     assert math.degrees(nav.roll_rad) == pytest.approx(0.809, abs=1e-5)
 
 
-@pytest.mark.parametrize("name", ["log_STDBIN_V2.log", "log_STDBIN_V3.log", "log_STDBIN_V3_old.log", "log_STDBIN_V4.log", "log_STDBIN_V5.log"])
+@pytest.mark.parametrize(
+    "name",
+    [
+        "log_STDBIN_V2.log",
+        "log_STDBIN_V3.log",
+        "log_STDBIN_V3_old.log",
+        "log_STDBIN_V4.log",
+        "log_STDBIN_V5.log",
+    ],
+)
 def test_stdbin_real_frames_reencode_byte_exact(name):
     from drivers.hydrins.stdbin_encode import encode_frame
 
@@ -120,7 +131,14 @@ def test_nbp1406_zda_latency_against_logged_receive_time():
 
 NBP_COUNTS = {
     "NBP1406_gyr1-2014-08-01": {"HEHDT": 5000},
-    "NBP1406_s330-2014-08-01": {"PSXN": 1875, "INZDA": 625, "INGGA": 625, "INVTG": 625, "INRMC": 625, "INHDT": 625},
+    "NBP1406_s330-2014-08-01": {
+        "PSXN": 1875,
+        "INZDA": 625,
+        "INGGA": 625,
+        "INVTG": 625,
+        "INRMC": 625,
+        "INHDT": 625,
+    },
     "NBP1406_seap-2014-08-01": {"PSXN": 2142, "GPZDA": 715, "GPGGA": 715, "GPVTG": 714, "GPHDT": 714},
 }
 
@@ -142,8 +160,34 @@ def test_nbp1406_logs_parse_every_sentence(name):
 GPSD_COUNTS = {
     "hemi.log": {"GPHDT": 215, "GPGGA": 215, "GPVTG": 215, "GPZDA": 108},
     "rst39.log": {"PASHR": 100, "GPGGA": 40, "GPRMC": 4, "GPHDT": 4, "GPZDA": 4},
-    "saab-r4.log": {"PFEC": 12, "AIVDO": 12, "GPZDA": 12, "GPGLL": 12, "GPGGA": 12, "GPVTG": 12, "GPRMC": 12, "GPDTM": 12, "HEHDT": 12, "HEROT": 12, "AIVDM": 2},
-    "skytraq-PX1172RH_DS.log": {"PSTI": 54, "GNGSA": 36, "GAGSV": 15, "GPGSV": 12, "GPGGA": 9, "GNGLL": 9, "GNRMC": 9, "GNVTG": 9, "GNZDA": 9, "GNTHS": 9, "GNHDT": 9, "GBGSV": 9, "GLGSV": 6},
+    "saab-r4.log": {
+        "PFEC": 12,
+        "AIVDO": 12,
+        "GPZDA": 12,
+        "GPGLL": 12,
+        "GPGGA": 12,
+        "GPVTG": 12,
+        "GPRMC": 12,
+        "GPDTM": 12,
+        "HEHDT": 12,
+        "HEROT": 12,
+        "AIVDM": 2,
+    },
+    "skytraq-PX1172RH_DS.log": {
+        "PSTI": 54,
+        "GNGSA": 36,
+        "GAGSV": 15,
+        "GPGSV": 12,
+        "GPGGA": 9,
+        "GNGLL": 9,
+        "GNRMC": 9,
+        "GNVTG": 9,
+        "GNZDA": 9,
+        "GNTHS": 9,
+        "GNHDT": 9,
+        "GBGSV": 9,
+        "GLGSV": 6,
+    },
 }
 
 
@@ -258,7 +302,10 @@ def test_nbp1406_empty_fields_are_missing_not_zero():
                 continue
             if kind == b"GGA":
                 assert isinstance(rec, Gga)
-                checks = {"gga_geoid_separation": (rec.geoid_separation_m, f[11]), "gga_dgps_age": (rec.dgps_age_s, f[13])}
+                checks = {
+                    "gga_geoid_separation": (rec.geoid_separation_m, f[11]),
+                    "gga_dgps_age": (rec.dgps_age_s, f[13]),
+                }
             else:
                 assert isinstance(rec, Vtg) and rec.course_true_deg == float(f[1]) and f[4] == b"M"
                 checks = {"vtg_course_magnetic": (rec.course_magnetic_deg, f[3])}
@@ -271,8 +318,12 @@ def test_nbp1406_empty_fields_are_missing_not_zero():
                     empty[name, field] += 0
         assert dec.stats.rejected_total == 0
     assert dict(empty) == {
-        ("NBP1406_seap-2014-08-01", "zda_zone"): 715, ("NBP1406_seap-2014-08-01", "gga_geoid_separation"): 715,
-        ("NBP1406_seap-2014-08-01", "gga_dgps_age"): 715, ("NBP1406_seap-2014-08-01", "vtg_course_magnetic"): 714,
-        ("NBP1406_s330-2014-08-01", "zda_zone"): 625, ("NBP1406_s330-2014-08-01", "gga_geoid_separation"): 0,
-        ("NBP1406_s330-2014-08-01", "gga_dgps_age"): 625, ("NBP1406_s330-2014-08-01", "vtg_course_magnetic"): 0,
-    }  # fmt: skip
+        ("NBP1406_seap-2014-08-01", "zda_zone"): 715,
+        ("NBP1406_seap-2014-08-01", "gga_geoid_separation"): 715,
+        ("NBP1406_seap-2014-08-01", "gga_dgps_age"): 715,
+        ("NBP1406_seap-2014-08-01", "vtg_course_magnetic"): 714,
+        ("NBP1406_s330-2014-08-01", "zda_zone"): 625,
+        ("NBP1406_s330-2014-08-01", "gga_geoid_separation"): 0,
+        ("NBP1406_s330-2014-08-01", "gga_dgps_age"): 625,
+        ("NBP1406_s330-2014-08-01", "vtg_course_magnetic"): 0,
+    }

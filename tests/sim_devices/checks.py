@@ -43,11 +43,17 @@ def assert_nav_matches(nav, track: InsTrack, k: int, protocol: str) -> None:
     _close(nav.v_east_m_s, ve, vel, "v_east")
     _close(nav.v_down_m_s, vd, vel, "v_down")
     _close(nav.heave_m, float(track.heave_m[k]), hgt if protocol == "nmea" else 1e-6, "heave")
-    for got, want, name in zip((nav.sigma_roll_rad, nav.sigma_pitch_rad, nav.sigma_heading_rad),
-                               track.sigma_rpy_rad[k], ("σ roll", "σ pitch", "σ heading")):  # fmt: skip
+    for got, want, name in zip(
+        (nav.sigma_roll_rad, nav.sigma_pitch_rad, nav.sigma_heading_rad),
+        track.sigma_rpy_rad[k],
+        ("σ roll", "σ pitch", "σ heading"),
+    ):
         _close(got, float(want), sig_att, name)
-    for got, want, name in zip((nav.sigma_north_m, nav.sigma_east_m, nav.sigma_down_m), track.sigma_p_m[k],
-                               ("σ north", "σ east", "σ down")):  # fmt: skip
+    for got, want, name in zip(
+        (nav.sigma_north_m, nav.sigma_east_m, nav.sigma_down_m),
+        track.sigma_p_m[k],
+        ("σ north", "σ east", "σ down"),
+    ):
         _close(got, float(want), sig_pos, name)
 
 
@@ -59,7 +65,9 @@ def profile_bounds(grid: ProfileGrid, max_payload: int = 1400) -> tuple[int, flo
     return math.ceil(t), math.radians(a_udeg * 1e-6)
 
 
-def assert_profile_matches(profile, grid: ProfileGrid, points, time_shift_ns: int, clock_error_ns: int = 0) -> int:
+def assert_profile_matches(
+    profile, grid: ProfileGrid, points, time_shift_ns: int, clock_error_ns: int = 0
+) -> int:
     """A decoded Profile against the grid (every recorded slot, ranges 0 but at the returns) and
     its returns against the simulator's ScanPoints (device time = scenario time + ``time_shift_ns``);
     returns the number of returns checked."""

@@ -18,8 +18,8 @@ from drivers.hydrins.stdbin_decode import StdbinNavDecoder
 from drivers.pps import decode_pps_datagram
 from drivers.transport.registry import create_transport
 from drivers.zf.assembler import ProfileAssembler
-from sim_devices.feed import make_feed
 from sim_devices.canbus import CanSettings
+from sim_devices.feed import make_feed
 from sim_devices.replay import ReplayRun, ReplaySpec
 from sim_devices.runner import DeviceRun, DevicesSpec
 
@@ -68,8 +68,9 @@ def _chunk_hook(decoder, capture: Capture):
     decoder.feed = fed
 
 
-async def _capture(cap: Capture, make_run, devices, ins_protocol: str, can_config: dict | None, end_host,
-                   grace_s: float) -> None:  # fmt: skip
+async def _capture(
+    cap: Capture, make_run, devices, ins_protocol: str, can_config: dict | None, end_host, grace_s: float
+) -> None:
     """Open the receivers, ``make_run(profiler_port, pps_port)``, start it, capture until
     ``end_host(run)`` + ``grace_s``, stop it. The garbage collector is off meanwhile: in a test
     process a full collection holds the GIL for a few hundred ms, longer than the emulated
@@ -82,8 +83,9 @@ async def _capture(cap: Capture, make_run, devices, ins_protocol: str, can_confi
         gc.enable()
 
 
-async def _capture_with_gc_off(cap: Capture, make_run, devices, ins_protocol: str, can_config: dict | None,
-                               end_host, grace_s: float) -> None:  # fmt: skip
+async def _capture_with_gc_off(
+    cap: Capture, make_run, devices, ins_protocol: str, can_config: dict | None, end_host, grace_s: float
+) -> None:
     loop_tasks = []
     prof_t = pps_t = None
     if "profiler" in devices:
@@ -97,13 +99,21 @@ async def _capture_with_gc_off(cap: Capture, make_run, devices, ins_protocol: st
     try:
         ser = None
         if "ins" in devices:
-            ser = create_transport({"kind": "serial", "port": str(run.run_dir / "ins"), "reconnect_min_s": 0.02,
-                                    "reconnect_max_s": 0.05},
-                                   on_event=cap.serial_events.append)  # fmt: skip
+            ser = create_transport(
+                {
+                    "kind": "serial",
+                    "port": str(run.run_dir / "ins"),
+                    "reconnect_min_s": 0.02,
+                    "reconnect_max_s": 0.05,
+                },
+                on_event=cap.serial_events.append,
+            )
             await ser.open()
         reader = None
         if can_config is not None:
-            reader = CanReader(open_can_bus(can_config), {EVENT_MARKER_ID: decode_event_marker}, close_bus=True)
+            reader = CanReader(
+                open_can_bus(can_config), {EVENT_MARKER_ID: decode_event_marker}, close_bus=True
+            )
             await reader.__aenter__()
         end = end_host(run) + round(grace_s * 1e9)
 
@@ -138,7 +148,9 @@ async def _capture_with_gc_off(cap: Capture, make_run, devices, ins_protocol: st
 
             loop_tasks.append(asyncio.create_task(pump(prof_t, on_datagram)))
         if pps_t is not None:
-            loop_tasks.append(asyncio.create_task(pump(pps_t, lambda d, h: cap.pps.append((h, decode_pps_datagram(d))))))
+            loop_tasks.append(
+                asyncio.create_task(pump(pps_t, lambda d, h: cap.pps.append((h, decode_pps_datagram(d)))))
+            )
         if reader is not None:
 
             async def can_pump():
@@ -165,39 +177,87 @@ async def _capture_with_gc_off(cap: Capture, make_run, devices, ins_protocol: st
                 await t.close()
 
 
-def capture(sim, run_dir: Path, *, start=None, duration_s=None, faults=None, grace_s: float = 0.4,
-            time_shift="now", **spec_kwargs) -> Capture:  # fmt: skip
+def capture(
+    sim,
+    run_dir: Path,
+    *,
+    start=None,
+    duration_s=None,
+    faults=None,
+    grace_s: float = 0.4,
+    time_shift="now",
+    **spec_kwargs,
+) -> Capture:
     """Run the emulators of a window of ``sim`` (moved to now) and capture every device."""
     ins = spec_kwargs.get("ins")
     feed = make_feed(sim, start, duration_s, ins.rate_hz if ins is not None else 100.0, time_shift)
     spec = DevicesSpec(run_dir=run_dir, **spec_kwargs)
 
     def make_run(profiler_port, pps_port):
-        return DeviceRun(feed, replace(spec, profiler=replace(spec.profiler, port=profiler_port),
-                                       pps=replace(spec.pps, port=pps_port)), faults)  # fmt: skip
+        return DeviceRun(
+            feed,
+            replace(
+                spec,
+                profiler=replace(spec.profiler, port=profiler_port),
+                pps=replace(spec.pps, port=pps_port),
+            ),
+            faults,
+        )
 
     cap = Capture(None)
     # the coroutine returns nothing: asyncio.run (3.11) may repr its task, result included
-    asyncio.run(_capture(cap, make_run, spec.devices, spec.ins.protocol,
-                         spec.can.bus_config() if "can" in spec.devices else None,
-                         lambda run: run.clock.host_ns(feed.end_gps_ns), grace_s))  # fmt: skip
+    asyncio.run(
+        _capture(
+            cap,
+            make_run,
+            spec.devices,
+            spec.ins.protocol,
+            spec.can.bus_config() if "can" in spec.devices else None,
+            lambda run: run.clock.host_ns(feed.end_gps_ns),
+            grace_s,
+        )
+    )
     return cap
 
 
-def capture_replay(session, run_dir: Path, *, speed: float = 1.0, can_port: int, grace_s: float = 0.5) -> Capture:
+def capture_replay(
+    session, run_dir: Path, *, speed: float = 1.0, can_port: int, grace_s: float = 0.5
+) -> Capture:
     """Replay a recorded session (:class:`sim_devices.replay.RecordedSession`) and capture it."""
     can = CanSettings(port=can_port)
     channels = session.channels
-    devices = {d for d, topic in (("ins", "/ins/raw"), ("profiler", "/lidar/raw"), ("pps", "/pps")) if topic in channels}
+    devices = {
+        d
+        for d, topic in (("ins", "/ins/raw"), ("profiler", "/lidar/raw"), ("pps", "/pps"))
+        if topic in channels
+    }
     has_can = any(t.startswith("/can/") for t in channels)
 
     def make_run(profiler_port, pps_port):
-        return ReplayRun(session, ReplaySpec(run_dir=run_dir, speed=speed, profiler=("127.0.0.1", profiler_port),
-                                             pps=("127.0.0.1", pps_port), can=can))  # fmt: skip
+        return ReplayRun(
+            session,
+            ReplaySpec(
+                run_dir=run_dir,
+                speed=speed,
+                profiler=("127.0.0.1", profiler_port),
+                pps=("127.0.0.1", pps_port),
+                can=can,
+            ),
+        )
 
     cap = Capture(None)
     protocol = channels.get("/ins/raw", {}).get("protocol", "nmea")
-    asyncio.run(_capture(cap, make_run, devices, protocol, can.bus_config() if has_can else None,
-                         lambda run: run.clock.host_anchor_ns + round((session.last_host_ns - session.first_host_ns) / speed),
-                         grace_s))  # fmt: skip
+    asyncio.run(
+        _capture(
+            cap,
+            make_run,
+            devices,
+            protocol,
+            can.bus_config() if has_can else None,
+            lambda run: (
+                run.clock.host_anchor_ns + round((session.last_host_ns - session.first_host_ns) / speed)
+            ),
+            grace_s,
+        )
+    )
     return cap

@@ -80,31 +80,54 @@ def test_a_timeline_with_every_kind_loads_with_defaults():
 @pytest.mark.parametrize(
     "text, message",
     [
-        ("faults:\n  - {at_s: 1, kind: unplug}\n",
-         r"faults.yaml:2:21: faults\[0\].kind: got 'unplug', expected one of bad_checksum, garbage"),
-        ("faults:\n  - {at_s: 1, kind: udp_loss, duration_s: 1}\n",
-         r"faults.yaml:2:5: faults\[0\]: a udp_loss fault needs 'device' \(one of profiler, pps\)"),
-        ("faults:\n  - {at_s: 1, kind: udp_loss, device: ins, duration_s: 1}\n",
-         r"faults\[0\].device: got 'ins', expected one of pps, profiler"),
-        ("faults:\n  - {at_s: 1, kind: bad_checksum}\n",
-         r"faults\[0\]: a bad_checksum fault needs 'duration_s'"),
-        ("faults:\n  - at_s: 1\n    kind: udp_loss\n    device: pps\n    duration_s: 1\n    probability: 1.5\n",
-         r"faults.yaml:6:18: faults\[0\].probability: got 1.5, expected a number ≤ 1"),
-        ("faults:\n  - {at_s: 1, kind: garbage, duration_s: 1}\n",
-         r"faults\[0\].duration_s: not a key of a garbage fault; allowed: at_s, bytes, device, kind"),
-        ("faults:\n  - {at_s: 1, kind: pps_loss, offset_s: 1}\n",
-         r"faults\[0\].offset_s: not a key of a pps_loss fault"),
+        (
+            "faults:\n  - {at_s: 1, kind: unplug}\n",
+            r"faults.yaml:2:21: faults\[0\].kind: got 'unplug', expected one of bad_checksum, garbage",
+        ),
+        (
+            "faults:\n  - {at_s: 1, kind: udp_loss, duration_s: 1}\n",
+            r"faults.yaml:2:5: faults\[0\]: a udp_loss fault needs 'device' \(one of profiler, pps\)",
+        ),
+        (
+            "faults:\n  - {at_s: 1, kind: udp_loss, device: ins, duration_s: 1}\n",
+            r"faults\[0\].device: got 'ins', expected one of pps, profiler",
+        ),
+        (
+            "faults:\n  - {at_s: 1, kind: bad_checksum}\n",
+            r"faults\[0\]: a bad_checksum fault needs 'duration_s'",
+        ),
+        (
+            "faults:\n  - at_s: 1\n    kind: udp_loss\n    device: pps\n    duration_s: 1\n    probability: 1.5\n",
+            r"faults.yaml:6:18: faults\[0\].probability: got 1.5, expected a number ≤ 1",
+        ),
+        (
+            "faults:\n  - {at_s: 1, kind: garbage, duration_s: 1}\n",
+            r"faults\[0\].duration_s: not a key of a garbage fault; allowed: at_s, bytes, device, kind",
+        ),
+        (
+            "faults:\n  - {at_s: 1, kind: pps_loss, offset_s: 1}\n",
+            r"faults\[0\].offset_s: not a key of a pps_loss fault",
+        ),
         ("faults:\n  - {at_s: -1, kind: pps_loss}\n", r"faults\[0\].at_s: got -1, expected a number ≥ 0"),
-        ("faults:\n  - {at_s: 1, kind: profiler_clock_drift}\n",
-         r"a profiler_clock_drift fault needs 'drift_ppm'"),
-        ("faults:\n  - {at_s: 1, kind: profiler_clock_drift, drift_ppm: 0}\n",
-         r"drift_ppm: got 0, expected a non-zero drift in ppm"),
-        ("faults:\n  - {at_s: 1, kind: pps_loss, duration_s: 2}\n  - {at_s: 2, kind: pps_loss}\n",
-         r"faults.yaml:3:5: faults\[1\]: pps_loss on pps at 2 s overlaps the one at faults\[0\] \(1 s to 3 s\)"),
-        ("fault:\n  - {at_s: 1, kind: pps_loss}\n", r"faults.yaml:2:3: fault: unknown key 'fault'; allowed keys here: faults, seed"),
+        (
+            "faults:\n  - {at_s: 1, kind: profiler_clock_drift}\n",
+            r"a profiler_clock_drift fault needs 'drift_ppm'",
+        ),
+        (
+            "faults:\n  - {at_s: 1, kind: profiler_clock_drift, drift_ppm: 0}\n",
+            r"drift_ppm: got 0, expected a non-zero drift in ppm",
+        ),
+        (
+            "faults:\n  - {at_s: 1, kind: pps_loss, duration_s: 2}\n  - {at_s: 2, kind: pps_loss}\n",
+            r"faults.yaml:3:5: faults\[1\]: pps_loss on pps at 2 s overlaps the one at faults\[0\] \(1 s to 3 s\)",
+        ),
+        (
+            "fault:\n  - {at_s: 1, kind: pps_loss}\n",
+            r"faults.yaml:2:3: fault: unknown key 'fault'; allowed keys here: faults, seed",
+        ),
         ("faults: [\n", r"faults.yaml:2:1: not valid YAML"),
     ],
-)  # fmt: skip
+)
 def test_bad_timelines_name_file_line_and_key(text, message):
     with pytest.raises(FaultError, match=message):
         parse_faults(text)
@@ -118,10 +141,14 @@ def test_load_faults_names_a_missing_file(tmp_path):
 def test_faults_outside_the_window_or_for_a_device_not_running_are_refused(short_sim, tmp_path):
     feed = make_feed(short_sim, start=2.5, duration_s=4.0)
     late = parse_faults("faults:\n  - {at_s: 4.5, kind: pps_loss}\n")
-    with pytest.raises(FaultError, match=r"faults\[0\].at_s: got 4.5, expected < 4 \(the run window's length"):
+    with pytest.raises(
+        FaultError, match=r"faults\[0\].at_s: got 4.5, expected < 4 \(the run window's length"
+    ):
         DeviceRun(feed, DevicesSpec(run_dir=tmp_path), late)
     pps = parse_faults("faults:\n  - {at_s: 1, kind: pps_loss}\n")
-    with pytest.raises(FaultError, match=r"faults\[0\]: the pps_loss fault is for the pps emulator, which is not running"):
+    with pytest.raises(
+        FaultError, match=r"faults\[0\]: the pps_loss fault is for the pps emulator, which is not running"
+    ):
         DeviceRun(feed, DevicesSpec(run_dir=tmp_path, devices=("ins",)), pps)
     assert FaultPlan().schedule(feed.start_gps_ns) == []
 

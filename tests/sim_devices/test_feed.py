@@ -45,11 +45,19 @@ def test_the_grid_survives_scan_angle_noise_but_not_noise_beyond_half_a_step():
     noisy = simulate("montreal", 1, overrides=["site.pass_length_m=20", "motion.pass_gap_s=2"])
     g = make_feed(noisy).grid  # σ 0.005° against a 0.224° step
     assert g.ret_point.size == len(noisy.points)
-    d = np.remainder(g.ret_slot * (2 * np.pi / g.points_per_360) - noisy.points.scan_angle_rad[g.ret_point] + np.pi,
-                     2 * np.pi) - np.pi  # fmt: skip
+    d = (
+        np.remainder(
+            g.ret_slot * (2 * np.pi / g.points_per_360) - noisy.points.scan_angle_rad[g.ret_point] + np.pi,
+            2 * np.pi,
+        )
+        - np.pi
+    )
     assert np.degrees(np.abs(d)).max() < 0.05  # the encoder angle; the noise stays off the wire
-    wild = simulate("montreal", 1, overrides=["site.pass_length_m=20", "motion.pass_gap_s=2",
-                                              "noise.scanner.sigma_scan_angle_deg=0.5"])  # fmt: skip
+    wild = simulate(
+        "montreal",
+        1,
+        overrides=["site.pass_length_m=20", "motion.pass_gap_s=2", "noise.scanner.sigma_scan_angle_deg=0.5"],
+    )
     with pytest.raises(FeedError, match=r"pass 1: only \d+% of the scan angles sit on the encoder grid"):
         make_feed(wild)
 
@@ -58,7 +66,9 @@ def test_run_windows(short_sim):
     t0 = seconds_to_ns(short_sim.trajectory_true.t_gps_s[0])
     assert run_window(short_sim, 2.5, 1.0) == (t0 + 2_500_000_000, t0 + 3_500_000_000)
     assert run_window(short_sim, "pass:2")[0] == t0 + 12 * NS
-    with pytest.raises(FeedError, match=r"start 'pass:9': expected pass:N with N one of \[1, 2, 3, 4, 5, 6\]"):
+    with pytest.raises(
+        FeedError, match=r"start 'pass:9': expected pass:N with N one of \[1, 2, 3, 4, 5, 6\]"
+    ):
         run_window(short_sim, "pass:9")
     with pytest.raises(FeedError, match=r"duration 80 s from 0 s runs past the scenario's end \(70 s\)"):
         run_window(short_sim, 0, 80.0)
@@ -80,7 +90,9 @@ def test_ins_bytes_decode_to_the_observed_trajectory(short_sim, protocol):
     # the INS epochs are the observed (POS) trajectory, interpolated
     poses = short_sim.trajectory_observed.interpolate(track.gps_ns / 1e9)
     assert np.allclose(track.rpy_rad, poses.rpy_rad) and np.allclose(track.sigma_p_m, poses.sigma_p_m)
-    emu = InsEmulator(track, InsSettings(protocol=protocol), [], feed.start_gps_ns, feed.end_gps_ns, "/nonexistent")
+    emu = InsEmulator(
+        track, InsSettings(protocol=protocol), [], feed.start_gps_ns, feed.end_gps_ns, "/nonexistent"
+    )
     dec = NmeaNavAssembler(utc_clock=None) if protocol == "nmea" else StdbinNavDecoder(utc_clock=None)
     from drivers.hydrins.nmea_encode import encode_zda
 
@@ -96,9 +108,17 @@ def test_ins_bytes_decode_to_the_observed_trajectory(short_sim, protocol):
 
 def test_ins_status_follows_alignment_and_gnss_outage(short_sim):
     feed = make_feed(short_sim, 2.0, 2.0, time_shift=0)
-    plan = parse_faults("faults:\n  - {at_s: 1.5, kind: gnss_outage, duration_s: 0.2, position_drift_m_s: 1.0}\n")
-    emu = InsEmulator(feed.ins, InsSettings(alignment_s=0.5), plan.for_device("ins"), feed.start_gps_ns,
-                      feed.end_gps_ns, "/nonexistent")  # fmt: skip
+    plan = parse_faults(
+        "faults:\n  - {at_s: 1.5, kind: gnss_outage, duration_s: 0.2, position_drift_m_s: 1.0}\n"
+    )
+    emu = InsEmulator(
+        feed.ins,
+        InsSettings(alignment_s=0.5),
+        plan.for_device("ins"),
+        feed.start_gps_ns,
+        feed.end_gps_ns,
+        "/nonexistent",
+    )
     dec = NmeaNavAssembler(utc_clock=lambda: (feed.start_gps_ns - 18 * NS) + 315_964_800 * NS)
     navs = []
     for k in range(len(feed.ins)):
@@ -124,9 +144,17 @@ def _round_trip(feed, faults=None):
 
 
 def test_profiler_datagrams_decode_to_the_scenario_returns_at_the_full_rate():
-    full = simulate("montreal", 0, overrides=["site.pass_length_m=20", "site.passes=[{id: 1, relative_heading_deg: 0}]",
-                                              "noise.scanner.sigma_scan_angle_deg=0", "scanner.point_rate_scale=1",
-                                              "scanner.angular_windows_deg=[]"])  # fmt: skip
+    full = simulate(
+        "montreal",
+        0,
+        overrides=[
+            "site.pass_length_m=20",
+            "site.passes=[{id: 1, relative_heading_deg: 0}]",
+            "noise.scanner.sigma_scan_angle_deg=0",
+            "scanner.point_rate_scale=1",
+            "scanner.angular_windows_deg=[]",
+        ],
+    )
     feed = make_feed(full, 4.0, 0.5, time_shift=7 * NS)
     g = feed.grid
     assert (g.profile_rate_hz, g.points_per_360, len(g)) == (200.0, 5080, 99)  # wholly inside the window
@@ -142,8 +170,10 @@ def test_profiler_datagrams_decode_to_the_scenario_returns_at_the_full_rate():
 
 def test_profiler_clock_faults_shift_the_time_stamps_only(short_sim):
     feed = make_feed(short_sim, 3.0, 1.0, time_shift=0)
-    plan = parse_faults("faults:\n  - {at_s: 0.2, kind: profiler_clock_offset, duration_s: 0.3}\n"
-                        "  - {at_s: 0.6, kind: profiler_clock_drift, drift_ppm: -500, duration_s: 0.2}\n")  # fmt: skip
+    plan = parse_faults(
+        "faults:\n  - {at_s: 0.2, kind: profiler_clock_offset, duration_s: 0.3}\n"
+        "  - {at_s: 0.6, kind: profiler_clock_drift, drift_ppm: -500, duration_s: 0.2}\n"
+    )
     profiles, _ = _round_trip(feed, plan.for_device("profiler"))
     g = feed.grid
     for p in profiles:

@@ -47,19 +47,31 @@ faults:
 def cap(short_sim, tmp_path_factory):
     d = tmp_path_factory.mktemp("faults")
     (d / "faults.yaml").write_text(FAULTS)
-    return capture(short_sim, d / "run", start=2.5, duration_s=7.5, faults=load_faults(d / "faults.yaml"),
-                   devices=("ins", "profiler", "pps"), ins=InsSettings(latency_s=0.003, jitter_s=0.0005))  # fmt: skip
+    return capture(
+        short_sim,
+        d / "run",
+        start=2.5,
+        duration_s=7.5,
+        faults=load_faults(d / "faults.yaml"),
+        devices=("ins", "profiler", "pps"),
+        ins=InsSettings(latency_s=0.003, jitter_s=0.0005),
+    )
 
 
 def window(cap, kind: str, device: str) -> dict:
-    rows = [f for f in json.loads((cap.run.run_dir / "faults.json").read_text())["faults"]
-            if f["kind"] == kind and f["device"] == device]  # fmt: skip
+    rows = [
+        f
+        for f in json.loads((cap.run.run_dir / "faults.json").read_text())["faults"]
+        if f["kind"] == kind and f["device"] == device
+    ]
     assert len(rows) == 1
     return rows[0]
 
 
 def test_all_emulators_finished(cap):
-    assert {n: s["status"] for n, s in cap.stats.items()} == dict.fromkeys(("ins", "profiler", "pps"), "finished")
+    assert {n: s["status"] for n, s in cap.stats.items()} == dict.fromkeys(
+        ("ins", "profiler", "pps"), "finished"
+    )
 
 
 # -- INS -----------------------------------------------------------------------------------------
@@ -115,7 +127,11 @@ def test_gnss_outage_sets_dead_reckoning_for_exactly_its_epochs(cap):
     seen = 0
     for nav in cap.nav:
         outage = f["start_gps_ns"] <= nav.gps_ns < f["end_gps_ns"]
-        assert nav.dead_reckoning is outage and nav.gps_valid is (not outage) and nav.gps_received is (not outage)
+        assert (
+            nav.dead_reckoning is outage
+            and nav.gps_valid is (not outage)
+            and nav.gps_received is (not outage)
+        )
         assert nav.navigation and nav.utc_detected
         k = k_of[nav.gps_ns]
         if outage:
@@ -214,7 +230,11 @@ def _clock_offsets(cap):
     K = grid.points_per_360
     for prof in cap.profiles:
         slots = np.rint(prof.scan_angle_rad / (2 * np.pi / K)).astype(np.int64)
-        yield int(grid.start_ns[prof.profile_counter]), prof.gps_ns - grid.point_gps_ns(prof.profile_counter, slots), prof
+        yield (
+            int(grid.start_ns[prof.profile_counter]),
+            prof.gps_ns - grid.point_gps_ns(prof.profile_counter, slots),
+            prof,
+        )
 
 
 def test_profiler_clock_offset_and_drift_act_exactly_in_their_windows(cap):
@@ -231,7 +251,9 @@ def test_profiler_clock_offset_and_drift_act_exactly_in_their_windows(cap):
             n_drift += 1
         else:
             want, locked = 0, True
-        assert np.all(np.abs(err - want) <= t_tol), f"profile {prof.profile_counter}: clock error {err[0]} ≠ {want}"
+        assert np.all(np.abs(err - want) <= t_tol), (
+            f"profile {prof.profile_counter}: clock error {err[0]} ≠ {want}"
+        )
         assert prof.pps_locked is locked
     assert n_off >= 60 and n_drift >= 90
 

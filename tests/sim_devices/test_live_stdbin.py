@@ -25,9 +25,16 @@ faults:
 
 @pytest.fixture(scope="module")
 def cap(short_sim, tmp_path_factory):
-    return capture(short_sim, tmp_path_factory.mktemp("stdbin"), start=3.0, duration_s=2.0, speed=2.0,
-                   devices=("ins",), faults=parse_faults(FAULTS),
-                   ins=InsSettings(protocol="stdbin", stdbin_version=4, rate_hz=200.0, latency_s=0.002))  # fmt: skip
+    return capture(
+        short_sim,
+        tmp_path_factory.mktemp("stdbin"),
+        start=3.0,
+        duration_s=2.0,
+        speed=2.0,
+        devices=("ins",),
+        faults=parse_faults(FAULTS),
+        ins=InsSettings(protocol="stdbin", stdbin_version=4, rate_hz=200.0, latency_s=0.002),
+    )
 
 
 def test_stdbin_frames_are_the_trajectory_except_in_the_bad_checksum_window(cap):
@@ -48,7 +55,11 @@ def test_stdbin_frames_are_the_trajectory_except_in_the_bad_checksum_window(cap)
 
 
 def test_stdbin_garbage_is_skipped_when_scheduled(cap):
-    f = next(f for f in json.loads((cap.run.run_dir / "faults.json").read_text())["faults"] if f["kind"] == "garbage")
+    f = next(
+        f
+        for f in json.loads((cap.run.run_dir / "faults.json").read_text())["faults"]
+        if f["kind"] == "garbage"
+    )
     dec = StdbinDecoder()
     before = None  # bytes skipped before the first whole frame: the reader may open the pty in
     for host_ns, data in cap.chunks:  # the middle of one (pyserial flushes the input at open)

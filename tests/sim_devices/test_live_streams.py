@@ -27,13 +27,21 @@ NS = 1_000_000_000
 @pytest.fixture(scope="module")
 def cap(short_sim, tmp_path_factory):
     """Scenario seconds 2.5–12.5: pass 1's capture (returns), its line end, pass 2's start."""
-    return capture(short_sim, tmp_path_factory.mktemp("live"), start=2.5, duration_s=10.0, speed=SPEED,
-                   ins=InsSettings(latency_s=0.003, jitter_s=0.0005),
-                   can=CanSettings(port=free_udp_port()))  # a port of its own: no other run's markers  # fmt: skip
+    return capture(
+        short_sim,
+        tmp_path_factory.mktemp("live"),
+        start=2.5,
+        duration_s=10.0,
+        speed=SPEED,
+        ins=InsSettings(latency_s=0.003, jitter_s=0.0005),
+        can=CanSettings(port=free_udp_port()),
+    )  # a port of its own: no other run's markers
 
 
 def test_every_emulator_finished_and_the_truth_clock_file(cap):
-    assert {n: s["status"] for n, s in cap.stats.items()} == dict.fromkeys(("ins", "profiler", "pps", "can"), "finished")
+    assert {n: s["status"] for n, s in cap.stats.items()} == dict.fromkeys(
+        ("ins", "profiler", "pps", "can"), "finished"
+    )
     clock = TruthClock.read(cap.run.run_dir / "truth_clock.json")
     assert clock == cap.clock and clock.speed == SPEED and clock.rate == SPEED
     assert clock.gps_anchor_ns == cap.run.feed.start_gps_ns
@@ -66,7 +74,9 @@ def test_zda_once_per_second_after_each_pps_edge(cap):
     for zda, s, seq in zip(cap.zda, seconds, range(1, 11)):
         assert zda.time_of_day_ns == utc_time_of_day_ns(s * NS)
         after = zda.host_ns - edges[seq]
-        assert 50_000_000 - 200_000 <= after <= 50_000_000 + slack(cap, "ins"), f"ZDA {s}: {after} ns after its edge"
+        assert 50_000_000 - 200_000 <= after <= 50_000_000 + slack(cap, "ins"), (
+            f"ZDA {s}: {after} ns after its edge"
+        )
 
 
 def test_profiler_stream_is_the_scenario_returns(cap, short_sim):

@@ -12,10 +12,10 @@ import sys
 import numpy as np
 import pytest
 
-from cli.commands.sim_devices_cmd import read_session
 from acquire.daemon.config import load_vessel_config
 from acquire.log.session import SessionOptions
 from acquire.log.sessionlog import SessionWriter
+from cli.commands.sim_devices_cmd import read_session
 from drivers.can import EVENT_MARKER_ID, can_frame_bytes, encode_event_marker, parse_can_frame
 from drivers.hydrins.timeofday import utc_time_of_day_ns
 from sim_devices.clock import TruthClock
@@ -39,8 +39,12 @@ def session(short_sim, tmp_path_factory):
     offset = feed.start_gps_ns - HOST0
     ins = InsEmulator(feed.ins, InsSettings(), [], feed.start_gps_ns, feed.end_gps_ns, "/nonexistent")
     prof = ProfilerEmulator(feed.grid, ProfilerSettings(), [], feed.start_gps_ns)
-    w = SessionWriter(tmp_path_factory.mktemp("sessions"), "survey-1", SessionOptions(flush_s=0.2),
-                      channel_metadata={"/ins/raw": {"protocol": "nmea"}})  # fmt: skip
+    w = SessionWriter(
+        tmp_path_factory.mktemp("sessions"),
+        "survey-1",
+        SessionOptions(flush_s=0.2),
+        channel_metadata={"/ins/raw": {"protocol": "nmea"}},
+    )
     session_dir = w.start()
     records = {"/ins/raw": [], "/lidar/raw": [], "/pps": [], "/can/marks": []}
 
@@ -48,12 +52,20 @@ def session(short_sim, tmp_path_factory):
         w.submit(topic, payload, host_ns=host_ns, log_time_ns=host_ns + offset, clock_state="LOCKED")
         records[topic].append((host_ns, payload))
 
-    events = [(int(g) - offset + 3_000_000, "/ins/raw", ins.nav_bytes(k)) for k, g in enumerate(feed.ins.gps_ns)]
+    events = [
+        (int(g) - offset + 3_000_000, "/ins/raw", ins.nav_bytes(k)) for k, g in enumerate(feed.ins.gps_ns)
+    ]
     events += [(h, "/lidar/raw", d) for h, _, d in prof.packets(TruthClock(HOST0, feed.start_gps_ns))]
     events += [(HOST0 + s * NS, "/pps", {"host_ns": HOST0 + s * NS, "sequence": s + 1}) for s in range(2)]
     # the daemon logs CAN as SocketCAN frames (drivers.can.can_frame_bytes)
-    events += [(HOST0 + 700_000_000 + i * 100_000_000, "/can/marks",
-                can_frame_bytes(EVENT_MARKER_ID, encode_event_marker("mark", 1, i))) for i in range(3)]
+    events += [
+        (
+            HOST0 + 700_000_000 + i * 100_000_000,
+            "/can/marks",
+            can_frame_bytes(EVENT_MARKER_ID, encode_event_marker("mark", 1, i)),
+        )
+        for i in range(3)
+    ]
     for host, topic, payload in sorted(events, key=lambda e: e[0]):
         put(topic, payload, host)
     w.close()
@@ -75,8 +87,12 @@ def test_read_session_gives_channels_counts_and_the_recorded_clock(session):
 def test_replay_re_emits_every_channel_with_its_timing(session, tmp_path):
     session_dir, records, feed = session
     speed = 2.0
-    cap = capture_replay(read_session(session_dir), tmp_path / "replay", speed=speed, can_port=free_udp_port())
-    assert {n: s["status"] for n, s in cap.stats.items()} == dict.fromkeys(("ins", "profiler", "pps", "can"), "finished")
+    cap = capture_replay(
+        read_session(session_dir), tmp_path / "replay", speed=speed, can_port=free_udp_port()
+    )
+    assert {n: s["status"] for n, s in cap.stats.items()} == dict.fromkeys(
+        ("ins", "profiler", "pps", "can"), "finished"
+    )
     anchor = cap.run.clock.host_anchor_ns
     clock = TruthClock.read(tmp_path / "replay" / "truth_clock.json")
     assert clock.speed == speed and abs(clock.gps_anchor_ns - feed.start_gps_ns) <= 1000
@@ -98,10 +114,13 @@ def test_replay_re_emits_every_channel_with_its_timing(session, tmp_path):
     assert late.min() >= 0 and np.median(late) <= 20_000_000 and late.max() <= slack
     assert len(cap.profiles) == len(feed.grid) and all(p.complete for p in cap.profiles)
     # PPS pulses re-stamped with their replay instant
-    assert [(e.sequence, e.host_ns) for _, e in cap.pps] == [(i + 1, due(h)) for i, (h, _) in enumerate(records["/pps"])]
+    assert [(e.sequence, e.host_ns) for _, e in cap.pps] == [
+        (i + 1, due(h)) for i, (h, _) in enumerate(records["/pps"])
+    ]
     # CAN frames with the recorded payloads on 0x6E0
-    assert [(f.arbitration_id, f.data) for f in cap.markers] == \
-        [parse_can_frame(p)[:2] for _, p in records["/can/marks"]]  # fmt: skip
+    assert [(f.arbitration_id, f.data) for f in cap.markers] == [
+        parse_can_frame(p)[:2] for _, p in records["/can/marks"]
+    ]
     assert all(f.arbitration_id == 0x6E0 for f in cap.markers)
     for f, (host, _) in zip(cap.markers, records["/can/marks"]):
         assert 0 <= f.host_ns - due(host) <= slack
@@ -111,10 +130,27 @@ def test_mls_sim_replay_command(session, tmp_path):
     session_dir, records, _ = session
     run_dir = tmp_path / "run"
     proc = subprocess.run(
-        [sys.executable, "-m", "cli.app", "sim", "replay", str(session_dir), "--speed", "4", "--run-dir",
-         str(run_dir), "--write-config", str(tmp_path / "vessel.yaml"), "--can-port", str(free_udp_port())],
-        capture_output=True, text=True, timeout=120, env={**os.environ, "COLUMNS": "300"},
-    )  # fmt: skip
+        [
+            sys.executable,
+            "-m",
+            "cli.app",
+            "sim",
+            "replay",
+            str(session_dir),
+            "--speed",
+            "4",
+            "--run-dir",
+            str(run_dir),
+            "--write-config",
+            str(tmp_path / "vessel.yaml"),
+            "--can-port",
+            str(free_udp_port()),
+        ],
+        capture_output=True,
+        text=True,
+        timeout=120,
+        env={**os.environ, "COLUMNS": "300"},
+    )
     assert proc.returncode == 0, proc.stdout + proc.stderr
     out = " ".join(proc.stdout.split())
     where = json.loads((run_dir / "devices.json").read_text())
@@ -130,8 +166,11 @@ def test_mls_sim_replay_command(session, tmp_path):
 
 
 def test_mls_sim_replay_refuses_a_directory_without_segments(tmp_path):
-    proc = subprocess.run([sys.executable, "-m", "cli.app", "sim", "replay", str(tmp_path)],
-                          capture_output=True, text=True, timeout=60)  # fmt: skip
+    proc = subprocess.run(
+        [sys.executable, "-m", "cli.app", "sim", "replay", str(tmp_path)],
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
     assert proc.returncode == 2
     assert f"{tmp_path}: no session segments (seg-NNNNNN.mcap) there" in " ".join(proc.stdout.split())
-

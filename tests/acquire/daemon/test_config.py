@@ -19,7 +19,12 @@ def test_the_shipped_example_validates():
     assert cfg.vessel == "survey-1"
     assert [d.name for d in cfg.devices] == ["ins", "profiler", "pps", "marks"]
     ins = cfg.device("ins")
-    assert (ins.kind, ins.protocol, ins.transport.type, ins.transport.baud) == ("ins", "nmea", "serial", 115200)
+    assert (ins.kind, ins.protocol, ins.transport.type, ins.transport.baud) == (
+        "ins",
+        "nmea",
+        "serial",
+        115200,
+    )
     assert ins.latency.band_ns == (0, 30_000_000) and ins.latency.rate_hz == 200.0
     assert ins.latency.gap_ns == 500_000_000
     pps = cfg.device("pps")
@@ -102,8 +107,10 @@ def test_every_bad_field_gets_one_error_naming_place_key_value_and_expectation()
 
 
 def _minimal(**extra) -> str:
-    text = ("vessel: v\ndevices:\n  - {name: ins, kind: ins, protocol: stdbin, "
-            "transport: {type: tcp, host: 10.0.0.2, port: 8110}}\nsession: {directory: logs}\n")
+    text = (
+        "vessel: v\ndevices:\n  - {name: ins, kind: ins, protocol: stdbin, "
+        "transport: {type: tcp, host: 10.0.0.2, port: 8110}}\nsession: {directory: logs}\n"
+    )
     return text + "".join(f"{k}: {v}\n" for k, v in extra.items())
 
 
@@ -112,8 +119,11 @@ def test_relative_paths_defaults_and_pps_default_time_messages(tmp_path):
     assert cfg.session_dir == tmp_path / "logs"
     assert cfg.status.socket == tmp_path / "run" / "status.sock"
     assert cfg.mqtt is None and cfg.mount is None and cfg.site_file is None
-    text = _minimal() .replace("devices:\n", "devices:\n  - {name: pps, kind: pps, source: "
-                               "{type: udp, host: 127.0.0.1, port: 5600}, time_device: ins}\n")
+    text = _minimal().replace(
+        "devices:\n",
+        "devices:\n  - {name: pps, kind: pps, source: "
+        "{type: udp, host: 127.0.0.1, port: 5600}, time_device: ins}\n",
+    )
     pps = parse_vessel_config(text).device("pps")
     assert pps.source.udp_port == 5600 and pps.time_messages == ("validity_time",)
 

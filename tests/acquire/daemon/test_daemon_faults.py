@@ -26,11 +26,21 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from acquire.log.recover import session_info
 from acquire.log.read import iter_messages
-from tests.acquire.daemon_util import (MLS, MqttCollector, NotifyCollector, Proc, Recording,
-                                       SocketCollector, TruthClock, free_port, run_once,
-                                       sleep_until_host_ns, wait_until)  # fmt: skip
+from acquire.log.recover import session_info
+from tests.acquire.daemon_util import (
+    MLS,
+    MqttCollector,
+    NotifyCollector,
+    Proc,
+    Recording,
+    SocketCollector,
+    TruthClock,
+    free_port,
+    run_once,
+    sleep_until_host_ns,
+    wait_until,
+)
 from tests.mosquitto import Mosquitto
 
 pytestmark = [pytest.mark.integration, pytest.mark.xdist_group("daemon-faults")]
@@ -96,18 +106,31 @@ def _vessel_yaml(tmp: Path, run: Path, prof: int, pps: int, broker: int) -> str:
         session: {{directory: {tmp}/sessions, rotate_s: 20, flush_s: 0.5}}
         status: {{socket: {tmp}/status.sock}}
         mqtt: {{host: 127.0.0.1, port: {broker}, topic_prefix: mlstest, keepalive_s: 2}}
-        """)  # fmt: skip
+        """)
 
 
 @pytest.fixture(scope="session")
 def fault_run(tmp_path_factory) -> FaultRun:
     d = run_once(tmp_path_factory, "mls-fault-run", _fault_run)
     p = {k: Path(v) for k, v in d.items() if k in ("tmp", "run_dir")}
-    return FaultRun(p["tmp"], p["run_dir"], TruthClock.read(p["run_dir"] / "truth_clock.json"),
-                    d["faults"], d["sim_stats"], [Path(s) for s in d["sessions"]],
-                    Recording.from_json(d["sock"]), Recording.from_json(d["mqtt"]),
-                    Recording.from_json(d["notify"]), d["broker_killed_ns"], d["broker_back_ns"],
-                    d["kill_ns"], d["daemon1_rc"], d["daemon2_rc"], d["daemon1_log"], d["daemon2_log"])  # fmt: skip
+    return FaultRun(
+        p["tmp"],
+        p["run_dir"],
+        TruthClock.read(p["run_dir"] / "truth_clock.json"),
+        d["faults"],
+        d["sim_stats"],
+        [Path(s) for s in d["sessions"]],
+        Recording.from_json(d["sock"]),
+        Recording.from_json(d["mqtt"]),
+        Recording.from_json(d["notify"]),
+        d["broker_killed_ns"],
+        d["broker_back_ns"],
+        d["kill_ns"],
+        d["daemon1_rc"],
+        d["daemon2_rc"],
+        d["daemon1_log"],
+        d["daemon2_log"],
+    )
 
 
 def _fault_run(tmp: Path) -> dict:
@@ -130,11 +153,36 @@ def _fault_run(tmp: Path) -> dict:
         procs.append(daemon)
         wait_until(lambda: notify.with_line("READY=1"), 30, "READY=1 from the daemon", daemon)
         sock.start()
-        sim = Proc([*MLS, "sim", "devices", "--scenario", "montreal", "--start", "pass:1",
-                    "--duration", str(DURATION_S), "--speed", "1", "--clock-drift-ppm", "35",
-                    "--pps-jitter-us", "20", "--faults", str(tmp / "faults.yaml"),
-                    "--devices", "ins,profiler,pps", "--profiler-port", str(prof),
-                    "--pps-port", str(pps), "--run-dir", str(run)], tmp / "sim.log")  # fmt: skip
+        sim = Proc(
+            [
+                *MLS,
+                "sim",
+                "devices",
+                "--scenario",
+                "montreal",
+                "--start",
+                "pass:1",
+                "--duration",
+                str(DURATION_S),
+                "--speed",
+                "1",
+                "--clock-drift-ppm",
+                "35",
+                "--pps-jitter-us",
+                "20",
+                "--faults",
+                str(tmp / "faults.yaml"),
+                "--devices",
+                "ins,profiler,pps",
+                "--profiler-port",
+                str(prof),
+                "--pps-port",
+                str(pps),
+                "--run-dir",
+                str(run),
+            ],
+            tmp / "sim.log",
+        )
         procs.append(sim)
         wait_until(lambda: (run / "truth_clock.json").exists(), 120, "the emulators to start", sim)
         start_ns = TruthClock.read(run / "truth_clock.json").window["start_host_ns"]
@@ -150,16 +198,24 @@ def _fault_run(tmp: Path) -> dict:
         kill_ns = time.monotonic_ns()
         daemon.signal(signal.SIGKILL)
         rc1 = daemon.wait(10)
-        wait_until(lambda: any(r.data == {"state": "lost"} and r.host_ns > kill_ns
-                               for r in mqtt.topic("status")), 15, "the last will")  # fmt: skip
+        wait_until(
+            lambda: any(r.data == {"state": "lost"} and r.host_ns > kill_ns for r in mqtt.topic("status")),
+            15,
+            "the last will",
+        )
         daemon2 = Proc([*MLS, "acquire", "--config", str(cfg)], tmp / "daemon2.log", env)
         procs.append(daemon2)
         wait_until(lambda: len(notify.with_line("READY=1")) >= 2, 30, "READY=1 after the restart", daemon2)
         time.sleep(2.5)
         daemon2.signal(signal.SIGTERM)
         rc2 = daemon2.wait(30)
-        wait_until(lambda: any(isinstance(r.data, dict) and r.data.get("state") == "stopped"
-                               for r in mqtt.topic("status")), 10, "the final status on MQTT")  # fmt: skip
+        wait_until(
+            lambda: any(
+                isinstance(r.data, dict) and r.data.get("state") == "stopped" for r in mqtt.topic("status")
+            ),
+            10,
+            "the final status on MQTT",
+        )
     finally:  # every step, even when one of them fails: no process is left behind
         with contextlib.ExitStack() as cleanup:
             cleanup.callback(broker.stop)
@@ -167,14 +223,22 @@ def _fault_run(tmp: Path) -> dict:
                 cleanup.callback(stop)
     stats = {n: json.loads((run / "stats" / f"{n}.json").read_text()) for n in ("profiler", "pps", "ins")}
     return {
-        "tmp": str(tmp), "run_dir": str(run), "faults": json.loads((run / "faults.json").read_text())["faults"],
+        "tmp": str(tmp),
+        "run_dir": str(run),
+        "faults": json.loads((run / "faults.json").read_text())["faults"],
         "sim_stats": stats["profiler"] | {"pps": stats["pps"], "ins": stats["ins"]},
         "sessions": [str(p) for p in sorted(q for q in (tmp / "sessions").iterdir() if q.is_dir())],
-        "sock": Recording.of(sock).to_json(), "mqtt": Recording.of(mqtt).to_json(),
+        "sock": Recording.of(sock).to_json(),
+        "mqtt": Recording.of(mqtt).to_json(),
         "notify": [[t, "notify", m] for t, m in notify.messages],
-        "broker_killed_ns": killed_ns, "broker_back_ns": back_ns, "kill_ns": kill_ns,
-        "daemon1_rc": rc1, "daemon2_rc": rc2, "daemon1_log": daemon.output(), "daemon2_log": daemon2.output(),
-    }  # fmt: skip
+        "broker_killed_ns": killed_ns,
+        "broker_back_ns": back_ns,
+        "kill_ns": kill_ns,
+        "daemon1_rc": rc1,
+        "daemon2_rc": rc2,
+        "daemon1_log": daemon.output(),
+        "daemon2_log": daemon2.output(),
+    }
 
 
 def _raw_records(session: Path):
@@ -191,10 +255,12 @@ def test_clock_model_tracks_the_truth_clock_within_50_us_rms_after_30_s(fault_ru
     first_lock = int(host.min())
     late = host >= first_lock + 30 * NS
     rms_late = float(np.sqrt(np.mean(err_us[late] ** 2)))
-    rms_all = float(np.sqrt(np.mean(err_us ** 2)))
-    print(f"\nclock estimate error against the truth clock: RMS {rms_all:.1f} µs over "
-          f"{len(recs)} records, RMS {rms_late:.1f} µs (max {np.abs(err_us[late]).max():.1f} µs) "
-          f"over the {int(late.sum())} records ≥ 30 s after the lock")  # fmt: skip
+    rms_all = float(np.sqrt(np.mean(err_us**2)))
+    print(
+        f"\nclock estimate error against the truth clock: RMS {rms_all:.1f} µs over "
+        f"{len(recs)} records, RMS {rms_late:.1f} µs (max {np.abs(err_us[late]).max():.1f} µs) "
+        f"over the {int(late.sum())} records ≥ 30 s after the lock"
+    )
     assert late.sum() > 1000
     assert rms_late <= 50.0
     # the fitted drift is the truth's 35 ppm (the clock topic, at the end of the run)
@@ -217,32 +283,56 @@ def test_pps_loss_gives_holdover_with_a_growing_bound_then_locked_again(fault_ru
     unplug = fault_run.fault("serial_unplug")["start_host_ns"]
     after = [d["state"] for h, d in clock if f["end_host_ns"] + 3 * NS < h < unplug]
     assert len(after) >= 4 and set(after) == {"LOCKED"}, after
-    ev = [(m.host_ns, m.payload) for m in fault_run.events(fault_run.sessions[0])
-          if m.payload["event"] == "clock_state" and f["start_host_ns"] <= m.host_ns <= f["end_host_ns"] + 3 * NS]
+    ev = [
+        (m.host_ns, m.payload)
+        for m in fault_run.events(fault_run.sessions[0])
+        if m.payload["event"] == "clock_state"
+        and f["start_host_ns"] <= m.host_ns <= f["end_host_ns"] + 3 * NS
+    ]
     assert [(d["from"], d["to"]) for _, d in ev] == [("LOCKED", "HOLDOVER"), ("HOLDOVER", "LOCKED")], ev
-    live = [r.data["state"] for r in fault_run.sock.topic("clock")
-            if f["start_host_ns"] <= r.host_ns <= f["end_host_ns"] + 5 * NS]
+    live = [
+        r.data["state"]
+        for r in fault_run.sock.topic("clock")
+        if f["start_host_ns"] <= r.host_ns <= f["end_host_ns"] + 5 * NS
+    ]
     assert "HOLDOVER" in live and live[-1] == "LOCKED", live
 
 
-@pytest.mark.parametrize("kind, alarm, device", [
-    ("ins_latency_jump", "latency_jump", "ins"),
-    ("profiler_clock_offset", "time_step", "profiler"),
-])  # fmt: skip
+@pytest.mark.parametrize(
+    "kind, alarm, device",
+    [
+        ("ins_latency_jump", "latency_jump", "ins"),
+        ("profiler_clock_offset", "time_step", "profiler"),
+    ],
+)
 def test_alarm_within_2_s_on_the_socket_in_mqtt_and_in_events(fault_run, kind, alarm, device):
     f = fault_run.fault(kind)
     t0 = f["start_host_ns"]
 
     def first(items):
-        return min((t for t, d in items if d.get("action") == "raise" and d.get("name") == alarm
-                    and d.get("device") == device and t >= t0 - NS), default=None)  # fmt: skip
+        return min(
+            (
+                t
+                for t, d in items
+                if d.get("action") == "raise"
+                and d.get("name") == alarm
+                and d.get("device") == device
+                and t >= t0 - NS
+            ),
+            default=None,
+        )
 
     on_socket = first((r.host_ns, r.data) for r in fault_run.sock.topic("alarms"))
     on_mqtt = first((r.host_ns, r.data) for r in fault_run.mqtt.topic("alarms"))
-    in_events = first((m.payload["first_host_ns"], m.payload) for m in fault_run.events(fault_run.sessions[0])
-                      if m.payload["event"] == "alarm")  # fmt: skip
-    delays = {k: None if v is None else (v - t0) / NS for k, v in
-              (("socket", on_socket), ("mqtt", on_mqtt), ("events", in_events))}  # fmt: skip
+    in_events = first(
+        (m.payload["first_host_ns"], m.payload)
+        for m in fault_run.events(fault_run.sessions[0])
+        if m.payload["event"] == "alarm"
+    )
+    delays = {
+        k: None if v is None else (v - t0) / NS
+        for k, v in (("socket", on_socket), ("mqtt", on_mqtt), ("events", in_events))
+    }
     print(f"\n{alarm}/{device} after the {kind} fault: {delays}")
     assert all(d is not None and 0 <= d <= 2.0 for d in delays.values()), delays
 
@@ -313,7 +403,9 @@ def test_sigterm_stops_cleanly_with_a_final_status_and_the_watchdog_pinged(fault
     assert "Traceback" not in r.daemon1_log and "Traceback" not in r.daemon2_log
     info = session_info(r.sessions[1])
     assert [s.state for s in info.segments] == ["complete"] and info.segments[0].end_reason == "shutdown"
-    ends = [m.payload for m in iter_messages(r.sessions[1], {"/events"}) if m.payload["event"] == "session_end"]
+    ends = [
+        m.payload for m in iter_messages(r.sessions[1], {"/events"}) if m.payload["event"] == "session_end"
+    ]
     assert ends and ends[0]["reason"] == "SIGTERM"
     assert r.sock.topic("status")[-1].data["state"] == "stopped"
     mq = [m.data for m in r.mqtt.topic("status")]

@@ -42,8 +42,8 @@ from pathlib import Path
 
 import pytest
 
-from acquire.log.recover import SegmentScan, scan_segment, segment_paths, session_info, unfinished_segments
 from acquire.log.read import iter_messages
+from acquire.log.recover import SegmentScan, scan_segment, segment_paths, session_info, unfinished_segments
 from drivers.pps import decode_pps_datagram
 from tests.acquire.daemon_util import MLS, ROOT, NotifyCollector, Proc, free_port, wait_until
 from tests.acquire.fakedevices import FakeDevices, devices_yaml
@@ -71,7 +71,7 @@ class _Halt(Exception):
 class _SendLog:
     """The fake's UDP socket, recording (host ns after ``sendto`` returned, address, datagram)."""
 
-    def __init__(self, sock, dev: "RecordingDevices"):
+    def __init__(self, sock, dev: RecordingDevices):
         self.sock, self.dev = sock, dev
 
     def sendto(self, data, addr):
@@ -142,16 +142,26 @@ class Run:
 
 def _config(tmp: Path, prof: int, pps: int) -> Path:
     cfg = tmp / "vessel.yaml"
-    cfg.write_text("vessel: kill9\ndevices:\n" + devices_yaml(tmp, prof, pps) + textwrap.dedent(f"""\
+    cfg.write_text(
+        "vessel: kill9\ndevices:\n"
+        + devices_yaml(tmp, prof, pps)
+        + textwrap.dedent(f"""\
         session: {{directory: {tmp}/sessions, flush_s: {FLUSH_S}, fsync_s: 1.0, rotate_s: 10, rotate_mb: 1}}
         status: {{socket: {tmp}/status.sock, period_s: 0.5}}
-        """))  # fmt: skip
+        """)
+    )
     return cfg
 
 
 def _mls(*args: str) -> subprocess.CompletedProcess:
-    return subprocess.run([*MLS, *args], capture_output=True, text=True, cwd=ROOT, timeout=60,
-                          env={**os.environ, "COLUMNS": "250"})  # fmt: skip
+    return subprocess.run(
+        [*MLS, *args],
+        capture_output=True,
+        text=True,
+        cwd=ROOT,
+        timeout=60,
+        env={**os.environ, "COLUMNS": "250"},
+    )
 
 
 def _power_cut_tail(rng: random.Random) -> bytes:
@@ -181,7 +191,9 @@ def kill_runs(tmp_path_factory):
         for trial in range(TRIALS + 1):
             d = Proc([*MLS, "acquire", "--config", str(cfg)], tmp / f"daemon{trial}.log", env)
             procs.append(d)
-            wait_until(lambda: len(notify.with_line("READY=1")) > trial, 30, f"READY=1 ({trial})", d)
+            wait_until(
+                lambda trial=trial: len(notify.with_line("READY=1")) > trial, 30, f"READY=1 ({trial})", d
+            )
             run = Run(trial, d.pid, notify.with_line("READY=1")[trial], None)
             runs.append(run)
             if trial == TRIALS:  # the last one salvages the 5th session, then stops cleanly
@@ -195,8 +207,11 @@ def kill_runs(tmp_path_factory):
             run.kill_ns = time.monotonic_ns()
             d.signal(signal.SIGKILL)
             assert d.wait(10) == -signal.SIGKILL
-            session = next(q for q in (tmp / "sessions").iterdir()
-                           if (q / "session.lock").read_text().strip() == str(d.pid))  # fmt: skip
+            session = next(
+                q
+                for q in (tmp / "sessions").iterdir()
+                if (q / "session.lock").read_text().strip() == str(d.pid)
+            )
             run.session = session
             torn = unfinished_segments(session)
             if trial in TORN_TRIALS and torn:
@@ -208,8 +223,12 @@ def kill_runs(tmp_path_factory):
                 recover = _mls("logs", "recover", str(session))
                 after = _mls("logs", "info", str(session), "--json")
                 again = _mls("logs", "recover", str(session))
-                run.cli = {"before": (before.returncode, before.stdout), "recover": (recover.returncode, recover.stdout),
-                           "after": (after.returncode, after.stdout), "again": (again.returncode, again.stdout)}  # fmt: skip
+                run.cli = {
+                    "before": (before.returncode, before.stdout),
+                    "recover": (recover.returncode, recover.stdout),
+                    "after": (after.returncode, after.stdout),
+                    "again": (again.returncode, again.stdout),
+                }
         wall_s = time.monotonic() - t_start
     finally:
         fake.halted.set()
@@ -235,8 +254,11 @@ def _window(run: Run, device: str) -> tuple[int, int]:
     ev = [e for e in _events(run.session) if e.get("device") == device]
     kinds = [e["event"] for e in ev]
     assert "disconnected" not in kinds, (run.trial, device, ev)
-    connected = [m.host_ns for m in iter_messages(run.session, {"/events"})
-                 if m.payload.get("device") == device and m.payload["event"] == "connected"]  # fmt: skip
+    connected = [
+        m.host_ns
+        for m in iter_messages(run.session, {"/events"})
+        if m.payload.get("device") == device and m.payload["event"] == "connected"
+    ]
     start = max([run.ready_ns, *connected[:1]])
     return start, run.kill_ns - int(FLUSH_S * NS)
 
@@ -254,8 +276,11 @@ def test_every_session_is_complete_after_salvage_with_contiguous_counters(kill_r
         for c in info.channels.values():
             assert (c.seq_first, c.missing, c.duplicates, c.backwards) == (1, 0, 0, 0), (r.trial, c)
             assert c.seq_last - c.seq_first + 1 == c.messages
-    print(f"\n{TRIALS} kill -9 trials of `mls acquire` in {kill_runs['wall_s']:.1f} s; kill after "
-          + ", ".join(f"{(r.kill_ns - r.ready_ns) / NS:.2f}" for r in runs if r.kill_ns) + " s of READY")
+    print(
+        f"\n{TRIALS} kill -9 trials of `mls acquire` in {kill_runs['wall_s']:.1f} s; kill after "
+        + ", ".join(f"{(r.kill_ns - r.ready_ns) / NS:.2f}" for r in runs if r.kill_ns)
+        + " s of READY"
+    )
 
 
 def test_every_ins_byte_emitted_before_the_flush_period_is_logged_exactly_once(kill_runs):
@@ -265,14 +290,18 @@ def test_every_ins_byte_emitted_before_the_flush_period_is_logged_exactly_once(k
     for r in runs:
         logged = b"".join(m.payload for m in iter_messages(r.session, {"/ins/raw"}))
         a = sent.find(logged, prev_end) if logged else -1
-        assert a >= prev_end, (r.trial, "the session's /ins/raw is not one slice of the bytes sent "
-                                          "after the previous session's")  # fmt: skip
+        assert a >= prev_end, (
+            r.trial,
+            "the session's /ins/raw is not one slice of the bytes sent after the previous session's",
+        )
         b = a + len(logged)
         if r.kill_ns is not None:
             first_due, last_due = fake.ins_due(*_window(r, "ins"))
             assert a <= first_due and b >= last_due, (r.trial, a, first_due, last_due, b)
-            print(f"trial {r.trial}: INS bytes {a}–{b} logged, {first_due}–{last_due} due; "
-                  f"{fake.ins_offset_at(r.kill_ns) - b} B sent before the kill not logged")
+            print(
+                f"trial {r.trial}: INS bytes {a}–{b} logged, {first_due}–{last_due} due; "
+                f"{fake.ins_offset_at(r.kill_ns) - b} B sent before the kill not logged"
+            )
         prev_end = b
 
 
@@ -295,7 +324,9 @@ def test_every_profiler_datagram_emitted_before_the_flush_period_is_logged_exact
 
 def test_every_pps_edge_labelled_before_the_flush_period_is_logged_exactly_once(kill_runs):
     fake, runs = kill_runs["fake"], kill_runs["runs"]
-    pulses = [(t0, decode_pps_datagram(d).sequence) for (t0, _), addr, d in fake.sent if addr == fake.addr_pps]
+    pulses = [
+        (t0, decode_pps_datagram(d).sequence) for (t0, _), addr, d in fake.sent if addr == fake.addr_pps
+    ]
     second = {k + 1: s for k, (s, _) in enumerate(fake.pulses)}
     seen: set[int] = set()
     due_total = 0
@@ -333,8 +364,11 @@ def test_torn_tails_are_detected_and_reported_not_dropped(kill_runs):
             assert rc == 1 and [s["state"] for s in before["segments"]][-1] == "unfinished"
             rc, out = r.cli["recover"]
             assert rc == 0 and all(name in out for name in recovered), out
-            reports = [{"segment": s["name"], "torn_bytes": s["torn_bytes"], "problem": s["problem"]}
-                       for s in before["segments"] if s["state"] == "unfinished"]  # fmt: skip
+            reports = [
+                {"segment": s["name"], "torn_bytes": s["torn_bytes"], "problem": s["problem"]}
+                for s in before["segments"]
+                if s["state"] == "unfinished"
+            ]
             rc, out = r.cli["after"]
             assert rc == 0 and all(s["state"] == "complete" for s in json.loads(out)["segments"])
             assert r.cli["again"][0] == 0 and "nothing to recover" in r.cli["again"][1]
@@ -359,5 +393,7 @@ def test_torn_tails_are_detected_and_reported_not_dropped(kill_runs):
             total_torn += rep["torn_bytes"]
         assert segment_paths(r.session)[-1].name in recovered or not r.kill_ns
     assert appended >= 1
-    print(f"\ntorn tail bytes reported over {TRIALS} kills: {total_torn} "
-          f"({appended} power-cut tails of 786 B appended)")
+    print(
+        f"\ntorn tail bytes reported over {TRIALS} kills: {total_torn} "
+        f"({appended} power-cut tails of 786 B appended)"
+    )

@@ -14,7 +14,7 @@ from drivers.hydrins.nmea_encode import encode_epoch
 from tests.acquire.fakedevices import nav_at
 
 NS = 1_000_000_000
-G0 = utc_to_gps_ns(dt.datetime.now(dt.timezone.utc)) // NS * NS  # today: NMEA dates from the host
+G0 = utc_to_gps_ns(dt.datetime.now(dt.UTC)) // NS * NS  # today: NMEA dates from the host
 CLOCK_NS = 777  # what the (unlocked) clock model answers: nowhere near the INS time
 
 
@@ -69,9 +69,14 @@ def test_a_status_older_than_the_hold_is_not_trusted():
 def test_seen_many_reports_the_gaps_seen_one_by_one_would():
     def device():
         events = []
-        ctx = SimpleNamespace(log_event=lambda data, host_ns: events.append((data, host_ns)),
-                              clock=SimpleNamespace(to_gps=lambda h: SimpleNamespace(gps_ns=h + 5, state=SimpleNamespace(value="LOCKED"))),
-                              submit=None, hub=ConsumerHub())  # fmt: skip
+        ctx = SimpleNamespace(
+            log_event=lambda data, host_ns: events.append((data, host_ns)),
+            clock=SimpleNamespace(
+                to_gps=lambda h: SimpleNamespace(gps_ns=h + 5, state=SimpleNamespace(value="LOCKED"))
+            ),
+            submit=None,
+            hub=ConsumerHub(),
+        )
         dev = InsDevice(DeviceConfig("ins", "ins", protocol="nmea", latency=LatencyLimits(gap_ns=NS)), ctx)
         return dev, events
 
@@ -81,7 +86,12 @@ def test_seen_many_reports_the_gaps_seen_one_by_one_would():
     many, ev_many = device()
     for h in stamps:
         one.seen(h)
-    for burst in (stamps[:7], stamps[7:21], stamps[21:36], stamps[36:]):  # a gap inside a burst, one at its start
+    for burst in (
+        stamps[:7],
+        stamps[7:21],
+        stamps[21:36],
+        stamps[36:],
+    ):  # a gap inside a burst, one at its start
         many.seen_many(burst)
     assert ev_many == ev_one and len(ev_one) == 2 and ev_one[0][0]["event"] == "data_gap"
     assert (many.gaps, many.last_host_ns) == (one.gaps, one.last_host_ns) == (2, stamps[-1])

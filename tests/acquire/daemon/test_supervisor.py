@@ -16,11 +16,11 @@ import numpy as np
 import pytest
 
 from acquire.daemon.config import load_vessel_config
-from drivers.can import parse_can_frame
-from acquire.log.recover import session_info
-from acquire.log.read import iter_messages
-from acquire.status.bus import read_snapshot
 from acquire.daemon.supervisor import Supervisor
+from acquire.log.read import iter_messages
+from acquire.log.recover import session_info
+from acquire.status.bus import read_snapshot
+from drivers.can import parse_can_frame
 from tests.acquire.daemon_util import MLS, ROOT, NotifyCollector, free_port
 from tests.acquire.fakedevices import FakeDevices, devices_yaml
 
@@ -38,14 +38,19 @@ def _gps_now_ns() -> int:
 
 def _config(tmp: Path, prof: int, pps: int, extra: str = "") -> Path:
     cfg = tmp / "vessel.yaml"
-    cfg.write_text("vessel: fake-1\ndevices:\n" + devices_yaml(tmp, prof, pps) + textwrap.dedent(f"""\
+    cfg.write_text(
+        "vessel: fake-1\ndevices:\n"
+        + devices_yaml(tmp, prof, pps)
+        + textwrap.dedent(f"""\
           - name: marks
             kind: can
             transport: {{type: can, interface: virtual, channel: mls-test-{prof}}}
         session: {{directory: sessions, flush_s: 0.2}}
         status: {{socket: status.sock, period_s: 0.5}}
         mount: {{lever_arm_m: [0.1, 0.2, -1.0], nominal_deg: [0, 0, 90], boresight_apriori_deg: [0, 0, 0]}}
-        """) + extra)  # fmt: skip
+        """)
+        + extra
+    )
     return cfg
 
 
@@ -96,14 +101,18 @@ def fake_run(tmp_path_factory):
 
             with can.Bus(interface="virtual", channel=f"mls-test-{prof}") as bus:
                 bus.send(event_marker_message(kind, pass_id, seq))
+
         return send
 
     fake.hooks += [(1.0, marker("pass_start", 3, 1)), (5.0, marker("pass_end", 3, 2))]
     out = {}
 
     async def scenario():
-        sup = Supervisor(cfg, consumers=[rec, crash],
-                         env={"NOTIFY_SOCKET": str(tmp / "notify.sock"), "WATCHDOG_USEC": "1000000"})  # fmt: skip
+        sup = Supervisor(
+            cfg,
+            consumers=[rec, crash],
+            env={"NOTIFY_SOCKET": str(tmp / "notify.sock"), "WATCHDOG_USEC": "1000000"},
+        )
         task = asyncio.create_task(sup.run())
         while not notify.with_line("READY=1"):
             assert not task.done(), task
@@ -124,8 +133,16 @@ def fake_run(tmp_path_factory):
         fake.close()
         notify.stop()
     session = out["sup"].writer.session_dir
-    yield {**out, "tmp": tmp, "cfg": cfg, "fake": fake, "notify": notify, "recorder": rec,
-           "crasher": crash, "session": session}  # fmt: skip
+    yield {
+        **out,
+        "tmp": tmp,
+        "cfg": cfg,
+        "fake": fake,
+        "notify": notify,
+        "recorder": rec,
+        "crasher": crash,
+        "session": session,
+    }
 
 
 def test_raw_channels_keep_the_exact_bytes_and_the_session_closes_complete(fake_run):
@@ -151,7 +168,7 @@ def test_nav_records_take_the_ins_time_tag_and_the_clock_locks_on_labelled_pulse
     assert abs(nav[0].payload["roll_deg"] - np.degrees(0.01)) < 1e-3  # canonical, degrees at the edge
     pps = [m.payload for m in iter_messages(s, {"/pps"})]
     labelled = [p for p in pps if p["gps_s"] is not None]
-    assert [p["gps_s"] for p in labelled] == [g for g, _ in fake.pulses][-len(labelled):]
+    assert [p["gps_s"] for p in labelled] == [g for g, _ in fake.pulses][-len(labelled) :]
     assert len(labelled) >= len(fake.pulses) - 1 and all(p["accepted"] for p in labelled)
     clock = fake_run["snapshot"]["clock"]
     assert clock["edges_accepted"] == len(labelled)
@@ -165,17 +182,25 @@ def test_can_markers_become_pass_events_and_raw_frames(fake_run):
     s = fake_run["session"]
     frames = [parse_can_frame(m.payload) for m in iter_messages(s, {"/can/marks"})]
     assert [(i, len(d)) for i, d, _ in frames] == [(0x6E0, 8), (0x6E0, 8)]
-    ev = [m.payload for m in iter_messages(s, {"/events"}) if m.payload["event"] in ("pass_start", "pass_end")]
+    ev = [
+        m.payload for m in iter_messages(s, {"/events"}) if m.payload["event"] in ("pass_start", "pass_end")
+    ]
     assert [(e["event"], e["pass_id"], e["source"]) for e in ev] == [
-        ("pass_start", 3, "can:marks"), ("pass_end", 3, "can:marks")]
+        ("pass_start", 3, "can:marks"),
+        ("pass_end", 3, "can:marks"),
+    ]
 
 
 def test_status_socket_notify_and_checklist(fake_run):
     snap = fake_run["snapshot"]
     st = snap["status"]
     assert st["state"] == "running" and st["vessel"] == "fake-1" and st["clock"] == "LOCKED"
-    assert st["devices"] == {"ins": "connected", "profiler": "connected", "pps": "connected",
-                             "marks": "connected"}  # fmt: skip
+    assert st["devices"] == {
+        "ins": "connected",
+        "profiler": "connected",
+        "pps": "connected",
+        "marks": "connected",
+    }
     assert snap["sensors/profiler"]["records"] == len(fake_run["fake"].datagrams) // 3
     assert snap["sensors/ins"]["sync"] == "ok" and snap["sensors/ins"]["pps_flag"] is True
     check = snap["checklist"]
@@ -211,14 +236,16 @@ def _mls(*args, cwd=None) -> subprocess.CompletedProcess:
 
 def test_invalid_config_prints_one_error_per_line_and_exits_2(tmp_path):
     bad = tmp_path / "bad.yaml"
-    bad.write_text(textwrap.dedent("""\
+    bad.write_text(
+        textwrap.dedent("""\
         vessel: "bad name"
         devices:
           - {name: ins, kind: ins, protocol: nmea, transport: {type: serial, port: dev/ttyS0, baud: 11520}}
           - {name: p, kind: pps, source: {type: udp, host: 127.0.0.1, port: 70000}, time_device: gnss}
         session: {directory: /tmp/x, flush_s: 2}
         colour: blue
-        """))  # fmt: skip
+        """)
+    )
     r = _mls("acquire", "--config", str(bad))
     assert r.returncode == 2
     lines = r.stderr.strip().splitlines()
@@ -234,8 +261,11 @@ def test_check_mode_and_a_second_ins_is_refused(tmp_path):
     r = _mls("acquire", "--config", str(cfg), "--check")
     assert r.returncode == 0, r.stderr
     assert "profiler" in r.stdout and "udp 127.0.0.1:45001" in r.stdout
-    two = cfg.read_text().replace("devices:\n", "devices:\n  - {name: ins2, kind: ins, protocol: nmea, "
-                                  "transport: {type: udp, host: 127.0.0.1, port: 45003}}\n")  # fmt: skip
+    two = cfg.read_text().replace(
+        "devices:\n",
+        "devices:\n  - {name: ins2, kind: ins, protocol: nmea, "
+        "transport: {type: udp, host: 127.0.0.1, port: 45003}}\n",
+    )
     cfg.write_text(two)
     r = _mls("acquire", "--config", str(cfg))
     assert r.returncode == 2 and "2 ins devices (ins2, ins)" in r.stderr, r.stderr
@@ -258,21 +288,25 @@ def test_a_status_socket_in_use_is_a_start_failure(tmp_path):
 
 def test_an_absent_device_alarms_and_a_driver_bug_withholds_the_watchdog(tmp_path):
     cfg = tmp_path / "vessel.yaml"
-    cfg.write_text(textwrap.dedent(f"""\
+    cfg.write_text(
+        textwrap.dedent(f"""\
         vessel: wd
         devices:
           - {{name: ins, kind: ins, protocol: nmea, transport: {{type: udp, host: 127.0.0.1, port: {free_port()}}}}}
           - {{name: pps, kind: pps, source: {{type: kernel, device: {tmp_path}/pps9}}, time_device: ins}}
         session: {{directory: sessions}}
         status: {{socket: status.sock}}
-        """))  # fmt: skip
+        """)
+    )
     notify = NotifyCollector(tmp_path / "notify.sock")
     notify.start()
     out = {}
 
     async def scenario():
-        sup = Supervisor(load_vessel_config(cfg), env={"NOTIFY_SOCKET": str(tmp_path / "notify.sock"),
-                                                       "WATCHDOG_USEC": "400000"})  # fmt: skip
+        sup = Supervisor(
+            load_vessel_config(cfg),
+            env={"NOTIFY_SOCKET": str(tmp_path / "notify.sock"), "WATCHDOG_USEC": "400000"},
+        )
         ins = sup.devices["ins"]
         bug = asyncio.Event()
 
@@ -283,7 +317,11 @@ def test_an_absent_device_alarms_and_a_driver_bug_withholds_the_watchdog(tmp_pat
         ins.run = buggy_run
         task = asyncio.create_task(sup.run())
         await asyncio.sleep(1.0)
-        out["before"] = (sup.drivers_health(), sup.status_doc()["devices"], len(notify.with_line("WATCHDOG=1")))
+        out["before"] = (
+            sup.drivers_health(),
+            sup.status_doc()["devices"],
+            len(notify.with_line("WATCHDOG=1")),
+        )
         bug.set()
         await asyncio.sleep(0.3)
         out["during"] = (sup.drivers_health(), sup.status_doc()["devices"]["ins"])
@@ -312,14 +350,16 @@ def test_mqtt_commands_mark_passes_in_events_and_rotate_the_segment(tmp_path, mo
     import aiomqtt
 
     cfg = tmp_path / "vessel.yaml"
-    cfg.write_text(textwrap.dedent(f"""\
+    cfg.write_text(
+        textwrap.dedent(f"""\
         vessel: cmd-1
         devices:
           - {{name: ins, kind: ins, protocol: nmea, transport: {{type: udp, host: 127.0.0.1, port: {free_port()}}}}}
         session: {{directory: sessions}}
         status: {{socket: status.sock}}
         mqtt: {{host: 127.0.0.1, port: {mosquitto.port}, topic_prefix: cmdtest, commands_enabled: true}}
-        """))  # fmt: skip
+        """)
+    )
     results = []
 
     async def scenario():
@@ -329,8 +369,12 @@ def test_mqtt_commands_mark_passes_in_events_and_rotate_the_segment(tmp_path, mo
             await c.subscribe("cmdtest/cmd-1/#", qos=1)
             while not (sup.mqtt and sup.mqtt.connected and sup.mqtt.subscribed):
                 await asyncio.sleep(0.02)
-            for name, args in (("pass_start", {"pass_id": 2, "id": 7}), ("mark", {"text": "buoy 4"}),
-                               ("rotate", {}), ("pass_end", {"pass_id": "2"})):  # fmt: skip
+            for name, args in (
+                ("pass_start", {"pass_id": 2, "id": 7}),
+                ("mark", {"text": "buoy 4"}),
+                ("rotate", {}),
+                ("pass_end", {"pass_id": "2"}),
+            ):
                 await c.publish(f"cmdtest/cmd-1/cmd/{name}", json.dumps(args), qos=1)
             async for m in c.messages:
                 if str(m.topic).endswith("cmd/result"):
@@ -346,7 +390,14 @@ def test_mqtt_commands_mark_passes_in_events_and_rotate_the_segment(tmp_path, mo
     assert results[0]["id"] == 7 and "pass 2 logged at GPS" in results[0]["message"]
     assert "argument 'pass_id' must be int" in results[3]["message"]
     ev = [m.payload for m in iter_messages(session, {"/events"})]
-    marks = [(e["event"], e.get("pass_id"), e.get("text"), e["source"]) for e in ev
-             if e["event"] in ("pass_start", "mark", "rotate", "pass_end")]
-    assert marks == [("pass_start", 2, None, "mqtt"), ("mark", None, "buoy 4", "mqtt"), ("rotate", None, None, "mqtt")]
+    marks = [
+        (e["event"], e.get("pass_id"), e.get("text"), e["source"])
+        for e in ev
+        if e["event"] in ("pass_start", "mark", "rotate", "pass_end")
+    ]
+    assert marks == [
+        ("pass_start", 2, None, "mqtt"),
+        ("mark", None, "buoy 4", "mqtt"),
+        ("rotate", None, None, "mqtt"),
+    ]
     assert len(session_info(session).segments) == 2  # the rotate command opened a new segment

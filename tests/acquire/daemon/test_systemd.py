@@ -52,16 +52,16 @@ def _local_copy(tmp_path: Path) -> Path:
 
 
 def test_unit_verifies_without_any_warning(tmp_path):
-    r = subprocess.run([_analyze(), "verify", str(_local_copy(tmp_path))],
-                       capture_output=True, text=True, timeout=60)  # fmt: skip
+    r = subprocess.run(
+        [_analyze(), "verify", str(_local_copy(tmp_path))], capture_output=True, text=True, timeout=60
+    )
     assert r.returncode == 0 and r.stderr == "", r.stderr
 
 
 def test_ldattach_template_instance_verifies(tmp_path):
     instance = tmp_path / "mls-pps-ldattach@ttyS0.service"
     instance.write_text(LDATTACH.read_text())
-    r = subprocess.run([_analyze(), "verify", str(instance)], capture_output=True, text=True,
-                       timeout=60)  # fmt: skip
+    r = subprocess.run([_analyze(), "verify", str(instance)], capture_output=True, text=True, timeout=60)
     assert r.returncode == 0 and r.stderr == "", r.stderr
 
 
@@ -80,8 +80,12 @@ def test_unit_settings_that_the_daemon_relies_on():
 
 
 def test_security_exposure_is_low(tmp_path):
-    r = subprocess.run([_analyze(), "security", "--offline=true", str(_local_copy(tmp_path))],
-                       capture_output=True, text=True, timeout=60)  # fmt: skip
+    r = subprocess.run(
+        [_analyze(), "security", "--offline=true", str(_local_copy(tmp_path))],
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
     m = re.search(r"Overall exposure level for \S+: (\d+\.\d+)", r.stdout)
     assert m, r.stdout[-500:] + r.stderr
     exposure = float(m.group(1))
@@ -90,8 +94,11 @@ def test_security_exposure_is_low(tmp_path):
 
 
 def test_udev_rule_asks_for_the_ldattach_unit_and_opens_pps_to_dialout():
-    rules = [ln for ln in (SYSTEMD / "99-mls-pps.rules").read_text().splitlines()
-             if ln.strip() and not ln.startswith("#")]  # fmt: skip
+    rules = [
+        ln
+        for ln in (SYSTEMD / "99-mls-pps.rules").read_text().splitlines()
+        if ln.strip() and not ln.startswith("#")
+    ]
     assert len(rules) == 2
     assert 'ENV{SYSTEMD_WANTS}+="mls-pps-ldattach@%k.service"' in rules[0]
     assert 'SUBSYSTEM=="tty"' in rules[0] and 'TAG+="systemd"' in rules[0]

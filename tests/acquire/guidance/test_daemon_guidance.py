@@ -17,10 +17,10 @@ import numpy as np
 import pytest
 
 from acquire.daemon.config import GuidanceConfig, VesselConfigError, load_vessel_config, parse_vessel_config
+from acquire.daemon.supervisor import Supervisor
 from acquire.guidance.daemon import GuidanceSetupError, guidance_consumer, make_guidance, tolerances
 from acquire.guidance.lines import AcceptanceTolerances
 from acquire.status.bus import read_snapshot
-from acquire.daemon.supervisor import Supervisor
 from calib.sim.simulate import simulate
 from tests.acquire.daemon_util import MLS, MqttCollector, free_port
 from tests.acquire.fakedevices import FakeDevices
@@ -36,21 +36,30 @@ def site_file(tmp_path_factory) -> Path:
 
 
 def _vessel(site: Path | None, extra: str = "", ins_port: int | None = None) -> str:
-    return textwrap.dedent(f"""\
+    return (
+        textwrap.dedent(f"""\
         vessel: guide-1
         devices:
           - {{name: ins, kind: ins, protocol: nmea, transport: {{type: udp, host: 127.0.0.1, port: {ins_port or 7001}}}}}
         session: {{directory: sessions}}
         mount: {{lever_arm_m: [0.1, 0.2, -1.0], nominal_deg: [0, 0, 90], boresight_apriori_deg: [0.5, 0, 0]}}
-        """) + (f"site_file: {site}\n" if site else "") + extra  # fmt: skip
+        """)
+        + (f"site_file: {site}\n" if site else "")
+        + extra
+    )
 
 
 def test_guidance_section_defaults_are_the_acceptance_defaults(site_file):
     cfg = parse_vessel_config(_vessel(site_file))
     assert cfg.guidance == GuidanceConfig()
     assert tolerances(cfg.guidance) == AcceptanceTolerances()
-    cfg = parse_vessel_config(_vessel(site_file, "guidance: {max_xte_m: 1.5, max_heading_error_deg: 8, "
-                                                 "min_points_per_target: 40, period_s: 0.25}\n"))  # fmt: skip
+    cfg = parse_vessel_config(
+        _vessel(
+            site_file,
+            "guidance: {max_xte_m: 1.5, max_heading_error_deg: 8, "
+            "min_points_per_target: 40, period_s: 0.25}\n",
+        )
+    )
     tol = tolerances(cfg.guidance)
     assert tol.max_xte_m == 1.5 and tol.min_points_per_target == 40
     assert tol.max_heading_error_rad == pytest.approx(math.radians(8.0))
@@ -72,14 +81,17 @@ def test_the_shipped_example_documents_the_defaults(site_file, tmp_path):
 
 
 def test_guidance_section_errors_name_the_line_the_key_and_what_was_expected(site_file):
-    text = _vessel(site_file, textwrap.dedent("""\
+    text = _vessel(
+        site_file,
+        textwrap.dedent("""\
         guidance:
           max_xte_m: -1
           max_heading_error_deg: 120
           min_points_per_target: 2.5
           profile_rate_hz: fast
           colour: red
-        """))  # fmt: skip
+        """),
+    )
     with pytest.raises(VesselConfigError) as e:
         parse_vessel_config(text, source="v.yaml")
     errs = e.value.errors
@@ -98,15 +110,19 @@ def test_guidance_section_errors_name_the_line_the_key_and_what_was_expected(sit
     ]
     with pytest.raises(VesselConfigError) as e:
         parse_vessel_config(_vessel(None, "guidance: {max_xte_m: 1.0}\n"), source="v.yaml")
-    assert e.value.errors == ["v.yaml:6:11: guidance: the guidance needs the site's targets and "
-                              "pass plan: add site_file (or set guidance.enabled: false)"]  # fmt: skip
+    assert e.value.errors == [
+        "v.yaml:6:11: guidance: the guidance needs the site's targets and "
+        "pass plan: add site_file (or set guidance.enabled: false)"
+    ]
     # disabled: no site needed, and no consumer
     cfg = parse_vessel_config(_vessel(None, "guidance: {enabled: false}\n"))
     assert guidance_consumer(cfg, sup=None) is None
 
 
 def test_make_guidance_plans_the_site_with_the_vessels_mount(site_file, tmp_path):
-    cfg = parse_vessel_config(_vessel(site_file, "guidance: {profile_rate_hz: 63.25, points_per_360: 1606}\n"))
+    cfg = parse_vessel_config(
+        _vessel(site_file, "guidance: {profile_rate_hz: 63.25, points_per_360: 1606}\n")
+    )
     g = make_guidance(cfg)
     assert [round(math.degrees(p.relative_heading_rad)) for p in g.plan.passes] == [0, 180, 45, 225, 315, 135]
     assert g.target_names == ["T1", "T2"]
@@ -126,20 +142,31 @@ def test_make_guidance_plans_the_site_with_the_vessels_mount(site_file, tmp_path
     # a standoff the wall forbids: no plan, and the error names the site file
     tight = tmp_path / "tight.yaml"
     tight.write_text(site_file.read_text().replace("standoff_m: 15.0", "standoff_m: 2.0"))
-    with pytest.raises(GuidanceSetupError, match=rf"site_file {tight}: no pass plan: pass 1: .*less than "
-                                                 r"the safe distance 5 m; increase standoff_m"):  # fmt: skip
+    with pytest.raises(
+        GuidanceSetupError,
+        match=rf"site_file {tight}: no pass plan: pass 1: .*less than "
+        r"the safe distance 5 m; increase standoff_m",
+    ):
         make_guidance(parse_vessel_config(_vessel(tight)))
     vfile = tmp_path / "tight-vessel.yaml"
     vfile.write_text(_vessel(tight))
-    r = subprocess.run([*MLS, "acquire", "--config", str(vfile)], capture_output=True, text=True,
-                       cwd=tmp_path, timeout=60)  # fmt: skip
+    r = subprocess.run(
+        [*MLS, "acquire", "--config", str(vfile)], capture_output=True, text=True, cwd=tmp_path, timeout=60
+    )
     assert r.returncode == 2 and f"mls acquire: site_file {tight}: no pass plan: pass 1" in r.stderr
     vfile.write_text(_vessel(site_file, "guidance: {max_xte_m: 1.5, min_points_per_target: 40}\n"))
-    r = subprocess.run([*MLS, "acquire", "--config", str(vfile), "--check"], capture_output=True,
-                       text=True, cwd=tmp_path, timeout=60)  # fmt: skip
+    r = subprocess.run(
+        [*MLS, "acquire", "--config", str(vfile), "--check"],
+        capture_output=True,
+        text=True,
+        cwd=tmp_path,
+        timeout=60,
+    )
     assert r.returncode == 0, r.stderr
-    assert (f"guidance: 6 passes around 2 targets (T1, T2) of {site_file}; accepted within 1.5 m "
-            f"XTE, 5° heading, ±0.5 m/s, ≥ 40 points per target, gaps ≤ 0.5 s") in " ".join(r.stdout.split())
+    assert (
+        f"guidance: 6 passes around 2 targets (T1, T2) of {site_file}; accepted within 1.5 m "
+        f"XTE, 5° heading, ±0.5 m/s, ≥ 40 points per target, gaps ≤ 0.5 s"
+    ) in " ".join(r.stdout.split())
 
 
 def test_simulated_devices_write_a_guidance_section_matched_to_their_profiler(site_file):
@@ -148,16 +175,30 @@ def test_simulated_devices_write_a_guidance_section_matched_to_their_profiler(si
     locations = {"ins": {"link": "/tmp/run/ins", "protocol": "nmea"}}
     sim = simulate("montreal", 0)
     sc = sim.scenario.scanner
-    cfg = vessel_config(vessel="v", run_dir=Path("/tmp/run"), locations=locations,
-                        profiler_rate_hz=sc.effective_profile_rate_hz,
-                        profiler_points_per_360=sc.effective_points_per_360, site=sim.site,
-                        site_file=str(site_file))  # fmt: skip
+    cfg = vessel_config(
+        vessel="v",
+        run_dir=Path("/tmp/run"),
+        locations=locations,
+        profiler_rate_hz=sc.effective_profile_rate_hz,
+        profiler_points_per_360=sc.effective_points_per_360,
+        site=sim.site,
+        site_file=str(site_file),
+    )
     # 0.1 of the full Z+F point rate: 10 % of the 100 points, at least 20
-    assert cfg["guidance"] == {"min_points_per_target": 20, "profile_rate_hz": 63.2456,
-                               "points_per_360": 1606}  # fmt: skip
-    full = vessel_config(vessel="v", run_dir=Path("/tmp/run"), locations=locations,
-                         profiler_rate_hz=200.0, profiler_points_per_360=5080, site=sim.site,
-                         site_file=str(site_file))["guidance"]  # fmt: skip
+    assert cfg["guidance"] == {
+        "min_points_per_target": 20,
+        "profile_rate_hz": 63.2456,
+        "points_per_360": 1606,
+    }
+    full = vessel_config(
+        vessel="v",
+        run_dir=Path("/tmp/run"),
+        locations=locations,
+        profiler_rate_hz=200.0,
+        profiler_points_per_360=5080,
+        site=sim.site,
+        site_file=str(site_file),
+    )["guidance"]
     assert full["min_points_per_target"] == 100
     import yaml
 
@@ -172,7 +213,8 @@ def test_the_daemon_publishes_the_guidance_on_the_socket_and_mqtt(site_file, tmp
 
     prof, pps = free_port(), free_port()
     cfg_path = tmp_path / "vessel.yaml"
-    cfg_path.write_text(textwrap.dedent(f"""\
+    cfg_path.write_text(
+        textwrap.dedent(f"""\
         vessel: guide-1
         devices:
           - {{name: ins, kind: ins, protocol: nmea, transport: {{type: serial, port: {tmp_path}/ins, baud: 115200}},
@@ -187,7 +229,8 @@ def test_the_daemon_publishes_the_guidance_on_the_socket_and_mqtt(site_file, tmp
         mount: {{lever_arm_m: [0.35, 0.85, -1.65], nominal_deg: [0, 0, 0], boresight_apriori_deg: [0, 0, 0]}}
         site_file: {site_file}
         guidance: {{max_xte_m: 1.5, min_points_per_target: 40, period_s: 0.25}}
-        """))  # fmt: skip
+        """)
+    )
     cfg = load_vessel_config(cfg_path)
     gps0 = (time.monotonic_ns() + coarse_gps_offset_ns()) // NS * NS + 300_000_000
     fake = FakeDevices(tmp_path / "ins", prof, pps, seconds=6.0, gps0_ns=gps0)
@@ -222,8 +265,15 @@ def test_the_daemon_publishes_the_guidance_on_the_socket_and_mqtt(site_file, tmp
     assert g["vessel_name"] == "sim-montreal" and len(g["plan"]["passes"]) == 6
     assert g["tolerances"]["max_xte_m"] == 1.5 and g["tolerances"]["min_points_per_target"] == 40
     checks = {c["name"]: c for c in g["prechecks"]}
-    assert list(checks) == ["ins_navigating", "gnss_fix", "pps_locked", "clock_locked",
-                            "latency_in_band", "disk_space", "mount_targets"]  # fmt: skip
+    assert list(checks) == [
+        "ins_navigating",
+        "gnss_fix",
+        "pps_locked",
+        "clock_locked",
+        "latency_in_band",
+        "disk_space",
+        "mount_targets",
+    ]
     for name in ("ins_navigating", "gnss_fix", "pps_locked", "clock_locked", "mount_targets"):
         assert checks[name]["ok"] is True, checks[name]
     assert checks["mount_targets"]["detail"] == "mount, 2 targets"
@@ -242,6 +292,9 @@ def test_the_daemon_publishes_the_guidance_on_the_socket_and_mqtt(site_file, tmp
     last = msgs[-1].data
     assert last["guidance"]["schema"] == "mls.checklist/1" and "presurvey" in last
     assert last["guidance"]["plan"] == g["plan"]
-    assert any(m.data["guidance"]["prechecks"] and all(c["ok"] for c in m.data["guidance"]["prechecks"]
-                                                       if c["name"] != "latency_in_band")
-               for m in msgs if "guidance" in m.data)  # fmt: skip
+    assert any(
+        m.data["guidance"]["prechecks"]
+        and all(c["ok"] for c in m.data["guidance"]["prechecks"] if c["name"] != "latency_in_band")
+        for m in msgs
+        if "guidance" in m.data
+    )

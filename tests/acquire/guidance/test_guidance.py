@@ -17,20 +17,30 @@ from hypothesis import strategies as st
 
 from acquire.daemon.consumers import ChecklistPublisher, Tap
 from acquire.guidance.consumer import GuidanceConsumer
-from acquire.guidance.lines import (AcceptanceTolerances, GuidanceSettings, PassWindow,
-                              course_over_ground, disk_needed_bytes, evaluate_pass,
-                              heading_error, in_capture, line_offsets, prechecks,
-                              speed_over_ground, target_hits)  # fmt: skip
+from acquire.guidance.lines import (
+    AcceptanceTolerances,
+    GuidanceSettings,
+    PassWindow,
+    course_over_ground,
+    disk_needed_bytes,
+    evaluate_pass,
+    heading_error,
+    in_capture,
+    line_offsets,
+    prechecks,
+    speed_over_ground,
+    target_hits,
+)
 from acquire.guidance.state import SCHEMA, Guidance, sigma_rises
 from calib.core import frames
-from calib.core.georef import Mount
 from calib.core.geometry import Rectangle
-from calib.survey.passplan import PlannedPass, plan_site
+from calib.core.georef import Mount
+from calib.core.trajectory import Trajectory
 from calib.design.passpredict import SigmaPrediction
 from calib.sim.scenario import ScannerModel, load_scenario
 from calib.sim.scene import Scene
 from calib.sim.simulate import scan
-from calib.core.trajectory import Trajectory
+from calib.survey.passplan import PlannedPass, plan_site
 from drivers.hydrins.nav import NavRecord, status_words
 from drivers.zf.codec import Profile
 from tests.acquire.guidance_sim import adjust_simulated, nav_records, profiles, run_survey
@@ -38,13 +48,26 @@ from tests.acquire.guidance_sim import adjust_simulated, nav_records, profiles, 
 FRAME = frames.LocalFrame(45.5065, -73.5518, -24.5)
 
 
-def _line(heading_deg: float, start=(0.0, 0.0), length_m=100.0, capture=(40.0, 60.0),
-          speed=2.0, pid=1) -> PlannedPass:  # fmt: skip
+def _line(
+    heading_deg: float, start=(0.0, 0.0), length_m=100.0, capture=(40.0, 60.0), speed=2.0, pid=1
+) -> PlannedPass:
     h = math.radians(heading_deg)
     s = np.array([start[0], start[1], 0.0])
     d = np.array([math.cos(h), math.sin(h), 0.0])
-    return PlannedPass(pid, 1, 0.0, h % (2 * math.pi), s, s + length_m * d, s + 50 * d, speed,
-                       capture[0], capture[1], "starboard", 20.0)  # fmt: skip
+    return PlannedPass(
+        pid,
+        1,
+        0.0,
+        h % (2 * math.pi),
+        s,
+        s + length_m * d,
+        s + 50 * d,
+        speed,
+        capture[0],
+        capture[1],
+        "starboard",
+        20.0,
+    )
 
 
 # -- geometry ---------------------------------------------------------------------------------
@@ -61,27 +84,32 @@ def test_xte_is_positive_to_starboard_with_the_exact_value():
     sw = _line(225.0)
     # heading 225°: starboard points north-west
     p = 20.0 * np.array([-math.sqrt(0.5), -math.sqrt(0.5), 0]) + 4.0 * np.array(
-        [math.sqrt(0.5), -math.sqrt(0.5), 0])
+        [math.sqrt(0.5), -math.sqrt(0.5), 0]
+    )
     along, xte = line_offsets(p, sw)
     assert (along[0], xte[0]) == pytest.approx((20.0, 4.0), abs=1e-12)
 
 
 @settings(max_examples=60, deadline=None)
-@given(st.floats(0, 360), st.floats(-500, 500), st.floats(-50, 50), st.floats(-100, 100),
-       st.floats(-100, 100))
+@given(
+    st.floats(0, 360), st.floats(-500, 500), st.floats(-50, 50), st.floats(-100, 100), st.floats(-100, 100)
+)
 def test_xte_and_progress_recover_a_constructed_offset(heading_deg, along_m, xte_m, n0, e0):
     line = _line(heading_deg, start=(n0, e0))
     h = line.heading_rad
-    p = line.start_lgf_m + along_m * np.array([math.cos(h), math.sin(h), 0]) + xte_m * np.array(
-        [-math.sin(h), math.cos(h), 0]) + [0, 0, 3.0]
+    p = (
+        line.start_lgf_m
+        + along_m * np.array([math.cos(h), math.sin(h), 0])
+        + xte_m * np.array([-math.sin(h), math.cos(h), 0])
+        + [0, 0, 3.0]
+    )
     a, x = line_offsets(p, line)
     assert a[0] == pytest.approx(along_m, abs=1e-9)
     assert x[0] == pytest.approx(xte_m, abs=1e-9)
 
 
 def test_heading_error_wraps_across_north_and_south():
-    d = np.degrees(heading_error(np.radians([359.0, 1.0, 180.0, 0.0, 90.0, 271.0]),
-                                 np.radians(1.0)))  # fmt: skip
+    d = np.degrees(heading_error(np.radians([359.0, 1.0, 180.0, 0.0, 90.0, 271.0]), np.radians(1.0)))
     assert d.tolist() == pytest.approx([-2.0, 0.0, 179.0, -1.0, 89.0, -90.0], abs=1e-9)
     assert math.degrees(heading_error(math.radians(1.0), math.radians(359.0))) == pytest.approx(2.0)
     # exactly opposite: +180° (the interval is (−180°, 180°])
@@ -93,8 +121,7 @@ def test_speed_course_and_capture_window():
     assert math.degrees(course_over_ground(0.0, -2.0)) == pytest.approx(270.0)
     assert math.degrees(course_over_ground(-1.0, 0.0)) == pytest.approx(180.0)
     line = _line(30.0, capture=(40.0, 60.0))
-    assert in_capture([39.9, 40.0, 50.0, 60.0, 60.1], line).tolist() == [False, True, True, True,
-                                                                          False]
+    assert in_capture([39.9, 40.0, 50.0, 60.0, 60.1], line).tolist() == [False, True, True, True, False]
 
 
 # -- live target hits ---------------------------------------------------------------------------
@@ -106,14 +133,18 @@ def test_target_hits_match_exact_ray_casting_and_gate_most_points_out():
     returns were made with, the gated hits are exactly the returns on the targets."""
     t1 = Rectangle.from_orientation("T1", [-1.75, 15.0, -5.0], 1.23, 1.22, np.pi / 2, np.pi * 1.5)
     t2 = Rectangle.from_orientation("T2", [1.75, 14.7, -5.0], 1.23, 0.76, np.pi / 4, np.pi * 1.5)
-    wall = Rectangle.from_orientation("wall", [0.0, 15.03, -5.0], 8.0, 4.0, np.pi / 2,
-                                      np.pi * 1.5, 0.25)  # fmt: skip
+    wall = Rectangle.from_orientation("wall", [0.0, 15.03, -5.0], 8.0, 4.0, np.pi / 2, np.pi * 1.5, 0.25)
     scene = Scene((t1, t2, wall), ("target", "target", "wall"))
     t = 1.3e9 + np.arange(0.0, 10.0001, 0.05)
     s = t - t[0]
     p = np.column_stack([-10 + 2.0 * s, np.zeros_like(s), np.zeros_like(s)])
-    rpy = np.column_stack([np.radians(1.5) * np.sin(2 * np.pi * s / 4), np.zeros_like(s),
-                           np.radians(0.3) * np.sin(2 * np.pi * s / 9)])  # fmt: skip
+    rpy = np.column_stack(
+        [
+            np.radians(1.5) * np.sin(2 * np.pi * s / 4),
+            np.zeros_like(s),
+            np.radians(0.3) * np.sin(2 * np.pi * s / 9),
+        ]
+    )
     traj = Trajectory(t, p, rpy, FRAME)
     mount = Mount(lever_arm_m=[0.3, 0.8, -1.6], boresight_rad=np.radians([0.2, 1.2, 0.15]))
     scanner = ScannerModel(point_rate_scale=0.05)
@@ -129,8 +160,17 @@ def test_target_hits_match_exact_ray_casting_and_gate_most_points_out():
     tt = np.concatenate([ret.t_gps_s, np.full(50, ret.t_gps_s[n // 2])])
     pi = np.concatenate([which, np.full(50, which[n // 2])])
     targets = Scene((t1, t2), ("target", "target"))
-    hits = target_hits(tt, rho, alpha, pi, t_prof, traj, mount, targets,
-                       settings=GuidanceSettings(hit_plane_tolerance_m=0.01))  # fmt: skip
+    hits = target_hits(
+        tt,
+        rho,
+        alpha,
+        pi,
+        t_prof,
+        traj,
+        mount,
+        targets,
+        settings=GuidanceSettings(hit_plane_tolerance_m=0.01),
+    )
     truth = ret.surface
     assert np.bincount(truth, minlength=3)[:2].min() > 100  # both targets well covered
     assert np.bincount(truth, minlength=3)[2] > 100  # and the wall around them
@@ -142,8 +182,9 @@ def test_target_hits_match_exact_ray_casting_and_gate_most_points_out():
     # the gate georeferences the targets' neighbourhood only, not the whole wall
     assert on_target.size <= hits.n_gated < 0.8 * n
     # with the a-priori mount (boresight 0) the counts stay close to the truth
-    apriori = target_hits(tt, rho, alpha, pi, t_prof, traj, replace(mount, boresight_rad=np.zeros(3)),
-                          targets)  # fmt: skip
+    apriori = target_hits(
+        tt, rho, alpha, pi, t_prof, traj, replace(mount, boresight_rad=np.zeros(3)), targets
+    )
     ratio = apriori.counts(2) / hits.counts(2)
     assert np.all((ratio > 0.8) & (ratio < 1.25)), ratio
 
@@ -159,21 +200,44 @@ def test_target_hits_of_an_empty_batch():
 
 
 def _nav(**flags) -> NavRecord:
-    base = dict(navigation=True, fine_alignment=True, gps_received=True, gps_valid=True,
-                utc_detected=True, pps_detected=True)  # fmt: skip
+    base = dict(
+        navigation=True,
+        fine_alignment=True,
+        gps_received=True,
+        gps_valid=True,
+        utc_detected=True,
+        pps_detected=True,
+    )
     base.update(flags)
     alg, sys_ = status_words(**base)
-    return NavRecord("nmea", gps_ns=1, lat_deg=45.5, lon_deg=-73.5, height_m=0.0, roll_rad=0.0,
-                     pitch_rad=0.0, heading_rad=0.0, sigma_north_m=0.02, sigma_east_m=0.02,
-                     algorithm_status=alg, system_status=sys_)  # fmt: skip
+    return NavRecord(
+        "nmea",
+        gps_ns=1,
+        lat_deg=45.5,
+        lon_deg=-73.5,
+        height_m=0.0,
+        roll_rad=0.0,
+        pitch_rad=0.0,
+        heading_rad=0.0,
+        sigma_north_m=0.02,
+        sigma_east_m=0.02,
+        algorithm_status=alg,
+        system_status=sys_,
+    )
 
 
-GOOD = dict(clock={"state": "LOCKED", "last_edge_age_s": 0.3, "jitter_rms_us": 1.5},
-            latency={"ins": {"latency_mean_ms": 10.0, "latency_p99_ms": 12.0, "pps_flag": True},
-                     "profiler": {"latency_mean_ms": 2.0, "latency_p99_ms": 3.0,
-                                  "pps_flag": True}},
-            bands_ms={"ins": (0.0, 30.0), "profiler": (0.0, 20.0)}, free_bytes=50 * 10**9,
-            needed_bytes=10 * 10**9, mount_configured=True, n_targets=2)  # fmt: skip
+GOOD = dict(
+    clock={"state": "LOCKED", "last_edge_age_s": 0.3, "jitter_rms_us": 1.5},
+    latency={
+        "ins": {"latency_mean_ms": 10.0, "latency_p99_ms": 12.0, "pps_flag": True},
+        "profiler": {"latency_mean_ms": 2.0, "latency_p99_ms": 3.0, "pps_flag": True},
+    },
+    bands_ms={"ins": (0.0, 30.0), "profiler": (0.0, 20.0)},
+    free_bytes=50 * 10**9,
+    needed_bytes=10 * 10**9,
+    mount_configured=True,
+    n_targets=2,
+)
 
 
 def _checks(nav=None, **over):
@@ -183,8 +247,15 @@ def _checks(nav=None, **over):
 
 def test_prechecks_all_green_with_reasons():
     c = _checks()
-    assert set(c) == {"ins_navigating", "gnss_fix", "pps_locked", "clock_locked",
-                      "latency_in_band", "disk_space", "mount_targets"}
+    assert set(c) == {
+        "ins_navigating",
+        "gnss_fix",
+        "pps_locked",
+        "clock_locked",
+        "latency_in_band",
+        "disk_space",
+        "mount_targets",
+    }
     assert all(x.ok for x in c.values()), {k: x.detail for k, x in c.items()}
     assert c["gnss_fix"].detail == "fix, σh 0.03 m"
     assert c["latency_in_band"].detail == "in band, max 10.0 ms"
@@ -192,34 +263,55 @@ def test_prechecks_all_green_with_reasons():
     assert c["pps_locked"].detail == "INS, clock, 2 devices"
 
 
-@pytest.mark.parametrize("nav_flags, over, name, detail", [
-    ({"fine_alignment": False, "alignment": True}, {}, "ins_navigating", "aligning"),
-    ({"navigation": False}, {}, "ins_navigating", "not navigating"),
-    ({"dead_reckoning": True}, {}, "ins_navigating", "dead reckoning"),
-    ({"gps_valid": False, "gps_received": False}, {}, "gnss_fix", "no GNSS data"),
-    ({"gps_valid": False}, {}, "gnss_fix", "GNSS not valid"),
-    ({"utc_detected": False}, {}, "gnss_fix", "fix, INS not on UTC"),
-    ({"pps_detected": False}, {}, "pps_locked", "no PPS: INS"),
-    ({}, {"clock": {"state": "HOLDOVER", "last_edge_age_s": 4.2, "error_bound_us": 35.0}},
-     "pps_locked", "no PPS: last edge 4.2 s ago"),
-    ({}, {"clock": {"state": "HOLDOVER", "last_edge_age_s": 4.2, "error_bound_us": 35.0}},
-     "clock_locked", "HOLDOVER, ±35 µs"),
-    ({}, {"latency": {"ins": {"latency_mean_ms": 10.0, "latency_p99_ms": 12.0},
-                      "profiler": {"latency_mean_ms": 15.0, "latency_p99_ms": 27.0}}},
-     "latency_in_band", "profiler 27.0>20 ms"),
-    ({}, {"latency": {"ins": {"latency_mean_ms": None}}}, "latency_in_band", "ins no data"),
-    ({}, {"latency": {"profiler": {"pps_flag": False, "latency_mean_ms": 2.0}}}, "pps_locked",
-     "no PPS: profiler"),
-    ({}, {"free_bytes": 3 * 10**9}, "disk_space", "3.0 GB free < 10 GB"),
-    ({}, {"mount_configured": False, "n_targets": 1}, "mount_targets",
-     "no mount, 1 target (need 2)"),
-])  # fmt: skip
+@pytest.mark.parametrize(
+    "nav_flags, over, name, detail",
+    [
+        ({"fine_alignment": False, "alignment": True}, {}, "ins_navigating", "aligning"),
+        ({"navigation": False}, {}, "ins_navigating", "not navigating"),
+        ({"dead_reckoning": True}, {}, "ins_navigating", "dead reckoning"),
+        ({"gps_valid": False, "gps_received": False}, {}, "gnss_fix", "no GNSS data"),
+        ({"gps_valid": False}, {}, "gnss_fix", "GNSS not valid"),
+        ({"utc_detected": False}, {}, "gnss_fix", "fix, INS not on UTC"),
+        ({"pps_detected": False}, {}, "pps_locked", "no PPS: INS"),
+        (
+            {},
+            {"clock": {"state": "HOLDOVER", "last_edge_age_s": 4.2, "error_bound_us": 35.0}},
+            "pps_locked",
+            "no PPS: last edge 4.2 s ago",
+        ),
+        (
+            {},
+            {"clock": {"state": "HOLDOVER", "last_edge_age_s": 4.2, "error_bound_us": 35.0}},
+            "clock_locked",
+            "HOLDOVER, ±35 µs",
+        ),
+        (
+            {},
+            {
+                "latency": {
+                    "ins": {"latency_mean_ms": 10.0, "latency_p99_ms": 12.0},
+                    "profiler": {"latency_mean_ms": 15.0, "latency_p99_ms": 27.0},
+                }
+            },
+            "latency_in_band",
+            "profiler 27.0>20 ms",
+        ),
+        ({}, {"latency": {"ins": {"latency_mean_ms": None}}}, "latency_in_band", "ins no data"),
+        (
+            {},
+            {"latency": {"profiler": {"pps_flag": False, "latency_mean_ms": 2.0}}},
+            "pps_locked",
+            "no PPS: profiler",
+        ),
+        ({}, {"free_bytes": 3 * 10**9}, "disk_space", "3.0 GB free < 10 GB"),
+        ({}, {"mount_configured": False, "n_targets": 1}, "mount_targets", "no mount, 1 target (need 2)"),
+    ],
+)
 def test_prechecks_name_each_failure(nav_flags, over, name, detail):
     c = _checks(_nav(**nav_flags), **over)
     assert c[name].ok is False
     assert c[name].detail == detail
-    assert sum(not x.ok for x in c.values()) == (2 if name == "clock_locked" or "last edge" in detail
-                                                 else 1)  # fmt: skip
+    assert sum(not x.ok for x in c.values()) == (2 if name == "clock_locked" or "last edge" in detail else 1)
 
 
 def test_prechecks_without_data_are_unknown_not_green():
@@ -233,7 +325,8 @@ def test_disk_needed_for_the_planned_passes():
     plan = plan_site(load_scenario("montreal").site())
     # six 60 m lines at 2 m/s (30 s each) + five 120 s turns, at 1 MB/s, margin 2
     assert disk_needed_bytes(plan, rate_bytes_s=1e6, turn_s=120.0, margin=2.0) == (
-        (6 * 30 + 5 * 120) * 2 * 10**6)
+        (6 * 30 + 5 * 120) * 2 * 10**6
+    )
 
 
 # -- pass acceptance ----------------------------------------------------------------------------
@@ -243,13 +336,29 @@ def _window(**over) -> PassWindow:
     t = 1000.0 + np.arange(0.0, 5.0, 0.02)
     n = t.size
     ones = np.ones(n)
-    base = dict(pass_id=3, planned_speed_mps=2.0, capture_m=(40.0, 50.0), completed=True,
-                exit_reason="", t_enter_gps_s=t[0], t_exit_gps_s=t[-1] + 0.02, t_gps_s=t,
-                along_m=40.0 + 2.0 * (t - t[0]), xte_m=0.3 * np.sin(t), heading_error_rad=np.radians(1.0) * ones,
-                speed_mps=2.0 + 0.1 * np.sin(t), navigation=ones, dead_reckoning=0 * ones,
-                ins_pps=ones, utc=ones, profile_t_gps_s=np.arange(t[0], t[-1] + 0.02, 0.005),
-                profiles_incomplete=0, profiles_pps_unlocked=0, hits={"T1": 800, "T2": 150},
-                clock_states=("LOCKED",))  # fmt: skip
+    base = dict(
+        pass_id=3,
+        planned_speed_mps=2.0,
+        capture_m=(40.0, 50.0),
+        completed=True,
+        exit_reason="",
+        t_enter_gps_s=t[0],
+        t_exit_gps_s=t[-1] + 0.02,
+        t_gps_s=t,
+        along_m=40.0 + 2.0 * (t - t[0]),
+        xte_m=0.3 * np.sin(t),
+        heading_error_rad=np.radians(1.0) * ones,
+        speed_mps=2.0 + 0.1 * np.sin(t),
+        navigation=ones,
+        dead_reckoning=0 * ones,
+        ins_pps=ones,
+        utc=ones,
+        profile_t_gps_s=np.arange(t[0], t[-1] + 0.02, 0.005),
+        profiles_incomplete=0,
+        profiles_pps_unlocked=0,
+        hits={"T1": 800, "T2": 150},
+        clock_states=("LOCKED",),
+    )
     base.update(over)
     return PassWindow(**base)
 
@@ -269,28 +378,42 @@ def _during(t0, t1, inside: float, outside: float) -> np.ndarray:
     return np.where((t >= t0) & (t < t1), inside, outside)
 
 
-@pytest.mark.parametrize("over, reason", [
-    ({"xte_m": np.full(250, 2.5)}, "cross-track error up to 2.50 m (tolerance 2 m)"),
-    ({"xte_m": np.concatenate([np.zeros(249), [-2.2]])},
-     "cross-track error up to 2.20 m (tolerance 2 m)"),
-    ({"heading_error_rad": np.full(250, np.radians(-7.24))},
-     "heading error up to 7.2° (tolerance 5°)"),
-    ({"speed_mps": np.linspace(1.2, 2.1, 250)}, "speed 1.20–2.10 m/s, planned 2 ± 0.5 m/s"),
-    ({"hits": {"T1": 800, "T2": 40}}, "too few target points (T2: 40 points; need 100)"),
-    ({"completed": False, "exit_reason": "left the line (XTE +11.0 m)",
-      "along_m": np.linspace(40.0, 46.5, 250)},
-     "capture window not completed: left the line (XTE +11.0 m) at 6.5 of 10.0 m"),
-    ({"navigation": _during(1001.0, 1002.0, 0.0, 1.0)}, "INS not navigating for 1.0 s of the window"),
-    ({"ins_pps": np.full(250, np.nan)}, "INS status (PPS) not reported"),
-    ({"dead_reckoning": _during(1001.0, 1001.5, 1.0, 0.0)}, "INS in dead reckoning for 0.5 s"),
-    ({"clock_states": ("HOLDOVER", "LOCKED")}, "clock HOLDOVER during the window (must stay LOCKED)"),
-    ({"clock_states": ()}, "clock state unknown during the window (must stay LOCKED)"),
-    ({"profiles_incomplete": 3}, "3 profile(s) incomplete (packets lost)"),
-    ({"profiles_pps_unlocked": 12}, "profiler PPS not locked in 12 profile(s)"),
-    ({"profile_t_gps_s": np.concatenate([np.arange(1000.0, 1002.0, 0.005),
-                                         np.arange(1002.795, 1005.0, 0.005)])},
-     "profiler data gap of 0.80 s (limit 0.5 s)"),
-])  # fmt: skip
+@pytest.mark.parametrize(
+    "over, reason",
+    [
+        ({"xte_m": np.full(250, 2.5)}, "cross-track error up to 2.50 m (tolerance 2 m)"),
+        (
+            {"xte_m": np.concatenate([np.zeros(249), [-2.2]])},
+            "cross-track error up to 2.20 m (tolerance 2 m)",
+        ),
+        ({"heading_error_rad": np.full(250, np.radians(-7.24))}, "heading error up to 7.2° (tolerance 5°)"),
+        ({"speed_mps": np.linspace(1.2, 2.1, 250)}, "speed 1.20–2.10 m/s, planned 2 ± 0.5 m/s"),
+        ({"hits": {"T1": 800, "T2": 40}}, "too few target points (T2: 40 points; need 100)"),
+        (
+            {
+                "completed": False,
+                "exit_reason": "left the line (XTE +11.0 m)",
+                "along_m": np.linspace(40.0, 46.5, 250),
+            },
+            "capture window not completed: left the line (XTE +11.0 m) at 6.5 of 10.0 m",
+        ),
+        ({"navigation": _during(1001.0, 1002.0, 0.0, 1.0)}, "INS not navigating for 1.0 s of the window"),
+        ({"ins_pps": np.full(250, np.nan)}, "INS status (PPS) not reported"),
+        ({"dead_reckoning": _during(1001.0, 1001.5, 1.0, 0.0)}, "INS in dead reckoning for 0.5 s"),
+        ({"clock_states": ("HOLDOVER", "LOCKED")}, "clock HOLDOVER during the window (must stay LOCKED)"),
+        ({"clock_states": ()}, "clock state unknown during the window (must stay LOCKED)"),
+        ({"profiles_incomplete": 3}, "3 profile(s) incomplete (packets lost)"),
+        ({"profiles_pps_unlocked": 12}, "profiler PPS not locked in 12 profile(s)"),
+        (
+            {
+                "profile_t_gps_s": np.concatenate(
+                    [np.arange(1000.0, 1002.0, 0.005), np.arange(1002.795, 1005.0, 0.005)]
+                )
+            },
+            "profiler data gap of 0.80 s (limit 0.5 s)",
+        ),
+    ],
+)
 def test_each_failed_condition_is_a_reason(over, reason):
     v = evaluate_pass(_window(**over))
     assert not v.accepted
@@ -300,14 +423,28 @@ def test_each_failed_condition_is_a_reason(over, reason):
 def test_an_ins_gap_and_several_reasons_together():
     w = _window()
     keep = (w.t_gps_s < 1001.0) | (w.t_gps_s > 1001.7)
-    arrays = {k: getattr(w, k)[keep] for k in ("t_gps_s", "along_m", "xte_m", "heading_error_rad",
-                                                "speed_mps", "navigation", "dead_reckoning",
-                                                "ins_pps", "utc")}  # fmt: skip
+    arrays = {
+        k: getattr(w, k)[keep]
+        for k in (
+            "t_gps_s",
+            "along_m",
+            "xte_m",
+            "heading_error_rad",
+            "speed_mps",
+            "navigation",
+            "dead_reckoning",
+            "ins_pps",
+            "utc",
+        )
+    }
     v = evaluate_pass(replace(w, **arrays, hits={"T1": 5, "T2": 150}, profiles_incomplete=1))
     assert not v.accepted
     # the last sample before the gap is at 1000.98 s, the first after it at 1001.72 s
-    assert v.reasons == ("INS data gap of 0.74 s (limit 0.5 s)", "1 profile(s) incomplete (packets lost)",
-                         "too few target points (T1: 5 points; need 100)")  # fmt: skip
+    assert v.reasons == (
+        "INS data gap of 0.74 s (limit 0.5 s)",
+        "1 profile(s) incomplete (packets lost)",
+        "too few target points (T1: 5 points; need 100)",
+    )
     tight = AcceptanceTolerances(max_xte_m=0.1, min_points_per_target=10)
     v2 = evaluate_pass(_window(), tight)
     assert v2.reasons == ("cross-track error up to 0.30 m (tolerance 0.1 m)",)
@@ -323,16 +460,31 @@ class Sailor:
     def __init__(self, g: Guidance, t0: float = 1.3e9):
         self.g, self.t = g, t0
 
-    def sail(self, line: PlannedPass, along_from: float, along_to: float, xte=0.0,
-             heading_offset_deg=0.0, speed=2.0, profiles=True, then_s=30.0) -> None:  # fmt: skip
+    def sail(
+        self,
+        line: PlannedPass,
+        along_from: float,
+        along_to: float,
+        xte=0.0,
+        heading_offset_deg=0.0,
+        speed=2.0,
+        profiles=True,
+        then_s=30.0,
+    ) -> None:
         """Sail from ``along_from`` to ``along_to``, then wait ``then_s`` (no records)."""
         h = line.heading_rad
         u = np.array([math.cos(h), math.sin(h), 0.0])
         s = np.array([-math.sin(h), math.cos(h), 0.0])
         n = int((along_to - along_from) / speed * 20)
         frame = self.g.frame
-        alg, sys_ = status_words(navigation=True, fine_alignment=True, gps_valid=True,
-                                 gps_received=True, utc_detected=True, pps_detected=True)
+        alg, sys_ = status_words(
+            navigation=True,
+            fine_alignment=True,
+            gps_valid=True,
+            gps_received=True,
+            utc_detected=True,
+            pps_detected=True,
+        )
         for k in range(n):
             t = self.t + k / 20
             a = along_from + speed * k / 20
@@ -340,17 +492,38 @@ class Sailor:
             p = line.start_lgf_m + a * u + x * s
             lat, lon, hh = frame.to_geodetic(p[None])
             v = speed * u
-            self.g.on_nav(NavRecord(
-                "nmea", gps_ns=int(round(t * 1e9)), lat_deg=float(lat[0]), lon_deg=float(lon[0]),
-                height_m=float(hh[0]), roll_rad=0.0, pitch_rad=0.0,
-                heading_rad=(h + math.radians(heading_offset_deg)) % (2 * math.pi),
-                v_north_m_s=v[0], v_east_m_s=v[1], algorithm_status=alg, system_status=sys_))
+            self.g.on_nav(
+                NavRecord(
+                    "nmea",
+                    gps_ns=int(round(t * 1e9)),
+                    lat_deg=float(lat[0]),
+                    lon_deg=float(lon[0]),
+                    height_m=float(hh[0]),
+                    roll_rad=0.0,
+                    pitch_rad=0.0,
+                    heading_rad=(h + math.radians(heading_offset_deg)) % (2 * math.pi),
+                    v_north_m_s=v[0],
+                    v_east_m_s=v[1],
+                    algorithm_status=alg,
+                    system_status=sys_,
+                )
+            )
             if profiles:
                 for j in range(k * 5 // 2, (k + 1) * 5 // 2):
                     tp = self.t + j / 50
-                    self.g.on_profile(Profile(j, np.array([int(round(tp * 1e9))]), np.array([0.1]),
-                                              np.array([np.nan]), np.zeros(1, np.uint16), True,
-                                              True, 1, 1))  # fmt: skip
+                    self.g.on_profile(
+                        Profile(
+                            j,
+                            np.array([int(round(tp * 1e9))]),
+                            np.array([0.1]),
+                            np.array([np.nan]),
+                            np.zeros(1, np.uint16),
+                            True,
+                            True,
+                            1,
+                            1,
+                        )
+                    )
             if k % 4 == 3:
                 self.g.update(predict=False)
         self.t += n / 20 + then_s
@@ -391,8 +564,7 @@ def test_reject_then_resail_then_accept(montreal):
     v = rec.verdicts[-1]
     assert v.attempt == 2 and v.stats["max_xte_m"] == pytest.approx(0.5, abs=1e-3)
     assert v.stats["max_heading_error_deg"] == pytest.approx(3.0, abs=1e-6)
-    assert v.stats["n_profiles"] == pytest.approx(
-        50 * (line.capture_end_m - line.capture_start_m) / 2, abs=3)
+    assert v.stats["n_profiles"] == pytest.approx(50 * (line.capture_end_m - line.capture_start_m) / 2, abs=3)
     assert g.accepted_ids == [2]
     assert g.active_pass_id() == 1
 
@@ -438,7 +610,8 @@ def survey():
 def test_simulated_survey_accepts_the_six_passes_in_order(survey):
     assert [(v.pass_id, v.accepted) for v in survey.verdicts] == [(i, True) for i in range(1, 7)]
     assert [name for name, _ in survey.stages] == ["start"] + [
-        f"pass-{i}-{stage}" for i in range(1, 7) for stage in ("capture", "accepted")]
+        f"pass-{i}-{stage}" for i in range(1, 7) for stage in ("capture", "accepted")
+    ]
     for v in survey.verdicts:
         assert v.stats["max_xte_m"] < 0.1 and v.stats["max_nav_gap_s"] < 0.05
     final = survey.stages[-1][1]
@@ -491,11 +664,14 @@ def test_predicted_sigma_shrinks_pass_by_pass_and_matches_the_adjustment(survey)
 
 def test_a_realistic_sigma_that_rose_with_the_last_pass_is_named():
     def pred(passes, realistic_deg, formal_deg=(0.002, 0.004, 0.003)):
-        return SigmaPrediction(tuple(passes), np.radians(formal_deg), np.radians(realistic_deg),
-                               np.eye(3), 1000)  # fmt: skip
+        return SigmaPrediction(
+            tuple(passes), np.radians(formal_deg), np.radians(realistic_deg), np.eye(3), 1000
+        )
 
-    hist = [pred([], [np.nan] * 3, [np.nan] * 3).as_dict(),
-            pred([1, 2], [0.043, 1.0, 1.0], [0.0015, 1.0, 1.0]).as_dict()]  # pitch, yaw n/o
+    hist = [
+        pred([], [np.nan] * 3, [np.nan] * 3).as_dict(),
+        pred([1, 2], [0.043, 1.0, 1.0], [0.0015, 1.0, 1.0]).as_dict(),
+    ]  # pitch, yaw n/o
     assert hist[1]["realistic_deg"]["pitch"] is None
     assert sigma_rises(hist[:1], pred([1, 2], [0.043, 1.0, 1.0])) == ()  # nothing to compare
     three = pred([1, 2, 3], [0.062, 0.04, 0.03])
@@ -516,8 +692,12 @@ def test_guidance_consumer_publishes_the_guidance_section(survey):
     navs = [r for r in navs if r.gps_ns * 1e-9 <= l1 + 1]
     profs = [p for p in profs if p.gps_ns[-1] * 1e-9 <= l1 + 1]
     sc = sim.scenario
-    g = Guidance(sim.site, plan_site(sim.site, track_down_m=1.65, capture_margin_m=2.0),
-                 scanner=sc.scanner, tolerances=AcceptanceTolerances(min_points_per_target=50))
+    g = Guidance(
+        sim.site,
+        plan_site(sim.site, track_down_m=1.65, capture_margin_m=2.0),
+        scanner=sc.scanner,
+        tolerances=AcceptanceTolerances(min_points_per_target=50),
+    )
     published = []
     pub = ChecklistPublisher(lambda topic, data: published.append((topic, data)))
     consumer = GuidanceConsumer(g, clock_state=lambda: "LOCKED", period_s=0.01)
@@ -525,11 +705,13 @@ def test_guidance_consumer_publishes_the_guidance_section(survey):
     async def main():
         tap = Tap("guidance", GuidanceConsumer.kinds, maxsize=100000)
         task = asyncio.create_task(consumer.run(tap, pub))
-        items = sorted([(r.gps_ns, "nav", r) for r in navs]
-                       + [(int(p.gps_ns[-1]), "profile", p) for p in profs], key=lambda x: x[0])
+        items = sorted(
+            [(r.gps_ns, "nav", r) for r in navs] + [(int(p.gps_ns[-1]), "profile", p) for p in profs],
+            key=lambda x: x[0],
+        )
         tap.offer("event", {"event": "pass_start", "pass_id": 1}, None)
         for i in range(0, len(items), 500):
-            for gps_ns, kind, rec in items[i:i + 500]:
+            for gps_ns, kind, rec in items[i : i + 500]:
                 tap.offer(kind, rec, gps_ns)
             await asyncio.sleep(0.02)
         for _ in range(500):

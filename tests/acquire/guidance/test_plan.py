@@ -12,13 +12,13 @@ import numpy as np
 import pytest
 from typer.testing import CliRunner
 
-from cli.app import app
 from acquire.guidance.autopilot import autopilot_sentences, steering
 from acquire.guidance.autopilot_out import NmeaOutput, follow_daemon
 from acquire.status.bus import StatusBus, StatusServer
+from calib.sim.scenario import load_scenario
 from calib.survey.passplan import plan_site
 from calib.survey.planexport import FORMAT, plan_geojson
-from calib.sim.scenario import load_scenario
+from cli.app import app
 from drivers.hydrins.nmea_decode import NmeaDecoder
 from drivers.hydrins.nmea_sentences import Sentence
 
@@ -70,8 +70,9 @@ def test_geojson_structure_and_properties(site):
         pr = f["properties"]
         assert pr["order"] == p.order and pr["speed_mps"] == p.speed_mps
         assert pr["heading_deg"] == pytest.approx(math.degrees(p.heading_rad), abs=1e-6)
-        assert pr["capture_window_s"] == pytest.approx([p.capture_start_m / p.speed_mps,
-                                                        p.capture_end_m / p.speed_mps], abs=1e-3)
+        assert pr["capture_window_s"] == pytest.approx(
+            [p.capture_start_m / p.speed_mps, p.capture_end_m / p.speed_mps], abs=1e-3
+        )
         assert pr["length_m"] == pytest.approx(p.length_m, abs=1e-4)
         assert pr["targets_side"] == p.targets_side
     assert [t["properties"]["name"] for t in tgts] == ["T1", "T2"]
@@ -88,10 +89,8 @@ def test_mls_plan_writes_geojson_that_round_trips_to_the_lgf_lines(site, site_fi
     doc = json.loads(out.read_text())
     frame = site.frame()
     plan = plan_site(site)
-    by_id = {f["properties"]["pass_id"]: f for f in doc["features"]
-             if f["properties"]["kind"] == "line"}  # fmt: skip
-    caps = {f["properties"]["pass_id"]: f for f in doc["features"]
-            if f["properties"]["kind"] == "capture"}  # fmt: skip
+    by_id = {f["properties"]["pass_id"]: f for f in doc["features"] if f["properties"]["kind"] == "line"}
+    caps = {f["properties"]["pass_id"]: f for f in doc["features"] if f["properties"]["kind"] == "capture"}
     for p in plan.passes:
         c = np.array(by_id[p.id]["geometry"]["coordinates"])
         back = frame.to_lgf(c[:, 1], c[:, 0], c[:, 2])
@@ -112,16 +111,20 @@ def test_mls_plan_options_change_the_capture_window(site_file, tmp_path):
     assert wide.exit_code == 0
     props3 = json.loads(out.read_text())["features"][0]["properties"]
     assert props3["capture_end_m"] - props3["capture_start_m"] == pytest.approx(
-        props["capture_end_m"] - props["capture_start_m"] + 4.0, abs=1e-3)
+        props["capture_end_m"] - props["capture_start_m"] + 4.0, abs=1e-3
+    )
 
 
-@pytest.mark.parametrize("args, message", [
-    (["--nmea"], "--nmea needs --position"),
-    (["--position", "45.5,-73.5"], "--position and --follow go with --nmea"),
-    (["--nmea", "--position", "45.5"], "expected LAT,LON"),
-    (["--nmea", "--position", "45.5,-73.5", "--talker", "gps"], "two capital letters"),
-    (["--nmea", "--position", "45.5,-73.5", "--active-pass", "9"], "pass 9 is not in the plan"),
-])  # fmt: skip
+@pytest.mark.parametrize(
+    "args, message",
+    [
+        (["--nmea"], "--nmea needs --position"),
+        (["--position", "45.5,-73.5"], "--position and --follow go with --nmea"),
+        (["--nmea", "--position", "45.5"], "expected LAT,LON"),
+        (["--nmea", "--position", "45.5,-73.5", "--talker", "gps"], "two capital letters"),
+        (["--nmea", "--position", "45.5,-73.5", "--active-pass", "9"], "pass 9 is not in the plan"),
+    ],
+)
 def test_mls_plan_usage_errors(site_file, args, message):
     res = runner.invoke(app, ["plan", str(site_file), *args])
     assert res.exit_code in (1, 2)
@@ -129,11 +132,11 @@ def test_mls_plan_usage_errors(site_file, args, message):
 
 
 def test_mls_plan_needs_a_reference_point(site, tmp_path):
-    text = (tmp_path / "s.yaml")
+    text = tmp_path / "s.yaml"
     site.dump(text)
     lines = [ln for ln in text.read_text().splitlines(keepends=True)]
     i = next(k for k, ln in enumerate(lines) if ln.startswith("reference:"))
-    del lines[i:i + 4]
+    del lines[i : i + 4]
     text.write_text("".join(lines))
     res = runner.invoke(app, ["plan", str(text), "--out", str(tmp_path / "x.geojson")])
     assert res.exit_code == 1
@@ -153,12 +156,14 @@ def test_steering_side_values_and_flags(site):
     assert st.xte_m == pytest.approx(2.0) and st.steer == "L"
     # to starboard: steer left of the line's heading, by atan(2/20)
     assert math.degrees(st.heading_to_steer_rad) == pytest.approx(
-        (math.degrees(h) - math.degrees(math.atan(0.1))) % 360, abs=1e-9)
+        (math.degrees(h) - math.degrees(math.atan(0.1))) % 360, abs=1e-9
+    )
     assert not st.arrived and not st.passed
     port = steering(line.start_lgf_m + 10 * u - 3.0 * s, line)
     assert port.xte_m == pytest.approx(-3.0) and port.steer == "R"
     assert math.degrees(port.heading_to_steer_rad) == pytest.approx(
-        (math.degrees(h) + math.degrees(math.atan(0.15))) % 360, abs=1e-9)
+        (math.degrees(h) + math.degrees(math.atan(0.15))) % 360, abs=1e-9
+    )
     near_end = steering(line.end_lgf_m - 3 * u, line)
     assert near_end.arrived and not near_end.passed
     past = steering(line.end_lgf_m + 8 * u, line)
@@ -169,8 +174,11 @@ def test_xte_and_apb_are_valid_nmea_decodable_as_generic_sentences(site):
     plan = plan_site(site)
     line = plan.by_id(2)
     h = line.heading_rad
-    p = line.start_lgf_m + 20 * np.array([math.cos(h), math.sin(h), 0]) + 37.04 * np.array(
-        [-math.sin(h), math.cos(h), 0])  # 0.02 NM to starboard
+    p = (
+        line.start_lgf_m
+        + 20 * np.array([math.cos(h), math.sin(h), 0])
+        + 37.04 * np.array([-math.sin(h), math.cos(h), 0])
+    )  # 0.02 NM to starboard
     data = b"".join(autopilot_sentences(p, line, talker="II"))
     xte, apb = _decode(data)
     assert (xte.talker, xte.kind) == ("II", "XTE")
@@ -195,11 +203,24 @@ def test_mls_plan_nmea_once_from_a_position(site, site_file):
     plan = plan_site(site)
     line = plan.by_id(4)
     h = line.heading_rad
-    p = line.start_lgf_m + 30 * np.array([math.cos(h), math.sin(h), 0]) - 5.0 * np.array(
-        [-math.sin(h), math.cos(h), 0])
+    p = (
+        line.start_lgf_m
+        + 30 * np.array([math.cos(h), math.sin(h), 0])
+        - 5.0 * np.array([-math.sin(h), math.cos(h), 0])
+    )
     lat, lon, _ = frame.to_geodetic(p[None])
-    res = runner.invoke(app, ["plan", str(site_file), "--nmea", "--active-pass", "4",
-                              "--position", f"{lat[0]:.10f},{lon[0]:.10f}"])  # fmt: skip
+    res = runner.invoke(
+        app,
+        [
+            "plan",
+            str(site_file),
+            "--nmea",
+            "--active-pass",
+            "4",
+            "--position",
+            f"{lat[0]:.10f},{lon[0]:.10f}",
+        ],
+    )
     assert res.exit_code == 0, res.output
     xte, apb = _decode(res.stdout_bytes)
     assert xte.kind == "XTE" and apb.kind == "APB"
@@ -214,8 +235,12 @@ def test_follow_emits_sentences_for_the_daemons_vessel_and_active_pass(site, tmp
     plan = plan_site(site)
     line = plan.by_id(5)
     h = line.heading_rad
-    positions = [line.start_lgf_m + a * np.array([math.cos(h), math.sin(h), 0])
-                 + x * np.array([-math.sin(h), math.cos(h), 0]) for a, x in ((5, 1.0), (7, -2.0))]
+    positions = [
+        line.start_lgf_m
+        + a * np.array([math.cos(h), math.sin(h), 0])
+        + x * np.array([-math.sin(h), math.cos(h), 0])
+        for a, x in ((5, 1.0), (7, -2.0))
+    ]
     out_path = tmp_path / "ap.nmea"
 
     async def main():
@@ -223,12 +248,16 @@ def test_follow_emits_sentences_for_the_daemons_vessel_and_active_pass(site, tmp
         await server.start()
         bus = StatusBus([server])
         out = NmeaOutput(str(out_path))
-        task = asyncio.create_task(follow_daemon(tmp_path / "status.sock", plan, frame, None, out,
-                                                 "GP", 20.0))  # fmt: skip
+        task = asyncio.create_task(
+            follow_daemon(tmp_path / "status.sock", plan, frame, None, out, "GP", 20.0)
+        )
         for i, p in enumerate(positions):
             lat, lon, _ = frame.to_geodetic(p[None])
-            msg = {"schema": "mls.checklist/1", "active": {"pass_id": 5},
-                   "vessel": {"lat_deg": float(lat[0]), "lon_deg": float(lon[0])}}
+            msg = {
+                "schema": "mls.checklist/1",
+                "active": {"pass_id": 5},
+                "vessel": {"lat_deg": float(lat[0]), "lon_deg": float(lon[0])},
+            }
             # the daemon publishes sections (presurvey, guidance); a bare message works too
             bus.publish("checklist", {"presurvey": {}, "guidance": msg} if i == 0 else msg)
             await asyncio.sleep(0.2)

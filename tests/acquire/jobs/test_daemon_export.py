@@ -23,7 +23,7 @@ import numpy as np
 import pytest
 
 from calib.io.bundle import read_bundle
-from tests.acquire.daemon_util import MLS, NotifyCollector, Proc, ROOT, free_port, wait_until
+from tests.acquire.daemon_util import MLS, ROOT, NotifyCollector, Proc, free_port, wait_until
 
 pytestmark = [pytest.mark.integration, pytest.mark.slow, pytest.mark.xdist_group("daemon-export")]
 SPEED = 5  # ×10 streams 1000 INS epochs/s through a pty: on a loaded 2-core CI machine the
@@ -44,7 +44,8 @@ def test_montreal_session_exports_to_a_bundle_that_calibrates_to_the_true_boresi
     run.mkdir()
     prof, pps = free_port(), free_port()
     cfg = tmp_path / "vessel.yaml"
-    cfg.write_text(textwrap.dedent(f"""\
+    cfg.write_text(
+        textwrap.dedent(f"""\
         vessel: mtl
         devices:
           - {{name: ins, kind: ins, protocol: nmea, transport: {{type: serial, port: {run}/ins, baud: 921600}},
@@ -60,18 +61,39 @@ def test_montreal_session_exports_to_a_bundle_that_calibrates_to_the_true_boresi
           nominal_deg: {[float(x) for x in np.degrees(m.nominal_rad)]}
           boresight_apriori_deg: {[float(x) for x in np.degrees(m.boresight_rad)]}
         site_file: site.yaml
-        """))  # fmt: skip
+        """)
+    )
     notify = NotifyCollector(tmp_path / "notify.sock")
     notify.start()
     procs = []
     try:
-        daemon = Proc([*MLS, "acquire", "--config", str(cfg)], tmp_path / "daemon.log",
-                      {"NOTIFY_SOCKET": str(tmp_path / "notify.sock")})  # fmt: skip
+        daemon = Proc(
+            [*MLS, "acquire", "--config", str(cfg)],
+            tmp_path / "daemon.log",
+            {"NOTIFY_SOCKET": str(tmp_path / "notify.sock")},
+        )
         procs.append(daemon)
         wait_until(lambda: notify.with_line("READY=1"), 30, "the daemon", daemon)
-        emu = Proc([*MLS, "sim", "devices", "--scenario", "montreal", "--speed", str(SPEED),
-                    "--devices", "ins,profiler,pps,can", "--profiler-port", str(prof),
-                    "--pps-port", str(pps), "--run-dir", str(run)], tmp_path / "sim.log")  # fmt: skip
+        emu = Proc(
+            [
+                *MLS,
+                "sim",
+                "devices",
+                "--scenario",
+                "montreal",
+                "--speed",
+                str(SPEED),
+                "--devices",
+                "ins,profiler,pps,can",
+                "--profiler-port",
+                str(prof),
+                "--pps-port",
+                str(pps),
+                "--run-dir",
+                str(run),
+            ],
+            tmp_path / "sim.log",
+        )
         procs.append(emu)
         assert emu.wait(300) == 0, emu.output()[-3000:]
         daemon.signal(signal.SIGTERM)
@@ -118,8 +140,12 @@ def test_montreal_session_exports_to_a_bundle_that_calibrates_to_the_true_boresi
     assert r.returncode == 0, r.stdout + r.stderr
     res = json.loads((out / "result.json").read_text())
     truth = sim.truth["boresight_deg"]
-    print("\nboresight from the exported session:",
-          {a: (round(res["boresight_deg"][a], 4), round(res["sigma_realistic_deg"][a], 4), truth[a])
-           for a in ("roll", "pitch", "yaw")})  # fmt: skip
+    print(
+        "\nboresight from the exported session:",
+        {
+            a: (round(res["boresight_deg"][a], 4), round(res["sigma_realistic_deg"][a], 4), truth[a])
+            for a in ("roll", "pitch", "yaw")
+        },
+    )
     for a in ("roll", "pitch", "yaw"):
         assert abs(res["boresight_deg"][a] - truth[a]) <= 3 * res["sigma_realistic_deg"][a], (a, res)

@@ -27,13 +27,21 @@ from pathlib import Path
 
 import pytest
 
-from acquire.jobs.demo import (AngleComparison, DemoError, DemoSettings, comparison_rows, pass_events,
-                          prepare_out, progress_line, scenario_overrides, sigma_covers_accepted,
-                          sigma_events)  # fmt: skip
+from acquire.jobs.demo import (
+    AngleComparison,
+    DemoError,
+    DemoSettings,
+    comparison_rows,
+    pass_events,
+    prepare_out,
+    progress_line,
+    scenario_overrides,
+    sigma_covers_accepted,
+    sigma_events,
+)
 from tests.acquire.daemon_util import MLS, ROOT
 
-SHOTS = Path(os.environ.get("MLS_SCREENSHOT_DIR")
-             or Path(__file__).resolve().parents[2] / "screenshots")
+SHOTS = Path(os.environ.get("MLS_SCREENSHOT_DIR") or Path(__file__).resolve().parents[2] / "screenshots")
 SHORT = ("--line-m", "14", "--pass-gap-s", "2")  # 67 s of survey instead of make demo's 82 s
 RELATIVE_HEADINGS = [0, 180, 45, 225, 315, 135]
 
@@ -52,7 +60,7 @@ def session_processes(sid: int) -> list[tuple[int, str]]:
             cmd = (d / "cmdline").read_bytes().replace(b"\0", b" ").decode(errors="replace").strip()
         except OSError:
             continue
-        fields = stat[stat.rfind(")") + 2:].split()  # state ppid pgrp session ...
+        fields = stat[stat.rfind(")") + 2 :].split()  # state ppid pgrp session ...
         if int(fields[3]) == sid and fields[0] != "Z":
             out.append((int(d.name), cmd))
     return out
@@ -90,8 +98,14 @@ def start_demo(base: Path, *args: str, log_name: str = "demo.log") -> DemoProces
     out, log = base / "demo-out", base / log_name
     env = {**os.environ, "MLS_HISTORY_DB": str(base / "history.sqlite")}
     with open(log, "ab") as f:
-        p = subprocess.Popen([*MLS, "demo", "--out", str(out), *SHORT, *args], stdout=f,
-                             stderr=subprocess.STDOUT, cwd=ROOT, env=env, start_new_session=True)  # fmt: skip
+        p = subprocess.Popen(
+            [*MLS, "demo", "--out", str(out), *SHORT, *args],
+            stdout=f,
+            stderr=subprocess.STDOUT,
+            cwd=ROOT,
+            env=env,
+            start_new_session=True,
+        )
     return DemoProcess(p, out, log)
 
 
@@ -104,8 +118,9 @@ def wait_for(cond, timeout_s: float, what: str, demo: DemoProcess | None = None)
         if demo is not None and demo.p.poll() is not None:
             raise AssertionError(f"{what}: mls demo ended ({demo.p.returncode}):\n{demo.output()[-3000:]}")
         time.sleep(0.05)
-    raise AssertionError(f"timed out after {timeout_s} s waiting for {what}"
-                         + (f"\n{demo.output()[-3000:]}" if demo else ""))  # fmt: skip
+    raise AssertionError(
+        f"timed out after {timeout_s} s waiting for {what}" + (f"\n{demo.output()[-3000:]}" if demo else "")
+    )
 
 
 def daemon_status(out: Path) -> dict | None:
@@ -134,8 +149,8 @@ def demo(tmp_path_factory):
 def test_checklist_follows_the_live_survey_and_calibrates_the_session(demo, monkeypatch):
     from rich.console import Console
 
-    from acquire.ui.checklist_app import ChecklistApp
     from acquire.status.feed import SocketFeed
+    from acquire.ui.checklist_app import ChecklistApp
 
     monkeypatch.setenv("MLS_HISTORY_DB", str(demo.out.parent / "history.sqlite"))
     SHOTS.mkdir(parents=True, exist_ok=True)
@@ -148,8 +163,10 @@ def test_checklist_follows_the_live_survey_and_calibrates_the_session(demo, monk
     record: dict = {"accepted": [], "sigma": [], "captured": set()}
 
     async def main():
-        app = ChecklistApp(SocketFeed(sock, retry_min_s=0.1, retry_max_s=0.2),
-                           session_root=str(demo.out / "run" / "sessions"))  # fmt: skip
+        app = ChecklistApp(
+            SocketFeed(sock, retry_min_s=0.1, retry_max_s=0.2),
+            session_root=str(demo.out / "run" / "sessions"),
+        )
 
         def shot(name: str) -> None:
             fname = f"live-{len(shots) + 1:02d}-{name}.svg"
@@ -166,17 +183,23 @@ def test_checklist_follows_the_live_survey_and_calibrates_the_session(demo, monk
                 if cond():
                     return
                 if live and demo.p.poll() is not None and not app.state.link_up:
-                    raise AssertionError(f"{what}: mls demo ended ({demo.p.returncode}):\n"
-                                         f"{demo.output()[-3000:]}")  # fmt: skip
+                    raise AssertionError(
+                        f"{what}: mls demo ended ({demo.p.returncode}):\n{demo.output()[-3000:]}"
+                    )
                 await pilot.pause(0.05)
             red = [f"{c.get('label')}: {c.get('detail')}" for c in app.state.checks() if not c.get("ok")]
-            raise AssertionError(f"timed out after {timeout_s} s waiting for {what}; red checks: {red}; "
-                                 f"demo output:\n{demo.output()[-2000:]}")  # fmt: skip
+            raise AssertionError(
+                f"timed out after {timeout_s} s waiting for {what}; red checks: {red}; "
+                f"demo output:\n{demo.output()[-2000:]}"
+            )
 
         async with app.run_test(size=(80, 24)) as pilot:
             # 1. the daemon has started: its checks are red (the clock is not locked yet)
-            await until(lambda: app.state.link_up and app.state.checklist.get("prechecks"), 90,
-                        "the daemon's guidance")  # fmt: skip
+            await until(
+                lambda: app.state.link_up and app.state.checklist.get("prechecks"),
+                90,
+                "the daemon's guidance",
+            )
             checks = {c["name"]: c for c in app.state.checks()}
             assert checks["clock_locked"]["ok"] is not True, checks["clock_locked"]
             text = plain("#prechecks")
@@ -184,18 +207,35 @@ def test_checklist_follows_the_live_survey_and_calibrates_the_session(demo, monk
             assert "daemon running" in plain("#header")
             shot("prechecks-red")
             # 2. the INS navigates, the PPS labels lock the clock: every check green
-            await until(lambda: len(app.state.checks()) >= 11
-                        and all(c.get("ok") is True for c in app.state.checks())
-                        and "clock LOCKED" in plain("#header"), 40, "green checks")  # fmt: skip
+            await until(
+                lambda: (
+                    len(app.state.checks()) >= 11
+                    and all(c.get("ok") is True for c in app.state.checks())
+                    and "clock LOCKED" in plain("#header")
+                ),
+                40,
+                "green checks",
+            )
             names = {c["name"] for c in app.state.checks()}
-            assert {"ins_navigating", "gnss_fix", "pps_locked", "clock_locked", "latency_in_band",
-                    "disk_space", "mount_targets", "ins_pps", "profiler_data"} <= names  # fmt: skip
+            assert {
+                "ins_navigating",
+                "gnss_fix",
+                "pps_locked",
+                "clock_locked",
+                "latency_in_band",
+                "disk_space",
+                "mount_targets",
+                "ins_pps",
+                "profiler_data",
+            } <= names
             assert "✘" not in plain("#prechecks")
             shot("prechecks-green")
             # 3. the passes, accepted one by one in the plan's order
             deadline = time.monotonic() + 150
             while len(record["accepted"]) < 6:
-                assert time.monotonic() < deadline, f"passes so far: {record['accepted']}\n{demo.output()[-2000:]}"
+                assert time.monotonic() < deadline, (
+                    f"passes so far: {record['accepted']}\n{demo.output()[-2000:]}"
+                )
                 msg = app.state.checklist
                 passes = msg.get("passes") or []
                 bad = [p for p in passes if p["status"] == "rejected"]
@@ -213,8 +253,14 @@ def test_checklist_follows_the_live_survey_and_calibrates_the_session(demo, monk
                     k = len(record["accepted"]) + 1
                     assert accepted == [p["id"] for p in passes[:k]], accepted  # one by one, in order
                     assert msg["accepted"] == k
-                    await until(lambda: (app.state.checklist.get("sigma") or {}).get("current", {})
-                                .get("passes") == accepted, 20, f"the σ prediction of {k} passes")
+                    await until(
+                        lambda accepted=accepted: (
+                            (app.state.checklist.get("sigma") or {}).get("current", {}).get("passes")
+                            == accepted
+                        ),
+                        20,
+                        f"the σ prediction of {k} passes",
+                    )
                     cur = app.state.checklist["sigma"]["current"]
                     record["sigma"].append(cur)
                     record["accepted"] = accepted
@@ -225,15 +271,27 @@ def test_checklist_follows_the_live_survey_and_calibrates_the_session(demo, monk
                     shot(f"pass-{accepted[-1]}-accepted")
                 await pilot.pause(0.05)
             assert record["captured"] == set(range(1, 7))
-            assert [round(p["relative_heading_deg"]) for p in app.state.checklist["passes"]] == RELATIVE_HEADINGS
+            assert [
+                round(p["relative_heading_deg"]) for p in app.state.checklist["passes"]
+            ] == RELATIVE_HEADINGS
             # 4. the demo stops the daemon (the session closes); then "calibrate now"
-            await until(lambda: (app.state.topics.get("status") or {}).get("state") == "stopped", 30,
-                        "the daemon's orderly stop")  # fmt: skip
+            await until(
+                lambda: (app.state.topics.get("status") or {}).get("state") == "stopped",
+                30,
+                "the daemon's orderly stop",
+            )
             await pilot.press("c")
             await until(lambda: app.calibration is not None, 180, "the calibration", live=False)
-            await until(lambda: len(app.screen_stack) > 1 and app.screen.query("#modal-body")
-                        and app.screen.query_one("#modal-body").region.height > 0, 10,
-                        "the result screen", live=False)  # fmt: skip
+            await until(
+                lambda: (
+                    len(app.screen_stack) > 1
+                    and app.screen.query("#modal-body")
+                    and app.screen.query_one("#modal-body").region.height > 0
+                ),
+                10,
+                "the result screen",
+                live=False,
+            )
             await pilot.pause(0.2)  # laid out: let it paint before the screenshot
             outcome = app.calibration
             assert outcome.ok, outcome.message
@@ -259,7 +317,11 @@ def test_checklist_follows_the_live_survey_and_calibrates_the_session(demo, monk
     # give a pass with many points a weight its bias does not deserve)
     sig = record["sigma"]
     determined = [{a for a, v in s["formal_deg"].items() if v is not None} for s in sig]
-    assert all(b >= a for a, b in zip(determined, determined[1:])) and determined[-1] == {"roll", "pitch", "yaw"}
+    assert all(b >= a for a, b in zip(determined, determined[1:])) and determined[-1] == {
+        "roll",
+        "pitch",
+        "yaw",
+    }
     for before, after in zip(sig, sig[1:]):
         for a, v in before["formal_deg"].items():
             if v is not None:
@@ -269,7 +331,9 @@ def test_checklist_follows_the_live_survey_and_calibrates_the_session(demo, monk
     # "calibrate now" ran mls calib run on the session: its result, within 3σ of the truth
     outcome = record["outcome"]
     session = Path(outcome.out_dir).parent
-    assert session.parent == demo.out / "run" / "sessions" and (Path(outcome.out_dir) / "result.json").is_file()
+    assert (
+        session.parent == demo.out / "run" / "sessions" and (Path(outcome.out_dir) / "result.json").is_file()
+    )
     truth = json.loads((demo.out / "run" / "scenario_truth.json").read_text())
     for r in comparison_rows(outcome.result, truth):
         assert abs(r.error_sigmas) <= 3, r
@@ -299,8 +363,13 @@ def test_demo_recovers_the_boresight_within_3_sigma_and_leaves_no_process(demo):
     assert paths == {"result.json": out / "calib" / "result.json", "report.md": out / "calib" / "report.md"}
     assert all(p.is_file() for p in paths.values())
     plots = [Path(p) for p in re.findall(r"^plot\s+(\S+)$", text, re.M)]
-    assert {p.name for p in plots} == {"residuals_by_pass.png", "residuals_by_plane.png",
-                                       "residuals_time.png", "target_T1.png", "target_T2.png"}  # fmt: skip
+    assert {p.name for p in plots} == {
+        "residuals_by_pass.png",
+        "residuals_by_plane.png",
+        "residuals_time.png",
+        "target_T1.png",
+        "target_T2.png",
+    }
     assert all(p.is_file() and p.stat().st_size > 10_000 for p in plots)
     wall = re.search(r"wall time (\d+\.\d) s\s*$", text)
     assert wall and float(wall.group(1)) < 180
@@ -310,13 +379,19 @@ def test_demo_recovers_the_boresight_within_3_sigma_and_leaves_no_process(demo):
     rows = comparison_rows(result, truth)
     for r in rows:
         name = r.angle if r.convention == "canonical" else f"thesis {r.angle}"
-        assert (f"{name} {r.truth_deg:+.4f} {r.recovered_deg:+.4f} {r.error_deg:+.4f} "
-                f"{r.sigma_formal_deg:.4f} {r.sigma_realistic_deg:.4f} {r.error_sigmas:+.2f}") in flat
+        assert (
+            f"{name} {r.truth_deg:+.4f} {r.recovered_deg:+.4f} {r.error_deg:+.4f} "
+            f"{r.sigma_formal_deg:.4f} {r.sigma_realistic_deg:.4f} {r.error_sigmas:+.2f}"
+        ) in flat
         assert abs(r.error_deg) <= 3 * r.sigma_realistic_deg, r
     assert truth["boresight_deg"] == {"roll": 0.208, "pitch": 1.245, "yaw": 0.149}
     # every step left its log; the bundle holds the six passes
-    assert {p.name for p in (out / "logs").iterdir()} == {"devices.log", "acquire.log", "export.log",
-                                                          "calib.log"}  # fmt: skip
+    assert {p.name for p in (out / "logs").iterdir()} == {
+        "devices.log",
+        "acquire.log",
+        "export.log",
+        "calib.log",
+    }
     assert [p["id"] for p in result["passes"]] == [1, 2, 3, 4, 5, 6]
 
 
@@ -368,8 +443,9 @@ def test_a_failed_step_is_named_with_its_log_and_leaves_no_process(tmp_path):
         rc = demo.p.wait(60)
         text = " ".join(demo.output().split())
         assert rc == 1, text
-        assert ("mls demo failed at step acquisition daemon (mls acquire): ended during the survey "
-                "(exit code -9)") in text
+        assert (
+            "mls demo failed at step acquisition daemon (mls acquire): ended during the survey (exit code -9)"
+        ) in text
         assert f"its log: {demo.out / 'logs' / 'acquire.log'}; all logs: {demo.out / 'logs'}" in text
         assert left_behind(demo.p.pid) == []
         assert not any(os.path.exists(f"/proc/{p}") for p in devices["processes"].values())
@@ -382,10 +458,16 @@ def test_a_failed_step_is_named_with_its_log_and_leaves_no_process(tmp_path):
         rc = again.p.wait(60)
         text = " ".join(again.output().split())
         assert rc == 1, text
-        assert "mls demo failed at step simulated devices (mls sim devices): mls sim devices ended with exit code 2" in text
+        assert (
+            "mls demo failed at step simulated devices (mls sim devices): mls sim devices ended with exit code 2"
+            in text
+        )
         assert "unknown key 'colour'" in text
         assert f"its log: {again.out / 'logs' / 'devices.log'}" in text
-        assert sorted(p.name for p in again.out.iterdir()) == [".mls-demo", "logs"]  # the first run's are gone
+        assert sorted(p.name for p in again.out.iterdir()) == [
+            ".mls-demo",
+            "logs",
+        ]  # the first run's are gone
         assert left_behind(again.p.pid) == []
     finally:
         again.kill_all()
@@ -404,9 +486,12 @@ def test_prepare_out_empties_a_previous_demo_and_refuses_anything_else(tmp_path)
     other = tmp_path / "thesis"
     other.mkdir()
     (other / "chapter1.tex").write_text("x")
-    with pytest.raises(DemoError, match=r"thesis is not a previous demo's run directory \(no "
-                                        r"\.mls-demo in it, and it holds chapter1\.tex\): choose "
-                                        r"another --out"):  # fmt: skip
+    with pytest.raises(
+        DemoError,
+        match=r"thesis is not a previous demo's run directory \(no "
+        r"\.mls-demo in it, and it holds chapter1\.tex\): choose "
+        r"another --out",
+    ):
         prepare_out(other)
     assert (other / "chapter1.tex").read_text() == "x"
     old = tmp_path / "old-demo"  # what the earlier mls demo left: LAZ files
@@ -432,48 +517,90 @@ def test_the_demo_scenario_keeps_the_six_fold_pattern_and_both_targets():
 
 
 def test_progress_line_and_pass_events():
-    plan = [{"id": i + 1, "relative_heading_deg": h, "status": "pending", "attempts": 0}
-            for i, h in enumerate(RELATIVE_HEADINGS)]  # fmt: skip
+    plan = [
+        {"id": i + 1, "relative_heading_deg": h, "status": "pending", "attempts": 0}
+        for i, h in enumerate(RELATIVE_HEADINGS)
+    ]
     before = {"passes": plan, "accepted": 0, "active": {"pass_id": 1, "state": "approach"}}
     assert progress_line({}, None, 3.2) == "00:03 waiting for the guidance · clock —"
     assert progress_line(before, "UNLOCKED", 61.0) == "01:01 pass 1 approach · 0/6 accepted · clock UNLOCKED"
-    capture = {**before, "active": {"pass_id": 1, "state": "capture", "along_m": 19.0, "capture_m": [14.6, 25.4],
-                                    "xte_m": -0.042}}
+    capture = {
+        **before,
+        "active": {
+            "pass_id": 1,
+            "state": "capture",
+            "along_m": 19.0,
+            "capture_m": [14.6, 25.4],
+            "xte_m": -0.042,
+        },
+    }
     assert progress_line(capture, "LOCKED", 9.9) == "00:09 pass 1 capture 4/11 m · XTE -0.04 m · 0/6 accepted"
-    full = {**capture, "active": {**capture["active"], "pass_id": 6, "along_m": 25.4, "xte_m": -9.99},
-            "accepted": 5, "sigma": {"current": {"passes": [1, 2, 3, 4, 5],
-                                                 "realistic_deg": {"roll": 0.0424, "pitch": 0.2039, "yaw": 0.0481}}}}
+    full = {
+        **capture,
+        "active": {**capture["active"], "pass_id": 6, "along_m": 25.4, "xte_m": -9.99},
+        "accepted": 5,
+        "sigma": {
+            "current": {
+                "passes": [1, 2, 3, 4, 5],
+                "realistic_deg": {"roll": 0.0424, "pitch": 0.2039, "yaw": 0.0481},
+            }
+        },
+    }
     line = progress_line(full, "LOCKED", 3599.0)
     assert line == "59:59 pass 6 capture 11/11 m · XTE -9.99 m · 5/6 accepted · σ° 0.042 0.204 0.048"
     assert len(line) <= 80
-    done = [{**plan[0], "status": "accepted", "attempts": 1, "hits": {"T1": 700, "T2": 150},
-             "stats": {"max_xte_m": 0.05}},
-            {**plan[1], "status": "rejected", "attempts": 1, "reasons": ["clock HOLDOVER during the window"]},
-            *plan[2:]]  # fmt: skip
-    after = {"passes": done, "accepted": 1, "active": None,
-             "sigma": {"current": {"passes": [1], "realistic_deg": {"roll": 0.05, "pitch": None, "yaw": None}}}}
+    done = [
+        {
+            **plan[0],
+            "status": "accepted",
+            "attempts": 1,
+            "hits": {"T1": 700, "T2": 150},
+            "stats": {"max_xte_m": 0.05},
+        },
+        {**plan[1], "status": "rejected", "attempts": 1, "reasons": ["clock HOLDOVER during the window"]},
+        *plan[2:],
+    ]
+    after = {
+        "passes": done,
+        "accepted": 1,
+        "active": None,
+        "sigma": {"current": {"passes": [1], "realistic_deg": {"roll": 0.05, "pitch": None, "yaw": None}}},
+    }
     assert pass_events(before, after) == [
         "✔ pass 1 (0°) accepted: hits T1 700, T2 150; max XTE 0.05 m",
-        "✘ pass 2 (180°) rejected: clock HOLDOVER during the window"]
+        "✘ pass 2 (180°) rejected: clock HOLDOVER during the window",
+    ]
     assert pass_events(after, after) == []
     assert sigma_events(before, after) == ["  predicted σ roll 0.050° pitch n/o yaw n/o with passes 1"]
     assert sigma_events(after, after) == [] and sigma_covers_accepted(after)
-    worse = {**after, "sigma": {"current": {"passes": [1, 3], "rose": ["roll"], "realistic_deg":
-                                            {"roll": 0.062, "pitch": None, "yaw": None}}}}  # fmt: skip
+    worse = {
+        **after,
+        "sigma": {
+            "current": {
+                "passes": [1, 3],
+                "rose": ["roll"],
+                "realistic_deg": {"roll": 0.062, "pitch": None, "yaw": None},
+            }
+        },
+    }
     assert sigma_events(after, worse) == [
         "  predicted σ roll 0.062° pitch n/o yaw n/o with passes 1, 3 (roll σ rose: the pass's "
-        "POS bias outweighs its geometry)"]
+        "POS bias outweighs its geometry)"
+    ]
     assert not sigma_covers_accepted({**after, "sigma": None})
 
 
 def test_comparison_rows_in_both_conventions():
-    result = {"boresight_deg": {"roll": 0.2, "pitch": 1.3, "yaw": 0.1},
-              "sigma_deg": {"roll": 0.002, "pitch": 0.007, "yaw": 0.002},
-              "sigma_realistic_deg": {"roll": 0.04, "pitch": 0.1, "yaw": 0.05}}
+    result = {
+        "boresight_deg": {"roll": 0.2, "pitch": 1.3, "yaw": 0.1},
+        "sigma_deg": {"roll": 0.002, "pitch": 0.007, "yaw": 0.002},
+        "sigma_realistic_deg": {"roll": 0.04, "pitch": 0.1, "yaw": 0.05},
+    }
     truth = {"boresight_deg": {"roll": 0.208, "pitch": 1.245, "yaw": 0.149}}
     rows = comparison_rows(result, truth)
-    assert [(r.angle, r.convention) for r in rows] == [(a, c) for c in ("canonical", "thesis")
-                                                       for a in ("roll", "pitch", "yaw")]  # fmt: skip
+    assert [(r.angle, r.convention) for r in rows] == [
+        (a, c) for c in ("canonical", "thesis") for a in ("roll", "pitch", "yaw")
+    ]
     pitch, thesis_pitch = rows[1], rows[4]
     assert (thesis_pitch.truth_deg, thesis_pitch.recovered_deg) == (-1.245, -1.3)
     assert pitch.error_sigmas == pytest.approx(0.55) and thesis_pitch.error_sigmas == pytest.approx(-0.55)

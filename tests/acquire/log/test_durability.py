@@ -33,8 +33,10 @@ pytestmark = pytest.mark.integration
 def _start_writer(root: Path, ledger: Path, flush_s: float, rotate_bytes: int):
     proc = subprocess.Popen(
         [sys.executable, str(WRITER), str(root), str(ledger), str(flush_s), str(rotate_bytes)],
-        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-    )  # fmt: skip
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
     ready, _, _ = select.select([proc.stdout], [], [], 30.0)
     line = proc.stdout.readline() if ready else ""
     if not line.startswith("READY "):
@@ -51,7 +53,7 @@ def test_kill_9_at_random_times_keeps_every_record_older_than_the_flush_period(t
         root = tmp_path / f"trial{trial}"
         ledger = tmp_path / f"ledger{trial}.txt"
         proc, session = _start_writer(root, ledger, flush_s, rotate_bytes=400_000)
-        wait_for(lambda: ledger.exists() and ledger.stat().st_size > 0, what="first records")
+        wait_for(lambda ledger=ledger: ledger.exists() and ledger.stat().st_size > 0, what="first records")
         select.select([], [], [], rng.uniform(0.6, 2.4))
         kill_ns = time.monotonic_ns()
         os.kill(proc.pid, signal.SIGKILL)
@@ -90,8 +92,11 @@ def test_kill_9_at_random_times_keeps_every_record_older_than_the_flush_period(t
         for topic, seqs in present.items():  # exactly once, contiguous, in order
             assert seqs == list(range(1, len(seqs) + 1)), (trial, topic)
         emitted = [ln.split() for ln in ledger.read_text().splitlines()]
-        due = [(t, int(s)) for t, s, ts in (e for e in emitted if len(e) == 3)
-               if int(ts) < kill_ns - int(flush_s * NS)]  # fmt: skip
+        due = [
+            (t, int(s))
+            for t, s, ts in (e for e in emitted if len(e) == 3)
+            if int(ts) < kill_ns - int(flush_s * NS)
+        ]
         assert len(due) > 100, (trial, len(due))
         missing = [(t, s) for t, s in due if s > len(present[t])]
         assert missing == [], (trial, missing[:5])
@@ -162,10 +167,11 @@ class _TmpfsDisk:
 def small_disk(tmp_path):
     mnt = tmp_path / "fs"
     mnt.mkdir()
-    r = subprocess.run(["mount", "-t", "tmpfs", "-o", "size=3m,mode=0755", "tmpfs", str(mnt)],
-                       capture_output=True, text=True)  # fmt: skip
+    r = subprocess.run(
+        ["mount", "-t", "tmpfs", "-o", "size=3m,mode=0755", "tmpfs", str(mnt)], capture_output=True, text=True
+    )
     if r.returncode != 0:
-        warnings.warn(f"tmpfs mount failed ({r.stderr.strip()}); disk full is injected instead")
+        warnings.warn(f"tmpfs mount failed ({r.stderr.strip()}); disk full is injected instead", stacklevel=2)
         yield _InjectedDisk(mnt)
         return
     try:
@@ -176,8 +182,14 @@ def small_disk(tmp_path):
 
 def test_disk_full_closes_the_segment_cleanly_raises_an_alarm_and_resumes(small_disk, capsys):
     alarms = AlarmBook()
-    opts = SessionOptions(flush_s=0.1, fsync_s=0.2, retry_s=0.2, rotate_bytes=250_000,
-                          compression="none", min_free_bytes=600_000)  # fmt: skip
+    opts = SessionOptions(
+        flush_s=0.1,
+        fsync_s=0.2,
+        retry_s=0.2,
+        rotate_bytes=250_000,
+        compression="none",
+        min_free_bytes=600_000,
+    )
     w = SessionWriter(small_disk.root, "v", opts, alarms=alarms, io_factory=small_disk.io_factory)
     session = w.start()
     seq = 0
@@ -191,8 +203,12 @@ def test_disk_full_closes_the_segment_cleanly_raises_an_alarm_and_resumes(small_
     produce(300)  # ~600 kB: two rotations
     wait_for(lambda: w.stats().segments >= 3, what="two rotations")
     small_disk.fill(leave_bytes=150_000)
-    wait_for(lambda: alarms.is_active("disk_write_failed", "log"), 20.0, "the disk-full alarm",
-             poll=lambda: produce(20))  # fmt: skip
+    wait_for(
+        lambda: alarms.is_active("disk_write_failed", "log"),
+        20.0,
+        "the disk-full alarm",
+        poll=lambda: produce(20),
+    )
     failed = w.stats()
     assert failed.state == "failed" and "ENOSPC" in failed.last_error
     alarm = alarms.get("disk_write_failed", "log")
@@ -202,8 +218,12 @@ def test_disk_full_closes_the_segment_cleanly_raises_an_alarm_and_resumes(small_
     wait_for(lambda: w.stats().queue_depth == 0, what="the paused writer to drain")
     assert w.health()[0] and "paused" in w.health()[1]
     small_disk.free()
-    wait_for(lambda: not alarms.is_active("disk_write_failed", "log"), 20.0, "writing to resume",
-             poll=lambda: produce(5))  # fmt: skip
+    wait_for(
+        lambda: not alarms.is_active("disk_write_failed", "log"),
+        20.0,
+        "writing to resume",
+        poll=lambda: produce(5),
+    )
     produce(100)
     w.close()
     stats = w.stats()
@@ -241,8 +261,13 @@ def test_failed_fsync_abandons_the_segment_without_another_write_and_resumes(tmp
             super().fsync()
 
     alarms = AlarmBook()
-    w = SessionWriter(tmp_path, "v", SessionOptions(flush_s=0.1, fsync_s=0.2, retry_s=0.2),
-                      alarms=alarms, io_factory=FlakyFsync)  # fmt: skip
+    w = SessionWriter(
+        tmp_path,
+        "v",
+        SessionOptions(flush_s=0.1, fsync_s=0.2, retry_s=0.2),
+        alarms=alarms,
+        io_factory=FlakyFsync,
+    )
     session = w.start()
     for i in range(1, 201):
         w.submit("/ins/raw", payload(i, 100), host_ns=i)

@@ -18,8 +18,10 @@ def _write(cls, records, chunk_size: int, compression, head: int = 0) -> bytes:
     w = cls(out, chunk_size=chunk_size, compression=compression)
     w.start("mls-test", "mls")
     sid = w.register_schema("env", "jsonschema", b"{}")
-    channels = [w.register_channel("/lidar/raw", "mls-raw", 0, {"k": "v"}),
-                w.register_channel("/ins/nav", "json", sid, {})]  # fmt: skip
+    channels = [
+        w.register_channel("/lidar/raw", "mls-raw", 0, {"k": "v"}),
+        w.register_channel("/ins/nav", "json", sid, {}),
+    ]
     for ch, log_time, publish, seq, data in records:
         if head:
             w.add_message(channels[ch], log_time, data[head:], publish, seq, head=data[:head])
@@ -37,13 +39,22 @@ def test_segment_writer_writes_the_bytes_of_the_library_writer(chunk_size, compr
     records, t = [], 10**18
     for seq in range(1, 3000):
         t += rng.randrange(-50_000, 1_000_000)  # log times not sorted: the time ranges must agree
-        records.append((rng.randrange(2), max(t, 0), t + rng.randrange(1000), seq,
-                        bytes(rng.randrange(256) for _ in range(rng.randrange(0, 300)))))  # fmt: skip
+        records.append(
+            (
+                rng.randrange(2),
+                max(t, 0),
+                t + rng.randrange(1000),
+                seq,
+                bytes(rng.randrange(256) for _ in range(rng.randrange(0, 300))),
+            )
+        )
     records.append((0, 0, 0, 0, b""))  # log time 0, empty payload
     ours = _write(SegmentWriter, records, chunk_size, compression, head)
     assert ours == _write(Writer, records, chunk_size, compression)
-    got = [(m.channel_id, m.log_time, m.publish_time, m.sequence, m.data)
-           for _, _, m in make_reader(io.BytesIO(ours)).iter_messages(log_time_order=False)]  # fmt: skip
+    got = [
+        (m.channel_id, m.log_time, m.publish_time, m.sequence, m.data)
+        for _, _, m in make_reader(io.BytesIO(ours)).iter_messages(log_time_order=False)
+    ]
     assert [(r[1], r[2], r[3], r[4]) for r in records] == [g[1:] for g in got]
     summary = make_reader(io.BytesIO(ours)).get_summary()
     assert summary.statistics.message_count == len(records)
@@ -59,7 +70,10 @@ def test_without_chunking_it_is_the_library_method():
     for _, log_time, publish, seq, data in records:
         w.add_message(ch, log_time, data[1:], publish, seq, head=data[:1])
     w.finish()
-    got = [(m.log_time, m.sequence, m.data) for _, _, m in make_reader(io.BytesIO(out.getvalue())).iter_messages()]
+    got = [
+        (m.log_time, m.sequence, m.data)
+        for _, _, m in make_reader(io.BytesIO(out.getvalue())).iter_messages()
+    ]
     assert got == [(4, 2, b"{}"), (5, 1, b"abc")]
 
 
@@ -69,7 +83,9 @@ def test_runs_cut_at_the_chunk_room_are_the_bytes_of_the_library_writer(chunk_si
     records, t = [], 10**18
     for seq in range(1, 2000):
         t += rng.randrange(-50_000, 1_000_000)
-        records.append((0, max(t, 0), t + 7, seq, bytes(rng.randrange(256) for _ in range(rng.randrange(0, 300)))))
+        records.append(
+            (0, max(t, 0), t + 7, seq, bytes(rng.randrange(256) for _ in range(rng.randrange(0, 300))))
+        )
     out = io.BytesIO()
     w = SegmentWriter(out, chunk_size=chunk_size, compression=CompressionType.NONE)
     w.start("mls-test", "mls")

@@ -18,7 +18,6 @@ from mcap.writer import MCAP0_MAGIC
 
 from acquire.alarms import AlarmBook
 from acquire.log.read import iter_messages
-from acquire.timing.clock import ClockState, GpsEstimate
 from acquire.log.recover import (
     SegmentScan,
     is_locked,
@@ -34,6 +33,7 @@ from acquire.log.schema import FormatError, channel_kind, decode
 from acquire.log.segments import SegmentIO
 from acquire.log.session import LogError, SessionOptions
 from acquire.log.sessionlog import SessionWriter
+from acquire.timing.clock import ClockState, GpsEstimate
 from tests.acquire.logutil import payload, read_session, wait_for
 
 NS = 1_000_000_000
@@ -50,8 +50,13 @@ class FixedClock:
 
 def test_round_trip_keeps_exact_bytes_times_sequence_and_clock_flags(tmp_path):
     clock = FixedClock()
-    w = SessionWriter(tmp_path, "survey-1", SessionOptions(flush_s=0.2),
-                      clock=clock, channel_metadata={"/ins/raw": {"protocol": "nmea"}})
+    w = SessionWriter(
+        tmp_path,
+        "survey-1",
+        SessionOptions(flush_s=0.2),
+        clock=clock,
+        channel_metadata={"/ins/raw": {"protocol": "nmea"}},
+    )
     sd = w.start()
     assert re.fullmatch(r"\d{8}T\d{6}Z_survey-1", sd.name)
     host = 10 * NS
@@ -61,15 +66,25 @@ def test_round_trip_keeps_exact_bytes_times_sequence_and_clock_flags(tmp_path):
         w.submit("/ins/nav", {"i": i, "roll_rad": math.nan, "v": [1, 2.5]}, host_ns=host + i)
     clock.state = ClockState.HOLDOVER
     w.submit("/can/events", b"\x00\x01\x02", host_ns=host + 100)
-    w.submit("/events", {"event": "mark", "text": "T1"}, host_ns=host + 101,
-             log_time_ns=123, clock_state="UNLOCKED")
+    w.submit(
+        "/events",
+        {"event": "mark", "text": "T1"},
+        host_ns=host + 101,
+        log_time_ns=123,
+        clock_state="UNLOCKED",
+    )
     w.close()
     msgs = read_session(sd)
     by_topic = {}
     for m in msgs:
         by_topic.setdefault(m.topic, []).append(m)
     assert {t: len(v) for t, v in by_topic.items()} == {
-        "/ins/raw": 50, "/lidar/raw": 50, "/ins/nav": 50, "/can/events": 1, "/events": 1}
+        "/ins/raw": 50,
+        "/lidar/raw": 50,
+        "/ins/nav": 50,
+        "/can/events": 1,
+        "/events": 1,
+    }
     for i, m in enumerate(by_topic["/ins/raw"], start=1):
         assert m.payload == payload(i, 100 + i) and m.seq == i and m.host_ns == host + i
         assert m.device_ns == GPS_OFFSET_NS + i == m.publish_time_ns
@@ -95,8 +110,9 @@ def test_round_trip_keeps_exact_bytes_times_sequence_and_clock_flags(tmp_path):
 
 
 def test_rotation_by_size_and_time_keeps_sequences_contiguous(tmp_path):
-    w = SessionWriter(tmp_path, "v", SessionOptions(rotate_bytes=60_000, rotate_s=0.4, flush_s=0.1,
-                                                    compression="none"))
+    w = SessionWriter(
+        tmp_path, "v", SessionOptions(rotate_bytes=60_000, rotate_s=0.4, flush_s=0.1, compression="none")
+    )
     sd = w.start()
     for i in range(400):
         w.submit("/lidar/raw", payload(i, 500), host_ns=NS + i * 1_000_000)
@@ -162,8 +178,12 @@ def test_a_batch_is_queued_in_order_up_to_the_room_left_and_a_bad_one_queues_not
     w.close()
     msgs = list(iter_messages(sd, {"/ins/raw", "/lidar/raw"}))
     assert [(m.topic, m.payload, m.seq, m.log_time_ns) for m in msgs] == [
-        ("/ins/raw", b"\x00", 1, 1000), ("/lidar/raw", b"\x01", 1, 1001), ("/ins/raw", b"\x02", 2, 1002),
-        ("/lidar/raw", b"\x03", 2, 1003), ("/ins/raw", b"\x00", 3, 1000)]  # then seq 3 and 4 dropped
+        ("/ins/raw", b"\x00", 1, 1000),
+        ("/lidar/raw", b"\x01", 1, 1001),
+        ("/ins/raw", b"\x02", 2, 1002),
+        ("/lidar/raw", b"\x03", 2, 1003),
+        ("/ins/raw", b"\x00", 3, 1000),
+    ]  # then seq 3 and 4 dropped
 
 
 def test_bad_topics_and_payloads_are_refused():
@@ -194,7 +214,7 @@ def _segment_with_chunks(tmp_path) -> tuple[Path, list[int]]:
         time.sleep(0.1)  # one flush (one chunk) per group
     w.close()
     seg = segment_paths(sd)[0]
-    ends, pos = [], None
+    ends = []
     scan = SegmentScan(seg, 0)
     for rec in scan_segment(seg, scan):
         if type(rec).__name__ == "Message" and rec.sequence % 40 == 0:
@@ -206,8 +226,17 @@ def _segment_with_chunks(tmp_path) -> tuple[Path, list[int]]:
 def test_salvage_of_a_file_torn_anywhere_keeps_exactly_the_complete_chunks(tmp_path):
     seg, chunk_ends = _segment_with_chunks(tmp_path / "src")
     size = seg.stat().st_size
-    cuts = sorted({9, 50, *range(chunk_ends[0] - 3, chunk_ends[0] + 4), chunk_ends[2] + 1,
-                   (chunk_ends[3] + chunk_ends[4]) // 2, chunk_ends[4] + 5, size - 1})
+    cuts = sorted(
+        {
+            9,
+            50,
+            *range(chunk_ends[0] - 3, chunk_ends[0] + 4),
+            chunk_ends[2] + 1,
+            (chunk_ends[3] + chunk_ends[4]) // 2,
+            chunk_ends[4] + 5,
+            size - 1,
+        }
+    )
     for cut in cuts:
         d = tmp_path / f"cut{cut}"
         d.mkdir()
@@ -296,9 +325,12 @@ def test_a_hung_fsync_makes_the_writer_unhealthy(tmp_path):
                 release.wait(10)
             super().fsync()
 
-    w = SessionWriter(tmp_path, "v", SessionOptions(flush_s=0.05, fsync_s=0.1, stall_s=0.3,
-                                                    compression="none"),
-                      io_factory=HangingFsync)  # fmt: skip
+    w = SessionWriter(
+        tmp_path,
+        "v",
+        SessionOptions(flush_s=0.05, fsync_s=0.1, stall_s=0.3, compression="none"),
+        io_factory=HangingFsync,
+    )
     w.start()
     try:
         w.submit("/ins/raw", payload(1, 3000), host_ns=1)
@@ -339,18 +371,22 @@ class _OneFailure(SegmentIO):
 _OP = {"chunk": 0x06, "message_index": 0x07, "metadata": 0x0C, "data_end": 0x0F, "footer": 0x02}
 
 
-@pytest.mark.parametrize("where, lost_in_segment", [
-    ("chunk", True),  # the last chunk itself fails: its 80 records are lost (and only those)
-    ("message_index", False),  # the chunk is in the file, its index write fails
-    ("metadata", False),  # the chunk is flushed, then the segment-end metadata fails
-    ("data_end", False),  # ... then finish(): Data End
-    ("summary", False),  # ... the summary section
-    ("footer", False),  # ... the footer
-    ("magic", False),  # ... the closing magic
-    ("index_of_a_full_chunk", False),  # a chunk filled up in add_message, its index write fails
-])  # fmt: skip
+@pytest.mark.parametrize(
+    "where, lost_in_segment",
+    [
+        ("chunk", True),  # the last chunk itself fails: its 80 records are lost (and only those)
+        ("message_index", False),  # the chunk is in the file, its index write fails
+        ("metadata", False),  # the chunk is flushed, then the segment-end metadata fails
+        ("data_end", False),  # ... then finish(): Data End
+        ("summary", False),  # ... the summary section
+        ("footer", False),  # ... the footer
+        ("magic", False),  # ... the closing magic
+        ("index_of_a_full_chunk", False),  # a chunk filled up in add_message, its index write fails
+    ],
+)
 def test_a_write_failure_counts_as_lost_exactly_the_records_the_segment_does_not_hold(
-        tmp_path, where, lost_in_segment):  # fmt: skip
+    tmp_path, where, lost_in_segment
+):
     """ENOSPC injected on purpose at each write of a segment's end (on a frozen clock, so that
     nothing is flushed by time: the close's own flush writes the last chunk, then one write
     fails). ``records_lost`` (stats, alarm, /events) must equal the records a salvage cannot
@@ -364,9 +400,14 @@ def test_a_write_failure_counts_as_lost_exactly_the_records_the_segment_does_not
     now = [1_000 * NS]
     alarms = AlarmBook()
     chunk_bytes = 8_000 if where == "index_of_a_full_chunk" else 1024 * 1024
-    w = SessionWriter(tmp_path, "v", SessionOptions(flush_s=1.0, fsync_s=1e6, retry_s=1.0,
-                                                    compression="none", chunk_bytes=chunk_bytes),
-                      alarms=alarms, io_factory=_OneFailure, monotonic_ns=lambda: now[0])  # fmt: skip
+    w = SessionWriter(
+        tmp_path,
+        "v",
+        SessionOptions(flush_s=1.0, fsync_s=1e6, retry_s=1.0, compression="none", chunk_bytes=chunk_bytes),
+        alarms=alarms,
+        io_factory=_OneFailure,
+        monotonic_ns=lambda: now[0],
+    )
     sd = w.start()
     _OneFailure.where = preds.get(where) or (lambda d, h, prev: h == bytes([op]))
     n = 40
@@ -397,12 +438,14 @@ def test_a_write_failure_counts_as_lost_exactly_the_records_the_segment_does_not
         assert len(list(make_reader(f).iter_messages())) == len(held)
     msgs = read_session(sd)
     seqs = {t: {m.seq for m in msgs if m.topic == t} for t in ("/lidar/raw", "/ins/nav")}
-    missing = {"/lidar/raw": set(range(1, n + 11)) - seqs["/lidar/raw"],
-               "/ins/nav": set(range(1, n + 1)) - seqs["/ins/nav"]}
+    missing = {
+        "/lidar/raw": set(range(1, n + 11)) - seqs["/lidar/raw"],
+        "/ins/nav": set(range(1, n + 1)) - seqs["/ins/nav"],
+    }
     for topic in missing:
         assert len(missing[topic]) == stats.lost[topic], (where, topic, missing[topic], stats.lost)
     if where == "index_of_a_full_chunk":  # the chunk that filled up is whole in the file
-        assert len(held) > 0 and held[-1].sequence == max(m.seq for m in msgs[:len(held)])
+        assert len(held) > 0 and held[-1].sequence == max(m.seq for m in msgs[: len(held)])
     elif lost_in_segment:
         assert missing == {"/lidar/raw": set(range(1, n + 6)), "/ins/nav": set(range(1, n + 1))}
     else:  # every record before the failure is in the file: only the paused ones are lost
@@ -428,7 +471,9 @@ def _write_synchronously(root: Path, records: list, batch: int, one_by_one: bool
         def start(self):
             pass
 
-    w = SessionWriter(root, "same", SessionOptions(chunk_bytes=20_000, rotate_bytes=150_000, compression="none"))
+    w = SessionWriter(
+        root, "same", SessionOptions(chunk_bytes=20_000, rotate_bytes=150_000, compression="none")
+    )
     with monkeypatch.context() as m:
         m.setattr(sessionlog, "threading", SimpleNamespace(Thread=NoThread))
         d = w.start()
@@ -449,15 +494,21 @@ def _segments(d: Path) -> list:
     for path in segment_paths(d):
         with open(path, "rb") as f:
             reader = make_reader(f)
-            messages = [(c.topic, m.log_time, m.publish_time, m.sequence, m.data)
-                        for _, c, m in reader.iter_messages(log_time_order=False)]  # fmt: skip
+            messages = [
+                (c.topic, m.log_time, m.publish_time, m.sequence, m.data)
+                for _, c, m in reader.iter_messages(log_time_order=False)
+            ]
             s = reader.get_summary()
-            chunks = [(c.message_start_time, c.message_end_time, c.uncompressed_size) for c in s.chunk_indexes]
+            chunks = [
+                (c.message_start_time, c.message_end_time, c.uncompressed_size) for c in s.chunk_indexes
+            ]
             out.append((messages, chunks, s.statistics.message_count))
         # every record but the segment's metadata (its opening time): chunks, message indexes,
         # statistics, summary offsets
         with open(path, "rb") as f:
-            out.append([r for r in StreamReader(f, emit_chunks=True).records if type(r).__name__ != "Metadata"])
+            out.append(
+                [r for r in StreamReader(f, emit_chunks=True).records if type(r).__name__ != "Metadata"]
+            )
     return out
 
 
@@ -474,8 +525,18 @@ def test_runs_of_raw_records_are_written_as_one_by_one(tmp_path, monkeypatch, se
         seq = seqs[topic] = seqs.get(topic, 0) + 1
         host = 10 * NS + k * 1000
         data = {"k": k} if topic == "/ins/nav" else payload(k, rng.randrange(0, 1400))
-        records.append((topic, seq, data, host, rng.choice([None, host + 5]), rng.choice([host + GPS_OFFSET_NS, 0, -3]),
-                        rng.choice(["LOCKED", "HOLDOVER", "UNLOCKED"]), host))  # fmt: skip
+        records.append(
+            (
+                topic,
+                seq,
+                data,
+                host,
+                rng.choice([None, host + 5]),
+                rng.choice([host + GPS_OFFSET_NS, 0, -3]),
+                rng.choice(["LOCKED", "HOLDOVER", "UNLOCKED"]),
+                host,
+            )
+        )
     batch = rng.randrange(50, 400)
     a = _write_synchronously(tmp_path / "a", records, batch, True, monkeypatch)
     b = _write_synchronously(tmp_path / "b", records, batch, False, monkeypatch)

@@ -13,8 +13,8 @@ from pathlib import Path
 import aiomqtt
 import pytest
 
-from acquire.status.mqtt import LOST, MqttPublisher, MqttSettings, check_command
 from acquire.status.bus import StatusBus
+from acquire.status.mqtt import LOST, MqttPublisher, MqttSettings, check_command
 
 pytestmark = pytest.mark.integration
 PROC = Path(__file__).parents[1] / "mqtt_proc.py"
@@ -62,8 +62,9 @@ async def until(cond, timeout_s=10.0, what="condition"):
 
 
 def settings(broker, **kw) -> MqttSettings:
-    return MqttSettings(broker.host, broker.port, topic_prefix="test", backoff_min_s=0.1,
-                        backoff_max_s=0.5, **kw)  # fmt: skip
+    return MqttSettings(
+        broker.host, broker.port, topic_prefix="test", backoff_min_s=0.1, backoff_max_s=0.5, **kw
+    )
 
 
 def test_retained_topics_reach_a_late_subscriber(mosquitto):
@@ -113,8 +114,10 @@ def test_broker_killed_and_restarted_publisher_reconnects_without_blocking(broke
         async with Subscriber(broker, "test/crash/#") as sub:
             status = await sub.wait_for(lambda m: m[0] == "test/crash/status", what="status")
             bus.publish("metrics", {"i": "after"})
-            await sub.wait_for(lambda m: m[0] == "test/crash/metrics" and b"after" in m[1],
-                               what="a metrics message after the restart")  # fmt: skip
+            await sub.wait_for(
+                lambda m: m[0] == "test/crash/metrics" and b"after" in m[1],
+                what="a metrics message after the restart",
+            )
         await pub.stop()
         await task
         return status, pub
@@ -129,8 +132,12 @@ def test_broker_killed_and_restarted_publisher_reconnects_without_blocking(broke
 def test_killed_publisher_leaves_its_last_will(mosquitto):
     async def main():
         async with Subscriber(mosquitto, "mls/will/status") as sub:
-            proc = subprocess.Popen([sys.executable, str(PROC), str(mosquitto.port), "will"],
-                                    stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)  # fmt: skip
+            proc = subprocess.Popen(
+                [sys.executable, str(PROC), str(mosquitto.port), "will"],
+                stdout=subprocess.PIPE,
+                stderr=subprocess.PIPE,
+                text=True,
+            )
             try:
                 ready, _, _ = select.select([proc.stdout], [], [], 30.0)
                 line = proc.stdout.readline() if ready else ""
@@ -181,16 +188,23 @@ def test_commands_only_when_enabled_and_only_the_explicit_set(mosquitto):
         pub = MqttPublisher(settings(mosquitto, commands_enabled=enabled), vessel, on_command=handler)
         task = asyncio.create_task(pub.run())
         await until(lambda: pub.connected, what="connection")
-        async with Subscriber(mosquitto, f"test/{vessel}/cmd/#") as sub, \
-                aiomqtt.Client(mosquitto.host, mosquitto.port) as op:  # fmt: skip
-            for name, args in (("mark", {"text": "T1 seen", "id": 7}), ("reboot", {}),
-                               ("pass_start", {"pass_id": "one"})):
+        async with (
+            Subscriber(mosquitto, f"test/{vessel}/cmd/#") as sub,
+            aiomqtt.Client(mosquitto.host, mosquitto.port) as op,
+        ):
+            for name, args in (
+                ("mark", {"text": "T1 seen", "id": 7}),
+                ("reboot", {}),
+                ("pass_start", {"pass_id": "one"}),
+            ):
                 await op.publish(f"test/{vessel}/cmd/{name}", json.dumps(args), qos=1)
             await sub.wait_for(lambda m: m[0].endswith("pass_start"), what="the commands echoed")
             if enabled:  # one result per command, matched by its "command" field (the refusal
                 # of "reboot" quotes the accepted set, "pass_start" included: not a substring test)
-                await until(lambda: {r["command"] for r in _results(sub)} >= {"mark", "reboot", "pass_start"},
-                            what="the results of the 3 commands")  # fmt: skip
+                await until(
+                    lambda: {r["command"] for r in _results(sub)} >= {"mark", "reboot", "pass_start"},
+                    what="the results of the 3 commands",
+                )
             else:
                 await asyncio.sleep(0.5)
             results = _results(sub)

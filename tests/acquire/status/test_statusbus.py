@@ -9,9 +9,15 @@ import threading
 import pytest
 from typer.testing import CliRunner
 
+from acquire.status.bus import (
+    SNAPSHOT_END,
+    StatusBus,
+    StatusListener,
+    StatusServer,
+    read_snapshot,
+    topic_policy,
+)
 from cli.app import app
-from acquire.status.bus import (SNAPSHOT_END, StatusBus, StatusListener, StatusServer, read_snapshot,
-                              topic_policy)  # fmt: skip
 
 pytestmark = pytest.mark.integration  # real Unix sockets
 
@@ -135,23 +141,43 @@ class _ServerThread:
 def test_mls_status_prints_the_snapshot_and_sets_the_exit_code(tmp_path):
     path = tmp_path / "status.sock"
     runner = CliRunner()
-    ok = [("status", {"state": "running", "session": "20250101T000000Z_survey-1", "alarms": [
-              {"severity": "warning", "name": "latency_jump", "device": "ins",
-               "message": "latency +28.0 ms, baseline +8.0 ms"}]}),
-          ("clock", {"state": "LOCKED", "drift_ppm": 35.0}),
-          ("sensors/ins", {"connected": True, "rate_hz": 200.0}),
-          ("sensors/profiler", {"connected": False})]  # fmt: skip
+    ok = [
+        (
+            "status",
+            {
+                "state": "running",
+                "session": "20250101T000000Z_survey-1",
+                "alarms": [
+                    {
+                        "severity": "warning",
+                        "name": "latency_jump",
+                        "device": "ins",
+                        "message": "latency +28.0 ms, baseline +8.0 ms",
+                    }
+                ],
+            },
+        ),
+        ("clock", {"state": "LOCKED", "drift_ppm": 35.0}),
+        ("sensors/ins", {"connected": True, "rate_hz": 200.0}),
+        ("sensors/profiler", {"connected": False}),
+    ]
     with _ServerThread(path, ok):
         assert read_snapshot(path)["clock"] == {"state": "LOCKED", "drift_ppm": 35.0}
         r = runner.invoke(app, ["status", "--socket", str(path)], env={"COLUMNS": "200"})
         assert r.exit_code == 0, r.output
-        for text in ("20250101T000000Z_survey-1", "clock.state", "LOCKED", "latency_jump",
-                     "profiler", "False", "active alarms: 1"):
+        for text in (
+            "20250101T000000Z_survey-1",
+            "clock.state",
+            "LOCKED",
+            "latency_jump",
+            "profiler",
+            "False",
+            "active alarms: 1",
+        ):
             assert text in r.output, text
         r = runner.invoke(app, ["status", "--socket", str(path), "--json"])
         assert json.loads(r.output)["sensors/ins"]["rate_hz"] == 200.0
-    critical = [("status", {"state": "running", "alarms": [{"severity": "critical",
-                                                            "name": "time_step"}]})]  # fmt: skip
+    critical = [("status", {"state": "running", "alarms": [{"severity": "critical", "name": "time_step"}]})]
     with _ServerThread(path, critical):
         assert runner.invoke(app, ["status", "--socket", str(path)]).exit_code == 2
     r = runner.invoke(app, ["status", "--socket", str(tmp_path / "none.sock")])
@@ -205,11 +231,18 @@ def test_the_listener_waits_for_the_daemon_skips_garbage_and_reconnects(tmp_path
             srv.bind(str(path))
             srv.listen(1)
             conn, _ = srv.accept()
-            conn.sendall(b'not json\n{"topic": "status"}\n{"topic": "status", "data": {"state": "'
-                         + state.encode() + b'"}}\n{"topic": "clock", "data": {"state": "LO')  # fmt: skip
+            conn.sendall(
+                b'not json\n{"topic": "status"}\n{"topic": "status", "data": {"state": "'
+                + state.encode()
+                + b'"}}\n{"topic": "clock", "data": {"state": "LO'
+            )
             conn.sendall(b'CKED"}}\n')
-            until(lambda: (listener.latest("clock") or {}).get("state") == "LOCKED"
-                  and listener.latest("status") == {"state": state})  # fmt: skip
+            until(
+                lambda state=state: (
+                    (listener.latest("clock") or {}).get("state") == "LOCKED"
+                    and listener.latest("status") == {"state": state}
+                )
+            )
             srv.close()  # no longer listening: the listener's next connection reaches the next one
             conn.close()
         assert listener.connects == 2 and listener.latest("gossip") is None

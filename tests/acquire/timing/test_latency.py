@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import datetime as dt
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -29,8 +28,20 @@ class StubClock:
         return GpsEstimate(host_ns + OFFSET_NS, self.state, 1000)
 
 
-def stream(monitor, device, rate_hz, t_end_s, latency_ns, *, t_start_s=0.0, tag_offset_ns=None,
-           pps_flag=None, rng=None, skip=None, tick_s=0.25):
+def stream(
+    monitor,
+    device,
+    rate_hz,
+    t_end_s,
+    latency_ns,
+    *,
+    t_start_s=0.0,
+    tag_offset_ns=None,
+    pps_flag=None,
+    rng=None,
+    skip=None,
+    tick_s=0.25,
+):
     """Run a device stream through the monitor; return [(t_s, event)] in stream order.
 
     The device measures at true GPS times on a grid; the record is received ``latency_ns(t)``
@@ -59,8 +70,14 @@ def raised(events, name=None):
 
 def monitor_with(device="ins", **limits):
     m = LatencyMonitor(StubClock(), AlarmBook(to_gps=lambda host_ns: host_ns + OFFSET_NS))
-    defaults = dict(band_ns=(0, 30 * MS), jump_ns=5 * MS, max_sigma_ns=2 * MS, max_drift_ppm=10.0,
-                    rate_hz=200.0, gap_ns=NS)
+    defaults = dict(
+        band_ns=(0, 30 * MS),
+        jump_ns=5 * MS,
+        max_sigma_ns=2 * MS,
+        max_drift_ppm=10.0,
+        rate_hz=200.0,
+        gap_ns=NS,
+    )
     m.add_device(device, LatencyLimits(**{**defaults, **limits}))
     return m
 
@@ -92,14 +109,19 @@ def test_20ms_ins_latency_jump_raises_latency_jump_within_2s_and_clears_when_bac
     cleared = [t for t, e in events if e.action == "clear" and e.alarm.name == "latency_jump"]
     assert len(cleared) == 1 and 60.0 <= cleared[0] <= 63.0
     raise_event = next(e for _, e in events if e.action == "raise")
-    assert "(+19.99" in raise_event.alarm.message or "(+20.00" in raise_event.alarm.message and raise_event.alarm.device == "ins"
+    assert (
+        "(+19.99" in raise_event.alarm.message
+        or "(+20.00" in raise_event.alarm.message
+        and raise_event.alarm.device == "ins"
+    )
     assert raise_event.alarm.first_gps_ns == raise_event.alarm.first_host_ns + OFFSET_NS
 
 
 def test_1s_profiler_offset_raises_time_step_within_2s_and_not_a_jump():
     m = monitor_with("profiler", band_ns=(0, 20 * MS))
-    events = stream(m, "profiler", 200, 50.0, lambda t: 3 * MS,
-                    tag_offset_ns=lambda t: -NS if t >= 30.0 else 0)
+    events = stream(
+        m, "profiler", 200, 50.0, lambda t: 3 * MS, tag_offset_ns=lambda t: -NS if t >= 30.0 else 0
+    )
     r = raised(events)
     assert [name for _, name in r] == ["time_step"], r
     assert 30.0 <= r[0][0] <= 32.0
@@ -144,8 +166,9 @@ def test_a_persistent_jump_is_relearned_as_the_new_baseline():
 
 def test_drifting_device_clock_raises_clock_drift_and_a_small_drift_does_not():
     m = monitor_with()
-    events = stream(m, "ins", 200, 40.0, lambda t: 8 * MS,
-                    tag_offset_ns=lambda t: -20e-6 * t * NS)  # device clock 20 ppm slow
+    events = stream(
+        m, "ins", 200, 40.0, lambda t: 8 * MS, tag_offset_ns=lambda t: -20e-6 * t * NS
+    )  # device clock 20 ppm slow
     r = raised(events)
     assert [n for _, n in r] == ["clock_drift"]
     assert 20.0 <= r[0][0] <= 30.0  # 20 s of 1-s medians, then 5 s to confirm
@@ -167,8 +190,14 @@ def test_pps_flag_lost_raises_at_once_and_clears_after_it_is_back():
 def test_data_gap_and_rate_drop():
     m = monitor_with()
     # a 3 s hole at 20 s, then half the rate from 40 s
-    events = stream(m, "ins", 200, 60.0, lambda t: 8 * MS,
-                    skip=lambda t: 20.0 <= t < 23.0 or (t >= 40.0 and round(t * 200) % 2 == 1))
+    events = stream(
+        m,
+        "ins",
+        200,
+        60.0,
+        lambda t: 8 * MS,
+        skip=lambda t: 20.0 <= t < 23.0 or (t >= 40.0 and round(t * 200) % 2 == 1),
+    )
     names = [(t, e.alarm.name, e.action) for t, e in events]
     gap = [x for x in names if x[1] == "data_gap"]
     assert [a for *_, a in gap] == ["raise", "clear"]
@@ -208,8 +237,9 @@ def test_with_the_real_clock_model_fed_by_pps_edges():
     for k in range(200 * 40):
         true_gps = gps0 + k * 5 * MS
         while gps0 + next_edge * NS + 300 * MS <= true_gps:  # labelled 0.3 s after the pulse
-            clock.add_edge(host_of(gps0 + next_edge * NS) + round(rng.normal(0, 20_000)),
-                           gps0 // NS + next_edge)  # fmt: skip
+            clock.add_edge(
+                host_of(gps0 + next_edge * NS) + round(rng.normal(0, 20_000)), gps0 // NS + next_edge
+            )
             next_edge += 1
         host = host_of(true_gps) + 8 * MS + (20 * MS if k >= 200 * 30 else 0)
         events += m.observe("ins", host, true_gps)
@@ -225,9 +255,13 @@ def test_real_capture_nbp1406_zda_latency_115ms():
     path = REAL / "openrvdas-nbp1406" / "NBP1406_s330-2014-08-01"
     assert path.exists(), f"real capture missing: {path}"
     m = LatencyMonitor(StubClock(), AlarmBook())
-    m.add_device("s330", LatencyLimits(band_ns=(50 * MS, 200 * MS), jump_ns=5 * MS,
-                                       max_sigma_ns=2 * MS, rate_hz=1.0, gap_ns=3 * NS))  # fmt: skip
-    epoch = dt.datetime(1970, 1, 1, tzinfo=dt.timezone.utc)
+    m.add_device(
+        "s330",
+        LatencyLimits(
+            band_ns=(50 * MS, 200 * MS), jump_ns=5 * MS, max_sigma_ns=2 * MS, rate_hz=1.0, gap_ns=3 * NS
+        ),
+    )
+    epoch = dt.datetime(1970, 1, 1, tzinfo=dt.UTC)
     events, n, lat_ms = [], 0, []
     for line in path.read_text().splitlines():
         stamp, _, sentence = line.partition(" ")
@@ -235,8 +269,9 @@ def test_real_capture_nbp1406_zda_latency_115ms():
             continue
         f = sentence.split(",")
         host = dt.datetime.fromisoformat(stamp.replace("Z", "+00:00"))
-        tag = dt.datetime(int(f[4]), int(f[3]), int(f[2]), tzinfo=dt.timezone.utc) + dt.timedelta(
-            hours=int(f[1][0:2]), minutes=int(f[1][2:4]), seconds=float(f[1][4:]))
+        tag = dt.datetime(int(f[4]), int(f[3]), int(f[2]), tzinfo=dt.UTC) + dt.timedelta(
+            hours=int(f[1][0:2]), minutes=int(f[1][2:4]), seconds=float(f[1][4:])
+        )
         host_ns = (host - epoch) // dt.timedelta(microseconds=1) * 1000 - OFFSET_NS
         tag_ns = (tag - epoch) // dt.timedelta(microseconds=1) * 1000
         events += m.observe("s330", host_ns, tag_ns)

@@ -8,11 +8,11 @@ import asyncio
 import numpy as np
 import pytest
 
-from acquire.timing.clock import ClockModel, ClockState
-from drivers.can import can_frame_bytes, parse_can_frame
 from acquire.log.batch import LogBatcher
+from acquire.timing.clock import ClockModel, ClockState
 from acquire.timing.timekeeper import ClockCache, TimeKeeper, coarse_gps_offset_ns
 from drivers.base import DriverError
+from drivers.can import can_frame_bytes, parse_can_frame
 from drivers.pps import PpsEdge
 
 NS = 1_000_000_000
@@ -92,14 +92,22 @@ def test_log_batcher_keeps_the_order_stamps_the_clock_and_hands_over_in_batches(
     assert [len(x) for x in batches] == [50, 50, 20]
     calls = [r for x in batches for r in x]  # (topic, payload, host_ns, device_ns, log_time_ns, clock_state)
     assert [c[1] for c in calls] == [bytes([i]) for i in range(120)]
-    assert [c[0] for c in calls[:2]] == ["/ins/raw", "/lidar/raw"] and all(c[2] == H0 + i for i, c in enumerate(calls))
+    assert [c[0] for c in calls[:2]] == ["/ins/raw", "/lidar/raw"] and all(
+        c[2] == H0 + i for i, c in enumerate(calls)
+    )
     assert all(c[4] == H0 + i + 7 * NS and c[5] == "UNLOCKED" for i, c in enumerate(calls))
     assert calls[0][3] is None and calls[5][3] == 5
     assert b.batches == 3 and b.records == 120
 
 
-@pytest.mark.parametrize("arb, data, ext", [(0x6E0, b"\xe1\x01\x03\x00\x01\x00\x00\x00", False),
-                                            (0x1ABCDE, b"", True), (0x123, bytes(range(48)), False)])
+@pytest.mark.parametrize(
+    "arb, data, ext",
+    [
+        (0x6E0, b"\xe1\x01\x03\x00\x01\x00\x00\x00", False),
+        (0x1ABCDE, b"", True),
+        (0x123, bytes(range(48)), False),
+    ],
+)
 def test_can_frames_are_stored_as_socketcan_frames(arb, data, ext):
     raw = can_frame_bytes(arb, data, ext)
     assert len(raw) == (16 if len(data) <= 8 else 72)

@@ -17,21 +17,27 @@ from dataclasses import replace
 from pathlib import Path
 
 import pytest
+from rich.console import Console
 
-from acquire.ui.checklist_app import (ChecklistApp, ChecklistState, CalibrationOutcome,
-                                   render_live, render_passes, render_prechecks, render_sigma,
-                                   run_calib_cli)  # fmt: skip
 from acquire.guidance.lines import prechecks
-from acquire.ui.planview import render_plan
 from acquire.status.bus import StatusBus, StatusServer
 from acquire.status.feed import SocketFeed
-from rich.console import Console
+from acquire.ui.checklist_app import (
+    CalibrationOutcome,
+    ChecklistApp,
+    ChecklistState,
+    render_live,
+    render_passes,
+    render_prechecks,
+    render_sigma,
+    run_calib_cli,
+)
+from acquire.ui.planview import render_plan
 from calib.boresight.result import result_to_dict
 from drivers.hydrins.nav import status_words
 from tests.acquire.guidance_sim import adjust_simulated, run_survey
 
-SHOTS = Path(os.environ.get("MLS_SCREENSHOT_DIR")
-             or Path(__file__).resolve().parents[2] / "screenshots")
+SHOTS = Path(os.environ.get("MLS_SCREENSHOT_DIR") or Path(__file__).resolve().parents[2] / "screenshots")
 
 
 @pytest.fixture(scope="module")
@@ -58,9 +64,9 @@ def _calibrator(survey, calls: list):
         calls.append(session)
         res = adjust_simulated(survey.sim)
         mount = survey.sim.site.mount
-        return CalibrationOutcome(True, "calibrated",
-                                  result_to_dict(res, mount.boresight_rad, "test"),
-                                  f"{session}/calib")  # fmt: skip
+        return CalibrationOutcome(
+            True, "calibrated", result_to_dict(res, mount.boresight_rad, "test"), f"{session}/calib"
+        )
 
     return run
 
@@ -68,16 +74,25 @@ def _calibrator(survey, calls: list):
 def _failing(survey) -> tuple[dict, list]:
     """The daemon's presurvey section and the guidance's checks before the INS is aligned and
     the clock locked."""
-    alg, sys_ = status_words(alignment=True, gps_received=True, gps_valid=True,
-                             utc_detected=True)  # fmt: skip
+    alg, sys_ = status_words(alignment=True, gps_received=True, gps_valid=True, utc_detected=True)
     aligning = replace(survey.guidance.last_nav, algorithm_status=alg, system_status=sys_)
-    checks = prechecks(aligning, {"state": "UNLOCKED", "last_edge_age_s": None},
-                       {"ins": {"latency_mean_ms": 12.0, "latency_p99_ms": 14.0},
-                        "profiler": {"latency_mean_ms": 3.0, "latency_p99_ms": 4.5}},
-                       {"ins": (0.0, 30.0), "profiler": (0.0, 20.0)}, free_bytes=80 * 10**9,
-                       needed_bytes=10 * 10**9, mount_configured=True, n_targets=2)  # fmt: skip
-    presurvey = {"profiler_data": {"ok": True, "detail": "63 profiles/s"},
-                 "ins_pps": {"ok": False, "detail": "INS time source: none"}}
+    checks = prechecks(
+        aligning,
+        {"state": "UNLOCKED", "last_edge_age_s": None},
+        {
+            "ins": {"latency_mean_ms": 12.0, "latency_p99_ms": 14.0},
+            "profiler": {"latency_mean_ms": 3.0, "latency_p99_ms": 4.5},
+        },
+        {"ins": (0.0, 30.0), "profiler": (0.0, 20.0)},
+        free_bytes=80 * 10**9,
+        needed_bytes=10 * 10**9,
+        mount_configured=True,
+        n_targets=2,
+    )
+    presurvey = {
+        "profiler_data": {"ok": True, "detail": "63 profiles/s"},
+        "ins_pps": {"ok": False, "detail": "INS time source: none"},
+    }
     return presurvey, [c.as_dict() for c in checks]
 
 
@@ -96,17 +111,26 @@ def test_checklist_app_through_a_simulated_survey(survey, tmp_path):
         server = StatusServer(sock)
         await server.start()
         bus = StatusBus([server])
-        status = {"state": "running", "vessel": "sim-montreal",
-                  "session": "20190709T140000Z_sim-montreal", "alarms": []}
-        alarm = {"severity": "critical", "name": "pps_flag_lost", "device": "ins",
-                 "message": "the INS reports no PPS"}
+        status = {
+            "state": "running",
+            "vessel": "sim-montreal",
+            "session": "20190709T140000Z_sim-montreal",
+            "alarms": [],
+        }
+        alarm = {
+            "severity": "critical",
+            "name": "pps_flag_lost",
+            "device": "ins",
+            "message": "the INS reports no PPS",
+        }
         bus.publish("status", {**status, "alarms": [alarm]})
         bus.publish("clock", {"state": "UNLOCKED"})
         presurvey, failing = _failing(survey)
         start = dict(stages[0][1])
         bus.publish("checklist", {"presurvey": presurvey, "guidance": {**start, "prechecks": failing}})
-        app = ChecklistApp(SocketFeed(sock), calibrator=_calibrator(survey, calls),
-                           session_root=str(tmp_path))  # fmt: skip
+        app = ChecklistApp(
+            SocketFeed(sock), calibrator=_calibrator(survey, calls), session_root=str(tmp_path)
+        )
 
         def shot(name: str) -> None:
             fname = f"{len(shots) + 1:02d}-{name}.svg"
@@ -147,9 +171,15 @@ def test_checklist_app_through_a_simulated_survey(survey, tmp_path):
             worst, determined, accepted = [], [], 0
             for name, msg in stages[1:]:
                 bus.publish("checklist", {"presurvey": presurvey, "guidance": msg})
-                await _until(pilot, lambda: app.state.checklist is not None
-                             and app.state.checklist.get("passes") == msg["passes"]
-                             and app.state.checklist.get("active") == msg["active"], name)
+                await _until(
+                    pilot,
+                    lambda msg=msg: (
+                        app.state.checklist is not None
+                        and app.state.checklist.get("passes") == msg["passes"]
+                        and app.state.checklist.get("active") == msg["active"]
+                    ),
+                    name,
+                )
                 pid = int(name.split("-")[1])
                 live, passes = _plain(app, "#live"), _plain(app, "#passes")
                 row = next(r for r in passes.splitlines()[1:] if r[1:3].strip() == str(pid))
@@ -170,8 +200,11 @@ def test_checklist_app_through_a_simulated_survey(survey, tmp_path):
                 shot(name)
                 if name == "pass-3-rejected":
                     await pilot.press("down", "down", "enter")  # the rejected pass's details
-                    await _until(pilot, lambda: app.screen.id != "_default"
-                                 and len(app.screen_stack) > 1, "pass details")  # fmt: skip
+                    await _until(
+                        pilot,
+                        lambda: app.screen.id != "_default" and len(app.screen_stack) > 1,
+                        "pass details",
+                    )
                     body = app.screen.query_one("#modal-body").content.plain
                     assert "pass 3" in body and "✘ clock HOLDOVER during the window" in body
                     shot("pass-3-details")
@@ -189,8 +222,15 @@ def test_checklist_app_through_a_simulated_survey(survey, tmp_path):
             # 4. calibrate now
             await pilot.press("c")
             await _until(pilot, lambda: app.calibration is not None, "the calibration")
-            await _until(pilot, lambda: len(app.screen_stack) > 1 and app.screen.query("#modal-body")
-                         and app.screen.query_one("#modal-body").region.height > 0, "the result screen")
+            await _until(
+                pilot,
+                lambda: (
+                    len(app.screen_stack) > 1
+                    and app.screen.query("#modal-body")
+                    and app.screen.query_one("#modal-body").region.height > 0
+                ),
+                "the result screen",
+            )
             await pilot.pause(0.2)  # laid out: let it paint before the screenshot
             assert calls == [str(tmp_path / "20190709T140000Z_sim-montreal")]
             res = app.calibration.result
@@ -273,7 +313,7 @@ def test_render_live_tells_the_side_to_steer(survey):
     st.apply("checklist", {**msg, "active": {**msg["active"], "xte_m": 2.5}})
     text = render_live(st)
     span = next(s for s in text.spans if "red" in str(s.style))
-    assert text.plain[span.start:span.end].strip() == "+2.50 m"  # beyond the 2 m tolerance
+    assert text.plain[span.start : span.end].strip() == "+2.50 m"  # beyond the 2 m tolerance
 
 
 def test_render_passes_and_sigma_before_anything_is_sailed(survey):
@@ -289,32 +329,50 @@ def test_render_passes_and_sigma_before_anything_is_sailed(survey):
 
 def test_a_sigma_that_rose_with_the_last_pass_is_marked():
     st = ChecklistState()
-    st.apply("checklist", {"guidance": {"sigma": {"current": {
-        "passes": [1, 2, 3], "rose": ["roll"],
-        "realistic_deg": {"roll": 0.062, "pitch": 0.04, "yaw": None}}}}})  # fmt: skip
+    st.apply(
+        "checklist",
+        {
+            "guidance": {
+                "sigma": {
+                    "current": {
+                        "passes": [1, 2, 3],
+                        "rose": ["roll"],
+                        "realistic_deg": {"roll": 0.062, "pitch": 0.04, "yaw": None},
+                    }
+                }
+            }
+        },
+    )
     assert render_sigma(st).plain.splitlines()[0] == "σ(3) r 0.062°↑ p 0.040° y n/o"
 
 
 def test_prechecks_overflow_is_summed_up():
     st = ChecklistState()
-    st.apply("checklist", {"presurvey": {f"c{i}": {"ok": i != 4, "detail": f"d{i}"}
-                                         for i in range(10)}})  # fmt: skip
+    st.apply("checklist", {"presurvey": {f"c{i}": {"ok": i != 4, "detail": f"d{i}"} for i in range(10)}})
     lines = render_prechecks(st).plain.splitlines()
     assert len(lines) == 7 and lines[0].startswith("✘ c4")
     assert lines[-1] == "✔ 4 more ok — d: all"
 
 
 def test_plan_view_draws_the_vessel_where_it_is():
-    plan = {"passes": [{"id": 1, "start_ne_m": [0.0, 0.0], "end_ne_m": [0.0, 76.0],
-                        "capture_m": [30.0, 40.0]}],
-            "targets": [{"name": "T1", "center_ne_m": [15.0, 38.0],
-                         "corners_ne_m": [[15.0, 37.0], [15.0, 39.0], [15.5, 39.0], [15.5, 37.0]]}]}
+    plan = {
+        "passes": [{"id": 1, "start_ne_m": [0.0, 0.0], "end_ne_m": [0.0, 76.0], "capture_m": [30.0, 40.0]}],
+        "targets": [
+            {
+                "name": "T1",
+                "center_ne_m": [15.0, 38.0],
+                "corners_ne_m": [[15.0, 37.0], [15.0, 39.0], [15.5, 39.0], [15.5, 37.0]],
+            }
+        ],
+    }
     text, m = render_plan(plan, {"n_m": -2.0, "e_m": 10.0, "heading_deg": 90.0}, 1, 38, 10)
     lines = text.plain.splitlines()
     assert len(lines) == 10 and all(len(ln) == 38 for ln in lines)
     # the east-west line is one row of braille; the targets lie north of it, the vessel south
-    row_of = lambda style: {i for s in text.spans if s.style == style  # noqa: E731
-                            for i in [text.plain[:s.start].count("\n")]}
+
+    def row_of(style):
+        return {text.plain[: s.start].count("\n") for s in text.spans if s.style == style}
+
     assert max(row_of("bold red")) < min(row_of("cyan")) <= max(row_of("bold yellow"))
     # 76 m of east span over 2 × 38 dots, with an 8 % margin each side
     assert m == pytest.approx(1.16)

@@ -17,6 +17,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from calib.assess.c2c import c2c
 from calib.assess.comparison import assess
 from calib.assess.expected import expected_c2c
 from calib.assess.mounts import mount_from_result
@@ -24,12 +25,11 @@ from calib.assess.pairs import parse_pairs, reciprocal_pairs
 from calib.assess.results import AssessError, AssessOptions
 from calib.assess.summary import assessment_markdown, write_assessment
 from calib.assess.surfaces import clean_patch, extract_common_patches, plane_candidates, within_coverage
-from calib.io.bundle import read_bundle
-from calib.assess.c2c import c2c
-from calib.core.geometry import Rectangle
-from calib.core.georef import Mount
 from calib.boresight.pipeline import calibrate_bundle
 from calib.boresight.result import write_result
+from calib.core.geometry import Rectangle
+from calib.core.georef import Mount
+from calib.io.bundle import read_bundle
 from calib.sim.simulate import simulate
 
 ONE_DEGREE = "truth.boresight_deg=[1.0, 1.0, 1.0]"
@@ -223,14 +223,14 @@ def test_the_local_plane_model_on_an_evenly_sampled_plane():
         cdf = np.array([np.mean(erf(m / (np.sqrt(2.0) * s))) for m in grid[::10]])
         predicted = float(np.interp(0.5, cdf, grid[::10]))
         assert predicted == pytest.approx(measured, rel=0.03)
-        median, upper = expected_c2c(q, b, [0, 0, 1], np.full(len(q), sigma**2),
-                                     np.full(len(b), sigma**2), k)  # fmt: skip
+        median, upper = expected_c2c(q, b, [0, 0, 1], np.full(len(q), sigma**2), np.full(len(b), sigma**2), k)
         assert median == pytest.approx(measured, rel=0.03)
         assert median <= upper < 1.05 * median  # no offsets: the median hardly scatters
     # a common offset of the compared patch (POS): the median follows |offset + noise|
     off = 0.02
-    median, upper = expected_c2c(q, b, [0, 0, 1], np.full(len(q), sigma**2),
-                                 np.full(len(b), sigma**2), 6, np.full((len(q), 1), off))  # fmt: skip
+    median, upper = expected_c2c(
+        q, b, [0, 0, 1], np.full(len(q), sigma**2), np.full(len(b), sigma**2), 6, np.full((len(q), 1), off)
+    )
     assert 0.6745 * off < median < 0.6745 * math.hypot(off, 1.3 * sigma) * 1.2
     assert upper > 1.9 * off  # one pair of passes may show an offset of ~2σ
 
@@ -281,21 +281,32 @@ def test_pairs_from_headings_and_from_text():
     assert reciprocal_pairs({1: 0.0, 2: 150.0}) == []  # 30° off reciprocal
     assert reciprocal_pairs({1: 10.0, 2: 185.0, 3: 191.0}) == [(1, 3)]  # the closest to 180°
     assert parse_pairs("1:2, 5:6") == [(1, 2), (5, 6)]
-    for bad, msg in (("1-2", "expected two pass ids A:B"), ("3:3", "compared with itself"),
-                     ("1:x", "expected two pass ids")):  # fmt: skip
+    for bad, msg in (
+        ("1-2", "expected two pass ids A:B"),
+        ("3:3", "compared with itself"),
+        ("1:x", "expected two pass ids"),
+    ):
         with pytest.raises(AssessError, match=msg):
             parse_pairs(bad)
 
 
 def test_the_mount_after_takes_the_results_estimates():
     apriori = Mount(lever_arm_m=[0.35, 0.85, -1.65], boresight_rad=np.radians([0.1, 0.2, 0.3]))
-    doc = {"boresight_deg": {"roll": 1.0, "pitch": -1.0, "yaw": 0.5},
-           "sigma_deg": {"roll": 0.01, "pitch": 0.01, "yaw": 0.01},
-           "sigma_scaled_deg": {"roll": 0.01, "pitch": 0.01, "yaw": 0.01},
-           "correlation": np.eye(3).tolist(), "sigma0_squared": 1.0, "n_points": 100,
-           "software_version": "test",
-           "extras": {"range_offset_m": {"value": 0.012}, "lever_arm_y_m": {"value": 0.9},
-                      "latency_s": {"value": 0.004}, "pass1_offset_m": {"value": [0, 0, 0]}}}  # fmt: skip
+    doc = {
+        "boresight_deg": {"roll": 1.0, "pitch": -1.0, "yaw": 0.5},
+        "sigma_deg": {"roll": 0.01, "pitch": 0.01, "yaw": 0.01},
+        "sigma_scaled_deg": {"roll": 0.01, "pitch": 0.01, "yaw": 0.01},
+        "correlation": np.eye(3).tolist(),
+        "sigma0_squared": 1.0,
+        "n_points": 100,
+        "software_version": "test",
+        "extras": {
+            "range_offset_m": {"value": 0.012},
+            "lever_arm_y_m": {"value": 0.9},
+            "latency_s": {"value": 0.004},
+            "pass1_offset_m": {"value": [0, 0, 0]},
+        },
+    }
     m, notes = mount_from_result(apriori, doc)
     assert np.allclose(np.degrees(m.boresight_rad), [1.0, -1.0, 0.5])
     assert np.allclose(m.lever_arm_m, [0.35, 0.9, -1.65])
@@ -337,8 +348,14 @@ def test_error_propagation_along_the_normal():
 
     t = np.array([0.0, 1.0])
     sig_p, sig_a = np.array([0.02, 0.015, 0.03]), np.radians([0.012, 0.05, 0.3])
-    traj = Trajectory(t, np.zeros((2, 3)), np.zeros((2, 3)), LocalFrame(45.5, -73.55, 0.0),
-                      sigma_p_m=np.tile(sig_p, (2, 1)), sigma_rpy_rad=np.tile(sig_a, (2, 1)))  # fmt: skip
+    traj = Trajectory(
+        t,
+        np.zeros((2, 3)),
+        np.zeros((2, 3)),
+        LocalFrame(45.5, -73.55, 0.0),
+        sigma_p_m=np.tile(sig_p, (2, 1)),
+        sigma_rpy_rad=np.tile(sig_a, (2, 1)),
+    )
     n = np.array([0.0, -1.0, 0.0])
     p = np.array([[0.0, 18.0, -38.0]])
     var = pos_normal_variance([0.5], p, traj, Mount(), n, None, None)
@@ -346,8 +363,9 @@ def test_error_propagation_along_the_normal():
     # the profiler: identity mount, scan angle 0° = starboard (east), 270° = up; this return
     alpha = np.arctan2(-38.0, 18.0) % (2 * np.pi)
     rho = float(np.hypot(18.0, 38.0))
-    var = scanner_normal_variance(np.array([0.5]), np.array([rho]), np.array([alpha]), traj,
-                                  Mount(), n, 0.002, np.radians(0.005))  # fmt: skip
+    var = scanner_normal_variance(
+        np.array([0.5]), np.array([rho]), np.array([alpha]), traj, Mount(), n, 0.002, np.radians(0.005)
+    )
     cos_inc = 18.0 / rho  # beam · normal
     expected = (0.002 * cos_inc) ** 2 + (np.radians(0.005) * rho * (38.0 / rho)) ** 2
     assert var[0] == pytest.approx(expected, rel=1e-6)
@@ -370,8 +388,10 @@ def test_outputs_say_it_in_words(realistic, tmp_path):
     written = write_assessment(a, tmp_path / "out")
     md = written["markdown"][0].read_text()
     v3 = a.comparison("V3", (1, 2))
-    assert (f"median C2C on V3 ({v3.height_m:.0f} m) went from "
-            f"{v3.before.median_m:.2f} m to {v3.after.median_m * 1e3:.0f} mm") in md  # fmt: skip
+    assert (
+        f"median C2C on V3 ({v3.height_m:.0f} m) went from "
+        f"{v3.before.median_m:.2f} m to {v3.after.median_m * 1e3:.0f} mm"
+    ) in md
     assert "grew by" in md and "mm per metre of height" in md
     assert "| V3 | V3 | 1 |" in md  # the truth table
     assert md == assessment_markdown(a, written["figures"])

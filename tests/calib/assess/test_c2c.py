@@ -64,12 +64,14 @@ def test_offset_20mm_noisy_planes_median_within_1mm():
     assert r.n_ambiguous_sign == 0
 
 
-@pytest.mark.parametrize("incl_deg,az_deg,offset_m", [(90, 270, 0.05), (30, 45, -0.03),
-                                                       (60, 200, 0.2), (0, 0, 0.011)])
+@pytest.mark.parametrize(
+    "incl_deg,az_deg,offset_m", [(90, 270, 0.05), (30, 45, -0.03), (60, 200, 0.2), (0, 0, 0.011)]
+)
 def test_tilted_planes_exact_unsigned_and_signed(incl_deg, az_deg, offset_m):
     rng = np.random.default_rng(3)
-    rect = Rectangle.from_orientation("P", [100.0, -50.0, -12.0], 5.0, 5.0, np.radians(incl_deg),
-                                      np.radians(az_deg))  # fmt: skip
+    rect = Rectangle.from_orientation(
+        "P", [100.0, -50.0, -12.0], 5.0, 5.0, np.radians(incl_deg), np.radians(az_deg)
+    )
 
     def on_plane(m):
         ab = rng.uniform(-2.5, 2.5, (m, 2))
@@ -81,9 +83,11 @@ def test_tilted_planes_exact_unsigned_and_signed(incl_deg, az_deg, offset_m):
     np.testing.assert_allclose(r.distance_m, abs(offset_m), atol=1e-9)
     # unit normals, parallel to the plane's
     np.testing.assert_allclose(np.abs(r.normal @ rect.normal), 1.0, atol=1e-9)
-    for orient, sign in (({"orient_direction": rect.normal}, 1.0),
-                         ({"orient_direction": -rect.normal}, -1.0),
-                         ({"orient_toward_m": rect.center_m + 30.0 * rect.normal}, 1.0)):  # fmt: skip
+    for orient, sign in (
+        ({"orient_direction": rect.normal}, 1.0),
+        ({"orient_direction": -rect.normal}, -1.0),
+        ({"orient_toward_m": rect.center_m + 30.0 * rect.normal}, 1.0),
+    ):
         rs = c2c(cmp_, ref, k=6, **orient)
         np.testing.assert_allclose(rs.signed_distance_m, sign * offset_m, atol=1e-9)
         np.testing.assert_allclose(rs.normal @ rect.normal, sign, atol=1e-9)
@@ -245,11 +249,13 @@ def test_matches_a_per_point_reference_implementation(k):
     blob = rng.normal([1, 1, 0.5], 0.05, (80, 3))
     line = np.c_[np.linspace(3, 4, 30), np.full(30, 1.0), np.full(30, 0.2)]
     ref = np.vstack([surf, blob, line])
-    cmp_ = np.vstack([
-        np.c_[rng.uniform(0, 2, (200, 2)), rng.normal(0.03, 0.02, 200)],
-        rng.normal([1, 1, 0.5], 0.1, (50, 3)),
-        np.c_[rng.uniform(3, 4, 20), rng.normal(1.0, 0.05, 20), rng.normal(0.2, 0.05, 20)],
-    ])  # fmt: skip
+    cmp_ = np.vstack(
+        [
+            np.c_[rng.uniform(0, 2, (200, 2)), rng.normal(0.03, 0.02, 200)],
+            rng.normal([1, 1, 0.5], 0.1, (50, 3)),
+            np.c_[rng.uniform(3, 4, 20), rng.normal(1.0, 0.05, 20), rng.normal(0.2, 0.05, 20)],
+        ]
+    )
     direction = np.array([0.0, 0.0, 1.0])
     d, s, m = reference_c2c(cmp_, ref, k, direction=direction)
     r = c2c(cmp_, ref, k=k, orient_direction=direction, chunk_size=64)
@@ -304,17 +310,23 @@ def test_distance_stats_known_values():
     assert distance_stats([]).count == 0 and np.isnan(distance_stats([]).median_m)
 
 
-@pytest.mark.parametrize("args,kwargs,message", [
-    ((np.zeros((0, 3)), np.zeros((5, 3))), {}, "compared cloud is empty"),
-    ((np.zeros((5, 3)), np.zeros((0, 3))), {}, "reference cloud is empty"),
-    ((np.zeros((5, 2)), np.zeros((5, 3))), {}, "expected an (n, 3) array"),
-    ((np.zeros((5, 3)), np.array([[0, 0, 0], [1, np.nan, 0]])), {}, "point 1 has a non-finite"),
-    ((np.zeros((5, 3)), np.zeros((5, 3))), {"k": 2}, "k ≥ 3"),
-    ((np.zeros((5, 3)), np.zeros((5, 3))), {"max_distance_m": 0.0}, "positive distance"),
-    ((np.zeros((5, 3)), np.zeros((5, 3))), {"orient_direction": [0, 0, 0]}, "zero vector"),
-    ((np.zeros((5, 3)), np.zeros((5, 3))), {"orient_direction": [0, 0, 1], "orient_toward_m": [0, 0, 1]},
-     "not both"),
-])  # fmt: skip
+@pytest.mark.parametrize(
+    "args,kwargs,message",
+    [
+        ((np.zeros((0, 3)), np.zeros((5, 3))), {}, "compared cloud is empty"),
+        ((np.zeros((5, 3)), np.zeros((0, 3))), {}, "reference cloud is empty"),
+        ((np.zeros((5, 2)), np.zeros((5, 3))), {}, "expected an (n, 3) array"),
+        ((np.zeros((5, 3)), np.array([[0, 0, 0], [1, np.nan, 0]])), {}, "point 1 has a non-finite"),
+        ((np.zeros((5, 3)), np.zeros((5, 3))), {"k": 2}, "k ≥ 3"),
+        ((np.zeros((5, 3)), np.zeros((5, 3))), {"max_distance_m": 0.0}, "positive distance"),
+        ((np.zeros((5, 3)), np.zeros((5, 3))), {"orient_direction": [0, 0, 0]}, "zero vector"),
+        (
+            (np.zeros((5, 3)), np.zeros((5, 3))),
+            {"orient_direction": [0, 0, 1], "orient_toward_m": [0, 0, 1]},
+            "not both",
+        ),
+    ],
+)
 def test_bad_input_is_named(args, kwargs, message):
     with pytest.raises(C2CError, match=None) as e:
         c2c(*args, **kwargs)

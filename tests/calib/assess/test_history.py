@@ -11,8 +11,6 @@ import sqlite3
 import numpy as np
 import pytest
 
-from calib.core import frames
-from calib.core.georef import Mount
 from calib.assess.history import (
     HistoryError,
     ResultFormatError,
@@ -26,6 +24,8 @@ from calib.assess.history import (
     records_of_bundle,
     validate_result,
 )
+from calib.core import frames
+from calib.core.georef import Mount
 from calib.io.site import Site
 
 ANGLES = ("roll", "pitch", "yaw")
@@ -39,7 +39,8 @@ def make_result(boresight, sigma_scaled, sigma_realistic=None, n_points=1300, ve
         "boresight_deg": b,
         "sigma_deg": {k: v / 1.1 for k, v in s.items()},
         "sigma_scaled_deg": s,
-        "sigma_realistic_deg": None if sigma_realistic is None
+        "sigma_realistic_deg": None
+        if sigma_realistic is None
         else dict(zip(ANGLES, map(float, sigma_realistic))),
         "correlation": [[1.0, -0.0034, 0.0], [-0.0034, 1.0, 0.003], [0.0, 0.003, 1.0]],
         "sigma0_squared": 1.21,
@@ -53,7 +54,7 @@ def make_result(boresight, sigma_scaled, sigma_realistic=None, n_points=1300, ve
         "runtime_s": 1.5,
         "apriori_deg": {"roll": 0.0, "pitch": 0.0, "yaw": 0.0},
         "software_version": version,
-    }  # fmt: skip
+    }
 
 
 def make_bundle(path, gps_s=None, vessel="survey-1", points="1,0.0,15.0,90.0,0.9\n"):
@@ -85,22 +86,30 @@ def test_a_complete_result_validates_and_lists_are_accepted_for_angles():
     assert validate_result(r)["sigma_realistic_deg"] == {"roll": 0.03, "pitch": 0.05, "yaw": 0.04}
 
 
-@pytest.mark.parametrize("edit,message", [
-    (lambda r: r.pop("boresight_deg"), "required field 'boresight_deg' is missing"),
-    (lambda r: r.pop("sigma_scaled_deg"), "required field 'sigma_scaled_deg' is missing"),
-    (lambda r: r.pop("software_version"), "required field 'software_version' is missing"),
-    (lambda r: r["boresight_deg"].pop("pitch"), "boresight_deg.pitch is missing"),
-    (lambda r: r["boresight_deg"].update(yaw="0.1"), "boresight_deg.yaw is '0.1', expected a finite number"),
-    (lambda r: r["sigma_deg"].update(roll=0.0), "sigma_deg.roll is 0.0, expected a positive sigma"),
-    (lambda r: r.update(sigma_realistic_deg={"roll": 1, "pitch": -1, "yaw": 1}),
-     "sigma_realistic_deg.pitch is -1, expected a positive sigma"),
-    (lambda r: r.update(correlation=[[1, 0], [0, 1]]), "correlation is [[1, 0], [0, 1]], expected a 3×3"),
-    (lambda r: r["correlation"][0].__setitem__(1, 0.5), "correlation is not symmetric"),
-    (lambda r: r["correlation"][2].__setitem__(2, 0.9), "correlation[2][2] is 0.9, expected 1"),
-    (lambda r: r.update(sigma0_squared=-1.0), "sigma0_squared is -1.0, expected a finite number ≥ 0"),
-    (lambda r: r.update(n_points=12.5), "n_points is 12.5, expected an integer ≥ 0"),
-    (lambda r: r.update(boresight_deg="0,0,0"), "boresight_deg is '0,0,0', expected an object"),
-])  # fmt: skip
+@pytest.mark.parametrize(
+    "edit,message",
+    [
+        (lambda r: r.pop("boresight_deg"), "required field 'boresight_deg' is missing"),
+        (lambda r: r.pop("sigma_scaled_deg"), "required field 'sigma_scaled_deg' is missing"),
+        (lambda r: r.pop("software_version"), "required field 'software_version' is missing"),
+        (lambda r: r["boresight_deg"].pop("pitch"), "boresight_deg.pitch is missing"),
+        (
+            lambda r: r["boresight_deg"].update(yaw="0.1"),
+            "boresight_deg.yaw is '0.1', expected a finite number",
+        ),
+        (lambda r: r["sigma_deg"].update(roll=0.0), "sigma_deg.roll is 0.0, expected a positive sigma"),
+        (
+            lambda r: r.update(sigma_realistic_deg={"roll": 1, "pitch": -1, "yaw": 1}),
+            "sigma_realistic_deg.pitch is -1, expected a positive sigma",
+        ),
+        (lambda r: r.update(correlation=[[1, 0], [0, 1]]), "correlation is [[1, 0], [0, 1]], expected a 3×3"),
+        (lambda r: r["correlation"][0].__setitem__(1, 0.5), "correlation is not symmetric"),
+        (lambda r: r["correlation"][2].__setitem__(2, 0.9), "correlation[2][2] is 0.9, expected 1"),
+        (lambda r: r.update(sigma0_squared=-1.0), "sigma0_squared is -1.0, expected a finite number ≥ 0"),
+        (lambda r: r.update(n_points=12.5), "n_points is 12.5, expected an integer ≥ 0"),
+        (lambda r: r.update(boresight_deg="0,0,0"), "boresight_deg is '0,0,0', expected an object"),
+    ],
+)
 def test_validation_names_the_bad_field(edit, message):
     r = make_result([0.2, 1.2, 0.1], [0.001, 0.01, 0.001])
     edit(r)
@@ -145,8 +154,8 @@ def test_fingerprint_covers_inputs_only(tmp_path):
 
 
 def test_record_list_and_reruns(tmp_path, db):
-    july = frames.gps_ns_to_seconds(frames.utc_to_gps_ns(dt.datetime(2019, 7, 9, 14, 30, tzinfo=dt.timezone.utc)))
-    october = frames.gps_ns_to_seconds(frames.utc_to_gps_ns(dt.datetime(2019, 10, 2, 9, 0, tzinfo=dt.timezone.utc)))
+    july = frames.gps_ns_to_seconds(frames.utc_to_gps_ns(dt.datetime(2019, 7, 9, 14, 30, tzinfo=dt.UTC)))
+    october = frames.gps_ns_to_seconds(frames.utc_to_gps_ns(dt.datetime(2019, 10, 2, 9, 0, tzinfo=dt.UTC)))
     b_oct = make_bundle(tmp_path / "oct", gps_s=october, points="2,0,15,90,0.9\n")
     b_jul = make_bundle(tmp_path / "jul", gps_s=july)
     r_oct = make_result([0.341, 0.805, 0.032], [0.0014, 0.0110, 0.0006])
@@ -164,9 +173,12 @@ def test_record_list_and_reruns(tmp_path, db):
     assert jul.result == r_jul and jul.n_points == 1300 and jul.sigma0_squared == 1.21
     assert jul.bundle_fingerprint == bundle_fingerprint(b_jul)
     with sqlite3.connect(db) as con:  # plain columns for anyone reading the database directly
-        row = con.execute("SELECT pitch_deg, sigma_pitch_deg, sigma_scaled_pitch_deg, "
-                          "sigma_realistic_pitch_deg, correlation_json FROM calibrations "
-                          "WHERE id = ?", (id_jul,)).fetchone()  # fmt: skip
+        row = con.execute(
+            "SELECT pitch_deg, sigma_pitch_deg, sigma_scaled_pitch_deg, "
+            "sigma_realistic_pitch_deg, correlation_json FROM calibrations "
+            "WHERE id = ?",
+            (id_jul,),
+        ).fetchone()
     assert row[:4] == (1.245, 0.0118 / 1.1, 0.0118, None)
     assert json.loads(row[4])[0][1] == -0.0034
     assert [r.id for r in list_results("survey-2", db=db)] == [other]
@@ -228,8 +240,9 @@ def test_a_mount_change_is_flagged_in_words():
     assert p.sigma_combined_deg == pytest.approx(0.022, rel=1e-5)
     assert p.n_sigma == pytest.approx(20.0, rel=1e-4) and p.changed
     assert not c.angle("roll").changed and not c.angle("yaw").changed
-    assert c.message == ("pitch changed by 0.440°, 20σ: the mount has moved; recalibrate after "
-                         "each re-installation")  # fmt: skip
+    assert c.message == (
+        "pitch changed by 0.440°, 20σ: the mount has moved; recalibrate after each re-installation"
+    )
 
 
 def test_two_results_within_their_sigma_are_not_flagged():
@@ -250,8 +263,10 @@ def test_scaled_sigma_is_used_without_a_realistic_one_and_the_verdict_warns():
     assert c.sigma_kind_a == c.sigma_kind_b == "scaled"
     assert [a.changed for a in c.angles] == [True, True, True]
     assert c.angle("yaw").n_sigma == pytest.approx(0.117 / 0.001, rel=1e-6)
-    assert c.message.startswith("roll changed by 0.133°, 77σ, pitch changed by -0.440°, 27σ, "
-                                "yaw changed by -0.117°, 117σ: the mount has moved")  # fmt: skip
+    assert c.message.startswith(
+        "roll changed by 0.133°, 77σ, pitch changed by -0.440°, 27σ, "
+        "yaw changed by -0.117°, 117σ: the mount has moved"
+    )
     assert "scaled σ (no realistic σ in July and October) is optimistic" in c.message
     # with realistic σ in one of them, each side uses its own best σ
     october["sigma_realistic_deg"] = {"roll": 0.05, "pitch": 0.05, "yaw": 0.05}
@@ -319,8 +334,12 @@ def simulated_history(tmp_path_factory):
     d = tmp_path_factory.mktemp("history")
     db = d / "history.sqlite"
     ids, docs = {}, {}
-    for label, truth, seed in (("same-1", JULY_DEG, 21), ("same-2", JULY_DEG, 22),
-                               ("same-3", JULY_DEG, 23), ("moved", MOVED_DEG, 24)):  # fmt: skip
+    for label, truth, seed in (
+        ("same-1", JULY_DEG, 21),
+        ("same-2", JULY_DEG, 22),
+        ("same-3", JULY_DEG, 23),
+        ("moved", MOVED_DEG, 24),
+    ):
         simulate("tower", seed, overrides=[f"truth.boresight_deg={truth}"]).write(d / label)
         docs[label] = calibrate_bundle(d / label).doc
         ids[label] = record_result(docs[label], d / label, None, "bracket-A", db=db)
@@ -353,13 +372,15 @@ def test_a_simulated_mount_change_is_flagged(simulated_history):
     recs = {k: get_result(i, db=db) for k, i in ids.items()}
     for label in ("same-1", "same-2", "same-3"):
         c = compare(recs[label], recs["moved"])
-        assert c.changed and c.message.endswith("the mount has moved; recalibrate after each "
-                                                "re-installation")  # fmt: skip
+        assert c.changed and c.message.endswith("the mount has moved; recalibrate after each re-installation")
         assert c.angle("roll").changed and c.angle("yaw").changed
         for angle, delta in (("roll", 0.5), ("pitch", -0.8), ("yaw", 0.5)):
             ch = c.angle(angle)
             assert ch.difference_deg == pytest.approx(delta, abs=3 * ch.sigma_combined_deg)
-    r = CliRunner().invoke(app, ["calib", "compare", str(ids["same-1"]), str(ids["moved"]),
-                                 "--db", str(db)], env={"COLUMNS": "200"})  # fmt: skip
+    r = CliRunner().invoke(
+        app,
+        ["calib", "compare", str(ids["same-1"]), str(ids["moved"]), "--db", str(db)],
+        env={"COLUMNS": "200"},
+    )
     assert r.exit_code == 0, r.output
     assert "CHANGED" in r.output and "the mount has moved" in r.output

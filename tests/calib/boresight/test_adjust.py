@@ -2,21 +2,20 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
+from scipy import stats
 
 from calib.boresight.adjust import adjust
 from calib.boresight.covariance import predict_covariance
 from calib.boresight.errormodel import ErrorModel
 from calib.boresight.observability import ObservabilityError
 from calib.boresight.observations import AdjustmentError, AdjustOptions, build_observations
-from dataclasses import replace
-
-from scipy import stats
-
-from calib.core.georef import Mount
 from calib.boresight.report import _chi2_sentence, extras_table
 from calib.boresight.result import result_to_dict
+from calib.core.georef import Mount
 from calib.core.trajectory import Trajectory
 from tests.calib import synth
 
@@ -28,8 +27,9 @@ QUICK = AdjustOptions(jackknife=False, error_model=WHITE)
 @pytest.fixture(scope="module")
 def clean():
     """Noise-free observations of the Montreal-like site and the true planes."""
-    obs, planes, _ = synth.observations(Mount(boresight_rad=TRUTH_RAD), synth.montreal_planes(),
-                                        points_per_plane_per_pass=60, noise=False)  # fmt: skip
+    obs, planes, _ = synth.observations(
+        Mount(boresight_rad=TRUTH_RAD), synth.montreal_planes(), points_per_plane_per_pass=60, noise=False
+    )
     return obs, planes
 
 
@@ -43,8 +43,9 @@ def _with_noise(obs, seed, sigma_scale=1.0):
 @pytest.mark.parametrize("truth_deg", [(2.0, -2.0, 2.0), (-1.5, 2.0, -0.7), (0.2, 1.2, 0.1)])
 def test_converges_from_zero_within_six_iterations(truth_deg):
     truth = np.radians(truth_deg)
-    obs, planes, _ = synth.observations(Mount(boresight_rad=truth), synth.montreal_planes(),
-                                        points_per_plane_per_pass=40, noise=False)  # fmt: skip
+    obs, planes, _ = synth.observations(
+        Mount(boresight_rad=truth), synth.montreal_planes(), points_per_plane_per_pass=40, noise=False
+    )
     # planes initialized as the extraction would: offset and tilted by the a-priori error
     init = [(n + np.array([0.02, -0.03, 0.01]), d + 0.1) for n, d in planes]
     res = adjust(obs, Mount(), init, QUICK)
@@ -98,8 +99,7 @@ def test_realistic_sigma_matches_gauss_markov_spread(clean):
             l[:, c] += _gauss_markov(obs.t_gps_s, obs.sigma_l[0, c], tau, rng)
         l[:, 6:] += rng.standard_normal((len(obs), 2)) * obs.sigma_l[:, 6:]
         o.l = l
-        res = adjust(o, Mount(), planes, AdjustOptions(jackknife=False, error_model=model,
-                                                       outliers="none"))  # fmt: skip
+        res = adjust(o, Mount(), planes, AdjustOptions(jackknife=False, error_model=model, outliers="none"))
         errs.append(res.boresight_rad - TRUTH_RAD)
         real, formal = res.sigma_realistic_rad, res.sigma_formal_rad
     spread = np.std(errs, axis=0)
@@ -126,24 +126,26 @@ def test_outliers_are_found_and_listed(clean):
 def _spread_site():
     """Targets spread along the wall, in range and in height (what the design study favours)."""
     return synth.montreal_planes(spread_m=12.0) + [
-        synth.Rectangle.from_orientation("T3", [0.0, 25.0, -15.0], 1.2, 1.2, np.radians(60.0),
-                                         np.radians(270.0)),
-    ]  # fmt: skip
+        synth.Rectangle.from_orientation(
+            "T3", [0.0, 25.0, -15.0], 1.2, 1.2, np.radians(60.0), np.radians(270.0)
+        ),
+    ]
 
 
-@pytest.mark.parametrize("name,mount_kw,value,spread", [
-    ("range_offset", {"range_offset_m": 0.04}, 0.04, False),
-    ("lever_arm_y", {"lever_arm_m": [0.0, 0.05, 0.0]}, 0.05, False),
-    ("lever_arm_x", {"lever_arm_m": [0.05, 0.0, 0.0]}, 0.05, True),
-])  # fmt: skip
+@pytest.mark.parametrize(
+    "name,mount_kw,value,spread",
+    [
+        ("range_offset", {"range_offset_m": 0.04}, 0.04, False),
+        ("lever_arm_y", {"lever_arm_m": [0.0, 0.05, 0.0]}, 0.05, False),
+        ("lever_arm_x", {"lever_arm_m": [0.05, 0.0, 0.0]}, 0.05, True),
+    ],
+)
 def test_extra_unknowns_recover_injected_values(name, mount_kw, value, spread):
     mount_true = Mount(boresight_rad=TRUTH_RAD, **mount_kw)
     planes_rect = _spread_site() if spread else synth.montreal_planes()
-    obs, planes, _ = synth.observations(mount_true, planes_rect, points_per_plane_per_pass=60,
-                                        noise=False)  # fmt: skip
+    obs, planes, _ = synth.observations(mount_true, planes_rect, points_per_plane_per_pass=60, noise=False)
     apriori = Mount(nominal_rad=mount_true.nominal_rad)
-    res = adjust(obs, apriori, planes, AdjustOptions(estimate=(name,), jackknife=False,
-                                                     error_model=WHITE))  # fmt: skip
+    res = adjust(obs, apriori, planes, AdjustOptions(estimate=(name,), jackknife=False, error_model=WHITE))
     assert res.extras[name]["value"] == pytest.approx(value, abs=1e-9)
     np.testing.assert_allclose(res.boresight_rad, TRUTH_RAD, atol=1e-10)
     corr = res.extras[name]["correlation_with_boresight"]
@@ -169,18 +171,34 @@ def test_latency_is_estimated_from_the_trajectory():
     """With one trajectory spanning all passes, a 5 ms LiDAR–POS latency is recovered (on a
     site spread in range: at one range a time shift looks like a pitch, as lever arm x does)."""
     mount_true = Mount(boresight_rad=TRUTH_RAD, time_offset_s=0.005)
-    obs, planes, trajs = synth.observations(mount_true, _spread_site(),
-                                            points_per_plane_per_pass=60, noise=False)  # fmt: skip
-    traj = Trajectory(np.concatenate([t.t_gps_s for t in trajs]),
-                      np.concatenate([t.p_lgf_m for t in trajs]),
-                      np.concatenate([t.rpy_rad for t in trajs]), synth.FRAME, max_gap_s=500.0)  # fmt: skip
+    obs, planes, trajs = synth.observations(
+        mount_true, _spread_site(), points_per_plane_per_pass=60, noise=False
+    )
+    traj = Trajectory(
+        np.concatenate([t.t_gps_s for t in trajs]),
+        np.concatenate([t.p_lgf_m for t in trajs]),
+        np.concatenate([t.rpy_rad for t in trajs]),
+        synth.FRAME,
+        max_gap_s=500.0,
+    )
     sig = obs.sigma_l[0]
-    ob2 = build_observations(traj, obs.t_gps_s, obs.l[:, 6], obs.l[:, 7], obs.plane_index,
-                             np.array(obs.pass_ids)[obs.pass_index], obs.plane_names, sig[6],
-                             sig[7], sig[0:3], sig[3:6],
-                             pass_headings_rad=obs.pass_headings_rad)  # fmt: skip
-    res = adjust(ob2, Mount(), planes, AdjustOptions(estimate=("latency",), jackknife=False,
-                                                     error_model=WHITE))  # fmt: skip
+    ob2 = build_observations(
+        traj,
+        obs.t_gps_s,
+        obs.l[:, 6],
+        obs.l[:, 7],
+        obs.plane_index,
+        np.array(obs.pass_ids)[obs.pass_index],
+        obs.plane_names,
+        sig[6],
+        sig[7],
+        sig[0:3],
+        sig[3:6],
+        pass_headings_rad=obs.pass_headings_rad,
+    )
+    res = adjust(
+        ob2, Mount(), planes, AdjustOptions(estimate=("latency",), jackknife=False, error_model=WHITE)
+    )
     assert res.extras["latency"]["value"] == pytest.approx(0.005, abs=1e-7)
     np.testing.assert_allclose(res.boresight_rad, TRUTH_RAD, atol=1e-8)
     # reported with its correlations to the boresight (from the formal covariance), in the
@@ -202,8 +220,7 @@ def test_prediction_equals_the_formal_covariance_of_the_adjustment(clean):
     res = adjust(_with_noise(obs, 1, sigma_scale=1e-6), Mount(), planes, QUICK)
     pred = predict_covariance(obs, Mount(boresight_rad=TRUTH_RAD), planes)
     np.testing.assert_allclose(pred["formal"], res.cov_formal, rtol=1e-4)
-    gm = predict_covariance(obs, Mount(boresight_rad=TRUTH_RAD), planes,
-                            model=ErrorModel("pass_bias"))  # fmt: skip
+    gm = predict_covariance(obs, Mount(boresight_rad=TRUTH_RAD), planes, model=ErrorModel("pass_bias"))
     assert np.all(np.diag(gm["realistic"]) > 10 * np.diag(pred["formal"]))
 
 
@@ -211,16 +228,25 @@ def test_pass_offsets_absorb_per_pass_translations():
     """A 5 cm translation of each pass's trajectory biases the plain estimate; estimating
     pass offsets on a site whose targets are spread in range and height removes it."""
     planes = _spread_site()
-    obs, truth_planes, _ = synth.observations(Mount(boresight_rad=TRUTH_RAD), planes,
-                                              points_per_plane_per_pass=60, noise=False)  # fmt: skip
+    obs, truth_planes, _ = synth.observations(
+        Mount(boresight_rad=TRUTH_RAD), planes, points_per_plane_per_pass=60, noise=False
+    )
     shifts = np.random.default_rng(2).normal(0.0, 0.05, (len(obs.pass_ids), 3))
     o = obs.select(np.ones(len(obs), bool))
     o.l[:, 0:3] += shifts[o.pass_index]
     plain = adjust(o, Mount(), truth_planes, QUICK)
-    with_offsets = adjust(o, Mount(), truth_planes,
-                          AdjustOptions(estimate=("pass_offsets",), jackknife=False,
-                                        error_model=WHITE, pass_offset_sigma_m=[0.1, 0.1, 0.1],
-                                        max_sigma_rad=np.radians(1.0)))  # fmt: skip
+    with_offsets = adjust(
+        o,
+        Mount(),
+        truth_planes,
+        AdjustOptions(
+            estimate=("pass_offsets",),
+            jackknife=False,
+            error_model=WHITE,
+            pass_offset_sigma_m=[0.1, 0.1, 0.1],
+            max_sigma_rad=np.radians(1.0),
+        ),
+    )
     err_plain = np.abs(plain.boresight_rad - TRUTH_RAD).max()
     err_off = np.abs(with_offsets.boresight_rad - TRUTH_RAD).max()
     assert err_plain > np.radians(0.01)
@@ -230,7 +256,7 @@ def test_pass_offsets_absorb_per_pass_translations():
     res = with_offsets
     sd = np.sqrt(np.diag(res.cov_all))
     doc = result_to_dict(res, np.zeros(3), "test")["extras"]
-    for k, pid in enumerate(o.pass_ids):
+    for pid in o.pass_ids:
         e = res.extras[f"pass{pid}_offset_m"]
         rows = [res.names.index(f"pass{pid}.offset_{c}") for c in ("north", "east", "down")]
         expected = res.cov_all[np.ix_(rows, range(3))] / np.outer(sd[rows], sd[0:3])
@@ -248,7 +274,8 @@ def test_pass_offsets_absorb_per_pass_translations():
     cells = [c.strip().strip("*") for c in row.strip("|").split("|")]
     assert float(cells[1]) == pytest.approx(res.extras["pass1_offset_m"]["value"][2], abs=1e-6)
     assert [float(x) for x in cells[4:7]] == pytest.approx(
-        res.extras["pass1_offset_m"]["correlation_with_boresight"][2], abs=5e-3)
+        res.extras["pass1_offset_m"]["correlation_with_boresight"][2], abs=5e-3
+    )
     assert sum(x.startswith("| pass") for x in table) == 3 * len(o.pass_ids)
 
 
@@ -266,9 +293,12 @@ def test_extras_carry_a_realistic_sigma_under_gauss_markov_pos_errors(clean):
         for c in range(6):
             o.l[:, c] += _gauss_markov(obs.t_gps_s, obs.sigma_l[0, c], tau, rng)
         o.l[:, 6:] += rng.standard_normal((len(obs), 2)) * obs.sigma_l[:, 6:]
-        res = adjust(o, Mount(), planes, AdjustOptions(estimate=("range_offset",),
-                                                       jackknife=False, error_model=model,
-                                                       outliers="none"))  # fmt: skip
+        res = adjust(
+            o,
+            Mount(),
+            planes,
+            AdjustOptions(estimate=("range_offset",), jackknife=False, error_model=model, outliers="none"),
+        )
         e = res.extras["range_offset"]
         value.append(e["value"])
         formal.append(e["sigma"])
@@ -291,8 +321,13 @@ def test_chi2_test_bounds_are_the_two_sided_quantiles_and_the_verdict_flips(clea
         assert c["lower"] == pytest.approx(stats.chi2.ppf(alpha / 2, df) / df, rel=1e-12)
         assert c["upper"] == pytest.approx(stats.chi2.ppf(1 - alpha / 2, df) / df, rel=1e-12)
         assert c["lower"] < 1.0 < c["upper"]
-        for s02, passed in ((1.0, True), (c["lower"] * 1.001, True), (c["upper"] * 0.999, True),
-                            (c["lower"] * 0.999, False), (c["upper"] * 1.001, False)):
+        for s02, passed in (
+            (1.0, True),
+            (c["lower"] * 1.001, True),
+            (c["upper"] * 0.999, True),
+            (c["lower"] * 0.999, False),
+            (c["upper"] * 1.001, False),
+        ):
             assert replace(res, sigma0_squared=s02).chi2_test(alpha)["passed"] is passed, s02
     # wider at α = 0.01 than at 0.05
     assert res.chi2_test(0.01)["lower"] < res.chi2_test(0.05)["lower"]
@@ -306,8 +341,9 @@ def test_hitting_the_iteration_cap_is_not_converged():
     """From a 2° misalignment one iteration cannot converge: converged is False, with the
     iterations done; six iterations do."""
     truth = np.radians([2.0, -2.0, 2.0])
-    obs, planes, _ = synth.observations(Mount(boresight_rad=truth), synth.montreal_planes(),
-                                        points_per_plane_per_pass=40, noise=False)  # fmt: skip
+    obs, planes, _ = synth.observations(
+        Mount(boresight_rad=truth), synth.montreal_planes(), points_per_plane_per_pass=40, noise=False
+    )
     for cap in (1, 2):
         res = adjust(obs, Mount(), planes, replace(QUICK, outliers="none", max_iterations=cap))
         assert not res.converged and res.iterations == cap
@@ -319,8 +355,12 @@ def test_hitting_the_iteration_cap_is_not_converged():
 
 
 def test_only_reciprocal_parallel_passes_names_pitch_and_yaw():
-    obs, planes, _ = synth.observations(Mount(boresight_rad=TRUTH_RAD), synth.montreal_planes(),
-                                        headings_deg=(0.0, 180.0), points_per_plane_per_pass=60)  # fmt: skip
+    obs, planes, _ = synth.observations(
+        Mount(boresight_rad=TRUTH_RAD),
+        synth.montreal_planes(),
+        headings_deg=(0.0, 180.0),
+        points_per_plane_per_pass=60,
+    )
     with pytest.raises(ObservabilityError) as e:
         adjust(obs, Mount(), planes, QUICK)
     msg = str(e.value)
@@ -351,10 +391,19 @@ def _one_traj():
 
 def _build(t, pass_id=None, traj=None):
     n = len(t)
-    return build_observations(traj or _one_traj(), np.asarray(t), np.full(n, 10.0),
-                              np.zeros(n), np.zeros(n, int),
-                              np.ones(n, int) if pass_id is None else pass_id, ["T1"], 0.003,
-                              1e-4, np.full(3, 0.02), np.full(3, 1e-4))  # fmt: skip
+    return build_observations(
+        traj or _one_traj(),
+        np.asarray(t),
+        np.full(n, 10.0),
+        np.zeros(n),
+        np.zeros(n, int),
+        np.ones(n, int) if pass_id is None else pass_id,
+        ["T1"],
+        0.003,
+        1e-4,
+        np.full(3, 0.02),
+        np.full(3, 1e-4),
+    )
 
 
 def test_nan_times_are_refused():

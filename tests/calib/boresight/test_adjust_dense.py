@@ -54,7 +54,7 @@ def textbook_adjustment(obs, planes_init, iterations=12):
     u = 3 + 4 * m
     x = np.zeros(u)
     for j, (nrm, d) in enumerate(planes_init):
-        x[3 + 4 * j: 7 + 4 * j] = [*nrm, d]
+        x[3 + 4 * j : 7 + 4 * j] = [*nrm, d]
     l = obs.l
     Q = np.diag((obs.sigma_l**2).reshape(-1))  # 8n × 8n
     v = np.zeros(8 * n)
@@ -79,8 +79,8 @@ def textbook_adjustment(obs, planes_init, iterations=12):
         C = np.zeros((m, u))
         gc = np.zeros(m)
         for j in range(m):
-            nj = x[3 + 4 * j: 6 + 4 * j]
-            C[j, 3 + 4 * j: 6 + 4 * j] = 2 * nj
+            nj = x[3 + 4 * j : 6 + 4 * j]
+            C[j, 3 + 4 * j : 6 + 4 * j] = 2 * nj
             gc[j] = 1.0 - nj @ nj
         K = np.block([[N, C.T], [C, np.zeros((m, m))]])
         rhs = np.concatenate([-A.T @ Minv @ w, gc])
@@ -96,17 +96,23 @@ def textbook_adjustment(obs, planes_init, iterations=12):
 
 def test_adjustment_equals_dense_textbook_solution():
     truth = np.radians([0.208, 1.245, 0.149])
-    obs, planes, _ = synth.observations(Mount(boresight_rad=truth), synth.montreal_planes(),
-                                        points_per_plane_per_pass=22, seed=11)  # fmt: skip
+    obs, planes, _ = synth.observations(
+        Mount(boresight_rad=truth), synth.montreal_planes(), points_per_plane_per_pass=22, seed=11
+    )
     assert 200 <= len(obs) <= 300
     init = [(nrm + 0.01, d + 0.05) for nrm, d in planes]
     init = [(nrm / np.linalg.norm(nrm), d) for nrm, d in init]
-    opts = AdjustOptions(outliers="none", jackknife=False, error_model=ErrorModel("white"),
-                         tol_angle_rad=1e-13, tol_m=1e-11, rel_tol=0.0)
+    opts = AdjustOptions(
+        outliers="none",
+        jackknife=False,
+        error_model=ErrorModel("white"),
+        tol_angle_rad=1e-13,
+        tol_m=1e-11,
+        rel_tol=0.0,
+    )
     fast = adjust(obs, Mount(), init, opts)
     x_dense, cov_dense, s02_dense = textbook_adjustment(obs, init)
-    np.testing.assert_allclose(np.degrees(fast.boresight_rad), np.degrees(x_dense), rtol=0,
-                               atol=1e-9)  # fmt: skip
+    np.testing.assert_allclose(np.degrees(fast.boresight_rad), np.degrees(x_dense), rtol=0, atol=1e-9)
     np.testing.assert_allclose(fast.cov_formal, cov_dense, rtol=1e-7)
     np.testing.assert_allclose(fast.sigma0_squared, s02_dense, rtol=1e-7)
     # and it is a real estimate: near the truth, not at the a-priori zero

@@ -58,8 +58,7 @@ def test_ransac_stops_when_98_percent_are_inliers_and_obeys_the_tilt_limit():
     panel = np.column_stack([s[:, 0] + 5, -s[:, 1] * np.sqrt(0.5), s[:, 1] * np.sqrt(0.5)]) + hint
     both = np.vstack([wall, panel])
     free = ransac_plane(both, rng=np.random.default_rng(0))
-    tilted = ransac_plane(both, rng=np.random.default_rng(0), normal_hint=hint,
-                          max_tilt_rad=np.radians(30))  # fmt: skip
+    tilted = ransac_plane(both, rng=np.random.default_rng(0), normal_hint=hint, max_tilt_rad=np.radians(30))
     assert _angle_deg(free.normal, [0, 1, 0]) < 0.1
     assert _angle_deg(tilted.normal, hint) < 0.1 and tilted.normal @ hint > 0
     assert tilted.inliers[2000:].all() and tilted.inliers.sum() == 400
@@ -134,8 +133,9 @@ def test_target_is_separated_from_its_wall_by_reflectivity_and_size():
     intensity = np.r_[np.full(len(pw), 0.25), np.full(len(pt) + len(pp), 0.9)] * cos
     configured = target.translated([0.3, 0.0, 0.25])  # approximate centre
     idx = np.arange(len(p))
-    got = extract_target(p, intensity, idx, configured, 1, ExtractOptions(),
-                         np.random.default_rng(0), origin_m=origin)  # fmt: skip
+    got = extract_target(
+        p, intensity, idx, configured, 1, ExtractOptions(), np.random.default_rng(0), origin_m=origin
+    )
     is_target = (idx >= len(pw)) & (idx < len(pw) + len(pt))
     assert got.n_points > 0 and is_target[got.indices].all()  # no wall, no panel
     # the 2 cm edge margin trims the rim only
@@ -143,8 +143,16 @@ def test_target_is_separated_from_its_wall_by_reflectivity_and_size():
     np.testing.assert_allclose(got.extent_m, [1.23, 1.22], atol=0.05)
     assert got.contrast > 3.0 and got.note == ""
     # the same scene without contrast (a white wall): geometry only, and the report says so
-    flat = extract_target(p, np.full(len(p), 0.9) * cos, idx, configured, 1, ExtractOptions(),
-                          np.random.default_rng(0), origin_m=origin)  # fmt: skip
+    flat = extract_target(
+        p,
+        np.full(len(p), 0.9) * cos,
+        idx,
+        configured,
+        1,
+        ExtractOptions(),
+        np.random.default_rng(0),
+        origin_m=origin,
+    )
     assert "no reflectivity contrast" in flat.note
 
 
@@ -191,11 +199,10 @@ def test_automatic_mode_finds_the_configured_targets_without_their_centres(montr
 def test_a_target_missing_from_a_pass_is_a_warning_naming_both(montreal):
     r, p, o, rects = montreal
     keep = ~((r.target_index == 1) & (r.points.pass_id == 3))  # T2 unseen in pass 3
-    ext = extract(p[keep], r.points.intensity[keep], r.points.pass_id[keep], rects,
-                  ExtractOptions(), o[keep])  # fmt: skip
+    ext = extract(p[keep], r.points.intensity[keep], r.points.pass_id[keep], rects, ExtractOptions(), o[keep])
     missing = [w for w in ext.warnings if "missing" in w]
     assert len(missing) == 1 and missing[0].startswith("target T2 is missing from pass 3")
-    assert ext.counts()[3] ["T2"] == 0 and ext.counts()[3]["T1"] > 300
+    assert ext.counts()[3]["T2"] == 0 and ext.counts()[3]["T1"] > 300
 
 
 def test_initial_planes_survive_a_two_degree_misalignment():
@@ -203,10 +210,8 @@ def test_initial_planes_survive_a_two_degree_misalignment():
     (mean of the per-pass normals, combined centroid) stays within a degree of the truth."""
     r = simulate("montreal", 1, overrides={"truth.boresight_deg": [2.0, -2.0, 2.0]})
     pts = r.points
-    p = georeference(pts.t_gps_s, pts.range_m, pts.scan_angle_rad, r.trajectory_observed,
-                     r.site.mount)  # fmt: skip
-    o = georeference(pts.t_gps_s, np.zeros(len(pts)), pts.scan_angle_rad,
-                     r.trajectory_observed, r.site.mount)  # fmt: skip
+    p = georeference(pts.t_gps_s, pts.range_m, pts.scan_angle_rad, r.trajectory_observed, r.site.mount)
+    o = georeference(pts.t_gps_s, np.zeros(len(pts)), pts.scan_angle_rad, r.trajectory_observed, r.site.mount)
     rects = r.site.target_rectangles(r.site.frame())
     ext = extract(p, pts.intensity, pts.pass_id, rects, ExtractOptions(), o)
     assert ext.warnings == []

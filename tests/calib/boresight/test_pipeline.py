@@ -11,17 +11,26 @@ import pytest
 
 from calib.boresight.observability import ObservabilityError
 from calib.boresight.observations import AdjustmentError
-from calib.io.bundle import ScanPoints
 from calib.boresight.pipeline import CalibrationError, CalibrationOptions, calibrate
 from calib.boresight.report import report_markdown
+from calib.io.bundle import ScanPoints
 from calib.sim.simulate import simulate
 
 #: The estimator's own stochastic model: independent POS errors for every point, and range
 #: noise without the beam-divergence term the site's σ_range does not describe.
 PER_POINT = {"noise.pos.model": "per_point", "noise.scanner.beam_divergence_mrad": 0.0}
 FAST = CalibrationOptions(jackknife=False, error_model="white")
-T1_ONLY = [{"name": "T1", "along_m": -1.75, "out_m": 0.03, "up_m": 5.0, "size_m": [1.23, 1.22],
-            "inclination_deg": 90.0, "reflectivity": 0.9}]  # fmt: skip
+T1_ONLY = [
+    {
+        "name": "T1",
+        "along_m": -1.75,
+        "out_m": 0.03,
+        "up_m": 5.0,
+        "size_m": [1.23, 1.22],
+        "inclination_deg": 90.0,
+        "reflectivity": 0.9,
+    }
+]
 
 
 def _run(r, options=FAST, **kw):
@@ -59,8 +68,7 @@ def test_labels_and_extraction_give_the_same_boresight():
     assert 0.85 * sum(totals.values()) < a.n_points < sum(totals.values())
     assert np.all(np.abs(a.boresight_rad - b.boresight_rad) < b.sigma_formal_rad)
     for res in (a, b):
-        assert np.all(np.abs(res.boresight_rad - r.mount_true.boresight_rad)
-                      <= 3 * res.sigma_formal_rad)  # fmt: skip
+        assert np.all(np.abs(res.boresight_rad - r.mount_true.boresight_rad) <= 3 * res.sigma_formal_rad)
 
 
 @pytest.mark.parametrize("truth_deg", [(2.0, -2.0, 2.0), (-2.0, 2.0, -2.0), (2.0, 2.0, -1.0)])
@@ -86,14 +94,12 @@ def test_subsampling_and_an_extra_unknown():
     boresight."""
     r = simulate("montreal", 3, overrides={**PER_POINT, "truth.range_offset_m": 0.03})
     full = _run(r, poses=r.observed_poses())
-    thin = _run(r, replace(FAST, subsample_m=0.1, estimate=("range_offset",)),
-                poses=r.observed_poses())  # fmt: skip
+    thin = _run(r, replace(FAST, subsample_m=0.1, estimate=("range_offset",)), poses=r.observed_poses())
     assert thin.doc["extraction"]["subsample_m"] == 0.1
     assert 0.2 * full.result.n_points < thin.result.n_points < 0.6 * full.result.n_points
     e = thin.result.extras["range_offset"]
     assert abs(e["value"] - 0.03) <= 3 * e["sigma"] and e["sigma"] < 0.005
-    assert set(thin.doc["extras"]["range_offset_m"]["correlation_with_boresight"]) == \
-        {"roll", "pitch", "yaw"}  # fmt: skip
+    assert set(thin.doc["extras"]["range_offset_m"]["correlation_with_boresight"]) == {"roll", "pitch", "yaw"}
     # the white error model: the realistic σ is the formal one
     assert thin.doc["extras"]["range_offset_m"]["sigma_realistic"] == e["sigma"]
     res = thin.result
@@ -126,8 +132,10 @@ def test_hitting_the_iteration_cap_is_a_warning_and_not_converged():
     run = _run(r, replace(FAST, max_iterations=1, outliers="none"), labels=r.target_index)
     assert run.result.converged is False and run.result.iterations == 1
     assert run.doc["converged"] is False and run.doc["iterations"] == 1
-    warning = ("the adjustment did not converge in 1 iterations: do not use the result; check "
-               "the a-priori boresight and the extraction")  # fmt: skip
+    warning = (
+        "the adjustment did not converge in 1 iterations: do not use the result; check "
+        "the a-priori boresight and the extraction"
+    )
     assert run.warnings == [warning] and run.doc["warnings"] == [warning]
     md = report_markdown(run)
     assert "The adjustment **did not converge** in 1 iterations" in md
@@ -139,9 +147,10 @@ def test_hitting_the_iteration_cap_is_a_warning_and_not_converged():
 def test_correlation_time_comes_from_the_site_else_the_default_is_stated():
     r = simulate("montreal", 4)
     run = _run(r, CalibrationOptions(jackknife=False))
-    assert run.doc["realistic_error_model"] == {"kind": "gauss_markov",
-                                                "correlation_time_s": [20.0, 20.0, 20.0, 10.0,
-                                                                       10.0, 10.0]}  # fmt: skip
+    assert run.doc["realistic_error_model"] == {
+        "kind": "gauss_markov",
+        "correlation_time_s": [20.0, 20.0, 20.0, 10.0, 10.0, 10.0],
+    }
     assert run.doc["realistic_correlation_time_source"].startswith("site.yaml")
     bare = replace(r.site, pos_correlation_time_s=None)
     run = calibrate(bare, r.trajectory_observed, r.points, CalibrationOptions(jackknife=False))
@@ -158,8 +167,13 @@ def test_correlation_time_comes_from_the_site_else_the_default_is_stated():
 
 
 def test_only_reciprocal_parallel_passes_names_pitch_yaw_and_the_passes_to_sail():
-    r = simulate("montreal", 0, overrides={"site.passes": [
-        {"id": 1, "relative_heading_deg": 0}, {"id": 2, "relative_heading_deg": 180}]})
+    r = simulate(
+        "montreal",
+        0,
+        overrides={
+            "site.passes": [{"id": 1, "relative_heading_deg": 0}, {"id": 2, "relative_heading_deg": 180}]
+        },
+    )
     with pytest.raises(ObservabilityError) as e:
         _run(r)
     msg = str(e.value)
@@ -188,8 +202,9 @@ def test_a_target_with_fewer_than_ten_points_is_named():
 
 def _points_with(r, **arrays) -> ScanPoints:
     p = r.points
-    fields = {f: getattr(p, f).copy() for f in ("pass_id", "t_gps_s", "range_m",
-                                                "scan_angle_rad", "intensity")}  # fmt: skip
+    fields = {
+        f: getattr(p, f).copy() for f in ("pass_id", "t_gps_s", "range_m", "scan_angle_rad", "intensity")
+    }
     for name, (index, value) in arrays.items():
         fields[name][index] = value
     return ScanPoints(**fields)
@@ -198,13 +213,15 @@ def _points_with(r, **arrays) -> ScanPoints:
 def test_nan_and_out_of_order_times_are_refused():
     r = simulate("montreal", 0)
     pts = _points_with(r, t_gps_s=(100, np.nan))
-    with pytest.raises(CalibrationError, match=r"1 point time\(s\) are NaN or infinite "
-                                               r"\(first: point 100, pass 1\)"):  # fmt: skip
+    with pytest.raises(
+        CalibrationError,
+        match=r"1 point time\(s\) are NaN or infinite "
+        r"\(first: point 100, pass 1\)",
+    ):
         calibrate(r.site, r.trajectory_observed, pts, FAST)
     t = r.points.t_gps_s
     pts = _points_with(r, t_gps_s=(200, t[198]))
-    with pytest.raises(CalibrationError, match="point times go backwards within pass 1 at "
-                                               "point 200"):  # fmt: skip
+    with pytest.raises(CalibrationError, match="point times go backwards within pass 1 at point 200"):
         calibrate(r.site, r.trajectory_observed, pts, FAST)
 
 
@@ -223,10 +240,10 @@ def test_a_trajectory_that_does_not_cover_the_points_is_refused():
 def test_a_target_missing_from_one_pass_is_a_warning_and_the_run_continues():
     r = simulate("montreal", 0)
     keep = ~((r.target_index == 1) & (r.points.pass_id == 3))
-    run = calibrate(r.site, r.trajectory_observed, r.points.select(keep),
-                    CalibrationOptions(jackknife=False))  # fmt: skip
+    run = calibrate(r.site, r.trajectory_observed, r.points.select(keep), CalibrationOptions(jackknife=False))
     assert [w for w in run.warnings if "missing" in w] == [
-        "target T2 is missing from pass 3: no plane with its orientation among its points"]
+        "target T2 is missing from pass 3: no plane with its orientation among its points"
+    ]
     assert run.doc["warnings"] == run.warnings
     assert run.doc["extraction"]["points_per_pass"]["3"]["T2"] == 0
     res = run.result

@@ -18,8 +18,9 @@ from calib.sim.simulate import simulate
 def misaligned():
     """Montreal with a 1.5° boresight error in every angle and Gauss–Markov POS errors."""
     r = simulate("montreal", 5, overrides={"truth.boresight_deg": [1.5, -1.5, 1.5]})
-    return r, calibrate(r.site, r.trajectory_observed, r.points, CalibrationOptions(),
-                        source="simulated montreal seed 5")  # fmt: skip
+    return r, calibrate(
+        r.site, r.trajectory_observed, r.points, CalibrationOptions(), source="simulated montreal seed 5"
+    )
 
 
 def _row(md: str, first_cell: str) -> list[str]:
@@ -31,7 +32,7 @@ def test_the_narrative_states_the_numbers_of_the_result(misaligned):
     _, run = misaligned
     res, doc = run.result, run.doc
     md = report_markdown(run)
-    for i, a in enumerate(("roll", "pitch", "yaw")):
+    for a in ("roll", "pitch", "yaw"):
         cells = _row(md, a)
         assert float(cells[1]) == pytest.approx(doc["boresight_deg"][a], abs=5e-5)
         assert float(cells[2]) == pytest.approx(doc["boresight_thesis_convention_deg"][a], abs=5e-5)
@@ -46,12 +47,11 @@ def test_the_narrative_states_the_numbers_of_the_result(misaligned):
     assert f"σ̂0² = {res.sigma0_squared:.3f} with {c['df']} degrees of freedom" in md
     assert ("**passed**" in md) == c["passed"]
     assert f"converged in {res.iterations} iterations" in md
-    corr_row = next(x for x in md.split("## Correlations")[1].splitlines()
-                    if x.startswith("| pitch"))
+    corr_row = next(x for x in md.split("## Correlations")[1].splitlines() if x.startswith("| pitch"))
     assert [float(x) for x in corr_row.strip("|").split("|")[1:]] == pytest.approx(
-        res.correlation[1], abs=5e-4)
-    assert "- roll: observed best by the reciprocal parallel pair 0°/180°; sailed: 0°/180°." \
-        in md
+        res.correlation[1], abs=5e-4
+    )
+    assert "- roll: observed best by the reciprocal parallel pair 0°/180°; sailed: 0°/180°." in md
     assert "sailed: 45°/135°, 315°/225°." in md
     for p in res.plane_stats:
         assert int(_row(md, p["name"])[1]) == p["n_points"]
@@ -88,9 +88,14 @@ def _png_size(path) -> tuple[int, int]:
 def test_plots_are_written_and_linked(tmp_path, misaligned):
     _, run = misaligned
     paths = write_report(run, tmp_path)
-    assert [p.name for p in paths] == ["report.md", "residuals_by_plane.png",
-                                       "residuals_by_pass.png", "residuals_time.png",
-                                       "target_T1.png", "target_T2.png"]  # fmt: skip
+    assert [p.name for p in paths] == [
+        "report.md",
+        "residuals_by_plane.png",
+        "residuals_by_pass.png",
+        "residuals_time.png",
+        "target_T1.png",
+        "target_T2.png",
+    ]
     assert _png_size(tmp_path / "target_T1.png") == (1100, int(round(3.8 * 110)))  # 2 panels
     assert _png_size(tmp_path / "residuals_by_pass.png")[0] == int(round(3 * 4.2 * 110))
     md = (tmp_path / "report.md").read_text()
@@ -106,13 +111,20 @@ def test_white_model_default_tau_and_outliers_are_stated():
     pts = replace(r.points, range_m=ranges)
     site = replace(r.site, pos_correlation_time_s=None)
     # labelled points: the extraction's plane band would already drop such blunders
-    run = calibrate(site, r.trajectory_observed, pts, CalibrationOptions(error_model="white"),
-                    poses=r.observed_poses(), labels=r.target_index)  # fmt: skip
+    run = calibrate(
+        site,
+        r.trajectory_observed,
+        pts,
+        CalibrationOptions(error_model="white"),
+        poses=r.observed_poses(),
+        labels=r.target_index,
+    )
     md = report_markdown(run)
     assert "here it equals the formal σ, because the white error model was chosen" in md
     assert set(blunders) <= set(run.result.outlier_point_ids.tolist())
     assert "failed the data-snooping test on normalized residuals and were removed" in md
     assert all(str(int(i)) in md.split("## Outliers")[1] for i in blunders)
-    gm = calibrate(site, r.trajectory_observed, pts, CalibrationOptions(jackknife=False),
-                   poses=r.observed_poses())  # fmt: skip
+    gm = calibrate(
+        site, r.trajectory_observed, pts, CalibrationOptions(jackknife=False), poses=r.observed_poses()
+    )
     assert "sigma_realistic assumes 60 s" in report_markdown(gm)

@@ -11,7 +11,7 @@ from hypothesis import strategies as st
 
 from calib.core import frames
 
-UTC = dt.timezone.utc
+UTC = dt.UTC
 D = np.radians
 angle = st.floats(-np.pi, np.pi, allow_nan=False)
 small_pitch = st.floats(-D(89.0), D(89.0), allow_nan=False)
@@ -36,8 +36,9 @@ def test_positive_pitch_is_bow_up_and_positive_roll_is_starboard_down():
 
 def test_rotation_zyx_is_rz_ry_rx():
     r, p, y = 0.3, -0.2, 2.1
-    np.testing.assert_allclose(frames.rotation_zyx(r, p, y),
-                               frames.rot_z(y) @ frames.rot_y(p) @ frames.rot_x(r), atol=1e-15)
+    np.testing.assert_allclose(
+        frames.rotation_zyx(r, p, y), frames.rot_z(y) @ frames.rot_y(p) @ frames.rot_x(r), atol=1e-15
+    )
 
 
 def test_thesis_matrix_hand_computed_case_equals_converted_canonical():
@@ -49,23 +50,25 @@ def test_thesis_matrix_hand_computed_case_equals_converted_canonical():
     #   moves column 2 to column 1 and −column 1 to column 2:
     c = np.sqrt(3.0) / 2.0
     thesis_by_hand = np.array([[0.0, 0.0, -1.0], [-c, -0.5, 0.0], [-0.5, c, 0.0]])
-    np.testing.assert_allclose(frames.thesis_matrix(D(90), D(30), D(90)), thesis_by_hand,
-                               atol=1e-15)  # fmt: skip
+    np.testing.assert_allclose(frames.thesis_matrix(D(90), D(30), D(90)), thesis_by_hand, atol=1e-15)
     # In NED/FRD (flip y and z on both sides: element (i, j) times f_i·f_j, f = (1, −1, −1)):
     canonical_by_hand = np.array([[0.0, 0.0, 1.0], [c, -0.5, 0.0], [0.5, c, 0.0]])
-    np.testing.assert_allclose(frames.FLIP_YZ @ thesis_by_hand @ frames.FLIP_YZ,
-                               canonical_by_hand, atol=1e-15)  # fmt: skip
+    np.testing.assert_allclose(
+        frames.FLIP_YZ @ thesis_by_hand @ frames.FLIP_YZ, canonical_by_hand, atol=1e-15
+    )
     # … which is the canonical matrix of (roll, −pitch, heading) = (90°, −30°, 90°)
-    np.testing.assert_allclose(frames.rotation_zyx(D(90), D(-30), D(90)), canonical_by_hand,
-                               atol=1e-15)  # fmt: skip
+    np.testing.assert_allclose(frames.rotation_zyx(D(90), D(-30), D(90)), canonical_by_hand, atol=1e-15)
 
 
 def test_montreal_boresight_thesis_to_canonical():
     thesis = D([0.208, -1.245, 0.149])
     canonical = np.array(frames.boresight_from_thesis(*thesis))
     np.testing.assert_allclose(np.degrees(canonical), [0.208, 1.245, 0.149], atol=1e-12)
-    np.testing.assert_allclose(frames.FLIP_YZ @ frames.thesis_matrix(*thesis) @ frames.FLIP_YZ,
-                               frames.rotation_zyx(*canonical), atol=1e-15)  # fmt: skip
+    np.testing.assert_allclose(
+        frames.FLIP_YZ @ frames.thesis_matrix(*thesis) @ frames.FLIP_YZ,
+        frames.rotation_zyx(*canonical),
+        atol=1e-15,
+    )
     np.testing.assert_allclose(frames.boresight_to_thesis(*canonical), thesis, atol=1e-15)
 
 
@@ -77,8 +80,9 @@ def test_ixblue_attitude_negates_pitch_only():
 
 def test_mount_matrix_composes_boresight_after_nominal():
     bs, nom = D([0.2, 1.2, 0.1]), D([0.0, -20.0, 180.0])
-    np.testing.assert_allclose(frames.mount_matrix(bs, nom),
-                               frames.rotation_zyx(*bs) @ frames.rotation_zyx(*nom), atol=1e-15)
+    np.testing.assert_allclose(
+        frames.mount_matrix(bs, nom), frames.rotation_zyx(*bs) @ frames.rotation_zyx(*nom), atol=1e-15
+    )
 
 
 def test_scanner_vector_angles():
@@ -90,13 +94,11 @@ def test_small_rotation_is_first_order_of_exact():
     v = np.array([1e-4, -2e-4, 3e-4])
     err = frames.small_rotation(v) - frames.rotation_from_vector(v)
     assert np.abs(err).max() < 1e-7  # second order: |v|²/2 ≈ 7e-8
-    np.testing.assert_allclose(frames.skew(v) @ [1.0, 2.0, 3.0], np.cross(v, [1.0, 2.0, 3.0]),
-                               atol=1e-18)  # fmt: skip
+    np.testing.assert_allclose(frames.skew(v) @ [1.0, 2.0, 3.0], np.cross(v, [1.0, 2.0, 3.0]), atol=1e-18)
 
 
 def test_wrap():
-    np.testing.assert_allclose(frames.wrap_pi([np.pi, -np.pi, 3 * np.pi / 2]),
-                               [np.pi, np.pi, -np.pi / 2])  # fmt: skip
+    np.testing.assert_allclose(frames.wrap_pi([np.pi, -np.pi, 3 * np.pi / 2]), [np.pi, np.pi, -np.pi / 2])
     np.testing.assert_allclose(frames.wrap_2pi([-0.1, 2 * np.pi]), [2 * np.pi - 0.1, 0.0])
 
 
@@ -114,8 +116,10 @@ def test_rotation_is_orthonormal_and_euler_round_trips(r, p, y):
 
 
 @settings(max_examples=150, deadline=None)
-@given(st.lists(st.floats(-1.0, 1.0), min_size=3, max_size=3).filter(
-    lambda v: np.linalg.norm(v) > 1e-6), st.floats(0.0, np.pi - 1e-4))
+@given(
+    st.lists(st.floats(-1.0, 1.0), min_size=3, max_size=3).filter(lambda v: np.linalg.norm(v) > 1e-6),
+    st.floats(0.0, np.pi - 1e-4),
+)
 def test_rotation_vector_round_trip(axis, theta):
     v = np.asarray(axis) / np.linalg.norm(axis) * theta
     R = frames.rotation_from_vector(v)
@@ -150,9 +154,11 @@ def test_geodetic_lgf_geodetic_round_trip_below_0_1_mm_over_10_km():
     assert np.abs(p[:, :2]).max() > 9_000  # the points do span ~10 km
     lat2, lon2, h2 = f.to_geodetic(p)
     m_per_deg_lat = 111_000.0
-    err_m = np.sqrt(((lat2 - lat) * m_per_deg_lat) ** 2
-                    + ((lon2 - lon) * m_per_deg_lat * np.cos(np.radians(lat))) ** 2
-                    + (h2 - h) ** 2)  # fmt: skip
+    err_m = np.sqrt(
+        ((lat2 - lat) * m_per_deg_lat) ** 2
+        + ((lon2 - lon) * m_per_deg_lat * np.cos(np.radians(lat))) ** 2
+        + (h2 - h) ** 2
+    )
     assert err_m.max() < 1e-4
 
 
@@ -160,12 +166,14 @@ def test_lgf_matches_ecef_difference():
     f = frames.LocalFrame(10.0, 20.0, 0.0)
     p_ecef = frames.geodetic_to_ecef([10.001], [20.002], [55.0])[0]
     d = p_ecef - f.origin_ecef_m
-    np.testing.assert_allclose(f.to_lgf([10.001], [20.002], [55.0])[0],
-                               frames.ecef_to_ned_matrix(10.0, 20.0) @ d, atol=1e-9)  # fmt: skip
+    np.testing.assert_allclose(
+        f.to_lgf([10.001], [20.002], [55.0])[0], frames.ecef_to_ned_matrix(10.0, 20.0) @ d, atol=1e-9
+    )
 
 
-@pytest.mark.parametrize("lat, lon, epsg", [(45.5, -73.55, 32618), (-33.9, 151.2, 32756),
-                                            (0.0, 0.0, 32631), (60.0, 179.99, 32660)])
+@pytest.mark.parametrize(
+    "lat, lon, epsg", [(45.5, -73.55, 32618), (-33.9, 151.2, 32756), (0.0, 0.0, 32631), (60.0, 179.99, 32660)]
+)
 def test_utm_epsg(lat, lon, epsg):
     assert frames.utm_epsg(lat, lon) == epsg
 
@@ -204,13 +212,16 @@ def test_week_rollover_2019():
 
 
 def test_utc_gps_round_trip_and_fields():
-    for utc in [dt.datetime(1985, 3, 1, 12, 0, 0, 250_000, tzinfo=UTC),
-                dt.datetime(2016, 12, 31, 23, 59, 59, 500_000, tzinfo=UTC),
-                dt.datetime(2021, 8, 17, 14, 0, 1, 123_456, tzinfo=UTC)]:  # fmt: skip
+    for utc in [
+        dt.datetime(1985, 3, 1, 12, 0, 0, 250_000, tzinfo=UTC),
+        dt.datetime(2016, 12, 31, 23, 59, 59, 500_000, tzinfo=UTC),
+        dt.datetime(2021, 8, 17, 14, 0, 1, 123_456, tzinfo=UTC),
+    ]:
         assert frames.gps_ns_to_utc(frames.utc_to_gps_ns(utc)) == utc
     sod_ns = (14 * 3600 + 1) * 10**9 + 123_456_789
     assert frames.utc_fields_to_gps_ns(2021, 8, 17, sod_ns) == frames.utc_to_gps_ns(
-        dt.datetime(2021, 8, 17, 14, 0, 1, 123_456, tzinfo=UTC), extra_ns=789)
+        dt.datetime(2021, 8, 17, 14, 0, 1, 123_456, tzinfo=UTC), extra_ns=789
+    )
 
 
 def test_week_sow_and_las_time():

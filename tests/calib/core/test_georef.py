@@ -32,9 +32,12 @@ def round_trip_error(t, rho, alpha, traj, mount):
     x = georeference(t, rho, alpha, traj, mount)
     obs = inverse_georeference(x, t, traj, mount)
     x2 = georeference(t, obs.range_m, obs.scan_angle_rad, traj, mount)
-    return (np.abs(x2 - x).max(), np.abs(obs.range_m - rho).max(),
-            np.abs(frames.wrap_pi(obs.scan_angle_rad - alpha)).max(),
-            np.abs(obs.out_of_plane_m).max())  # fmt: skip
+    return (
+        np.abs(x2 - x).max(),
+        np.abs(obs.range_m - rho).max(),
+        np.abs(frames.wrap_pi(obs.scan_angle_rad - alpha)).max(),
+        np.abs(obs.out_of_plane_m).max(),
+    )
 
 
 def test_round_trip_dense_path(wave_trajectory):
@@ -52,8 +55,7 @@ def test_round_trip_sparse_path(wave_trajectory):
     dx, drho, dalpha, oop = round_trip_error(t, rho, alpha, traj, FULL_MOUNT)
     assert dx < 1e-9 and drho < 1e-9 and dalpha < 1e-12 and oop < 1e-9
     # sorted but sparse (5 points over 400 intervals): also the gather path
-    dx, *_ = round_trip_error(*(a[:5] for a in scan(traj, 5, np.random.default_rng(3))), traj,
-                              FULL_MOUNT)  # fmt: skip
+    dx, *_ = round_trip_error(*(a[:5] for a in scan(traj, 5, np.random.default_rng(3))), traj, FULL_MOUNT)
     assert dx < 1e-9
 
 
@@ -75,8 +77,11 @@ def test_large_interval_rotations_use_exact_trigonometry():
     rpy = np.stack([np.zeros(6), np.zeros(6), D(30.0) * t], axis=1)
     traj = Trajectory(t, np.zeros((6, 3)), rpy, frames.LocalFrame(0.0, 0.0, 0.0))
     rng = np.random.default_rng(5)
-    tp, rho, alpha = np.sort(rng.uniform(0, 5, 2000)), rng.uniform(1, 50, 2000), \
-        rng.uniform(0, 2 * np.pi, 2000)  # fmt: skip
+    tp, rho, alpha = (
+        np.sort(rng.uniform(0, 5, 2000)),
+        rng.uniform(1, 50, 2000),
+        rng.uniform(0, 2 * np.pi, 2000),
+    )
     x = georeference(tp, rho, alpha, traj, FULL_MOUNT)
     poses = traj.interpolate(tp + FULL_MOUNT.time_offset_s)
     assert np.abs(x - georeference_poses(poses, rho, alpha, FULL_MOUNT)).max() < 1e-9
@@ -84,11 +89,11 @@ def test_large_interval_rotations_use_exact_trigonometry():
 
 def test_conventions_by_hand():
     # level vessel heading north at the origin, scanner 1 m forward, 2 m starboard, 3 m below
-    traj = Trajectory([0.0, 1.0], [[10.0, 20.0, 0.0]] * 2, np.zeros((2, 3)),
-                      frames.LocalFrame(0.0, 0.0, 0.0))  # fmt: skip
+    traj = Trajectory([0.0, 1.0], [[10.0, 20.0, 0.0]] * 2, np.zeros((2, 3)), frames.LocalFrame(0.0, 0.0, 0.0))
     mount = Mount(lever_arm_m=[1.0, 2.0, 3.0])
-    x = georeference(np.array([0.5, 0.5, 0.5]), np.array([10.0, 10.0, 10.0]),
-                     D([0.0, 90.0, 270.0]), traj, mount)  # fmt: skip
+    x = georeference(
+        np.array([0.5, 0.5, 0.5]), np.array([10.0, 10.0, 10.0]), D([0.0, 90.0, 270.0]), traj, mount
+    )
     # α = 0° starboard horizontal, 90° down, 270° up
     np.testing.assert_allclose(x, [[11, 32, 3], [11, 22, 13], [11, 22, -7]], atol=1e-12)
     # heading 90° (east): starboard points south
@@ -103,9 +108,11 @@ def test_offsets_follow_their_definitions(wave_trajectory):
     base = Mount(lever_arm_m=[0.4, 0.1, -1.0], boresight_rad=D([0.2, 1.2, 0.1]))
     # ρ_true = ρ + δρ, α_true = α + δα, sampled at t + Δt
     shifted = Mount(base.lever_arm_m, base.nominal_rad, base.boresight_rad, 0.01, 0.002, 0.003)
-    np.testing.assert_allclose(georeference(t, rho, alpha, traj, shifted),
-                               georeference(t + 0.003, rho + 0.01, alpha + 0.002, traj, base),
-                               atol=1e-9)  # fmt: skip
+    np.testing.assert_allclose(
+        georeference(t, rho, alpha, traj, shifted),
+        georeference(t + 0.003, rho + 0.01, alpha + 0.002, traj, base),
+        atol=1e-9,
+    )
 
 
 def test_inverse_reports_out_of_plane_distance(wave_trajectory):
@@ -148,8 +155,9 @@ def test_bad_input(wave_trajectory):
         georeference(np.array([t0]), np.array([1.0, 2.0]), np.array([0.0]), traj, Mount())
     with pytest.raises(TrajectoryError, match="1 of 2 times fall outside"):
         georeference(np.array([t0, t0 - 5.0]), np.ones(2), np.zeros(2), traj, Mount())
-    x = georeference(np.array([t0 + 0.1, t0 + 0.2]), np.array([np.nan, 5.0]),
-                     np.array([0.0, 0.1]), traj, Mount())  # fmt: skip
+    x = georeference(
+        np.array([t0 + 0.1, t0 + 0.2]), np.array([np.nan, 5.0]), np.array([0.0, 0.1]), traj, Mount()
+    )
     assert np.isnan(x[0]).all() and np.isfinite(x[1]).all()
     with pytest.raises(ValueError, match="lever_arm_m must be 3 finite numbers"):
         Mount(lever_arm_m=[0.0, 1.0])

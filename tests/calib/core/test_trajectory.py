@@ -15,8 +15,9 @@ FRAME = frames.LocalFrame(45.5, -73.55, 0.0)
 
 
 def two_epochs(rpy0_deg, rpy1_deg, **kw) -> Trajectory:
-    return Trajectory([100.0, 101.0], [[0.0, 0.0, 0.0], [2.0, -4.0, 1.0]],
-                      D([rpy0_deg, rpy1_deg]), FRAME, **kw)  # fmt: skip
+    return Trajectory(
+        [100.0, 101.0], [[0.0, 0.0, 0.0], [2.0, -4.0, 1.0]], D([rpy0_deg, rpy1_deg]), FRAME, **kw
+    )
 
 
 def angle_between(Ra, Rb) -> np.ndarray:
@@ -33,19 +34,22 @@ def test_heading_across_north_stays_between_the_two_samples():
     # it moves 0.2° through north, linearly in w (a pure yaw: slerp is linear in the angle)
     np.testing.assert_allclose(frames.wrap_pi(D(heading_deg - 359.9)), D(0.2 * w), atol=1e-12)
     assert heading_deg[50] == pytest.approx(0.0, abs=1e-9) or heading_deg[50] == pytest.approx(
-        360.0, abs=1e-9)
+        360.0, abs=1e-9
+    )
 
 
 def test_interpolation_is_linear_in_position_and_sigma_and_exact_at_epochs():
-    traj = two_epochs([1, 2, 3], [2, 1, 5], sigma_p_m=[[0.01, 0.02, 0.03], [0.03, 0.02, 0.01]],
-                      sigma_rpy_rad=D([[0.01, 0.01, 0.02], [0.02, 0.01, 0.01]]))  # fmt: skip
+    traj = two_epochs(
+        [1, 2, 3],
+        [2, 1, 5],
+        sigma_p_m=[[0.01, 0.02, 0.03], [0.03, 0.02, 0.01]],
+        sigma_rpy_rad=D([[0.01, 0.01, 0.02], [0.02, 0.01, 0.01]]),
+    )
     poses = traj.interpolate(np.array([100.0, 100.25, 101.0]))
-    np.testing.assert_allclose(poses.p_lgf_m, [[0, 0, 0], [0.5, -1.0, 0.25], [2, -4, 1]],
-                               atol=1e-15)  # fmt: skip
+    np.testing.assert_allclose(poses.p_lgf_m, [[0, 0, 0], [0.5, -1.0, 0.25], [2, -4, 1]], atol=1e-15)
     np.testing.assert_allclose(poses.sigma_p_m[1], [0.015, 0.02, 0.025], atol=1e-15)
     np.testing.assert_allclose(poses.sigma_rpy_rad[1], D([0.0125, 0.01, 0.0175]), atol=1e-15)
-    np.testing.assert_allclose(np.degrees(poses.rpy_rad[[0, 2]]), [[1, 2, 3], [2, 1, 5]],
-                               atol=1e-12)  # fmt: skip
+    np.testing.assert_allclose(np.degrees(poses.rpy_rad[[0, 2]]), [[1, 2, 3], [2, 1, 5]], atol=1e-12)
     np.testing.assert_allclose(poses.r_b_n, frames.attitude_matrix(*poses.rpy_rad.T), atol=1e-15)
 
 
@@ -77,8 +81,11 @@ def test_slerp_of_random_rotations_stays_on_the_geodesic(v0, v1, w):
 
 def test_refuses_to_extrapolate_and_names_the_times():
     traj = two_epochs([0, 0, 0], [0, 0, 1])
-    with pytest.raises(TrajectoryError, match=r"covers t = 100\.000 … 101\.000 s .* 2 of 3 times "
-                                              r"fall outside: first 99\.500 s, last 101\.250 s"):
+    with pytest.raises(
+        TrajectoryError,
+        match=r"covers t = 100\.000 … 101\.000 s .* 2 of 3 times "
+        r"fall outside: first 99\.500 s, last 101\.250 s",
+    ):
         traj.interpolate(np.array([99.5, 100.5, 101.25]))
     with pytest.raises(TrajectoryError, match="1 times are NaN"):
         traj.interpolate(np.array([100.5, np.nan]))
@@ -96,13 +103,16 @@ def test_gaps_longer_than_max_gap_are_refused_but_their_end_samples_are_not():
         traj.check_coverage(np.array([5.0]))
 
 
-@pytest.mark.parametrize("t, p, rpy, match", [
-    ([0.0], [[0, 0, 0]], [[0, 0, 0]], "needs at least 2 epochs"),
-    ([0.0, 0.0], [[0, 0, 0]] * 2, [[0, 0, 0]] * 2, r"increase strictly; epoch 1 \(t=0\.000000\)"),
-    ([0.0, np.nan], [[0, 0, 0]] * 2, [[0, 0, 0]] * 2, "non-finite time at epoch 1"),
-    ([0.0, 1.0], [[0, 0, 0]], [[0, 0, 0]] * 2, r"p_lgf_m has shape \(1, 3\), expected \(2, 3\)"),
-    ([0.0, 1.0], [[0, 0, 0]] * 2, [[0, 0, 0], [0, np.inf, 0]], "non-finite rpy_rad at epoch 1"),
-])  # fmt: skip
+@pytest.mark.parametrize(
+    "t, p, rpy, match",
+    [
+        ([0.0], [[0, 0, 0]], [[0, 0, 0]], "needs at least 2 epochs"),
+        ([0.0, 0.0], [[0, 0, 0]] * 2, [[0, 0, 0]] * 2, r"increase strictly; epoch 1 \(t=0\.000000\)"),
+        ([0.0, np.nan], [[0, 0, 0]] * 2, [[0, 0, 0]] * 2, "non-finite time at epoch 1"),
+        ([0.0, 1.0], [[0, 0, 0]], [[0, 0, 0]] * 2, r"p_lgf_m has shape \(1, 3\), expected \(2, 3\)"),
+        ([0.0, 1.0], [[0, 0, 0]] * 2, [[0, 0, 0], [0, np.inf, 0]], "non-finite rpy_rad at epoch 1"),
+    ],
+)
 def test_malformed_trajectories_are_refused(t, p, rpy, match):
     with pytest.raises(TrajectoryError, match=match):
         Trajectory(t, p, rpy, FRAME)

@@ -7,20 +7,29 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from calib.design.criteria import (MIN_CRITERIA_POINTS, SYSTEMATIC_ERRORS, THESIS_MAGNITUDES,
-                            CriteriaError, best_inclinations, injected, is_angular, normalized,
-                            pass_spread, plane_criteria, thesis_tilt_deg, type1)  # fmt: skip
+from calib.core.geometry import Rectangle
+from calib.design.criteria import (
+    MIN_CRITERIA_POINTS,
+    SYSTEMATIC_ERRORS,
+    THESIS_MAGNITUDES,
+    CriteriaError,
+    best_inclinations,
+    injected,
+    is_angular,
+    normalized,
+    pass_spread,
+    plane_criteria,
+    thesis_tilt_deg,
+    type1,
+)
 from calib.design.layouts import default_spec
-from calib.design.prediction import (Sigmas, observations, scan_angle_roll_correlation,
-                                     target_planes)  # fmt: skip
+from calib.design.prediction import Sigmas, observations, scan_angle_roll_correlation, target_planes
 from calib.design.scenes import design_scenario
 from calib.design.study import run_study
-from calib.core.geometry import Rectangle
 from calib.sim.scenario import load_scenario
 from calib.sim.simulate import simulate
 
-RECT = Rectangle.from_orientation("T", [10.0, -4.0, -5.0], 1.0, 1.0, np.radians(70.0),
-                                  np.radians(125.0))  # fmt: skip
+RECT = Rectangle.from_orientation("T", [10.0, -4.0, -5.0], 1.0, 1.0, np.radians(70.0), np.radians(125.0))
 
 
 def _grid(rect: Rectangle, n: int = 21) -> np.ndarray:
@@ -60,17 +69,21 @@ def test_type1_normalizes_the_centroidal_distance_over_the_configurations():
     np.testing.assert_allclose(normalized([2.0, 4.0, 3.0, np.nan]), [0.0, 1.0, 0.5, np.nan])
     np.testing.assert_array_equal(normalized([3.0, 3.0]), [0.0, 0.0])
     # thesis Algorithm 2: planarity · (1 − z); the farthest copy scores 0, a missing pass 0
-    np.testing.assert_allclose(type1([0.9, 0.8, 1.0, np.nan], [0.1, 0.5, 0.3, np.nan]),
-                               [0.9, 0.0, 0.5, 0.0])  # fmt: skip
+    np.testing.assert_allclose(type1([0.9, 0.8, 1.0, np.nan], [0.1, 0.5, 0.3, np.nan]), [0.9, 0.0, 0.5, 0.0])
 
 
 def test_pass_spread_is_the_largest_normal_angle_and_distance_range():
-    n = [[1, 0, 0], _rot([0, 0, 1], np.radians(2.0)) @ [1, 0, 0],
-         _rot([0, 1, 0], np.radians(-1.0)) @ [1, 0, 0], [np.nan] * 3]
+    n = [
+        [1, 0, 0],
+        _rot([0, 0, 1], np.radians(2.0)) @ [1, 0, 0],
+        _rot([0, 1, 0], np.radians(-1.0)) @ [1, 0, 0],
+        [np.nan] * 3,
+    ]
     ang, dist = pass_spread(n, [0.01, -0.02, 0.005, 9.0])
     # between the +2° (about z) and the −1° (about y) normals: arccos(cos2°·cos1°)
-    assert np.degrees(ang) == pytest.approx(np.degrees(np.arccos(np.cos(np.radians(2)) *
-                                                                 np.cos(np.radians(1)))), abs=1e-9)
+    assert np.degrees(ang) == pytest.approx(
+        np.degrees(np.arccos(np.cos(np.radians(2)) * np.cos(np.radians(1)))), abs=1e-9
+    )
     assert dist == pytest.approx(0.03)
     assert pass_spread([[1, 0, 0]], [0.3]) == (0.0, 0.0)
 
@@ -97,9 +110,12 @@ def test_injected_errors_follow_the_thesis_magnitudes():
 def terrestrial():
     """The thesis's Chapter 3 sweep (19 inclinations, six passes) for four errors."""
     base = load_scenario("terrestrial")
-    spec = default_spec(base, groups=(), errors=("boresight_roll", "lever_arm_y", "lever_arm_z",
-                                                 "scan_angle_offset"),  # fmt: skip
-                        magnitudes={**THESIS_MAGNITUDES, "scan_angle_offset": np.radians(2.0)})
+    spec = default_spec(
+        base,
+        groups=(),
+        errors=("boresight_roll", "lever_arm_y", "lever_arm_z", "scan_angle_offset"),
+        magnitudes={**THESIS_MAGNITUDES, "scan_angle_offset": np.radians(2.0)},
+    )
     return run_study(base, spec)
 
 
@@ -132,8 +148,11 @@ def test_a_scan_angle_offset_is_a_roll_boresight(terrestrial):
     scan = [r for r in terrestrial.criteria if r["error"] == "scan_angle_offset"]
     assert len(roll) == len(scan) == 19 * 6
     for a, b in zip(roll, scan):
-        assert (a["inclination_deg"], a["pass_id"], a["n_points"]) == \
-               (b["inclination_deg"], b["pass_id"], b["n_points"])
+        assert (a["inclination_deg"], a["pass_id"], a["n_points"]) == (
+            b["inclination_deg"],
+            b["pass_id"],
+            b["n_points"],
+        )
         if a["n_points"] >= MIN_CRITERIA_POINTS:
             assert a["signed_distance_m"] == pytest.approx(b["signed_distance_m"], abs=1e-9)
             assert a["angular_deviation_deg"] == pytest.approx(b["angular_deviation_deg"], abs=1e-7)
@@ -149,8 +168,9 @@ def test_roll_and_scan_angle_offset_are_correlated_for_any_nominal_mount():
     for nominal in ([0.0, 0.0, 0.0], [1.0, -4.0, 3.0]):
         sc = load_scenario("montreal", {"mount.nominal_deg": nominal})
         sim = simulate(design_scenario(sc, [s for s in sc.surfaces if s.kind == "target"]), 0)
-        rho = scan_angle_roll_correlation(observations(sim, sig, noisy=False), sim.mount_true,
-                                          target_planes(sim))  # fmt: skip
+        rho = scan_angle_roll_correlation(
+            observations(sim, sig, noisy=False), sim.mount_true, target_planes(sim)
+        )
         assert rho > 0.9999, nominal
 
 
@@ -231,18 +251,22 @@ def test_pitch_yaw_and_x_y_lever_arms_are_best_seen_on_a_vertical_plane(thesis_s
         ang = {i: vis[(e, i)]["angle_spread_deg"] for i in INCLINATIONS}
         assert ang[90.0] == pytest.approx(max(ang.values()), abs=1e-9) and ang[90.0] > 1.0, e
     # the pass pattern on the vertical plane
-    expect = {"lever_arm_x": (0.0, m["lever_arm_x"] * s45),
-              "lever_arm_y": (m["lever_arm_y"], m["lever_arm_y"] * s45),
-              "boresight_pitch": (0.0, m["boresight_pitch"] * abs(tgt.up_m) * s45)}  # fmt: skip
+    expect = {
+        "lever_arm_x": (0.0, m["lever_arm_x"] * s45),
+        "lever_arm_y": (m["lever_arm_y"], m["lever_arm_y"] * s45),
+        "boresight_pitch": (0.0, m["boresight_pitch"] * abs(tgt.up_m) * s45),
+    }
     for e, (par, obl) in expect.items():
         np.testing.assert_allclose(np.abs(_sd(crit, e, 90, PARALLEL)), par, atol=5e-4, err_msg=e)
-        np.testing.assert_allclose(np.abs(_sd(crit, e, 90, OBLIQUE)), obl, rtol=0.02, atol=5e-4,
-                                   err_msg=e)  # fmt: skip
+        np.testing.assert_allclose(np.abs(_sd(crit, e, 90, OBLIQUE)), obl, rtol=0.02, atol=5e-4, err_msg=e)
     # yaw: along-track δ·S on the parallel passes (within the plane; ~δ²·S/2 = 5 mm of second
     # order remains), δ·S·sin 45° on the oblique ones
     assert np.all(np.abs(_sd(crit, "boresight_yaw", 90, PARALLEL)) < 6e-3)
-    np.testing.assert_allclose(np.abs(_sd(crit, "boresight_yaw", 90, OBLIQUE)),
-                               m["boresight_yaw"] * base.standoff_m * s45, atol=0.015)  # fmt: skip
+    np.testing.assert_allclose(
+        np.abs(_sd(crit, "boresight_yaw", 90, OBLIQUE)),
+        m["boresight_yaw"] * base.standoff_m * s45,
+        atol=0.015,
+    )
     # opposite headings see opposite signs (what the plane cannot absorb)
     for e in ("boresight_pitch", "lever_arm_x", "lever_arm_y"):
         d = dict(zip(range(1, 7), _sd(crit, e, 90, range(1, 7))))
@@ -274,8 +298,10 @@ def test_roll_and_scan_angle_offset_want_an_inclined_plane(thesis_sweep):
         assert spread[40.0] > 2.5 * spread[90.0] and spread[50.0] > 2.0 * spread[90.0], e
         best = max(spread, key=spread.get)
         assert best in (-20.0, -10.0, 0.0) and _line_of_sight(base, best)[1] > np.radians(70), e
-    assert best_inclinations(res.visibility, "boresight_roll", res.spec.type1_threshold)[0][
-        "inclination_deg"] == -20.0  # fmt: skip
+    assert (
+        best_inclinations(res.visibility, "boresight_roll", res.spec.type1_threshold)[0]["inclination_deg"]
+        == -20.0
+    )
 
 
 def test_a_range_offset_tilts_the_copy_most_at_45_degrees_incidence(thesis_sweep):
@@ -296,15 +322,17 @@ def test_a_range_offset_tilts_the_copy_most_at_45_degrees_incidence(thesis_sweep
         for r in rows:
             assert abs(r["signed_distance_m"]) == pytest.approx(d * np.cos(theta), abs=2e-3), i
             assert r["angular_deviation_deg"] == pytest.approx(
-                np.degrees(d * np.sin(2 * theta) / (2 * rng)), abs=0.025), i  # fmt: skip
+                np.degrees(d * np.sin(2 * theta) / (2 * rng)), abs=0.025
+            ), i
         peak[i] = max(crit[("range_offset", i, p)]["angular_deviation_deg"] for p in range(1, 7))
         assert vis[("range_offset", i)]["visible"]
     assert max(peak, key=peak.get) in (30.0, -60.0)
     assert {thesis_tilt_deg(i) for i in (30.0, -60.0)} == {-60.0, 30.0}
     spread = {i: vis[("range_offset", i)]["distance_spread_m"] for i in INCLINATIONS}
     assert max(spread, key=spread.get) in (90.0, -90.0)
-    assert spread[90.0] == pytest.approx(d * np.cos(_line_of_sight(base, 90.0)[1]) *
-                                         (1 - np.cos(np.radians(45))), rel=0.05)  # fmt: skip
+    assert spread[90.0] == pytest.approx(
+        d * np.cos(_line_of_sight(base, 90.0)[1]) * (1 - np.cos(np.radians(45))), rel=0.05
+    )
     ang = {i: vis[("range_offset", i)]["angle_spread_deg"] for i in INCLINATIONS}
     assert max(ang, key=ang.get) == 0.0
 
@@ -319,10 +347,15 @@ def test_roll_and_scan_angle_offset_cannot_be_told_apart_at_thesis_magnitudes(th
     assert len(keys) >= 19 * 6 - 4
     assert (roll @ scan) / (scan @ scan) == pytest.approx(2.0, rel=0.01)
     assert np.corrcoef(roll, scan)[0, 1] > 0.9999 and np.max(np.abs(roll - 2 * scan)) < 0.011
-    ad = [crit[k]["angular_deviation_deg"] / crit[("scan_angle_offset",) + k[1:]]["angular_deviation_deg"]
-          for k in keys if crit[k]["angular_deviation_deg"] > 0.1]  # fmt: skip
+    ad = [
+        crit[k]["angular_deviation_deg"] / crit[("scan_angle_offset",) + k[1:]]["angular_deviation_deg"]
+        for k in keys
+        if crit[k]["angular_deviation_deg"] > 0.1
+    ]
     np.testing.assert_allclose(ad, 2.0, rtol=1e-3)
     t = res.spec.type1_threshold
-    pick = [[v["inclination_deg"] for v in best_inclinations(res.visibility, e, t)]
-            for e in ("boresight_roll", "scan_angle_offset")]  # fmt: skip
+    pick = [
+        [v["inclination_deg"] for v in best_inclinations(res.visibility, e, t)]
+        for e in ("boresight_roll", "scan_angle_offset")
+    ]
     assert pick[0][0] == pick[1][0]  # the same plane by distance (angle: 2δ everywhere, a tie)

@@ -16,24 +16,33 @@ import pytest
 import yaml
 from typer.testing import CliRunner
 
-from cli.app import app
 from calib.boresight.covariance import predict_covariance
 from calib.boresight.errormodel import ErrorModel
 from calib.design.layouts import default_spec
 from calib.design.montecarlo import empirical_errors, predicted_covariance
-from calib.design.prediction import (ANGLES, MODELS, REALISTIC, Sigmas, observations, predict,
-                                     select_passes, target_planes)  # fmt: skip
+from calib.design.prediction import (
+    ANGLES,
+    MODELS,
+    REALISTIC,
+    Sigmas,
+    observations,
+    predict,
+    select_passes,
+    target_planes,
+)
 from calib.design.scenes import design_scenario, site_scenario
 from calib.design.study import run_study
 from calib.design.whatif import site_as_scenario, what_if
 from calib.sim.noise import PosNoise
 from calib.sim.scenario import load_scenario
 from calib.sim.simulate import simulate
+from cli.app import app
 
 SEEDS = range(20)
 #: Gauss–Markov POS errors of a montreal-like survey: 1 cm, 0.005°, 20 s on every channel.
-GM = PosNoise("gauss_markov", np.full(3, 0.01), np.radians(np.full(3, 0.005)), np.full(3, 20.0),
-              np.full(3, 20.0))  # fmt: skip
+GM = PosNoise(
+    "gauss_markov", np.full(3, 0.01), np.radians(np.full(3, 0.005)), np.full(3, 20.0), np.full(3, 20.0)
+)
 
 
 @pytest.fixture(scope="module")
@@ -69,8 +78,7 @@ def test_all_six_passes_give_the_smallest_sigma(study):
     # under time-correlated POS errors the scenario's own two targets still want all six passes
     own = study.rows("site_passes")
     six = [r for r in own if len(r["passes"]) == 6][0]
-    assert six["realistic_total_deg"] < min(r["realistic_total_deg"] for r in own
-                                            if len(r["passes"]) < 6)  # fmt: skip
+    assert six["realistic_total_deg"] < min(r["realistic_total_deg"] for r in own if len(r["passes"]) < 6)
     # and so does one plane alone under the realistic (time-correlated) models
     one = min(rows, key=lambda r: r["realistic_total_deg"])
     assert len(one["passes"]) == 6
@@ -87,7 +95,10 @@ def test_a_vertical_plane_is_best_among_single_planes(study):
     # a horizontal plane seen from below hardly sees yaw (a rotation about the vertical only
     # moves its points within it; the waves' roll and pitch give the little there is)
     horizontal = rows[0]
-    assert not horizontal["observable"] or horizontal["sigma_white_yaw_deg"] > 10 * best_total["sigma_white_yaw_deg"]
+    assert (
+        not horizontal["observable"]
+        or horizontal["sigma_white_yaw_deg"] > 10 * best_total["sigma_white_yaw_deg"]
+    )
 
 
 def test_sigma_decreases_with_the_plane_size(study):
@@ -136,8 +147,9 @@ def test_triples_without_a_steep_plane_are_clearly_worse_under_pos_biases(study)
     for key in ("sigma_pass_bias_total_deg", "sigma_gauss_markov_total_deg"):
         vertical = [r[key] for k, r in triples.items() if 90.0 in k]
         assert max(vertical) < 1.05 * min(vertical), key
-        best_by_steepest = [min(r[key] for k, r in triples.items() if max(k) == s)
-                            for s in (90.0, 75.0, 60.0, 45.0, 30.0)]  # fmt: skip
+        best_by_steepest = [
+            min(r[key] for k, r in triples.items() if max(k) == s) for s in (90.0, 75.0, 60.0, 45.0, 30.0)
+        ]
         assert all(a < b for a, b in zip(best_by_steepest, best_by_steepest[1:])), key
         assert triples[(30.0, 15.0, 0.0)][key] > 2.5 * triples[(90.0, 60.0, 30.0)][key], key
         # pitch is what separates them
@@ -237,8 +249,11 @@ def test_a_spread_in_height_or_range_separates_pass_translations_from_rotations(
     side), a yaw moves them by δ·ΔS: σ_yaw more than halves. Without the offsets (thesis
     adjustment) none of this matters: σ_pitch of every such layout within 10 %; and white noise
     sees no difference at all (same point counts)."""
-    lay = {(r["spread_m"], r["stagger_m"], r["setback_m"]): r for r in study.rows("layout")
-           if r["observable"] and r["inclinations_deg"] == (90.0, 90.0)}  # fmt: skip
+    lay = {
+        (r["spread_m"], r["stagger_m"], r["setback_m"]): r
+        for r in study.rows("layout")
+        if r["observable"] and r["inclinations_deg"] == (90.0, 90.0)
+    }
     side, stacked = lay[(3.5, 0.0, 0.0)], lay[(0.0, 3.8, 0.0)]
     set_back = lay[(3.5, 0.0, 6.0)]
     m = "gauss_markov_offsets"
@@ -268,8 +283,9 @@ def test_the_white_prediction_is_the_adjustments_formal_covariance(base):
     pred = predict(obs, sim.mount_true, planes, sigmas.correlation_time_s)
     ref = predict_covariance(obs, sim.mount_true, planes, (), ErrorModel("white"))["formal"]
     np.testing.assert_allclose(pred.covariances["white"], ref, rtol=1e-8)
-    gm = predict_covariance(obs, sim.mount_true, planes, ("pass_offsets",),
-                            ErrorModel("gauss_markov", sigmas.correlation_time_s))["realistic"]  # fmt: skip
+    gm = predict_covariance(
+        obs, sim.mount_true, planes, ("pass_offsets",), ErrorModel("gauss_markov", sigmas.correlation_time_s)
+    )["realistic"]
     np.testing.assert_allclose(pred.covariances["gauss_markov_offsets"], gm, rtol=1e-12)
     assert set(pred.covariances) == set(MODELS)
     assert sigmas.correlation_time_s == (20.0, 20.0, 20.0, 10.0, 10.0, 10.0)
@@ -289,8 +305,9 @@ def test_predicted_sigma_agrees_with_the_spread_of_adjustments_under_white_noise
     adjusted, against the predicted formal σ (mean over the seeds' geometries)."""
     sc = replace(base, pos_noise=replace(base.pos_noise, model="per_point"))
     emp = _rms_deg(empirical_errors(sc, SEEDS)[()])
-    pred = np.degrees(np.sqrt(np.mean([np.diag(predicted_covariance(sc, "white", s))
-                                       for s in SEEDS], axis=0)))  # fmt: skip
+    pred = np.degrees(
+        np.sqrt(np.mean([np.diag(predicted_covariance(sc, "white", s)) for s in SEEDS], axis=0))
+    )
     print(f"\nwhite: empirical {np.round(emp, 5)}°, predicted {np.round(pred, 5)}°")
     np.testing.assert_allclose(emp, pred, rtol=0.30)
 
@@ -310,8 +327,10 @@ def test_predicted_sigma_agrees_with_the_spread_under_gauss_markov_pos_errors(gm
     covs = [predicted_covariance(sc, m, s) for s in SEEDS for m in ("gauss_markov", "white")]
     real = np.degrees(np.sqrt(np.mean([np.diag(c) for c in covs[0::2]], axis=0)))
     formal = np.degrees(np.sqrt(np.mean([np.diag(c) for c in covs[1::2]], axis=0)))
-    print(f"\nGauss–Markov: empirical {np.round(emp, 5)}°, realistic {np.round(real, 5)}°, "
-          f"formal {np.round(formal, 5)}°")
+    print(
+        f"\nGauss–Markov: empirical {np.round(emp, 5)}°, realistic {np.round(real, 5)}°, "
+        f"formal {np.round(formal, 5)}°"
+    )
     np.testing.assert_allclose(emp, real, rtol=0.30)
     assert np.all(emp > 5 * formal)
 
@@ -335,16 +354,19 @@ def test_the_recommended_site_beats_the_thesis_site(study, base, gm_thesis):
     sc, errs = gm_thesis
     new = site_scenario(sc, tg)
     errs_new = empirical_errors(new, SEEDS, (rec.estimator,), jobs=2)[rec.estimator]
-    runs = {"thesis site, thesis adjustment": errs[()],
-            "thesis site, pass offsets": errs[("pass_offsets",)],
-            f"recommended site ({'pass offsets' if rec.estimator else 'thesis adjustment'})": errs_new}
+    runs = {
+        "thesis site, thesis adjustment": errs[()],
+        "thesis site, pass offsets": errs[("pass_offsets",)],
+        f"recommended site ({'pass offsets' if rec.estimator else 'thesis adjustment'})": errs_new,
+    }
     print(f"\nrecommended: {rec.layout.label}; 20 seeds, Gauss–Markov 1 cm / 0.005° / 20 s")
     total = {}
     for name, e in runs.items():
         r = _rms_deg(e)
         total[name] = float(np.sqrt(np.sum(r**2)))
-        print(f"  {name:42s} RMS roll {r[0]:.4f}°  pitch {r[1]:.4f}°  yaw {r[2]:.4f}°  "
-              f"total {total[name]:.4f}°")
+        print(
+            f"  {name:42s} RMS roll {r[0]:.4f}°  pitch {r[1]:.4f}°  yaw {r[2]:.4f}°  total {total[name]:.4f}°"
+        )
     rec_total = total[list(runs)[2]]
     assert rec_total < total["thesis site, pass offsets"]
     assert rec_total < 0.5 * total["thesis site, thesis adjustment"]
@@ -363,8 +385,14 @@ def test_a_site_config_becomes_the_same_design_scene(base, study, tmp_path):
         assert a.inclination_rad == pytest.approx(b.inclination_rad)
         assert a.facing_rad == pytest.approx(0.0, abs=1e-9)
     w = what_if(site, "montreal")
-    assert [r["passes"] for r in w.rows] == [(1,), (1, 2), (1, 2, 3), (1, 2, 3, 4),
-                                             (1, 2, 3, 4, 5), (1, 2, 3, 4, 5, 6)]  # fmt: skip
+    assert [r["passes"] for r in w.rows] == [
+        (1,),
+        (1, 2),
+        (1, 2, 3),
+        (1, 2, 3, 4),
+        (1, 2, 3, 4, 5),
+        (1, 2, 3, 4, 5, 6),
+    ]
     white = [r["sigma_white_total_deg"] for r in w.rows if r["observable"]]
     assert all(a >= b for a, b in zip(white, white[1:]))  # more passes never hurt (white)
     assert w.rows[-1]["next_best_pass"] == ""
@@ -376,14 +404,40 @@ def test_a_site_config_becomes_the_same_design_scene(base, study, tmp_path):
 
 def test_mls_design_scenario_writes_tables_figures_and_summary(tmp_path):
     out = tmp_path / "study"
-    res = CliRunner().invoke(app, ["design", "--scenario", "terrestrial", "--out", str(out),
-                                   "--group", "inclination", "--group", "layout", "--error",
-                                   "lever_arm_z", "--targets", "2", "--max-size", "0.8",
-                                   "--seeds", "2"])  # fmt: skip
+    res = CliRunner().invoke(
+        app,
+        [
+            "design",
+            "--scenario",
+            "terrestrial",
+            "--out",
+            str(out),
+            "--group",
+            "inclination",
+            "--group",
+            "layout",
+            "--error",
+            "lever_arm_z",
+            "--targets",
+            "2",
+            "--max-size",
+            "0.8",
+            "--seeds",
+            "2",
+        ],
+    )
     assert res.exit_code == 0, res.output
     names = {p.name for p in out.iterdir()}
-    assert {"criteria.csv", "visibility.csv", "sigma.csv", "recommendation.json", "summary.md",
-            "criteria_lever_arm_z.png", "sigma_inclination.png", "sigma_layout.png"} <= names
+    assert {
+        "criteria.csv",
+        "visibility.csv",
+        "sigma.csv",
+        "recommendation.json",
+        "summary.md",
+        "criteria_lever_arm_z.png",
+        "sigma_inclination.png",
+        "sigma_layout.png",
+    } <= names
     rec = yaml.safe_load((out / "recommendation.json").read_text())
     assert rec["constraint"]["n_targets"] == 2 and len(rec["targets"]) == 2
     assert all(max(t["size_m"]) <= 0.8 for t in rec["targets"])
@@ -405,11 +459,13 @@ def test_mls_design_site_what_if_and_bad_input(base, tmp_path):
     assert res.exit_code == 2 and "exactly one of --scenario and --site" in res.output
     res = CliRunner().invoke(app, ["design", "--scenario", "montreal"])
     assert res.exit_code == 2 and "--out" in res.output
-    res = CliRunner().invoke(app, ["design", "--scenario", "montreal", "--out", str(tmp_path),
-                                   "--group", "everything"])  # fmt: skip
+    res = CliRunner().invoke(
+        app, ["design", "--scenario", "montreal", "--out", str(tmp_path), "--group", "everything"]
+    )
     assert res.exit_code == 2 and "unknown study group(s) everything" in res.output
-    res = CliRunner().invoke(app, ["design", "--scenario", "montreal", "--out", str(tmp_path),
-                                   "--passes", "1,2,9"])  # fmt: skip
+    res = CliRunner().invoke(
+        app, ["design", "--scenario", "montreal", "--out", str(tmp_path), "--passes", "1,2,9"]
+    )
     assert res.exit_code == 2 and "pass(es) 9 are not in scenario 'montreal'" in res.output
     site = yaml.safe_load(path.read_text())
     del site["reference"]

@@ -9,8 +9,15 @@ import numpy as np
 import pytest
 
 from calib.io import sbet
-from calib.io.bundle import (BundleError, ScanPoints, read_bundle, read_points_csv,
-                          read_trajectory_csv, read_truth, write_bundle)  # fmt: skip
+from calib.io.bundle import (
+    BundleError,
+    ScanPoints,
+    read_bundle,
+    read_points_csv,
+    read_trajectory_csv,
+    read_truth,
+    write_bundle,
+)
 from calib.io.site import parse_site
 
 SITE = """\
@@ -27,8 +34,13 @@ def bundle_parts(wave_trajectory):
     rng = np.random.default_rng(11)
     n = 400
     t = np.sort(rng.uniform(traj.t_gps_s[0], traj.t_gps_s[-1], n))
-    pts = ScanPoints(np.repeat([1, 2], n // 2), t, rng.uniform(1, 80, n),
-                     rng.uniform(0, 2 * np.pi, n), rng.uniform(0, 1, n).astype(np.float32))
+    pts = ScanPoints(
+        np.repeat([1, 2], n // 2),
+        t,
+        rng.uniform(1, 80, n),
+        rng.uniform(0, 2 * np.pi, n),
+        rng.uniform(0, 1, n).astype(np.float32),
+    )
     return parse_site(SITE), traj, pts
 
 
@@ -76,8 +88,11 @@ def test_sbet_bundle_infers_the_week_from_the_points(tmp_path, bundle_dir, bundl
     assert np.abs(b.trajectory.p_lgf_m - traj.p_lgf_m).max() < 1e-6
     np.testing.assert_allclose(b.trajectory.sigma_p_m, traj.sigma_p_m, rtol=1e-14)
     (bundle_dir / "trajectory.sbet").write_bytes(rec.tobytes()[:-5])
-    with pytest.raises(BundleError, match=rf"trajectory\.sbet: size {rec.nbytes - 5} bytes is not "
-                                          rf"a multiple of the SBET record size \(136 bytes"):
+    with pytest.raises(
+        BundleError,
+        match=rf"trajectory\.sbet: size {rec.nbytes - 5} bytes is not "
+        rf"a multiple of the SBET record size \(136 bytes",
+    ):
         read_bundle(bundle_dir)
 
 
@@ -90,9 +105,11 @@ def edit_line(path, line_no, new):
 def test_missing_files(tmp_path, bundle_dir):
     with pytest.raises(BundleError, match=r"nowhere: not a directory \(a calibration bundle"):
         read_bundle(tmp_path / "nowhere")
-    for name, message in [("points.csv", "no points.csv or points.csv.gz"),
-                          ("trajectory.csv", "no trajectory.csv or trajectory.sbet"),
-                          ("site.yaml", r"site\.yaml: file not found")]:  # fmt: skip
+    for name, message in [
+        ("points.csv", "no points.csv or points.csv.gz"),
+        ("trajectory.csv", "no trajectory.csv or trajectory.sbet"),
+        ("site.yaml", r"site\.yaml: file not found"),
+    ]:
         d = tmp_path / f"without-{name}"
         shutil.copytree(bundle_dir, d)
         (d / name).unlink()
@@ -105,79 +122,128 @@ def test_missing_files(tmp_path, bundle_dir):
 
 # (file, line, new text, expected message): one case per error the readers report
 POINTS_CASES = [
-    (1, "pass,gps_time,range_m,scan_angle_deg,intensity\n",
-     r"points\.csv:1: header is 'pass,gps_time,.*', expected it to start with 'pass_id,gps_time"),
-    (1, "pass_id,gps_time,range_m,scan_angle_deg,intensity,colour\n",
-     r"points\.csv:1: unexpected columns 'colour'"),
+    (
+        1,
+        "pass,gps_time,range_m,scan_angle_deg,intensity\n",
+        r"points\.csv:1: header is 'pass,gps_time,.*', expected it to start with 'pass_id,gps_time",
+    ),
+    (
+        1,
+        "pass_id,gps_time,range_m,scan_angle_deg,intensity,colour\n",
+        r"points\.csv:1: unexpected columns 'colour'",
+    ),
     (3, "1,1313000000.5,10.0,45.0\n", r"points\.csv:3: 4 fields, expected 5 \(pass_id,"),
-    (3, "1,1313000000.5,ten,45.0,0.5\n",
-     r"points\.csv:3:3: column 'range_m' is 'ten', expected a number"),
-    (4, "1,1313000000.5,10.0,nan,0.5\n",
-     r"points\.csv:4:4: column 'scan_angle_deg' is 'nan', expected a finite number"),
+    (3, "1,1313000000.5,ten,45.0,0.5\n", r"points\.csv:3:3: column 'range_m' is 'ten', expected a number"),
+    (
+        4,
+        "1,1313000000.5,10.0,nan,0.5\n",
+        r"points\.csv:4:4: column 'scan_angle_deg' is 'nan', expected a finite number",
+    ),
     (3, "\n", r"points\.csv:3: empty line, expected 5 fields"),
-    (3, "1.5,1313000000.5,10.0,45.0,0.5\n",
-     r"points\.csv:3:1: pass_id is 1\.5, expected a non-negative integer"),
-    (3, "-1,1313000000.5,10.0,45.0,0.5\n",
-     r"points\.csv:3:1: pass_id is -1\.0, expected a non-negative integer"),
+    (
+        3,
+        "1.5,1313000000.5,10.0,45.0,0.5\n",
+        r"points\.csv:3:1: pass_id is 1\.5, expected a non-negative integer",
+    ),
+    (
+        3,
+        "-1,1313000000.5,10.0,45.0,0.5\n",
+        r"points\.csv:3:1: pass_id is -1\.0, expected a non-negative integer",
+    ),
     (3, "1,1313000000.5,-10.0,45.0,0.5\n", r"points\.csv:3:3: range_m is -10\.0, expected ≥ 0"),
-    (4, "1,1312999999.0,10.0,45.0,0.5\n",
-     r"points\.csv:4:2: gps_time 1312999999\.0 follows 1313000000\.[0-9]+; times must not "
-     r"decrease within a pass"),
-]  # fmt: skip
+    (
+        4,
+        "1,1312999999.0,10.0,45.0,0.5\n",
+        r"points\.csv:4:2: gps_time 1312999999\.0 follows 1313000000\.[0-9]+; times must not "
+        r"decrease within a pass",
+    ),
+]
 
 
 def test_a_short_line_next_to_a_long_one_is_not_taken_for_two_good_lines(tmp_path):
     path = tmp_path / "points.csv"
-    path.write_text("pass_id,gps_time,range_m,scan_angle_deg,intensity\n"
-                    "1,1313000000.0,10.0,45.0\n1,1313000000.1,10.0,45.0,0.5,0.5\n")  # fmt: skip
+    path.write_text(
+        "pass_id,gps_time,range_m,scan_angle_deg,intensity\n"
+        "1,1313000000.0,10.0,45.0\n1,1313000000.1,10.0,45.0,0.5,0.5\n"
+    )
     with pytest.raises(BundleError, match=r"points\.csv:2: 4 fields, expected 5"):
         read_points_csv(path)
 
 
 def test_points_with_time_order_across_passes(tmp_path):
     path = tmp_path / "points.csv"
-    path.write_text("pass_id,gps_time,range_m,scan_angle_deg,intensity\n"
-                    "1,20.0,1,0,0\n1,21.0,1,0,0\n2,10.0,1,0,0\n2,11.0,1,0,0\n")  # fmt: skip
+    path.write_text(
+        "pass_id,gps_time,range_m,scan_angle_deg,intensity\n"
+        "1,20.0,1,0,0\n1,21.0,1,0,0\n2,10.0,1,0,0\n2,11.0,1,0,0\n"
+    )
     assert read_points_csv(path).pass_ids() == [1, 2]  # each pass runs forward: fine
     path.write_text("pass_id,gps_time,range_m,scan_angle_deg,intensity\n")
     with pytest.raises(BundleError, match=r"points\.csv: no points"):
         read_points_csv(path)
 
 
-TRAJ_HEADER = ("gps_time,lat_deg,lon_deg,height_m,roll_deg,pitch_deg,heading_deg,sigma_north_m,"
-               "sigma_east_m,sigma_down_m,sigma_roll_deg,sigma_pitch_deg,sigma_heading_deg\n")
+TRAJ_HEADER = (
+    "gps_time,lat_deg,lon_deg,height_m,roll_deg,pitch_deg,heading_deg,sigma_north_m,"
+    "sigma_east_m,sigma_down_m,sigma_roll_deg,sigma_pitch_deg,sigma_heading_deg\n"
+)
 TRAJ_CASES = [
-    (2, "100.0,45.5,-73.55,0,0,0,0,0.02,0.02,0.03,0.01,0.01,0\n",
-     r"trajectory\.csv:2:13: sigma_heading_deg is 0\.0, expected a positive sigma"),
-    (3, "100.0,45.5,-73.55,0,0,0,0,0.02,0.02,0.03,0.01,0.01,0.02\n",
-     r"trajectory\.csv:3:1: gps_time 100\.0 follows 100\.0; times must increase strictly"),
-    (2, "100.0,95.5,-73.55,0,0,0,0,0.02,0.02,0.03,0.01,0.01,0.02\n",
-     r"trajectory\.csv:2:2: lat_deg is 95\.5, expected -90…90"),
-    (2, "100.0,45.5,-181.0,0,0,0,0,0.02,0.02,0.03,0.01,0.01,0.02\n",
-     r"trajectory\.csv:2:3: lon_deg is -181\.0, expected -180…360"),
-    (2, "100.0,45.5,-73.55,0,0,95,0,0.02,0.02,0.03,0.01,0.01,0.02\n",
-     r"trajectory\.csv:2:6: pitch_deg is 95\.0, expected -90…90"),
-    (2, "100.0,45.5,-73.55,0,-190,0,0,0.02,0.02,0.03,0.01,0.01,0.02\n",
-     r"trajectory\.csv:2:5: roll_deg is -190\.0, expected -180…180"),
-    (3, "101.0,45.5,-73.55,0,0,0,720,0.02,0.02,0.03,0.01,0.01,0.02\n",
-     r"trajectory\.csv:3:7: heading_deg is 720\.0, expected -360…360"),
-    (2, "100.0,45.5,-73.55,0,0,0,0,0.02,0.02,0.03,0.01,0.01\n",
-     r"trajectory\.csv:2: 12 fields, expected 13"),
-    (1, TRAJ_HEADER.replace(",sigma_heading_deg", ""),
-     r"trajectory\.csv:1: unexpected columns 'sigma_north_m,.*'; after 'gps_time,.*' only "
-     r"'sigma_north_m,.*,sigma_heading_deg' may follow"),
-]  # fmt: skip
+    (
+        2,
+        "100.0,45.5,-73.55,0,0,0,0,0.02,0.02,0.03,0.01,0.01,0\n",
+        r"trajectory\.csv:2:13: sigma_heading_deg is 0\.0, expected a positive sigma",
+    ),
+    (
+        3,
+        "100.0,45.5,-73.55,0,0,0,0,0.02,0.02,0.03,0.01,0.01,0.02\n",
+        r"trajectory\.csv:3:1: gps_time 100\.0 follows 100\.0; times must increase strictly",
+    ),
+    (
+        2,
+        "100.0,95.5,-73.55,0,0,0,0,0.02,0.02,0.03,0.01,0.01,0.02\n",
+        r"trajectory\.csv:2:2: lat_deg is 95\.5, expected -90…90",
+    ),
+    (
+        2,
+        "100.0,45.5,-181.0,0,0,0,0,0.02,0.02,0.03,0.01,0.01,0.02\n",
+        r"trajectory\.csv:2:3: lon_deg is -181\.0, expected -180…360",
+    ),
+    (
+        2,
+        "100.0,45.5,-73.55,0,0,95,0,0.02,0.02,0.03,0.01,0.01,0.02\n",
+        r"trajectory\.csv:2:6: pitch_deg is 95\.0, expected -90…90",
+    ),
+    (
+        2,
+        "100.0,45.5,-73.55,0,-190,0,0,0.02,0.02,0.03,0.01,0.01,0.02\n",
+        r"trajectory\.csv:2:5: roll_deg is -190\.0, expected -180…180",
+    ),
+    (
+        3,
+        "101.0,45.5,-73.55,0,0,0,720,0.02,0.02,0.03,0.01,0.01,0.02\n",
+        r"trajectory\.csv:3:7: heading_deg is 720\.0, expected -360…360",
+    ),
+    (2, "100.0,45.5,-73.55,0,0,0,0,0.02,0.02,0.03,0.01,0.01\n", r"trajectory\.csv:2: 12 fields, expected 13"),
+    (
+        1,
+        TRAJ_HEADER.replace(",sigma_heading_deg", ""),
+        r"trajectory\.csv:1: unexpected columns 'sigma_north_m,.*'; after 'gps_time,.*' only "
+        r"'sigma_north_m,.*,sigma_heading_deg' may follow",
+    ),
+]
 
 
 POINTS_TEXT = "pass_id,gps_time,range_m,scan_angle_deg,intensity\n" + "".join(
-    f"1,{1_313_000_000.0 + 0.1 * i:.9f},{10.0 + i},{5.0 * i},0.5\n" for i in range(5))
+    f"1,{1_313_000_000.0 + 0.1 * i:.9f},{10.0 + i},{5.0 * i},0.5\n" for i in range(5)
+)
 TRAJ_TEXT = TRAJ_HEADER + "".join(
-    f"{100.0 + i},45.5,-73.55,0,0,0,{i},0.02,0.02,0.03,0.01,0.01,0.02\n" for i in range(3))
+    f"{100.0 + i},45.5,-73.55,0,0,0,{i},0.02,0.02,0.03,0.01,0.01,0.02\n" for i in range(3)
+)
 
 
-@pytest.mark.parametrize("name, line_no, new, message",
-                         [("points.csv", *c) for c in POINTS_CASES]
-                         + [("trajectory.csv", *c) for c in TRAJ_CASES])  # fmt: skip
+@pytest.mark.parametrize(
+    "name, line_no, new, message",
+    [("points.csv", *c) for c in POINTS_CASES] + [("trajectory.csv", *c) for c in TRAJ_CASES],
+)
 def test_csv_errors(tmp_path, name, line_no, new, message):
     path = tmp_path / name
     reader = read_points_csv if name == "points.csv" else read_trajectory_csv
@@ -204,12 +270,17 @@ def test_trajectory_needs_two_epochs_and_text_files_must_be_text(tmp_path):
     assert len(read_points_csv(gz)) == 1
 
 
-@pytest.mark.parametrize("edit, message", [
-    (("targets: []", "targets: []\ntargtes: []"), r"site\.yaml:4:10: targtes: unknown key"),
-    (("targets: []\n", ""), r"site\.yaml:1:1: <top level>: missing required key 'targets'"),
-    (("lever_arm_m: [0.4, -0.3, -1.8]", "lever_arm_m: [0.4, -0.3, abc]"),
-     r"site\.yaml:2:34: mount\.lever_arm_m\[2\]: got 'abc', expected a finite number"),
-])  # fmt: skip
+@pytest.mark.parametrize(
+    "edit, message",
+    [
+        (("targets: []", "targets: []\ntargtes: []"), r"site\.yaml:4:10: targtes: unknown key"),
+        (("targets: []\n", ""), r"site\.yaml:1:1: <top level>: missing required key 'targets'"),
+        (
+            ("lever_arm_m: [0.4, -0.3, -1.8]", "lever_arm_m: [0.4, -0.3, abc]"),
+            r"site\.yaml:2:34: mount\.lever_arm_m\[2\]: got 'abc', expected a finite number",
+        ),
+    ],
+)
 def test_site_errors_come_through_read_bundle(bundle_dir, edit, message):
     path = bundle_dir / "site.yaml"
     path.write_text(SITE.replace(*edit))

@@ -46,8 +46,11 @@ def test_las_input_keeps_its_fields_and_overwrites_an_existing_dimension(tmp_pat
     cloud = read_cloud(tmp_path / "in.laz")
     write_cloud(tmp_path / "a.laz", cloud, {"c2c_distance_m": np.ones(len(xyz))})
     again = read_cloud(tmp_path / "a.laz")
-    write_cloud(tmp_path / "b.las", again, {"c2c_distance_m": np.full(len(xyz), 2.0),
-                                            "c2c_signed_distance_m": -np.ones(len(xyz))})  # fmt: skip
+    write_cloud(
+        tmp_path / "b.las",
+        again,
+        {"c2c_distance_m": np.full(len(xyz), 2.0), "c2c_signed_distance_m": -np.ones(len(xyz))},
+    )
     out = read_cloud(tmp_path / "b.las").las
     assert list(out.point_format.extra_dimension_names) == ["c2c_distance_m", "c2c_signed_distance_m"]
     np.testing.assert_array_equal(np.asarray(out["c2c_distance_m"]), 2.0)
@@ -59,14 +62,20 @@ def test_las_input_keeps_its_fields_and_overwrites_an_existing_dimension(tmp_pat
     assert "c2c_distance_m" not in cloud.las.point_format.extra_dimension_names
 
 
-@pytest.mark.parametrize("text,delimiter,columns", [
-    ("1 2 3\n4 5 6\n", None, {}),
-    ("1\t2\t3\t7\n4\t5\t6\t8\n", "\t", {"column_4": [7, 8]}),
-    ("# exported\nX,Y,Z,Intensity\n1, 2, 3, 7\n\n4,5,6,8\n", ",", {"Intensity": [7, 8]}),
-    ("//X Y Z R G B\n1 2 3 10 20 30\n4 5 6 11 21 31\n", None,
-     {"R": [10, 11], "G": [20, 21], "B": [30, 31]}),
-    ("1;2;3\n# a comment between points\n4;5;6\n", ";", {}),
-])  # fmt: skip
+@pytest.mark.parametrize(
+    "text,delimiter,columns",
+    [
+        ("1 2 3\n4 5 6\n", None, {}),
+        ("1\t2\t3\t7\n4\t5\t6\t8\n", "\t", {"column_4": [7, 8]}),
+        ("# exported\nX,Y,Z,Intensity\n1, 2, 3, 7\n\n4,5,6,8\n", ",", {"Intensity": [7, 8]}),
+        (
+            "//X Y Z R G B\n1 2 3 10 20 30\n4 5 6 11 21 31\n",
+            None,
+            {"R": [10, 11], "G": [20, 21], "B": [30, 31]},
+        ),
+        ("1;2;3\n# a comment between points\n4;5;6\n", ";", {}),
+    ],
+)
 def test_ascii_variants(tmp_path, text, delimiter, columns):
     p = tmp_path / "c.txt"
     p.write_text(text)
@@ -94,14 +103,17 @@ def test_ascii_output_appends_columns_under_a_cloudcompare_header(tmp_path):
     np.testing.assert_array_equal(np.asarray(las["ascii_intensity"]), [7, 8])
 
 
-@pytest.mark.parametrize("text,message", [
-    ("1 2 3\n4 5 x\n", "c.txt:2: column 3 is 'x', expected a number"),
-    ("1 2 3\n4 5 6 7\n", "c.txt:2: 4 columns, expected 3 like line 1"),
-    ("# header only\n", "c.txt: no points"),
-    ("1 2\n3 4\n", "c.txt:1: 2 column(s), expected at least x y z"),
-    ("1 2 3\n4 nan 6\n", "c.txt:2: column 2 is 'nan', expected a finite number"),
-    ("x y z i\n1 2 3\n", "header names 4 columns"),
-])  # fmt: skip
+@pytest.mark.parametrize(
+    "text,message",
+    [
+        ("1 2 3\n4 5 x\n", "c.txt:2: column 3 is 'x', expected a number"),
+        ("1 2 3\n4 5 6 7\n", "c.txt:2: 4 columns, expected 3 like line 1"),
+        ("# header only\n", "c.txt: no points"),
+        ("1 2\n3 4\n", "c.txt:1: 2 column(s), expected at least x y z"),
+        ("1 2 3\n4 nan 6\n", "c.txt:2: column 2 is 'nan', expected a finite number"),
+        ("x y z i\n1 2 3\n", "header names 4 columns"),
+    ],
+)
 def test_ascii_errors_name_file_and_line(tmp_path, text, message):
     p = tmp_path / "c.txt"
     p.write_text(text)

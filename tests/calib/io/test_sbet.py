@@ -6,7 +6,6 @@ import numpy as np
 import pytest
 
 from calib.core import frames
-
 from calib.io import sbet
 from calib.io.sbet import SbetError
 
@@ -52,14 +51,17 @@ def test_smrmsg_write_read_round_trip_is_exact_and_keeps_file_order(tmp_path):
     assert sbet.read_smrmsg(tmp_path / "a.smrmsg").tobytes() == rec.tobytes()
 
 
-@pytest.mark.parametrize("reader, size, record", [(sbet.read_sbet, 136 * 3 + 7, 136),
-                                                  (sbet.read_smrmsg, 80 * 2 + 1, 80)])
-def test_size_not_a_multiple_of_the_record_is_an_error_naming_file_and_size(tmp_path, reader,
-                                                                             size, record):
+@pytest.mark.parametrize(
+    "reader, size, record", [(sbet.read_sbet, 136 * 3 + 7, 136), (sbet.read_smrmsg, 80 * 2 + 1, 80)]
+)
+def test_size_not_a_multiple_of_the_record_is_an_error_naming_file_and_size(tmp_path, reader, size, record):
     path = tmp_path / "cut.out"
     path.write_bytes(b"\0" * size)
-    with pytest.raises(SbetError, match=rf"cut\.out: size {size} bytes is not a multiple of "
-                                        rf"the .* record size \({record} bytes"):
+    with pytest.raises(
+        SbetError,
+        match=rf"cut\.out: size {size} bytes is not a multiple of "
+        rf"the .* record size \({record} bytes",
+    ):
         reader(path)
 
 
@@ -89,14 +91,14 @@ def test_bad_records_are_named(tmp_path):
 
 
 def test_trajectory_round_trip_through_sbet_and_smrmsg(tmp_path, wave_trajectory):
-    traj = wave_trajectory(duration_s=3.0, rate_hz=200.0, sigmas=True,
-                           t0=WEEK * W_S + 345_600.0)  # fmt: skip
+    traj = wave_trajectory(duration_s=3.0, rate_hz=200.0, sigmas=True, t0=WEEK * W_S + 345_600.0)
     rec, week = sbet.sbet_records(traj, wander_rad=np.radians(12.5))
     assert week == WEEK
     sbet.write_sbet(tmp_path / "t.sbet", rec)
     sbet.write_smrmsg(tmp_path / "t.smrmsg", sbet.smrmsg_records(traj)[::-1])  # reversed order
-    back = sbet.read_sbet_trajectory(tmp_path / "t.sbet", traj.frame, week=WEEK,
-                                     smrmsg_path=tmp_path / "t.smrmsg")  # fmt: skip
+    back = sbet.read_sbet_trajectory(
+        tmp_path / "t.sbet", traj.frame, week=WEEK, smrmsg_path=tmp_path / "t.smrmsg"
+    )
     np.testing.assert_array_equal(back.t_gps_s, traj.t_gps_s)
     assert np.abs(back.p_lgf_m - traj.p_lgf_m).max() < 1e-6
     assert np.abs(frames.wrap_pi(back.rpy_rad - traj.rpy_rad)).max() < 1e-14
@@ -104,8 +106,9 @@ def test_trajectory_round_trip_through_sbet_and_smrmsg(tmp_path, wave_trajectory
     np.testing.assert_allclose(back.sigma_rpy_rad, traj.sigma_rpy_rad, rtol=1e-14)
     # the file holds the platform heading; heading = platform heading − wander angle
     raw = sbet.read_sbet(tmp_path / "t.sbet")
-    np.testing.assert_allclose(frames.wrap_pi(raw["platform_heading_rad"] - raw["wander_rad"]
-                                              - traj.rpy_rad[:, 2]), 0.0, atol=1e-14)  # fmt: skip
+    np.testing.assert_allclose(
+        frames.wrap_pi(raw["platform_heading_rad"] - raw["wander_rad"] - traj.rpy_rad[:, 2]), 0.0, atol=1e-14
+    )
     assert np.all(raw["wander_rad"] == np.radians(12.5))
 
 
@@ -118,18 +121,19 @@ def test_smrmsg_is_sorted_and_interpolated_to_sbet_epochs(tmp_path, wave_traject
     acc["sigma_north_m"] = [0.05, 0.02, 0.04, 0.03, 0.06]
     acc["sigma_heading_arcmin"] = [4.0, 1.0, 3.0, 2.0, 5.0]
     sbet.write_smrmsg(tmp_path / "t.smrmsg", acc)
-    back = sbet.read_sbet_trajectory(tmp_path / "t.sbet", week=WEEK,
-                                     smrmsg_path=tmp_path / "t.smrmsg")  # fmt: skip
+    back = sbet.read_sbet_trajectory(tmp_path / "t.sbet", week=WEEK, smrmsg_path=tmp_path / "t.smrmsg")
     s = back.t_gps_s - (WEEK * W_S + 1000.0)
     np.testing.assert_allclose(back.sigma_p_m[:, 0], 0.02 + 0.01 * s, atol=1e-12)
     arcmin = np.pi / (180 * 60)
     np.testing.assert_allclose(back.sigma_rpy_rad[:, 2], (1.0 + s) * arcmin, rtol=1e-12)
     # an SMRMSG that stops 2 s early does not cover the SBET
     sbet.write_smrmsg(tmp_path / "short.smrmsg", acc[[1, 3, 2]])  # 1000 … 1002 s
-    with pytest.raises(SbetError, match=r"short\.smrmsg: covers .* SBET epochs are more than 1 s "
-                                        r"outside it"):
-        sbet.read_sbet_trajectory(tmp_path / "t.sbet", week=WEEK,
-                                  smrmsg_path=tmp_path / "short.smrmsg")  # fmt: skip
+    with pytest.raises(
+        SbetError,
+        match=r"short\.smrmsg: covers .* SBET epochs are more than 1 s "
+        r"outside it",
+    ):
+        sbet.read_sbet_trajectory(tmp_path / "t.sbet", week=WEEK, smrmsg_path=tmp_path / "short.smrmsg")
 
 
 def test_crossing_the_end_of_the_week_keeps_time_continuous(tmp_path, wave_trajectory):
@@ -142,11 +146,14 @@ def test_crossing_the_end_of_the_week_keeps_time_continuous(tmp_path, wave_traje
     np.testing.assert_array_equal(back.t_gps_s, traj.t_gps_s)
 
 
-@pytest.mark.parametrize("first_sow, near, week", [
-    (345_600.0, WEEK * W_S + 345_700.0, WEEK),  # same week
-    (604_000.0, (WEEK + 1) * W_S + 100.0, WEEK),  # file starts in the week before the points
-    (100.0, WEEK * W_S + 604_700.0, WEEK + 1),  # points at the end of the week before the file
-])  # fmt: skip
+@pytest.mark.parametrize(
+    "first_sow, near, week",
+    [
+        (345_600.0, WEEK * W_S + 345_700.0, WEEK),  # same week
+        (604_000.0, (WEEK + 1) * W_S + 100.0, WEEK),  # file starts in the week before the points
+        (100.0, WEEK * W_S + 604_700.0, WEEK + 1),  # points at the end of the week before the file
+    ],
+)
 def test_infer_week(first_sow, near, week):
     assert sbet.infer_week(first_sow, near) == week
 

@@ -67,7 +67,8 @@ def test_minimal_site_gets_the_documented_defaults():
     assert site.reference is None and site.standoff_m == 15.0
     np.testing.assert_array_equal(site.mount.boresight_rad, np.zeros(3))
     assert [np.degrees(p.relative_heading_rad) for p in site.passes] == pytest.approx(
-        list(SIX_FOLD_RELATIVE_HEADINGS_DEG))
+        list(SIX_FOLD_RELATIVE_HEADINGS_DEG)
+    )
     assert [p.id for p in six_fold_passes()] == [1, 2, 3, 4, 5, 6]
     with pytest.raises(ConfigError, match="no reference point configured"):
         site.frame()
@@ -80,38 +81,56 @@ def test_dump_load_round_trip(tmp_path):
     assert again.targets == site.targets and again.passes == site.passes
     assert again.reference == site.reference and again.vessel == site.vessel
     for attr in ("lever_arm_m", "nominal_rad", "boresight_rad"):
-        np.testing.assert_allclose(getattr(again.mount, attr), getattr(site.mount, attr),
-                                   rtol=1e-15, atol=1e-18)  # fmt: skip
+        np.testing.assert_allclose(
+            getattr(again.mount, attr), getattr(site.mount, attr), rtol=1e-15, atol=1e-18
+        )
     np.testing.assert_allclose(again.sigma_position_m, site.sigma_position_m)
 
 
-@pytest.mark.parametrize("edit, message", [
-    (("standoff_m: 15.0", "standof_m: 15.0"),
-     r"site\.yaml:12:12: standof_m: unknown key 'standof_m'; allowed keys here: .*standoff_m"),
-    (("    reflectivity: 0.9\n", "    reflectivity: 0.9\n    colour: red\n"),
-     r"site\.yaml:20:13: targets\[0\]\.colour: unknown key 'colour'"),
-    (("    size_m: [1.23, 0.76]\n", ""),
-     r"site\.yaml:20:5: targets\[1\]: missing required key 'size_m'"),
-    (("standoff_m: 15.0", "standoff_m: far"),
-     r"site\.yaml:12:13: standoff_m: got 'far', expected a finite number"),
-    (("standoff_m: 15.0", "standoff_m: -3"),
-     r"standoff_m: got -3, expected a number > 0"),
-    (("  lever_arm_m: [0.1, -0.2, -1.5]", "  lever_arm_m: [0.1, -0.2]"),
-     r"site\.yaml:4:16: mount\.lever_arm_m: got \[0\.1, -0\.2\], expected a list of 3 numbers"),
-    (("    inclination_deg: 45.0", "    inclination_deg: 120.0"),
-     r"targets\[1\]\.inclination_deg: got 120\.0, expected a number ≤ 90"),
-    (("    size_m: [1.23, 1.22]", "    size_m: [1.23, 0.0]"),
-     r"targets\[0\]\.size_m: got \[1\.23, 0\.0\], expected 2 positive numbers"),
-    (("  - name: T2", "  - name: T1"),
-     r"site\.yaml:20:5: targets\[1\]: .* expected a unique target name \('T1' appears twice\)"),
-    (("{id: 2, relative", "{id: 1, relative"), r"passes: .* expected unique pass ids"),
-    (("{id: 1, relative", "{id: 1.5, relative"), r"passes\[0\]\.id: got 1\.5, expected an integer"),
-    (("vessel: survey-1", "vessel: [a, b]"), r"vessel: got \['a', 'b'\], expected a non-empty"),
-    (("mount:\n", "mount: 3\nmount_:\n"), r"unknown key 'mount_'"),
-    (("wall_azimuth_deg: 10.0", "wall_azimuth_deg: 10.0\nwall_azimuth_deg: 12.0"),
-     r"site\.yaml:12:1: wall_azimuth_deg: duplicate key"),
-    (("targets:\n", "targets: [\n"), r"site\.yaml:\d+:\d+: not valid YAML"),
-])  # fmt: skip
+@pytest.mark.parametrize(
+    "edit, message",
+    [
+        (
+            ("standoff_m: 15.0", "standof_m: 15.0"),
+            r"site\.yaml:12:12: standof_m: unknown key 'standof_m'; allowed keys here: .*standoff_m",
+        ),
+        (
+            ("    reflectivity: 0.9\n", "    reflectivity: 0.9\n    colour: red\n"),
+            r"site\.yaml:20:13: targets\[0\]\.colour: unknown key 'colour'",
+        ),
+        (("    size_m: [1.23, 0.76]\n", ""), r"site\.yaml:20:5: targets\[1\]: missing required key 'size_m'"),
+        (
+            ("standoff_m: 15.0", "standoff_m: far"),
+            r"site\.yaml:12:13: standoff_m: got 'far', expected a finite number",
+        ),
+        (("standoff_m: 15.0", "standoff_m: -3"), r"standoff_m: got -3, expected a number > 0"),
+        (
+            ("  lever_arm_m: [0.1, -0.2, -1.5]", "  lever_arm_m: [0.1, -0.2]"),
+            r"site\.yaml:4:16: mount\.lever_arm_m: got \[0\.1, -0\.2\], expected a list of 3 numbers",
+        ),
+        (
+            ("    inclination_deg: 45.0", "    inclination_deg: 120.0"),
+            r"targets\[1\]\.inclination_deg: got 120\.0, expected a number ≤ 90",
+        ),
+        (
+            ("    size_m: [1.23, 1.22]", "    size_m: [1.23, 0.0]"),
+            r"targets\[0\]\.size_m: got \[1\.23, 0\.0\], expected 2 positive numbers",
+        ),
+        (
+            ("  - name: T2", "  - name: T1"),
+            r"site\.yaml:20:5: targets\[1\]: .* expected a unique target name \('T1' appears twice\)",
+        ),
+        (("{id: 2, relative", "{id: 1, relative"), r"passes: .* expected unique pass ids"),
+        (("{id: 1, relative", "{id: 1.5, relative"), r"passes\[0\]\.id: got 1\.5, expected an integer"),
+        (("vessel: survey-1", "vessel: [a, b]"), r"vessel: got \['a', 'b'\], expected a non-empty"),
+        (("mount:\n", "mount: 3\nmount_:\n"), r"unknown key 'mount_'"),
+        (
+            ("wall_azimuth_deg: 10.0", "wall_azimuth_deg: 10.0\nwall_azimuth_deg: 12.0"),
+            r"site\.yaml:12:1: wall_azimuth_deg: duplicate key",
+        ),
+        (("targets:\n", "targets: [\n"), r"site\.yaml:\d+:\d+: not valid YAML"),
+    ],
+)
 def test_errors_name_file_line_column_key_and_expectation(edit, message):
     text = SITE_EXAMPLE.replace(*edit)
     assert text != SITE_EXAMPLE
@@ -120,8 +139,11 @@ def test_errors_name_file_line_column_key_and_expectation(edit, message):
 
 
 def test_missing_top_level_key_and_missing_file(tmp_path):
-    with pytest.raises(ConfigError, match=r"site\.yaml:1:1: <top level>: missing required key "
-                                          r"'mount'"):
+    with pytest.raises(
+        ConfigError,
+        match=r"site\.yaml:1:1: <top level>: missing required key "
+        r"'mount'",
+    ):
         parse_site("targets: []\n", source="site.yaml")
     with pytest.raises(ConfigError, match=r"nowhere\.yaml: file not found"):
         load_site(tmp_path / "nowhere.yaml")

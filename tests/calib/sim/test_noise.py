@@ -89,8 +89,12 @@ def test_pos_noise_models_and_seeds():
 
 
 def test_range_noise_grows_with_range_and_incidence():
-    n = ScannerNoise(sigma_range_m=0.002, sigma_range_per_m=1e-5, beam_divergence_rad=5e-4,
-                     sigma_scan_angle_rad=np.radians(0.005))  # fmt: skip
+    n = ScannerNoise(
+        sigma_range_m=0.002,
+        sigma_range_per_m=1e-5,
+        beam_divergence_rad=5e-4,
+        sigma_scan_angle_rad=np.radians(0.005),
+    )
     rho = np.array([10.0, 10.0, 100.0, 10.0])
     cos_inc = np.array([1.0, 0.5, 1.0, 0.0])
     s = n.range_sigma(rho, cos_inc)

@@ -26,8 +26,7 @@ def test_shipped_scenarios():
 def test_montreal_is_the_thesis_site():
     sc = load_scenario("montreal")
     t = {s.name: s for s in sc.surfaces if s.kind == "target"}
-    assert (t["T1"].width_m, t["T1"].height_m, np.degrees(t["T1"].inclination_rad)) == (
-        1.23, 1.22, 90.0)
+    assert (t["T1"].width_m, t["T1"].height_m, np.degrees(t["T1"].inclination_rad)) == (1.23, 1.22, 90.0)
     assert (t["T2"].width_m, t["T2"].height_m) == (1.23, 0.76)
     assert np.degrees(t["T2"].inclination_rad) == pytest.approx(45.0)
     assert 2.0 < abs(t["T1"].along_m - t["T2"].along_m) < 6.0  # a few metres apart
@@ -47,8 +46,11 @@ def test_montreal_is_the_thesis_site():
     np.testing.assert_allclose(np.degrees(sc.truth.boresight_rad), [0.208, 1.245, 0.149])
     assert res.truth["boresight_thesis_deg"]["pitch"] == pytest.approx(-1.245)
     # Z+F 9012 rates (the scenario thins them with point_rate_scale)
-    assert (sc.scanner.profile_rate_hz, sc.scanner.points_per_360,
-            sc.scanner.max_range_m) == (200.0, 5080, 119.0)  # fmt: skip
+    assert (sc.scanner.profile_rate_hz, sc.scanner.points_per_360, sc.scanner.max_range_m) == (
+        200.0,
+        5080,
+        119.0,
+    )
 
 
 def test_terrestrial_scanner_is_2_5_m_above_the_ground_targets():
@@ -78,8 +80,7 @@ def test_tower_validation_planes_reach_40_m():
 def test_every_shipped_scenario_sees_all_its_planes(name):
     res = simulate(name, seed=1)
     counts = res.point_counts()
-    named = [r.name for r, k in zip(res.scene.rectangles, res.scene.kinds)
-             if k in ("target", "validation")]  # fmt: skip
+    named = [r.name for r, k in zip(res.scene.rectangles, res.scene.kinds) if k in ("target", "validation")]
     for n in named:
         assert sum(c[n] for c in counts.values()) > 100, n
     for p in res.plan.passes:  # every pass sees every target
@@ -89,15 +90,28 @@ def test_every_shipped_scenario_sees_all_its_planes(name):
 
 
 def test_overrides_by_dotted_key(tmp_path):
-    sc = load_scenario("montreal", ["noise.pos.model=white", "truth.boresight_deg=[1, 2, 3]",
-                                    "scene.targets.1.up_m=4.5", "motion.turns=true"])  # fmt: skip
+    sc = load_scenario(
+        "montreal",
+        [
+            "noise.pos.model=white",
+            "truth.boresight_deg=[1, 2, 3]",
+            "scene.targets.1.up_m=4.5",
+            "motion.turns=true",
+        ],
+    )
     assert sc.pos_noise.model == "white"
     np.testing.assert_allclose(np.degrees(sc.truth.boresight_rad), [1, 2, 3])
     assert [s.up_m for s in sc.surfaces if s.name == "T2"] == [4.5]
     assert sc.motion.turns is True
     # a mapping of values works the same, and creates missing optional sections
-    sc2 = parse_scenario(MINIMAL, overrides={"motion.rate_hz": 20, "noise.pos.model": "white",
-                                             "scanner.angular_windows_deg": [[300, 20]]})
+    sc2 = parse_scenario(
+        MINIMAL,
+        overrides={
+            "motion.rate_hz": 20,
+            "noise.pos.model": "white",
+            "scanner.angular_windows_deg": [[300, 20]],
+        },
+    )
     assert sc2.motion.rate_hz == 20 and sc2.pos_noise.model == "white"
     np.testing.assert_allclose(sc2.scanner.angular_windows_rad, np.radians([[300, 20]]))
     mask = sc2.scanner.window_mask()  # wraps through 0°
@@ -113,25 +127,40 @@ def test_overrides_by_dotted_key(tmp_path):
 def test_errors_name_the_place_and_what_was_expected(tmp_path):
     p = tmp_path / "bad.yaml"
     p.write_text(MINIMAL + "scanner:\n  max_rnage_m: 100\n")
-    with pytest.raises(ConfigError, match=r"bad\.yaml:\d+:\d+: scanner\.max_rnage_m: unknown key "
-                                          r"'max_rnage_m'.*allowed keys here: .*max_range_m"):
+    with pytest.raises(
+        ConfigError,
+        match=r"bad\.yaml:\d+:\d+: scanner\.max_rnage_m: unknown key "
+        r"'max_rnage_m'.*allowed keys here: .*max_range_m",
+    ):
         load_scenario(p)
     p.write_text(MINIMAL.replace("size_m: [1.0, 1.0]", "size_m: [1.0, -1.0]"))
-    with pytest.raises(ConfigError, match=r"bad\.yaml:6:\d+: scene\.targets\[0\]\.size_m: got "
-                                          r"\[1\.0, -1\.0\], expected 2 positive numbers"):
+    with pytest.raises(
+        ConfigError,
+        match=r"bad\.yaml:6:\d+: scene\.targets\[0\]\.size_m: got "
+        r"\[1\.0, -1\.0\], expected 2 positive numbers",
+    ):
         load_scenario(p)
-    with pytest.raises(ConfigError, match="'atlantis': neither a shipped scenario "
-                                          r"\(montreal, terrestrial, tower\) nor an existing file"):
+    with pytest.raises(
+        ConfigError,
+        match="'atlantis': neither a shipped scenario "
+        r"\(montreal, terrestrial, tower\) nor an existing file",
+    ):
         load_scenario("atlantis")
-    with pytest.raises(ConfigError, match=r"--set:1:1: noise\.pos\.model: got 'pink', expected one "
-                                          r"of gauss_markov, none, per_point, white"):
+    with pytest.raises(
+        ConfigError,
+        match=r"--set:1:1: noise\.pos\.model: got 'pink', expected one "
+        r"of gauss_markov, none, per_point, white",
+    ):
         load_scenario("montreal", ["noise.pos.model=pink"])
     with pytest.raises(ConfigError, match="expected key=value"):
         load_scenario("montreal", ["noise.pos.model"])
     with pytest.raises(ConfigError, match=r"'7' is not an index of the 2-item list"):
         load_scenario("montreal", ["scene.targets.7.up_m=3"])
-    with pytest.raises(ConfigError, match=r"--set site\.standoff_m\.x: 'site\.standoff_m' is a value "
-                                          r"\(15\.0 at .*montreal\.yaml:\d+:\d+"):
+    with pytest.raises(
+        ConfigError,
+        match=r"--set site\.standoff_m\.x: 'site\.standoff_m' is a value "
+        r"\(15\.0 at .*montreal\.yaml:\d+:\d+",
+    ):
         load_scenario("montreal", {"site.standoff_m.x": 3})
     with pytest.raises(ConfigError, match=r"unknown key 'colour'"):
         load_scenario("montreal", ["scene.targets.0.colour=red"])

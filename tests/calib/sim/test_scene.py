@@ -13,11 +13,17 @@ from calib.sim.scene import Scene
 
 def _random_scene(rng, n_rect=12) -> Scene:
     rects = [
-        Rectangle.from_orientation(f"R{i}", rng.uniform(-20, 20, 3), rng.uniform(0.5, 6),
-                                   rng.uniform(0.5, 6), rng.uniform(-np.pi / 2, np.pi / 2),
-                                   rng.uniform(0, 2 * np.pi), rng.uniform(0.1, 1))
+        Rectangle.from_orientation(
+            f"R{i}",
+            rng.uniform(-20, 20, 3),
+            rng.uniform(0.5, 6),
+            rng.uniform(0.5, 6),
+            rng.uniform(-np.pi / 2, np.pi / 2),
+            rng.uniform(0, 2 * np.pi),
+            rng.uniform(0.1, 1),
+        )
         for i in range(n_rect)
-    ]  # fmt: skip
+    ]
     return Scene(tuple(rects), ("other",) * n_rect)
 
 
@@ -30,8 +36,7 @@ def _reference_hits(scene: Scene, o, d, min_range, max_range):
         with np.errstate(divide="ignore", invalid="ignore"):
             rho = -(o @ r.normal + r.d) / den
         x = o + np.where(np.isfinite(rho), rho, 0.0)[:, None] * d
-        ok = (np.isfinite(rho) & (rho > min_range) & (rho <= max_range)
-              & r.contains(x) & (rho < best))  # fmt: skip
+        ok = np.isfinite(rho) & (rho > min_range) & (rho <= max_range) & r.contains(x) & (rho < best)
         best[ok], surf[ok] = rho[ok], j
     return best, surf
 
@@ -64,10 +69,10 @@ def test_intersections_are_exact_and_the_nearest_hit_wins():
 
 
 def test_target_occludes_the_wall_and_water_and_sky_give_nothing():
-    wall = Rectangle.from_orientation("wall", [0.0, 15.0, -5.0], 10.0, 4.0, np.pi / 2,
-                                      np.radians(270.0), 0.25)  # fmt: skip
-    target = Rectangle.from_orientation("T", [0.0, 14.9, -5.0], 1.0, 1.0, np.pi / 2,
-                                        np.radians(270.0), 0.9)  # fmt: skip
+    wall = Rectangle.from_orientation(
+        "wall", [0.0, 15.0, -5.0], 10.0, 4.0, np.pi / 2, np.radians(270.0), 0.25
+    )
+    target = Rectangle.from_orientation("T", [0.0, 14.9, -5.0], 1.0, 1.0, np.pi / 2, np.radians(270.0), 0.9)
     scene = Scene((wall, target), ("wall", "target"))
     # rays from the origin toward the wall plane at heights −7 … −3, along y = 15
     z = np.linspace(-7.5, -2.5, 101)
@@ -86,8 +91,7 @@ def test_target_occludes_the_wall_and_water_and_sky_give_nothing():
 
 
 def test_max_range_and_min_range_cut_returns():
-    wall = Rectangle.from_orientation("wall", [0.0, 15.0, 0.0], 10.0, 10.0, np.pi / 2,
-                                      np.radians(270.0))  # fmt: skip
+    wall = Rectangle.from_orientation("wall", [0.0, 15.0, 0.0], 10.0, 10.0, np.pi / 2, np.radians(270.0))
     scene = Scene((wall,), ("wall",))
     d = np.array([[0.0, 1.0, 0.0]])
     assert scene.intersect(np.zeros(3), d, max_range_m=14.9).surface[0] == -1

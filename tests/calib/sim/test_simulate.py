@@ -12,9 +12,9 @@ import pytest
 from typer.testing import CliRunner
 
 from calib.core import frames
-from calib.io.bundle import read_bundle, read_truth
 from calib.core.geometry import fit_plane
 from calib.core.georef import Mount, georeference
+from calib.io.bundle import read_bundle, read_truth
 from calib.sim.motion import dubins_path, sample_path
 from calib.sim.scenario import load_scenario, parse_scenario
 from calib.sim.simulate import SimulationError, scan, simulate
@@ -36,14 +36,16 @@ ALL_ERRORS = {
 @pytest.fixture(scope="module")
 def exact():
     """Montreal, no noise, every systematic error injected, the profiler mounted tilted."""
-    return simulate("montreal", seed=4, overrides={**NOISE_FREE, **ALL_ERRORS,
-                                                   "mount.nominal_deg": [1.0, -4.0, 3.0]})
+    return simulate(
+        "montreal", seed=4, overrides={**NOISE_FREE, **ALL_ERRORS, "mount.nominal_deg": [1.0, -4.0, 3.0]}
+    )
 
 
 def test_noise_free_returns_lie_exactly_on_their_rectangles(exact):
     r = exact
-    x = georeference(r.points.t_gps_s, r.points.range_m, r.points.scan_angle_rad,
-                     r.trajectory_true, r.mount_true)  # fmt: skip
+    x = georeference(
+        r.points.t_gps_s, r.points.range_m, r.points.scan_angle_rad, r.trajectory_true, r.mount_true
+    )
     assert len(r.points) > 20000
     for j, rect in enumerate(r.scene.rectangles):
         s = r.surface_index == j
@@ -52,8 +54,9 @@ def test_noise_free_returns_lie_exactly_on_their_rectangles(exact):
         assert rect.contains(x[s], margin_m=1e-9).all()
     np.testing.assert_allclose(x, r.p_true_lgf_m, rtol=0, atol=1e-9)
     # the same observations georeferenced with the a-priori mount miss the planes
-    x0 = georeference(r.points.t_gps_s, r.points.range_m, r.points.scan_angle_rad,
-                      r.trajectory_true, r.site.mount)  # fmt: skip
+    x0 = georeference(
+        r.points.t_gps_s, r.points.range_m, r.points.scan_angle_rad, r.trajectory_true, r.site.mount
+    )
     t1 = r.scene.rectangles[0]
     assert np.abs(t1.signed_distance(x0[r.surface_index == 0])).mean() > 0.01
     # the true mount is the a-priori mount with the injected errors
@@ -114,8 +117,9 @@ def _offsets(overrides: dict) -> dict[int, tuple[float, float]]:
     """Per relative heading: signed orthogonal distance (m) of the pass's target cloud centroid
     from the true plane, and the angular deviation (°) of its fitted plane."""
     r = simulate(parse_scenario(THESIS_SITE, overrides=overrides), seed=0)
-    x = georeference(r.points.t_gps_s, r.points.range_m, r.points.scan_angle_rad,
-                     r.trajectory_observed, r.site.mount)  # fmt: skip
+    x = georeference(
+        r.points.t_gps_s, r.points.range_m, r.points.scan_angle_rad, r.trajectory_observed, r.site.mount
+    )
     rect = r.scene.rectangles[0]
     out = {}
     for p in r.plan.passes:
@@ -123,10 +127,11 @@ def _offsets(overrides: dict) -> dict[int, tuple[float, float]]:
         assert s.sum() > 500
         f = fit_plane(x[s], orient_like=rect.normal)
         # thesis Algorithm 3: atan(‖n × n_ref‖ / n·n_ref)
-        dev = np.degrees(np.arctan2(np.linalg.norm(np.cross(f.normal, rect.normal)),
-                                    f.normal @ rect.normal))  # fmt: skip
+        dev = np.degrees(np.arctan2(np.linalg.norm(np.cross(f.normal, rect.normal)), f.normal @ rect.normal))
         out[round(np.degrees(p.relative_heading_rad))] = (
-            float(rect.signed_distance(f.centroid_m[None])[0]), float(dev))
+            float(rect.signed_distance(f.centroid_m[None])[0]),
+            float(dev),
+        )
     return out
 
 
@@ -199,8 +204,7 @@ def test_per_point_pos_errors_exist_in_memory_only(tmp_path):
     np.testing.assert_array_equal(r.trajectory_observed.p_lgf_m, r.trajectory_true.p_lgf_m)
     poses = r.observed_poses()
     truth = r.trajectory_true.interpolate(r.points.t_gps_s)
-    e = np.column_stack([poses.p_lgf_m - truth.p_lgf_m,
-                         frames.wrap_pi(poses.rpy_rad - truth.rpy_rad)])  # fmt: skip
+    e = np.column_stack([poses.p_lgf_m - truth.p_lgf_m, frames.wrap_pi(poses.rpy_rad - truth.rpy_rad)])
     np.testing.assert_allclose(e, r.pose_errors, atol=1e-9)
     np.testing.assert_allclose(e.std(axis=0), r.scenario.pos_noise.sigma, rtol=0.05)
     np.testing.assert_allclose(poses.r_b_n, frames.attitude_matrix(*poses.rpy_rad.T))
@@ -209,8 +213,9 @@ def test_per_point_pos_errors_exist_in_memory_only(tmp_path):
 
 
 def test_scanner_noise_and_recorded_window():
-    r = simulate("montreal", seed=5, overrides={"noise.pos.model": "none",
-                                                 "noise.scanner.beam_divergence_mrad": 0.0})
+    r = simulate(
+        "montreal", seed=5, overrides={"noise.pos.model": "none", "noise.scanner.beam_divergence_mrad": 0.0}
+    )
     dr = r.points.range_m - _true_ranges(r)
     assert dr.std() == pytest.approx(0.002, rel=0.05) and abs(dr.mean()) < 1e-4
     a = np.degrees(r.points.scan_angle_rad)
@@ -223,8 +228,9 @@ def test_scanner_noise_and_recorded_window():
 def _true_ranges(r) -> np.ndarray:
     """Distances from the true scanner origin of each return to its true hit point."""
     geom = replace(r.mount_true, range_offset_m=0.0)
-    o = georeference(r.points.t_gps_s, np.zeros(len(r.points)), r.points.scan_angle_rad,
-                     r.trajectory_true, geom)  # fmt: skip
+    o = georeference(
+        r.points.t_gps_s, np.zeros(len(r.points)), r.points.scan_angle_rad, r.trajectory_true, geom
+    )
     return np.linalg.norm(r.p_true_lgf_m - o, axis=1) - r.mount_true.range_offset_m
 
 
@@ -323,30 +329,43 @@ def test_cli_writes_a_reproducible_bundle(tmp_path):
 
 
 def test_noise_free_bundle_round_trip_keeps_the_points_on_the_planes(tmp_path):
-    res = _run_cli(["--scenario", "montreal", "--seed", "1", "--out", str(tmp_path / "nf"),
-                    "--point-rate-scale", "0.05",
-                    *(f"--set={k}={v}" for k, v in {**NOISE_FREE, **ALL_ERRORS}.items())])
+    res = _run_cli(
+        [
+            "--scenario",
+            "montreal",
+            "--seed",
+            "1",
+            "--out",
+            str(tmp_path / "nf"),
+            "--point-rate-scale",
+            "0.05",
+            *(f"--set={k}={v}" for k, v in {**NOISE_FREE, **ALL_ERRORS}.items()),
+        ]
+    )
     assert res.exit_code == 0, res.output
     b = read_bundle(tmp_path / "nf")
     truth = json.loads((tmp_path / "nf" / "truth.json").read_text())
     assert truth["settings"]["scanner"]["point_rate_scale"] == 0.05
-    mount = Mount(lever_arm_m=truth["lever_arm_m"], nominal_rad=np.radians(truth["nominal_deg"]),
-                  boresight_rad=np.radians([truth["boresight_deg"][k] for k in
-                                            ("roll", "pitch", "yaw")]),
-                  range_offset_m=truth["range_offset_m"],
-                  scan_angle_offset_rad=np.radians(truth["scan_angle_offset_deg"]),
-                  time_offset_s=truth["time_offset_s"])  # fmt: skip
-    x = georeference(b.points.t_gps_s, b.points.range_m, b.points.scan_angle_rad, b.trajectory,
-                     mount)  # fmt: skip
+    mount = Mount(
+        lever_arm_m=truth["lever_arm_m"],
+        nominal_rad=np.radians(truth["nominal_deg"]),
+        boresight_rad=np.radians([truth["boresight_deg"][k] for k in ("roll", "pitch", "yaw")]),
+        range_offset_m=truth["range_offset_m"],
+        scan_angle_offset_rad=np.radians(truth["scan_angle_offset_deg"]),
+        time_offset_s=truth["time_offset_s"],
+    )
+    x = georeference(b.points.t_gps_s, b.points.range_m, b.points.scan_angle_rad, b.trajectory, mount)
     planes = truth["targets"] + truth["background"]
-    dist = np.min(np.abs(x @ np.array([p["normal"] for p in planes]).T
-                         + np.array([p["d"] for p in planes])), axis=1)  # fmt: skip
+    dist = np.min(
+        np.abs(x @ np.array([p["normal"] for p in planes]).T + np.array([p["d"] for p in planes])), axis=1
+    )
     assert dist.max() < 2e-5  # the CSV's precision (heights to the µm, angles to 1e-12°)
 
 
 def test_cli_reports_bad_input_clearly(tmp_path):
-    res = _run_cli(["--scenario", "montreal", "--out", str(tmp_path / "x"),
-                    "--set", "truth.boresight_deg=[1,2]"])
+    res = _run_cli(
+        ["--scenario", "montreal", "--out", str(tmp_path / "x"), "--set", "truth.boresight_deg=[1,2]"]
+    )
     assert res.exit_code == 2
     assert "truth.boresight_deg: got [1, 2], expected a list of 3 numbers" in res.output
     res = _run_cli(["--scenario", "nowhere", "--out", str(tmp_path / "x")])

@@ -9,9 +9,9 @@ import pytest
 
 from calib.core import frames
 from calib.core.geometry import Rectangle
-from calib.survey.passplan import PassPlanError, plan_passes, plan_site, water_azimuth
-from calib.io.site import PassSpec, Site, Target, six_fold_passes
 from calib.core.georef import Mount
+from calib.io.site import PassSpec, Site, Target, six_fold_passes
+from calib.survey.passplan import PassPlanError, plan_passes, plan_site, water_azimuth
 
 WALL_AZ = np.radians(215.0)
 WATER_AZ = WALL_AZ - np.pi / 2  # to the left of the wall direction
@@ -22,11 +22,9 @@ def _targets(wall_az=WALL_AZ, facing=None):
     a = np.array([np.cos(wall_az), np.sin(wall_az), 0.0])
     w = np.array([np.cos(facing), np.sin(facing), 0.0])
     return [
-        Rectangle.from_orientation("T1", -1.75 * a + 0.03 * w + [0, 0, -5.0], 1.23, 1.22,
-                                   np.pi / 2, facing),
-        Rectangle.from_orientation("T2", 1.75 * a + 0.3 * w + [0, 0, -5.0], 1.23, 0.76,
-                                   np.pi / 4, facing),
-    ]  # fmt: skip
+        Rectangle.from_orientation("T1", -1.75 * a + 0.03 * w + [0, 0, -5.0], 1.23, 1.22, np.pi / 2, facing),
+        Rectangle.from_orientation("T2", 1.75 * a + 0.3 * w + [0, 0, -5.0], 1.23, 0.76, np.pi / 4, facing),
+    ]
 
 
 def _line_distance(p, a, b):
@@ -38,20 +36,27 @@ def _line_distance(p, a, b):
 
 def test_six_fold_headings_order_and_standoff():
     targets = _targets()
-    plan = plan_passes(targets, WALL_AZ, 15.0, six_fold_passes(60.0, 2.0), track_down_m=1.65,
-                       safe_wall_distance_m=5.0, capture_margin_m=2.0)  # fmt: skip
+    plan = plan_passes(
+        targets,
+        WALL_AZ,
+        15.0,
+        six_fold_passes(60.0, 2.0),
+        track_down_m=1.65,
+        safe_wall_distance_m=5.0,
+        capture_margin_m=2.0,
+    )
     rel = [np.degrees(p.relative_heading_rad) for p in plan.passes]
     assert rel == [0.0, 180.0, 45.0, 225.0, 315.0, 135.0]
     assert [p.order for p in plan.passes] == [1, 2, 3, 4, 5, 6]
     assert [p.id for p in plan.passes] == [1, 2, 3, 4, 5, 6]
     aim = np.mean([t.center_m for t in targets], axis=0)
     for p in plan.passes:
-        assert np.degrees(p.heading_rad) == pytest.approx((215.0 + np.degrees(
-            p.relative_heading_rad)) % 360.0, abs=1e-9)  # fmt: skip
+        assert np.degrees(p.heading_rad) == pytest.approx(
+            (215.0 + np.degrees(p.relative_heading_rad)) % 360.0, abs=1e-9
+        )
         # the line heads along the heading and lies at the track height
         d = p.end_lgf_m - p.start_lgf_m
-        assert np.degrees(np.arctan2(d[1], d[0])) % 360 == pytest.approx(
-            np.degrees(p.heading_rad), abs=1e-9)
+        assert np.degrees(np.arctan2(d[1], d[0])) % 360 == pytest.approx(np.degrees(p.heading_rad), abs=1e-9)
         assert p.start_lgf_m[2] == p.end_lgf_m[2] == 1.65
         assert p.length_m == pytest.approx(60.0, abs=1e-9)
         assert p.duration_s == pytest.approx(30.0)
@@ -64,8 +69,9 @@ def test_six_fold_headings_order_and_standoff():
 
 
 def test_oblique_passes_keep_the_safe_distance_and_parallel_passes_are_centred():
-    plan = plan_passes(_targets(), WALL_AZ, 15.0, six_fold_passes(60.0, 2.0),
-                       safe_wall_distance_m=5.0, capture_margin_m=2.0)  # fmt: skip
+    plan = plan_passes(
+        _targets(), WALL_AZ, 15.0, six_fold_passes(60.0, 2.0), safe_wall_distance_m=5.0, capture_margin_m=2.0
+    )
     for p in plan.passes:
         ends = plan.wall_distance(np.array([p.start_lgf_m, p.end_lgf_m]))
         assert ends.min() == pytest.approx(p.end_wall_distance_m, abs=1e-9)
@@ -121,8 +127,7 @@ def test_plan_follows_the_side_the_targets_face_and_wraps_azimuths():
 def test_also_capture_widens_the_window_within_the_line():
     targets = _targets()
     a = np.array([np.cos(WALL_AZ), np.sin(WALL_AZ), 0.0])
-    tower = Rectangle.from_orientation("V", 25.0 * a + [0, 0, -20.0], 2.0, 40.0, np.pi / 2,
-                                       WATER_AZ)  # fmt: skip
+    tower = Rectangle.from_orientation("V", 25.0 * a + [0, 0, -20.0], 2.0, 40.0, np.pi / 2, WATER_AZ)
     base = plan_passes(targets, WALL_AZ, 15.0, six_fold_passes(100.0, 2.0))
     wide = plan_passes(targets, WALL_AZ, 15.0, six_fold_passes(100.0, 2.0), also_capture=[tower])
     p0, w0 = base.passes[0], wide.passes[0]
@@ -151,11 +156,26 @@ def test_plan_site_uses_the_site_config():
     targets = []
     for r in rects:
         lat, lon, h = frame.to_geodetic(r.center_m[None])
-        targets.append(Target(r.name, float(lat[0]), float(lon[0]), float(h[0]), r.width_m,
-                              r.height_m, r.inclination_rad, float(WATER_AZ)))  # fmt: skip
-    site = Site(mount=Mount(), targets=tuple(targets), reference=frame,
-                wall_azimuth_rad=float(WALL_AZ), standoff_m=12.0,
-                passes=six_fold_passes(70.0, 1.5))  # fmt: skip
+        targets.append(
+            Target(
+                r.name,
+                float(lat[0]),
+                float(lon[0]),
+                float(h[0]),
+                r.width_m,
+                r.height_m,
+                r.inclination_rad,
+                float(WATER_AZ),
+            )
+        )
+    site = Site(
+        mount=Mount(),
+        targets=tuple(targets),
+        reference=frame,
+        wall_azimuth_rad=float(WALL_AZ),
+        standoff_m=12.0,
+        passes=six_fold_passes(70.0, 1.5),
+    )
     plan = plan_site(site, capture_margin_m=2.0)
     ref = plan_passes(rects, WALL_AZ, 12.0, six_fold_passes(70.0, 1.5), capture_margin_m=2.0)
     for p, q in zip(plan.passes, ref.passes):

@@ -31,12 +31,29 @@ def _idb(e: str, linktype: int, tsresol: int | None = None, tsoffset: int | None
 
 
 def _epb(e: str, iface: int, ticks: int, data: bytes) -> bytes:
-    return _block(e, 6, struct.pack(e + "IIIII", iface, ticks >> 32, ticks & 0xFFFFFFFF, len(data), len(data)) + data)
+    return _block(
+        e, 6, struct.pack(e + "IIIII", iface, ticks >> 32, ticks & 0xFFFFFFFF, len(data), len(data)) + data
+    )
 
 
 def _udp_ipv4(payload: bytes, sport=5000, dport=8200, frag=0) -> bytes:
     udp = struct.pack(">HHHH", sport, dport, 8 + len(payload), 0) + payload
-    return struct.pack(">BBHHHBBH4s4s", 0x45, 0, 20 + len(udp), 1, frag, 64, 17, 0, bytes([192, 168, 1, 2]), bytes([192, 168, 1, 9])) + udp
+    return (
+        struct.pack(
+            ">BBHHHBBH4s4s",
+            0x45,
+            0,
+            20 + len(udp),
+            1,
+            frag,
+            64,
+            17,
+            0,
+            bytes([192, 168, 1, 2]),
+            bytes([192, 168, 1, 9]),
+        )
+        + udp
+    )
 
 
 def _udp_ipv6(payload: bytes, dport=8200) -> bytes:
@@ -90,7 +107,12 @@ def test_classic_pcap_with_nanosecond_stamps():
 
 
 def test_truncated_capture_ends_iteration_and_is_counted():
-    cap = _shb("<") + _idb("<", 1) + _epb("<", 0, 5, _eth(_udp_ipv4(b"ok"))) + _epb("<", 0, 6, _eth(_udp_ipv4(b"cut")))[:-9]
+    cap = (
+        _shb("<")
+        + _idb("<", 1)
+        + _epb("<", 0, 5, _eth(_udp_ipv4(b"ok")))
+        + _epb("<", 0, 6, _eth(_udp_ipv4(b"cut")))[:-9]
+    )
     reader = CaptureReader(cap)
     assert len(list(reader)) == 1 and reader.stats.rejected["truncated"] == 1
 

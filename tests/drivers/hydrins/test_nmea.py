@@ -74,20 +74,33 @@ def test_block_assembles_into_one_canonical_record():
 
 def test_missing_sentences_leave_nan_and_none_never_zero():
     asm = NmeaNavAssembler(utc_clock=None)
-    (nav,) = asm.feed(encode_sentence("HEHDT,,T") + encode_sentence("PIXSE,ATITUD,,") + encode_sentence("PIXSE,HT_STS,"))
+    (nav,) = asm.feed(
+        encode_sentence("HEHDT,,T") + encode_sentence("PIXSE,ATITUD,,") + encode_sentence("PIXSE,HT_STS,")
+    )
     assert math.isnan(nav.heading_rad) and math.isnan(nav.roll_rad) and math.isnan(nav.lat_deg)
-    assert nav.user_status is None and nav.navigation is None and nav.gps_ns is None and nav.time_of_day_ns is None
+    assert (
+        nav.user_status is None
+        and nav.navigation is None
+        and nav.gps_ns is None
+        and nav.time_of_day_ns is None
+    )
 
 
 def test_time_is_not_resolved_when_the_ins_is_not_on_utc():
-    body = BLOCK.replace(encode_sentence("PIXSE,STATUS,00000000,00000A00"), encode_sentence("PIXSE,STATUS,00000000,00000000"))
+    body = BLOCK.replace(
+        encode_sentence("PIXSE,STATUS,00000000,00000A00"), encode_sentence("PIXSE,STATUS,00000000,00000000")
+    )
     (nav,) = NmeaNavAssembler(utc_clock=lambda: utc_date_ns(2024, 5, 17)).feed(body)
     assert nav.utc_detected is False and nav.time_of_day_ns is not None and nav.gps_ns is None
 
 
 @pytest.mark.parametrize(
     "zda_time, time_tag, expected_day",
-    [("235959.50", "235959.900000", 31), ("000000.20", "235959.900000", 31), ("235959.90", "000000.100000", 1)],
+    [
+        ("235959.50", "235959.900000", 31),
+        ("000000.20", "235959.900000", 31),
+        ("235959.90", "000000.100000", 1),
+    ],
 )
 def test_date_from_zda_across_midnight(zda_time, time_tag, expected_day):
     day = 31 if zda_time.startswith("23") else 1
@@ -95,7 +108,9 @@ def test_date_from_zda_across_midnight(zda_time, time_tag, expected_day):
     year = 2023 if day == 31 else 2024
     zda = encode_sentence(f"GPZDA,{zda_time},{day:02d},{month:02d},{year},00,00")
     asm = NmeaNavAssembler(utc_clock=None)
-    (nav,) = asm.feed(zda + encode_sentence(f"PIXSE,TIME__,{time_tag}") + encode_sentence("PIXSE,HT_STS,00000000"))
+    (nav,) = asm.feed(
+        zda + encode_sentence(f"PIXSE,TIME__,{time_tag}") + encode_sentence("PIXSE,HT_STS,00000000")
+    )
     ey, em = (2023, 12) if expected_day == 31 else (2024, 1)
     assert nav.date_source == "zda"
     assert nav.gps_ns == utc_fields_to_gps_ns(ey, em, expected_day, nav.time_of_day_ns)
@@ -104,7 +119,9 @@ def test_date_from_zda_across_midnight(zda_time, time_tag, expected_day):
 def test_host_date_picks_the_nearest_day():
     hint = utc_date_ns(2024, 3, 1) + 5 * 10**9  # host says 00:00:05 on 1 March
     asm = NmeaNavAssembler(utc_clock=lambda: hint)
-    (nav,) = asm.feed(encode_sentence("PIXSE,TIME__,235958.000000") + encode_sentence("PIXSE,HT_STS,00000000"))
+    (nav,) = asm.feed(
+        encode_sentence("PIXSE,TIME__,235958.000000") + encode_sentence("PIXSE,HT_STS,00000000")
+    )
     assert nav.gps_ns == utc_fields_to_gps_ns(2024, 2, 29, nav.time_of_day_ns)  # the tag is from yesterday
     assert nav.date_source == "host"
 
@@ -123,7 +140,14 @@ def test_rejections_are_counted_by_reason_and_garbage_is_skipped():
     good = encode_sentence("HEHDT,1.5,T")
     bad = bytearray(good)
     bad[8] ^= 0x01  # corrupt a digit: checksum no longer matches
-    stream = b"\x00\xffnoise" + bytes(bad) + b"$HEHDT,1.5,T\r\n" + b"$HEHDT,x,T*" + b"%02X\r\n" % checksum(b"HEHDT,x,T") + good
+    stream = (
+        b"\x00\xffnoise"
+        + bytes(bad)
+        + b"$HEHDT,1.5,T\r\n"
+        + b"$HEHDT,x,T*"
+        + b"%02X\r\n" % checksum(b"HEHDT,x,T")
+        + good
+    )
     dec = NmeaDecoder()
     recs = dec.feed(stream)
     assert len(recs) == 1 and recs[0].heading_deg == 1.5
@@ -152,7 +176,12 @@ def test_flush_decodes_a_last_line_without_terminator():
 def test_encode_zda_round_trip():
     gps_ns = utc_fields_to_gps_ns(2025, 7, 4, (12 * 3600 + 34 * 60 + 56) * 10**9 + 780_000_000)
     (z,) = NmeaDecoder().feed(encode_zda(gps_ns))
-    assert (z.year, z.month, z.day, z.time_of_day_ns) == (2025, 7, 4, (12 * 3600 + 34 * 60 + 56) * 10**9 + 780_000_000)
+    assert (z.year, z.month, z.day, z.time_of_day_ns) == (
+        2025,
+        7,
+        4,
+        (12 * 3600 + 34 * 60 + 56) * 10**9 + 780_000_000,
+    )
 
 
 finite = st.floats(allow_nan=False, allow_infinity=False)
@@ -162,7 +191,10 @@ finite = st.floats(allow_nan=False, allow_infinity=False)
 def nav_records(draw):
     tod_ns = draw(st.integers(0, 86_399_999_999)) // 1000 * 1000  # TIME__ carries µs
     algo, system = status_words(
-        navigation=draw(st.booleans()), fine_alignment=draw(st.booleans()), utc_detected=True, pps_detected=draw(st.booleans())
+        navigation=draw(st.booleans()),
+        fine_alignment=draw(st.booleans()),
+        utc_detected=True,
+        pps_detected=draw(st.booleans()),
     )
     maybe = lambda lo, hi: st.one_of(st.just(math.nan), st.floats(lo, hi))  # noqa: E731
     return NavRecord(
@@ -208,12 +240,27 @@ def test_encode_epoch_decode_round_trip(nav):
         assert _close(getattr(back, name), getattr(nav, name), deg), name
     h_back, h = back.heading_rad, nav.heading_rad
     assert (math.isnan(h) and math.isnan(h_back)) or abs(math.remainder(h_back - h, 2 * math.pi)) <= deg
-    for name in ("v_north_m_s", "v_east_m_s", "v_down_m_s", "surge_m", "sway_m", "heave_m", "sigma_v_down_m_s"):
+    for name in (
+        "v_north_m_s",
+        "v_east_m_s",
+        "v_down_m_s",
+        "surge_m",
+        "sway_m",
+        "heave_m",
+        "sigma_v_down_m_s",
+    ):
         assert _close(getattr(back, name), getattr(nav, name), 5e-4), name
     assert _close(back.sigma_north_m, nav.sigma_north_m, 5e-3)
     assert (back.algorithm_status, back.system_status, back.user_status) == (
-        nav.algorithm_status, nav.system_status, nav.user_status)  # fmt: skip
-    assert (back.navigation, back.fine_alignment, back.pps_detected) == (nav.navigation, nav.fine_alignment, nav.pps_detected)
+        nav.algorithm_status,
+        nav.system_status,
+        nav.user_status,
+    )
+    assert (back.navigation, back.fine_alignment, back.pps_detected) == (
+        nav.navigation,
+        nav.fine_alignment,
+        nav.pps_detected,
+    )
 
 
 def _epoch_at(k: int) -> NavRecord:
@@ -230,8 +277,13 @@ def test_an_epoch_that_lost_its_time_is_not_dated_by_a_zda_of_another_instant():
     """A line dropping bytes (a reader stalled behind a full pty): epoch 0 loses its tail with
     TIME__, then epochs 1–9 are lost, and the ZDA of the next second follows."""
     zda_ns = _epoch_at(200).gps_ns
-    stream = (encode_zda(_epoch_at(-200).gps_ns) + encode_epoch(_epoch_at(-1))
-              + encode_epoch(_epoch_at(0))[:120] + encode_zda(zda_ns) + encode_epoch(_epoch_at(200)))  # fmt: skip
+    stream = (
+        encode_zda(_epoch_at(-200).gps_ns)
+        + encode_epoch(_epoch_at(-1))
+        + encode_epoch(_epoch_at(0))[:120]
+        + encode_zda(zda_ns)
+        + encode_epoch(_epoch_at(200))
+    )
     asm = NmeaNavAssembler(utc_clock=None)
     out = asm.feed(stream) + asm.flush()
     assert [n.gps_ns for n in out] == [_epoch_at(-1).gps_ns, zda_ns]
@@ -249,7 +301,10 @@ def test_an_epoch_is_stamped_with_its_own_sentences_not_the_zda_read_before_it()
     out = asm.feed(encode_epoch(_epoch_at(-1)), host_ns=1_000)
     out += asm.feed(encode_zda(_epoch_at(0).gps_ns), host_ns=2_000)
     out += asm.feed(encode_epoch(_epoch_at(1)), host_ns=3_000)
-    assert [(n.host_ns, n.gps_ns) for n in out] == [(1_000, None), (3_000, _epoch_at(1).gps_ns)]  # (no date yet)
+    assert [(n.host_ns, n.gps_ns) for n in out] == [
+        (1_000, None),
+        (3_000, _epoch_at(1).gps_ns),
+    ]  # (no date yet)
     # a ZDA alone (a stream of time messages only) is still stamped by its own arrival
     (nav,) = asm.feed(encode_zda(_epoch_at(200).gps_ns), host_ns=4_000) + asm.flush()
     assert nav.host_ns == 4_000

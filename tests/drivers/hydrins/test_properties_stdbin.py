@@ -34,15 +34,33 @@ from tests.drivers.helpers import PROPERTY, real_file
 
 EXTERNAL = {
     "utc": {"validity_time_100us": 566980000, "source": 1},
-    "gnss1": {"validity_time_100us": 566979000, "gnss_id": 0, "gnss_quality": 4, "latitude_deg": 48.899,
-              "longitude_deg": 2.0125, "altitude_m": 52.5, "latitude_sd_m": 0.02, "longitude_sd_m": 0.03,
-              "altitude_sd_m": 0.05, "lat_lon_cov_m2": 0.0, "geoidal_separation_m": 44.5},
+    "gnss1": {
+        "validity_time_100us": 566979000,
+        "gnss_id": 0,
+        "gnss_quality": 4,
+        "latitude_deg": 48.899,
+        "longitude_deg": 2.0125,
+        "altitude_m": 52.5,
+        "latitude_sd_m": 0.02,
+        "longitude_sd_m": 0.03,
+        "altitude_sd_m": 0.05,
+        "lat_lon_cov_m2": 0.0,
+        "geoidal_separation_m": 44.5,
+    },
     "depth": {"validity_time_100us": 566978000, "depth_m": -102.0, "depth_sd_m": 0.1},
     "event_marker_a": {"validity_time_100us": 566977000, "event_id": 2, "event_count": 77},
-    "turret_angles": {"validity_time_100us": 566976000, "heading_bearing_drift_deg": 1.5, "roll_deg": 0.25,
-                      "elevation_pitch_deg": -3.0},
-    "logbook": {"validity_time_100us": 566975000, "log_id": 9, "custom_text": b"pass 3 start".ljust(32, b"\0")},
-}  # fmt: skip
+    "turret_angles": {
+        "validity_time_100us": 566976000,
+        "heading_bearing_drift_deg": 1.5,
+        "roll_deg": 0.25,
+        "elevation_pitch_deg": -3.0,
+    },
+    "logbook": {
+        "validity_time_100us": 566975000,
+        "log_id": 9,
+        "custom_text": b"pass 3 start".ljust(32, b"\0"),
+    },
+}
 
 
 def _real(name: str) -> bytes:
@@ -59,8 +77,10 @@ def _with_external(name: str, version: int) -> bytes:
 
 def _all_extended_v3() -> bytes:
     """Every extended-navigation block (mask 0x7f), attitude, and the external data above."""
-    blocks = {name: {k: 1 if k == "altitude_ref" else 0.5 for k in names}
-              for name, _, names in EXTENDED_NAVIGATION_BLOCKS.values()}  # fmt: skip
+    blocks = {
+        name: {k: 1 if k == "altitude_ref" else 0.5 for k in names}
+        for name, _, names in EXTENDED_NAVIGATION_BLOCKS.values()
+    }
     blocks["attitude_heading"] = {"heading_deg": 10.0, "roll_deg": 1.0, "pitch_deg": -2.0}
     return encode_frame(StdbinFrame(3, 42, 123_456_789, blocks | EXTERNAL))
 
@@ -95,8 +115,18 @@ def same(a, b) -> bool:
         return False
     if isinstance(a, StdbinAnswer):
         return (a.protocol_version, a.payload) == (b.protocol_version, b.payload)
-    head = lambda f: (f.protocol_version, f.counter, f.validity_time_100us, f.navigation_mask,  # noqa: E731
-                      f.extended_navigation_mask, f.external_data_mask, f.telegram_size)  # fmt: skip
+
+    def head(f):
+        return (
+            f.protocol_version,
+            f.counter,
+            f.validity_time_100us,
+            f.navigation_mask,
+            f.extended_navigation_mask,
+            f.external_data_mask,
+            f.telegram_size,
+        )
+
     return head(a) == head(b) and _blocks_equal(a.blocks, b.blocks)
 
 
@@ -117,7 +147,10 @@ def reference(name: str):
 
 
 def test_the_frames_carry_what_they_claim():
-    assert reference("v3-real").extended_navigation_mask == 0x7 and reference("v3-real").external_data_mask == 0x5ED7
+    assert (
+        reference("v3-real").extended_navigation_mask == 0x7
+        and reference("v3-real").external_data_mask == 0x5ED7
+    )
     for name in ("v4-external", "v5-external"):
         f = reference(name)
         assert f.protocol_version == int(name[1]) and f.extended_navigation_mask == 0x7
@@ -271,7 +304,9 @@ def test_valid_frame_after_random_garbage_decodes(name, garbage, tail):
 @given(data=st.binary(max_size=3000), cuts=st.lists(st.integers(0, 3000), max_size=8))
 def test_random_bytes_with_sync_words_never_raise(data, cuts):
     # salt the bytes with headers of every kind so the decoder's header paths are exercised
-    salted = data.replace(b"\x00\x00", b"IX\x03").replace(b"\xff\xff", b"AN\x05").replace(b"\x01\x01", b"IX\x05")
+    salted = (
+        data.replace(b"\x00\x00", b"IX\x03").replace(b"\xff\xff", b"AN\x05").replace(b"\x01\x01", b"IX\x05")
+    )
     bounds = sorted({0, len(salted), *(min(c, len(salted)) for c in cuts)})
     dec = StdbinDecoder()
     out = [r for a, b in zip(bounds, bounds[1:]) for r in dec.feed(salted[a:b])] + dec.flush()
@@ -341,7 +376,10 @@ def test_generated_frames_round_trip(frame):
     dec = StdbinDecoder()
     (back,) = dec.feed(raw)
     assert (back.protocol_version, back.counter, back.validity_time_100us) == (
-        frame.protocol_version, frame.counter, frame.validity_time_100us)  # fmt: skip
+        frame.protocol_version,
+        frame.counter,
+        frame.validity_time_100us,
+    )
     assert back.telegram_size == len(raw) and dec.stats.rejected_total == 0 and dec.stats.skipped_bytes == 0
     assert (back.extended_navigation_mask is None) == (frame.protocol_version == 2)
     assert _blocks_equal(dict(frame.blocks), {k: back.blocks[k] for k in back.blocks})
@@ -358,8 +396,11 @@ def test_generated_answers_round_trip(answer):
 
 
 @GENERATED
-@given(st.lists(st.one_of(stdbin_frames(), answers()), min_size=1, max_size=4),
-       st.lists(st.integers(0, 10**6), max_size=8), st.binary(max_size=30))  # fmt: skip
+@given(
+    st.lists(st.one_of(stdbin_frames(), answers()), min_size=1, max_size=4),
+    st.lists(st.integers(0, 10**6), max_size=8),
+    st.binary(max_size=30),
+)
 def test_a_generated_stream_split_anywhere_decodes_in_order(records, cuts, garbage):
     raws = [encode_answer(r[1], r[0]) if isinstance(r, tuple) else encode_frame(r) for r in records]
     stream = garbage + b"".join(raws)

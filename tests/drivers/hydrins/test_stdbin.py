@@ -74,12 +74,27 @@ def test_unknown_version_is_counted(v2):
 
 def test_unknown_navigation_bit_v5_still_delivers_known_and_external_blocks():
     # bit 31 of the navigation mask is not in the table: V5's navigation size locates the external data
-    frame = StdbinFrame(5, 7, 1234, {"attitude_heading": {"heading_deg": 10.0, "roll_deg": 1.0, "pitch_deg": 2.0},
-                                     "utc": {"validity_time_100us": 1230, "source": 1}})  # fmt: skip
+    frame = StdbinFrame(
+        5,
+        7,
+        1234,
+        {
+            "attitude_heading": {"heading_deg": 10.0, "roll_deg": 1.0, "pitch_deg": 2.0},
+            "utc": {"validity_time_100us": 1230, "source": 1},
+        },
+    )
     raw = bytearray(encode_frame(frame))
     nav_size = struct.unpack_from(">H", raw, 15)[0]
     extra = b"\xab" * 6
-    raw = raw[:3] + struct.pack(">I", 1 | 1 << 31) + raw[7:15] + struct.pack(">HH", nav_size + 6, len(raw) + 6) + raw[19:27 + 12] + extra + raw[27 + 12 : -4]
+    raw = (
+        raw[:3]
+        + struct.pack(">I", 1 | 1 << 31)
+        + raw[7:15]
+        + struct.pack(">HH", nav_size + 6, len(raw) + 6)
+        + raw[19 : 27 + 12]
+        + extra
+        + raw[27 + 12 : -4]
+    )
     raw += struct.pack(">I", sum(raw) & 0xFFFFFFFF)
     dec = StdbinDecoder()
     (back,) = dec.feed(bytes(raw))
@@ -116,7 +131,9 @@ def test_nav_decoder_gives_canonical_records(v3):
 
 def test_host_date_when_the_frame_has_no_system_date():
     tod_100us = (10 * 3600) * 10_000
-    frame = StdbinFrame(3, 1, tod_100us, {"attitude_heading": {"heading_deg": 1.0, "roll_deg": 0.0, "pitch_deg": 0.0}})
+    frame = StdbinFrame(
+        3, 1, tod_100us, {"attitude_heading": {"heading_deg": 1.0, "roll_deg": 0.0, "pitch_deg": 0.0}}
+    )
     from drivers.hydrins.timeofday import utc_date_ns
 
     dec = StdbinNavDecoder(utc_clock=lambda: utc_date_ns(2022, 2, 2) + 9 * 3600 * 10**9)
@@ -130,7 +147,9 @@ maybe = lambda lo, hi: st.one_of(st.just(math.nan), st.floats(lo, hi))  # noqa: 
 @st.composite
 def nav_records(draw):
     tod_ns = draw(st.integers(0, 863_999_999)) * 100_000
-    algo, system = status_words(navigation=draw(st.booleans()), utc_detected=True, pps_detected=draw(st.booleans()))
+    algo, system = status_words(
+        navigation=draw(st.booleans()), utc_detected=True, pps_detected=draw(st.booleans())
+    )
     return NavRecord(
         "stdbin",
         gps_ns=utc_fields_to_gps_ns(2023, 11, 30, tod_ns),
@@ -169,7 +188,10 @@ def test_encode_nav_decode_round_trip(nav, version, counter):
     assert abs(math.remainder(back.heading_rad - nav.heading_rad, 2 * math.pi)) < 1e-6
     assert back.lat_deg == nav.lat_deg and abs(back.lon_deg - nav.lon_deg) < 1e-9
     assert (back.algorithm_status, back.system_status, back.user_status) == (
-        nav.algorithm_status, nav.system_status, nav.user_status)  # fmt: skip
+        nav.algorithm_status,
+        nav.system_status,
+        nav.user_status,
+    )
 
 
 @pytest.mark.parametrize("last", [b"I", b"A"])
@@ -177,11 +199,16 @@ def test_a_frame_ending_in_a_sync_letter_counts_no_negative_skip(last):
     """A frame whose checksum ends in 'I' or 'A' at the end of a chunk is consumed; nothing is
     held back as a possible frame start and the skip count never goes negative."""
     algo, system = status_words(navigation=True, utc_detected=True, pps_detected=True)
-    nav = NavRecord("stdbin", gps_ns=utc_fields_to_gps_ns(2023, 11, 30, 0), lat_deg=45.5,
-                    lon_deg=-73.5, heading_rad=1.0, algorithm_status=(algo[0], algo[1], 0, 0),
-                    system_status=(system[0], system[1], 0))  # fmt: skip
-    frame = next(f for c in range(100_000)
-                 if (f := encode_nav(nav, version=3, counter=c))[-1:] == last)  # fmt: skip
+    nav = NavRecord(
+        "stdbin",
+        gps_ns=utc_fields_to_gps_ns(2023, 11, 30, 0),
+        lat_deg=45.5,
+        lon_deg=-73.5,
+        heading_rad=1.0,
+        algorithm_status=(algo[0], algo[1], 0, 0),
+        system_status=(system[0], system[1], 0),
+    )
+    frame = next(f for c in range(100_000) if (f := encode_nav(nav, version=3, counter=c))[-1:] == last)
     dec = StdbinDecoder()
     (out,) = dec.feed(frame)
     assert dec.stats.skipped_bytes == 0 and dec._buf == b""

@@ -24,8 +24,11 @@ def _reference(tod_ns: int, hint_ns: int) -> int:
 
 
 @PROPERTY
-@given(st.integers(0, DAY_NS - 1), st.integers(utc_date_ns(1999, 1, 1), utc_date_ns(2030, 1, 1)),
-       st.integers(-12 * 3600 * NS, 12 * 3600 * NS))  # fmt: skip
+@given(
+    st.integers(0, DAY_NS - 1),
+    st.integers(utc_date_ns(1999, 1, 1), utc_date_ns(2030, 1, 1)),
+    st.integers(-12 * 3600 * NS, 12 * 3600 * NS),
+)
 def test_resolve_is_the_nearest_day_by_dates(tod_ns, day_ns, offset_ns):
     hint = day_ns // DAY_NS * DAY_NS + tod_ns + offset_ns  # the tag's instant, seen from ±12 h
     assert resolve_gps_ns(tod_ns, hint) == _reference(tod_ns, hint)
@@ -38,4 +41,6 @@ def test_across_midnight_and_a_leap_second():
     assert resolve_gps_ns(1 * NS, hint) == utc_fields_to_gps_ns(2017, 1, 1, NS)
     assert resolve_gps_ns(1 * NS, hint) - resolve_gps_ns(86_399 * NS, hint) == 3 * NS  # 23:59:60 between
     # an exact tie (12 h either way) goes to the earlier day, as the date rule says
-    assert resolve_gps_ns(0, utc_date_ns(2024, 5, 17) + 12 * 3600 * NS) == utc_fields_to_gps_ns(2024, 5, 17, 0)
+    assert resolve_gps_ns(0, utc_date_ns(2024, 5, 17) + 12 * 3600 * NS) == utc_fields_to_gps_ns(
+        2024, 5, 17, 0
+    )

@@ -77,7 +77,13 @@ def test_serial_pty_bytes_are_stamped_and_survive_unplug_replug(tmp_path):
 
     async def run():
         t = create_transport(
-            {"kind": "serial", "port": str(pty.link), "baudrate": 115200, "reconnect_min_s": 0.02, "reconnect_max_s": 0.1},
+            {
+                "kind": "serial",
+                "port": str(pty.link),
+                "baudrate": 115200,
+                "reconnect_min_s": 0.02,
+                "reconnect_max_s": 0.1,
+            },
             on_event=events.append,
         )
         async with t:
@@ -243,7 +249,10 @@ def test_tcp_client_reconnects_after_the_server_drops_it():
 
         server = await asyncio.start_server(handle, "127.0.0.1", 0)
         port = server.sockets[0].getsockname()[1]
-        t = create_transport({"kind": "tcp", "host": "127.0.0.1", "port": port, "reconnect_min_s": 0.02}, on_event=events.append)
+        t = create_transport(
+            {"kind": "tcp", "host": "127.0.0.1", "port": port, "reconnect_min_s": 0.02},
+            on_event=events.append,
+        )
         async with t:
             first = await read_until(t, 6)
             conns[0].close()
@@ -266,9 +275,19 @@ def test_ins_nmea_over_a_pty_end_to_end(tmp_path):
 
     algo, system = status_words(navigation=True, utc_detected=True, pps_detected=True)
     sent = [
-        NavRecord("nmea", gps_ns=utc_fields_to_gps_ns(2024, 1, 2, (k * 100 + 5_000) * 10**6), lat_deg=45.5, lon_deg=-73.55,
-                  height_m=3.0, roll_rad=0.01 * k, pitch_rad=-0.02, heading_rad=1.5, algorithm_status=algo,
-                  system_status=system, user_status=0)  # fmt: skip
+        NavRecord(
+            "nmea",
+            gps_ns=utc_fields_to_gps_ns(2024, 1, 2, (k * 100 + 5_000) * 10**6),
+            lat_deg=45.5,
+            lon_deg=-73.55,
+            height_m=3.0,
+            roll_rad=0.01 * k,
+            pitch_rad=-0.02,
+            heading_rad=1.5,
+            algorithm_status=algo,
+            system_status=system,
+            user_status=0,
+        )
         for k in range(10)
     ]
     pty = Pty(tmp_path / "ins")

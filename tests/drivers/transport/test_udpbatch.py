@@ -28,9 +28,18 @@ async def _send(port: int, payloads: list[bytes]) -> tuple[int, int]:
 @pytest.mark.parametrize("use_recvmmsg", [True, False], ids=["recvmmsg", "recvmsg"])
 def test_bursts_arrive_complete_in_order_with_kernel_stamps_and_a_lagging_reader_pauses(use_recvmmsg):
     assert recvmmsg.available()  # Linux: the fast path is what the daemon runs
+
     async def run():
-        t = create_transport({"kind": "udp-batch", "host": "127.0.0.1", "port": 0, "max_chunks": 64,
-                              "coalesce_s": 0.005, "use_recvmmsg": use_recvmmsg})  # fmt: skip
+        t = create_transport(
+            {
+                "kind": "udp-batch",
+                "host": "127.0.0.1",
+                "port": 0,
+                "max_chunks": 64,
+                "coalesce_s": 0.005,
+                "use_recvmmsg": use_recvmmsg,
+            }
+        )
         await t.open()
         assert (t._mmsg is not None) == use_recvmmsg
         assert t.kernel_stamps and "kernel receive stamps" in t.describe()

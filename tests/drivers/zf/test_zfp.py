@@ -38,11 +38,27 @@ def profile_datagrams(counter: int, seed: int = 0, n: int = N) -> tuple[list[byt
 
 
 def test_header_layout_is_the_documented_one():
-    (dg,) = encode_profile(7, 123456789, 1000, -5, 10, np.array([1, 0], np.uint32), np.array([9, 8], np.uint16))
+    (dg,) = encode_profile(
+        7, 123456789, 1000, -5, 10, np.array([1, 0], np.uint32), np.array([9, 8], np.uint16)
+    )
     assert len(dg) == HEADER_SIZE + 2 * 6 + 4 == 56
-    magic, hsize, flags, counter, idx, count, t0, dt, a0, da, n, res = struct.unpack_from("<4sHHIHHqIiiHH", dg)
+    magic, hsize, flags, counter, idx, count, t0, dt, a0, da, n, res = struct.unpack_from(
+        "<4sHHIHHqIiiHH", dg
+    )
     assert (magic, hsize, flags, counter, idx, count, t0, dt, a0, da, n, res) == (
-        b"ZFP1", 40, 0b111, 7, 0, 1, 123456789, 1000, -5, 10, 2, 0)  # fmt: skip
+        b"ZFP1",
+        40,
+        0b111,
+        7,
+        0,
+        1,
+        123456789,
+        1000,
+        -5,
+        10,
+        2,
+        0,
+    )
     assert struct.unpack_from("<IHIH", dg, 40) == (1, 9, 0, 8)
     assert int.from_bytes(dg[-4:], "little") == zlib.crc32(dg[:-4])
 
@@ -56,7 +72,10 @@ def test_profile_splits_into_datagrams_that_fit_the_payload():
     assert [p.last for p in packets] == [False] * 22 + [True]
     assert np.array_equal(np.concatenate([p.range_01mm for p in packets]), ranges)
     per = points_per_packet(1400)
-    assert packets[1].t0_ns == packets[0].t0_ns + per * DT and packets[1].angle0_udeg == -1_000_000 + per * DANGLE
+    assert (
+        packets[1].t0_ns == packets[0].t0_ns + per * DT
+        and packets[1].angle0_udeg == -1_000_000 + per * DANGLE
+    )
 
 
 def test_assembled_profile_has_per_point_time_angle_range():
@@ -154,7 +173,18 @@ def test_the_assembler_takes_another_codec():
         def decode_packet(self, data: bytes) -> Packet:
             counter, index, count = data[0], data[1], data[2]
             r = np.frombuffer(data, dtype="<u4", offset=4)
-            return Packet(3, counter, index, count, 1000 * counter + 10 * index * r.size, 10, 0, 1, r, np.zeros(r.size, np.uint16))
+            return Packet(
+                3,
+                counter,
+                index,
+                count,
+                1000 * counter + 10 * index * r.size,
+                10,
+                0,
+                1,
+                r,
+                np.zeros(r.size, np.uint16),
+            )
 
         def encode_profile(self, profile, max_payload=1400):
             raise NotImplementedError
@@ -186,7 +216,9 @@ def test_encode_decode_round_trip_any_split(n, max_payload, t0, dt, a0, da):
     (prof,) = [p for d in dgs for p in asm.feed(d)]
     assert prof.complete and prof.n_points == n
     assert np.array_equal(prof.gps_ns, t0 + np.arange(n, dtype=np.int64) * dt)
-    assert np.array_equal(np.nan_to_num(prof.range_m / 1e-4).round().astype(np.uint64), ranges.astype(np.uint64))
+    assert np.array_equal(
+        np.nan_to_num(prof.range_m / 1e-4).round().astype(np.uint64), ranges.astype(np.uint64)
+    )
     assert np.array_equal(prof.intensity, inten)
 
 
@@ -203,9 +235,13 @@ def test_feed_assembled_is_feed_without_the_arrays_and_remembers_the_last_packet
     want = [p for i, d in enumerate(seq) for p in eager.feed(d, host_ns=None)]
     got += lazy.flush_assembled()
     want += eager.flush()
-    assert [(a.profile_counter, a.packet_count, a.packets_received, a.pps_locked, a.time_valid, a.t0_ns)
-            for a in got] == [(p.profile_counter, p.packet_count, p.packets_received, p.pps_locked, p.time_valid,
-                               int(p.gps_ns[0])) for p in want]  # fmt: skip
+    assert [
+        (a.profile_counter, a.packet_count, a.packets_received, a.pps_locked, a.time_valid, a.t0_ns)
+        for a in got
+    ] == [
+        (p.profile_counter, p.packet_count, p.packets_received, p.pps_locked, p.time_valid, int(p.gps_ns[0]))
+        for p in want
+    ]
     for a, p in zip(got, want):
         b = a.build()
         assert np.array_equal(b.gps_ns, p.gps_ns) and np.array_equal(b.range_m, p.range_m, equal_nan=True)
@@ -221,16 +257,31 @@ def test_a_fractional_point_period_gives_each_packet_its_own_rounded_t0():
     n, dt_exact, t_base = 1000, 984.25, 1_400_000_000_000_000_000
     ranges, inten = np.arange(1, n + 1, dtype=np.uint32), np.zeros(n, np.uint16)
     dgs = []
-    for k, s in enumerate(range(0, n, per)):
-        dgs += encode_profile(9, t_base + round(s * dt_exact), 984, 7 * s, 7, ranges[s:s + per], inten[s:s + per])
+    for s in range(0, n, per):
+        dgs += encode_profile(
+            9, t_base + round(s * dt_exact), 984, 7 * s, 7, ranges[s : s + per], inten[s : s + per]
+        )
     dgs = [decode_packet(d) for d in dgs]  # re-label the single-packet profiles as one of 5 packets
-    packets = [Packet(p.flags & ~4 | (4 if k == len(dgs) - 1 else 0), 9, k, len(dgs), *[getattr(p, a) for a in (
-        "t0_ns", "dt_ns", "angle0_udeg", "dangle_udeg", "range_01mm", "intensity")]) for k, p in enumerate(dgs)]  # fmt: skip
+    packets = [
+        Packet(
+            p.flags & ~4 | (4 if k == len(dgs) - 1 else 0),
+            9,
+            k,
+            len(dgs),
+            *[
+                getattr(p, a)
+                for a in ("t0_ns", "dt_ns", "angle0_udeg", "dangle_udeg", "range_01mm", "intensity")
+            ],
+        )
+        for k, p in enumerate(dgs)
+    ]
     from drivers.zf.assembler import build_profile
 
     prof = build_profile(9, packets, len(packets), 1)
     i = np.arange(n)
-    assert np.array_equal(prof.gps_ns, t_base + np.round((i // per * per) * dt_exact).astype(np.int64) + (i % per) * 984)
+    assert np.array_equal(
+        prof.gps_ns, t_base + np.round((i // per * per) * dt_exact).astype(np.int64) + (i % per) * 984
+    )
     assert np.allclose(np.degrees(prof.scan_angle_rad) * 1e6, 7 * i)
     assert np.array_equal(prof.range_m, ranges * 1e-4)
 
@@ -272,8 +323,9 @@ def _disturbed_stream(draw_ops, n_profiles: int) -> list[bytes]:
         ranges = rng.integers(1, 3_000_000, 1000).astype(np.uint32)
         if c % 4 == 1:
             ranges[:226] = 0  # the first packet has no returns: t0 comes from the second
-        dgs = encode_profile(c, 10**18 + c * 5_000_000, DT, 0, DANGLE, ranges, np.zeros(1000, np.uint16),
-                             pps_locked=c % 5 != 3)  # fmt: skip
+        dgs = encode_profile(
+            c, 10**18 + c * 5_000_000, DT, 0, DANGLE, ranges, np.zeros(1000, np.uint16), pps_locked=c % 5 != 3
+        )
         out += dgs
     for kind, at in draw_ops:
         at %= len(out)
@@ -291,13 +343,26 @@ def _disturbed_stream(draw_ops, n_profiles: int) -> list[bytes]:
 
 
 def _seen(profiles):
-    return [(a.profile_counter, a.packet_count, a.packets_received, a.pps_locked, a.time_valid, a.t0_ns, a.host_ns)
-            for a in profiles]  # fmt: skip
+    return [
+        (
+            a.profile_counter,
+            a.packet_count,
+            a.packets_received,
+            a.pps_locked,
+            a.time_valid,
+            a.t0_ns,
+            a.host_ns,
+        )
+        for a in profiles
+    ]
 
 
 @PROPERTY
-@given(st.lists(st.tuples(st.integers(0, 4), st.integers(0, 10**6)), max_size=6),
-       st.lists(st.integers(1, 17), min_size=1, max_size=40), st.integers(4, 14))  # fmt: skip
+@given(
+    st.lists(st.tuples(st.integers(0, 4), st.integers(0, 10**6)), max_size=6),
+    st.lists(st.integers(1, 17), min_size=1, max_size=40),
+    st.integers(4, 14),
+)
 def test_feed_batch_is_feeding_one_by_one(ops, sizes, n_profiles):
     stream = _disturbed_stream(ops, n_profiles)
     hosts = list(range(1000, 1000 + len(stream)))
@@ -315,7 +380,9 @@ def test_feed_batch_is_feeding_one_by_one(ops, sizes, n_profiles):
         tags += t
         p, q = batched.last_packet, one.last_packet if b >= len(stream) else None
         if q is not None:
-            assert (p is None) == (q is None) and (p is None or (p.profile_counter, p.packet_index) == (q.profile_counter, q.packet_index))
+            assert (p is None) == (q is None) and (
+                p is None or (p.profile_counter, p.packet_index) == (q.profile_counter, q.packet_index)
+            )
         a, k = b, k + 1
     want += one.flush_assembled()
     got += batched.flush_assembled()
@@ -336,6 +403,8 @@ def test_a_clean_stream_in_batches_is_not_decoded_datagram_by_datagram():
     profiles = []
     for a in range(0, len(stream), 7):
         profiles += asm.feed_batch(stream[a : a + 7], list(range(a, a + 7)))[0]
-    assert [p.profile_counter for p in profiles] == list(range(20)) and all(p.packets_received == 5 for p in profiles)
+    assert [p.profile_counter for p in profiles] == list(range(20)) and all(
+        p.packets_received == 5 for p in profiles
+    )
     assert len(calls) <= 7 + len(stream) // 7 + 1  # the first batch one by one, then one decode a batch
     assert len(profiles[10].build().gps_ns) == 1000  # the points are still there when wanted
