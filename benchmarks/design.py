@@ -28,7 +28,7 @@ def main() -> None:
     from calib.design.scenes import design_scenario
     from calib.design.study import run_study
     from calib.design.summary import write_study
-    from calib.sim.scenario import load_scenario
+    from calib.sim.scenariofile import load_scenario
 
     base = load_scenario("montreal")
     spec = default_spec(base)

@@ -1,4 +1,4 @@
-"""Live target hits: profiler points per second that :func:`acquire.guidance.lines.target_hits` handles
+"""Live target hits: profiler points per second that :func:`acquire.guidance.targethits.target_hits` handles
 on one core at the full Z+F rate, against the peer measured in the same run — georeferencing
 every return and testing it against the targets (what the gate avoids).
 
@@ -31,7 +31,8 @@ def _stream(seconds: float):
 
     from calib.core.geometry import Rectangle
     from calib.sim.motion import MotionModel, Wave, sail
-    from calib.sim.scenario import ScannerModel, load_scenario
+    from calib.sim.scenario import ScannerModel
+    from calib.sim.scenariofile import load_scenario
     from calib.sim.scene import Scene
     from calib.sim.simulate import scan
     from calib.survey.passplan import plan_site
@@ -83,7 +84,7 @@ def main() -> None:
     ap.add_argument("--repeat", type=int, default=3, help="timed runs (the best is reported)")
     args = ap.parse_args()
 
-    from acquire.guidance.lines import target_hits
+    from acquire.guidance.targethits import target_hits
     from calib.core.georef import georeference
 
     site, traj, targets, t, rho, alpha, prof, t_prof = _stream(args.seconds)

@@ -20,7 +20,7 @@ import numpy as np  # noqa: E402
 
 
 def _scenario():
-    from calib.sim.scenario import load_scenario
+    from calib.sim.scenariofile import load_scenario
 
     panels = [
         {

@@ -6,12 +6,19 @@ other command modules add to). A command module parses its options, calls the li
 (``calib``, ``drivers``, ``acquire``, ``sim_devices``), prints and maps the outcome to an exit
 status; it imports its heavy dependencies inside the command so that ``mls --help`` stays
 fast.
+
+Errors (docs/architecture.md §9.3): an :class:`~calib.core.errors.MlsError` that escapes a
+command is caught once, here, by :class:`MlsGroup`: one line ``error: <message>`` on stderr and
+exit status :data:`EXIT_ERROR`. A command catches ``MlsError`` itself only where it needs its own
+exit status or message (``mls acquire``: 2 invalid config, 1 cannot start).
 """
 
 from __future__ import annotations
 
 import typer
+from typer.core import TyperGroup
 
+from calib.core.errors import MlsError
 from cli.commands import (
     acquire_cmd,
     assess_cmd,  # noqa: F401  (adds calib c2c, history, compare)
@@ -30,7 +37,25 @@ from cli.commands import (
     status_cmd,
 )
 
+#: Exit status of an :class:`MlsError` that no command handles itself.
+EXIT_ERROR = 1
+
+
+class MlsGroup(TyperGroup):
+    """The ``mls`` group: every command (and sub-group) runs inside :meth:`invoke`, so an
+    :class:`MlsError` escaping any of them ends the run with its message on one line of stderr,
+    never a traceback, under the console script and ``typer.testing.CliRunner`` alike."""
+
+    def invoke(self, ctx):
+        try:
+            return super().invoke(ctx)
+        except MlsError as e:
+            typer.echo(f"{typer.style('error:', fg=typer.colors.RED)} {e}", err=True)
+            raise typer.Exit(EXIT_ERROR) from None
+
+
 app = typer.Typer(
+    cls=MlsGroup,
     name="mls",
     help=(
         "marine-mls: acquisition, synchronization and boresight calibration for a marine "
@@ -62,7 +87,8 @@ def version() -> None:
     typer.echo(__version__)
 
 
-def main() -> None:  # console entry point
+def main() -> None:
+    """The console entry point; :class:`MlsGroup` reports an :class:`MlsError` of any command."""
     app()
 
 

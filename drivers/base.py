@@ -17,8 +17,10 @@ from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from typing import Any, Protocol
 
+from calib.core.errors import MlsError
 
-class DriverError(ValueError):
+
+class DriverError(MlsError, ValueError):
     """Bad input handed to a driver function that is not a stream decoder (a datagram, a config)."""
 
 

@@ -39,9 +39,12 @@ import struct
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, replace
-from typing import Any
+from typing import TYPE_CHECKING, Any, cast
 
 from drivers.base import DecoderStats, DriverError
+
+if TYPE_CHECKING:
+    from can.interfaces.udp_multicast import UdpMulticastBus
 
 EVENT_MARKER_ID = 0x6E0
 EVENT_MARKER_FORMAT = 0xE1
@@ -119,7 +122,8 @@ def open_can_bus(config: dict[str, Any]):
     except (can.CanError, ValueError, TypeError, NotImplementedError) as exc:
         raise DriverError(f"can ({interface}): {exc}") from exc
     if interface == "udp_multicast" and loopback_only:
-        pin_multicast_to_loopback(bus._multicast._socket, bus._multicast.group)  # python-can 4.6 internals
+        multicast = cast("UdpMulticastBus", bus)._multicast  # python-can 4.6 internals
+        pin_multicast_to_loopback(multicast._socket, multicast.group)
     return bus
 
 
@@ -139,13 +143,13 @@ def pin_multicast_to_loopback(sock: socket.socket, group: str) -> None:
         sock.setsockopt(socket.IPPROTO_IP, socket.IP_MULTICAST_LOOP, 1)
     else:
         grp = socket.inet_pton(socket.AF_INET6, group)
-        lo = socket.if_nametoindex("lo")
+        lo_index = socket.if_nametoindex("lo")
         try:
             sock.setsockopt(socket.IPPROTO_IPV6, socket.IPV6_LEAVE_GROUP, grp + struct.pack("@I", 0))
         except OSError:
             pass
-        sock.setsockopt(socket.IPPROTO_IPV6, socket.IPV6_JOIN_GROUP, grp + struct.pack("@I", lo))
-        sock.setsockopt(socket.IPPROTO_IPV6, socket.IPV6_MULTICAST_IF, lo)
+        sock.setsockopt(socket.IPPROTO_IPV6, socket.IPV6_JOIN_GROUP, grp + struct.pack("@I", lo_index))
+        sock.setsockopt(socket.IPPROTO_IPV6, socket.IPV6_MULTICAST_IF, lo_index)
         sock.setsockopt(socket.IPPROTO_IPV6, socket.IPV6_MULTICAST_LOOP, 1)
 
 

@@ -180,7 +180,7 @@ def pack_pps_fdata(timeout_s: float | None) -> bytearray:
     return bytearray(PPS_FDATA.pack(0, 0, bytes(16), bytes(16), 0, tmo))
 
 
-def unpack_pps_fdata(buf: bytes) -> PpsFetch:
+def unpack_pps_fdata(buf: bytes | bytearray) -> PpsFetch:
     a_seq, c_seq, a_tu, c_tu, mode, _tmo = PPS_FDATA.unpack(bytes(buf))
     a_sec, a_nsec, _ = PPS_KTIME.unpack(a_tu)
     c_sec, c_nsec, _ = PPS_KTIME.unpack(c_tu)
@@ -384,7 +384,7 @@ class UdpPpsSource(PpsSource):
     def __init__(self, host: str = "127.0.0.1", port: int = 0, name: str | None = None):
         super().__init__(name or "udp")
         self.host, self.port = host, port
-        self._transport = None
+        self._transport: asyncio.DatagramTransport | None = None
 
     async def open(self) -> None:
         await super().open()
@@ -400,7 +400,8 @@ class UdpPpsSource(PpsSource):
         sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
         sock.bind((self.host, self.port))
         self.port = sock.getsockname()[1]
-        self._transport, _ = await self._loop.create_datagram_endpoint(_Proto, sock=sock)
+        loop = asyncio.get_running_loop()  # the loop super().open() kept
+        self._transport, _ = await loop.create_datagram_endpoint(_Proto, sock=sock)
 
     async def close(self) -> None:
         if self._transport is not None:

@@ -70,7 +70,7 @@ def trajectory() -> Trajectory:
                 frames.wrap_2pi(np.radians(heading_deg + 0.4 * np.sin(2 * np.pi * s / 9.0))),
             ],
             axis=1,
-        )  # fmt: skip  (pass 1's heading swings across 360°/0°)
+        )  # pass 1's heading swings across 360°/0°
         parts.append((t, p, rpy))
         t_pass = t[-1] + TURN_S
     t, p, rpy = (np.concatenate(x) for x in zip(*parts))

@@ -44,6 +44,7 @@ import numpy as np
 from calib.core.frames import utc_to_gps_ns, wrap_2pi
 from calib.io.bundle import ScanPoints
 from drivers.hydrins.nav import NavRecord
+from sim_devices.errors import SimDevicesError
 
 NS_PER_S = 1_000_000_000
 RANGE_UNIT_M = 1e-4
@@ -52,7 +53,7 @@ SIGMA_VELOCITY_M_S = 0.01  # the INS velocity σ reported (the scenario has none
 _VELOCITY_HALF_STEP_S = 0.02
 
 
-class FeedError(ValueError):
+class FeedError(SimDevicesError, ValueError):
     """The scenario cannot be turned into device streams as asked (the message says why)."""
 
 

@@ -36,6 +36,7 @@ from pathlib import Path
 
 from sim_devices.canbus import CanEmulator, CanSettings
 from sim_devices.clock import NS_PER_S, TruthClock
+from sim_devices.errors import SimDevicesError
 from sim_devices.faults import FaultError, FaultPlan
 from sim_devices.feed import ScenarioFeed
 from sim_devices.ins import InsEmulator, InsSettings
@@ -46,10 +47,6 @@ from sim_devices.vesselconfig import write_vessel_config
 
 DEVICES = ("ins", "profiler", "pps", "can")
 RUN_FILES = ("truth_clock.json", "faults.json", "devices.json", "scenario_truth.json", "ins", "stats")
-
-
-class SimDevicesError(RuntimeError):
-    """The emulators cannot run as asked (the message says which device and why)."""
 
 
 @dataclass(frozen=True)

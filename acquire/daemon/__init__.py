@@ -1,6 +1,9 @@
 """The acquisition daemon (``mls acquire``).
 
-- ``config``: the vessel config (``vessel.yaml``): schema and validation.
+- ``config``: the vessel config (``vessel.yaml``): loading and validation, every error at once.
+- ``configschema``: the vessel config's parsed form, one frozen dataclass per section and device.
+- ``configdevices``: the ``devices`` section: each device by its kind, and the checks across them.
+- ``confignodes``: the checks of the config's YAML nodes (keys, ranges, choices, names, paths).
 - ``devices``: the daemon's devices, one class per config ``kind``, each run as one task.
 - ``consumers``: taps on the daemon's record stream for consumers, and the checklist publisher.
 - ``sdnotify``: the systemd notification protocol and the health watchdog.

@@ -37,7 +37,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
-from acquire.daemon.config import CanTransport, DeviceConfig, NetTransport, SerialTransport
+from acquire.daemon.configschema import CanTransport, DeviceConfig, NetTransport, SerialTransport
 from acquire.daemon.consumers import ConsumerHub
 from acquire.timing.clock import ClockModel
 from acquire.timing.latency import LatencyMonitor

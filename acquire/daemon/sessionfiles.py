@@ -10,7 +10,7 @@ import json
 import shutil
 from pathlib import Path
 
-from acquire.daemon.config import VesselConfig
+from acquire.daemon.configschema import VesselConfig
 
 
 def salvage_report(root: Path) -> dict:

@@ -49,11 +49,12 @@ from collections.abc import Sequence
 
 from acquire.alarms import CRITICAL, WARNING, AlarmBook
 from acquire.daemon import sdnotify
-from acquire.daemon.config import VesselConfig
+from acquire.daemon.configschema import VesselConfig
 from acquire.daemon.consumers import ChecklistPublisher, Consumer, ConsumerHub
 from acquire.daemon.devices import DEVICES, DaemonContext, Device
 from acquire.daemon.reports import StatusReports
 from acquire.daemon.sessionfiles import salvage_report, write_session_files
+from acquire.errors import AcquireError
 from acquire.log.batch import LogBatcher
 from acquire.log.session import LogError
 from acquire.log.sessionlog import SessionWriter
@@ -71,7 +72,7 @@ STEP_CLEAR_S = 10.0
 DRIVER_BACKOFF_S = (0.5, 30.0)
 
 
-class StartupError(RuntimeError):
+class StartupError(AcquireError, RuntimeError):
     """The daemon cannot start (the message says what and why)."""
 
 

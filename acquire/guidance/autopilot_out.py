@@ -13,10 +13,12 @@ from __future__ import annotations
 from collections.abc import Callable
 from pathlib import Path
 
+from acquire.errors import AcquireError
+
 NMEA_UDP_PORT = 10110
 
 
-class NmeaOutputError(ValueError):
+class NmeaOutputError(AcquireError, ValueError):
     """The destination of the sentences is malformed (the message says why)."""
 
 

@@ -4,10 +4,11 @@
 - :func:`make_guidance` builds the :class:`~acquire.guidance.state.Guidance` of a vessel config:
   the site's targets and its six-fold plan (:func:`calib.survey.passplan.plan_site`), the vessel
   config's mount (what is installed; else the site's), the acceptance tolerances and the
-  profiler settings of the config's ``guidance`` section (:class:`acquire.daemon.config.GuidanceConfig`).
+  profiler settings of the config's ``guidance`` section
+  (:class:`acquire.daemon.configschema.GuidanceConfig`).
 - :func:`guidance_consumer` wires it to a :class:`~acquire.daemon.supervisor.Supervisor`: the clock
   model's state for the acceptance, and the pre-survey checks
-  (:func:`acquire.guidance.lines.prechecks`) from the supervisor's latest navigation, clock status,
+  (:func:`acquire.guidance.prechecks.prechecks`) from the supervisor's latest navigation, clock status,
   latency statistics, free disk and configuration. The consumer publishes the guidance message
   as the ``guidance`` section of the retained ``checklist`` topic (status socket and MQTT), next
   to the supervisor's own ``presurvey`` section.
@@ -21,15 +22,17 @@ from pathlib import Path
 
 import numpy as np
 
-from acquire.daemon.config import GuidanceConfig, VesselConfig
+from acquire.daemon.configschema import GuidanceConfig, VesselConfig
+from acquire.errors import AcquireError
+from acquire.guidance.acceptance import AcceptanceTolerances
 from acquire.guidance.consumer import GuidanceConsumer
-from acquire.guidance.lines import AcceptanceTolerances, Check, disk_needed_bytes, prechecks
+from acquire.guidance.prechecks import Check, disk_needed_bytes, prechecks
 from acquire.guidance.state import Guidance
 
 MS = 1_000_000
 
 
-class GuidanceSetupError(ValueError):
+class GuidanceSetupError(AcquireError, ValueError):
     """The guidance cannot be built from the vessel config's site file (the message says why)."""
 
 

@@ -1,5 +1,5 @@
 """The daemon's guidance state (docs/architecture.md §8): :class:`Guidance` follows the survey, built on the
-pure functions of :mod:`acquire.guidance.lines` and the pass-window tracking of
+pure functions of :mod:`acquire.guidance.lines` and :mod:`acquire.guidance.acceptance` and the pass-window tracking of
 :class:`~acquire.guidance.tracking.PassTracker`; the daemon runs it through
 :class:`~acquire.guidance.consumer.GuidanceConsumer`.
 
@@ -8,7 +8,7 @@ pure functions of :mod:`acquire.guidance.lines` and the pass-window tracking of
 into a line's capture window (the first INS epoch past the window's start, within
 ``match_xte_m`` and ``match_heading_rad`` of the line), gathers the window's samples and live
 target hits, and when the vessel leaves the window (its end, or off the line, turned away, gone
-back) accepts or rejects the pass with :func:`acquire.guidance.lines.evaluate_pass`. After each
+back) accepts or rejects the pass with :func:`acquire.guidance.acceptance.evaluate_pass`. After each
 accepted pass it predicts the boresight σ of the accepted passes and ranks the remaining ones
 (:mod:`calib.design.passpredict`), and it renders all of it as the ``checklist`` status message
 (:meth:`Guidance.message`).
@@ -23,16 +23,15 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
+from acquire.guidance.acceptance import AcceptanceTolerances, PassVerdict
 from acquire.guidance.lines import (
-    AcceptanceTolerances,
-    Check,
     GuidanceSettings,
-    PassVerdict,
     heading_error,
     line_offsets,
     line_state,
     speed_over_ground,
 )
+from acquire.guidance.prechecks import Check
 from acquire.guidance.tracking import PassTracker
 from calib.core import frames
 from calib.core.georef import Mount

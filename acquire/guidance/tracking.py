@@ -1,7 +1,7 @@
 """The pass-window tracking of the daemon's guidance (docs/architecture.md §8): :class:`PassTracker` keeps the
 recent navigation, notices when the vessel sails into a line's capture window, gathers the
 window's samples, profiles and live target hits, and when the vessel leaves it accepts or
-rejects the pass with :func:`acquire.guidance.lines.evaluate_pass`."""
+rejects the pass with :func:`acquire.guidance.acceptance.evaluate_pass`."""
 
 from __future__ import annotations
 
@@ -12,17 +12,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from acquire.guidance.lines import (
-    AcceptanceTolerances,
-    GuidanceSettings,
-    PassVerdict,
-    PassWindow,
-    evaluate_pass,
-    heading_error,
-    line_offsets,
-    speed_over_ground,
-    target_hits,
-)
+from acquire.guidance.acceptance import AcceptanceTolerances, PassVerdict, PassWindow, evaluate_pass
+from acquire.guidance.lines import GuidanceSettings, heading_error, line_offsets, speed_over_ground
+from acquire.guidance.targethits import target_hits
 from calib.core import frames
 from calib.core.geometry import Rectangle
 from calib.core.georef import Mount

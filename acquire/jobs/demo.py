@@ -15,35 +15,36 @@ and runs each step as a child process in **its own process group**, its output i
 2. ``daemon`` — ``mls acquire --config OUT/vessel.yaml``: the devices, the clock model, the
    session log and the line guidance. The demo follows the guidance on the status socket and
    prints a live line (pass, state, cross-track error, accepted passes, predicted σ) and a line
-   per finished pass (:func:`progress_line`, :func:`pass_events`).
+   per finished pass (:mod:`acquire.jobs.demo_progress`).
 3. When every pass is accepted, or the scenario has ended, the daemon is stopped (SIGTERM: the
    session is closed cleanly), then the devices.
 4. ``export`` — ``mls export SESSION --bundle OUT/bundle``;
 5. ``calibration`` — ``mls calib run OUT/bundle --out OUT/calib --no-history``;
 6. the comparison of the recovered boresight with the truth the devices were fed
-   (``OUT/run/scenario_truth.json``): :func:`comparison_rows` and :func:`comparison_table`.
+   (``OUT/run/scenario_truth.json``): :mod:`acquire.jobs.demo_compare`.
 
 No process outlives the demo: on success, on an error (:class:`DemoError` names the step and
 its log) and on Ctrl-C / SIGTERM (:class:`Interrupted`) every child still running gets SIGTERM
 (SIGKILL after a grace period) sent to its whole process group; a child is also asked by the
-kernel to stop (SIGTERM, ``PR_SET_PDEATHSIG``) should the demo itself be killed.
+kernel to stop (SIGTERM, ``PR_SET_PDEATHSIG``) should the demo itself be killed
+(:mod:`acquire.jobs.demo_children`).
 """
 
 from __future__ import annotations
 
-import ctypes
 import json
-import math
-import os
 import shutil
 import signal
-import subprocess
 import sys
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from acquire.errors import AcquireError
+from acquire.jobs.demo_children import Child
+from acquire.jobs.demo_compare import AngleComparison, comparison_rows
+from acquire.jobs.demo_progress import pass_events, progress_line, sigma_covers_accepted, sigma_events
 from acquire.status.bus import StatusListener
 
 NS_PER_S = 1_000_000_000
@@ -51,11 +52,10 @@ MARKER = ".mls-demo"  # in OUT: the directory is a demo's, its contents may be r
 #: What a demo writes in OUT (``laz`` was the output of the earlier ``mls demo``).
 DEMO_ENTRIES = frozenset({MARKER, "run", "bundle", "calib", "logs", "vessel.yaml", "vessel.site.yaml", "laz"})
 SIX_FOLD_DEG = (0.0, 180.0, 45.0, 225.0, 315.0, 135.0)
-ANGLES = ("roll", "pitch", "yaw")
 MLS = (sys.executable, "-m", "cli.app")
 
 
-class DemoError(RuntimeError):
+class DemoError(AcquireError, RuntimeError):
     """A step failed: ``step`` names it, ``log`` is where its output is."""
 
     def __init__(self, step: str, message: str, log: Path | None = None):
@@ -105,280 +105,6 @@ def scenario_overrides(s: DemoSettings) -> list[str]:
         f"motion.pass_gap_s={s.pass_gap_s:g}",
         *s.extra_overrides,
     ]
-
-
-# =============================================================================================
-# Child processes
-# =============================================================================================
-
-
-def _child_setup(parent_pid: int) -> Callable[[], None]:
-    """In the child before exec: be stopped (SIGTERM) when the demo dies (Linux's
-    ``PR_SET_PDEATHSIG``; nothing is imported or allocated after the fork)."""
-    try:
-        prctl = ctypes.CDLL(None, use_errno=True).prctl
-    except (OSError, AttributeError):
-        prctl = None
-    sigterm = int(signal.SIGTERM)
-
-    def setup() -> None:
-        if prctl is not None:
-            prctl(1, sigterm)  # PR_SET_PDEATHSIG
-        if os.getppid() != parent_pid:  # the demo died before the prctl
-            os.kill(os.getpid(), sigterm)
-
-    return setup
-
-
-class Child:
-    """A child process in its own process group (``setpgid``), output to ``log``; the group is
-    what gets signalled."""
-
-    def __init__(self, step: str, args: list[str], log: Path):
-        self.step, self.args, self.log = step, args, log
-        log.parent.mkdir(parents=True, exist_ok=True)
-        with open(log, "wb") as f:
-            f.write(("$ " + " ".join(args) + "\n").encode())
-            f.flush()
-            self.p = subprocess.Popen(
-                args,
-                stdin=subprocess.DEVNULL,
-                stdout=f,
-                stderr=subprocess.STDOUT,
-                process_group=0,
-                preexec_fn=_child_setup(os.getpid()),
-            )
-
-    def poll(self) -> int | None:
-        return self.p.poll()
-
-    def send(self, sig: int) -> None:
-        try:
-            os.killpg(self.p.pid, sig)
-        except (ProcessLookupError, PermissionError):
-            pass
-
-    def group_left(self) -> list[int]:
-        """Processes still in the child's group (in the demo's session: not a stranger that
-        reused the number)."""
-        sid, out = os.getsid(0), []
-        for d in Path("/proc").iterdir():
-            if d.name.isdigit():
-                try:
-                    stat = (d / "stat").read_text()
-                except OSError:
-                    continue
-                f = stat[stat.rfind(")") + 2 :].split()  # state ppid pgrp session ...
-                if f[0] != "Z" and int(f[2]) == self.p.pid and int(f[3]) == sid:
-                    out.append(int(d.name))
-        return out
-
-    def stop(self, sig: int = signal.SIGTERM, grace_s: float = 10.0) -> int | None:
-        """Signal the group and wait; SIGKILL the group after ``grace_s``. Returns the exit
-        code of the child itself (None if it had to be killed)."""
-        if self.p.poll() is None:
-            self.send(sig)
-            try:
-                return self.p.wait(grace_s)
-            except subprocess.TimeoutExpired:
-                pass
-        code = self.p.poll()
-        if code is None or self.group_left():  # the child, or what is left of its group
-            self.send(signal.SIGKILL)
-        if code is None:
-            try:
-                self.p.wait(5.0)
-            except subprocess.TimeoutExpired:
-                pass
-        return code
-
-    def wait(self, timeout_s: float, interrupted: Callable[[], None]) -> int:
-        deadline = time.monotonic() + timeout_s
-        while True:
-            interrupted()
-            code = self.p.poll()
-            if code is not None:
-                return code
-            if time.monotonic() > deadline:
-                raise DemoError(self.step, f"no result after {timeout_s:g} s", self.log)
-            time.sleep(0.1)
-
-    def tail(self, n: int = 4) -> str:
-        try:
-            lines = [ln.strip() for ln in self.log.read_text(errors="replace").splitlines()]
-        except OSError:
-            return ""
-        return " / ".join([ln for ln in lines if ln][-n:])
-
-
-# =============================================================================================
-# What is printed while the survey runs (pure)
-# =============================================================================================
-
-
-def _sigma_text(g: dict) -> str:
-    """The predicted realistic σ of the accepted passes (n/o: not observable yet)."""
-    cur = ((g.get("sigma") or {}).get("current")) or {}
-    r = cur.get("realistic_deg") or {}
-    if not cur.get("passes"):
-        return "σ —"
-    return "σ " + " ".join(f"{a} " + ("n/o" if r.get(a) is None else f"{r[a]:.3f}°") for a in ANGLES)
-
-
-def progress_line(g: dict, clock_state: str | None, elapsed_s: float) -> str:
-    """One line of at most ~80 characters: the elapsed time, the active pass and its state,
-    XTE, accepted passes, predicted σ (realistic, roll pitch yaw, n/o: not observable yet) and
-    the clock when it is not LOCKED."""
-    passes = g.get("passes") or []
-    a = g.get("active") or {}
-    parts = [f"{int(elapsed_s) // 60:02d}:{int(elapsed_s) % 60:02d}"]
-    if not g:
-        parts.append("waiting for the guidance")
-    else:
-        if a:
-            state = str(a.get("state", "approach"))
-            if state == "capture" and "along_m" in a:
-                c0, c1 = a.get("capture_m", (0.0, 0.0))
-                state += f" {max(a['along_m'] - c0, 0.0):.0f}/{c1 - c0:.0f} m"
-            parts.append(f"pass {a.get('pass_id')} {state}")
-            if "xte_m" in a:
-                parts.append(f"· XTE {a['xte_m']:+.2f} m")
-        else:
-            parts.append("all passes sailed" if passes else "no plan")
-        parts.append(f"· {g.get('accepted', 0)}/{len(passes)} accepted")
-        cur = ((g.get("sigma") or {}).get("current")) or {}
-        r = cur.get("realistic_deg") or {}
-        if cur.get("passes"):
-            parts.append("· σ° " + " ".join("n/o" if r.get(x) is None else f"{r[x]:.3f}" for x in ANGLES))
-    if clock_state != "LOCKED":
-        parts.append(f"· clock {clock_state or '—'}")
-    return " ".join(parts)
-
-
-def pass_events(before: dict, after: dict) -> list[str]:
-    """A line for every pass that got a new verdict between two guidance messages."""
-    old = {p["id"]: p.get("attempts", 0) for p in (before.get("passes") or [])}
-    out = []
-    for p in after.get("passes") or []:
-        if p.get("attempts", 0) <= old.get(p["id"], 0) or p.get("status") not in ("accepted", "rejected"):
-            continue
-        hits = ", ".join(f"{k} {v}" for k, v in (p.get("hits") or {}).items())
-        st = p.get("stats") or {}
-        if p["status"] == "accepted":
-            line = (
-                f"✔ pass {p['id']} ({p['relative_heading_deg']:.0f}°) accepted: hits {hits}; "
-                f"max XTE {st.get('max_xte_m', math.nan):.2f} m"
-            )
-        else:
-            line = f"✘ pass {p['id']} ({p['relative_heading_deg']:.0f}°) rejected: " + "; ".join(
-                p.get("reasons") or []
-            )
-        out.append(line)
-    return out
-
-
-def _sigma_passes(g: dict) -> list:
-    return list(((g.get("sigma") or {}).get("current") or {}).get("passes") or [])
-
-
-def sigma_events(before: dict, after: dict) -> list[str]:
-    """A line when the guidance has predicted the σ of a new set of accepted passes."""
-    passes = _sigma_passes(after)
-    if not passes or passes == _sigma_passes(before):
-        return []
-    line = f"  predicted {_sigma_text(after)} with passes {', '.join(str(p) for p in passes)}"
-    rose = (after.get("sigma") or {}).get("current", {}).get("rose") or []
-    if rose:  # see acquire.guidance.state.sigma_rises
-        line += f" ({', '.join(rose)} σ rose: the pass's POS bias outweighs its geometry)"
-    return [line]
-
-
-def sigma_covers_accepted(g: dict) -> bool:
-    """Whether the σ prediction includes every accepted pass."""
-    accepted = sorted(p["id"] for p in g.get("passes") or [] if p.get("status") == "accepted")
-    return sorted(_sigma_passes(g)) == accepted
-
-
-# =============================================================================================
-# The comparison (pure)
-# =============================================================================================
-
-
-@dataclass(frozen=True)
-class AngleComparison:
-    angle: str
-    convention: str  # "canonical" | "thesis"
-    truth_deg: float
-    recovered_deg: float
-    sigma_formal_deg: float
-    sigma_realistic_deg: float
-
-    @property
-    def error_deg(self) -> float:
-        return self.recovered_deg - self.truth_deg
-
-    @property
-    def error_sigmas(self) -> float:
-        """The error in units of the realistic σ."""
-        return self.error_deg / self.sigma_realistic_deg if self.sigma_realistic_deg > 0 else math.inf
-
-
-def comparison_rows(result: dict, truth: dict) -> list[AngleComparison]:
-    """Recovered (``result.json``) against the truth (``scenario_truth.json``), canonical and
-    in the thesis convention (roll, −pitch, yaw; docs/architecture.md §3)."""
-    b, sf, sr = result["boresight_deg"], result["sigma_deg"], result["sigma_realistic_deg"]
-    t = truth["boresight_deg"]
-    rows = [
-        AngleComparison(a, "canonical", float(t[a]), float(b[a]), float(sf[a]), float(sr[a])) for a in ANGLES
-    ]
-    sign = {"roll": 1.0, "pitch": -1.0, "yaw": 1.0}
-    rows += [
-        AngleComparison(
-            r.angle,
-            "thesis",
-            sign[r.angle] * r.truth_deg,
-            sign[r.angle] * r.recovered_deg,
-            r.sigma_formal_deg,
-            r.sigma_realistic_deg,
-        )
-        for r in rows
-    ]
-    return rows
-
-
-def comparison_table(rows: list[AngleComparison]):
-    from rich import box
-    from rich.table import Table
-
-    t = Table(
-        title="boresight: recovered vs truth (degrees)",
-        box=box.SIMPLE_HEAD,
-        title_justify="left",
-        pad_edge=False,
-        show_edge=False,
-    )
-    for col in ("", "truth", "recovered", "error", "σ formal", "σ realistic", "error/σ"):
-        t.add_column(col, justify="right" if col else "left", no_wrap=True)
-    for i, r in enumerate(rows):
-        if i and r.convention != rows[i - 1].convention:
-            t.add_section()
-        name = r.angle if r.convention == "canonical" else f"thesis {r.angle}"
-        bad = abs(r.error_sigmas) > 3
-        t.add_row(
-            name,
-            f"{r.truth_deg:+.4f}",
-            f"{r.recovered_deg:+.4f}",
-            f"{r.error_deg:+.4f}",
-            f"{r.sigma_formal_deg:.4f}",
-            f"{r.sigma_realistic_deg:.4f}",
-            f"[{'bold red' if bad else 'green'}]{r.error_sigmas:+.2f}[/]",
-        )
-    t.caption = (
-        "canonical: docs/architecture.md §3 (R_bs = Rz(yaw)·Ry(pitch)·Rx(roll), pitch + bow up); thesis: "
-        "the iXblue/NWU convention of Shahraji 2022 (pitch negated); error/σ in realistic σ"
-    )
-    t.caption_justify = "left"
-    return t
 
 
 # =============================================================================================
@@ -586,6 +312,8 @@ def _step(
     c = Child(step, args, log)
     children.append(c)
     code = c.wait(timeout_s, interrupted)
+    if code is None:
+        raise DemoError(step, f"no result after {timeout_s:g} s", log)
     if code != 0:
         raise DemoError(step, f"exit code {code}: {c.tail()}", log)
 

@@ -36,6 +36,7 @@ from pathlib import Path
 
 import numpy as np
 
+from acquire.errors import AcquireError
 from acquire.log.read import SessionReadError, channel_metadata, iter_messages, session_summary
 from calib.core import frames
 
@@ -44,7 +45,7 @@ PASS_SOURCES = ("auto", "events", "plan")
 END_SLACK_M = 1.0  # plan passes: how far beyond a planned line's ends the vessel still counts
 
 
-class ExportError(ValueError):
+class ExportError(AcquireError, ValueError):
     """The session cannot be exported as asked (the message says why and what to do)."""
 
 

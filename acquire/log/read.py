@@ -15,11 +15,12 @@ from collections.abc import Iterable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
+from acquire.errors import AcquireError
 from acquire.log.recover import scan_segment, segment_paths
 from acquire.log.schema import Envelope, decode
 
 
-class SessionReadError(ValueError):
+class SessionReadError(AcquireError, ValueError):
     """A session directory that cannot be read (the message names the file)."""
 
 

@@ -40,6 +40,8 @@ import struct
 from dataclasses import dataclass
 from typing import Any
 
+from acquire.errors import AcquireError
+
 RAW_ENCODING = "mls.raw.v1"
 JSON_ENCODING = "json"
 RAW = "raw"
@@ -148,7 +150,7 @@ class Envelope:
     payload: bytes | dict  # the exact received bytes (raw channels) or the JSON data
 
 
-class FormatError(ValueError):
+class FormatError(AcquireError, ValueError):
     """A session message that does not follow this module's encodings."""
 
 

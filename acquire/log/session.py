@@ -12,6 +12,8 @@ from pathlib import Path
 
 from mcap.writer import CompressionType
 
+from acquire.errors import AcquireError
+
 SEGMENT_RE = re.compile(r"^seg-(\d{6})\.mcap$")
 SESSION_RE = re.compile(r"^\d{8}T\d{6}Z_[A-Za-z0-9][A-Za-z0-9_.-]*$")
 LOCK_NAME = "session.lock"
@@ -19,7 +21,7 @@ RESERVE_NAME = ".reserve"
 COMPRESSIONS = {"zstd": CompressionType.ZSTD, "lz4": CompressionType.LZ4, "none": CompressionType.NONE}
 
 
-class LogError(RuntimeError):
+class LogError(AcquireError, RuntimeError):
     """A session directory that cannot be used (locked by another writer, not creatable)."""
 
 

@@ -5,7 +5,7 @@ It reads the daemon's status bus (:mod:`acquire.status.feed`: the local socket b
 when asked) and shows
 
 - the pre-survey checks with pass/fail and the reason (the ``checklist`` message's
-  ``prechecks``, made by :func:`acquire.guidance.lines.prechecks` in the daemon);
+  ``prechecks``, made by :func:`acquire.guidance.prechecks.prechecks` in the daemon);
 - the passes with their status (pending, capturing, accepted, rejected) and the first reason
   of a rejection (Enter on a pass shows them all);
 - a braille plan view of the active line, its capture window, the targets and the vessel;

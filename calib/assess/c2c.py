@@ -64,6 +64,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from calib.core.errors import CalibError
+
 #: A least-squares plane needs at least this many points (CloudCompare's CC_LOCAL_MODEL_MIN_SIZE).
 MIN_MODEL_POINTS = 3
 #: |n·v̂| below this: the orientation of a local normal is ambiguous for signed distances.
@@ -71,7 +73,7 @@ AMBIGUOUS_SIGN_COS = 0.1
 DEFAULT_CHUNK = 1 << 17
 
 
-class C2CError(ValueError):
+class C2CError(CalibError, ValueError):
     """Bad input to a cloud-to-cloud computation (the message names the cloud and the problem)."""
 
 
@@ -135,11 +137,15 @@ class C2CResult:
         no plane could be fitted."""
         return int(np.count_nonzero(self.within_max & ~self.has_model))
 
+    def signed(self) -> np.ndarray:
+        """The signed distances (:class:`C2CError` when no orientation was given)."""
+        if self.signed_distance_m is None:
+            raise C2CError("no signed distances: give orient_direction or orient_toward_m")
+        return self.signed_distance_m
+
     def stats(self, signed: bool = False) -> DistanceStats:
         """Statistics over the points within the maximum distance."""
-        if signed and self.signed_distance_m is None:
-            raise C2CError("no signed distances: give orient_direction or orient_toward_m")
-        d = self.signed_distance_m if signed else self.distance_m
+        d = self.signed() if signed else self.distance_m
         return distance_stats(d[self.within_max])
 
     def nn_stats(self) -> DistanceStats:
@@ -380,7 +386,7 @@ def c2c(
             side[mi] = np.einsum("ij,ij->i", rel, nrm[mi])
             dist[mi] = np.minimum(d_nn[mi], np.abs(side[mi]))
             model[mi] = True
-        if v is not None:
+        if v is not None and signed is not None:  # signed exists exactly when v does
             vv = (v - q) if toward_point else np.broadcast_to(v, q.shape)
             dots = np.einsum("ij,ij->i", np.nan_to_num(nrm), vv)
             flip = np.where(dots < 0, -1.0, 1.0)

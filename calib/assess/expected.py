@@ -73,7 +73,7 @@ def expected_c2c(
     for _ in range(draws):
         q = base_q + np.outer(rng.standard_normal(len(q_m)) * sq, n)
         r = base_r + np.outer(rng.standard_normal(len(ref_m)) * sr, n)
-        e.append(c2c(q, r, k, orient_direction=n).signed_distance_m)
+        e.append(c2c(q, r, k, orient_direction=n).signed())
     if offset_basis_m is None:
         d = np.abs(np.stack(e, axis=1))
     else:

@@ -30,8 +30,10 @@ import sqlite3
 from contextlib import closing
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 from calib.core import frames
+from calib.core.errors import CalibError
 
 ANGLES = ("roll", "pitch", "yaw")
 ENV_DB = "MLS_HISTORY_DB"
@@ -39,11 +41,11 @@ DEFAULT_K_SIGMA = 3.0
 _SCHEMA_VERSION = 1
 
 
-class HistoryError(ValueError):
+class HistoryError(CalibError, ValueError):
     """The history database or a record is missing or unusable (the message says which)."""
 
 
-class ResultFormatError(ValueError):
+class ResultFormatError(CalibError, ValueError):
     """A result.json does not follow docs/architecture.md §4 (the message names the field)."""
 
 
@@ -100,7 +102,7 @@ def validate_result(result: dict, source: str = "result") -> dict:
     for key in required:
         if key not in result:
             raise ResultFormatError(f"{source}: required field {key!r} is missing")
-    out = {
+    out: dict[str, Any] = {
         "boresight_deg": _angles(result, "boresight_deg", source, positive=False),
         "sigma_deg": _angles(result, "sigma_deg", source, positive=True),
         "sigma_scaled_deg": _angles(result, "sigma_scaled_deg", source, positive=True),
@@ -385,6 +387,7 @@ def record_result(
             f"INSERT INTO calibrations ({', '.join(row)}) VALUES ({', '.join('?' * len(row))})",
             tuple(row.values()),
         )
+        assert cur.lastrowid is not None  # an INSERT sets it
         return int(cur.lastrowid)
 
 

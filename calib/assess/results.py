@@ -12,13 +12,14 @@ from pathlib import Path
 import numpy as np
 
 from calib.assess.c2c import DistanceStats
+from calib.core.errors import CalibError
 from calib.core.geometry import Rectangle
 
 STATES = ("before", "after")
 ANGLES = ("roll", "pitch", "yaw")
 
 
-class AssessError(ValueError):
+class AssessError(CalibError, ValueError):
     """The assessment cannot run on this input (the message says what and why)."""
 
 

@@ -41,7 +41,7 @@ def verdict(c: Comparison) -> str:
     after = c.after.median_m
     if after > c.before.median_m:
         return "WORSE than before: check the result and the site's mount"
-    if c.expected_upper_m is None:
+    if c.expected_upper_m is None or c.expected_upper_calibration_m is None:  # set together
         return ""
     if after <= c.expected_upper_m:
         return (
@@ -88,7 +88,7 @@ def plot_histograms(a: Assessment, out_dir: Path) -> list[Path]:
             med = float(np.median(d))
             ax.hist(
                 np.clip(d, lo, hi),
-                bins=bins,
+                bins=bins,  # type: ignore[arg-type]  # matplotlib's stubs refuse the array hist takes
                 histtype="stepfilled",
                 alpha=0.45,
                 color=color,
@@ -297,7 +297,7 @@ def assessment_markdown(a: Assessment, figures: Sequence[Path] = ()) -> str:
                 cells.append(fmt_length(c.true_mount.median_m if c.true_mount else None))
             out.append("| " + " | ".join(cells) + " |")
         out.append("")
-        truth_rows = [c for c in rows if c.truth]
+        truth_rows = [(c, c.truth) for c in rows if c.truth]
         if truth_rows:
             out += [
                 "Against the true planes (simulated bundle): signed distance of each pass's "
@@ -306,11 +306,11 @@ def assessment_markdown(a: Assessment, figures: Sequence[Path] = ()) -> str:
                 "| surface | true plane | pass | before | after | true mount |",
                 "|---|---|---|---|---|---|",
             ]
-            for c in sorted(truth_rows, key=lambda c: -c.height_m):
+            for c, truth in sorted(truth_rows, key=lambda ct: -ct[0].height_m):
                 for pid in c.pair:
                     cells = [
-                        f"{fmt_length(c.truth[s][pid].mean_m)} ± {fmt_length(c.truth[s][pid].std_m)}"
-                        if s in c.truth
+                        f"{fmt_length(truth[s][pid].mean_m)} ± {fmt_length(truth[s][pid].std_m)}"
+                        if s in truth
                         else "—"
                         for s in ("before", "after", "true")
                     ]

@@ -148,7 +148,7 @@ def extract_common_patches(
     cos_max = np.cos(np.radians(options.auto_max_angle_deg))
     tol = 3.0 * options.auto_max_rms_m
     region = {}
-    regions = []
+    regions: list[list[np.intp]] = []  # cell indices of each region
     for seed in sorted(cent, key=lambda c: flat[c]):  # flattest cells seed first
         if seed in region:
             continue

@@ -4,6 +4,8 @@ Modules, each importing only modules above it:
 
 - ``errormodel``: how POS errors are correlated in time, and the O(n) sums that propagate them;
 - ``ghmodel``: the plane condition per point and its derivatives, vectorized over points;
+- ``segmentation``: point-cloud building blocks of the extraction (RANSAC plane, intensity
+  split, incidence correction, clusters, extents);
 - ``extract``: target planes extracted from each pass's points;
 - ``observations``: the adjustment's input (per-point observations, their checks, the options)
   and :class:`~calib.boresight.observations.AdjustmentError`;

@@ -264,6 +264,6 @@ def _jackknife(obs: Observations, state: State, r_nom, options: AdjustOptions):
     g = len(est)
     if g < 3:
         return None
-    est = np.array(est)
-    dev = est - est.mean(axis=0)
+    boresights = np.array(est)
+    dev = boresights - boresights.mean(axis=0)
     return (g - 1) / g * dev.T @ dev

@@ -88,7 +88,11 @@ def information(obs: Observations, state: State, r_nom, estimate) -> Solution:
     """One linearization at ``state`` and the normal matrix (with the offset prior), wrapped as
     a solution so that the covariance machinery applies to it."""
     layout = Layout(len(obs.plane_names), len(obs.pass_ids), estimate)
-    rates = pose_rates(obs.trajectory, obs.t_gps_s + state.latency_s) if "latency" in layout.extras else None
+    rates = (
+        pose_rates(obs.latency_trajectory(), obs.t_gps_s + state.latency_s)
+        if "latency" in layout.extras
+        else None
+    )
     bases = np.stack([tangent_basis(n) for n in state.normals])
     lin = linearize(state, r_nom, obs.plane_index, obs.pass_index, obs.l, rates, bases)
     M = np.einsum("ij,ij->i", lin.B**2, obs.sigma_l**2)

@@ -18,9 +18,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from calib.boresight.ghmodel import EXTRA_NAMES, State, linearize, tangent_basis
+from calib.boresight.ghmodel import EXTRA_NAMES, Linearization, State, linearize, tangent_basis
 from calib.boresight.observability import ANGLE_NAMES, ObservabilityError
-from calib.boresight.observations import AdjustmentError, AdjustOptions, Observations
+from calib.boresight.observations import AdjustOptions, Observations
 from calib.core import frames
 from calib.core.trajectory import Trajectory
 
@@ -195,7 +195,7 @@ class Solution:
     state: State
     N: np.ndarray
     Ninv: np.ndarray
-    lin: object
+    lin: Linearization
     M: np.ndarray
     e: np.ndarray  # adjusted misclosure A·dx + w per point (its square / M is vᵀPv)
     vtpv: float
@@ -219,9 +219,7 @@ def observations_at(obs: Observations, state: State, estimate_latency: bool) -> 
     """The observation vector; with latency estimated the poses move with Δt."""
     if not estimate_latency or state.latency_s == 0.0:
         return obs.l
-    if obs.trajectory is None:
-        raise AdjustmentError("estimating the latency needs the trajectory")
-    poses = obs.trajectory.interpolate(obs.t_gps_s + state.latency_s)
+    poses = obs.latency_trajectory().interpolate(obs.t_gps_s + state.latency_s)
     l = obs.l.copy()
     l[:, 0:3] = poses.p_lgf_m
     l[:, 3:6] = poses.rpy_rad
@@ -241,13 +239,13 @@ def solve(obs: Observations, state: State, r_nom: np.ndarray, options: AdjustOpt
         l_obs = observations_at(obs, state, est_latency)
         l0 = l_obs + v
         if est_latency:
-            rates = pose_rates(obs.trajectory, obs.t_gps_s + state.latency_s)
+            rates = pose_rates(obs.latency_trajectory(), obs.t_gps_s + state.latency_s)
         bases = np.stack([tangent_basis(n) for n in state.normals])
         lin = linearize(state, r_nom, obs.plane_index, obs.pass_index, l0, rates, bases)
         w = lin.F - np.einsum("ij,ij->i", lin.B, v)
         M = np.einsum("ij,ij->i", lin.B**2, Q)
         N, g = normal_equations(lin, layout, obs, w, M)
-        if layout.offsets:
+        if prior_sigma is not None:  # layout.offsets
             o = state.pass_offsets_m.reshape(-1)
             wt = 1.0 / prior_sigma.reshape(-1) ** 2
             idx = np.arange(layout.i_offset, layout.n)
@@ -288,7 +286,7 @@ def solve(obs: Observations, state: State, r_nom: np.ndarray, options: AdjustOpt
                 break
     vtpv = float(np.sum(v**2 / Q))
     df = len(obs) - layout.n
-    if layout.offsets:
+    if prior_sigma is not None:  # layout.offsets
         o = state.pass_offsets_m.reshape(-1)
         vtpv += float(np.sum(o**2 / prior_sigma.reshape(-1) ** 2))
         df += 3 * len(obs.pass_ids)

@@ -15,13 +15,14 @@ import numpy as np
 
 from calib.boresight.errormodel import ErrorModel
 from calib.boresight.ghmodel import EXTRA_NAMES
+from calib.core.errors import CalibError
 from calib.core.trajectory import Trajectory, TrajectoryError
 
 ESTIMABLE = EXTRA_NAMES + ("pass_offsets",)
 MIN_POINTS_PER_PLANE = 10
 
 
-class AdjustmentError(ValueError):
+class AdjustmentError(CalibError, ValueError):
     """The adjustment cannot run on this input (the message says why and what to do)."""
 
 
@@ -42,6 +43,12 @@ class Observations:
 
     def __len__(self) -> int:
         return self.t_gps_s.shape[0]
+
+    def latency_trajectory(self) -> Trajectory:
+        """The trajectory, which estimating a latency needs (:class:`AdjustmentError` without)."""
+        if self.trajectory is None:
+            raise AdjustmentError("estimating the latency needs the trajectory")
+        return self.trajectory
 
     def select(self, mask: np.ndarray) -> Observations:
         return Observations(

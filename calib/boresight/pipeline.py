@@ -50,6 +50,7 @@ from calib.boresight.extract import (
 from calib.boresight.observations import AdjustOptions, Observations, build_observations, validate_input
 from calib.boresight.result import result_to_dict, write_result
 from calib.core import frames
+from calib.core.errors import CalibError
 from calib.core.georef import Mount, georeference, georeference_poses
 from calib.core.trajectory import Poses, Trajectory
 from calib.core.version import software_version as _software_version
@@ -60,7 +61,7 @@ Progress = Callable[[str, float, float | None], None]
 ERROR_MODELS = ("gauss_markov", "pass_bias", "white")
 
 
-class CalibrationError(ValueError):
+class CalibrationError(CalibError, ValueError):
     """The input cannot be calibrated as given (the message says why and what to do)."""
 
 
@@ -341,7 +342,14 @@ def calibrate(
     else:
         notes.append("POS σ from site.yaml pos_sigmas (the trajectory carries none)")
     validate_input(obs)  # a target with too few points, a single target: clear errors
-    planes = initial_planes(ext, p, rects)
+    planes_or_none = initial_planes(ext, p, rects)
+    unplaced = [name for name, plane in zip(names, planes_or_none) if plane is None]
+    if unplaced:  # enough points over all passes, but fewer than 3 in every pass
+        raise CalibrationError(
+            f"target(s) {', '.join(unplaced)}: no pass holds 3 of its points, so it has no "
+            f"a-priori plane; re-extract them (a smaller subsampling voxel) or remove them from the site"
+        )
+    planes = [plane for plane in planes_or_none if plane is not None]
     model, tau_source = error_model(options, site)
     if tau_source.startswith("default"):
         notes.append(

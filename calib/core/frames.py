@@ -19,8 +19,10 @@ import bisect
 import datetime as _dt
 from dataclasses import dataclass
 from functools import cached_property
+from typing import overload
 
 import numpy as np
+import numpy.typing as npt
 
 # ---------------------------------------------------------------------------------------------
 # Elementary rotations (active), vectorized: an angle array of shape (...) gives (..., 3, 3).
@@ -396,19 +398,37 @@ def gps_ns_to_utc(gps_ns: int) -> _dt.datetime:
     return GPS_EPOCH + _dt.timedelta(microseconds=utc_ns // 1_000)
 
 
-def gps_ns_to_seconds(gps_ns) -> np.ndarray | float:
+@overload
+def gps_ns_to_seconds(gps_ns: int | np.integer) -> float: ...
+@overload
+def gps_ns_to_seconds(gps_ns: np.ndarray) -> np.ndarray: ...
+@overload
+def gps_ns_to_seconds(gps_ns: npt.ArrayLike) -> np.ndarray | float: ...
+
+
+def gps_ns_to_seconds(gps_ns: npt.ArrayLike) -> np.ndarray | float:
     """int64 ns → float64 seconds since the GPS epoch (exact to ~0.1 µs in this century)."""
     if np.isscalar(gps_ns):
-        return int(gps_ns) / NS_PER_S
+        # np.isscalar's TypeGuard widens to every numpy scalar and complex; an integer here
+        return int(gps_ns) / NS_PER_S  # type: ignore[arg-type]
     a = np.asarray(gps_ns, dtype=np.int64)
     whole = a // NS_PER_S
     return whole.astype(np.float64) + (a - whole * NS_PER_S).astype(np.float64) / NS_PER_S
 
 
-def seconds_to_gps_ns(gps_s) -> np.ndarray | int:
+@overload
+def seconds_to_gps_ns(gps_s: float) -> int: ...
+@overload
+def seconds_to_gps_ns(gps_s: np.ndarray) -> np.ndarray: ...
+@overload
+def seconds_to_gps_ns(gps_s: npt.ArrayLike) -> np.ndarray | int: ...
+
+
+def seconds_to_gps_ns(gps_s: npt.ArrayLike) -> np.ndarray | int:
     """float64 seconds → int64 ns since the GPS epoch (rounded to the nearest ns)."""
     if np.isscalar(gps_s):
-        return int(round(float(gps_s) * NS_PER_S))
+        # np.isscalar's TypeGuard widens to every numpy scalar and complex; a real number here
+        return int(round(float(gps_s) * NS_PER_S))  # type: ignore[arg-type]
     s = np.asarray(gps_s, dtype=np.float64)
     whole = np.floor(s)
     return whole.astype(np.int64) * NS_PER_S + np.round((s - whole) * NS_PER_S).astype(np.int64)

@@ -15,9 +15,10 @@ from functools import cached_property
 import numpy as np
 
 from calib.core import frames
+from calib.core.errors import CalibError
 
 
-class TrajectoryError(ValueError):
+class TrajectoryError(CalibError, ValueError):
     """A trajectory is malformed or does not cover the requested times."""
 
 

@@ -25,6 +25,7 @@ from itertools import combinations
 
 import numpy as np
 
+from calib.core.errors import CalibError
 from calib.core.geometry import Rectangle, fit_plane
 from calib.core.georef import georeference
 from calib.sim.scenario import InjectedErrors
@@ -66,7 +67,7 @@ THESIS_MAGNITUDES = {
 }
 
 
-class CriteriaError(ValueError):
+class CriteriaError(CalibError, ValueError):
     """A criterion cannot be computed for this input (the message says why)."""
 
 

@@ -14,6 +14,7 @@ from __future__ import annotations
 import itertools
 from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
+from typing import Any
 
 import numpy as np
 
@@ -86,7 +87,7 @@ def default_spec(base: Scenario, **changes) -> StudySpec:
     own site (number of targets, largest target dimension, all passes). ``changes`` override
     fields (``n_targets``, ``max_size_m`` and ``passes`` go to the constraint)."""
     tg = scenario_targets(base)
-    cons = {
+    cons: dict[str, Any] = {
         "n_targets": len(tg),
         "max_size_m": max(max(s.width_m, s.height_m) for s in tg),
         "passes": tuple(p.id for p in base.passes),

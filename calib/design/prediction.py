@@ -34,6 +34,7 @@ from calib.boresight.errormodel import DEFAULT_POS_CORRELATION_S, ErrorModel
 from calib.boresight.ghmodel import State, linearize
 from calib.boresight.observations import Observations, build_observations
 from calib.core import frames
+from calib.core.errors import CalibError
 from calib.core.georef import Mount
 from calib.io.site import Site
 from calib.sim.noise import ScannerNoise
@@ -52,7 +53,7 @@ UNOBSERVABLE_RAD = float(np.radians(1.0))
 _RANGE_SIGMA_FLOOR_M = 1e-4
 
 
-class DesignError(ValueError):
+class DesignError(CalibError, ValueError):
     """The design study cannot run with this input (the message says why)."""
 
 

@@ -40,7 +40,8 @@ from calib.design.prediction import (
     select_passes,
 )
 from calib.design.scenes import design_scenario, scenario_targets, square_target, surface_inclination_deg
-from calib.sim.scenario import Scenario, load_scenario
+from calib.sim.scenario import Scenario
+from calib.sim.scenariofile import load_scenario
 from calib.sim.simulate import SimulationError, simulate
 from calib.survey.passplan import PassPlanError
 
@@ -113,12 +114,12 @@ def sigma_row(
         for a, v in zip(ANGLES, s):
             row[f"sigma_{m}_{a}_deg"] = float(v)
         row[f"sigma_{m}_total_deg"] = float(np.sqrt(np.sum(s**2)))
-    ok = pred is not None and pred.observable
-    real = pred.realistic_model if ok else REALISTIC[0]
+    usable = pred if pred is not None and pred.observable else None  # a prediction with σ
+    real = usable.realistic_model if usable is not None else REALISTIC[0]
     row["realistic_total_deg"] = row[f"sigma_{real}_total_deg"]
-    row["estimator"] = ("pass_offsets" if real.endswith("_offsets") else "none") if ok else ""
+    row["estimator"] = ("pass_offsets" if real.endswith("_offsets") else "none") if usable is not None else ""
     for name, m in (("white", "white"), ("realistic", real)):
-        c = pred.correlation(m) if ok else np.full((3, 3), np.nan)
+        c = usable.correlation(m) if usable is not None else np.full((3, 3), np.nan)
         for (a, b), v in zip(
             (("roll", "pitch"), ("roll", "yaw"), ("pitch", "yaw")), (c[0, 1], c[0, 2], c[1, 2])
         ):

@@ -24,7 +24,8 @@ from calib.design.study import SIGMA_COLUMNS, headings_deg, sigma_row
 from calib.design.summary import write_csv
 from calib.io.site import Site
 from calib.sim.noise import PosNoise, ScannerNoise
-from calib.sim.scenario import Scenario, Surface, load_scenario
+from calib.sim.scenario import Scenario, Surface
+from calib.sim.scenariofile import load_scenario
 
 
 def site_as_scenario(
@@ -65,7 +66,13 @@ def site_as_scenario(
             )
         )
     tau = Sigmas.of_site(site).correlation_time_s
-    pos = PosNoise("gauss_markov", site.sigma_position_m, site.sigma_attitude_rad, tau[0:3], tau[3:6])
+    pos = PosNoise(
+        "gauss_markov",
+        site.sigma_position_m,
+        site.sigma_attitude_rad,
+        np.asarray(tau[0:3]),
+        np.asarray(tau[3:6]),
+    )
     return replace(
         tpl,
         name="site",
@@ -120,7 +127,7 @@ def what_if(
         r = row(order[:k])
         rest = order[k:]
         nxt = {q: row(order[:k] + [q])["realistic_total_deg"] for q in rest}
-        r["next_best_pass"] = min(nxt, key=nxt.get) if nxt else ""
+        r["next_best_pass"] = min(nxt, key=lambda q: nxt[q]) if nxt else ""
         rows.append(r)
     rho = scan_angle_roll_correlation(obs, sim.mount_true, planes)
     return WhatIf(sc, rows, rho)

@@ -24,6 +24,7 @@ from pathlib import Path
 import numpy as np
 
 from calib.core import frames
+from calib.core.errors import CalibError
 from calib.core.trajectory import Trajectory, TrajectoryError
 from calib.io.configfile import ConfigError
 from calib.io.site import Site, load_site
@@ -48,7 +49,7 @@ TRAJECTORY_RANGES = (
 POINT_COLUMNS = ("pass_id", "gps_time", "range_m", "scan_angle_deg", "intensity")
 
 
-class BundleError(ValueError):
+class BundleError(CalibError, ValueError):
     """A bundle file is missing or malformed (the message names file, line and column)."""
 
 
@@ -143,7 +144,7 @@ def _fast_floats(body: str, n_lines: int, k: int) -> np.ndarray | None:
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", DeprecationWarning)
         try:
-            values = np.fromstring(text, sep=",")  # type: ignore[call-overload]
+            values = np.fromstring(text, sep=",")
         except ValueError:
             return None
     if values.size != n_lines * (k + 1):
@@ -277,14 +278,15 @@ def write_trajectory_csv(path: Path, traj: Trajectory) -> None:
     lat, lon, h = traj.geodetic()
     rpy = np.degrees(traj.rpy_rad)
     cols = [traj.t_gps_s, lat, lon, h, rpy[:, 0], rpy[:, 1], rpy[:, 2]]
-    header = TRAJECTORY_COLUMNS
+    header: tuple[str, ...] = TRAJECTORY_COLUMNS
     fmt = "%.9f,%.12f,%.12f,%.6f,%.12g,%.12g,%.12g"
-    if traj.has_sigmas:
-        sa = np.degrees(traj.sigma_rpy_rad)
+    sp, srpy = traj.sigma_p_m, traj.sigma_rpy_rad
+    if sp is not None and srpy is not None:  # traj.has_sigmas
+        sa = np.degrees(srpy)
         cols += [
-            traj.sigma_p_m[:, 0],
-            traj.sigma_p_m[:, 1],
-            traj.sigma_p_m[:, 2],
+            sp[:, 0],
+            sp[:, 1],
+            sp[:, 2],
             sa[:, 0],
             sa[:, 1],
             sa[:, 2],

@@ -21,15 +21,21 @@ import io
 import re
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
+
+from calib.core.errors import CalibError
+
+if TYPE_CHECKING:
+    import laspy
 
 LAS_SUFFIXES = (".las", ".laz")
 _SEPARATORS = (",", ";", "\t")
 _INT32_MAX = 2**31 - 1
 
 
-class CloudError(ValueError):
+class CloudError(CalibError, ValueError):
     """A point-cloud file is missing or malformed (the message names file and line)."""
 
 
@@ -38,7 +44,7 @@ class PointCloud:
     xyz_m: np.ndarray  # (n, 3) float64
     columns: dict[str, np.ndarray] = field(default_factory=dict)  # extra ASCII columns
     path: Path | None = None
-    las: object | None = None  # the laspy.LasData read, kept to write it back unchanged
+    las: laspy.LasData | None = None  # the laspy.LasData read, kept to write it back unchanged
     delimiter: str | None = None  # ASCII separator read (None: whitespace)
 
     def __len__(self) -> int:

@@ -19,9 +19,7 @@ from typing import Any
 import numpy as np
 import yaml
 
-
-class ConfigError(ValueError):
-    """A configuration value is missing, unknown or malformed (the message says where)."""
+from calib.core.errors import ConfigError  # the one ConfigError (re-exported): every accessor raises it
 
 
 @dataclass(frozen=True)

@@ -21,10 +21,15 @@ from __future__ import annotations
 import datetime as _dt
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from calib.core import frames
+from calib.core.errors import CalibError
+
+if TYPE_CHECKING:
+    from pyproj import Transformer
 
 #: Coordinate resolution: 0.1 mm in metres, ~0.1 mm in degrees of latitude.
 SCALE_M = 1e-4
@@ -33,7 +38,7 @@ SCALE_DEG = 1e-9
 SCAN_ANGLE_UNIT_DEG = 0.006
 
 
-class LasOutputError(ValueError):
+class LasOutputError(CalibError, ValueError):
     """The output CRS or the points cannot be written as asked (the message says why)."""
 
 
@@ -47,7 +52,7 @@ class OutputCrs:
     scales: tuple[float, float, float]
     offsets: tuple[float, float, float]
     frame: frames.LocalFrame
-    transformer: object | None  # pyproj Transformer from ECEF, None for the LGF itself
+    transformer: Transformer | None  # pyproj Transformer from ECEF, None for the LGF itself
 
     def from_lgf(self, p_lgf_m: np.ndarray) -> np.ndarray:
         """(n, 3) LGF NED metres → (n, 3) x, y, z in this CRS."""
@@ -107,7 +112,8 @@ def output_crs(spec: str | None, frame: frames.LocalFrame) -> OutputCrs:
             f"ellipsoidal heights or install the grid"
         )
     steps = np.array([1.0, 1.0, 1000.0] if degrees else [1000.0] * 3)
-    offsets = tuple(float(v) + 0.0 for v in np.round(origin / steps) * steps)  # no −0.0
+    ox, oy, oz = (float(v) + 0.0 for v in np.round(origin / steps) * steps)  # no −0.0
+    offsets = (ox, oy, oz)
     return OutputCrs(out.name, out.wkt, scales, offsets, frame, transformer)
 
 

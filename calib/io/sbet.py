@@ -23,6 +23,7 @@ from pathlib import Path
 import numpy as np
 
 from calib.core import frames
+from calib.core.errors import CalibError
 from calib.core.trajectory import Trajectory, TrajectoryError
 
 SBET_FIELDS = (
@@ -65,7 +66,7 @@ _WEEK_S = frames.SECONDS_PER_WEEK
 _ARCMIN_RAD = np.pi / (180.0 * 60.0)
 
 
-class SbetError(ValueError):
+class SbetError(CalibError, ValueError):
     """An SBET or SMRMSG file is unreadable or inconsistent (the message names the file)."""
 
 
@@ -73,6 +74,7 @@ class SbetError(ValueError):
 
 
 def _read_records(path: str | Path, dtype: np.dtype, kind: str) -> np.ndarray:
+    assert dtype.names is not None  # a structured record dtype (SBET_DTYPE, SMRMSG_DTYPE)
     path = Path(path)
     try:
         raw = path.read_bytes()
@@ -266,12 +268,13 @@ def sbet_records(traj: Trajectory, wander_rad=0.0) -> tuple[np.ndarray, int]:
 
 def smrmsg_records(traj: Trajectory) -> np.ndarray:
     """SMRMSG records of a trajectory's sigmas (velocity RMS left 0)."""
-    if not traj.has_sigmas:
+    sig_p, sig_rpy = traj.sigma_p_m, traj.sigma_rpy_rad
+    if sig_p is None or sig_rpy is None:  # not traj.has_sigmas
         raise ValueError(f"{traj.name}: the trajectory carries no sigmas")
     rec = np.zeros(traj.t_gps_s.size, SMRMSG_DTYPE)
     rec["time_sow"] = np.mod(traj.t_gps_s, _WEEK_S)
     for j, name in enumerate(("sigma_north_m", "sigma_east_m", "sigma_down_m")):
-        rec[name] = traj.sigma_p_m[:, j]
+        rec[name] = sig_p[:, j]
     for j, name in enumerate(("sigma_roll_arcmin", "sigma_pitch_arcmin", "sigma_heading_arcmin")):
-        rec[name] = traj.sigma_rpy_rad[:, j] / _ARCMIN_RAD
+        rec[name] = sig_rpy[:, j] / _ARCMIN_RAD
     return rec

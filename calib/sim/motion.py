@@ -106,6 +106,7 @@ def dubins_path(p0, theta0, p1, theta1, R) -> list[tuple[str, float]]:
         total = sum(s[1] for s in segs)
         if best is None or total < best[0]:
             best = (total, segs)
+    assert best is not None  # LSL and RSR always exist
     return best[1]
 
 

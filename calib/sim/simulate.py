@@ -31,12 +31,14 @@ from typing import Any
 import numpy as np
 
 from calib.core import frames
+from calib.core.errors import CalibError
 from calib.core.georef import Mount, georeference
 from calib.core.trajectory import Poses, Trajectory
 from calib.io.bundle import ScanPoints, write_bundle
 from calib.io.site import Site
 from calib.sim.motion import sail
-from calib.sim.scenario import ScannerModel, Scenario, load_scenario
+from calib.sim.scenario import ScannerModel, Scenario
+from calib.sim.scenariofile import load_scenario
 from calib.sim.scene import BACKGROUND_KINDS, Scene
 from calib.survey.passplan import PassPlan, plan_passes
 
@@ -46,7 +48,7 @@ _BATCH_SLOTS = 1 << 20
 _SIGMA_FLOOR = np.array([1e-6, 1e-6, 1e-6, 1e-8, 1e-8, 1e-8])
 
 
-class SimulationError(ValueError):
+class SimulationError(CalibError, ValueError):
     """The simulation cannot produce what was asked (the message says why)."""
 
 

@@ -21,6 +21,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from calib.core import frames
+from calib.core.errors import CalibError
 from calib.core.geometry import Rectangle
 from calib.io.site import PassSpec, Site
 
@@ -28,7 +29,7 @@ from calib.io.site import PassSpec, Site
 _PARALLEL_TOL = 1e-9
 
 
-class PassPlanError(ValueError):
+class PassPlanError(CalibError, ValueError):
     """The requested plan cannot be built (the message says which pass and why)."""
 
 

@@ -42,7 +42,7 @@ def acquire(
     import sys
 
     from acquire.daemon.config import VesselConfigError, load_vessel_config
-    from calib.io.configfile import ConfigError
+    from calib.core.errors import MlsError
 
     try:
         cfg = load_vessel_config(config)
@@ -55,17 +55,17 @@ def acquire(
             file=sys.stderr,
         )
         raise typer.Exit(EXIT_CONFIG) from None
-    except (ConfigError, OSError) as e:
+    except (MlsError, OSError) as e:
         print(f"mls acquire: {e}", file=sys.stderr)
         raise typer.Exit(EXIT_CONFIG) from None
 
     from acquire.daemon.supervisor import StartupError, Supervisor
-    from acquire.guidance.daemon import GuidanceSetupError, guidance_consumer
+    from acquire.guidance.daemon import guidance_consumer
 
     try:
         sup = Supervisor(cfg)
         guidance = guidance_consumer(cfg, sup)
-    except (StartupError, GuidanceSetupError) as e:  # the config asks for what cannot be done
+    except MlsError as e:  # the config asks for what cannot be done (StartupError, GuidanceSetupError)
         print(f"mls acquire: {e}", file=sys.stderr)
         raise typer.Exit(EXIT_CONFIG) from None
     if guidance is not None:

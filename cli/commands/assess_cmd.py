@@ -14,6 +14,8 @@ from cli.commands.calib_cmd import app
 
 
 def _fail(message: str) -> None:
+    """One line ``error: <message>`` on stderr and exit status 2 (these commands' own status for
+    bad input; an uncaught MlsError would give :data:`cli.app.EXIT_ERROR`)."""
     typer.secho(f"error: {message}", err=True, fg=typer.colors.RED)
     raise typer.Exit(2)
 
@@ -101,8 +103,9 @@ def c2c_cmd(
     from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
     from rich.table import Table
 
-    from calib.assess.c2c import C2CError, c2c
-    from calib.io.cloudio import CloudError, read_cloud, write_cloud
+    from calib.assess.c2c import c2c
+    from calib.core.errors import MlsError
+    from calib.io.cloudio import read_cloud, write_cloud
 
     if (toward_direction or toward_point) and not signed:
         _fail("--toward-direction/--toward-point only apply with --signed")
@@ -146,7 +149,7 @@ def c2c_cmd(
             if out is not None:
                 progress.add_task(f"writing {out}", total=None)
                 write_cloud(out, cmp_cloud, result.extra_dimensions())
-    except (CloudError, C2CError) as e:
+    except MlsError as e:
         _fail(str(e))
 
     table = Table(title=f"C2C distances of {compared.name} to {reference.name} (mm)")
@@ -204,11 +207,12 @@ def history_cmd(
     from rich.console import Console
     from rich.table import Table
 
-    from calib.assess.history import ANGLES, HistoryError, default_db_path, list_results, validate_result
+    from calib.assess.history import ANGLES, default_db_path, list_results, validate_result
+    from calib.core.errors import MlsError
 
     try:
         records = list_results(vessel, db=db, mount_id=mount)
-    except HistoryError as e:
+    except MlsError as e:
         _fail(str(e))
     console = Console()
     where = db if db is not None else default_db_path()
@@ -265,13 +269,14 @@ def compare_cmd(
     from rich.console import Console
     from rich.table import Table
 
-    from calib.assess.history import HistoryError, ResultFormatError, compare, resolve_result
+    from calib.assess.history import compare, resolve_result
+    from calib.core.errors import MlsError
 
     try:
         ra, la = resolve_result(a, db, "A")
         rb, lb = resolve_result(b, db, "B")
         cmp = compare(ra, rb, k_sigma, a_label=la, b_label=lb)
-    except (HistoryError, ResultFormatError) as e:
+    except MlsError as e:
         _fail(str(e))
     table = Table(title=f"A = {cmp.a_label}, B = {cmp.b_label}")
     for col in (

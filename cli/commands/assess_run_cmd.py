@@ -90,45 +90,38 @@ def assess_cmd(
 ) -> None:
     """``mls calib assess`` (its help text is :data:`ASSESS_HELP`)."""
     from rich.console import Console
-    from rich.markup import escape
     from rich.progress import Progress, SpinnerColumn, TextColumn, TimeElapsedColumn
     from rich.table import Table
 
     from calib.assess.comparison import assess
-    from calib.assess.history import ResultFormatError, load_result
+    from calib.assess.history import load_result
     from calib.assess.pairs import parse_pairs
     from calib.assess.results import AssessError, AssessOptions
     from calib.assess.summary import fmt_ratio, summary_lines, write_assessment
-    from calib.core.trajectory import TrajectoryError
-    from calib.io.bundle import BundleError
-    from calib.io.configfile import ConfigError
 
     err = Console(stderr=True)
     try:
         pair_list = parse_pairs(pairs) if pairs else None
     except AssessError as e:
         raise typer.BadParameter(str(e), param_hint="--pairs") from None
-    try:
-        options = AssessOptions(
-            k=knn, gate_m=gate_m, auto_planes=auto_planes, scanner_height_m=scanner_height_m, overlap=overlap
+    # an MlsError (bad bundle, result or pair) ends the command in cli.app: one line, exit status 1
+    options = AssessOptions(
+        k=knn, gate_m=gate_m, auto_planes=auto_planes, scanner_height_m=scanner_height_m, overlap=overlap
+    )
+    doc = load_result(result)
+    with Progress(
+        SpinnerColumn(),
+        TextColumn("{task.description}"),
+        TimeElapsedColumn(),
+        console=err,
+        transient=True,
+    ) as progress:
+        task = progress.add_task("assessing", total=None)
+        a = assess(
+            bundle, doc, pair_list, options, progress=lambda msg: progress.update(task, description=msg)
         )
-        doc = load_result(result)
-        with Progress(
-            SpinnerColumn(),
-            TextColumn("{task.description}"),
-            TimeElapsedColumn(),
-            console=err,
-            transient=True,
-        ) as progress:
-            task = progress.add_task("assessing", total=None)
-            a = assess(
-                bundle, doc, pair_list, options, progress=lambda msg: progress.update(task, description=msg)
-            )
-            progress.update(task, description="writing figures and assessment.md")
-            written = write_assessment(a, out)
-    except (AssessError, BundleError, ConfigError, ResultFormatError, TrajectoryError) as e:
-        err.print(f"[red]error:[/red] {escape(str(e))}", highlight=False, soft_wrap=True)
-        raise typer.Exit(1) from None
+        progress.update(task, description="writing figures and assessment.md")
+        written = write_assessment(a, out)
 
     console = Console()
     for note in a.notes:

@@ -71,10 +71,9 @@ def summary_table(outputs: list[PassOutput], facts: dict, out_dir: Path):
 
 
 def run_georef(bundle: Path, out: Path, **kwargs) -> list[PassOutput]:
-    """Georeference with a progress bar and print the summary table; errors end the command
-    with a one-line message and exit status 1."""
+    """Georeference with a progress bar and print the summary table; an MlsError (bad bundle,
+    CRS, uncovered points) ends the command in :mod:`cli.app`: one line, exit status 1."""
     from rich.console import Console
-    from rich.markup import escape
     from rich.progress import (
         BarColumn,
         MofNCompleteColumn,
@@ -84,11 +83,7 @@ def run_georef(bundle: Path, out: Path, **kwargs) -> list[PassOutput]:
         TimeRemainingColumn,
     )
 
-    from calib.core.trajectory import TrajectoryError
-    from calib.io.bundle import BundleError
-    from calib.io.configfile import ConfigError
     from calib.io.georef_bundle import georeference_bundle
-    from calib.io.laz import LasOutputError
 
     console = Console()
     columns = (
@@ -99,12 +94,8 @@ def run_georef(bundle: Path, out: Path, **kwargs) -> list[PassOutput]:
         TimeElapsedColumn(),
         TimeRemainingColumn(),
     )
-    try:
-        with Progress(*columns, console=console) as progress:
-            outputs, facts = georeference_bundle(bundle, out, progress=progress, **kwargs)
-    except (BundleError, ConfigError, LasOutputError, TrajectoryError) as e:
-        Console(stderr=True).print(f"[red]error:[/red] {escape(str(e))}", highlight=False, soft_wrap=True)
-        raise typer.Exit(1) from None
+    with Progress(*columns, console=console) as progress:
+        outputs, facts = georeference_bundle(bundle, out, progress=progress, **kwargs)
     console.print(summary_table(outputs, facts, out))
     return outputs
 

@@ -57,9 +57,9 @@ def decode(
     from rich.progress import BarColumn, Progress, TextColumn
     from rich.table import Table
 
+    from calib.core.errors import MlsError
     from drivers.base import DriverError
     from drivers.capture.files import FileDecoder, json_default, record_to_dict, time_sample
-    from drivers.capture.pcapng import PcapError
 
     err = Console(stderr=True)
     out = Console()
@@ -95,7 +95,7 @@ def decode(
                         sys.stdout = None
                         raise typer.Exit(0) from None
                 progress.update(task, completed=fd.bytes_done)
-    except (DriverError, PcapError, OSError) as exc:
+    except (MlsError, OSError) as exc:
         err.print(f"[red]error:[/red] {exc}")
         raise typer.Exit(2) from exc
 

@@ -71,7 +71,8 @@ def demo(
     from rich.console import Console
     from rich.markup import escape
 
-    from acquire.jobs.demo import DemoError, DemoSettings, Interrupted, comparison_table, run_demo
+    from acquire.jobs.demo import DemoError, DemoSettings, Interrupted, run_demo
+    from acquire.jobs.demo_compare import comparison_table
 
     console = Console(soft_wrap=True)  # long lines (paths) stay whole: easy to copy
     t0 = time.monotonic()

@@ -124,10 +124,7 @@ def design(
     from rich.console import Console
     from rich.markup import escape
 
-    from calib.design.prediction import DesignError
-    from calib.io.configfile import ConfigError
-    from calib.sim.simulate import SimulationError
-    from calib.survey.passplan import PassPlanError
+    from calib.core.errors import MlsError
 
     console = Console()
     if (scenario is None) == (site is None):
@@ -155,7 +152,7 @@ def design(
                 set_,
                 figures,
             )
-    except (ConfigError, DesignError, PassPlanError, SimulationError, OSError) as e:
+    except (MlsError, OSError) as e:
         console.print(f"[red]error:[/red] {escape(str(e))}", highlight=False)
         raise typer.Exit(2) from None
 
@@ -180,7 +177,7 @@ def _study(
     from calib.design.sitecheck import compare_sites
     from calib.design.study import run_study
     from calib.design.summary import write_study
-    from calib.sim.scenario import load_scenario
+    from calib.sim.scenariofile import load_scenario
 
     base = load_scenario(scenario, list(overrides))
     changes: dict = {"seed": seed, "n_targets": targets, "max_size_m": max_size, "passes": passes}

@@ -53,12 +53,8 @@ def export(
     from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
     from rich.table import Table
 
-    from acquire.jobs.export import ExportError, ExportOptions, export_session
-    from calib.core.trajectory import TrajectoryError
-    from calib.io.bundle import BundleError
-    from calib.io.configfile import ConfigError
-    from calib.io.laz import LasOutputError
-    from calib.survey.passplan import PassPlanError
+    from acquire.jobs.export import ExportOptions, export_session
+    from calib.core.errors import MlsError
 
     console = Console()
     t0 = time.perf_counter()
@@ -84,15 +80,7 @@ def export(
                 bar.update(task, description=stage, completed=done, total=total)
 
             res = export_session(session, bundle, opts, progress)
-    except (
-        ExportError,
-        BundleError,
-        ConfigError,
-        LasOutputError,
-        PassPlanError,
-        TrajectoryError,
-        OSError,
-    ) as e:
+    except (MlsError, OSError) as e:
         Console(stderr=True).print(f"[red]error:[/red] {escape(str(e))}", highlight=False, soft_wrap=True)
         raise typer.Exit(1) from None
     from calib.core import frames

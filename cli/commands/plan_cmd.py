@@ -96,9 +96,9 @@ def plan(
     from rich.markup import escape
     from rich.table import Table
 
-    from calib.io.configfile import ConfigError
+    from calib.core.errors import ConfigError, MlsError
     from calib.io.site import load_site
-    from calib.survey.passplan import PassPlanError, plan_site
+    from calib.survey.passplan import plan_site
     from calib.survey.planexport import write_plan_geojson
 
     err = Console(stderr=True)
@@ -118,7 +118,7 @@ def plan(
         pp = plan_site(site, capture_margin_m=capture_margin_m, safe_wall_distance_m=safe_wall_distance_m)
         if active_pass is not None:
             pp.by_id(active_pass)
-    except (ConfigError, PassPlanError, KeyError, OSError) as e:
+    except (MlsError, KeyError, OSError) as e:
         msg = e.args[0] if isinstance(e, KeyError) else str(e)
         if isinstance(e, ConfigError) and "reference" in msg:
             msg += " (mls plan needs the site's reference point to place the lines)"

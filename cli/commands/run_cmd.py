@@ -87,16 +87,13 @@ def _export(session: Path, bundle_dir: Path, console, columns) -> Path:
     from rich.markup import escape
     from rich.progress import Progress
 
-    from acquire.jobs.export import ExportError, export_session
-    from calib.core.trajectory import TrajectoryError
-    from calib.io.bundle import BundleError
-    from calib.io.configfile import ConfigError
-    from calib.survey.passplan import PassPlanError
+    from acquire.jobs.export import export_session
+    from calib.core.errors import MlsError
 
     try:
         with Progress(*columns, console=console, transient=True) as progress:
             res = export_session(session, bundle_dir, progress=_progress_callback(progress))
-    except (ExportError, BundleError, ConfigError, PassPlanError, TrajectoryError, OSError) as e:
+    except (MlsError, OSError) as e:
         _fail(
             f"{session} is a recorded session and could not be exported to a bundle: {e} "
             f"(run 'mls export {session} --bundle DIR' with its options, then 'mls calib run "
@@ -206,13 +203,10 @@ def run(
     from rich.markup import escape
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
-    from calib.assess.history import HistoryError, ResultFormatError, record_result
-    from calib.boresight.extract import ExtractionError, ExtractOptions
-    from calib.boresight.observations import AdjustmentError
-    from calib.boresight.pipeline import CalibrationError, CalibrationOptions, run_bundle
-    from calib.core.trajectory import TrajectoryError
-    from calib.io.bundle import BundleError
-    from calib.io.configfile import ConfigError
+    from calib.assess.history import record_result
+    from calib.boresight.extract import ExtractOptions
+    from calib.boresight.pipeline import CalibrationOptions, run_bundle
+    from calib.core.errors import MlsError
 
     if not bundle.is_dir():
         _fail(
@@ -237,7 +231,7 @@ def run(
             correlation_time_s=correlation_time_s,
             extraction=ExtractOptions(mode=extraction, search_radius_m=search_radius_m),
         )
-    except (CalibrationError, AdjustmentError, ExtractionError) as e:
+    except MlsError as e:  # an option the pipeline refuses
         _fail(str(e), 2)
     out_dir = out if out is not None else bundle / "calib"
 
@@ -250,16 +244,7 @@ def run(
             cal, paths = run_bundle(
                 bundle, out_dir, options, _progress_callback(progress), plots=not no_plots
             )
-    except (
-        BundleError,
-        ConfigError,
-        CalibrationError,
-        ExtractionError,
-        AdjustmentError,
-        TrajectoryError,
-    ) as e:
-        _fail(str(e))
-    except OSError as e:  # reading the bundle or writing into out_dir
+    except (MlsError, OSError) as e:  # OSError: reading the bundle or writing into out_dir
         _fail(str(e))
     console.print(_table(cal, out_dir))
     for w in cal.warnings:
@@ -271,6 +256,6 @@ def run(
     if not no_history:
         try:
             row = record_result(cal.doc, bundle, vessel, mount, db=db)
-        except (HistoryError, ResultFormatError, ConfigError, OSError, sqlite3.Error) as e:
+        except (MlsError, OSError, sqlite3.Error) as e:
             _fail(f"the result is in {out_dir} but was not recorded in the history: {e}")
         console.print(f"recorded in the calibration history as #{row} (mount {mount})", highlight=False)

@@ -54,9 +54,8 @@ def dataset(
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn
     from rich.table import Table
 
-    from calib.io.configfile import ConfigError
-    from calib.sim.simulate import SimulationError, simulate
-    from calib.survey.passplan import PassPlanError
+    from calib.core.errors import MlsError
+    from calib.sim.simulate import simulate
 
     console = Console()
     overrides = list(set_)
@@ -80,7 +79,7 @@ def dataset(
             )
             bar.update(task, description="writing the bundle")
             path = result.write(out, compress_points=compress)
-    except (ConfigError, PassPlanError, SimulationError, OSError) as e:
+    except (MlsError, OSError) as e:
         console.print(f"[red]error:[/red] {e}", highlight=False)
         raise typer.Exit(2) from None
     elapsed = time.perf_counter() - t0

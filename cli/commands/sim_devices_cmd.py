@@ -289,12 +289,11 @@ def devices(
     from rich.console import Console
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn
 
-    from calib.io.configfile import ConfigError
-    from calib.sim.simulate import SimulationError, simulate
-    from calib.survey.passplan import PassPlanError
+    from calib.core.errors import MlsError
+    from calib.sim.simulate import simulate
     from sim_devices.canbus import CanSettings
     from sim_devices.faults import FaultPlan, load_faults
-    from sim_devices.feed import FeedError, make_feed
+    from sim_devices.feed import make_feed
     from sim_devices.ins import InsSettings
     from sim_devices.pps import PpsSettings
     from sim_devices.profiler import ProfilerSettings
@@ -346,7 +345,7 @@ def devices(
                 )
                 feed = make_feed(sim, start, duration, ins_rate, "now" if time_base == "now" else 0)
             run = DeviceRun(feed, spec, plan)
-        except (ConfigError, PassPlanError, SimulationError, FeedError, ValueError, OSError) as e:
+        except (MlsError, ValueError, OSError) as e:  # ValueError: the emulators' settings
             console.print(f"[red]error:[/red] {e}", highlight=False)
             raise typer.Exit(2) from None
         except KeyboardInterrupt:
@@ -384,7 +383,7 @@ def _serve(
 ) -> None:
     """Start the run, say where the devices are, wait for its end or Ctrl-C / SIGTERM
     (:class:`_StopOnSignal`), stop it, and print what each emulator did (exit 1 if one crashed)."""
-    from sim_devices.runner import SimDevicesError
+    from calib.core.errors import MlsError
 
     with run, _StopOnSignal() as stop:
         try:
@@ -396,7 +395,7 @@ def _serve(
                 _check_config(run.write_vessel_config(write_config), console)
             console.file.flush()
             interrupted = _run_until_done(run, console, total_s, label, stop)
-        except (SimDevicesError, ValueError) as e:
+        except (MlsError, ValueError) as e:
             console.print(f"[red]error:[/red] {e}", highlight=False)
             raise typer.Exit(1) from None
         stats = run.stop()
@@ -461,7 +460,7 @@ def replay(
     datagrams, /can/<name> on the CAN bus — the same transports the emulators use. Ctrl-C stops."""
     from rich.console import Console
 
-    from acquire.log.session import LogError
+    from calib.core.errors import MlsError
     from sim_devices.canbus import CanSettings
     from sim_devices.replay import ReplayRun, ReplaySpec
 
@@ -479,7 +478,7 @@ def replay(
                 realtime=realtime,
             )
             run = ReplayRun(rec, spec)
-        except (LogError, ValueError, OSError) as e:
+        except (MlsError, ValueError, OSError) as e:
             console.print(f"[red]error:[/red] {e}", highlight=False)
             raise typer.Exit(2) from None
         except KeyboardInterrupt:

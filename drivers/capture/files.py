@@ -129,6 +129,14 @@ class FileDecoder:
         self.udp_stats: DecoderStats | None = None  # UDP datagrams kept, others by reason
         protocol = payload if fmt == "pcapng" else fmt
         self.protocol = protocol
+        self.decoder: (
+            NmeaNavAssembler
+            | NmeaDecoder
+            | StdbinNavDecoder
+            | StdbinDecoder
+            | ProfileAssembler
+            | _PpsDatagrams
+        )
         if protocol == "nmea":
             self.decoder = NmeaNavAssembler(utc_clock=None) if nav else NmeaDecoder()
         elif protocol == "stdbin":

@@ -157,7 +157,8 @@ def status_words(
         if value:
             attr, index, bit = STATUS_BITS[name]
             words[attr][index] |= 1 << bit
-    return tuple(words["algorithm_status"]), tuple(words["system_status"])
+    alg, sys_ = words["algorithm_status"], words["system_status"]
+    return (alg[0], alg[1]), (sys_[0], sys_[1])
 
 
 def wrap_lon_deg(lon_deg: float) -> float:

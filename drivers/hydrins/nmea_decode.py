@@ -29,6 +29,7 @@ from collections import Counter
 from collections.abc import Callable
 from functools import reduce
 from operator import xor
+from typing import Any
 
 from calib.core.frames import attitude_from_ixblue
 from drivers.base import DecoderStats
@@ -177,7 +178,7 @@ class NmeaNavAssembler:
     def __init__(self, utc_clock: Callable[[], int] | None = time.time_ns) -> None:
         self.decoder = NmeaDecoder()
         self.utc_clock = utc_clock
-        self._epoch: dict[type, object] = {}
+        self._epoch: dict[type, Any] = {}  # sentence record type → the epoch's record of it
         self._zda_utc_ns: int | None = None
         self._zda_host_ns: int | None = None
         self._hint: int | None = None
@@ -199,7 +200,13 @@ class NmeaNavAssembler:
     def push(self, rec) -> list[NavRecord]:
         """Add one sentence record; returns the epoch it closed, if any."""
         out: list[NavRecord] = []
-        if isinstance(rec, Zda) and None not in (rec.time_of_day_ns, rec.day, rec.month, rec.year):
+        if (
+            isinstance(rec, Zda)
+            and rec.time_of_day_ns is not None
+            and rec.day is not None
+            and rec.month is not None
+            and rec.year is not None
+        ):
             try:
                 self._zda_utc_ns = utc_date_ns(rec.year, rec.month, rec.day) + rec.time_of_day_ns
                 self._zda_host_ns = rec.host_ns
@@ -298,13 +305,13 @@ class NmeaNavAssembler:
         return [nav]
 
     def _resolve(self, nav: NavRecord, tod: int) -> None:
-        zda_fresh = self._zda_utc_ns is not None and (
+        zda_utc_ns = self._zda_utc_ns
+        if zda_utc_ns is not None and (  # a fresh ZDA
             nav.host_ns is None
             or self._zda_host_ns is None
             or abs(nav.host_ns - self._zda_host_ns) < DAY_NS // 2
-        )
-        if zda_fresh:
-            nav.gps_ns, nav.date_source = resolve_gps_ns(tod, self._zda_utc_ns), "zda"
+        ):
+            nav.gps_ns, nav.date_source = resolve_gps_ns(tod, zda_utc_ns), "zda"
             return
         hint = self._hint if self._hint is not None else (self.utc_clock() if self.utc_clock else None)
         if hint is not None:

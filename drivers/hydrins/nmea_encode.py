@@ -45,6 +45,7 @@ def encode_epoch(nav: NavRecord, talker: str = "HE") -> bytes:
     """
     roll, pitch, _ = attitude_to_ixblue(nav.roll_rad, nav.pitch_rad, 0.0)
     lon = nav.lon_deg % 360.0 if nav.lon_deg == nav.lon_deg else NAN
+    tod: int | None
     if nav.gps_ns is not None:
         tod = utc_time_of_day_ns(nav.gps_ns)
     else:

@@ -66,6 +66,7 @@ class _Blocks(Mapping):
     partly read: the nav view touches ten blocks of forty)."""
 
     __slots__ = ("_index", "_values", "_cache")
+    _cache: dict[str, dict[str, Any]]
 
     def __init__(self, index: dict, values: list) -> None:
         self._index, self._values, self._cache = index, values, {}
@@ -92,6 +93,7 @@ class _Blocks(Mapping):
 
 def _blocks_of(mask: int, table) -> tuple[list, int, bool]:
     """Known blocks of a mask in bit order up to the first unknown bit: (specs, size, cut)."""
+    specs: list[tuple[str, str, tuple[str, ...]]]
     specs, size = [], 0
     for bit in range(32):
         if mask >> bit & 1:
@@ -120,6 +122,7 @@ def _layout(
         return lay
     header = HEADER_SIZES[version]
     nav, nav_bytes, nav_cut = _blocks_of(nav_mask, NAVIGATION_BLOCKS)
+    ext_nav: list[tuple[str, str, tuple[str, ...]]]
     ext_nav, ext_nav_bytes, ext_nav_cut = ([], 0, False)
     if ext_nav_mask is not None and not nav_cut:
         ext_nav, ext_nav_bytes, ext_nav_cut = _blocks_of(ext_nav_mask, EXTENDED_NAVIGATION_BLOCKS)
@@ -199,7 +202,7 @@ class StdbinDecoder:
         # while the candidate at _buf[0] is incomplete: (next offset to look for a header from,
         # pending later candidates, bytes the candidate needs); see _later_frame
         self._scan: tuple[int, list[int], int] | None = None
-        self._scan_state: tuple[int, list[int]] | None = None
+        self._scan_state: tuple[int, list[int]]  # set by _later_frame before it returns -1
 
     def feed(self, data: bytes, host_ns: int | None = None) -> list:
         """Decode what ``data`` completes; a frame's ``host_ns`` is the stamp of the chunk that
@@ -303,6 +306,7 @@ class StdbinDecoder:
         from its start at every read.
         """
         n = len(buf)
+        pending: list[int]
         if state is None:
             scan, pending = pos + 1, []
         elif not state[1]:  # common case: nothing pending, and no new header in the new bytes

@@ -66,10 +66,10 @@ class Transport:
         self.connected = False
         self.reconnects = 0
         self._chunks: deque[Chunk] = deque()
-        self._ready: asyncio.Event | None = None
+        self._ready = asyncio.Event()  # replaced by open(), bound to its loop
         self._closing = False
         self._reconnect_task: asyncio.Task | None = None
-        self._loop: asyncio.AbstractEventLoop | None = None
+        self._loop: asyncio.AbstractEventLoop  # set by open(): subclasses use it once connected
 
     # -- lifecycle -----------------------------------------------------------------------------
     async def open(self) -> None:
@@ -96,8 +96,7 @@ class Transport:
             self._reconnect_task = None
         await self._disconnect()
         self.connected = False
-        if self._ready is not None:
-            self._ready.set()
+        self._ready.set()
 
     async def __aenter__(self):
         await self.open()

@@ -17,6 +17,7 @@ import ctypes
 import errno
 import os
 import socket
+from collections.abc import Callable
 
 import numpy as np
 
@@ -70,6 +71,7 @@ _HDR = np.dtype(
     }
 )
 
+_recvmmsg: Callable[..., int] | None
 try:
     _libc = ctypes.CDLL(None, use_errno=True)
     _recvmmsg = _libc.recvmmsg
@@ -89,6 +91,7 @@ class MmsgReceiver:
     def __init__(self, sock: socket.socket, slots: int = 64, max_datagram: int = 65535) -> None:
         if _recvmmsg is None:
             raise OSError(errno.ENOSYS, "recvmmsg is not available in this C library")
+        self._recvmmsg = _recvmmsg
         self.fd = sock.fileno()
         self.slots, self.max_datagram = slots, max_datagram
         self._data = (ctypes.c_char * (slots * max_datagram))()
@@ -102,15 +105,16 @@ class MmsgReceiver:
             h.msg_iov, h.msg_iovlen = ctypes.pointer(self._iov[i]), 1
             h.msg_control, h.msg_controllen = ctrl0 + i * _CMSG_SPACE, _CMSG_SPACE
         self._view = memoryview(self._data).cast("B")
-        self._hdr = np.frombuffer(self._msgs, dtype=_HDR)
-        self._cmsg = np.frombuffer(self._ctrl, dtype=_CMSG)
+        # through a memoryview (the same memory): numpy's stubs do not take ctypes arrays
+        self._hdr = np.frombuffer(memoryview(self._msgs), dtype=_HDR)
+        self._cmsg = np.frombuffer(memoryview(self._ctrl), dtype=_CMSG)
 
     def receive(self, limit: int | None = None) -> tuple[list[bytes], list[int | None], int]:
         """(datagrams, kernel receive stamps in ``CLOCK_REALTIME`` ns — None where the kernel
         gave none —, how many were truncated and dropped) of what waits now, at most ``limit``
         (and ``slots``). Raises BlockingIOError when nothing waits, OSError on a socket error."""
         vlen = self.slots if limit is None else max(1, min(limit, self.slots))
-        n = _recvmmsg(self.fd, self._msgs, vlen, MSG_DONTWAIT, None)
+        n = self._recvmmsg(self.fd, self._msgs, vlen, MSG_DONTWAIT, None)
         if n < 0:
             err = ctypes.get_errno()
             if err in (errno.EAGAIN, errno.EWOULDBLOCK):

@@ -17,7 +17,7 @@ class TcpTransport(Transport):
     def __init__(self, host: str, port: int, name: str | None = None, **kwargs) -> None:
         super().__init__(name or f"tcp:{host}:{port}", **kwargs)
         self.host, self.port = host, port
-        self._writer = None
+        self._writer: asyncio.StreamWriter | None = None
         self._task: asyncio.Task | None = None
         self._drained = asyncio.Event()
 

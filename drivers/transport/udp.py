@@ -34,7 +34,7 @@ class UdpTransport(Transport):
         self.host, self.port, self.group, self.interface = host, port, group, interface
         self.rcvbuf_bytes = rcvbuf_bytes
         self.rcvbuf_bytes_granted = 0
-        self._transport = None
+        self._transport: asyncio.DatagramTransport | None = None
 
     def describe(self) -> str:
         where = f"{self.group} on {self.interface}" if self.group else self.host

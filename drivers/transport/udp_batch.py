@@ -27,6 +27,7 @@ taken half of them. Truncated datagrams are counted (``rejected['truncated']``).
 
 from __future__ import annotations
 
+import asyncio
 import socket
 import struct
 import time
@@ -68,7 +69,7 @@ class BatchUdpTransport(Transport):
         self.use_recvmmsg = use_recvmmsg and recvmmsg.available()
         self._sock: socket.socket | None = None
         self._mmsg: recvmmsg.MmsgReceiver | None = None
-        self._timer = None
+        self._timer: asyncio.TimerHandle | None = None
         self._paused = False
         self._watching = False  # the socket is registered with the loop's selector
 
@@ -123,9 +124,10 @@ class BatchUdpTransport(Transport):
         offset = realtime_minus_monotonic_ns()
         chunks = self._chunks
         room = min(self.burst, self.max_chunks - len(chunks))
+        mmsg = self._mmsg
         got = (
-            self._read_many(room, mono, offset)
-            if self._mmsg is not None
+            self._read_many(mmsg, room, mono, offset)
+            if mmsg is not None
             else self._read_each(sock, room, mono, offset)
         )
         if got and self.coalesce_s > 0:  # let the next datagrams gather in the socket buffer:
@@ -145,8 +147,8 @@ class BatchUdpTransport(Transport):
                 self._loop.remove_reader(self._sock.fileno())
             self._watching = on
 
-    def _read_many(self, room: int, mono: int, offset: int) -> int:
-        mmsg, push, stats = self._mmsg, self._push, self.stats
+    def _read_many(self, mmsg: recvmmsg.MmsgReceiver, room: int, mono: int, offset: int) -> int:
+        push, stats = self._push, self.stats
         got = 0
         while got < room:
             want = min(mmsg.slots, room - got)

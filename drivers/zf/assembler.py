@@ -26,6 +26,7 @@ from __future__ import annotations
 
 from collections import deque
 from collections.abc import Callable
+from typing import cast
 
 import numpy as np
 
@@ -208,7 +209,7 @@ class ProfileAssembler:
     def feed_assembled(self, data: bytes, host_ns: int | None = None) -> list[AssembledProfile]:
         """:meth:`feed` without building the per-point arrays (:meth:`AssembledProfile.build`)."""
         if self._run is not None:
-            self._take_back_run()
+            self._take_back_run(self._run)
         stats = self.stats
         stats.bytes_in += len(data)
         try:
@@ -261,7 +262,7 @@ class ProfileAssembler:
 
     def flush_assembled(self) -> list[AssembledProfile]:
         if self._run is not None:
-            self._take_back_run()
+            self._take_back_run(self._run)
         out = []
         for c in sorted(self._open, key=lambda k: _diff(k, self._newest if self._newest is not None else k)):
             out.append(self._emit(c))
@@ -274,10 +275,11 @@ class ProfileAssembler:
                 return [self._emit(c)]
             return []
         out = []
+        newest = cast(int, self._newest)  # set by feed_assembled before it calls here
         while self._open:
-            oldest = min(self._open, key=lambda k: _diff(k, self._newest))
+            oldest = min(self._open, key=lambda k: _diff(k, newest))
             part = self._open[oldest]
-            if len(part.packets) == part.count or _diff(self._newest, oldest) >= self.window:
+            if len(part.packets) == part.count or _diff(newest, oldest) >= self.window:
                 out.append(self._emit(oldest))
             else:
                 break
@@ -394,9 +396,10 @@ class ProfileAssembler:
         tags = [t if f & _SYNCED == _SYNCED else None for f, t in zip(flags_l, t0_l)]
         return out, tags
 
-    def _take_back_run(self) -> None:
-        """The profile in flight goes back to the one-by-one path (decoded)."""
-        r, self._run = self._run, None
+    def _take_back_run(self, r: _Run) -> None:
+        """The profile in flight (``r``, the batch path's ``_run``) goes back to the one-by-one
+        path (decoded)."""
+        self._run = None
         part = self._open[r.counter] = _Partial(r.count, r.host_ns)
         decode = self._decode
         part.packets = {j: x if isinstance(x, Packet) else decode(x) for j, x in enumerate(r.items)}

@@ -10,7 +10,8 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from acquire.guidance.lines import AcceptanceTolerances, prechecks
+from acquire.guidance.acceptance import AcceptanceTolerances
+from acquire.guidance.prechecks import prechecks
 from acquire.guidance.state import Guidance
 from calib.boresight.adjust import AdjustmentResult, adjust
 from calib.boresight.errormodel import ErrorModel

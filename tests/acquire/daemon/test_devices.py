@@ -5,7 +5,7 @@ from __future__ import annotations
 import datetime as dt
 from types import SimpleNamespace
 
-from acquire.daemon.config import DeviceConfig
+from acquire.daemon.configschema import DeviceConfig
 from acquire.daemon.consumers import ConsumerHub
 from acquire.daemon.devices import STATUS_HOLD_NS, InsDevice
 from acquire.timing.latency import LatencyLimits

@@ -16,10 +16,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from acquire.daemon.config import GuidanceConfig, VesselConfigError, load_vessel_config, parse_vessel_config
+from acquire.daemon.config import VesselConfigError, load_vessel_config, parse_vessel_config
+from acquire.daemon.configschema import GuidanceConfig
 from acquire.daemon.supervisor import Supervisor
+from acquire.guidance.acceptance import AcceptanceTolerances
 from acquire.guidance.daemon import GuidanceSetupError, guidance_consumer, make_guidance, tolerances
-from acquire.guidance.lines import AcceptanceTolerances
 from acquire.status.bus import read_snapshot
 from calib.sim.simulate import simulate
 from tests.acquire.daemon_util import MLS, MqttCollector, free_port

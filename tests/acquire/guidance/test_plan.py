@@ -15,7 +15,7 @@ from typer.testing import CliRunner
 from acquire.guidance.autopilot import autopilot_sentences, steering
 from acquire.guidance.autopilot_out import NmeaOutput, follow_daemon
 from acquire.status.bus import StatusBus, StatusServer
-from calib.sim.scenario import load_scenario
+from calib.sim.scenariofile import load_scenario
 from calib.survey.passplan import plan_site
 from calib.survey.planexport import FORMAT, plan_geojson
 from cli.app import app

@@ -19,7 +19,7 @@ from pathlib import Path
 import pytest
 from rich.console import Console
 
-from acquire.guidance.lines import prechecks
+from acquire.guidance.prechecks import prechecks
 from acquire.status.bus import StatusBus, StatusServer
 from acquire.status.feed import SocketFeed
 from acquire.ui.checklist_app import (

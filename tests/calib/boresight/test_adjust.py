@@ -167,6 +167,15 @@ def test_lever_arm_x_and_pitch_are_confused_on_a_two_target_site(clean):
         adjust(obs, Mount(), planes, AdjustOptions(estimate=("lever_arm_x",)))
 
 
+def test_a_latency_without_the_trajectory_is_refused(clean):
+    """Observations built without a trajectory cannot move the poses with Δt: a clear error
+    (it was an AttributeError on None)."""
+    obs, planes = clean
+    assert obs.trajectory is None
+    with pytest.raises(AdjustmentError, match="estimating the latency needs the trajectory"):
+        adjust(obs, Mount(), planes, AdjustOptions(estimate=("latency",), jackknife=False))
+
+
 def test_latency_is_estimated_from_the_trajectory():
     """With one trajectory spanning all passes, a 5 ms LiDAR–POS latency is recovered (on a
     site spread in range: at one range a time shift looks like a pitch, as lever arm x does)."""

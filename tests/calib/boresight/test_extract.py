@@ -13,12 +13,10 @@ from calib.boresight.extract import (
     ExtractOptions,
     extract,
     extract_target,
-    incidence_corrected,
     initial_planes,
-    intensity_split,
-    ransac_plane,
     voxel_subsample,
 )
+from calib.boresight.segmentation import incidence_corrected, intensity_split, ransac_plane
 from calib.core.geometry import Rectangle
 from calib.core.georef import georeference
 from calib.sim.simulate import simulate

@@ -200,6 +200,19 @@ def test_a_target_with_fewer_than_ten_points_is_named():
         _run(tiny)
 
 
+def test_a_target_without_three_points_in_any_pass_is_named():
+    """Enough points over all passes but fewer than 3 in each: no pass gives it an a-priori
+    plane, and the error names it (it was a TypeError in the adjustment)."""
+    r = simulate("montreal", 0)
+    labels = r.target_index.copy()
+    t2 = np.flatnonzero(labels == 1)
+    for pid in np.unique(r.points.pass_id[t2]):
+        labels[t2[r.points.pass_id[t2] == pid][2:]] = -1  # 2 points of T2 per pass
+    assert np.count_nonzero(labels == 1) >= 10
+    with pytest.raises(CalibrationError, match=r"target\(s\) T2: no pass holds 3 of its points"):
+        _run(r, labels=labels)
+
+
 def _points_with(r, **arrays) -> ScanPoints:
     p = r.points
     fields = {

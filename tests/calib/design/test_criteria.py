@@ -26,7 +26,7 @@ from calib.design.layouts import default_spec
 from calib.design.prediction import Sigmas, observations, scan_angle_roll_correlation, target_planes
 from calib.design.scenes import design_scenario
 from calib.design.study import run_study
-from calib.sim.scenario import load_scenario
+from calib.sim.scenariofile import load_scenario
 from calib.sim.simulate import simulate
 
 RECT = Rectangle.from_orientation("T", [10.0, -4.0, -5.0], 1.0, 1.0, np.radians(70.0), np.radians(125.0))

@@ -34,7 +34,7 @@ from calib.design.scenes import design_scenario, site_scenario
 from calib.design.study import run_study
 from calib.design.whatif import site_as_scenario, what_if
 from calib.sim.noise import PosNoise
-from calib.sim.scenario import load_scenario
+from calib.sim.scenariofile import load_scenario
 from calib.sim.simulate import simulate
 from cli.app import app
 

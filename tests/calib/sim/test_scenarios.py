@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from calib.io.configfile import ConfigError
-from calib.sim.scenario import load_scenario, parse_scenario, scenario_names
+from calib.sim.scenariofile import load_scenario, parse_scenario, scenario_names
 from calib.sim.simulate import simulate
 
 MINIMAL = """

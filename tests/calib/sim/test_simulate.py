@@ -16,7 +16,7 @@ from calib.core.geometry import fit_plane
 from calib.core.georef import Mount, georeference
 from calib.io.bundle import read_bundle, read_truth
 from calib.sim.motion import dubins_path, sample_path
-from calib.sim.scenario import load_scenario, parse_scenario
+from calib.sim.scenariofile import load_scenario, parse_scenario
 from calib.sim.simulate import SimulationError, scan, simulate
 
 NOISE_FREE = {
