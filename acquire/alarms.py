@@ -4,8 +4,9 @@ An alarm is keyed by ``(name, device)`` (``("latency_jump", "ins")``, ``("disk_w
 "log")``). A monitor evaluates its condition and calls :meth:`AlarmBook.update`; the book raises
 the alarm once the condition has held for ``raise_after_ns`` and clears it once it has been
 false for ``clear_after_ns`` (time hysteresis; value hysteresis — a lower threshold to clear —
-is the caller's, see :meth:`AlarmBook.is_active`). Each transition is an :class:`AlarmEvent`,
-returned by ``update`` and queued for :meth:`AlarmBook.drain`, which the daemon publishes (socket,
+is the caller's, see :meth:`AlarmBook.is_active`). Each transition is an :class:`AlarmEvent`
+(a raise, a clear, and a raise again when an active alarm's severity rises: warning →
+critical is never silent), returned by ``update`` and queued for :meth:`AlarmBook.drain`, which the daemon publishes (socket,
 MQTT ``alarms``) and logs (``/events``).
 
 Times: ``now_ns`` is the monitor's stream time (host monotonic ns); the book converts it to GPS
@@ -22,6 +23,7 @@ from typing import Literal
 
 INFO, WARNING, CRITICAL = "info", "warning", "critical"
 SEVERITIES = (INFO, WARNING, CRITICAL)
+_RANK = {CRITICAL: 0, WARNING: 1, INFO: 2}
 
 
 @dataclass(frozen=True)
@@ -101,13 +103,18 @@ class AlarmBook:
             if condition == active:
                 pending.since_ns = None
                 if active and alarm is not None:  # refresh the message and the last time
-                    self._alarms[key] = replace(
+                    new = replace(
                         alarm,
                         message=message or alarm.message,
                         last_host_ns=now_ns,
                         last_gps_ns=self._gps(now_ns),
                         severity=severity,
                     )
+                    self._alarms[key] = new
+                    if _RANK[severity] < _RANK[alarm.severity]:  # escalated: raised again
+                        event = AlarmEvent("raise", new)
+                        self._events.append(event)
+                        return event
                 return None
             if pending.since_ns is None:
                 pending.since_ns = now_ns
@@ -165,8 +172,7 @@ class AlarmBook:
         """The active alarms, most severe first, then oldest first."""
         with self._lock:
             alarms = [a for a in self._alarms.values() if a.active]
-        rank = {CRITICAL: 0, WARNING: 1, INFO: 2}
-        return sorted(alarms, key=lambda a: (rank[a.severity], a.first_host_ns))
+        return sorted(alarms, key=lambda a: (_RANK[a.severity], a.first_host_ns))
 
     def drain(self) -> list[AlarmEvent]:
         """Transitions since the last drain, oldest first."""

@@ -12,10 +12,18 @@ outlier gating. It reports:
 - the residual jitter of the host stamps around the line (RMS, max |r|, peak-to-peak).
 
 This is the estimator behind ``mls decode --timing`` and the reference for the clock model.
+
+Host clocks: every host stamp is ``CLOCK_MONOTONIC``; kernel ``CLOCK_REALTIME`` stamps are moved
+to it with :func:`realtime_minus_monotonic_ns`, whose reads also count the steps of the
+realtime clock (:data:`HOST_CLOCK_STEPS`: an NTP step, ``date -s``), and a transport converts
+its stamps through :class:`RealtimeStamps`, which keeps a step from shifting the stamps taken
+before it. :class:`FakeHostClock` stands in for a step in the simulated devices' tests.
 """
 
 from __future__ import annotations
 
+import os
+import threading
 import time
 from dataclasses import dataclass
 
@@ -24,11 +32,15 @@ import numpy as np
 DAY_NS = 86_400 * 1_000_000_000
 
 
-def realtime_minus_monotonic_ns(tries: int = 3) -> int:
-    """``CLOCK_REALTIME − CLOCK_MONOTONIC`` now, to move a kernel's realtime stamp (a socket's
-    ``SO_TIMESTAMPNS``, a PPS fetch) to monotonic time. Each try brackets the realtime read by
-    two monotonic reads; the narrowest bracket wins, so a preemption between the reads (a busy
-    machine) does not shift the offset — and with it the order of stamps taken moments apart."""
+#: realtime − monotonic moving more than this between two reads is a step of CLOCK_REALTIME
+#: (an NTP/chrony step or a manual ``date -s``; a slew moves it by at most 500 µs per second)
+STEP_THRESHOLD_NS = 1_000_000
+_REALTIME = time.CLOCK_REALTIME
+#: the environment variable naming the simulated devices' fake host-clock file (tests only)
+FAKE_HOST_CLOCK_ENV = "MLS_SIM_HOST_CLOCK"
+
+
+def _kernel_offset_ns(tries: int) -> int:
     best_width, best = None, 0
     for _ in range(tries):
         a = time.monotonic_ns()
@@ -37,6 +49,174 @@ def realtime_minus_monotonic_ns(tries: int = 3) -> int:
         if best_width is None or b - a < best_width:
             best_width, best = b - a, real - (a + b) // 2
     return best
+
+
+def realtime_minus_monotonic_ns(tries: int = 3) -> int:
+    """``CLOCK_REALTIME − CLOCK_MONOTONIC`` now, to move a kernel's realtime stamp (a socket's
+    ``SO_TIMESTAMPNS``, a PPS fetch) to monotonic time. Each try brackets the realtime read by
+    two monotonic reads; the narrowest bracket wins, so a preemption between the reads (a busy
+    machine) does not shift the offset — and with it the order of stamps taken moments apart.
+
+    Every read is also shown to :data:`HOST_CLOCK_STEPS`, which counts the steps of the
+    realtime clock. With ``$MLS_SIM_HOST_CLOCK`` set (the simulated devices' tests only) the
+    offset is the faked one of :class:`FakeHostClock`."""
+    offset = _kernel_offset_ns(tries) if FAKE_HOST_CLOCK is None else FAKE_HOST_CLOCK.offset_ns(tries)
+    steps = HOST_CLOCK_STEPS
+    last = steps.offset_ns
+    if last is None or abs(offset - last) > STEP_THRESHOLD_NS:
+        steps.observe(offset)
+    else:
+        steps.offset_ns = offset
+    return offset
+
+
+class HostClockSteps:
+    """The steps of ``CLOCK_REALTIME`` this process has seen (through any
+    :func:`realtime_minus_monotonic_ns` read): ``count``, and the latest as
+    ``(host monotonic ns, step ns)`` in ``last``. The daemon reads ``count`` for its alarm
+    ``host_clock_step``; the host's own stamps are monotonic and never move."""
+
+    def __init__(self) -> None:
+        self.offset_ns: int | None = None
+        self.count = 0
+        self.last: tuple[int, int] | None = None
+        self._lock = threading.Lock()
+
+    def observe(self, offset_ns: int) -> None:
+        with self._lock:
+            last = self.offset_ns
+            self.offset_ns = offset_ns
+            if last is not None and abs(offset_ns - last) > STEP_THRESHOLD_NS:
+                self.count += 1
+                self.last = (time.monotonic_ns(), offset_ns - last)
+
+
+HOST_CLOCK_STEPS = HostClockSteps()
+
+
+class RealtimeStamps:
+    """A transport's kernel ``CLOCK_REALTIME`` stamps → ``CLOCK_MONOTONIC``, across a step.
+
+    :meth:`begin` samples the offset for a read. While the offset is the one of the previous
+    read (:attr:`exact`), ``stamp − offset`` is exact and the caller does it inline (keeping
+    :attr:`last_ns`, the latest stamp, for the order check below). After a
+    step, the stamps of one read may lie on either side of it (stamped before the step, read
+    after): for ``hold_ns`` after the step :meth:`convert` converts each with both offsets and
+    keeps the later of those that put it no later than now and not before the previous stamp
+    (a socket's stamps come in order) — the wrong one is a step away: in the future, or a step
+    earlier. A stamp that fits neither is replaced by the read time and counted (``unknown``);
+    stamps kept on the old offset are counted (``repaired``)."""
+
+    def __init__(self, hold_ns: int = 2_000_000_000, tolerance_ns: int = 1_000_000) -> None:
+        self.hold_ns = hold_ns
+        self.tolerance_ns = tolerance_ns
+        self.offset: int | None = None
+        self.exact = True
+        self.steps = self.repaired = self.unknown = 0
+        self._old: int | None = None  # the offset before the latest step
+        self._until = 0  # host ns until which stamps may still be of the old offset
+        self.last_ns = -(2**62)  # the latest monotonic stamp given out (the caller's, when exact)
+
+    def begin(self) -> int:
+        """The offset for this read (and :attr:`exact`). (The step counter :data:`HOST_CLOCK_STEPS`
+        is left to the daemon's periodic read: this is the receive path.)"""
+        fake = FAKE_HOST_CLOCK
+        if fake is None:  # _kernel_offset_ns(3), inline: once per read of a busy socket
+            mono, real, width, offset = time.monotonic_ns, time.clock_gettime_ns, None, 0
+            for _ in range(3):
+                a = mono()
+                r = real(_REALTIME)
+                b = mono()
+                if width is None or b - a < width:
+                    width, offset = b - a, r - (a + b) // 2
+        else:
+            offset = fake.offset_ns(3)
+        prev, self.offset = self.offset, offset
+        if prev is not None and not -STEP_THRESHOLD_NS <= offset - prev <= STEP_THRESHOLD_NS:
+            self.steps += 1
+            self._old, self._until = prev, time.monotonic_ns() + self.hold_ns
+        if self._old is None:
+            self.exact = fake is None
+        else:
+            if time.monotonic_ns() > self._until:
+                self._old = None
+            self.exact = False
+        return offset
+
+    def convert(self, realtime_ns: int, read_ns: int) -> int:
+        """One stamp when not :attr:`exact` (see the class docstring)."""
+        if FAKE_HOST_CLOCK is not None:
+            realtime_ns = FAKE_HOST_CLOCK.kernel_stamp(realtime_ns)
+        assert self.offset is not None
+        hi = time.monotonic_ns() + self.tolerance_ns
+        lo = self.last_ns - self.tolerance_ns
+        m = realtime_ns - self.offset
+        if self._old is not None:
+            m_old = realtime_ns - self._old
+            # the true stamp is in the past; the other candidate is a step away from it: in the
+            # future (rejected) or a step earlier (the later one wins)
+            fits = [c for c in (m, m_old) if lo <= c <= hi]
+            if not fits:
+                self.unknown += 1
+                m = read_ns
+            elif max(fits) != m:
+                self.repaired += 1
+                m = m_old
+        self.last_ns = max(self.last_ns, m)
+        return m
+
+
+class FakeHostClock:
+    """The host clock as the simulated devices' ``host_clock_step`` fault makes it look: the
+    emulators cannot step this machine's ``CLOCK_REALTIME``, so they write the steps they would
+    make to a file (``<run dir>/host_clock``: lines ``<host monotonic ns> <step ns>``) and a
+    process started with ``$MLS_SIM_HOST_CLOCK`` naming that file reads realtime − monotonic
+    through this class: the real offset plus every step whose instant has passed, and kernel
+    realtime stamps (:meth:`kernel_stamp`) moved alike when they were taken after a step — what
+    a real step does to both. Never set on a vessel. The file is looked at (``stat``) at most
+    every ``poll_ns``."""
+
+    def __init__(self, path: str, poll_ns: int = 100_000_000) -> None:
+        self.path = path
+        self.poll_ns = poll_ns
+        self.steps: list[tuple[int, int]] = []  # (host monotonic ns, step ns), sorted
+        self._mtime: int | None = None
+        self._next_poll = 0
+
+    def _poll(self) -> None:
+        now = time.monotonic_ns()
+        if now < self._next_poll:
+            return
+        self._next_poll = now + self.poll_ns
+        try:
+            mtime = os.stat(self.path).st_mtime_ns
+            if mtime == self._mtime:
+                return
+            with open(self.path, encoding="utf-8") as f:
+                rows = [line.split() for line in f if line.strip() and not line.startswith("#")]
+            self.steps = sorted((int(a), int(b)) for a, b in rows)
+            self._mtime = mtime
+        except (OSError, ValueError):
+            pass
+
+    def step_at(self, monotonic_ns: int) -> int:
+        """The sum of the steps made by ``monotonic_ns``."""
+        return sum(step for t, step in self.steps if t <= monotonic_ns)
+
+    def offset_ns(self, tries: int = 3) -> int:
+        self._poll()
+        return _kernel_offset_ns(tries) + self.step_at(time.monotonic_ns())
+
+    def kernel_stamp(self, realtime_ns: int) -> int:
+        """A real kernel realtime stamp as the faked clock would have stamped it."""
+        if not self.steps:
+            return realtime_ns
+        return realtime_ns + self.step_at(realtime_ns - _kernel_offset_ns(1))
+
+
+FAKE_HOST_CLOCK: FakeHostClock | None = (
+    FakeHostClock(os.environ[FAKE_HOST_CLOCK_ENV]) if os.environ.get(FAKE_HOST_CLOCK_ENV) else None
+)
 
 
 @dataclass(frozen=True)
@@ -99,3 +279,12 @@ def fit_clock(host_ns, device_ns, gate: float = 5.0, max_iter: int = 5) -> Clock
         jitter_max_s=float(np.max(np.abs(r))),
         jitter_p2p_s=float(np.ptp(r)),
     )
+
+
+def signed_time_of_day_offset_s(offset_s: float) -> float:
+    """An offset of a full time scale against a time of day (a capture's UTC stamp − the
+    device's time-of-day tag: the date plus latency and clock offset) without the date: folded
+    into [−12 h, +12 h), so a device tag 6.6 ms *ahead* of the stamp gives −0.0066 s, not
+    86399.9934 s as ``offset_s % 86400`` does."""
+    half_day = DAY_NS // 2_000_000_000
+    return (offset_s + half_day) % (2 * half_day) - half_day

@@ -10,7 +10,9 @@ reports ``drift_ppm`` (at speed 1). ``speed`` > 1 runs the scenario faster than 
 daemon then sees a clock rate of ``speed``.
 
 The run directory holds it as ``truth_clock.json`` (:meth:`TruthClock.write`,
-:meth:`TruthClock.read`) so tests can score the daemon's clock estimate against it.
+:meth:`TruthClock.read`) so tests can score the daemon's clock estimate against it, and the
+simulated steps of the host's realtime clock (``host_clock_step`` faults) as ``host_clock``
+(:func:`write_host_clock_steps`, read by :class:`drivers.timing.FakeHostClock`).
 """
 
 from __future__ import annotations
@@ -24,6 +26,7 @@ import numpy as np
 
 NS_PER_S = 1_000_000_000
 FORMAT = "marine-mls truth clock v1"
+HOST_CLOCK_FILE = "host_clock"  # the simulated host-clock steps (drivers.timing.FakeHostClock)
 
 
 @dataclass(frozen=True)
@@ -100,3 +103,17 @@ class TruthClock:
         return cls(
             int(d["host_anchor_ns"]), int(d["gps_anchor_ns"]), float(d["drift_ppm"]), float(d["speed"])
         )
+
+
+def write_host_clock_steps(path: str | Path, steps: list[tuple[int, int]]) -> Path:
+    """The steps the ``host_clock_step`` faults would make to the host's realtime clock —
+    ``(host monotonic ns of the step, step ns)`` — for :class:`drivers.timing.FakeHostClock`
+    (the emulators cannot step this machine's clock; a daemon started with
+    ``$MLS_SIM_HOST_CLOCK`` naming this file sees the steps instead). Written atomically."""
+    path = Path(path)
+    tmp = path.with_name(path.name + ".tmp")
+    lines = ["# marine-mls simulated host clock steps: host_monotonic_ns step_ns"]
+    lines += [f"{int(t)} {int(step)}" for t, step in sorted(steps)]
+    tmp.write_text("\n".join(lines) + "\n", encoding="utf-8")
+    tmp.replace(path)
+    return path

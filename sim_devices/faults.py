@@ -14,6 +14,9 @@
       - {at_s: 30.0, kind: profiler_clock_drift, drift_ppm: 100.0, duration_s: 10.0}
       - {at_s: 40.0, kind: ins_latency_jump, latency_s: 0.02, duration_s: 5.0}
       - {at_s: 50.0, kind: gnss_outage, duration_s: 20.0}
+      - {at_s: 75.0, kind: zda_late, delay_s: 0.8, duration_s: 2.0}   # ZDA 800 ms later than usual
+      - {at_s: 80.0, kind: leap_second, gps_minus_utc_s: 19}          # the INS believes GPS − UTC = 19 s
+      - {at_s: 85.0, kind: host_clock_step, step_s: -3600.0}          # the host's realtime clock steps
 
 Kinds (:data:`KINDS`; ``device`` defaults to the only device a kind applies to):
 
@@ -34,12 +37,28 @@ Kinds (:data:`KINDS`; ``device`` defaults to the only device a kind applies to):
 - ``ins_latency_jump`` (ins): ``latency_s`` more output latency during the window.
 - ``gnss_outage`` (ins): GNSS lost: INS status dead reckoning (GPS received/valid cleared),
   position error growing at ``position_drift_m_s`` (default 0.05) along north, σ growing alike.
+- ``zda_late`` (ins, NMEA): each ZDA of a second in the window leaves ``delay_s`` later than
+  usual (its ``zda_delay_s`` after the pulse) — past the usual latency, possibly past the next
+  pulse.
+- ``leap_second`` (ins): from ``at_s`` (to the window's end) the INS believes GPS − UTC is
+  ``gps_minus_utc_s`` (an integer of seconds, 0–255): its UTC tags (ZDA, TIME__; STDBIN validity
+  time and system date) are made with it, and an NMEA INS announces it (``$PMLS,GPSUTC``, before
+  each ZDA and before the first epoch tagged with a new count, for the whole run when the
+  timeline has such a fault; the table's count outside the window). A STDBIN INS has no
+  announcement: only its tags move.
+- ``host_clock_step`` (host, instantaneous): the host's ``CLOCK_REALTIME`` steps by ``step_s``
+  (|step| ≥ 0.01 s) at ``at_s``. Simulated: the emulators cannot step this machine's clock, so
+  they write the step to ``<run dir>/host_clock`` and a daemon started with
+  ``$MLS_SIM_HOST_CLOCK`` naming that file sees it through the interface it reads
+  realtime − monotonic with (:class:`drivers.timing.FakeHostClock`: the offset and the kernel
+  stamps taken after the step move; monotonic time does not).
 
 A fault acts on what the device emits from ``at_s`` to ``at_s + duration_s`` (half-open; a
 fault without ``duration_s`` lasts to the end of the run), on the devices' GPS time scale: the
-profiler's clock faults on each profile's measurement time, ``gnss_outage`` and
-``ins_latency_jump`` on the INS epoch's time tag, ``pps_loss`` on the pulse's GPS second, the
-link faults (unplug, garbage, checksums, UDP) on the truth-clock instant of the emission. Two faults of one
+profiler's clock faults on each profile's measurement time, ``gnss_outage``,
+``ins_latency_jump`` and ``leap_second`` on the INS epoch's time tag, ``pps_loss`` and
+``zda_late`` on the pulse's GPS second, the link faults (unplug, garbage, checksums, UDP) and
+``host_clock_step`` on the truth-clock instant. Two faults of one
 kind on one device must not overlap. Errors name the file, line, column and key
 (``faults.yaml:7:5: faults[2].probability: got 1.5, expected a number ≤ 1``).
 """
@@ -54,6 +73,8 @@ from typing import Any
 from calib.io.configfile import ConfigError, Node, load_yaml
 
 NS_PER_S = 1_000_000_000
+#: the "device" of the faults of the host itself (no emulator process: the run applies them)
+HOST = "host"
 
 #: kind → (devices it applies to, {optional key: default}); ``duration_s`` is handled apart.
 KINDS: dict[str, tuple[tuple[str, ...], dict[str, Any]]] = {
@@ -68,9 +89,12 @@ KINDS: dict[str, tuple[tuple[str, ...], dict[str, Any]]] = {
     "profiler_clock_drift": (("profiler",), {"drift_ppm": None, "pps_locked": False}),
     "ins_latency_jump": (("ins",), {"latency_s": None}),
     "gnss_outage": (("ins",), {"position_drift_m_s": 0.05}),
+    "zda_late": (("ins",), {"delay_s": None}),
+    "leap_second": (("ins",), {"gps_minus_utc_s": None}),
+    "host_clock_step": ((HOST,), {"step_s": None}),
 }
 #: kinds that happen at one instant (no window)
-INSTANT = frozenset({"garbage"})
+INSTANT = frozenset({"garbage", "host_clock_step"})
 #: kinds that need a window
 NEEDS_DURATION = frozenset({"bad_checksum", "udp_loss", "udp_reorder", "udp_duplicate"})
 
@@ -220,6 +244,14 @@ def _fault(node: Node) -> Fault:
             params[key] = n.number(minimum=0.0, maximum=10.0, exclusive_minimum=True)
         elif key == "offset_s":
             params[key] = n.number(minimum=-1e6, maximum=1e6)
+        elif key == "delay_s":
+            params[key] = n.number(minimum=0.0, maximum=10.0, exclusive_minimum=True)
+        elif key == "gps_minus_utc_s":
+            params[key] = n.integer(minimum=0, maximum=255)
+        elif key == "step_s":
+            params[key] = n.number(minimum=-1e9, maximum=1e9)
+            if abs(params[key]) < 0.01:
+                raise n.fail("a step of at least 0.01 s either way (smaller ones are slewed)")
         else:  # position_drift_m_s
             params[key] = n.number(minimum=0.0, maximum=100.0)
     return Fault(kind, device, at_s, duration, params, where)

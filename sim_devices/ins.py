@@ -16,7 +16,11 @@ for the epochs in its window, and lets the reported position drift north at
 ``position_drift_m_s`` with the north/east σ growing alike.
 
 Faults (:mod:`sim_devices.faults`): ``serial_unplug``, ``garbage``, ``bad_checksum``,
-``ins_latency_jump`` (on the epochs whose time tag is in the window), ``gnss_outage``.
+``ins_latency_jump`` (on the epochs whose time tag is in the window), ``gnss_outage``,
+``zda_late`` (NMEA: the ZDAs of the seconds in the window leave ``delay_s`` later),
+``leap_second`` (the UTC tags of the epochs and ZDAs in the window are made with the fault's
+GPS − UTC; an NMEA INS then announces its count, ``$PMLS,GPSUTC``, before every ZDA of the run
+and before the first epoch tagged with a new count).
 """
 
 from __future__ import annotations
@@ -28,8 +32,9 @@ from pathlib import Path
 
 import numpy as np
 
+from calib.core.frames import leap_seconds_at_gps_ns
 from drivers.hydrins.nav import status_words
-from drivers.hydrins.nmea_encode import encode_epoch, encode_zda
+from drivers.hydrins.nmea_encode import encode_epoch, encode_gps_utc, encode_zda
 from drivers.hydrins.stdbin_encode import encode_nav
 from sim_devices.faults import Fault, Timeline
 from sim_devices.feed import InsTrack
@@ -111,6 +116,9 @@ class InsEmulator:
         self.rng = np.random.default_rng([seed, 1])
         self.counts = {"epochs": 0, "zda": 0, "corrupted": 0, "garbage_bytes": 0}
         self.applied: list[dict] = []
+        # an NMEA INS with a leap_second fault announces its GPS − UTC all along ($PMLS,GPSUTC)
+        self.announce = settings.protocol == "nmea" and any(f.kind == "leap_second" for f in faults)
+        self._announced: int | None = None  # the count announced last
 
     # -- schedule ---------------------------------------------------------------------------------
 
@@ -127,7 +135,12 @@ class InsEmulator:
             sec = np.arange(
                 -(-self.start_gps_ns // NS_PER_S), -(-self.end_gps_ns // NS_PER_S), dtype=np.int64
             )
-            hosts.append(clock.host_ns_array(sec * NS_PER_S) + round(s.zda_delay_s * NS_PER_S))
+            zda_host = clock.host_ns_array(sec * NS_PER_S) + round(s.zda_delay_s * NS_PER_S)
+            for g0, g1, f in self.timeline.events("zda_late"):
+                zda_host[(sec * NS_PER_S >= g0) & (sec * NS_PER_S < g1)] += round(
+                    f.params["delay_s"] * NS_PER_S
+                )
+            hosts.append(zda_host)
             kinds.append(np.full(sec.size, _EV_ZDA))
             args.append(sec)
         for i, f in enumerate(self.faults):
@@ -177,9 +190,31 @@ class InsEmulator:
             pps_detected=True,
         )
         nav = replace(nav, algorithm_status=algo, system_status=system, user_status=0)
+        leap = self.gps_minus_utc_s(gps)
         if s.protocol == "nmea":
-            return encode_epoch(nav, s.talker)
-        return encode_nav(nav, s.stdbin_version, counter=k)
+            return self._announcement(gps, leap, every=False) + encode_epoch(nav, s.talker, leap)
+        return encode_nav(nav, s.stdbin_version, counter=k, gps_minus_utc_s=leap)
+
+    def gps_minus_utc_s(self, gps_ns: int) -> int | None:
+        """The GPS − UTC a ``leap_second`` fault makes the INS believe at ``gps_ns`` (None: the table's)."""
+        f = self.timeline.active("leap_second", gps_ns)
+        return None if f is None else f.params["gps_minus_utc_s"]
+
+    def zda_bytes(self, second: int) -> bytes:
+        """The ZDA of a GPS second (after the announcement of GPS − UTC, when the INS makes one)."""
+        gps = second * NS_PER_S
+        leap = self.gps_minus_utc_s(gps)
+        return self._announcement(gps, leap, every=True) + encode_zda(gps, gps_minus_utc_s=leap)
+
+    def _announcement(self, gps_ns: int, leap: int | None, every: bool) -> bytes:
+        """``$PMLS,GPSUTC`` before every ZDA and before the first epoch tagged with a new count."""
+        if not self.announce:
+            return b""
+        value = leap_seconds_at_gps_ns(gps_ns) if leap is None else leap
+        if not every and value == self._announced:
+            return b""
+        self._announced = value
+        return encode_gps_utc(value)
 
     def _checksums(self, data: bytes, gps_ns: int) -> bytes:
         f = self.timeline.active("bad_checksum", gps_ns)
@@ -214,7 +249,7 @@ class InsEmulator:
             if kind == _EV_NAV:  # build the bytes before the instant, write at it
                 data = self.nav_bytes(arg)
             elif kind == _EV_ZDA:
-                data = encode_zda(arg * NS_PER_S)
+                data = self.zda_bytes(arg)
             if not pacer.wait_until(host):
                 return False
             gps_now = clock.gps_ns(host)

@@ -17,7 +17,9 @@ orphan process or pty survives ``mls sim devices``.
 The run directory (:data:`RUN_FILES`): ``truth_clock.json`` (the truth clock and the run
 window), ``faults.json`` (every fault's window in scenario seconds, GPS ns and host ns),
 ``devices.json`` (where each device is, the process ids), ``scenario_truth.json`` (the
-simulation's truth), ``ins`` (the link to the INS pty) and, when each process ends,
+simulation's truth), ``ins`` (the link to the INS pty), ``host_clock`` (the simulated steps of
+the host's realtime clock, with ``host_clock_step`` faults: a daemon started with
+``$MLS_SIM_HOST_CLOCK`` naming it sees them) and, when each process ends,
 ``stats/<device>.json`` (what it sent, the faults it applied, its timing error and CPU).
 """
 
@@ -35,9 +37,9 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 from sim_devices.canbus import CanEmulator, CanSettings
-from sim_devices.clock import NS_PER_S, TruthClock
+from sim_devices.clock import HOST_CLOCK_FILE, NS_PER_S, TruthClock, write_host_clock_steps
 from sim_devices.errors import SimDevicesError
-from sim_devices.faults import FaultError, FaultPlan
+from sim_devices.faults import HOST, FaultError, FaultPlan
 from sim_devices.feed import ScenarioFeed
 from sim_devices.ins import InsEmulator, InsSettings
 from sim_devices.pacing import Pacer, TimingLog, tune_process
@@ -46,7 +48,15 @@ from sim_devices.profiler import ProfilerEmulator, ProfilerSettings
 from sim_devices.vesselconfig import write_vessel_config
 
 DEVICES = ("ins", "profiler", "pps", "can")
-RUN_FILES = ("truth_clock.json", "faults.json", "devices.json", "scenario_truth.json", "ins", "stats")
+RUN_FILES = (
+    "truth_clock.json",
+    "faults.json",
+    "devices.json",
+    "scenario_truth.json",
+    "ins",
+    "stats",
+    HOST_CLOCK_FILE,
+)
 
 
 @dataclass(frozen=True)
@@ -312,11 +322,13 @@ class DeviceRun(EmulatorRun):
         self.faults = faults or FaultPlan()
         self.faults.check_window(feed.duration_s)
         for f in self.faults.faults:
-            if f.device not in spec.devices:
+            if f.device not in spec.devices and f.device != HOST:
                 raise FaultError(
                     f"{f.where}: the {f.kind} fault is for the {f.device} emulator, which "
                     f"is not running (devices: {', '.join(spec.devices)})"
                 )
+            if f.kind == "zda_late" and spec.ins.protocol != "nmea":
+                raise FaultError(f"{f.where}: zda_late needs an NMEA INS (a STDBIN INS sends no ZDA)")
         spec = replace(spec, run_dir=self.run_dir)
         if "profiler" in spec.devices and spec.profiler.port == 0:
             spec = replace(spec, profiler=replace(spec.profiler, port=free_udp_port(spec.profiler.host)))
@@ -384,6 +396,13 @@ class DeviceRun(EmulatorRun):
             },
         )
         _write_json(self.run_dir / "scenario_truth.json", f.sim.truth)
+        steps = [
+            (c.host_ns(f_.window_ns(f.start_gps_ns)[0]), round(f_.params["step_s"] * NS_PER_S))
+            for f_ in self.faults.for_device(HOST)
+            if f_.kind == "host_clock_step"
+        ]
+        if steps:
+            write_host_clock_steps(self.run_dir / HOST_CLOCK_FILE, steps)
         self._devices_json(speed=self.spec.speed, window=window)
 
     def write_vessel_config(self, path: str | Path) -> Path:

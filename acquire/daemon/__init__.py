@@ -7,6 +7,7 @@
 - ``devices``: the daemon's devices, one class per config ``kind``, each run as one task.
 - ``consumers``: taps on the daemon's record stream for consumers, and the checklist publisher.
 - ``sdnotify``: the systemd notification protocol and the health watchdog.
+- ``pidlock``: one daemon per status socket: a lock file naming its holder's PID, host and start.
 - ``sessionfiles``: the start-up salvage report and the files written into a new session.
 - ``reports``: the status documents, the pre-survey checks and the watchdog's device check.
 - ``supervisor``: :class:`Supervisor`, one vessel config run from start-up to shutdown.

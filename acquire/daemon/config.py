@@ -17,7 +17,8 @@ default shown in the example):
   ``bitrate``), for ``kind: pps`` a ``source`` (``type: kernel`` + ``device``; ``type:
   serial-line`` + ``port``; ``type: udp`` + ``host``, ``port``) and the ``time_device`` and
   ``time_messages`` that label the pulses; ``latency`` thresholds;
-- ``session`` (log directory, rotation, flush, fsync, queue), ``clock`` (fit window, gates,
+- ``session`` (log directory, rotation, flush, fsync, queue, free-space thresholds
+  ``min_free_mb``, ``disk_warning_mb``, ``disk_critical_mb``), ``clock`` (fit window, gates,
   holdover), ``status`` (socket), ``mqtt`` (optional: host, port, credentials file, topic
   prefix, commands), ``mount`` (lever arm, nominal mount, a-priori boresight), ``site_file``;
 - ``guidance`` (optional; needs ``site_file``): the line guidance the daemon runs when the config
@@ -72,10 +73,23 @@ def _session(node: Node, errs: Errors, base: Path) -> tuple[Path | None, Session
         node,
         errs,
         required={"directory"},
-        optional={"rotate_s", "rotate_mb", "flush_s", "fsync_s", "queue_size", "compression", "min_free_mb"},
+        optional={
+            "rotate_s",
+            "rotate_mb",
+            "flush_s",
+            "fsync_s",
+            "queue_size",
+            "compression",
+            "min_free_mb",
+            "disk_warning_mb",
+            "disk_critical_mb",
+        },
     )
     d = SessionOptions()
     directory = opt(m, "directory", errs, lambda n: resolved_path(n, base), None)
+    if directory is not None and directory.exists() and not directory.is_dir():  # §4.1: one line
+        errs.add(str(m["directory"].fail(f"a directory for the sessions ({directory} is a file)")))
+        directory = None
 
     def flush(n: Node) -> float:
         return n.number(0.0, 1.0, exclusive_minimum=True)
@@ -93,6 +107,19 @@ def _session(node: Node, errs: Errors, base: Path) -> tuple[Path | None, Session
             opt(m, "min_free_mb", errs, lambda n: n.number(0.0), d.min_free_bytes / 2**20) * 2**20
         ),
     )
+    warn = round(
+        opt(m, "disk_warning_mb", errs, lambda n: n.number(0.0), d.disk_warning_bytes / 2**20) * 2**20
+    )
+    crit_default = min(d.disk_critical_bytes, warn / 5) / 2**20  # a low warning lowers it
+
+    def critical(n: Node) -> float:
+        v = n.number(0.0)
+        if v * 2**20 > warn:
+            raise n.fail(f"a number ≤ disk_warning_mb ({warn / 2**20:g})")
+        return v
+
+    crit = round(opt(m, "disk_critical_mb", errs, critical, crit_default) * 2**20)
+    kw.update(disk_warning_bytes=warn, disk_critical_bytes=crit)
     return directory, SessionOptions(**kw)
 
 
@@ -268,7 +295,8 @@ def vessel_config_from_node(root: Node, base_dir: Path) -> VesselConfig:
             from calib.io.site import load_site
 
             if not site_file.is_file():
-                errs.add(str(top["site_file"].fail(f"an existing site file ({site_file} not found)")))
+                why = "is a directory" if site_file.is_dir() else "not found"
+                errs.add(str(top["site_file"].fail(f"an existing site file ({site_file} {why})")))
             else:
                 errs.get(lambda: load_site(site_file))
     guidance = _guidance(top["guidance"], errs) if "guidance" in top else GuidanceConfig()

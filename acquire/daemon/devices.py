@@ -13,7 +13,10 @@ canonical records. What it does with a record (docs/architecture.md §4, §6):
   of the receive stamp (``time_source: clock``) — fed to the latency monitor (one sample per
   epoch, with the INS PPS flag) and to the consumer taps; the time messages named by the PPS
   device (``ZDA``, ``RMC``, ``GGA``, ``TIME__``, ``validity_time``) go to the
-  :class:`~acquire.timing.timekeeper.TimeKeeper` as whole GPS seconds.
+  :class:`~acquire.timing.timekeeper.TimeKeeper` as whole GPS seconds — the INS's UTC undone
+  with the GPS − UTC it announces (``$PMLS,GPSUTC``, also handed to the TimeKeeper: alarm
+  ``leap_second_mismatch``) or else the leap-second table's, its dates unrolled from a GPS week
+  rollover against the host's date.
 - **profiler** (``zfp1``): every datagram to ``/lidar/raw`` (device time tag = the packet's
   ``t0_ns`` when it says PPS-locked and time-valid); every assembled profile to the latency
   monitor (one sample per profile: host stamp of its first packet, ``t0`` of its first point,
@@ -24,7 +27,9 @@ canonical records. What it does with a record (docs/architecture.md §4, §6):
   ``pass_start`` / ``pass_end`` / ``mark`` with ``source: can:<name>``.
 
 Connection changes of a transport (``connected`` / ``disconnected`` / ``reconnect_failed``)
-and gaps (records resuming after more than the device's ``latency.gap_s``) are ``/events``.
+are ``/events``; while a transport is not connected, :meth:`Device.connection_error` gives the OS
+error of its last attempt (the supervisor's critical alarm ``device_unavailable``, from
+start-up on: a port that does not exist or is already bound is never silent). Gaps (records resuming after more than the device's ``latency.gap_s``) are ``/events``.
 A device never blocks on its consumers: the session writer, the status bus and the taps all
 take records without waiting (bounded queues that count what they drop).
 """
@@ -33,6 +38,7 @@ from __future__ import annotations
 
 import asyncio
 import operator
+import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
@@ -128,6 +134,12 @@ class Device:
         """Packets/records lost so far (for the ``packet_loss`` alarm); 0 when not counted."""
         return 0
 
+    def connection_error(self) -> str | None:
+        """Why the opened device is not connected (the OS error text of the last attempt, or why
+        it went away), None while it is connected or not yet tried. The supervisor's own record
+        covers a device whose :meth:`open` raised."""
+        return None
+
     # -- helpers ----------------------------------------------------------------------------
 
     def on_transport_event(self, ev) -> None:
@@ -198,10 +210,16 @@ class _StreamDevice(Device):
             await self.transport.close()
         self.connected = False
 
+    def connection_error(self) -> str | None:
+        t = self.transport
+        return None if t is None or t.connected else t.last_error
+
     def status(self) -> dict:
         out = super().status()
         if self.transport is not None:
             out["transport"] = self.transport.describe()
+            if (error := self.connection_error()) is not None:
+                out["error"] = error
             dropped = self.transport.stats.events.get("dropped_datagrams", 0)
             if dropped:
                 out["dropped_datagrams"] = dropped
@@ -231,6 +249,7 @@ class InsDevice(_StreamDevice):
         self.synced_records = 0
         self.last_nav: dict | None = None
         self._zda_utc_ns: int | None = None  # date of the last ZDA (dates GGA time messages)
+        self._announced: int | None = None  # the GPS − UTC the INS announces
         self._status_nav = None  # the last epoch that carried the system status words
 
     def channel_metadata(self) -> dict[str, dict[str, str]]:
@@ -256,19 +275,24 @@ class InsDevice(_StreamDevice):
                 submit("/ins/raw", data, host_ns=host_ns)
                 for nav in self._decode(data, host_ns):
                     self._nav(nav)
+            announced = getattr(self.decoder, "gps_minus_utc_s", None)  # $PMLS,GPSUTC (NMEA)
+            if announced != self._announced:
+                self._announced = announced
+                self.ctx.timekeeper.on_gps_minus_utc(announced)
 
     def _decode(self, data: bytes, host_ns: int) -> list:
         dec = self.decoder
         if not self._time_types or self.cfg.protocol == "stdbin":
             return dec.feed(data, host_ns)
         from drivers.hydrins.nmea_sentences import Zda
-        from drivers.hydrins.timeofday import utc_date_ns
+        from drivers.hydrins.timeofday import device_date_ns
 
         out = []
         for rec in dec.decoder.feed(data, host_ns):
             if isinstance(rec, Zda) and None not in (rec.year, rec.month, rec.day, rec.time_of_day_ns):
                 try:
-                    self._zda_utc_ns = utc_date_ns(rec.year, rec.month, rec.day) + rec.time_of_day_ns
+                    midnight, _ = device_date_ns(rec.year, rec.month, rec.day, time.time_ns())
+                    self._zda_utc_ns = midnight + rec.time_of_day_ns
                 except ValueError:
                     pass
             if isinstance(rec, self._time_types):
@@ -279,24 +303,25 @@ class InsDevice(_StreamDevice):
         return out
 
     def _sentence_gps_s(self, rec) -> int | None:
-        from calib.core.frames import utc_fields_to_gps_ns
+        """The GPS second of a ZDA/RMC/GGA: the INS's UTC undone with the GPS − UTC it announces
+        (else the leap-second table's), its date unrolled from a GPS week rollover."""
         from drivers.hydrins.nmea_sentences import Gga, Rmc
-        from drivers.hydrins.timeofday import resolve_gps_ns
+        from drivers.hydrins.timeofday import device_fields_to_gps_ns, resolve_gps_ns
 
         tod = rec.time_of_day_ns
         if tod is None:
             return None
         if isinstance(rec, Rmc) and rec.valid is False:
             return None
+        leap = self.decoder.gps_minus_utc_s
         try:
             if isinstance(rec, Gga):
-                import time
-
                 hint = self._zda_utc_ns if self._zda_utc_ns is not None else time.time_ns()
-                return resolve_gps_ns(tod, hint) // NS_PER_S
+                return resolve_gps_ns(tod, hint, leap) // NS_PER_S
             if None in (rec.year, rec.month, rec.day):
                 return None
-            return utc_fields_to_gps_ns(rec.year, rec.month, rec.day, tod) // NS_PER_S
+            gps_ns, _ = device_fields_to_gps_ns(rec.year, rec.month, rec.day, tod, time.time_ns(), leap)
+            return gps_ns // NS_PER_S
         except ValueError:
             return None
 

@@ -1,13 +1,15 @@
-"""The daemon's status reports: the watchdog's check of the device tasks, the retained
-``status``, ``sensors/<name>``, ``clock`` and ``metrics`` documents, the pre-survey checks (the
-``presurvey`` section of the checklist), and their copies in the session log (``/status``,
-``/clock``, ``/latency``)."""
+"""The daemon's status reports: the watchdog's check of the device tasks, the devices that are
+not connected (the critical alarm ``device_unavailable``, the watchdog's ``STATUS=`` line), the
+retained ``status``, ``sensors/<name>``, ``clock`` and ``metrics`` documents, the pre-survey
+checks (the ``presurvey`` section of the checklist), and their copies in the session log
+(``/status``, ``/clock``, ``/latency``)."""
 
 from __future__ import annotations
 
 import os
 import time
 
+from acquire.alarms import CRITICAL
 from acquire.daemon.devices import Device
 from acquire.timing.clock import ClockState
 
@@ -29,10 +31,45 @@ class StatusReports:
             return False, "; ".join(f"{n}: {e}" for n, e in self.crashed.items())
         return True, f"{len(self._device_tasks)}/{len(self.devices)} device tasks alive"
 
+    def device_error(self, dev: Device) -> str | None:
+        """Why ``dev`` is not connected: its open raised (the supervisor's record), or its
+        transport's last attempt failed (the OS error text); None when it is connected."""
+        if dev.name in self.crashed:
+            return None  # driver_failed says it
+        return self.unavailable.get(dev.name) or dev.connection_error()
+
+    def unavailable_devices(self) -> dict[str, str]:
+        """Device → why it is not connected, for the devices that are not."""
+        errors = {n: self.device_error(d) for n, d in self.devices.items()}
+        return {n: e for n, e in errors.items() if e is not None}
+
+    def devices_availability(self) -> tuple[bool, str]:
+        """The watchdog's advisory (named in ``STATUS=``, never withholding the ping: restarting
+        the daemon brings no device back and would stop the others' recording)."""
+        down = self.unavailable_devices()
+        if not down:
+            return True, f"{len(self.devices)} devices connected"
+        return False, "; ".join(f"{n} not connected: {e}" for n, e in down.items())
+
+    def update_device_alarms(self, now: int) -> None:
+        """Raise, refresh or clear the critical alarm ``device_unavailable`` of every device."""
+        for dev in self.devices.values():
+            error = self.device_error(dev)
+            self.alarms.update(
+                "device_unavailable",
+                dev.name,
+                error is not None,
+                now,
+                severity=CRITICAL,
+                message=f"{dev.name} ({dev.kind}) not connected: {error}; retrying"
+                if error is not None
+                else f"{dev.name} connected",
+            )
+
     def device_state(self, dev: Device) -> str:
         if dev.name in self.crashed:
             return "failed"
-        if dev.name in self.unavailable:
+        if self.device_error(dev) is not None:
             return "unavailable"
         return "connected" if dev.connected else "disconnected"
 
@@ -69,6 +106,8 @@ class StatusReports:
     def _sensor(self, name: str, dev: Device) -> dict:
         """The retained ``sensors/<name>`` summary (the details are in ``metrics``)."""
         out = {"state": self.device_state(dev), "kind": dev.kind, "records": dev.records}
+        if (error := self.device_error(dev)) is not None:
+            out["error"] = error
         if name in self.monitor.devices:
             st = self.monitor.stats(name)
             out.update(
@@ -131,6 +170,13 @@ class StatusReports:
 
         def check(name: str, ok: bool, detail: str) -> None:
             checks[name] = {"ok": bool(ok), "detail": detail}
+
+        down = self.unavailable_devices()
+        check(
+            "devices_connected",
+            not down,
+            "; ".join(f"{n}: {e}" for n, e in down.items()) or f"{len(self.devices)} devices connected",
+        )
 
         for dev in self.devices.values():
             if dev.kind == "ins":

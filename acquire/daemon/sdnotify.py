@@ -8,7 +8,9 @@ name written ``@name``). Outside systemd (no ``$NOTIFY_SOCKET``) every call is a
 :class:`HealthWatchdog` ties the pings to real health: it sends ``WATCHDOG=1`` only when every
 registered check passes (drivers alive, the log writer progressing); otherwise it withholds the
 ping and says why in ``STATUS=``, so systemd restarts a daemon that is hung, not one that is
-merely busy.
+merely busy. Advisories (a device that is not connected) are named in ``STATUS=`` (``running,
+degraded: devices: ins not connected: [Errno 2] ...``, shown by ``systemctl status``) but never
+withhold the ping: a restart would not bring the device back.
 """
 
 from __future__ import annotations
@@ -66,19 +68,27 @@ def watchdog_period_s(env: dict[str, str] | None = None) -> float | None:
 class HealthWatchdog:
     """Pings the systemd watchdog only while every named check passes."""
 
-    def __init__(self, checks: dict[str, Check] | None = None, env: dict[str, str] | None = None):
+    def __init__(
+        self,
+        checks: dict[str, Check] | None = None,
+        env: dict[str, str] | None = None,
+        advisories: dict[str, Check] | None = None,
+    ):
         self.checks: dict[str, Check] = dict(checks or {})
+        self.advisories: dict[str, Check] = dict(advisories or {})  # in STATUS=, never withholding
         self.env = env
         self.last_failures: list[str] | None = None  # None: nothing reported yet
+        self.last_status: str | None = None
         self.pings = 0
 
     def add_check(self, name: str, check: Check) -> None:
         self.checks[name] = check
 
-    def evaluate(self) -> list[str]:
-        """The failing checks as ``"name: reason"`` (a check that raises fails)."""
+    def evaluate(self, checks: dict[str, Check] | None = None) -> list[str]:
+        """The failing checks (default: the health checks) as ``"name: reason"`` (a check that
+        raises fails)."""
         failures = []
-        for name, check in self.checks.items():
+        for name, check in (self.checks if checks is None else checks).items():
             try:
                 ok, reason = check()
             except Exception as e:
@@ -90,9 +100,14 @@ class HealthWatchdog:
     def beat(self) -> bool:
         """One watchdog round: ping if healthy, else report why not. Returns health."""
         failures = self.evaluate()
-        if failures != self.last_failures:
-            notify("STATUS=" + ("running" if not failures else "unhealthy: " + "; ".join(failures)), self.env)
-        self.last_failures = failures
+        notes = self.evaluate(self.advisories)
+        if failures:
+            text = "unhealthy: " + "; ".join(failures + notes)
+        else:
+            text = "running" + (", degraded: " + "; ".join(notes) if notes else "")
+        if text != self.last_status:
+            notify("STATUS=" + text, self.env)
+        self.last_failures, self.last_status = failures, text
         if failures:
             return False
         if notify("WATCHDOG=1", self.env):

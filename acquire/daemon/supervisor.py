@@ -2,31 +2,36 @@
 
 :class:`Supervisor` runs one vessel config (docs/architecture.md §4, §6, §8) in one asyncio loop:
 
-- **start-up**: salvage every unfinished session under the log directory
-  (:func:`acquire.log.recover.salvage_root`); seed the :class:`~acquire.timing.clock.ClockModel` from
-  the system clock (UTC + leap seconds, flagged UNLOCKED until PPS); open the session
+- **start-up**: take the daemon lock (:mod:`acquire.daemon.pidlock`: a second daemon on the
+  same config is refused before it touches anything); salvage every unfinished session under
+  the log directory (:func:`acquire.log.recover.salvage_root`); serve the status socket; seed
+  the :class:`~acquire.timing.clock.ClockModel` from the system clock (UTC + leap seconds,
+  flagged UNLOCKED until PPS); open the session
   (:class:`~acquire.log.sessionlog.SessionWriter`) and copy the vessel config (``vessel.yaml``),
   the site file (``site.yaml``) and a summary (``session.json``: vessel, mount, devices) into
-  it (:mod:`acquire.daemon.sessionfiles`); serve the status socket and, when configured, MQTT;
-  open every device (:mod:`acquire.daemon.devices`); then tell systemd ``READY=1``.
+  it (:mod:`acquire.daemon.sessionfiles`); start MQTT when configured; open every device
+  (:mod:`acquire.daemon.devices`); then tell systemd ``READY=1``.
 - **running**: one task per device, reopened with a back-off when it fails (alarm
   ``device_unavailable`` for a device error, ``driver_failed`` for a bug); one task per
   consumer tap (:mod:`acquire.daemon.consumers`); a 4 Hz monitor loop (latency monitor tick, PPS
-  bookkeeping, clock-state alarms ``clock_holdover`` /
-  ``clock_unlocked`` / ``time_step`` on ``clock``, ``packet_loss``, ``consumer_overflow``,
+  bookkeeping, clock-state alarms ``clock_holdover`` / ``clock_unlocked`` / ``time_step`` on
+  ``clock`` and the time keeper's ``time_ambiguous`` / ``leap_table_stale`` /
+  ``leap_second_mismatch`` / ``host_clock_step``, ``packet_loss``, ``consumer_overflow``,
   then every alarm transition to the ``alarms`` topic and ``/events`` — so an alarm reaches the
   socket, MQTT and the log within ~0.25 s of being raised); a status loop every
   ``status.period_s`` (retained ``status``, ``sensors/<name>`` and ``checklist``; ``clock`` and
   ``metrics``; the same to ``/status``, ``/clock``, ``/latency``; the ``presurvey`` section of
   the checklist; built by :mod:`acquire.daemon.reports`); the systemd watchdog, pinged only
-  while no driver is down after a bug and the log writer progresses. MQTT commands (when
+  while no driver is down after a bug and the log writer progresses (a device that is not
+  connected is a critical ``device_unavailable`` from start-up, named in ``STATUS=``, but does
+  not stop the pings: a restart brings no device back). MQTT commands (when
   enabled): ``pass_start`` / ``pass_end`` / ``mark`` to ``/events`` (``source: mqtt``),
   ``rotate`` to a new segment.
 - **shutdown** (SIGTERM, SIGINT or :meth:`Supervisor.request_stop`): ``STOPPING=1``, devices and
   consumers cancelled and closed, ``session_end`` logged, the segment closed (fsync), the final
   retained ``status`` (``{"state": "stopped", ...}``) published to the socket and MQTT (a clean
-  MQTT disconnect: no last will), the socket removed; every task the supervisor started has
-  ended when :meth:`Supervisor.run` returns.
+  MQTT disconnect: no last will), the socket removed, the lock released; every task the
+  supervisor started has ended when :meth:`Supervisor.run` returns.
 
 Nothing on the record path waits: records are stamped and batched in the loop
 (:mod:`acquire.log.batch`), and the writer's queue, the MQTT queue, the socket clients' queues
@@ -52,6 +57,7 @@ from acquire.daemon import sdnotify
 from acquire.daemon.configschema import VesselConfig
 from acquire.daemon.consumers import ChecklistPublisher, Consumer, ConsumerHub
 from acquire.daemon.devices import DEVICES, DaemonContext, Device
+from acquire.daemon.pidlock import LockHeld, PidLock, lock_path_for
 from acquire.daemon.reports import StatusReports
 from acquire.daemon.sessionfiles import salvage_report, write_session_files
 from acquire.errors import AcquireError
@@ -61,7 +67,7 @@ from acquire.log.sessionlog import SessionWriter
 from acquire.status.bus import StatusBus, StatusServer
 from acquire.timing.clock import ClockModel, ClockState
 from acquire.timing.latency import LatencyMonitor
-from acquire.timing.timekeeper import ClockCache, TimeKeeper, coarse_gps_offset_ns
+from acquire.timing.timekeeper import SYSTEM_LEAP_SECONDS_LIST, ClockCache, TimeKeeper, coarse_gps_offset_ns
 from drivers.base import DriverError
 
 log = logging.getLogger("mls.acquire")
@@ -93,6 +99,8 @@ class Supervisor(StatusReports):
         self.crashed: dict[str, str] = {}  # device → the error while it is down after a driver bug
         self.unavailable: dict[str, str] = {}  # device → the error while it cannot be opened/read
         self.salvaged: dict = {}
+        self.lock = PidLock(lock_path_for(config.status.socket), str(config.source))
+        self.stale_lock: dict | None = None  # the holder of a stale daemon lock taken over
         self.started_mono_ns = time.monotonic_ns()
         self.started_utc = _dt.datetime.now(_dt.UTC)
         self.loop_lag_ns = 0
@@ -102,7 +110,14 @@ class Supervisor(StatusReports):
         self.monitor = LatencyMonitor(self.clock, self.alarms)
         self.hub = ConsumerHub()
         self.clock_cache = ClockCache(self.clock)
-        self.timekeeper = TimeKeeper(self.clock, self._submit, self._clock_state, self.clock_cache.invalidate)
+        self.timekeeper = TimeKeeper(
+            self.clock,
+            self._submit,
+            self._clock_state,
+            self.clock_cache.invalidate,
+            alarms=self.alarms,
+            leap_list=SYSTEM_LEAP_SECONDS_LIST,
+        )
         self.ctx = DaemonContext(
             _no_writer,
             self.clock,
@@ -213,10 +228,21 @@ class Supervisor(StatusReports):
 
     async def start(self) -> None:
         cfg = self.config
+        try:  # before anything is touched: a refused daemon leaves no trace
+            self.stale_lock = self.lock.take(log)
+        except (OSError, LockHeld) as e:
+            raise StartupError(f"daemon lock: {e}") from None
         try:
             self.salvaged = await asyncio.to_thread(salvage_report, cfg.session_dir)
         except (OSError, LogError) as e:  # a damaged old session must not stop acquisition
             self.salvaged = {"error": str(e)}
+        server = StatusServer(cfg.status.socket)
+        try:
+            await server.start()
+        except (OSError, RuntimeError) as e:
+            raise StartupError(f"status socket {cfg.status.socket}: {e}") from None
+        self.server = server
+        self.bus.add_sink(server)
         metadata: dict[str, dict[str, str]] = {}
         for d in self.devices.values():
             metadata.update(d.channel_metadata())
@@ -236,12 +262,6 @@ class Supervisor(StatusReports):
         except (OSError, LogError) as e:
             raise StartupError(f"session directory {cfg.session_dir}: {e}") from None
         write_session_files(cfg, session_dir, self.started_utc)
-        self.server = StatusServer(cfg.status.socket)
-        try:
-            await self.server.start()
-        except (OSError, RuntimeError) as e:
-            raise StartupError(f"status socket {cfg.status.socket}: {e}") from None
-        self.bus.add_sink(self.server)
         if cfg.mqtt is not None:
             from acquire.status.mqtt import MqttPublisher
 
@@ -256,6 +276,7 @@ class Supervisor(StatusReports):
                 "config": str(cfg.source),
                 "devices": list(self.devices),
                 "salvaged": self.salvaged,
+                "stale_lock": self.stale_lock,
             }
         )
         self._publish_status()
@@ -268,6 +289,7 @@ class Supervisor(StatusReports):
                 self._device_failed(dev, e, "open")
                 with contextlib.suppress(Exception):
                     await dev.close()
+        self._guarded("monitor", self.monitor_step, time.monotonic_ns())  # unopened devices: alarms now
         for name, dev in self.devices.items():
             self._device_tasks[name] = self._spawn(self._device_loop(dev), f"device:{name}")
         for c in self.consumers:
@@ -275,7 +297,9 @@ class Supervisor(StatusReports):
         self._spawn(self._monitor_loop(), "monitor")
         self._spawn(self._status_loop(), "status")
         self.watchdog = sdnotify.HealthWatchdog(
-            {"drivers": self.drivers_health, "log": self.writer.health}, env=self.env
+            {"drivers": self.drivers_health, "log": self.writer.health},
+            env=self.env,
+            advisories={"devices": self.devices_availability},
         )
         self._spawn(self.watchdog.run(), "watchdog")
         # what start-up built (modules, config, numpy/scipy) lives as long as the daemon: out of the
@@ -290,7 +314,8 @@ class Supervisor(StatusReports):
         log.info("acquiring: session %s", session_dir)
 
     async def shutdown(self) -> None:
-        if self.state in ("stopped", "stopping"):
+        if self.state in ("stopped", "stopping") or not self.lock.held:  # (refused: nothing to undo)
+            self.state = "stopped"
             return
         self.state = "stopping"
         sdnotify.notify(f"STOPPING=1\nSTATUS=stopping ({self.stop_reason or 'error'})", self.env)
@@ -334,6 +359,7 @@ class Supervisor(StatusReports):
         for t in rest:
             t.cancel()
         await asyncio.gather(*rest, return_exceptions=True)
+        self.lock.release()  # last: the socket is gone before another daemon may start
         self.state = "stopped"
         log.info("stopped (%s)", self.stop_reason)
 
@@ -353,9 +379,9 @@ class Supervisor(StatusReports):
                 self.crashed.pop(dev.name, None)
                 self.unavailable.pop(dev.name, None)
                 now = time.monotonic_ns()
-                for name in ("driver_failed", "device_unavailable"):
-                    if self.alarms.is_active(name, dev.name):
-                        self.alarms.clear_now(name, dev.name, now, message=f"{dev.name} running again")
+                if self.alarms.is_active("driver_failed", dev.name):
+                    self.alarms.clear_now("driver_failed", dev.name, now, message=f"{dev.name} running again")
+                self.update_device_alarms(now)  # cleared once its transport is connected
                 await dev.run()
                 raise EOFError(f"{dev.name}: the device stream ended")
             except asyncio.CancelledError:
@@ -373,7 +399,7 @@ class Supervisor(StatusReports):
         now = time.monotonic_ns()
         if isinstance(e, (DriverError, OSError, EOFError)):
             self.unavailable[dev.name] = text
-            name, what = "device_unavailable", "unavailable"
+            name, what = "device_unavailable", "not connected"
         else:
             self.crashed[dev.name] = text
             name, what = "driver_failed", "driver failed"
@@ -382,7 +408,7 @@ class Supervisor(StatusReports):
             dev.name,
             now,
             severity=CRITICAL,
-            message=f"{dev.name} ({dev.kind}) {what} ({when}): {text}; retrying",
+            message=f"{dev.name} ({dev.kind}) {what}: {text}; retrying",
         )
         self.log_event(
             {
@@ -444,6 +470,7 @@ class Supervisor(StatusReports):
         """One round of the monitors (what the 4 Hz loop runs)."""
         self.monitor.tick(now)
         self.timekeeper.tick(now)
+        self.update_device_alarms(now)
         al = self.alarms
         if self.clock.steps > self._steps:
             self._steps, self._step_ns = self.clock.steps, now

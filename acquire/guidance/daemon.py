@@ -8,8 +8,8 @@
   (:class:`acquire.daemon.configschema.GuidanceConfig`).
 - :func:`guidance_consumer` wires it to a :class:`~acquire.daemon.supervisor.Supervisor`: the clock
   model's state for the acceptance, and the pre-survey checks
-  (:func:`acquire.guidance.prechecks.prechecks`) from the supervisor's latest navigation, clock status,
-  latency statistics, free disk and configuration. The consumer publishes the guidance message
+  (:func:`acquire.guidance.prechecks.prechecks`) from the supervisor's devices that are not
+  connected, latest navigation, clock status, latency statistics, free disk and configuration. The consumer publishes the guidance message
   as the ``guidance`` section of the retained ``checklist`` topic (status socket and MQTT), next
   to the supervisor's own ``presurvey`` section.
 """
@@ -105,6 +105,7 @@ def daemon_checks(sup, guidance: Guidance, needed_bytes: int) -> list[Check]:
         needed_bytes=needed_bytes,
         mount_configured=cfg.mount is not None,
         n_targets=len(guidance.target_names),
+        devices={name: sup.device_error(dev) for name, dev in sup.devices.items()},
     )
 
 

@@ -53,6 +53,7 @@ def prechecks(
     needed_bytes: int | None = None,
     mount_configured: bool = False,
     n_targets: int = 0,
+    devices: Mapping[str, str | None] | None = None,
 ) -> list[Check]:
     """The pre-survey checks, each with pass/fail and the reason.
 
@@ -60,9 +61,20 @@ def prechecks(
     (:meth:`acquire.timing.clock.ClockStatus.as_dict`); ``latency``: device → latency statistics
     (:meth:`acquire.timing.latency.LatencyStats.as_dict`) and ``bands_ms`` device → expected band;
     ``free_bytes`` on the session's file system and ``needed_bytes`` for the planned passes
-    (:func:`disk_needed_bytes`).
+    (:func:`disk_needed_bytes`); ``devices``: device → why it is not connected (the OS error
+    text, e.g. ``[Errno 98] Address already in use``), None when it is.
     """
     out = []
+    if devices is not None:
+        down = {name: error for name, error in devices.items() if error is not None}
+        out.append(
+            Check(
+                "devices_connected",
+                "Devices",
+                not down,
+                "; ".join(f"{n}: {e}" for n, e in down.items()) or f"{len(devices)} connected",
+            )
+        )
     if nav is None:
         out.append(Check("ins_navigating", "INS nav+fine", None, "no INS data"))
         out.append(Check("gnss_fix", "GNSS fix", None, "no INS data"))

@@ -128,7 +128,11 @@ class DemoResult:
 
 def prepare_out(out: Path) -> None:
     """An empty demo directory: created, or emptied when a previous demo made it (its marker
-    file, or nothing but what a demo writes); a directory holding anything else is refused."""
+    file, or nothing but what a demo writes); a directory holding anything else, or a file, is
+    refused. (The one writer that removes its own output without --force: it can run twice in
+    a row, and never removes what it did not make.)"""
+    if out.exists() and not out.is_dir():
+        raise DemoError("preparing the run directory", f"{out}: --out names a directory, but this is a file")
     out.mkdir(parents=True, exist_ok=True)
     entries = list(out.iterdir())
     foreign = sorted(p.name for p in entries if p.name not in DEMO_ENTRIES)

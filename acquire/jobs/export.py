@@ -21,9 +21,18 @@
 - ``site.yaml``: the site file (``--site``, else the copy the daemon stored in the session)
   with the mount of the session's vessel config (lever arm, nominal mount, a-priori boresight).
 
+Warnings: a planned pass without points or points of an unplanned pass (naming the site file
+and points.csv); returns outside the scanner's range window (0.3…119 m, what the bundle reader
+accepts), dropped and counted. Pass ids are int64 throughout.
+
 Optionally ``laz_dir`` (one LAZ per pass, :func:`calib.io.georef_bundle.
-georeference_bundle`) and ``sbet_path`` (the trajectory as an Applanix SBET, with its SMRMSG
+georeference_bundle`; points outside the trajectory are left out of the LAZ and counted in a
+warning) and ``sbet_path`` (the trajectory as an Applanix SBET, with its SMRMSG
 when it has sigmas, :mod:`calib.io.sbet`).
+
+A segment that did not end normally (unfinished with a torn tail, salvaged after a crash:
+:func:`acquire.log.read.session_losses`) is exported with a warning naming it and the time span
+lost; ``require_complete`` refuses such a session instead.
 """
 
 from __future__ import annotations
@@ -59,6 +68,7 @@ class ExportOptions:
     max_gap_s: float = 1.0  # trajectory gap that breaks interpolation (bundle reader's)
     laz_dir: Path | None = None
     sbet_path: Path | None = None
+    require_complete: bool = False  # refuse a session with a segment that did not end normally
 
     def __post_init__(self) -> None:
         if self.passes not in PASS_SOURCES:
@@ -325,7 +335,7 @@ def _read_points(session: Path, windows: list[PassWindow], protocol: str, progre
     codec = _codec(protocol)
     starts = np.array([w.start_gps_ns for w in windows], dtype=np.int64)
     ends = np.array([w.end_gps_ns for w in windows], dtype=np.int64)
-    ids = np.array([w.pass_id for w in windows], dtype=np.int32)
+    ids = np.array([w.pass_id for w in windows], dtype=np.int64)  # survey line ids exceed 32 bits
     order = np.argsort(starts)
     starts, ends, ids = starts[order], ends[order], ids[order]
     parts: list[tuple] = []
@@ -379,7 +389,7 @@ def _read_points(session: Path, windows: list[PassWindow], protocol: str, progre
         cols = [np.concatenate([p[j] for p in parts]) for j in range(5)]
     else:
         cols = [
-            np.zeros(0, np.int32),
+            np.zeros(0, np.int64),
             np.zeros(0, np.int64),
             np.zeros(0),
             np.zeros(0),
@@ -397,7 +407,7 @@ def _site(session: Path, options: ExportOptions, summary: dict):
     from calib.io.site import load_site
 
     path = options.site_file or (session / "site.yaml")
-    if not path.is_file():
+    if options.site_file is None and not path.exists():  # else load_site says what is wrong
         raise ExportError(
             f"{session}: no site file in the session (the vessel config had no "
             f"site_file): give one with --site site.yaml"
@@ -408,15 +418,35 @@ def _site(session: Path, options: ExportOptions, summary: dict):
         raise ExportError(str(e)) from None
     m = summary.get("mount")
     if m is not None:  # the vessel config's mount is what was installed during the session
+        v = _summary_mount(session / "session.json", m)
         site = replace(
             site,
             mount=Mount(
-                lever_arm_m=np.asarray(m["lever_arm_m"], float),
-                nominal_rad=np.radians(m["nominal_deg"]),
-                boresight_rad=np.radians(m["boresight_apriori_deg"]),
+                lever_arm_m=v["lever_arm_m"],
+                nominal_rad=np.radians(v["nominal_deg"]),
+                boresight_rad=np.radians(v["boresight_apriori_deg"]),
             ),
         )
     return site, path
+
+
+def _summary_mount(path: Path, m) -> dict[str, np.ndarray]:
+    """session.json's ``mount``, checked: three finite numbers for each of its three keys."""
+    keys = ("lever_arm_m", "nominal_deg", "boresight_apriori_deg")
+    if not isinstance(m, dict):
+        raise ExportError(f"{path}: mount: got {m!r}, expected an object with {', '.join(keys)}")
+    out = {}
+    for key in keys:
+        v = m.get(key)
+        ok = (
+            isinstance(v, list)
+            and len(v) == 3
+            and all(isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x) for x in v)
+        )
+        if not ok:
+            raise ExportError(f"{path}: mount.{key}: got {v!r}, expected a list of 3 numbers")
+        out[key] = np.asarray(v, float)
+    return out
 
 
 # -- the export ---------------------------------------------------------------------------------
@@ -429,8 +459,10 @@ def export_session(
     progress: Callable[[str, float, float | None], None] | None = None,
 ) -> ExportResult:
     """Write the calibration bundle of a session (module docstring); returns what it wrote."""
+    from acquire.log.read import session_losses
+    from acquire.log.recover import segment_paths
     from calib.core.trajectory import TrajectoryError
-    from calib.io.bundle import ScanPoints, write_bundle
+    from calib.io.bundle import SCANNER_RANGE_M, ScanPoints, pass_warnings, write_bundle
 
     session = Path(session_dir)
 
@@ -439,6 +471,14 @@ def export_session(
 
     try:
         summary = session_summary(session)
+        losses = session_losses(session)  # segments that did not end normally: data lost
+        if losses and options.require_complete:
+            lost = "; ".join(loss.describe() for loss in losses)
+            raise ExportError(f"{session}: incomplete session, not exported (--require-complete): {lost}")
+        empty = {loss.segment for loss in losses if loss.last_ns is None}
+        if empty and empty >= {p.name for p in segment_paths(session)}:  # not one message to read
+            lost = "; ".join(loss.describe() for loss in losses)
+            raise ExportError(f"{session}: nothing to export, no segment holds a complete message: {lost}")
         meta = channel_metadata(session)
         site, site_path = _site(session, options, summary)
         nav, events = _read_nav_and_events(session, step("reading navigation and events"))
@@ -449,7 +489,7 @@ def export_session(
         traj = _trajectory(nav, sig, site.reference, options.max_gap_s)
     except TrajectoryError as e:
         raise ExportError(f"{session}: /ins/nav: {e}") from None
-    warnings: list[str] = []
+    warnings: list[str] = [loss.describe() for loss in losses]
     windows: list[PassWindow] = []
     source = options.passes
     if source in ("auto", "events"):
@@ -477,6 +517,13 @@ def export_session(
         raise ExportError(f"{session}: no profiler return inside the {len(windows)} passes")
     order = np.lexsort((t_ns, pid))
     pid, t_ns, rng, ang, inten = pid[order], t_ns[order], rng[order], ang[order], inten[order]
+    lo, hi = SCANNER_RANGE_M  # what the bundle reader accepts
+    keep = (rng >= lo) & (rng <= hi)
+    if not keep.all():
+        warnings.append(
+            f"{int((~keep).sum()):,} returns outside the scanner's range window {lo:g}…{hi:g} m dropped"
+        )
+        pid, t_ns, rng, ang, inten = pid[keep], t_ns[keep], rng[keep], ang[keep], inten[keep]
     if bad:
         warnings.append(f"{bad} /lidar/raw datagrams did not decode ({protocol})")
     if unsynced:
@@ -508,6 +555,7 @@ def export_session(
     if progress is not None:
         progress("writing the bundle", 0, None)
     bundle = write_bundle(bundle_dir, site, traj, points)
+    warnings += pass_warnings(site, pid, site_path, bundle / "points.csv")
     counts = {int(k): int(v) for k, v in zip(*np.unique(pid, return_counts=True))}
     result = ExportResult(
         bundle,
@@ -527,7 +575,9 @@ def export_session(
     if options.laz_dir is not None:
         from calib.io.georef_bundle import georeference_bundle
 
-        result.laz, _ = georeference_bundle(bundle, Path(options.laz_dir), skip_uncovered=True)
+        laz = georeference_bundle(bundle, Path(options.laz_dir), skip_uncovered=True, out_option="--laz")
+        result.laz = laz[0]
+        warnings += laz[1]["warnings"]  # points left out of the LAZ, pass ids beyond 16 bits
     return result
 
 

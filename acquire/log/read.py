@@ -6,17 +6,21 @@ and yields :class:`~acquire.log.schema.Envelope` records of the requested topics
 order. :func:`channel_metadata` gives each topic's channel metadata (``protocol`` of the raw
 channels). :func:`session_summary` reads the ``session.json`` the daemon writes at start.
 :func:`raw_channels` gives what a replay of the raw channels needs to know of a session.
+:func:`session_losses` lists the segments that did not end normally (unfinished with a torn
+tail, salvaged after a crash, a salvage interrupted) and the time span lost with each, so that
+what reads a session (``mls export``) can say what it is missing.
 """
 
 from __future__ import annotations
 
 import json
+import struct
 from collections.abc import Iterable, Iterator
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 from acquire.errors import AcquireError
-from acquire.log.recover import scan_segment, segment_paths
+from acquire.log.recover import SegmentScan, scan_segment, segment_closed, segment_paths
 from acquire.log.schema import Envelope, decode
 
 
@@ -31,6 +35,9 @@ def _segments(session_dir: Path) -> list[Path]:
     paths = segment_paths(session_dir)
     if not paths:
         raise SessionReadError(f"{session_dir}: no segments (seg-NNNNNN.mcap)")
+    for p in paths:
+        if not p.is_file():
+            raise SessionReadError(f"{p}: is a directory, expected an MCAP segment file")
     return paths
 
 
@@ -75,11 +82,20 @@ def session_summary(session_dir: str | Path) -> dict:
     """The daemon's ``session.json`` (vessel, mount, devices); {} when absent."""
     p = Path(session_dir) / "session.json"
     try:
-        return json.loads(p.read_text(encoding="utf-8"))
+        doc = json.loads(p.read_text(encoding="utf-8"))
     except FileNotFoundError:
         return {}
+    except IsADirectoryError:
+        raise SessionReadError(f"{p}: is a directory, expected a JSON file") from None
+    except UnicodeDecodeError as e:
+        raise SessionReadError(f"{p}: not UTF-8 text ({e.reason} at byte {e.start})") from None
     except json.JSONDecodeError as e:
         raise SessionReadError(f"{p}:{e.lineno}:{e.colno}: not valid JSON ({e.msg})") from None
+    if not isinstance(doc, dict):
+        raise SessionReadError(
+            f"{p}: got a JSON {type(doc).__name__}, expected an object (vessel, mount, devices)"
+        )
+    return doc
 
 
 def is_raw_topic(topic: str) -> bool:
@@ -139,3 +155,159 @@ def raw_channels(session_dir: str | Path) -> RawChannels:
         slope, intercept = np.polyfit((h - first) / 1e9, (g - g[0]) / 1e9, 1)
         gps_fit = (int(g[0]) + round(intercept * 1e9), float(slope))
     return RawChannels(session_dir, channels, counts, first, last, gps_fit)
+
+
+# -- what a session lost ------------------------------------------------------------------------
+
+#: a torn chunk's header (opcode, length, message start and end time) is read back only when it
+#: is plausible: its times within this long of the last complete message's, its end after it
+_CHUNK_HEAD, _CHUNK_OPCODE, _PLAUSIBLE_NS = struct.Struct("<BQQQ"), 0x06, 600 * 1_000_000_000
+
+
+@dataclass(frozen=True)
+class SegmentLoss:
+    """A segment that did not end normally, and what is known of the messages it lost."""
+
+    segment: str  # seg-NNNNNN.mcap
+    state: str  # "unfinished" (torn tail still there) | "recovered" | "recovery interrupted"
+    torn_bytes: int
+    problem: str | None  # why its scan stopped (a torn record …); None: only the footer missing
+    last_ns: int | None  # log time of its last complete message (None: none)
+    until_ns: int | None  # the next log time known (None: unknown), from until_source:
+    until_source: str | None  # "next segment" (its first message) | "torn chunk" (its header)
+
+    def describe(self) -> str:
+        """One line: the segment, what happened to it, the time span lost."""
+        state = {
+            "unfinished": "is unfinished",
+            "recovered": "was salvaged after a crash",
+            "recovery interrupted": f"is missing: only {self.segment}.torn is there (a salvage was "
+            "interrupted; run `mls logs recover` on the session)",
+        }[self.state]
+        how = ", ".join(
+            x for x in (f"{self.torn_bytes} torn bytes" if self.torn_bytes else "", self.problem or "") if x
+        )
+        if self.state == "unfinished" and (self.problem or "").startswith("not an MCAP file"):
+            # bytes of something else, not a segment the writer cut short
+            state, how = (
+                "is not an MCAP file",
+                f"its {self.torn_bytes} bytes do not start with the MCAP magic",
+            )
+        head = f"{self.segment} {state}" + (f" ({how})" if how else "")
+        if self.last_ns is None:
+            span = "none of its messages is in the export"
+        elif self.until_ns is None:
+            span = f"messages after {_utc(self.last_ns)} are lost (how long the recording went on is unknown)"
+        elif self.until_source == "next segment":
+            span = (
+                f"no message between {_utc(self.last_ns)} and {_utc(self.until_ns)} "
+                f"({(self.until_ns - self.last_ns) / 1e9:.3f} s lost)"
+            )
+        else:
+            span = (
+                f"messages after {_utc(self.last_ns)} are lost, at least up to {_utc(self.until_ns)} "
+                f"({(self.until_ns - self.last_ns) / 1e9:.3f} s: the torn chunk)"
+            )
+        return f"{head}: {span}"
+
+
+def _utc(gps_ns: int) -> str:
+    from calib.core.frames import gps_ns_to_utc
+
+    return gps_ns_to_utc(gps_ns).strftime("%Y-%m-%d %H:%M:%S.%f")[:-3] + " UTC"
+
+
+def session_losses(session_dir: str | Path) -> list[SegmentLoss]:
+    """The segments of a session that did not end normally, in order (:class:`SegmentLoss`):
+    unfinished ones (no footer: a crash, a power cut, a failed fsync), salvaged ones (their
+    ``mls.recovery`` record) and ones whose salvage was interrupted (only the ``.torn`` original
+    left). Reads closed segments' summaries only; scans an unfinished segment whole."""
+    session_dir = Path(session_dir)
+    paths = _segments(session_dir)
+    found: list[tuple[int, SegmentLoss]] = []
+    for i, path in enumerate(paths):
+        loss = _recovered(path) if segment_closed(path) else _unfinished(path)
+        if loss is not None:
+            found.append((i, loss))
+    out = []
+    for i, loss in found:
+        nxt = next((t for p in paths[i + 1 :] if (t := _first_log_ns(p)) is not None), None)
+        if nxt is not None and loss.last_ns is not None:
+            loss = replace(loss, until_ns=nxt, until_source="next segment")
+        out.append(loss)
+    for torn in sorted(session_dir.glob("seg-*.mcap.torn")):
+        name = torn.name[: -len(".torn")]
+        if not (session_dir / name).exists():
+            out.append(SegmentLoss(name, "recovery interrupted", 0, None, None, None, None))
+    return sorted(out, key=lambda loss: loss.segment)
+
+
+def _unfinished(path: Path) -> SegmentLoss:
+    scan = SegmentScan(path, 0)
+    last = None
+    for rec in scan_segment(path, scan):
+        if type(rec).__name__ == "Message":
+            last = rec.log_time if last is None else max(last, rec.log_time)
+    until = _torn_chunk_end(path, scan.good_bytes, last) if scan.torn_bytes else None
+    return SegmentLoss(
+        path.name,
+        "unfinished",
+        scan.torn_bytes,
+        scan.problem,
+        last,
+        until,
+        None if until is None else "torn chunk",
+    )
+
+
+def _recovered(path: Path) -> SegmentLoss | None:
+    """The loss of a closed segment that :func:`~acquire.log.recover.recover_segment` wrote (its
+    ``mls.recovery`` record), from the summary; None for a segment closed normally."""
+    from mcap.reader import make_reader
+
+    with open(path, "rb") as f:
+        reader = make_reader(f)
+        summary = reader.get_summary()
+        if summary is None or not any(m.name == "mls.recovery" for m in summary.metadata_indexes):
+            return None
+        rec = next(m for m in reader.iter_metadata() if m.name == "mls.recovery").metadata
+        stats = summary.statistics
+    last = stats.message_end_time if stats is not None and stats.message_count else None
+    good, torn = int(rec.get("good_bytes", 0)), int(rec.get("torn_bytes", 0))
+    original = path.with_name(path.name + ".torn")
+    until = _torn_chunk_end(original, good, last) if torn and original.is_file() else None
+    problem = rec.get("problem")
+    return SegmentLoss(
+        path.name,
+        "recovered",
+        torn,
+        None if problem == "no footer" else problem,
+        last,
+        until,
+        None if until is None else "torn chunk",
+    )
+
+
+def _torn_chunk_end(path: Path, offset: int, last_ns: int | None) -> int | None:
+    """The end time a torn chunk at ``offset`` announces in its header, when it is there and
+    plausible (its times within :data:`_PLAUSIBLE_NS` of ``last_ns``, its end after it); else
+    None: random bytes where a header should be are not read as times."""
+    if last_ns is None:
+        return None
+    with open(path, "rb") as f:
+        f.seek(offset)
+        head = f.read(_CHUNK_HEAD.size)
+    if len(head) < _CHUNK_HEAD.size:
+        return None
+    opcode, _length, start, end = _CHUNK_HEAD.unpack(head)
+    if opcode != _CHUNK_OPCODE or not (start <= end and last_ns < end <= last_ns + _PLAUSIBLE_NS):
+        return None
+    return end if abs(start - last_ns) <= _PLAUSIBLE_NS else None
+
+
+def _first_log_ns(path: Path) -> int | None:
+    """Log time of a segment's first message (reads its first chunk only)."""
+    for rec in scan_segment(path):
+        if type(rec).__name__ == "Message":
+            return rec.log_time
+    return None

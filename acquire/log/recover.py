@@ -9,7 +9,9 @@ a full disk leaves: a segment without footer whose tail is a half-written chunk.
 messages (same log/publish times, sequence numbers and bytes) plus an ``mls.recovery`` metadata
 record naming the torn tail; the original is kept beside it as ``seg-NNNNNN.mcap.torn`` (the
 swap is crash-safe: write ``.recovering``, fsync, rename the original, rename the new file,
-fsync the directory). :func:`salvage_session` does that for every unfinished segment of a
+fsync the directory); the new file gets the original's mode (and, where permitted, its owner
+and group), so a salvage by root or at daemon start leaves a file the daemon's readers can read
+as before. :func:`salvage_session` does that for every unfinished segment of a
 session nobody is writing (``session.lock`` not held); :func:`salvage_root` for every session
 under the log root (what the daemon runs at start-up).
 
@@ -23,6 +25,7 @@ import datetime as _dt
 import fcntl
 import io as _io
 import os
+import stat
 import struct
 from collections import Counter
 from collections.abc import Callable, Iterator
@@ -72,8 +75,14 @@ def scan_segment(
     with open(path, "rb") as f:
         size = os.fstat(f.fileno()).st_size
         scan.size = size
-        if f.read(8) != MCAP0_MAGIC:
-            scan.problem = "not an MCAP file (bad magic)"
+        magic = f.read(8)
+        if magic != MCAP0_MAGIC:
+            if not magic:  # created, nothing written yet (a crash at once)
+                scan.problem = "empty file"
+            elif MCAP0_MAGIC.startswith(magic):
+                scan.problem = "torn MCAP magic at byte 0"
+            else:
+                scan.problem = "not an MCAP file (bad magic)"
             return
         pos = scan.good_bytes = 8
         in_summary = False
@@ -186,7 +195,9 @@ def recover_segment(path: Path, keep_original: bool = True) -> RecoveryReport:
     tmp = path.with_name(path.name + ".recovering")
     scan = SegmentScan(source, 0)
     counts: Counter = Counter()
+    st = os.stat(source)
     with open(tmp, "wb") as out:
+        _same_owner_and_mode(out.fileno(), st)
         w = Writer(out, compression=CompressionType.ZSTD)
         w.start(profile="", library="marine-mls recover")
         schema_ids: dict[int, int] = {}
@@ -242,6 +253,19 @@ def recover_segment(path: Path, keep_original: bool = True) -> RecoveryReport:
         str(path),
         str(torn_copy) if keep_original else None,
     )
+
+
+def _same_owner_and_mode(fd: int, st: os.stat_result) -> None:
+    """Give the file ``fd`` the owner, group (best effort: only root may give a file away) and
+    then the permission bits of ``st`` (after the chown, which may clear set-id bits)."""
+    try:
+        os.fchown(fd, st.st_uid, st.st_gid)
+    except PermissionError:
+        try:
+            os.fchown(fd, -1, st.st_gid)
+        except PermissionError:
+            pass
+    os.fchmod(fd, stat.S_IMODE(st.st_mode))
 
 
 def unfinished_segments(session_dir: Path) -> list[Path]:

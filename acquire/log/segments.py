@@ -19,6 +19,7 @@ from mcap.records import DataEnd, Footer
 from mcap.writer import MCAP0_MAGIC
 
 from acquire.alarms import CRITICAL, AlarmBook
+from acquire.log import diskspace
 from acquire.log.mcapwriter import MESSAGE_RECORD_BYTES, SegmentWriter
 from acquire.log.schema import (
     ENVELOPE_SCHEMA,
@@ -113,7 +114,8 @@ class WriterStats:
     failures: int = 0
     last_error: str | None = None
     queue_depth: int = 0
-    free_bytes: int | None = None  # free space of the session's file system (at the last fsync)
+    free_bytes: int | None = None  # free space of the session's file system (at the last check)
+    disk_minutes_left: float | None = None  # free space / write rate (disk_low)
 
     def as_dict(self) -> dict:
         return {
@@ -128,6 +130,7 @@ class WriterStats:
             "last_error": self.last_error,
             "queue_depth": self.queue_depth,
             "free_bytes": self.free_bytes,
+            "disk_minutes_left": self.disk_minutes_left,
         }
 
 
@@ -315,11 +318,8 @@ class SegmentLog:
         return True
 
     def _free_bytes(self) -> int | None:
-        try:
-            st = os.statvfs(self.session_dir)  # type: ignore[arg-type]
-        except OSError:
-            return None
-        return st.f_bavail * st.f_frsize
+        assert self.session_dir is not None
+        return diskspace.free_bytes(self.session_dir)
 
     def _rotate(self, now: int, reason: str) -> None:
         if self._mcap is None:

@@ -37,6 +37,9 @@ class SessionOptions:
     retry_s: float = 1.0  # after a write failure, try a new segment this often
     reserve_bytes: int = 64 * 1024  # released to close a segment on a full disk
     min_free_bytes: int = 16 * 1024 * 1024  # no new segment on a file system with less free
+    disk_warning_bytes: int = 10 * 2**30  # disk_low warning below this much free (0: no alarm)
+    disk_critical_bytes: int = 2 * 2**30  # disk_low critical below this (0: never critical)
+    disk_check_s: float = 1.0  # free space checked this often (and every 64 MiB written)
     stall_s: float = 10.0  # writer loop silent this long → unhealthy (watchdog)
 
     def __post_init__(self) -> None:
@@ -44,6 +47,12 @@ class SessionOptions:
             raise ValueError(f"flush_s={self.flush_s}: expected 0 < flush_s ≤ 1 s")
         if self.fsync_s <= 0 or self.rotate_s <= 0 or self.rotate_bytes <= 0:
             raise ValueError("fsync_s, rotate_s and rotate_bytes must be positive")
+        if not 0 <= self.disk_critical_bytes <= self.disk_warning_bytes or self.disk_check_s <= 0:
+            raise ValueError(
+                f"disk_critical_bytes={self.disk_critical_bytes}, disk_warning_bytes="
+                f"{self.disk_warning_bytes}, disk_check_s={self.disk_check_s}: expected "
+                f"0 ≤ critical ≤ warning and a positive check period"
+            )
         if self.compression not in COMPRESSIONS:
             raise ValueError(f"compression {self.compression!r}: expected one of {sorted(COMPRESSIONS)}")
 

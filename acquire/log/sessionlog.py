@@ -29,6 +29,10 @@ Durability:
   exactly those not in a chunk the file received whole (a chunk is one write; its message
   indexes, the summary and the footer that follow it carry no record), i.e. what a salvage of
   the segment cannot read;
+- free space is checked every ``disk_check_s`` and every 64 MiB written, a segment open or not
+  (:mod:`acquire.log.diskspace`): the ``disk_low`` alarm, warning below ``disk_warning_bytes``
+  and critical below ``disk_critical_bytes``, with the minutes left at the current write rate,
+  comes before the disk is full; it clears with hysteresis;
 - the session directory holds ``session.lock`` (flock, with the writer's pid) while a writer
   owns it; an unfinished segment of a session nobody holds is salvaged by
   :mod:`acquire.log.recover` (at daemon start and by ``mls logs recover``).
@@ -49,6 +53,7 @@ from pathlib import Path
 from typing import Any, Protocol
 
 from acquire.alarms import WARNING, AlarmBook
+from acquire.log.diskspace import DiskWatch
 from acquire.log.schema import RAW
 from acquire.log.segments import SegmentIO, SegmentLog, WriterStats
 from acquire.log.session import LOCK_NAME, LogError, SessionOptions, fsync_dir, session_name
@@ -101,6 +106,8 @@ class SessionWriter(SegmentLog):
         self._heartbeat_ns = self._now()
         self._thread: threading.Thread | None = None
         self._lock_fd: int | None = None
+        o = self.options
+        self._disk = DiskWatch(o.disk_warning_bytes, o.disk_critical_bytes, o.disk_check_s, self.alarms)
 
     # -- producer side ----------------------------------------------------------------------
 
@@ -288,6 +295,13 @@ class SessionWriter(SegmentLog):
 
     def _maintain(self, now: int) -> None:
         o = self.options
+        written = self._closed_bytes + (self._io.pos if self._io is not None else 0)
+        if self._disk.due(now, written):
+            free = self._free_bytes()
+            self._disk.update(now, written, free, self.root)
+            if free is not None:
+                self._stats.free_bytes = free
+            self._stats.disk_minutes_left = self._disk.minutes_left
         if self._mcap is None:
             if now >= self._next_retry_ns:
                 if self._open_segment(now):

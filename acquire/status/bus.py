@@ -100,6 +100,7 @@ class StatusServer:
         self._retained: dict[str, bytes] = {}
         self._clients: set[_Client] = set()
         self._server: asyncio.base_events.Server | None = None
+        self._bound: tuple[int, int] | None = None  # (st_dev, st_ino) of the socket file it made
         self.clients_served = 0
         self.clients_dropped = 0  # disconnected for not keeping up
 
@@ -110,6 +111,8 @@ class StatusServer:
                 raise RuntimeError(f"{self.path}: another daemon is serving status on this socket")
             self.path.unlink()  # stale, from a daemon that died
         self._server = await asyncio.start_unix_server(self._handle, path=str(self.path))
+        st = os.stat(self.path)
+        self._bound = (st.st_dev, st.st_ino)
         os.chmod(self.path, self.mode)
 
     async def close(self, flush_s: float = 1.0) -> None:
@@ -133,8 +136,18 @@ class StatusServer:
             with contextlib.suppress(Exception):
                 await asyncio.wait_for(self._server.wait_closed(), 2.0)
             self._server = None
+        self._unlink_own()
+
+    def _unlink_own(self) -> None:
+        """Remove the socket file if it is the one this server made: never another daemon's
+        (a server that did not start, or whose path was taken over since, leaves it alone)."""
+        bound, self._bound = self._bound, None
+        if bound is None:
+            return
         with contextlib.suppress(FileNotFoundError):
-            self.path.unlink()
+            st = os.lstat(self.path)
+            if (st.st_dev, st.st_ino) == bound:
+                self.path.unlink()
 
     async def __aenter__(self) -> StatusServer:
         await self.start()

@@ -13,7 +13,9 @@ alarm with a reason (:mod:`acquire.alarms`), keyed ``(name, device)``:
   faster than ``max_drift_ppm`` (beyond 2σ), from a line through the 1-s medians of up to
   ``drift_window`` since the last discontinuity;
 - ``pps_flag_lost`` (critical): the device says it no longer sees the PPS / UTC sync;
-- ``data_gap`` (critical): no record for ``gap``;
+- ``data_gap`` (critical): no record for ``gap`` — also a device that has delivered nothing
+  for ``gap`` since the monitor first looked at it (its first :meth:`LatencyMonitor.tick` or
+  record: the daemon's start);
 - ``rate_drop`` (warning): the record rate over 2 s fell below 80 % of the nominal rate;
 - ``latency_out_of_band`` / ``latency_jitter`` (warning): mean or p99 outside the band; σ above
   ``max_sigma``.
@@ -128,6 +130,7 @@ class _Device:
     untagged: int = 0  # records without a device time tag
     first_host: int | None = None
     last_host: int | None = None
+    since: int | None = None  # stream time the monitor first looked at the device (silence from it)
     last_eval: int | None = None
     pps_flag: bool | None = None
     baseline: float | None = None
@@ -165,9 +168,12 @@ class LatencyMonitor:
         d = self._devices[device]
         host_ns = int(host_ns)
         d.records += 1
-        resumed = d.last_host is not None and host_ns - d.last_host > d.limits.gap_ns
+        quiet_since = d.last_host if d.last_host is not None else d.since
+        resumed = quiet_since is not None and host_ns - quiet_since > d.limits.gap_ns
         if resumed:
-            d.resumed, d.last_gap_ns = host_ns, host_ns - d.last_host
+            d.resumed, d.last_gap_ns = host_ns, host_ns - quiet_since
+        if d.since is None:
+            d.since = host_ns
         if d.first_host is None:
             d.first_host = host_ns
         d.last_host = host_ns
@@ -223,6 +229,8 @@ class LatencyMonitor:
     def _evaluate(self, d: _Device, now: int) -> list[AlarmEvent]:
         p, lim = self.params, d.limits
         d.last_eval = now
+        if d.since is None:
+            d.since = now
         if d.pend_t:
             d.win_t = np.concatenate([d.win_t, np.asarray(d.pend_t, np.int64)])
             d.win_lat = np.concatenate([d.win_lat, np.asarray(d.pend_lat, np.float64)])
@@ -256,15 +264,14 @@ class LatencyMonitor:
 
         # data flow: gap, rate, PPS flag
         age = None if d.last_host is None else now - d.last_host
-        gap = age is not None and age > lim.gap_ns
-        update(
-            "data_gap",
-            gap,
-            f"no record for {age / NS_PER_S:.2f} s"
-            if gap
-            else f"records again after {d.last_gap_ns / NS_PER_S:.2f} s",
-            CRITICAL,
-        )
+        silent = now - (d.last_host if d.last_host is not None else d.since)
+        gap = silent > lim.gap_ns
+        if gap:
+            msg = f"no record for {silent / NS_PER_S:.2f} s" + (" (none since start)" if age is None else "")
+        else:
+            first = d.first_host is not None and d.first_host == d.resumed
+            msg = f"{'first record' if first else 'records again'} after {d.last_gap_ns / NS_PER_S:.2f} s"
+        update("data_gap", gap, msg, CRITICAL)
         rate = None
         if d.first_host is not None and now - d.first_host >= p.rate_window_ns:
             rate = len(d.recent) * NS_PER_S / p.rate_window_ns

@@ -1,17 +1,38 @@
-"""PPS edges and time messages → labelled pulses → the clock model (docs/architecture.md §5, §6).
+"""PPS edges and time messages → labelled pulses → the clock model, and the time alarms
+(docs/architecture.md §5, §6).
 
-:class:`TimeKeeper` owns the daemon's :class:`~drivers.pps.PpsLabeler` (gpsd's rule) and
+:class:`TimeKeeper` owns the daemon's :class:`~drivers.pps.PpsLabeler` and
 :class:`~acquire.timing.clock.ClockModel`. The PPS device hands it every pulse (:meth:`on_edge`); the
 time device (the INS named by the PPS device's ``time_device``) hands it every time message of
-the configured kinds as a whole GPS second (:meth:`on_time`). A labelled pulse goes into the
-clock model, in host-time order.
+the configured kinds as a whole GPS second (:meth:`on_time`), in whatever order the event loop
+gets to them: the labeller matches them by their stamps. A labelled pulse goes into the clock
+model, in host-time order.
 
 Every pulse is logged once on ``/pps`` when its fate is known — labelled (and accepted or
-rejected by the clock model, with the residual), or dropped by the labeller (``unlabelled``
-after 1.1 s without a time message, ``duplicate``) — with ``host_ns`` = the pulse's host stamp
-and, when labelled, the device time tag = the GPS second it marks. ``log_time − publish_time``
-of a labelled pulse is then the clock model's error at that pulse. Clock-state changes are
-reported through ``on_state`` (the supervisor logs and alarms them).
+rejected by the clock model, with the residual), or dropped by the labeller (``unlabelled``,
+``ambiguous``: its time message came later than expected, ``duplicate``) — with ``host_ns`` =
+the pulse's host stamp and, when labelled, the device time tag = the GPS second it marks.
+``log_time − publish_time`` of a labelled pulse is then the clock model's error at that pulse.
+Clock-state changes are reported through ``on_state`` (the supervisor logs and alarms them).
+
+Alarms on ``clock`` (with an :class:`~acquire.alarms.AlarmBook`, evaluated by :meth:`tick`):
+
+- ``time_ambiguous`` (warning): a time message later or earlier than its expected latency for
+  every pulse — it could belong to two pulses — left its pulse unlabelled; clears 10 s after
+  the last one;
+- ``leap_table_stale`` (warning): the GPS date is past the leap-second table's expiry (a leap
+  second may be missing from it); the table in use is the built-in one or, when given
+  ``leap_list`` (the daemon: tzdata's ``/usr/share/zoneinfo/leap-seconds.list``), that file
+  when it is a newer consistent one;
+- ``leap_second_mismatch`` (warning): the INS announces a GPS − UTC (:meth:`on_gps_minus_utc`)
+  other than the table's for now: its UTC tags are read with its own count (its GPS time stays
+  exact), while UTC from the table — the system clock's seed, UTC shown to the operator — may be
+  off by the difference;
+- ``host_clock_step`` (warning): ``CLOCK_REALTIME`` stepped (NTP, ``date -s``; seen by
+  :data:`drivers.timing.HOST_CLOCK_STEPS` at each tick's read of realtime − monotonic): the
+  daemon's stamps are monotonic and do not move, the transports keep kernel stamps taken before
+  the step on the old offset (:class:`drivers.timing.RealtimeStamps`), and the clock model's
+  system-clock seed is refreshed; clears 10 s later.
 
 :func:`coarse_gps_offset_ns` seeds the clock model before the first pulse: GPS − host
 monotonic from the system clock (UTC + leap seconds).
@@ -21,15 +42,20 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable
+from pathlib import Path
 from typing import Any
 
+from acquire.alarms import WARNING, AlarmBook
 from acquire.timing.clock import ClockModel, ClockState
-from calib.core.frames import leap_seconds_at_utc
-from drivers.pps import LABEL_WINDOW_NS, PpsEdge, PpsLabeler
-from drivers.timing import realtime_minus_monotonic_ns
+from calib.core.frames import leap_seconds_at_gps_ns, leap_seconds_at_utc
+from calib.core.gpstime import GPS_EPOCH_UNIX_S, leap_table, parse_leap_seconds_list, use_leap_table
+from drivers.pps import PpsEdge, PpsLabeler
+from drivers.timing import HOST_CLOCK_STEPS, realtime_minus_monotonic_ns
 
 NS_PER_S = 1_000_000_000
 UNIX_TO_GPS_EPOCH_S = 315_964_800  # 1980-01-06T00:00:00Z in Unix seconds
+EVENT_CLEAR_NS = 10 * NS_PER_S  # an event alarm clears this long after the last event
+SYSTEM_LEAP_SECONDS_LIST = "/usr/share/zoneinfo/leap-seconds.list"
 
 Submit = Callable[..., Any]  # SessionWriter.submit-like: (topic, payload, host_ns=, device_ns=)
 
@@ -44,8 +70,20 @@ def coarse_gps_offset_ns() -> int:
     return offset - UNIX_TO_GPS_EPOCH_S * NS_PER_S + leap * NS_PER_S
 
 
+def load_leap_list(path: str | Path) -> str:
+    """Install the leap-second table of an IERS ``leap-seconds.list`` when it is newer than the
+    one in use; returns what happened (for the status)."""
+    try:
+        table = parse_leap_seconds_list(Path(path).read_text(encoding="ascii"), str(path))
+        installed = use_leap_table(table)
+    except (OSError, ValueError, UnicodeDecodeError) as e:
+        return f"{path} not used: {e}"
+    return f"{path} {'in use' if installed else 'not newer than the table in use'}"
+
+
 class TimeKeeper:
-    """Labels PPS pulses with time messages and feeds the clock model (module docstring)."""
+    """Labels PPS pulses with time messages, feeds the clock model, watches the time (module
+    docstring)."""
 
     def __init__(
         self,
@@ -53,17 +91,23 @@ class TimeKeeper:
         submit: Submit | None = None,
         on_state: Callable[[ClockState, ClockState, int], None] | None = None,
         on_edge_added: Callable[[], None] | None = None,
+        alarms: AlarmBook | None = None,
+        leap_list: str | Path | None = None,
     ) -> None:
         self.clock = clock
         self.on_edge_added = on_edge_added
         self.labeler = PpsLabeler()
         self.submit = submit
         self.on_state = on_state
+        self.alarms = alarms
         self.state = ClockState.UNLOCKED
-        self._pending: dict[tuple[str, int], PpsEdge] = {}  # pulses waiting for a label
         self.pulses = 0
         self.time_messages = 0
         self.last_edge_host_ns: int | None = None
+        self.leap_note = "built-in table" if leap_list is None else load_leap_list(leap_list)
+        self.gps_minus_utc_s: int | None = None  # as the time device announces it
+        self._ambiguous = (0, 0)  # (events seen, host ns of the latest)
+        self._host_steps = (HOST_CLOCK_STEPS.count, 0)  # (steps seen, host ns of the latest)
 
     # -- inputs -----------------------------------------------------------------------------
 
@@ -71,50 +115,114 @@ class TimeKeeper:
         """A PPS pulse as its source saw it (host monotonic stamp)."""
         self.pulses += 1
         self.last_edge_host_ns = edge.host_ns
-        dup = self.labeler.stats.events["duplicate_edge"]
-        self.labeler.add_edge(edge)
-        if self.labeler.stats.events["duplicate_edge"] > dup:
-            self._log(edge, None, "duplicate")
-            return
-        self._pending[(edge.source, edge.sequence)] = edge
-        self._expire(edge.host_ns)
+        self._labelled(self.labeler.add_edge(edge))
 
     def on_time(self, gps_s: int, host_ns: int) -> None:
         """A time message for GPS second ``gps_s`` received at ``host_ns``."""
         self.time_messages += 1
-        for edge in self.labeler.add_time(int(gps_s), int(host_ns)):
-            self._pending.pop((edge.source, edge.sequence), None)
-            self._expire(edge.host_ns, before=True)
-            result = self.clock.add_edge(edge.host_ns, edge.gps_s)
-            if self.on_edge_added is not None:
-                self.on_edge_added()
-            self._log(edge, result, result.reason)
-        self._expire(host_ns)
+        self._labelled(self.labeler.add_time(int(gps_s), int(host_ns)))
+
+    def on_gps_minus_utc(self, gps_minus_utc_s: int | None) -> None:
+        """The GPS − UTC the time device announces (None: it stopped announcing)."""
+        self.gps_minus_utc_s = gps_minus_utc_s
 
     def tick(self, now_host_ns: int) -> None:
-        """Periodic: log pulses that can no longer be labelled; report a clock-state change."""
-        self._expire(now_host_ns)
+        """Periodic: decide what the labeller can, log pulses that can no longer be labelled,
+        report a clock-state change, evaluate the time alarms."""
+        self._labelled(self.labeler.tick(now_host_ns))
         state = self.clock.state_at(now_host_ns)
         if state != self.state:
             old, self.state = self.state, state
             if self.on_state is not None:
                 self.on_state(old, state, now_host_ns)
+        if self.alarms is not None:
+            self._alarms(now_host_ns)
 
     def flush(self) -> None:
-        """Log every pulse still waiting for a label as unlabelled (shutdown)."""
-        for key, e in list(self._pending.items()):
-            del self._pending[key]
-            self._log(e, None, "unlabelled")
+        """Decide and log every pulse still waiting for a label (shutdown)."""
+        self._labelled(self.labeler.flush())
 
     # -- internals --------------------------------------------------------------------------
 
-    def _expire(self, now_ns: int, before: bool = False) -> None:
-        """Log pending pulses older than the labelling window (``before``: every pulse older
-        than ``now_ns`` — the labeller drops them once a later pulse takes the label)."""
-        for key, e in list(self._pending.items()):
-            if (e.host_ns < now_ns) if before else (now_ns - e.host_ns > LABEL_WINDOW_NS):
-                del self._pending[key]
-                self._log(e, None, "unlabelled")
+    def _labelled(self, edges: list[PpsEdge]) -> None:
+        for edge, reason in self.labeler.take_dropped():
+            self._log(edge, None, reason)
+        for edge in edges:
+            result = self.clock.add_edge(edge.host_ns, edge.gps_s)
+            if self.on_edge_added is not None:
+                self.on_edge_added()
+            self._log(edge, result, result.reason)
+
+    def _alarms(self, now: int) -> None:
+        al = self.alarms
+        assert al is not None
+        # a time message that could belong to two pulses
+        count, since = self._ambiguous
+        n = self.labeler.stats.events["time_ambiguous"]
+        if n > count:
+            self._ambiguous = (n, now)
+            a = self.labeler.last_ambiguous or {}
+            al.raise_now(
+                "time_ambiguous",
+                "clock",
+                now,
+                severity=WARNING,
+                message=f"the time message of GPS second {a.get('gps_s')} came "
+                f"{a.get('latency_ns', 0) / 1e6:.1f} ms after the latest pulse, expected "
+                f"{a.get('expected_ns', 0) / 1e6:.1f} ± {a.get('tolerance_ns', 0) / 1e6:.1f} ms: it could "
+                f"belong to two pulses, none labelled ({n} so far)",
+            )
+        elif since and now - since > EVENT_CLEAR_NS and al.is_active("time_ambiguous", "clock"):
+            al.clear_now("time_ambiguous", "clock", now, message="time messages on time again")
+        # a step of the host's realtime clock
+        realtime_minus_monotonic_ns()  # a read shows a step to HOST_CLOCK_STEPS
+        count, since = self._host_steps
+        if HOST_CLOCK_STEPS.count > count:
+            self._host_steps = (HOST_CLOCK_STEPS.count, now)
+            step_ns = HOST_CLOCK_STEPS.last[1] if HOST_CLOCK_STEPS.last else 0
+            self.clock.coarse_offset_ns = coarse_gps_offset_ns()
+            al.raise_now(
+                "host_clock_step",
+                "clock",
+                now,
+                severity=WARNING,
+                message=f"the host's realtime clock stepped by {step_ns / 1e9:+.3f} s: stamps are "
+                "monotonic, kernel stamps before the step kept their offset, the system-clock "
+                f"seed refreshed ({HOST_CLOCK_STEPS.count} steps so far)",
+            )
+        elif since and now - since > EVENT_CLEAR_NS and al.is_active("host_clock_step", "clock"):
+            al.clear_now("host_clock_step", "clock", now, message="no host clock step for 10 s")
+        # the leap-second table: expired, or contradicted by the time device
+        table = leap_table()
+        gps_ns = self.clock.gps_ns(now)
+        leap = leap_seconds_at_gps_ns(gps_ns)
+        stale = table.expired_at_unix_ns(gps_ns - leap * NS_PER_S + GPS_EPOCH_UNIX_S * NS_PER_S)
+        al.update(
+            "leap_table_stale",
+            "clock",
+            stale,
+            now,
+            severity=WARNING,
+            message=f"the leap-second table expired on {table.expires} ({table.source}): a leap "
+            "second announced since may be missing; install a newer IERS leap-seconds.list (tzdata)"
+            if stale
+            else f"leap-second table valid until {table.expires}",
+        )
+        announced = self.gps_minus_utc_s
+        mismatch = announced is not None and announced != leap
+        al.update(
+            "leap_second_mismatch",
+            "clock",
+            mismatch,
+            now,
+            severity=WARNING,
+            message=f"the time device applies GPS − UTC = {announced} s, the leap-second table "
+            f"{leap} s (expires {table.expires}): its UTC tags are read with its own {announced} s; "
+            "UTC from the table may be off by the difference (a leap second the table lacks, or a "
+            "wrong device)"
+            if mismatch
+            else f"GPS − UTC {leap} s as the table says",
+        )
 
     def _log(self, edge: PpsEdge, result, reason: str) -> None:
         if self.submit is None:
@@ -136,6 +244,7 @@ class TimeKeeper:
 
     def status(self) -> dict:
         ev = self.labeler.stats.events
+        expected = self.labeler.expected_latency()
         return {
             "pulses": self.pulses,
             "labelled": self.labeler.stats.records,
@@ -143,6 +252,11 @@ class TimeKeeper:
             "unlabelled": ev["unlabelled"],
             "duplicate_edges": ev["duplicate_edge"],
             "time_without_edge": ev["time_without_edge"],
+            "time_ambiguous": ev["time_ambiguous"],
+            "time_latency_ms": None if expected is None else round(expected[0] / 1e6, 3),
+            "leap_table": {**leap_table().as_dict(), "note": self.leap_note},
+            "gps_minus_utc_announced_s": self.gps_minus_utc_s,
+            "host_clock_steps": HOST_CLOCK_STEPS.count,
         }
 
 

@@ -325,8 +325,9 @@ def assessment_markdown(a: Assessment, figures: Sequence[Path] = ()) -> str:
 
 def write_assessment(a: Assessment, out_dir) -> dict[str, list[Path]]:
     """Write ``assessment.md``, ``assessment.json`` and the PNG figures into ``out_dir``."""
-    d = Path(out_dir)
-    d.mkdir(parents=True, exist_ok=True)
+    from calib.io.outputs import make_output_dir
+
+    d = make_output_dir(out_dir)
     figures = plot_heights(a, d) + plot_histograms(a, d)
     md = d / "assessment.md"
     md.write_text(assessment_markdown(a, figures), encoding="utf-8")

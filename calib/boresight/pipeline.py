@@ -1,8 +1,11 @@
 """The calibration pipeline (docs/architecture.md §7): a bundle in, the boresight and its
 uncertainties out.
 
-    bundle ──► check the points (finite, ordered in time within each pass, covered by the
-               trajectory)
+    bundle ──► compare its passes with site.yaml's plan (a planned pass without points, points
+               of an unplanned pass: a warning naming both files)
+           ──► check the points (finite, ordered in time within each pass, covered by the
+               trajectory; with ``skip_uncovered`` the points outside its coverage are dropped
+               and counted per pass instead)
            ──► georeference every pass with the a-priori mount
            ──► extract each target of each pass (:mod:`calib.boresight.extract`), optional voxel
                subsampling
@@ -31,7 +34,7 @@ time given by the caller, else the site's ``pos_sigmas.correlation_time_s``, els
 from __future__ import annotations
 
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -54,7 +57,7 @@ from calib.core.errors import CalibError
 from calib.core.georef import Mount, georeference, georeference_poses
 from calib.core.trajectory import Poses, Trajectory
 from calib.core.version import software_version as _software_version
-from calib.io.bundle import ScanPoints, read_bundle
+from calib.io.bundle import ScanPoints, intensity_scale, read_bundle
 from calib.io.site import Site
 
 Progress = Callable[[str, float, float | None], None]
@@ -169,13 +172,33 @@ def check_points(points: ScanPoints, trajectory: Trajectory, time_offset_s: floa
             m = uncovered & (pid == p)
             parts.append(
                 f"pass {int(p)}: {int(m.sum())} of {int(np.sum(pid == p))} points, "
-                f"{t[m].min():.3f}…{t[m].max():.3f} s"
+                f"{t[m].min():.3f}…{t[m].max():.3f} s ({trajectory.where_uncovered(t[m] + time_offset_s)})"
             )
         raise CalibrationError(
-            f"the trajectory does not cover the points (it spans {trajectory.t_gps_s[0]:.3f}…"
-            f"{trajectory.t_gps_s[-1]:.3f} s, gaps > {trajectory.max_gap_s:g} s refused): "
-            f"{'; '.join(parts)}. Export the trajectory over every pass."
+            f"the trajectory does not cover the points: {trajectory.name} spans "
+            f"{trajectory.t_gps_s[0]:.3f}…{trajectory.t_gps_s[-1]:.3f} s (gaps > "
+            f"{trajectory.max_gap_s:g} s refused); {'; '.join(parts)}. Export the trajectory over "
+            f"every pass, or drop these points with --skip-uncovered (mls calib run)."
         )
+
+
+def drop_uncovered(
+    points: ScanPoints, trajectory: Trajectory, time_offset_s: float = 0.0
+) -> tuple[ScanPoints, np.ndarray, list[str]]:
+    """The points the trajectory covers, their indices in ``points`` and one warning per pass
+    that lost points (``--skip-uncovered``)."""
+    bad = trajectory.uncovered(points.t_gps_s + time_offset_s)
+    keep = np.flatnonzero(~bad)
+    warnings = []
+    for p in np.unique(points.pass_id[bad]):
+        m = points.pass_id == p
+        n, total = int(np.sum(bad & m)), int(np.sum(m))
+        warnings.append(
+            f"pass {int(p)}: dropped {n:,} of {total:,} points outside the trajectory's coverage "
+            f"({trajectory.t_gps_s[0]:.3f}…{trajectory.t_gps_s[-1]:.3f} s, gaps > "
+            f"{trajectory.max_gap_s:g} s) (--skip-uncovered)"
+        )
+    return points.select(keep), keep, warnings
 
 
 # -- the steps ------------------------------------------------------------------------------
@@ -245,19 +268,24 @@ def calibrate(
     progress: Progress | None = None,
     source: str = "in memory",
     software_version: str | None = None,
+    point_rows: np.ndarray | None = None,
+    warnings: Sequence[str] = (),
+    notes: Sequence[str] = (),
 ) -> CalibrationRun:
     """Calibrate the boresight from raw scanner ``points`` and the ``trajectory``.
 
     ``poses``: per-point POS observations that replace the trajectory's interpolation (a
     simulator's per-point POS errors); ``labels``: per point the index of the target it hit
-    (−1 none) instead of the extraction. Raises :class:`CalibrationError`,
+    (−1 none) instead of the extraction; ``point_rows``: per point its row in the source file
+    (outlier ids name those rows; default: the point's index); ``warnings`` and ``notes``: about
+    the input, reported first. Raises :class:`CalibrationError`,
     :class:`calib.boresight.extract.ExtractionError` or :class:`calib.boresight.observations.AdjustmentError` (its
     :class:`~calib.boresight.observability.ObservabilityError` names the weak angles and the passes that would
     observe them) with a message that says what to do.
     """
     timings: dict[str, float] = {}
     clock = time.perf_counter()
-    notes: list[str] = []
+    input_warnings, notes = list(warnings), list(notes)
     if not site.targets:
         raise CalibrationError(
             "site.yaml configures no targets: list the planar targets "
@@ -299,7 +327,7 @@ def calibrate(
     if options.subsample_m is not None:
         ext = subsample(ext, p, options.subsample_m)
     timings["extract_s"] = time.perf_counter() - clock
-    warnings = list(ext.warnings)
+    run_warnings = input_warnings + list(ext.warnings)
 
     clock = time.perf_counter()
     idx, tgt = ext.indices()
@@ -327,7 +355,7 @@ def calibrate(
         site.sigma_scan_angle_rad,
         site.sigma_position_m,
         site.sigma_attitude_rad,
-        point_ids=idx,
+        point_ids=idx if point_rows is None else np.asarray(point_rows)[idx],
         time_offset_s=mount.time_offset_s,
         pass_headings_rad=headings,
     )
@@ -367,7 +395,7 @@ def calibrate(
         progress("adjusting", 1, 1)
     timings["adjust_s"] = time.perf_counter() - clock
     if not res.converged:
-        warnings.append(
+        run_warnings.append(
             f"the adjustment did not converge in {res.iterations} iterations: do "
             f"not use the result; check the a-priori boresight and the "
             f"extraction"
@@ -386,13 +414,13 @@ def calibrate(
         "realistic_correlation_time_source": tau_source,
         "sigma_realistic_over_formal": {a: float(r) for a, r in zip(("roll", "pitch", "yaw"), ratio)},
         "outlier_point_ids_refer_to": "0-based data rows of points.csv (after the header)",
-        "warnings": warnings,
+        "warnings": run_warnings,
         "notes": notes,
     }
     doc = result_to_dict(res, mount.boresight_rad, software_version or _software_version(), extra)
     timings["total_s"] = sum(timings.values())
     return CalibrationRun(
-        source, site, frame, mount, options, ext, obs, planes, res, doc, warnings, notes, timings
+        source, site, frame, mount, options, ext, obs, planes, res, doc, run_warnings, notes, timings
     )
 
 
@@ -401,18 +429,38 @@ def calibrate_bundle(
     options: CalibrationOptions = CalibrationOptions(),
     progress: Progress | None = None,
     max_gap_s: float = 1.0,
+    skip_uncovered: bool = False,
 ) -> CalibrationRun:
-    """Read a bundle directory (docs/architecture.md §4) and calibrate it; ``truth.json`` is never read."""
+    """Read a bundle directory (docs/architecture.md §4) and calibrate it; ``truth.json`` is never
+    read. The passes of points.csv are compared with site.yaml's plan (warnings);
+    ``skip_uncovered`` drops the points outside the trajectory's coverage (a warning per pass)
+    instead of refusing them."""
     if progress is not None:
         progress("reading the bundle", 0, None)
     bundle = read_bundle(bundle_path, max_gap_s=max_gap_s)
+    if not bundle.site.targets:  # (calibrate() says so too, without the file)
+        raise CalibrationError(
+            f"{bundle.path / 'site.yaml'}: targets: the site configures no targets: list the planar "
+            f"targets (name, centre, size, inclination, facing) under 'targets'"
+        )
+    warnings = bundle.pass_warnings()
+    scale = intensity_scale(bundle.points.intensity)
+    notes = [f"{bundle.points_path.name} intensities: {scale.meaning} (one scale for the file)"]
+    points, rows = bundle.points, None
+    if skip_uncovered:
+        offset_s = bundle.site.mount.time_offset_s
+        points, rows, dropped = drop_uncovered(points, bundle.trajectory, offset_s)
+        warnings += dropped
     return calibrate(
         bundle.site,
         bundle.trajectory,
-        bundle.points,
+        points,
         options,
         progress=progress,
         source=str(Path(bundle_path)),
+        point_rows=rows,
+        warnings=warnings,
+        notes=notes,
     )
 
 
@@ -420,9 +468,9 @@ def write_outputs(run: CalibrationRun, out_dir: str | Path, plots: bool = True) 
     """Write ``result.json``, ``report.md`` and (with ``plots``) the PNG plots; returns the
     paths written."""
     from calib.boresight.report import write_report
+    from calib.io.outputs import make_output_dir
 
-    out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
+    out = make_output_dir(out_dir)
     return [write_result(out / "result.json", run.doc), *write_report(run, out, plots=plots)]
 
 
@@ -432,10 +480,11 @@ def run_bundle(
     options: CalibrationOptions = CalibrationOptions(),
     progress: Progress | None = None,
     plots: bool = True,
+    skip_uncovered: bool = False,
 ) -> tuple[CalibrationRun, list[Path]]:
     """What ``mls calib run`` does: calibrate a bundle and write its outputs into ``out_dir``
-    (default ``BUNDLE/calib``)."""
-    run = calibrate_bundle(bundle_path, options, progress)
+    (default ``BUNDLE/calib``; the command refuses one that holds files unless ``--force``)."""
+    run = calibrate_bundle(bundle_path, options, progress, skip_uncovered=skip_uncovered)
     out = Path(bundle_path) / "calib" if out_dir is None else Path(out_dir)
     if progress is not None:
         progress("writing the report", 0, None)

@@ -7,7 +7,8 @@ pitch + bow up, heading clockwise from true north.
 Scanner frame S: scan plane is the y–z plane, ``r_S = ρ·[0, cos α, sin α]``.
 Mount: ``R_S^b = R_bs · R_nom`` with ``R_bs = Rz(γ)·Ry(β)·Rx(α_b)`` the boresight.
 Time: GPS time; int64 nanoseconds since the GPS epoch on disk and on the wire, float64 seconds
-since the GPS epoch in arrays, adjusted standard GPS time (s − 1e9) in LAS.
+since the GPS epoch in arrays, adjusted standard GPS time (s − 1e9) in LAS; UTC ↔ GPS by IERS's
+leap-second table, which expires (:mod:`calib.core.gpstime`), 23:59:60 included.
 
 Everything here works in radians and SI units; degrees are converted at the edges with
 ``np.radians``/``np.degrees``.
@@ -15,7 +16,6 @@ Everything here works in radians and SI units; degrees are converted at the edge
 
 from __future__ import annotations
 
-import bisect
 import datetime as _dt
 from dataclasses import dataclass
 from functools import cached_property
@@ -23,6 +23,8 @@ from typing import overload
 
 import numpy as np
 import numpy.typing as npt
+
+from calib.core.gpstime import GPS_EPOCH_DATE, GPS_EPOCH_UNIX_S, leap_table
 
 # ---------------------------------------------------------------------------------------------
 # Elementary rotations (active), vectorized: an angle array of shape (...) gives (..., 3, 3).
@@ -325,50 +327,23 @@ def utm_epsg(lat_deg: float, lon_deg: float) -> int:
 # ---------------------------------------------------------------------------------------------
 
 GPS_EPOCH = _dt.datetime(1980, 1, 6, tzinfo=_dt.UTC)
+UNIX_EPOCH = _dt.datetime(1970, 1, 1, tzinfo=_dt.UTC)
 NS_PER_S = 1_000_000_000
 SECONDS_PER_WEEK = 604_800
 #: LAS "adjusted standard GPS time" is GPS seconds minus this offset.
 LAS_GPS_OFFSET_S = 1e9
 
-#: UTC instants at which GPS − UTC increased by one second (IERS bulletin C); GPS − UTC was 0 at
-#: the GPS epoch. After 2016-12-31 no leap second has been inserted up to the date of this table.
-_LEAP_UTC = [
-    _dt.datetime(y, m, 1, tzinfo=_dt.UTC)
-    for y, m in [
-        (1981, 7),
-        (1982, 7),
-        (1983, 7),
-        (1985, 7),
-        (1988, 1),
-        (1990, 1),
-        (1991, 1),
-        (1992, 7),
-        (1993, 7),
-        (1994, 7),
-        (1996, 1),
-        (1997, 7),
-        (1999, 1),
-        (2006, 1),
-        (2009, 1),
-        (2012, 7),
-        (2015, 7),
-        (2017, 1),
-    ]
-]
-#: The same instants on the GPS time scale, in ns since the GPS epoch.
-_LEAP_GPS_NS = [
-    int((t - GPS_EPOCH).total_seconds()) * NS_PER_S + (i + 1) * NS_PER_S for i, t in enumerate(_LEAP_UTC)
-]
-
 
 def leap_seconds_at_utc(utc: _dt.datetime) -> int:
-    """GPS − UTC in seconds at a UTC instant (18 since 2017-01-01)."""
-    return bisect.bisect_right(_LEAP_UTC, _as_utc(utc))
+    """GPS − UTC in seconds at a UTC instant (18 since 2017-01-01), from the leap-second table
+    in use (:func:`calib.core.gpstime.leap_table`: IERS's list, with an expiry date)."""
+    d = _as_utc(utc) - UNIX_EPOCH
+    return leap_table().gps_minus_utc_at_unix_ns((d.days * 86_400 + d.seconds) * NS_PER_S)
 
 
 def leap_seconds_at_gps_ns(gps_ns: int) -> int:
-    """GPS − UTC in seconds at a GPS instant."""
-    return bisect.bisect_right(_LEAP_GPS_NS, int(gps_ns))
+    """GPS − UTC in seconds at a GPS instant (during an inserted second, the count before it)."""
+    return leap_table().gps_minus_utc_at_gps_ns(gps_ns)
 
 
 def _as_utc(d: _dt.datetime) -> _dt.datetime:
@@ -385,17 +360,46 @@ def utc_to_gps_ns(utc: _dt.datetime, extra_ns: int = 0) -> int:
     return ns + leap_seconds_at_utc(utc) * NS_PER_S
 
 
-def utc_fields_to_gps_ns(year: int, month: int, day: int, seconds_of_day_ns: int) -> int:
-    """UTC date + nanoseconds of the day → GPS ns (what NMEA ZDA/TIME__ and STDBIN UTC give)."""
-    midnight = _dt.datetime(year, month, day, tzinfo=_dt.UTC)
-    return utc_to_gps_ns(midnight, int(seconds_of_day_ns))
+def utc_fields_to_gps_ns(
+    year: int, month: int, day: int, seconds_of_day_ns: int, gps_minus_utc_s: int | None = None
+) -> int:
+    """UTC date + nanoseconds of the day → GPS ns (what NMEA ZDA/TIME__ and STDBIN UTC give).
+
+    The day's GPS − UTC is that of its midnight, so 23:59:60.5 (86 400.5 s) on a day that ends
+    with a leap second is the GPS instant 0.5 s into the inserted second. ``gps_minus_utc_s``:
+    the offset the device says it applied (its UTC tags are undone with it) instead of the
+    table's."""
+    days = (_dt.date(year, month, day) - GPS_EPOCH_DATE).days
+    leap = leap_table().gps_minus_utc_at_unix_ns((days * 86_400 + GPS_EPOCH_UNIX_S) * NS_PER_S)
+    if gps_minus_utc_s is not None:
+        leap = gps_minus_utc_s
+    return days * 86_400 * NS_PER_S + int(seconds_of_day_ns) + leap * NS_PER_S
 
 
 def gps_ns_to_utc(gps_ns: int) -> _dt.datetime:
-    """GPS ns → UTC datetime (truncated to the microsecond)."""
+    """GPS ns → UTC datetime (truncated to the microsecond; an inserted second 23:59:60.x, which
+    a datetime cannot hold, reads as 00:00:00.x of the next day — use :func:`gps_ns_to_utc_fields`)."""
     gps_ns = int(gps_ns)
     utc_ns = gps_ns - leap_seconds_at_gps_ns(gps_ns) * NS_PER_S
     return GPS_EPOCH + _dt.timedelta(microseconds=utc_ns // 1_000)
+
+
+def gps_ns_to_utc_fields(gps_ns: int, gps_minus_utc_s: int | None = None) -> tuple[_dt.date, int]:
+    """GPS ns → (UTC date, ns of that day), the inverse of :func:`utc_fields_to_gps_ns`: the
+    inserted second at the end of a leap-second day is 23:59:60.x of that day (86 400 s + x).
+    ``gps_minus_utc_s``: convert with this offset instead of the table's (a device that
+    believes another count)."""
+    gps_ns = int(gps_ns)
+    table = leap_table()
+    if gps_minus_utc_s is None:
+        leap = table.gps_minus_utc_at_gps_ns(gps_ns)
+        inserted = table.leap_second_at_gps_ns(gps_ns)
+    else:
+        leap, inserted = gps_minus_utc_s, False
+    days, tod = divmod(gps_ns - leap * NS_PER_S, 86_400 * NS_PER_S)
+    if inserted:  # the count steps at the next midnight: the second before it is 23:59:60
+        days, tod = days - 1, tod + 86_400 * NS_PER_S
+    return GPS_EPOCH_DATE + _dt.timedelta(days=days), tod
 
 
 @overload

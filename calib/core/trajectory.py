@@ -172,6 +172,29 @@ class Trajectory:
             bad |= gaps[k] & (t != tt[k]) & (t != tt[k + 1])  # a gap's end samples are fine
         return bad
 
+    def where_uncovered(self, t_gps_s) -> str:
+        """Where the times :meth:`uncovered` refuses fall, for a message: before the first epoch,
+        after the last, in which gaps (epoch times, the first three), NaN; "" when none."""
+        t = np.asarray(t_gps_s, dtype=float)
+        bad, tt = self.uncovered(t), self.t_gps_s
+        parts = []
+        for n, what in (
+            (int(np.sum(bad & (t < tt[0]))), f"before its first epoch {tt[0]:.3f} s"),
+            (int(np.sum(bad & (t > tt[-1]))), f"after its last epoch {tt[-1]:.3f} s"),
+        ):
+            if n:
+                parts.append(f"{n} {what}")
+        inside = bad & (t >= tt[0]) & (t <= tt[-1])
+        if inside.any():
+            k = np.unique(np.clip(np.searchsorted(tt, t[inside], side="right") - 1, 0, tt.size - 2))
+            gaps = ", ".join(f"{tt[j]:.3f} … {tt[j + 1]:.3f} s ({tt[j + 1] - tt[j]:.3f} s)" for j in k[:3])
+            more = f" and {k.size - 3} more" if k.size > 3 else ""
+            parts.append(f"{int(inside.sum())} in the gap{'s' if k.size > 1 else ''} {gaps}{more}")
+        n_nan = int(np.sum(~np.isfinite(t)))
+        if n_nan:
+            parts.append(f"{n_nan} NaN")
+        return "; ".join(parts)
+
     def check_coverage(self, t_gps_s) -> None:
         t = np.asarray(t_gps_s, dtype=float)
         bad = self.uncovered(t)

@@ -448,8 +448,9 @@ def write_study(
 ) -> list[Path]:
     """CSV tables, PNG figures (drawn in ``jobs`` processes) and ``summary.md`` into
     ``out_dir`` (created)."""
-    out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
+    from calib.io.outputs import make_output_dir
+
+    out = make_output_dir(out_dir)
     files = [
         write_csv(out / "criteria.csv", result.criteria, CRITERIA_COLUMNS),
         write_csv(out / "visibility.csv", result.visibility, VISIBILITY_COLUMNS),

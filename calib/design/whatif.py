@@ -134,6 +134,7 @@ def what_if(
 
 
 def write_what_if(w: WhatIf, out_dir: str | Path) -> list[Path]:
-    out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
+    from calib.io.outputs import make_output_dir
+
+    out = make_output_dir(out_dir)
     return [write_csv(out / "whatif.csv", w.rows, list(SIGMA_COLUMNS) + ["next_best_pass"])]

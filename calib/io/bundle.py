@@ -10,6 +10,18 @@ calibration.
     BUNDLE/truth.json         simulated bundles only; never read by ``mls calib run``
 
 Every error names the file, the line and the column and what was expected.
+
+``points.csv`` values are checked, not trusted (docs/architecture.md §4.3):
+
+- ``pass_id``: a non-negative integer up to 2⁶³ − 1, kept as int64 end to end (survey line ids
+  such as 20240709001 do not fit 32 bits; ids above 2⁵³ are re-read as exact integers);
+- ``range_m`` and ``scan_angle_deg`` inside the scanner's physical window,
+  :data:`SCANNER_RANGE_M` (0.3 … 119 m) and :data:`SCAN_ANGLE_DEG` ([0°, 360°)) of the Z+F
+  Profiler 9012: a value outside is an error naming its line, never a point;
+- ``intensity``: one scale per file, decided from the whole file and stated
+  (:func:`intensity_scale`): reflectances (every value in 0 … 1) or counts (every value an
+  integer in 0 … 65535). A value that breaks the file's scale is an error naming its line: one
+  stray value never rescales, or is clipped in, the other values silently.
 """
 
 from __future__ import annotations
@@ -27,6 +39,7 @@ from calib.core import frames
 from calib.core.errors import CalibError
 from calib.core.trajectory import Trajectory, TrajectoryError
 from calib.io.configfile import ConfigError
+from calib.io.outputs import make_output_dir
 from calib.io.site import Site, load_site
 
 TRAJECTORY_COLUMNS = ("gps_time", "lat_deg", "lon_deg", "height_m", "roll_deg", "pitch_deg", "heading_deg")
@@ -47,6 +60,14 @@ TRAJECTORY_RANGES = (
     (6, "heading_deg", -360, 360),
 )
 POINT_COLUMNS = ("pass_id", "gps_time", "range_m", "scan_angle_deg", "intensity")
+#: The physical measurement window of the Z+F Profiler 9012: ranges (m, both ends included) and
+#: scan angles (deg, [low, high)); the simulator's scanner model (``calib.sim.scenario``) and its
+#: angular recording windows lie inside it.
+SCANNER_RANGE_M = (0.3, 119.0)
+SCAN_ANGLE_DEG = (0.0, 360.0)
+INTENSITY_COUNTS_MAX = 65535
+PASS_ID_MAX = 2**63 - 1  # int64
+_EXACT_FLOAT_INT = 2**53  # above it a float64 no longer holds every integer
 
 
 class BundleError(CalibError, ValueError):
@@ -57,7 +78,7 @@ class BundleError(CalibError, ValueError):
 class ScanPoints:
     """Raw scanner observations, one entry per return."""
 
-    pass_id: np.ndarray  # int32
+    pass_id: np.ndarray  # int64 (survey line ids exceed 32 bits)
     t_gps_s: np.ndarray  # float64 seconds since the GPS epoch
     range_m: np.ndarray
     scan_angle_rad: np.ndarray
@@ -66,7 +87,7 @@ class ScanPoints:
     def __post_init__(self):
         n = np.asarray(self.t_gps_s).shape[0]
         for name, dtype in (
-            ("pass_id", np.int32),
+            ("pass_id", np.int64),
             ("t_gps_s", np.float64),
             ("range_m", np.float64),
             ("scan_angle_rad", np.float64),
@@ -113,6 +134,30 @@ class Bundle:
     def frame(self) -> frames.LocalFrame:
         return self.trajectory.frame
 
+    @property
+    def points_path(self) -> Path:
+        return _points_path(self.path)
+
+    def pass_warnings(self) -> list[str]:
+        """The passes planned in site.yaml without points, and the points of unplanned passes."""
+        return pass_warnings(self.site, self.points.pass_id, self.path / "site.yaml", self.points_path)
+
+
+@dataclass(frozen=True)
+class IntensityScale:
+    """How a file's intensities become LAS's 16-bit intensity (:func:`intensity_scale`)."""
+
+    kind: str  # "reflectance" (0 … 1) or "counts" (integers 0 … 65535)
+    factor: float  # multiplies the values into 0 … 65535
+
+    @property
+    def meaning(self) -> str:
+        return "reflectances 0…1" if self.kind == "reflectance" else "counts 0…65535"
+
+    def describe(self) -> str:
+        """The scale as LAS gets it."""
+        return "reflectance 0…1, ×65535" if self.kind == "reflectance" else "counts 0…65535, as they are"
+
 
 # -- CSV ------------------------------------------------------------------------------------
 
@@ -122,6 +167,10 @@ def _open_text(path: Path) -> str:
         raw = path.read_bytes()
     except FileNotFoundError:
         raise BundleError(f"{path}: file not found") from None
+    except IsADirectoryError:
+        raise BundleError(f"{path}: is a directory, expected a file") from None
+    except OSError as e:
+        raise BundleError(f"{path}: cannot read ({e.strerror or e})") from None
     if path.suffix == ".gz":
         try:
             raw = gzip.decompress(raw)
@@ -165,15 +214,16 @@ def _parse_csv(
     """
     header_end = text.find("\n")
     header = (text if header_end < 0 else text[:header_end]).strip().lstrip("\ufeff")
+    if not text.strip():
+        raise BundleError(f"{path}: empty file, expected a header line {','.join(required)!r} and data lines")
     columns = [c.strip() for c in header.split(",")]
     if columns[: len(required)] != list(required):
         raise BundleError(f"{path}:1: header is {header!r}, expected it to start with {','.join(required)!r}")
     extra = columns[len(required) :]
     if extra and extra != list(optional):
-        raise BundleError(
-            f"{path}:1: unexpected columns {','.join(extra)!r}; after "
-            f"{','.join(required)!r} only {','.join(optional)!r} may follow"
-        )
+        names = f"{','.join(extra)!r}" + ("" if all(extra) else " (an empty column name: a trailing comma?)")
+        may_follow = f"only {','.join(optional)!r} may follow" if optional else "no other column may follow"
+        raise BundleError(f"{path}:1: unexpected columns {names}; after {','.join(required)!r} {may_follow}")
     k = len(columns)
     body = "" if header_end < 0 else text[header_end + 1 :]
     body = body.replace("\r", "")
@@ -296,31 +346,122 @@ def write_trajectory_csv(path: Path, traj: Trajectory) -> None:
     _write_csv(Path(path), header, fmt, cols)
 
 
+def _first_bad(bad: np.ndarray) -> int | None:
+    return int(np.argmax(bad)) if bad.any() else None
+
+
+def _exact_pass_ids(path: Path, text: str, n: int) -> np.ndarray:
+    """The pass_id column read as integers (for ids above 2⁵³, where float64 rounds)."""
+    body = text[text.find("\n") + 1 :].replace("\r", "").split("\n")[:n]
+    out = np.empty(n, np.int64)
+    for i, line in enumerate(body):
+        field = line.split(",", 1)[0].strip()
+        try:
+            v = int(field)
+        except ValueError:
+            v = int(float(field))  # "20240709001.0": the float check already found it whole
+        if not 0 <= v <= PASS_ID_MAX:
+            raise BundleError(
+                f"{path}:{i + 2}:1: pass_id is {field}, expected a non-negative integer ≤ {PASS_ID_MAX}"
+            )
+        out[i] = v
+    return out
+
+
+def intensity_scale(intensity: np.ndarray, path: Path | str = "points.csv") -> IntensityScale:
+    """The one intensity scale of a file, from all its values (module docstring): reflectances
+    when every value is in 0 … 1, else counts when every value is an integer, each in 0 … 65535.
+    A value that fits neither is a :class:`BundleError` naming its line (row i is line i + 2)."""
+    v = np.asarray(intensity, dtype=np.float64)
+    if v.size == 0 or ((v >= 0.0) & (v <= 1.0)).all():
+        return IntensityScale("reflectance", float(INTENSITY_COUNTS_MAX))
+    fractional = v != np.round(v)
+    if not fractional.any():
+        i = _first_bad((v < 0) | (v > INTENSITY_COUNTS_MAX))
+        if i is not None:
+            raise BundleError(
+                f"{path}:{i + 2}:5: intensity is {float(v[i])!r}, expected 0…{INTENSITY_COUNTS_MAX}: "
+                f"the file holds whole numbers beyond 0…1, read as counts (16 bits)"
+            )
+        return IntensityScale("counts", 1.0)
+    j = int(np.argmax(fractional))
+    i = int(np.argmax((v < 0.0) | (v > 1.0)))
+    raise BundleError(
+        f"{path}:{i + 2}:5: intensity is {float(v[i])!r}, expected 0…1: the file holds fractions "
+        f"(line {j + 2}: {float(v[j])!r}), read as reflectances 0…1; counts must all be whole "
+        f"numbers 0…{INTENSITY_COUNTS_MAX}. One scale per file: fix the value or the file"
+    )
+
+
 def read_points_csv(path: Path) -> ScanPoints:
+    """points.csv(.gz), every value checked (module docstring); errors name file:line:column."""
     path = Path(path)
-    _, a = _parse_csv(path, _open_text(path), POINT_COLUMNS)
+    text = _open_text(path)
+    _, a = _parse_csv(path, text, POINT_COLUMNS)
     if a.shape[0] == 0:
         raise BundleError(f"{path}: no points")
     pid = a[:, 0]
-    bad = (pid != np.round(pid)) | (pid < 0)
-    if bad.any():
-        i = int(np.argmax(bad))
+    i = _first_bad((pid != np.round(pid)) | (pid < 0))
+    if i is not None:
         raise BundleError(f"{path}:{i + 2}:1: pass_id is {float(pid[i])!r}, expected a non-negative integer")
-    bad = a[:, 2] < 0
-    if bad.any():
-        i = int(np.argmax(bad))
-        raise BundleError(f"{path}:{i + 2}:3: range_m is {float(a[i, 2])!r}, expected ≥ 0")
-    _check_sorted_column(path, a[:, 1], "gps_time", 1, group=pid)
-    return ScanPoints(pid.astype(np.int32), a[:, 1], a[:, 2], np.radians(a[:, 3]), a[:, 4])
+    if (pid >= _EXACT_FLOAT_INT).any():
+        ids = _exact_pass_ids(path, text, a.shape[0])
+    else:
+        ids = pid.astype(np.int64)
+    lo, hi = SCANNER_RANGE_M
+    i = _first_bad(~((a[:, 2] >= lo) & (a[:, 2] <= hi)))
+    if i is not None:
+        raise BundleError(
+            f"{path}:{i + 2}:3: range_m is {float(a[i, 2])!r}, expected {lo:g}…{hi:g} m "
+            f"(the Z+F 9012's range window)"
+        )
+    lo, hi = SCAN_ANGLE_DEG
+    i = _first_bad(~((a[:, 3] >= lo) & (a[:, 3] < hi)))
+    if i is not None:
+        raise BundleError(
+            f"{path}:{i + 2}:4: scan_angle_deg is {float(a[i, 3])!r}, expected {lo:g} ≤ angle < "
+            f"{hi:g} (the scanner's full circle)"
+        )
+    intensity_scale(a[:, 4], path)  # one scale for the file, or the line that breaks it
+    _check_sorted_column(path, a[:, 1], "gps_time", 1, group=ids)
+    return ScanPoints(ids, a[:, 1], a[:, 2], np.radians(a[:, 3]), a[:, 4])
 
 
 def write_points_csv(path: Path, pts: ScanPoints) -> None:
+    """points.csv(.gz); scan angles are written in [0°, 360°) (the same directions)."""
+    deg = np.mod(np.degrees(pts.scan_angle_rad), 360.0)
+    deg[deg >= 360.0] = 0.0  # a tiny negative angle rounds up to 360
     _write_csv(
         Path(path),
         POINT_COLUMNS,
         "%d,%.9f,%.17g,%.17g,%.6g",
-        [pts.pass_id, pts.t_gps_s, pts.range_m, np.degrees(pts.scan_angle_rad), pts.intensity],
+        [pts.pass_id, pts.t_gps_s, pts.range_m, deg, pts.intensity],
     )
+
+
+def pass_warnings(
+    site: Site, pass_id: np.ndarray, site_path: Path | str, points_path: Path | str
+) -> list[str]:
+    """Warnings (naming both files) for the passes ``site`` plans that have no points and for
+    points of passes it does not plan."""
+    ids, counts = np.unique(np.asarray(pass_id, dtype=np.int64), return_counts=True)
+    have = {int(k): int(n) for k, n in zip(ids, counts)}
+    planned = [p.id for p in site.passes]
+    plan = "" if site.passes_listed else " (it lists no passes: the default six-fold plan, ids 1–6)"
+    out = []
+    missing = [p for p in planned if p not in have]
+    if missing:
+        s = "" if len(missing) == 1 else "es"
+        out.append(
+            f"pass{s} {', '.join(map(str, missing))} planned in {site_path}{plan} "
+            f"{'has' if len(missing) == 1 else 'have'} no points in {points_path}"
+        )
+    extra = [p for p in have if p not in set(planned)]
+    if extra:
+        listed = ", ".join(f"{p} ({have[p]:,} points)" for p in extra)
+        s = "" if len(extra) == 1 else "es"
+        out.append(f"{points_path} holds points of pass{s} {listed} not planned in {site_path}{plan}")
+    return out
 
 
 # -- the bundle -----------------------------------------------------------------------------
@@ -375,13 +516,15 @@ def write_bundle(
     truth: dict | None = None,
     compress_points: bool = False,
 ) -> Path:
-    """Write a bundle directory (created if needed); returns its path."""
-    d = Path(path)
-    d.mkdir(parents=True, exist_ok=True)
+    """Write a bundle directory (created if needed; bundle files already there replaced,
+    stale ones removed: the commands check first, :mod:`calib.io.outputs`); returns its path."""
+    d = make_output_dir(path, "the bundle directory")
+    # a bundle file this one does not write would be read with it: another dataset's truth,
+    # an SBET trajectory, the other points file
+    for stale in ("points.csv", "points.csv.gz", "trajectory.sbet", "trajectory.smrmsg", "truth.json"):
+        (d / stale).unlink(missing_ok=True)
     site.dump(d / "site.yaml")
     write_trajectory_csv(d / "trajectory.csv", trajectory)
-    for stale in ("points.csv", "points.csv.gz"):
-        (d / stale).unlink(missing_ok=True)
     write_points_csv(d / ("points.csv.gz" if compress_points else "points.csv"), points)
     if truth is not None:
         (d / "truth.json").write_text(json.dumps(truth, indent=2, sort_keys=True) + "\n")
@@ -395,5 +538,7 @@ def read_truth(path: str | Path) -> dict:
         return json.loads(p.read_text())
     except FileNotFoundError:
         raise BundleError(f"{p}: not found (only simulated bundles carry a truth)") from None
+    except IsADirectoryError:
+        raise BundleError(f"{p}: is a directory, expected a file") from None
     except json.JSONDecodeError as e:
         raise BundleError(f"{p}:{e.lineno}:{e.colno}: not valid JSON ({e.msg})") from None

@@ -58,6 +58,8 @@ def is_las(path) -> bool:
 def read_cloud(path) -> PointCloud:
     """Read a LAS/LAZ (by suffix) or ASCII cloud; raises :class:`CloudError`."""
     p = Path(path)
+    if p.is_dir():
+        raise CloudError(f"{p}: is a directory, expected a point-cloud file")
     if not p.is_file():
         raise CloudError(f"{p}: file not found")
     cloud = _read_las(p) if is_las(p) else _read_ascii(p)

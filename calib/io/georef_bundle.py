@@ -4,7 +4,9 @@
 :func:`georeference_bundle` georeferences every pass of a bundle with the mount of its
 site.yaml (optionally another boresight) in chunks of :data:`DEFAULT_CHUNK_POINTS` points and
 writes ``pass-<id>.laz`` (or ``.las``) through :class:`calib.io.laz.LasPassWriter`; it returns a
-:class:`PassOutput` per pass and the facts a caption needs (CRS, boresight, intensity scale).
+:class:`PassOutput` per pass and the facts a caption needs (CRS, boresight, intensity scale, the
+pass ids that LAS's u16 ``point_source_id`` cannot hold). Coverage is checked for every pass
+before the first file is written: an error leaves no partial output.
 """
 
 from __future__ import annotations
@@ -39,6 +41,7 @@ def georeference_bundle(
     chunk_points: int = DEFAULT_CHUNK_POINTS,
     progress=None,
     boresight_source: str = "--boresight-deg",
+    out_option: str = "--out",
 ) -> tuple[list[PassOutput], dict]:
     """Georeference every pass of a bundle into ``out_dir/pass-<id>.laz``.
 
@@ -52,8 +55,9 @@ def georeference_bundle(
     from calib.core.georef import georeference
     from calib.core.trajectory import TrajectoryError
     from calib.core.version import software_version
-    from calib.io.bundle import read_bundle
-    from calib.io.laz import LasPassWriter, output_crs
+    from calib.io.bundle import intensity_scale, read_bundle
+    from calib.io.laz import LasPassWriter, las_source_id, output_crs
+    from calib.io.outputs import make_output_dir
 
     bundle = read_bundle(bundle_dir, max_gap_s=max_gap_s)
     pts, traj = bundle.points, bundle.trajectory
@@ -61,27 +65,29 @@ def georeference_bundle(
     if boresight_deg is not None:
         mount = mount.with_boresight(np.radians(boresight_deg))
     out_crs = output_crs(crs, bundle.frame)
-    # intensity → u16: reflectance-like values in [0, 1] span the full range, anything else is
-    # taken as counts (rounded, clipped); decided once for the bundle so passes compare
-    intensity_scale = 65535.0 if float(pts.intensity.max(initial=0.0)) <= 1.0 else 1.0
-    out_dir.mkdir(parents=True, exist_ok=True)
+    # intensity → u16: one scale for the bundle, decided and checked by the reader (reflectances
+    # 0…1 span the full range, counts are kept), so that the passes compare
+    scale = intensity_scale(pts.intensity, bundle.points_path)
     suffix = ".laz" if compress else ".las"
     software = software_version()
 
-    outputs = []
+    selected = []  # (pass id, kept indices, dropped count): every pass checked before writing
     for pass_id in pts.pass_ids():
         idx = np.flatnonzero(pts.pass_id == pass_id)
         bad = traj.uncovered(pts.t_gps_s[idx] + mount.time_offset_s)
-        if bad.any():
-            if not skip_uncovered:
-                tb = pts.t_gps_s[idx[bad]]
-                raise TrajectoryError(
-                    f"pass {pass_id}: {int(bad.sum())} of {idx.size} points fall outside the "
-                    f"trajectory {traj.t_gps_s[0]:.3f} … {traj.t_gps_s[-1]:.3f} s or in a gap "
-                    f"> {max_gap_s:g} s (first {tb.min():.3f} s, last {tb.max():.3f} s); "
-                    f"use --skip-uncovered to drop them"
-                )
-            idx = idx[~bad]
+        if bad.any() and not skip_uncovered:
+            tb = pts.t_gps_s[idx[bad]]
+            raise TrajectoryError(
+                f"{bundle.points_path}: pass {pass_id}: {int(bad.sum())} of {idx.size} points fall "
+                f"outside the trajectory {traj.name} ({traj.t_gps_s[0]:.3f} … {traj.t_gps_s[-1]:.3f} s) "
+                f"or in a gap > {max_gap_s:g} s (first {tb.min():.3f} s, last {tb.max():.3f} s: "
+                f"{traj.where_uncovered(tb + mount.time_offset_s)}); use --skip-uncovered to drop them"
+            )
+        selected.append((pass_id, idx[~bad], int(bad.sum())))
+    make_output_dir(out_dir, out_option)
+
+    outputs = []
+    for pass_id, idx, n_dropped in selected:
         path = out_dir / f"pass-{pass_id}{suffix}"
         task = None
         if progress is not None:
@@ -91,7 +97,7 @@ def georeference_bundle(
                 sel = idx[lo : lo + chunk_points]
                 t = pts.t_gps_s[sel]
                 p = georeference(t, pts.range_m[sel], pts.scan_angle_rad[sel], traj, mount)
-                intensity = np.clip(np.round(pts.intensity[sel] * intensity_scale), 0, 65535)
+                intensity = np.round(pts.intensity[sel] * scale.factor)  # in 0…65535 (checked)
                 writer.write(p, t, intensity, pts.scan_angle_rad[sel])
                 if task is not None:
                     progress.advance(task, sel.size)
@@ -102,16 +108,29 @@ def georeference_bundle(
             PassOutput(
                 pass_id,
                 int(idx.size),
-                int(bad.sum()),
+                n_dropped,
                 float(t_pass.min()) if t_pass.size else float("nan"),
                 float(t_pass.max()) if t_pass.size else float("nan"),
                 path,
             )
         )
+    wide = [o.pass_id for o in outputs if las_source_id(o.pass_id) != o.pass_id]
+    warnings = [
+        f"pass {o.pass_id}: {o.n_dropped:,} points outside the trajectory's coverage are not in {o.path}"
+        for o in outputs
+        if o.n_dropped
+    ]
+    if wide:
+        warnings.append(
+            f"pass ids {', '.join(map(str, wide))} exceed LAS's 16-bit point_source_id: 0 there; "
+            f"each point's extra-bytes dimension pass_id holds the id"
+        )
     facts = {
         "crs": out_crs.name,
         "boresight_deg": tuple(float(v) for v in np.degrees(mount.boresight_rad)),
         "boresight_source": boresight_source if boresight_deg is not None else "site.yaml",
-        "intensity": "×65535 (values in 0…1)" if intensity_scale > 1 else "counts",
+        "intensity": scale.describe(),
+        "source_id_zero": wide,  # pass ids u16 point_source_id cannot hold: 0 there
+        "warnings": warnings,  # for callers that print no table (mls export --laz)
     }
     return outputs, facts

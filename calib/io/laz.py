@@ -1,9 +1,15 @@
 """LAS 1.4 / LAZ output of georeferenced points (point format 6), written in chunks.
 
 Every file carries: coordinates in a chosen CRS, adjusted standard GPS time (GPS seconds − 1e9,
-global-encoding bit 0 set), intensity (u16), ``point_source_id`` and the header's file source ID
-= the pass id, return 1 of 1, the scan angle (see :class:`LasPassWriter`), and the CRS as an OGC
-WKT VLR (global-encoding WKT bit set).
+global-encoding bit 0 set), intensity (u16), return 1 of 1, the scan angle (see
+:class:`LasPassWriter`), the CRS as an OGC WKT VLR (global-encoding WKT bit set), and the pass
+id twice:
+
+- the extra-bytes dimension ``pass_id`` (int64): always the real id (survey line ids such as
+  20240709001 do not fit LAS's own fields);
+- ``point_source_id`` and the header's file source ID (u16): the pass id when it is 0 … 65535,
+  else 0 (LAS's "not assigned"; :func:`las_source_id`). The file name ``pass-<id>.laz`` carries
+  the real id as well.
 
 CRS choices (:func:`output_crs`):
 
@@ -36,6 +42,15 @@ SCALE_M = 1e-4
 SCALE_DEG = 1e-9
 #: LAS scan angle unit (point formats 6–10).
 SCAN_ANGLE_UNIT_DEG = 0.006
+#: The extra-bytes dimension holding the real pass id (int64).
+PASS_ID_DIMENSION = "pass_id"
+_U16_MAX = 65535
+
+
+def las_source_id(pass_id: int) -> int:
+    """The pass id in LAS's u16 source-id fields: itself when it fits, else 0 ("not assigned"; the
+    real id is in the ``pass_id`` extra-bytes dimension)."""
+    return int(pass_id) if 0 <= int(pass_id) <= _U16_MAX else 0
 
 
 class LasOutputError(CalibError, ValueError):
@@ -143,21 +158,27 @@ class LasPassWriter:
         import laspy
         from laspy.vlrs.known import WktCoordinateSystemVlr
 
-        if not 0 <= int(pass_id) <= 65535:
-            raise LasOutputError(f"pass id {pass_id}: LAS point_source_id holds 0 … 65535")
+        if not 0 <= int(pass_id) < 2**63:
+            raise LasOutputError(f"pass id {pass_id}: expected a non-negative 64-bit integer")
         self.path = Path(path)
         self.crs = crs
         self.pass_id = int(pass_id)
+        self.source_id = las_source_id(self.pass_id)
         header = laspy.LasHeader(point_format=6, version="1.4")
         header.scales = np.array(crs.scales)
         header.offsets = np.array(crs.offsets)
-        header.file_source_id = self.pass_id
+        header.file_source_id = self.source_id
         header.system_identifier = "marine-mls MLS (Z+F + Hydrins)"[:32]
         header.generating_software = software[:32]
         header.creation_date = _dt.date.today()
         header.global_encoding.gps_time_type = laspy.header.GpsTimeType.STANDARD
         header.global_encoding.wkt = True
         header.vlrs.append(WktCoordinateSystemVlr(crs.wkt))
+        header.add_extra_dim(  # after the WKT: the CRS stays the first VLR
+            laspy.ExtraBytesParams(
+                name=PASS_ID_DIMENSION, type=np.int64, description="pass id (point_source_id: u16)"
+            )
+        )
         self._header = header
         self._laspy = laspy
         self._writer = laspy.open(
@@ -180,7 +201,8 @@ class LasPassWriter:
         rec.intensity = np.asarray(intensity_u16, dtype=np.uint16)
         rec.return_number = np.ones(n, np.uint8)
         rec.number_of_returns = np.ones(n, np.uint8)
-        rec.point_source_id = np.full(n, self.pass_id, np.uint16)
+        rec.point_source_id = np.full(n, self.source_id, np.uint16)
+        rec[PASS_ID_DIMENSION] = np.full(n, self.pass_id, np.int64)
         nadir_deg = np.degrees(frames.wrap_pi(np.pi / 2 - np.asarray(scan_angle_rad, float)))
         rec.scan_angle = np.round(nadir_deg / SCAN_ANGLE_UNIT_DEG).astype(np.int16)
         self._writer.write_points(rec)

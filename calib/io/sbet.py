@@ -80,6 +80,10 @@ def _read_records(path: str | Path, dtype: np.dtype, kind: str) -> np.ndarray:
         raw = path.read_bytes()
     except FileNotFoundError:
         raise SbetError(f"{path}: file not found") from None
+    except IsADirectoryError:
+        raise SbetError(f"{path}: is a directory, expected an {kind} file") from None
+    except OSError as e:
+        raise SbetError(f"{path}: cannot read ({e.strerror or e})") from None
     if len(raw) % dtype.itemsize:
         raise SbetError(
             f"{path}: size {len(raw)} bytes is not a multiple of the {kind} record size "

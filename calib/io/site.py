@@ -114,6 +114,9 @@ class Site:
     standoff_m: float = 15.0
     passes: tuple[PassSpec, ...] = field(default_factory=six_fold_passes)
     validation_planes: tuple[Target, ...] = ()
+    #: False when site.yaml lists no passes and the default six-fold plan stands in (warnings
+    #: about planned passes say so)
+    passes_listed: bool = field(default=True, compare=False)
 
     def frame(self, fallback: frames.LocalFrame | None = None) -> frames.LocalFrame:
         """The LGF: the configured reference, else ``fallback`` (e.g. the trajectory mean)."""
@@ -272,7 +275,7 @@ def site_from_node(root: Node) -> Site:
             pm = pn.mapping(required={"id", "relative_heading_deg"}, optional={"length_m", "speed_mps"})
             passes.append(
                 PassSpec(
-                    id=pm["id"].integer(minimum=0),
+                    id=pm["id"].integer(minimum=0, maximum=2**63 - 1),  # int64, as points.csv
                     relative_heading_rad=float(np.radians(pm["relative_heading_deg"].number())),
                     length_m=pm["length_m"].number(0.0, exclusive_minimum=True)
                     if "length_m" in pm
@@ -286,6 +289,8 @@ def site_from_node(root: Node) -> Site:
         if len(set(ids)) != len(ids):
             raise top["passes"].fail("unique pass ids")
         kw["passes"] = tuple(passes)
+    else:
+        kw["passes_listed"] = False
     if "validation_planes" in top:
         kw["validation_planes"] = _targets(top["validation_planes"], "validation plane")
     return Site(mount=mount, targets=_targets(top["targets"], "target"), **kw)

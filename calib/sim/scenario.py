@@ -20,6 +20,7 @@ import numpy as np
 from calib.core import frames
 from calib.core.geometry import Rectangle
 from calib.core.georef import Mount
+from calib.io.bundle import SCANNER_RANGE_M
 from calib.io.site import PassSpec, Site, Target
 from calib.sim.motion import MotionModel
 from calib.sim.noise import PosNoise, ScannerNoise
@@ -72,13 +73,15 @@ class ScannerModel:
     ``point_rate_scale`` F scales the point rate; the profile rate and the points per 360° are
     each scaled by √F so that the point spacing stays as square as the real one.
     ``angular_windows_rad``: (start, end) pairs of measured scan angles that are recorded (an
-    end below its start wraps through 0); empty = the full circle.
+    end below its start wraps through 0); empty = the full circle. ``min_range_m`` …
+    ``max_range_m``: the measured ranges recorded, inside the physical window
+    :data:`calib.io.bundle.SCANNER_RANGE_M` (0.3 … 119 m) that the bundle reader enforces.
     """
 
     profile_rate_hz: float = 200.0
     points_per_360: int = 5080
-    max_range_m: float = 119.0
-    min_range_m: float = 0.3
+    max_range_m: float = SCANNER_RANGE_M[1]  # the recording window lies inside the physical one
+    min_range_m: float = SCANNER_RANGE_M[0]
     angular_windows_rad: tuple[tuple[float, float], ...] = ()
     point_rate_scale: float = 1.0
 

@@ -18,6 +18,7 @@ import yaml
 
 from calib.core import frames
 from calib.core.georef import Mount
+from calib.io.bundle import SCANNER_RANGE_M
 from calib.io.configfile import ConfigError, Node, load_yaml
 from calib.io.site import (
     DEFAULT_PASS_LENGTH_M,
@@ -285,6 +286,15 @@ def _windows(n: Node) -> tuple[tuple[float, float], ...]:
     return tuple(out)
 
 
+def _in_window(n: Node) -> float:
+    """A range inside the Z+F 9012's physical window (what the bundle reader accepts)."""
+    lo, hi = SCANNER_RANGE_M
+    v = n.number()
+    if not lo <= v <= hi:
+        raise n.fail(f"a range within the scanner's physical window {lo:g}…{hi:g} m")
+    return v
+
+
 def _scanner(n: Node) -> ScannerModel:
     m = n.mapping(
         optional={
@@ -300,8 +310,8 @@ def _scanner(n: Node) -> ScannerModel:
     out = ScannerModel(
         profile_rate_hz=_opt(m, "profile_rate_hz", _positive, d.profile_rate_hz),
         points_per_360=_opt(m, "points_per_360", lambda x: x.integer(minimum=4), d.points_per_360),
-        max_range_m=_opt(m, "max_range_m", _positive, d.max_range_m),
-        min_range_m=_opt(m, "min_range_m", _nonneg, d.min_range_m),
+        max_range_m=_opt(m, "max_range_m", _in_window, d.max_range_m),
+        min_range_m=_opt(m, "min_range_m", _in_window, d.min_range_m),
         angular_windows_rad=_opt(m, "angular_windows_deg", _windows, ()),
         point_rate_scale=_opt(m, "point_rate_scale", _number(0.0, 1.0, exclusive=True), 1.0),
     )

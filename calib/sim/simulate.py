@@ -391,7 +391,7 @@ def simulate(
         l0, l1 = run.line_times[p.id]
         for part in _scan_batches(sc.scanner, scene, traj, mount, max(t0, l0 + guard), min(t1, l1 - guard)):
             parts.append(part)
-            pass_ids.append(np.full(part.t_gps_s.size, p.id, np.int32))
+            pass_ids.append(np.full(part.t_gps_s.size, p.id, np.int64))
         if progress is not None:
             progress(i + 1, len(plan.passes))
     if not parts:
@@ -403,12 +403,16 @@ def simulate(
     n = ret.t_gps_s.size
 
     d_range, d_angle = sc.scanner_noise.draw(ret.range_true_m, ret.cos_incidence, rng_scan)
+    measured_m = ret.range_true_m - mount.range_offset_m + d_range
+    # the scanner records what it *measures* inside its window: a return that noise or a range
+    # offset puts beyond the window's edge is not recorded (the bundle reader refuses such ranges)
+    rec = np.flatnonzero((measured_m >= sc.scanner.min_range_m) & (measured_m <= sc.scanner.max_range_m))
     points = ScanPoints(
-        pass_id=np.concatenate(pass_ids),
-        t_gps_s=ret.t_gps_s,
-        range_m=ret.range_true_m - mount.range_offset_m + d_range,
-        scan_angle_rad=frames.wrap_2pi(ret.alpha_rad + d_angle),
-        intensity=scene.reflectivity[ret.surface] * ret.cos_incidence,
+        pass_id=np.concatenate(pass_ids)[rec],
+        t_gps_s=ret.t_gps_s[rec],
+        range_m=measured_m[rec],
+        scan_angle_rad=frames.wrap_2pi(ret.alpha_rad + d_angle)[rec],
+        intensity=(scene.reflectivity[ret.surface] * ret.cos_incidence)[rec],
     )
 
     pos = sc.pos_noise
@@ -428,6 +432,7 @@ def simulate(
         name="observed trajectory",
     )
 
+    point_errors = pos.point_errors(n, rng_point)  # drawn for every return: same seed, same draws
     target_of_surface = np.full(len(scene), -1, np.int64)
     target_of_surface[scene.indices("target")] = np.arange(len(scene.indices("target")))
     result = SimResult(
@@ -440,10 +445,10 @@ def simulate(
         trajectory_true=traj,
         trajectory_observed=observed,
         points=points,
-        surface_index=ret.surface,
-        target_index=target_of_surface[ret.surface],
-        p_true_lgf_m=ret.p_lgf_m,
-        pose_errors=pos.point_errors(n, rng_point),
+        surface_index=ret.surface[rec],
+        target_index=target_of_surface[ret.surface[rec]],
+        p_true_lgf_m=ret.p_lgf_m[rec],
+        pose_errors=None if point_errors is None else point_errors[rec],
         truth={},
     )
     truth = _truth(sc, seed, applied, scene, plan, mount, run, result.point_counts())

@@ -118,7 +118,7 @@ def c2c_cmd(
         else:
             orient["orient_direction"] = _vector(toward_direction or "0,0,1", "--toward-direction")
 
-    err = Console(stderr=True)
+    err = Console(stderr=True, emoji=False)  # ":100:" of file:line:column is no emoji
     try:
         with Progress(
             TextColumn("{task.description}"),

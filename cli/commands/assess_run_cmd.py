@@ -50,7 +50,11 @@ def assess_cmd(
         ...,
         "--out",
         "-o",
-        help="Output directory (created) for assessment.md, assessment.json and the figures.",
+        help="Output directory (created) for assessment.md, assessment.json and the figures; "
+        "one that holds files is refused unless --force.",
+    ),
+    force: bool = typer.Option(
+        False, "--force", help="Write into an --out directory that already holds files (same names replaced)."
     ),
     pairs: str | None = typer.Option(
         None,
@@ -98,8 +102,10 @@ def assess_cmd(
     from calib.assess.pairs import parse_pairs
     from calib.assess.results import AssessError, AssessOptions
     from calib.assess.summary import fmt_ratio, summary_lines, write_assessment
+    from calib.io.outputs import check_output_dir
 
-    err = Console(stderr=True)
+    err = Console(stderr=True, emoji=False)  # ":100:" of file:line:column is no emoji
+    check_output_dir(out, "--out", force)  # before the assessment (an MlsError: one line, status 1)
     try:
         pair_list = parse_pairs(pairs) if pairs else None
     except AssessError as e:

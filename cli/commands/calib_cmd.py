@@ -39,12 +39,19 @@ def summary_table(outputs: list[PassOutput], facts: dict, out_dir: Path):
     from calib.core import frames
 
     b = facts["boresight_deg"]
+    wide = facts.get("source_id_zero") or []
     table = Table(
         title=f"georeferenced passes → {out_dir}",
         caption=(
             f"CRS {facts['crs']} · boresight roll {b[0]:.4f}°, pitch {b[1]:.4f}°, "
             f"yaw {b[2]:.4f}° (canonical, from {facts['boresight_source']}) · "
-            f"intensity {facts['intensity']}"
+            f"intensity {facts['intensity']} · the pass id is in each point's extra-bytes pass_id"
+            + (
+                f"; pass{'es' if len(wide) > 1 else ''} {', '.join(map(str, wide))} exceed LAS's "
+                f"16-bit point_source_id: 0 there"
+                if wide
+                else " and point_source_id"
+            )
         ),
     )
     dropped = any(o.n_dropped for o in outputs)
@@ -70,9 +77,10 @@ def summary_table(outputs: list[PassOutput], facts: dict, out_dir: Path):
     return table
 
 
-def run_georef(bundle: Path, out: Path, **kwargs) -> list[PassOutput]:
-    """Georeference with a progress bar and print the summary table; an MlsError (bad bundle,
-    CRS, uncovered points) ends the command in :mod:`cli.app`: one line, exit status 1."""
+def run_georef(bundle: Path, out: Path, force: bool = False, **kwargs) -> list[PassOutput]:
+    """Georeference with a progress bar and print the summary table; an MlsError (an --out that
+    is a file or holds files without ``force``, a bad bundle, CRS, uncovered points) ends the
+    command in :mod:`cli.app`: one line, exit status 1."""
     from rich.console import Console
     from rich.progress import (
         BarColumn,
@@ -84,7 +92,9 @@ def run_georef(bundle: Path, out: Path, **kwargs) -> list[PassOutput]:
     )
 
     from calib.io.georef_bundle import georeference_bundle
+    from calib.io.outputs import check_output_dir
 
+    check_output_dir(out, "--out", force)  # before reading anything
     console = Console()
     columns = (
         TextColumn("[bold]{task.description}"),
@@ -104,8 +114,10 @@ GEOREF_HELP = (
     "Georeference a calibration bundle: one LAZ per pass (LAS 1.4, point format 6).\n\n"
     "Each point gets its coordinates from the trajectory and the mount in site.yaml (lever arm, "
     "nominal rotation, boresight), adjusted standard GPS time (GPS s − 1e9), intensity scaled to "
-    "16 bits, point_source_id = pass id; each file carries the CRS as OGC WKT. A summary table "
-    "ends the run.\n\n"
+    "16 bits (reflectances 0…1 ×65535, counts as they are: one scale per file), the pass id in "
+    "the extra-bytes dimension pass_id (int64) and in point_source_id when it fits 16 bits (else "
+    "0); each file carries the CRS as OGC WKT. A summary table ends the run. An --out directory "
+    "that already holds files is refused unless --force.\n\n"
     "Example: mls calib georef examples/montreal-mini --out out/laz "
     "--boresight-deg 0.208,1.245,0.149"
 )
@@ -121,6 +133,9 @@ def georef(
     ),
     out: Path = typer.Option(
         ..., "--out", "-o", help="Output directory (created); one file pass-<id>.laz per pass."
+    ),
+    force: bool = typer.Option(
+        False, "--force", help="Write into an --out directory that already holds files (same names replaced)."
     ),
     crs: str = typer.Option(
         "utm",
@@ -165,4 +180,5 @@ def georef(
         max_gap_s=max_gap_s,
         skip_uncovered=skip_uncovered,
         chunk_points=chunk_points,
+        force=force,
     )

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import sys
+from array import array
 from enum import Enum
 from pathlib import Path
 
@@ -52,16 +53,20 @@ def decode(
         help="UTC date YYYY-MM-DD for time tags when the file carries none (no ZDA/system date).",
     ),
 ) -> None:
-    """Decode a recorded device file; end with a summary: records, bytes, rejected frames and why."""
+    """Decode a recorded device file; end with a summary: records, bytes, rejected frames and why.
+
+    The file is streamed (bounded memory, whatever its size). Exit status 2 when it cannot be
+    read or when it gives no valid record (the message says what was skipped instead)."""
     from rich.console import Console
+    from rich.markup import escape
     from rich.progress import BarColumn, Progress, TextColumn
     from rich.table import Table
 
     from calib.core.errors import MlsError
     from drivers.base import DriverError
-    from drivers.capture.files import FileDecoder, json_default, record_to_dict, time_sample
+    from drivers.capture.files import FileDecoder, json_default, record_to_dict, record_type, time_sample
 
-    err = Console(stderr=True)
+    err = Console(stderr=True, emoji=False)  # ":100:" of file:line:column is no emoji
     out = Console()
     try:
         fd = FileDecoder(file, fmt.value, payload.value, port, nav, date)
@@ -70,7 +75,7 @@ def decode(
         raise typer.Exit(2) from exc
 
     counts: dict[str, int] = {}
-    samples: list[tuple[int, int]] = []
+    host_ns, device_ns = array("q"), array("q")  # --timing: 16 bytes per time-tagged record
     try:
         with Progress(
             TextColumn("decoding"),
@@ -82,12 +87,14 @@ def decode(
         ) as progress:
             task = progress.add_task("decode", total=max(fd.size, 1))
             for rec in fd:
-                d = record_to_dict(rec)
-                counts[d["type"]] = counts.get(d["type"], 0) + 1
+                d = record_to_dict(rec) if as_json else None
+                kind = d["type"] if d is not None else record_type(rec)
+                counts[kind] = counts.get(kind, 0) + 1
                 if timing:
                     sample = time_sample(rec)
                     if sample is not None:
-                        samples.append(sample)
+                        host_ns.append(sample[0])
+                        device_ns.append(sample[1])
                 if as_json:
                     try:
                         sys.stdout.write(json.dumps(d, default=json_default) + "\n")
@@ -115,27 +122,30 @@ def decode(
             table.add_row(kind, str(n))
         out.print(table)
     if timing:
-        _print_timing(samples, out if not as_json else err)
+        _print_timing(host_ns, device_ns, out if not as_json else err)
     (err if as_json else out).print(summary, highlight=False, soft_wrap=True)
+    if not counts:
+        err.print(f"[red]error:[/red] {escape(fd.no_record_message())}", highlight=False, soft_wrap=True)
+        raise typer.Exit(2)
 
 
-def _print_timing(samples: list[tuple[int, int]], console) -> None:
+def _print_timing(host_ns: array, device_ns: array, console) -> None:
     from rich.table import Table
 
-    from drivers.timing import fit_clock, unwrap_time_of_day_ns
+    from drivers.timing import fit_clock, signed_time_of_day_offset_s, unwrap_time_of_day_ns
 
-    if len(samples) < 3:
+    if len(host_ns) < 3:
         console.print("timing: fewer than 3 time-tagged records with receive stamps, nothing to fit")
         return
-    host = [s[0] for s in samples]
-    fit = fit_clock(host, unwrap_time_of_day_ns([s[1] for s in samples]))
+    fit = fit_clock(host_ns, unwrap_time_of_day_ns(device_ns))
     table = Table(title="device clock vs receive stamps")
     table.add_column("quantity")
     table.add_column("value", justify="right")
     table.add_row("samples (outliers)", f"{fit.n} ({fit.n_outliers})")
     table.add_row("span_s", f"{fit.span_s:.3f}")
     table.add_row("drift_ppm (host vs device)", f"{fit.drift_ppm:+.2f}")
-    table.add_row("offset_s mod 1 day (latency + clock offset)", f"{fit.offset_s % 86400:.6f}")
+    offset_s = signed_time_of_day_offset_s(fit.offset_s)  # the date out, the sign kept
+    table.add_row("offset_s (latency + clock offset, signed)", f"{offset_s:+.6f}")
     table.add_row("jitter_rms_ms", f"{fit.jitter_rms_s * 1e3:.3f}")
     table.add_row("jitter_max_ms", f"{fit.jitter_max_s * 1e3:.3f}")
     table.add_row("jitter_p2p_ms", f"{fit.jitter_p2p_s * 1e3:.3f}")

@@ -74,7 +74,7 @@ def demo(
     from acquire.jobs.demo import DemoError, DemoSettings, Interrupted, run_demo
     from acquire.jobs.demo_compare import comparison_table
 
-    console = Console(soft_wrap=True)  # long lines (paths) stay whole: easy to copy
+    console = Console(soft_wrap=True, emoji=False)  # long lines (paths) stay whole; ":100:" no emoji
     t0 = time.monotonic()
     pending: list[str] = []
 

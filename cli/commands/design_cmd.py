@@ -54,7 +54,10 @@ def design(
         "--out",
         "-o",
         help="Output directory (created): CSV tables, PNG figures, summary.md. Required with "
-        "--scenario; with --site it receives whatif.csv.",
+        "--scenario; with --site it receives whatif.csv. One that holds files is refused unless --force.",
+    ),
+    force: bool = typer.Option(
+        False, "--force", help="Write into an --out directory that already holds files (same names replaced)."
     ),
     jobs: int = typer.Option(
         1, "--jobs", "-j", min=1, help="Worker processes (results do not depend on it)."
@@ -126,7 +129,7 @@ def design(
 
     from calib.core.errors import MlsError
 
-    console = Console()
+    console = Console(emoji=False)  # ":100:" of file:line:column is no emoji
     if (scenario is None) == (site is None):
         console.print("[red]error:[/red] give exactly one of --scenario and --site")
         raise typer.Exit(2)
@@ -135,12 +138,13 @@ def design(
         raise typer.Exit(2)
     try:
         if site is not None:
-            _what_if(console, site, out, template, scanner_height_m, seed)
+            _what_if(console, site, out, force, template, scanner_height_m, seed)
         else:
             _study(
                 console,
                 scenario,
                 out,
+                force,
                 jobs,
                 targets,
                 max_size,
@@ -153,7 +157,7 @@ def design(
                 figures,
             )
     except (MlsError, OSError) as e:
-        console.print(f"[red]error:[/red] {escape(str(e))}", highlight=False)
+        console.print(f"[red]error:[/red] {escape(str(e))}", highlight=False, soft_wrap=True)
         raise typer.Exit(2) from None
 
 
@@ -171,12 +175,26 @@ def _progress(console):
 
 
 def _study(
-    console, scenario, out, jobs, targets, max_size, passes, group, error, seeds, seed, overrides, figures
+    console,
+    scenario,
+    out,
+    force,
+    jobs,
+    targets,
+    max_size,
+    passes,
+    group,
+    error,
+    seeds,
+    seed,
+    overrides,
+    figures,
 ) -> None:
     from calib.design.layouts import default_spec
     from calib.design.sitecheck import compare_sites
     from calib.design.study import run_study
     from calib.design.summary import write_study
+    from calib.io.outputs import check_output_dir
     from calib.sim.scenariofile import load_scenario
 
     base = load_scenario(scenario, list(overrides))
@@ -186,6 +204,7 @@ def _study(
     if error:
         changes["errors"] = () if list(error) == ["none"] else tuple(error)
     spec = default_spec(base, **changes)
+    check_output_dir(out, "--out", force)  # the options are valid: before the study
     with _progress(console) as bar:
         task = bar.add_task(f"design study of {base.name}", total=None)
         result = run_study(
@@ -261,14 +280,17 @@ def _study_table(console, result, empirical) -> None:
             )
 
 
-def _what_if(console, site_path, out, template, scanner_height_m, seed) -> None:
+def _what_if(console, site_path, out, force, template, scanner_height_m, seed) -> None:
     from rich import box
     from rich.table import Table
 
     from calib.design.whatif import what_if, write_what_if
+    from calib.io.outputs import check_output_dir
     from calib.io.site import load_site
 
     site = load_site(site_path)
+    if out is not None:
+        check_output_dir(out, "--out", force)  # before the prediction
     with _progress(console) as bar:
         bar.add_task(f"predicting σ for {site_path}", total=None)
         w = what_if(site, template, scanner_height_m, seed)

@@ -15,7 +15,13 @@ HELP = (
     "session's vessel config). Passes come from the pass_start/pass_end marks in /events (CAN "
     "event markers, MQTT commands), or, when there are none, from the site's pass plan (where "
     "the trajectory runs along a planned line). Optionally one LAZ per pass (--laz) and the "
-    "trajectory as an SBET (--sbet).\n\n"
+    "trajectory as an SBET (--sbet). A --bundle or --laz directory that already holds files, "
+    "or an existing --sbet file, is refused unless --force. Warnings (a pass planned in the "
+    "site without points, points of an unplanned pass, …) go to stderr and are counted in the "
+    "summary.\n\n"
+    "A segment that did not end normally (a torn tail after a crash or power cut, unfinished or "
+    "salvaged by `mls logs recover`) is exported with a warning naming the segment and the time "
+    "span lost; --require-complete refuses such a session (exit status 1).\n\n"
     "Example: mls export /var/lib/mls/sessions/20240709T140000Z_survey-1 --bundle calib-0709 "
     "--laz calib-0709/laz"
 )
@@ -24,6 +30,11 @@ HELP = (
 def export(
     session: Path = typer.Argument(..., help="Session directory (YYYYmmddTHHMMSSZ_<vessel>)."),
     bundle: Path = typer.Option(..., "--bundle", "-o", help="Bundle directory to write (created)."),
+    force: bool = typer.Option(
+        False,
+        "--force",
+        help="Write into output directories (or over an --sbet file) that already hold data.",
+    ),
     laz: Path | None = typer.Option(
         None, "--laz", help="Also write one LAZ per pass here (UTM, a-priori mount)."
     ),
@@ -44,6 +55,11 @@ def export(
     heading_deg: float = typer.Option(
         20.0, "--max-heading-error", min=0.1, max=90.0, help="Plan passes: largest heading error (deg)."
     ),
+    require_complete: bool = typer.Option(
+        False,
+        "--require-complete",
+        help="Refuse a session with a segment that did not end normally (torn tail) instead of warning.",
+    ),
 ) -> None:
     """``mls export`` (its help text is :data:`HELP`)."""
     import time
@@ -53,12 +69,21 @@ def export(
     from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
     from rich.table import Table
 
-    from acquire.jobs.export import ExportOptions, export_session
+    from acquire.jobs.export import ExportError, ExportOptions, export_session
     from calib.core.errors import MlsError
+    from calib.io.outputs import check_output_dir, check_output_file
 
     console = Console()
+    err = Console(stderr=True, emoji=False)  # ":100:" of file:line:column is no emoji
     t0 = time.perf_counter()
     try:
+        if not session.is_dir():
+            raise ExportError(f"{session}: not a directory (a session is the directory the daemon recorded)")
+        check_output_dir(bundle, "--bundle", force)  # every output, before reading the session
+        if laz is not None:
+            check_output_dir(laz, "--laz", force)
+        if sbet is not None:
+            check_output_file(sbet, "--sbet", force)
         opts = ExportOptions(
             passes=passes,
             site_file=site,
@@ -66,6 +91,7 @@ def export(
             max_heading_error_deg=heading_deg,
             laz_dir=laz,
             sbet_path=sbet,
+            require_complete=require_complete,
         )
         with Progress(
             TextColumn("[bold]{task.description}"),
@@ -81,7 +107,7 @@ def export(
 
             res = export_session(session, bundle, opts, progress)
     except (MlsError, OSError) as e:
-        Console(stderr=True).print(f"[red]error:[/red] {escape(str(e))}", highlight=False, soft_wrap=True)
+        err.print(f"[red]error:[/red] {escape(str(e))}", highlight=False, soft_wrap=True)
         raise typer.Exit(1) from None
     from calib.core import frames
 
@@ -99,7 +125,7 @@ def export(
         )
     console.print(t)
     for w in res.warnings:
-        console.print(f"[yellow]warning:[/yellow] {escape(w)}", highlight=False)
+        err.print(f"[yellow]warning:[/yellow] {escape(w)}", highlight=False, soft_wrap=True)
     extra = ""
     if res.laz:
         extra += f"; {len(res.laz)} LAZ files in {laz}"
@@ -108,6 +134,11 @@ def export(
     console.print(
         f"{res.epochs:,} INS epochs, {res.points:,} points from {res.packets:,} packets "
         f"({res.returns_outside_passes:,} returns outside the passes){extra} in "
-        f"{time.perf_counter() - t0:.1f} s",
+        f"{time.perf_counter() - t0:.1f} s"
+        + (
+            f"; {len(res.warnings)} warning{'s' if len(res.warnings) > 1 else ''} (stderr)"
+            if res.warnings
+            else ""
+        ),
         highlight=False,
     )

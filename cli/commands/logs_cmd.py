@@ -122,7 +122,8 @@ def recover(
     """Rewrite every unfinished segment as a valid MCAP with all its complete messages.
 
     The torn tail (a half-written chunk after a crash or a full disk) is reported, never
-    guessed at. Refuses a session that a running daemon is writing.
+    guessed at. The recovered file keeps the original's mode (and owner and group, as root).
+    Refuses a session that a running daemon is writing.
     """
     from rich.console import Console
     from rich.table import Table

@@ -101,7 +101,7 @@ def plan(
     from calib.survey.passplan import plan_site
     from calib.survey.planexport import write_plan_geojson
 
-    err = Console(stderr=True)
+    err = Console(stderr=True, emoji=False)  # ":100:" of file:line:column is no emoji
     if not re.fullmatch(r"[A-Z]{2}", talker):
         raise typer.BadParameter(
             f"got {talker!r}, expected two capital letters such as GP, II or IN", param_hint="--talker"
@@ -126,7 +126,13 @@ def plan(
         raise typer.Exit(1) from None
 
     if out is not None:
-        write_plan_geojson(out, pp, frame, site.targets, name=f"{site.vessel} calibration lines")
+        try:
+            if out.is_dir():
+                raise IsADirectoryError(f"{out}: --out names a file, but this is a directory")
+            write_plan_geojson(out, pp, frame, site.targets, name=f"{site.vessel} calibration lines")
+        except OSError as e:
+            err.print(f"[red]error:[/red] {escape(str(e))}", highlight=False, soft_wrap=True)
+            raise typer.Exit(1) from None
 
     if nmea:
         from acquire.guidance.autopilot_out import NmeaOutput, NmeaOutputError, follow_daemon, sentences_at

@@ -17,7 +17,10 @@ RUN_HELP = (
     "--out (default BUNDLE/calib/). Prints the estimates with their formal and realistic σ "
     "(use the realistic one: POS errors are correlated in time) and records the result in "
     "the calibration history. A session directory is first exported to OUT/bundle as 'mls "
-    "export SESSION --bundle OUT/bundle' would (OUT defaults to SESSION/calib/).\n\n"
+    "export SESSION --bundle OUT/bundle' would (OUT defaults to SESSION/calib/). An OUT that "
+    "already holds files is refused unless --force. Warnings (a pass planned in site.yaml "
+    "without points, points of an unplanned pass, points dropped by --skip-uncovered, …) go "
+    "to stderr and into report.md.\n\n"
     "Example: mls sim dataset --scenario montreal --out sim-mtl && mls calib run sim-mtl "
     "--mount lidar-2024"
 )
@@ -27,7 +30,10 @@ def _fail(message: str, code: int = 1) -> None:
     from rich.console import Console
     from rich.markup import escape
 
-    Console(stderr=True).print(f"[red]error:[/red] {escape(message)}", highlight=False, soft_wrap=True)
+    # emoji=False: "points.csv:100:3" stays itself (rich would turn ":100:" into an emoji)
+    Console(stderr=True, emoji=False).print(
+        f"[red]error:[/red] {escape(message)}", highlight=False, soft_wrap=True
+    )
     raise typer.Exit(code)
 
 
@@ -84,7 +90,6 @@ def _table(run, out_dir: Path):
 
 def _export(session: Path, bundle_dir: Path, console, columns) -> Path:
     """Export a recorded session to a bundle (what ``mls export`` does); returns the bundle."""
-    from rich.markup import escape
     from rich.progress import Progress
 
     from acquire.jobs.export import export_session
@@ -104,9 +109,18 @@ def _export(session: Path, bundle_dir: Path, console, columns) -> Path:
         f"{len(res.passes)} passes from {res.pass_source})",
         highlight=False,
     )
-    for w in res.warnings:
-        console.print(f"[yellow]warning:[/yellow] {escape(w)}", highlight=False, soft_wrap=True)
+    _warn(res.warnings)
     return Path(res.bundle)
+
+
+def _warn(warnings) -> None:
+    """Each warning on one line of stderr."""
+    from rich.console import Console
+    from rich.markup import escape
+
+    err = Console(stderr=True, emoji=False)
+    for w in warnings:
+        err.print(f"[yellow]warning:[/yellow] {escape(w)}", highlight=False, soft_wrap=True)
 
 
 @app.command("run", help=RUN_HELP)
@@ -120,6 +134,17 @@ def run(
     ),
     out: Path | None = typer.Option(
         None, "--out", "-o", help="Output directory (created); default BUNDLE/calib/."
+    ),
+    force: bool = typer.Option(
+        False,
+        "--force",
+        help="Write into an output directory that already holds files (a previous run's: same names replaced).",
+    ),
+    skip_uncovered: bool = typer.Option(
+        False,
+        "--skip-uncovered",
+        help="Drop the points outside the trajectory or in its gaps (counted per pass in the "
+        "warnings and the report) instead of stopping with an error.",
     ),
     subsample: float | None = typer.Option(
         None,
@@ -200,13 +225,13 @@ def run(
 
     import numpy as np
     from rich.console import Console
-    from rich.markup import escape
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
     from calib.assess.history import record_result
     from calib.boresight.extract import ExtractOptions
     from calib.boresight.pipeline import CalibrationOptions, run_bundle
     from calib.core.errors import MlsError
+    from calib.io.outputs import check_output_dir
 
     if not bundle.is_dir():
         _fail(
@@ -234,6 +259,10 @@ def run(
     except MlsError as e:  # an option the pipeline refuses
         _fail(str(e), 2)
     out_dir = out if out is not None else bundle / "calib"
+    try:  # before anything is computed or exported
+        check_output_dir(out_dir, "--out" if out is not None else "the output directory (--out)", force)
+    except MlsError as e:
+        _fail(str(e), 2)
 
     console = Console()
     columns = (TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn())
@@ -242,13 +271,17 @@ def run(
     try:
         with Progress(*columns, console=console, transient=True) as progress:
             cal, paths = run_bundle(
-                bundle, out_dir, options, _progress_callback(progress), plots=not no_plots
+                bundle,
+                out_dir,
+                options,
+                _progress_callback(progress),
+                plots=not no_plots,
+                skip_uncovered=skip_uncovered,
             )
     except (MlsError, OSError) as e:  # OSError: reading the bundle or writing into out_dir
         _fail(str(e))
     console.print(_table(cal, out_dir))
-    for w in cal.warnings:
-        console.print(f"[yellow]warning:[/yellow] {escape(w)}", highlight=False, soft_wrap=True)
+    _warn(cal.warnings)
     pngs = sum(p.suffix == ".png" for p in paths)
     console.print(
         f"wrote result.json, report.md{f' and {pngs} plots' if pngs else ''} to {out_dir}", highlight=False

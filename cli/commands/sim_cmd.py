@@ -24,6 +24,11 @@ def dataset(
         help="A shipped scenario (montreal, terrestrial, tower) or a scenario YAML file.",
     ),
     out: Path = typer.Option(..., "--out", "-o", help="Bundle directory to write (created)."),
+    force: bool = typer.Option(
+        False,
+        "--force",
+        help="Write into an --out directory that already holds files (bundle files replaced).",
+    ),
     seed: int = typer.Option(0, "--seed", help="Random seed: the same seed gives the same bytes."),
     point_rate_scale: float | None = typer.Option(
         None,
@@ -45,7 +50,8 @@ def dataset(
 
     The vessel sails the scenario's passes around its targets with the injected systematic
     errors; the bundle holds site.yaml (the a-priori mount), trajectory.csv (with POS errors
-    and sigmas) and points.csv (raw range and scan angle), as docs/architecture.md §4 describes."""
+    and sigmas) and points.csv (raw range and scan angle), as docs/architecture.md §4 describes.
+    An --out directory that already holds files is refused unless --force."""
     import math
     import time
 
@@ -55,14 +61,16 @@ def dataset(
     from rich.table import Table
 
     from calib.core.errors import MlsError
+    from calib.io.outputs import check_output_dir
     from calib.sim.simulate import simulate
 
-    console = Console()
+    console = Console(emoji=False)  # ":100:" of file:line:column is no emoji
     overrides = list(set_)
     if point_rate_scale is not None:
         overrides.append(f"scanner.point_rate_scale={point_rate_scale!r}")
     t0 = time.perf_counter()
     try:
+        check_output_dir(out, "--out", force)  # before simulating
         with Progress(
             TextColumn("[bold]{task.description}"),
             BarColumn(),
@@ -80,7 +88,9 @@ def dataset(
             bar.update(task, description="writing the bundle")
             path = result.write(out, compress_points=compress)
     except (MlsError, OSError) as e:
-        console.print(f"[red]error:[/red] {e}", highlight=False)
+        from rich.markup import escape
+
+        console.print(f"[red]error:[/red] {escape(str(e))}", highlight=False, soft_wrap=True)  # one line
         raise typer.Exit(2) from None
     elapsed = time.perf_counter() - t0
 

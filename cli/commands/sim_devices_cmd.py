@@ -185,7 +185,8 @@ def devices(
         metavar="FILE",
         help="Fault timeline (YAML): unplug, garbage, bad checksums, UDP "
         "loss/reorder/duplication, PPS loss, profiler clock offset/drift, "
-        "INS latency jump, GNSS outage.",
+        "INS latency jump, GNSS outage, late ZDA, INS leap second, host clock step "
+        "(for a daemon started with MLS_SIM_HOST_CLOCK=RUN_DIR/host_clock).",
     ),
     write_config: Path | None = typer.Option(
         None,
@@ -299,7 +300,8 @@ def devices(
     from sim_devices.profiler import ProfilerSettings
     from sim_devices.runner import DeviceRun, DevicesSpec
 
-    console = Console()
+    console = Console(emoji=False)  # ":100:" of file:line:column is no emoji
+    _check_paths(console, run_dir, write_config)
     names = _parse_devices(only)
     if time_base not in ("now", "scenario"):
         raise typer.BadParameter(f"{time_base!r}: expected now or scenario", param_hint="--time")
@@ -369,6 +371,19 @@ def devices(
             f"{feed.name} scenario time",
             "emulators",
         )
+
+
+def _check_paths(console, run_dir: Path, write_config: Path | None) -> None:
+    """A file where the run directory goes, or a directory where the vessel config goes: one
+    line and exit status 2, before anything starts."""
+    problem = None
+    if run_dir.exists() and not run_dir.is_dir():
+        problem = f"{run_dir}: --run-dir names a directory, but this is a file"
+    elif write_config is not None and write_config.is_dir():
+        problem = f"{write_config}: --write-config names a file, but this is a directory"
+    if problem is not None:
+        console.print(f"[red]error:[/red] {problem}", highlight=False)
+        raise typer.Exit(2)
 
 
 def _serve(
@@ -464,7 +479,8 @@ def replay(
     from sim_devices.canbus import CanSettings
     from sim_devices.replay import ReplayRun, ReplaySpec
 
-    console = Console()
+    console = Console(emoji=False)  # ":100:" of file:line:column is no emoji
+    _check_paths(console, run_dir, write_config)
     with _SigtermAsInterrupt():
         try:
             with console.status(f"reading {session}"):

@@ -23,8 +23,14 @@ With ``nav=True`` INS formats give canonical :class:`~drivers.hydrins.nav.NavRec
 of native records. ``date`` (``'YYYY-MM-DD'``) dates NMEA/STDBIN time tags when the file has no
 ZDA / system date and no stamped lines; without it such records keep ``gps_ns=None``.
 
-:func:`record_to_dict` (with :func:`json_default` for ``json.dumps``) turns a record into JSON;
-:func:`time_sample` gives a time-tagged record's (receive stamp, device time of day) pair.
+Files are streamed, never read whole: raw streams in chunks fed to the sans-I/O decoders (ZFP1
+dumps through :class:`ZfpPacketSplitter`), NMEA logs line by line (a line cut at
+:data:`MAX_LINE` bytes), captures block by block; a file of any size decodes in bounded memory.
+:meth:`FileDecoder.no_record_message` says what a file that gave no record held instead.
+
+:func:`record_to_dict` (with :func:`json_default` for ``json.dumps``) turns a record into JSON,
+:func:`record_type` gives its ``type`` alone (cheaply); :func:`time_sample` gives a time-tagged
+record's (receive stamp, device time of day) pair.
 """
 
 from __future__ import annotations
@@ -51,7 +57,9 @@ from drivers.zf.zfp1 import CRC_SIZE, HEADER_SIZE, MAGIC, POINT_SIZE
 
 FORMATS = ("nmea", "stdbin", "zfp", "pcapng")
 PAYLOADS = ("stdbin", "nmea", "zfp", "pps")
-CHUNK = 65536
+CHUNK = 65536  # raw STDBIN streams
+ZFP_CHUNK = 1 << 20  # ZFP1 dumps (a packet is at most 393 254 bytes)
+MAX_LINE = 65536  # NMEA logs: a longer "line" (binary garbage) is fed in pieces of this size
 
 _STAMP = re.compile(rb"^(\d{4}-\d{2}-\d{2}T\d{2}:\d{2}:\d{2}(?:\.\d{1,9})?)Z? ")
 _EPOCH = _dt.datetime(1970, 1, 1)
@@ -73,23 +81,46 @@ def split_stamped_line(line: bytes) -> tuple[int | None, bytes]:
     return ns, line[m.end() :]
 
 
-def iter_zfp_packets(data: bytes, stats: DecoderStats) -> Iterator[bytes]:
-    """Split back-to-back ZFP1 packets; bytes between packets are skipped and counted."""
-    pos, n = 0, len(data)
-    while True:
-        start = data.find(MAGIC, pos)
-        if start < 0 or n - start < HEADER_SIZE:
-            stats.skipped_bytes += n - pos
-            return
-        stats.skipped_bytes += start - pos
-        n_points = struct.unpack_from("<H", data, start + 36)[0]
-        size = HEADER_SIZE + POINT_SIZE * n_points + CRC_SIZE
-        if start + size > n:
-            stats.skipped_bytes += n - start
-            stats.rejected["truncated"] += 1
-            return
-        yield data[start : start + size]
-        pos = start + size
+class ZfpPacketSplitter:
+    """Sans-I/O: bytes of back-to-back ZFP1 packets, in pieces of any size → whole packets.
+
+    Bytes between packets are skipped and counted in ``stats.skipped_bytes``; :meth:`flush`
+    counts a packet cut short by the end of the file in ``stats.rejected['truncated']``. At most
+    one packet (and a chunk) is buffered."""
+
+    def __init__(self, stats: DecoderStats) -> None:
+        self.stats = stats
+        self._buf = b""
+
+    def feed(self, data: bytes) -> list[bytes]:
+        buf = self._buf + data if self._buf else bytes(data)
+        out: list[bytes] = []
+        pos, n = 0, len(buf)
+        while True:
+            start = buf.find(MAGIC, pos)
+            if start < 0:  # keep what may be the start of a magic
+                keep = max(pos, n - len(MAGIC) + 1)
+                self.stats.skipped_bytes += keep - pos
+                pos = keep
+                break
+            self.stats.skipped_bytes += start - pos
+            pos = start
+            if n - start < HEADER_SIZE:
+                break
+            size = HEADER_SIZE + POINT_SIZE * struct.unpack_from("<H", buf, start + 36)[0] + CRC_SIZE
+            if start + size > n:
+                break
+            out.append(buf[start : start + size])
+            pos = start + size
+        self._buf = buf[pos:]
+        return out
+
+    def flush(self) -> None:
+        """End of the stream: what is left is skipped (a packet cut short counted as such)."""
+        rest, self._buf = self._buf, b""
+        self.stats.skipped_bytes += len(rest)
+        if len(rest) >= HEADER_SIZE and rest.startswith(MAGIC):
+            self.stats.rejected["truncated"] += 1
 
 
 def _date_hint(date: str | None) -> int | None:
@@ -156,11 +187,13 @@ class FileDecoder:
         if self.fmt == "pcapng":
             yield from self._pcap()
         elif self.fmt == "zfp":
-            data = self.path.read_bytes()
-            for packet in iter_zfp_packets(data, self.stats):
-                yield from self.decoder.feed(packet)
-                self.bytes_done += len(packet)
-            self.bytes_done = self.size
+            splitter = ZfpPacketSplitter(self.stats)
+            with self.path.open("rb") as f:
+                while chunk := f.read(ZFP_CHUNK):
+                    for packet in splitter.feed(chunk):
+                        yield from self.decoder.feed(packet)
+                    self.bytes_done += len(chunk)
+            splitter.flush()
         elif self.fmt == "nmea":
             yield from self._nmea()
         else:
@@ -172,7 +205,7 @@ class FileDecoder:
 
     def _nmea(self) -> Iterator:
         with self.path.open("rb") as f:
-            for line in f:
+            while line := f.readline(MAX_LINE):
                 stamp, payload = split_stamped_line(line)
                 self.bytes_done += len(line)
                 yield from self._feed(payload, stamp, stamp)
@@ -184,7 +217,31 @@ class FileDecoder:
             yield from self._feed(
                 dg.payload, dg.timestamp_ns, dg.timestamp_ns if self.date_hint_ns is None else None
             )
+            self.bytes_done = reader.offset
         self.bytes_done = self.size
+
+    def no_record_message(self) -> str:
+        """For a file that gave no record: the file, its size and what was skipped instead (the
+        capture's packets and why they were not decoded, the decoder's rejects and skipped
+        bytes)."""
+        what = []
+        if self.capture_stats is not None and self.udp_stats is not None:
+            port = "" if self.port is None else f" to or from port {self.port}"
+            what.append(f"{self.capture_stats.records} packets, {self.udp_stats.records} UDP datagrams{port}")
+            skipped = {**self.capture_stats.rejected, **self.udp_stats.events}
+            if skipped:
+                what.append("skipped " + ", ".join(f"{k}: {v}" for k, v in sorted(skipped.items())))
+        st = self.stats
+        if st.skipped_bytes:
+            what.append(f"{st.skipped_bytes} bytes skipped")
+        if st.rejected:
+            what.append("rejected " + ", ".join(f"{k}: {v}" for k, v in sorted(st.rejected.items())))
+        if st.events:
+            what.append(", ".join(f"{k}: {v}" for k, v in sorted(st.events.items())))
+        if not self.size:
+            what = ["the file is empty"]
+        kind = f"{self.protocol}{' navigation' if self.nav else ''}"
+        return f"{self.path}: no valid {kind} record in {self.size} bytes ({'; '.join(what) or 'nothing decoded'})"
 
 
 class _PpsDatagrams:
@@ -239,6 +296,22 @@ def record_to_dict(rec: Any) -> dict[str, Any]:
         v = getattr(rec, f.name)
         out[f.name] = None if isinstance(v, float) and math.isnan(v) else v
     return out
+
+
+_TYPES = {"StdbinFrame": "navigation", "StdbinAnswer": "answer", "NavRecord": "nav"}
+
+
+def record_type(rec: Any) -> str:
+    """``record_to_dict(rec)["type"]`` without building the dict (``mls decode``'s counts)."""
+    name = type(rec).__name__
+    kind = _TYPES.get(name)
+    if kind is not None:
+        return kind
+    if isinstance(rec, Profile):
+        return "profile"
+    if hasattr(rec, "to_dict"):
+        return str(record_to_dict(rec)["type"])
+    return getattr(rec, "kind", None) or name
 
 
 def time_sample(rec: Any) -> tuple[int, int] | None:

@@ -7,21 +7,30 @@ nanosecond stamps. Link types: Ethernet (with 802.1Q/802.1ad tags), raw IPv4/IPv
 loopback (NULL/LOOP), Linux cooked capture v1 and v2. UDP over IPv4 (unfragmented) and IPv6
 (no extension headers).
 
+The file is read block by block (record by record for pcap) through a buffered reader, never
+whole: a capture of any size is read in bounded memory, and ``reader.offset`` says how far the
+iteration got. Blocks the reader has no use for are skipped without being read.
+
 Capture stamps are kept as ``timestamp_ns`` (ns since the Unix epoch, the capture host's
 clock). A file that is not a capture raises :class:`PcapError` naming the file offset; a capture
 cut short (the last block incomplete) ends the iteration and is counted in
 ``reader.stats.rejected['truncated']``; a block too short for its type's fixed fields (a damaged
-length) is skipped and counted in ``rejected['short_block']``; packets that are not UDP are
-counted by reason.
+length) is skipped and counted in ``rejected['short_block']``, one longer than
+:data:`MAX_BLOCK` in ``rejected['oversized_block']``; packets that are not UDP are counted by
+reason.
 """
 
 from __future__ import annotations
 
+import io
 import ipaddress
+import os
+import socket
 import struct
 from collections.abc import Iterable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
+from typing import BinaryIO
 
 from drivers.base import DecoderStats, DriverError
 
@@ -34,8 +43,16 @@ LINKTYPE_NULL, LINKTYPE_ETHERNET, LINKTYPE_RAW = 0, 1, 101
 LINKTYPE_LOOP, LINKTYPE_LINUX_SLL, LINKTYPE_IPV4, LINKTYPE_IPV6, LINKTYPE_LINUX_SLL2 = 108, 113, 228, 229, 276
 
 
-#: the fixed part of each block type's body (IDB: linktype, reserved, snaplen; EPB/PB: 20 bytes)
+#: the fixed part of each block type's body (IDB: linktype, reserved, snaplen; EPB/PB: 20 bytes);
+#: the blocks of other types are skipped unread
 _MIN_BODY = {IDB: 8, PB: 20, EPB: 20, SPB: 4}
+#: the longest block (pcapng) or packet record (pcap) read; a longer one is a damaged length or
+#: nothing a device sends: skipped unread, counted in ``rejected['oversized_block']``
+MAX_BLOCK = 64 << 20
+READ_BUFFER = 1 << 20
+_PCAP_MAGICS = (b"\xd4\xc3\xb2\xa1", b"\xa1\xb2\xc3\xd4", b"\x4d\x3c\xb2\xa1", b"\xa1\xb2\x3c\x4d")
+_U32X2 = {"<": struct.Struct("<II"), ">": struct.Struct(">II")}
+_ntop, _AF_INET = socket.inet_ntop, socket.AF_INET
 
 
 class PcapError(DriverError):
@@ -59,34 +76,56 @@ class UdpDatagram:
 
 
 class CaptureReader:
-    """Iterate the packets of a pcapng or pcap capture: ``for pkt in CaptureReader(path)``."""
+    """Iterate the packets of a pcapng or pcap capture: ``for pkt in CaptureReader(path)``.
+
+    Reads the file block by block (bounded memory, whatever its size); ``offset`` is the file
+    offset the iteration has reached (progress), ``size`` the size of the capture."""
 
     def __init__(self, source: str | Path | bytes) -> None:
+        self._bytes: bytes | None = None
         if isinstance(source, (bytes, bytearray, memoryview)):
-            self.name, self.data = "<bytes>", bytes(source)
+            self.name, self._bytes = "<bytes>", bytes(source)
+            self.size = len(self._bytes)
         else:
-            self.name, self.data = str(source), Path(source).read_bytes()
-        self.stats = DecoderStats(bytes_in=len(self.data))
+            self.name, self._path = str(source), Path(source)
+            self.size = self._path.stat().st_size
+        self.offset = 0
+        self.stats = DecoderStats(bytes_in=self.size)
+
+    def _open(self) -> BinaryIO:
+        if self._bytes is not None:
+            return io.BytesIO(self._bytes)
+        f = open(self._path, "rb", buffering=READ_BUFFER)  # closed by __iter__
+        self.size = self.stats.bytes_in = os.fstat(f.fileno()).st_size  # what there is now
+        return f
 
     def __iter__(self) -> Iterator[CapturedPacket]:
-        d = self.data
-        if len(d) < 4:
-            raise PcapError(f"{self.name}: {len(d)} bytes is too short for a packet capture")
-        magic = d[:4]
-        if magic == SHB_MAGIC:
-            yield from self._pcapng()
-        elif magic in (b"\xd4\xc3\xb2\xa1", b"\xa1\xb2\xc3\xd4", b"\x4d\x3c\xb2\xa1", b"\xa1\xb2\x3c\x4d"):
-            yield from self._pcap()
-        else:
-            raise PcapError(f"{self.name}: offset 0: magic {magic.hex()} is neither pcapng nor pcap")
+        with self._open() as f:
+            magic = f.read(4)
+            if len(magic) < 4:
+                raise PcapError(f"{self.name}: {self.size} bytes is too short for a packet capture")
+            if magic == SHB_MAGIC:
+                f.seek(0)
+                yield from self._pcapng(f)
+            elif magic in _PCAP_MAGICS:
+                yield from self._pcap(f, magic)
+            else:
+                raise PcapError(f"{self.name}: offset 0: magic {magic.hex()} is neither pcapng nor pcap")
+
+    def _skip_to(self, f: BinaryIO, pos: int) -> None:
+        f.seek(pos)
+        self.offset = pos
 
     # -- pcapng --------------------------------------------------------------------------------
-    def _pcapng(self) -> Iterator[CapturedPacket]:
-        d, pos, e = self.data, 0, "<"
+    def _pcapng(self, f: BinaryIO) -> Iterator[CapturedPacket]:
+        size, pos, e = self.size, 0, "<"
         interfaces: list[tuple[int, int, int]] = []  # (linktype, units per second, offset_s)
-        while pos + 12 <= len(d):
-            if d[pos : pos + 4] == SHB_MAGIC:
-                bom = d[pos + 8 : pos + 12]
+        while pos + 12 <= size:
+            head = f.read(8)
+            if len(head) < 8:  # the file shrank under us
+                break
+            if head[:4] == SHB_MAGIC:
+                bom = f.read(4)
                 if bom == BYTE_ORDER_LE:
                     e = "<"
                 elif bom == BYTE_ORDER_BE:
@@ -94,37 +133,34 @@ class CaptureReader:
                 else:
                     raise PcapError(f"{self.name}: offset {pos}: bad byte-order magic {bom.hex()}")
                 interfaces = []  # interface ids restart in each section
-            btype, blen = struct.unpack_from(e + "II", d, pos)
+            btype, blen = _U32X2[e].unpack(head)
             if blen < 12 or blen % 4:
                 raise PcapError(
                     f"{self.name}: offset {pos}: block length {blen} (expected a multiple of 4, >= 12)"
                 )
-            if pos + blen > len(d):
+            if pos + blen > size:
                 self.stats.rejected["truncated"] += 1
-                self.stats.skipped_bytes += len(d) - pos
+                self.stats.skipped_bytes += size - pos
+                self._skip_to(f, size)
                 return
-            body = d[pos + 8 : pos + blen - 4]
-            pos += blen
-            if len(body) < _MIN_BODY.get(btype, 0):  # a damaged length: skip the block, count it
-                self.stats.rejected["short_block"] += 1
+            n = blen - 12  # the body, without the two length words
+            min_body = _MIN_BODY.get(btype)
+            if min_body is None or n < min_body or n > MAX_BLOCK:
+                if min_body is not None:  # a damaged length: skip the block, count it
+                    self.stats.rejected["short_block" if n < min_body else "oversized_block"] += 1
+                pos += blen
+                self._skip_to(f, pos)
                 continue
-            if btype == IDB:
-                linktype = struct.unpack_from(e + "H", body, 0)[0]
-                units, offset = 1_000_000, 0
-                for code, value in _options(body[8:], e):
-                    if code == 9 and value:
-                        v = value[0]
-                        units = 2 ** (v & 0x7F) if v & 0x80 else 10**v
-                    elif code == 14 and len(value) == 8:
-                        offset = struct.unpack(e + "q", value)[0]
-                interfaces.append((linktype, units, offset))
-            elif btype in (EPB, PB):
+            body = f.read(blen - 8)  # the body and the trailing length word
+            if len(body) < blen - 8:
+                break
+            pos += blen
+            self.offset = pos
+            if btype == EPB or btype == PB:
                 if btype == EPB:
                     iface, hi, lo, caplen = struct.unpack_from(e + "IIII", body, 0)
-                    start = 20
                 else:
                     iface, _drops, hi, lo, caplen = struct.unpack_from(e + "HHIII", body, 0)
-                    start = 20
                 if iface >= len(interfaces):
                     self.stats.rejected["unknown_interface"] += 1
                     continue
@@ -132,40 +168,63 @@ class CaptureReader:
                 ticks = (hi << 32) | lo
                 ts_ns = ticks * 1_000_000_000 // units + offset * 1_000_000_000
                 self.stats.records += 1
-                yield CapturedPacket(ts_ns, iface, linktype, body[start : start + caplen])
-            elif btype == SPB:
+                yield CapturedPacket(ts_ns, iface, linktype, body[20 : min(20 + caplen, n)])
+            elif btype == IDB:
+                linktype = struct.unpack_from(e + "H", body, 0)[0]
+                units, offset = 1_000_000, 0
+                for code, value in _options(body[8:n], e):
+                    if code == 9 and value:
+                        v = value[0]
+                        units = 2 ** (v & 0x7F) if v & 0x80 else 10**v
+                    elif code == 14 and len(value) == 8:
+                        offset = struct.unpack(e + "q", value)[0]
+                interfaces.append((linktype, units, offset))
+            else:  # SPB
                 if not interfaces:
                     self.stats.rejected["unknown_interface"] += 1
                     continue
                 self.stats.events["no_timestamp"] += 1
-                snap = interfaces[0]
                 self.stats.records += 1
-                yield CapturedPacket(0, 0, snap[0], body[4:])
-        if pos != len(d):
+                yield CapturedPacket(0, 0, interfaces[0][0], body[4:n])
+        if pos != size:
             self.stats.rejected["truncated"] += 1
-            self.stats.skipped_bytes += len(d) - pos
+            self.stats.skipped_bytes += size - pos
+            self._skip_to(f, size)
 
     # -- classic pcap --------------------------------------------------------------------------
-    def _pcap(self) -> Iterator[CapturedPacket]:
-        d = self.data
-        if len(d) < 24:
-            raise PcapError(f"{self.name}: pcap header needs 24 bytes, file has {len(d)}")
-        magic = d[:4]
+    def _pcap(self, f: BinaryIO, magic: bytes) -> Iterator[CapturedPacket]:
+        size = self.size
+        if size < 24:
+            raise PcapError(f"{self.name}: pcap header needs 24 bytes, file has {size}")
         e = "<" if magic in (b"\xd4\xc3\xb2\xa1", b"\x4d\x3c\xb2\xa1") else ">"
         nano = magic in (b"\x4d\x3c\xb2\xa1", b"\xa1\xb2\x3c\x4d")
-        linktype = struct.unpack_from(e + "I", d, 20)[0] & 0x0FFFFFFF
-        pos = 24
-        while pos + 16 <= len(d):
-            sec, frac, caplen, _orig = struct.unpack_from(e + "IIII", d, pos)
-            if pos + 16 + caplen > len(d):
+        linktype = struct.unpack_from(e + "I", f.read(20), 16)[0] & 0x0FFFFFFF
+        record = struct.Struct(e + "IIII")
+        pos = self.offset = 24
+        while pos + 16 <= size:
+            head = f.read(16)
+            if len(head) < 16:  # the file shrank under us
                 break
+            sec, frac, caplen, _orig = record.unpack(head)
+            if pos + 16 + caplen > size:
+                break
+            pos += 16 + caplen
+            if caplen > MAX_BLOCK:
+                self.stats.rejected["oversized_block"] += 1
+                self._skip_to(f, pos)
+                continue
+            data = f.read(caplen)
+            if len(data) < caplen:
+                pos -= 16 + caplen
+                break
+            self.offset = pos
             ts = sec * 1_000_000_000 + (frac if nano else frac * 1000)
             self.stats.records += 1
-            yield CapturedPacket(ts, 0, linktype, d[pos + 16 : pos + 16 + caplen])
-            pos += 16 + caplen
-        if pos != len(d):
+            yield CapturedPacket(ts, 0, linktype, data)
+        if pos != size:
             self.stats.rejected["truncated"] += 1
-            self.stats.skipped_bytes += len(d) - pos
+            self.stats.skipped_bytes += size - pos
+            self._skip_to(f, size)
 
 
 def _options(raw: bytes, e: str) -> Iterator[tuple[int, bytes]]:
@@ -234,7 +293,7 @@ def udp_datagrams(
             if frag & 0x3FFF:  # more-fragments flag or a fragment offset
                 stats.events["ip_fragment"] += 1
                 continue
-            src, dst = str(ipaddress.IPv4Address(d[12:16])), str(ipaddress.IPv4Address(d[16:20]))
+            src, dst = _ntop(_AF_INET, d[12:16]), _ntop(_AF_INET, d[16:20])  # as IPv4Address's str
             udp = d[ihl:total] if total else d[ihl:]
         else:
             if len(d) < 40:

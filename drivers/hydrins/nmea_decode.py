@@ -18,7 +18,11 @@
    epoch that lost its own (a line dropping bytes) is rejected
    (``rejected['epoch_without_time']``) rather than dated by a ZDA or GGA of another instant.
    ``gps_ns`` stays None when the INS says it is not on UTC (system status 2 bit 9 clear),
-   because ``TIME__`` is then the INS system time.
+   because ``TIME__`` is then the INS system time. UTC → GPS uses the leap-second table, or the
+   GPS − UTC the INS announces (``$PMLS,GPSUTC``, kept in ``gps_minus_utc_s``): its tags are then
+   undone with its own count. A ZDA date more than 9.8 years from the reference (the feed's
+   ``utc_hint_ns`` or the host's clock) is a GPS week rollover, moved by whole 1024-week eras
+   (``events['gps_week_rollover']``).
 """
 
 from __future__ import annotations
@@ -36,8 +40,10 @@ from drivers.base import DecoderStats
 from drivers.hydrins.nav import NavRecord, wrap_heading_rad, wrap_lon_deg
 from drivers.hydrins.nmea_sentences import (
     PIXSE_PARSERS,
+    PMLS_PARSERS,
     STANDARD_PARSERS,
     Gga,
+    GpsUtcOffset,
     Hdt,
     PixseAlgsts,
     PixseAtitud,
@@ -54,9 +60,10 @@ from drivers.hydrins.nmea_sentences import (
     Sentence,
     Zda,
 )
-from drivers.hydrins.timeofday import DAY_NS, resolve_gps_ns, utc_date_ns
+from drivers.hydrins.timeofday import DAY_NS, device_date_ns, resolve_gps_ns
 
 MAX_LINE = 1024  # NMEA says 82 characters; some receivers (PSTI) send ~400
+_PROPRIETARY = {"PIXSE": PIXSE_PARSERS, "PMLS": PMLS_PARSERS}
 
 # ---------------------------------------------------------------------------------------------
 # Sentence decoder.
@@ -141,9 +148,9 @@ class NmeaDecoder:
         fields = text.split(",")
         head = fields[0]
         try:
-            if head == "PIXSE" and len(fields) > 1:
-                sid = "PIXSE," + fields[1]
-                parser = PIXSE_PARSERS.get(fields[1])
+            if head in _PROPRIETARY and len(fields) > 1:
+                sid = head + "," + fields[1]
+                parser = _PROPRIETARY[head].get(fields[1])
                 rec = parser("", fields, host_ns) if parser else Sentence("", sid, fields, host_ns)
             elif head[:1] == "P" or len(head) != 5:
                 sid = head
@@ -183,6 +190,7 @@ class NmeaNavAssembler:
         self._zda_host_ns: int | None = None
         self._hint: int | None = None
         self._time_sentences = False  # the stream carries TIME__: every epoch must have its own
+        self.gps_minus_utc_s: int | None = None  # announced by the INS ($PMLS,GPSUTC), else None
 
     @property
     def stats(self) -> DecoderStats:
@@ -208,8 +216,11 @@ class NmeaNavAssembler:
             and rec.year is not None
         ):
             try:
-                self._zda_utc_ns = utc_date_ns(rec.year, rec.month, rec.day) + rec.time_of_day_ns
+                midnight, eras = device_date_ns(rec.year, rec.month, rec.day, self._reference())
+                self._zda_utc_ns = midnight + rec.time_of_day_ns
                 self._zda_host_ns = rec.host_ns
+                if eras:
+                    self.decoder.stats.events["gps_week_rollover"] += 1
             except ValueError:  # impossible date in a checksum-valid sentence
                 self.decoder.stats.rejected["bad_field"] += 1
         if isinstance(rec, Sentence):
@@ -217,6 +228,10 @@ class NmeaNavAssembler:
         kind = type(rec)
         if kind is PixseTime:
             self._time_sentences = True
+        elif kind is GpsUtcOffset:  # not part of an epoch
+            if rec.gps_minus_utc_s is not None:
+                self.gps_minus_utc_s = rec.gps_minus_utc_s
+            return out
         if kind in self._epoch:
             out.extend(self._close())
         self._epoch[kind] = rec
@@ -311,8 +326,12 @@ class NmeaNavAssembler:
             or self._zda_host_ns is None
             or abs(nav.host_ns - self._zda_host_ns) < DAY_NS // 2
         ):
-            nav.gps_ns, nav.date_source = resolve_gps_ns(tod, zda_utc_ns), "zda"
+            nav.gps_ns, nav.date_source = resolve_gps_ns(tod, zda_utc_ns, self.gps_minus_utc_s), "zda"
             return
-        hint = self._hint if self._hint is not None else (self.utc_clock() if self.utc_clock else None)
+        hint = self._reference()
         if hint is not None:
-            nav.gps_ns, nav.date_source = resolve_gps_ns(tod, hint), "host"
+            nav.gps_ns, nav.date_source = resolve_gps_ns(tod, hint, self.gps_minus_utc_s), "host"
+
+    def _reference(self) -> int | None:
+        """The host's UTC ns: the feed's hint, else the clock, else None."""
+        return self._hint if self._hint is not None else (self.utc_clock() if self.utc_clock else None)

@@ -2,14 +2,16 @@
 
 :func:`encode_sentence` (a body → a checksummed sentence), :func:`encode_epoch` (a canonical
 NavRecord → the PHINS standard block, in the order HEHDT, ATITUD, POSITI, SPEED_, HEAVE_,
-TIME__, STDHRP, STDPOS, STDSPD, ALGSTS, STATUS, HT_STS) and :func:`encode_zda`.
+TIME__, STDHRP, STDPOS, STDSPD, ALGSTS, STATUS, HT_STS), :func:`encode_zda` and
+:func:`encode_gps_utc` (``$PMLS,GPSUTC``). ``gps_minus_utc_s`` makes UTC tags with a count of
+the caller's (a device that believes another one) instead of the leap-second table's.
 """
 
 from __future__ import annotations
 
 import math
 
-from calib.core.frames import attitude_to_ixblue, gps_ns_to_utc
+from calib.core.frames import attitude_to_ixblue, gps_ns_to_utc_fields
 from drivers.hydrins.nav import NavRecord
 from drivers.hydrins.nmea_sentences import NAN, checksum
 from drivers.hydrins.timeofday import format_hhmmss, utc_time_of_day_ns
@@ -37,7 +39,7 @@ def _word(value: int | None) -> str:
     return "" if value is None else f"{value & 0xFFFFFFFF:08X}"
 
 
-def encode_epoch(nav: NavRecord, talker: str = "HE") -> bytes:
+def encode_epoch(nav: NavRecord, talker: str = "HE", gps_minus_utc_s: int | None = None) -> bytes:
     """A canonical NavRecord → the PHINS standard block (iXblue signs and units on the wire).
 
     TIME__ carries the UTC time of day of ``nav.gps_ns`` when it is set, else
@@ -47,7 +49,7 @@ def encode_epoch(nav: NavRecord, talker: str = "HE") -> bytes:
     lon = nav.lon_deg % 360.0 if nav.lon_deg == nav.lon_deg else NAN
     tod: int | None
     if nav.gps_ns is not None:
-        tod = utc_time_of_day_ns(nav.gps_ns)
+        tod = utc_time_of_day_ns(nav.gps_ns, gps_minus_utc_s)
     else:
         tod = nav.time_of_day_ns
     words_a = nav.algorithm_status or (None, None)
@@ -69,10 +71,16 @@ def encode_epoch(nav: NavRecord, talker: str = "HE") -> bytes:
     return b"".join(encode_sentence(b) for b in bodies)
 
 
-def encode_zda(gps_ns: int, talker: str = "GP", decimals: int = 2) -> bytes:
-    """``$--ZDA`` for a GPS instant (UTC on the wire; local zone 00,00)."""
-    utc = gps_ns_to_utc(gps_ns)
-    tod = utc_time_of_day_ns(gps_ns)
+def encode_zda(
+    gps_ns: int, talker: str = "GP", decimals: int = 2, gps_minus_utc_s: int | None = None
+) -> bytes:
+    """``$--ZDA`` for a GPS instant (UTC on the wire, 23:59:60 in an inserted second; local zone 00,00)."""
+    date, tod = gps_ns_to_utc_fields(gps_ns, gps_minus_utc_s)
     return encode_sentence(
-        f"{talker}ZDA,{format_hhmmss(tod, decimals)},{utc.day:02d},{utc.month:02d},{utc.year:04d},00,00"
+        f"{talker}ZDA,{format_hhmmss(tod, decimals)},{date.day:02d},{date.month:02d},{date.year:04d},00,00"
     )
+
+
+def encode_gps_utc(gps_minus_utc_s: int) -> bytes:
+    """``$PMLS,GPSUTC,<s>``: the GPS − UTC the device applies (this project's stand-in sentence)."""
+    return encode_sentence(f"PMLS,GPSUTC,{int(gps_minus_utc_s):d}")

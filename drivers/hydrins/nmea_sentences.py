@@ -2,13 +2,19 @@
 
 A typed record exists for ``$--ZDA``, ``$--GGA``, ``$--RMC``, ``$--HDT``, ``$--VTG`` and the
 ``$PIXSE`` block (``ATITUD``, ``POSITI``, ``SPEED_``, ``HEAVE_``, ``TIME__``, ``STDHRP``,
-``STDPOS``, ``STDSPD``, ``ALGSTS``, ``STATUS``, ``HT_STS``); any other valid sentence is a generic
-:class:`Sentence`. Empty fields are missing values (NaN/None), never zeros; anything else must
+``STDPOS``, ``STDSPD``, ``ALGSTS``, ``STATUS``, ``HT_STS``) and ``$PMLS,GPSUTC``; any other valid
+sentence is a generic :class:`Sentence`. Empty fields are missing values (NaN/None), never zeros; anything else must
 parse or the sentence is rejected. :func:`checksum` is the NMEA checksum.
 
 The typed sentence records carry the **native** values of the wire (degrees, iXblue signs:
 pitch + bow down, sway + port, heave + up, speed east/north/up, longitude 0–360). They are
 the decode view; nothing else in the project should use them for geometry.
+
+``$PMLS,GPSUTC,<s>`` (:class:`GpsUtcOffset`) is this project's documented stand-in — like the
+PPS1 datagram and ZFP1 — for the GPS − UTC offset a GNSS-aided INS knows (the PHINS standard
+block carries none): the whole seconds the INS subtracts from GPS time to make its UTC tags
+(ZDA, TIME__), sent once a second before the ZDA. RMC's two-digit year is 19yy from 80 on
+(the GPS epoch), 20yy below.
 """
 
 from __future__ import annotations
@@ -179,6 +185,14 @@ class PixseStatus:
 
 
 @dataclass(slots=True)
+class GpsUtcOffset:
+    """``$PMLS,GPSUTC,<s>``: GPS − UTC in whole seconds, as the INS applies it to its UTC tags."""
+
+    gps_minus_utc_s: int | None
+    host_ns: int | None = None
+
+
+@dataclass(slots=True)
 class PixseHtSts:
     """INS high-level (user) status word."""
 
@@ -256,7 +270,10 @@ def _p_rmc(t, f, h):
     date = f[9]
     if date and (len(date) != 6 or not date.isdigit()):
         raise ValueError(f"RMC date {date!r}")
-    day, month, year = (int(date[0:2]), int(date[2:4]), 2000 + int(date[4:6])) if date else (None,) * 3
+    yy = int(date[4:6]) if date else 0
+    day, month, year = (
+        (int(date[0:2]), int(date[2:4]), (1900 if yy >= 80 else 2000) + yy) if date else (None,) * 3
+    )
     valid = {"A": True, "V": False}.get(f[2])
     kn = _f(f[7])
     return Rmc(
@@ -318,6 +335,14 @@ def _p_htsts(t, f, h):
     return PixseHtSts(_hex(f[2]), h)
 
 
+def _p_gpsutc(t, f, h):
+    f = _pad(f, 3)
+    value = _i(f[2])
+    if value is not None and not 0 <= value <= 255:
+        raise ValueError(f"GPS − UTC {value} s")
+    return GpsUtcOffset(value, h)
+
+
 STANDARD_PARSERS = {"ZDA": _p_zda, "GGA": _p_gga, "RMC": _p_rmc, "HDT": _p_hdt, "VTG": _p_vtg}
 PIXSE_PARSERS = {
     "ATITUD": _p_atitud,
@@ -332,6 +357,7 @@ PIXSE_PARSERS = {
     "STATUS": _p_words(PixseStatus),
     "HT_STS": _p_htsts,
 }
+PMLS_PARSERS = {"GPSUTC": _p_gpsutc}
 
 
 def checksum(body: bytes) -> int:

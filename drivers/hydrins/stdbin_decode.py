@@ -438,8 +438,9 @@ class StdbinDecoder:
 class StdbinNavDecoder:
     """Bytes → canonical :class:`NavRecord` per navigation frame (answers are counted, not returned).
 
-    ``utc_clock`` (host UTC ns since the Unix epoch) dates frames without a system-date block;
-    None never dates them from the host.
+    ``utc_clock`` (host UTC ns since the Unix epoch) dates frames without a system-date block
+    and is the reference that undoes a GPS week rollover of the system date; None never dates
+    them from the host (nor moves a date).
     """
 
     def __init__(self, utc_clock: Callable[[], int] | None = time.time_ns) -> None:
@@ -460,7 +461,7 @@ class StdbinNavDecoder:
         for rec in records:
             if isinstance(rec, StdbinFrame):
                 hint = utc_hint_ns
-                if hint is None and self.utc_clock is not None and "system_date" not in rec.blocks:
+                if hint is None and self.utc_clock is not None:
                     hint = self.utc_clock()
                 out.append(rec.to_nav(hint))
             else:

@@ -11,7 +11,7 @@ import math
 import struct
 from typing import Any
 
-from calib.core.frames import attitude_to_ixblue, gps_ns_to_utc
+from calib.core.frames import attitude_to_ixblue, gps_ns_to_utc_fields
 from drivers.base import DriverError
 from drivers.hydrins.nav import NavRecord
 from drivers.hydrins.stdbin_format import (
@@ -31,7 +31,6 @@ from drivers.hydrins.stdbin_format import (
     sum32,
 )
 from drivers.hydrins.stdbin_records import NAN, StdbinFrame
-from drivers.hydrins.timeofday import utc_time_of_day_ns
 
 
 def encode_frame(frame: StdbinFrame) -> bytes:
@@ -94,7 +93,9 @@ def encode_answer(payload: bytes, version: int = 5) -> bytes:
     return body + U32.pack(sum32(body))
 
 
-def frame_from_nav(nav: NavRecord, version: int = 3, counter: int = 0) -> StdbinFrame:
+def frame_from_nav(
+    nav: NavRecord, version: int = 3, counter: int = 0, gps_minus_utc_s: int | None = None
+) -> StdbinFrame:
     """A canonical NavRecord → a native frame (iXblue signs, degrees, longitude 0–360).
 
     Blocks written: attitude/heading (+ deviation), real-time heave/surge/sway, position
@@ -142,8 +143,7 @@ def frame_from_nav(nav: NavRecord, version: int = 3, counter: int = 0) -> Stdbin
         "up_sd_m_s": nav.sigma_v_down_m_s,
     }
     if nav.gps_ns is not None:
-        utc = gps_ns_to_utc(nav.gps_ns)
-        tod = utc_time_of_day_ns(nav.gps_ns)
+        utc, tod = gps_ns_to_utc_fields(nav.gps_ns, gps_minus_utc_s)
         blocks["system_date"] = {"day": utc.day, "month": utc.month, "year": utc.year}
     else:
         tod = nav.time_of_day_ns or 0
@@ -161,6 +161,9 @@ def frame_from_nav(nav: NavRecord, version: int = 3, counter: int = 0) -> Stdbin
     return StdbinFrame(version, counter, validity, blocks)
 
 
-def encode_nav(nav: NavRecord, version: int = 3, counter: int = 0) -> bytes:
-    """Canonical NavRecord → one STDBIN navigation frame."""
-    return encode_frame(frame_from_nav(nav, version, counter))
+def encode_nav(
+    nav: NavRecord, version: int = 3, counter: int = 0, gps_minus_utc_s: int | None = None
+) -> bytes:
+    """Canonical NavRecord → one STDBIN navigation frame (UTC tags made with
+    ``gps_minus_utc_s`` instead of the leap-second table's count when given)."""
+    return encode_frame(frame_from_nav(nav, version, counter, gps_minus_utc_s))

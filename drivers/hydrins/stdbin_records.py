@@ -16,10 +16,10 @@ from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
-from calib.core.frames import attitude_from_ixblue, utc_fields_to_gps_ns
+from calib.core.frames import attitude_from_ixblue
 from drivers.hydrins.nav import NavRecord, wrap_heading_rad, wrap_lon_deg
 from drivers.hydrins.stdbin_format import NS_PER_100US
-from drivers.hydrins.timeofday import DAY_NS, resolve_gps_ns
+from drivers.hydrins.timeofday import DAY_NS, NS_PER_S, device_fields_to_gps_ns, resolve_gps_ns
 
 NAN = math.nan
 
@@ -79,9 +79,10 @@ class StdbinFrame:
     def to_nav(self, utc_hint_ns: int | None = None) -> NavRecord:
         """The canonical NavRecord of this frame (radians, NED, FRD; see :mod:`drivers.hydrins.nav`).
 
-        The date comes from the system-date block, else from ``utc_hint_ns`` (host UTC, ns since
-        the Unix epoch, nearest day within ±12 h); ``gps_ns`` stays None when the INS says it is
-        not on UTC.
+        The date comes from the system-date block (moved by whole 1024-week eras when it is a GPS
+        week rollover more than 9.8 years from ``utc_hint_ns``), else from ``utc_hint_ns`` (host
+        UTC, ns since the Unix epoch, nearest day within ±12 h); ``gps_ns`` stays None when the
+        INS says it is not on UTC. A validity time of 86 400 s or more is 23:59:60.x.
         """
         nav = NavRecord("stdbin", host_ns=self.host_ns)
         b = self.blocks
@@ -132,13 +133,17 @@ class StdbinFrame:
         nav.system_status = self._words("ins_system_status")
         if "ins_user_status" in b:
             nav.user_status = b["ins_user_status"]["status"]
-        tod = (self.validity_time_100us * NS_PER_100US) % DAY_NS
+        tod = self.validity_time_100us * NS_PER_100US
+        if not DAY_NS <= tod < DAY_NS + NS_PER_S:  # [24 h, 24 h + 1 s): an inserted 23:59:60
+            tod %= DAY_NS
         nav.time_of_day_ns = tod
         if nav.utc_detected is not False:
             date = self.system_date
             if date is not None:
                 try:
-                    nav.gps_ns = utc_fields_to_gps_ns(date["year"], date["month"], date["day"], tod)
+                    nav.gps_ns, _ = device_fields_to_gps_ns(
+                        date["year"], date["month"], date["day"], tod, utc_hint_ns
+                    )
                     nav.date_source = "system_date"
                 except ValueError:  # an impossible date in a checksum-valid frame: leave unresolved
                     pass

@@ -5,6 +5,14 @@
 STDBIN system date, or the host's UTC clock). Of the three candidate days around the hint, the
 one that puts the tag nearest to the hint wins, so a tag of 23:59:59 read just after midnight
 goes to the previous day.
+
+GPS − UTC is the table's count at the tag's own UTC midnight (:mod:`calib.core.gpstime`), so
+tags on either side of a midnight where a leap second is inserted date correctly, and the
+inserted second itself is 23:59:60.x (86 400 s + x) of the day that ends with it — in both
+directions (:func:`utc_time_of_day_ns` writes it so for the emulators). A device that says which
+GPS − UTC it applies (``gps_minus_utc_s``) has its tags undone with its own count instead.
+Device dates go through :func:`device_date_ns`, which undoes a GPS week rollover
+(:func:`calib.core.gpstime.unroll_week_rollover`) against a reference date.
 """
 
 from __future__ import annotations
@@ -12,7 +20,8 @@ from __future__ import annotations
 import datetime as _dt
 from functools import lru_cache
 
-from calib.core.frames import leap_seconds_at_gps_ns, utc_fields_to_gps_ns
+from calib.core.frames import gps_ns_to_utc_fields, utc_fields_to_gps_ns
+from calib.core.gpstime import GPS_EPOCH_DATE, on_table_change, unroll_week_rollover
 
 NS_PER_S = 1_000_000_000
 DAY_NS = 86_400 * NS_PER_S
@@ -36,10 +45,14 @@ def parse_hhmmss_ns(text: str) -> int:
 
 
 def format_hhmmss(time_of_day_ns: int, decimals: int) -> str:
-    """Nanoseconds since midnight → ``'hhmmss.fff'`` with ``decimals`` digits (truncated)."""
+    """Nanoseconds since midnight → ``'hhmmss.fff'`` with ``decimals`` digits (truncated);
+    86 400 s and beyond (an inserted leap second) → ``'235960.fff'``."""
     s, ns = divmod(int(time_of_day_ns), NS_PER_S)
-    hh, rem = divmod(s, 3600)
-    mm, ss = divmod(rem, 60)
+    if s >= 86_400:  # an inserted leap second: 23:59:60
+        hh, mm, ss = 23, 59, s - 86_340
+    else:
+        hh, rem = divmod(s, 3600)
+        mm, ss = divmod(rem, 60)
     text = f"{hh:02d}{mm:02d}{ss:02d}"
     if decimals:
         text += "." + f"{ns:09d}"[:decimals]
@@ -51,8 +64,39 @@ def utc_date_ns(year: int, month: int, day: int) -> int:
     return (_dt.date(year, month, day) - _UNIX_EPOCH).days * DAY_NS
 
 
-def resolve_gps_ns(time_of_day_ns: int, hint_utc_ns: int) -> int:
-    """UTC time of day + a UTC instant within ±12 h (ns since the Unix epoch) → GPS ns."""
+def device_date_ns(year: int, month: int, day: int, reference_utc_ns: int | None) -> tuple[int, int]:
+    """A device's UTC date → (its midnight in ns since the Unix epoch, 1024-week eras it was
+    moved by): a date more than half an era (9.8 years) from ``reference_utc_ns`` (the host's
+    UTC time, or a recording's receive time; None: never moved) is a GPS week rollover and is
+    moved by whole eras toward it. Raises ValueError for an impossible date."""
+    days = (_dt.date(year, month, day) - _UNIX_EPOCH).days
+    if reference_utc_ns is None:
+        return days * DAY_NS, 0
+    days, eras = unroll_week_rollover(days, int(reference_utc_ns) // DAY_NS)
+    return days * DAY_NS, eras
+
+
+def device_fields_to_gps_ns(
+    year: int,
+    month: int,
+    day: int,
+    time_of_day_ns: int,
+    reference_utc_ns: int | None,
+    gps_minus_utc_s: int | None = None,
+) -> tuple[int, int]:
+    """A device's UTC date and time of day → (GPS ns, 1024-week eras the date was moved by,
+    see :func:`device_date_ns`); ``gps_minus_utc_s`` as for :func:`resolve_gps_ns`."""
+    days, eras = (_dt.date(year, month, day) - _UNIX_EPOCH).days, 0
+    if reference_utc_ns is not None:
+        days, eras = unroll_week_rollover(days, int(reference_utc_ns) // DAY_NS)
+    if gps_minus_utc_s is not None:
+        return (days - _GPS_EPOCH_DAY) * DAY_NS + gps_minus_utc_s * NS_PER_S + time_of_day_ns, eras
+    return _gps_midnight_ns(days) + time_of_day_ns, eras
+
+
+def resolve_gps_ns(time_of_day_ns: int, hint_utc_ns: int, gps_minus_utc_s: int | None = None) -> int:
+    """UTC time of day + a UTC instant within ±12 h (ns since the Unix epoch) → GPS ns;
+    ``gps_minus_utc_s``: the device's own GPS − UTC instead of the table's."""
     day = hint_utc_ns // DAY_NS
     err = day * DAY_NS + time_of_day_ns - hint_utc_ns  # of the hint's own day; the nearest wins
     best, best_err = day - 1, abs(err - DAY_NS)  # (ties: the earlier day)
@@ -60,18 +104,27 @@ def resolve_gps_ns(time_of_day_ns: int, hint_utc_ns: int) -> int:
         best, best_err = day, abs(err)
     if abs(err + DAY_NS) < best_err:
         best = day + 1
+    if gps_minus_utc_s is not None:
+        return (best - _GPS_EPOCH_DAY) * DAY_NS + gps_minus_utc_s * NS_PER_S + time_of_day_ns
     return _gps_midnight_ns(best) + time_of_day_ns
+
+
+_GPS_EPOCH_DAY = (GPS_EPOCH_DATE - _UNIX_EPOCH).days
 
 
 @lru_cache(maxsize=16)
 def _gps_midnight_ns(day: int) -> int:
     """GPS ns of UTC midnight ``day`` days after the Unix epoch (the day's leap-second count is
-    that of its midnight, as for :func:`calib.core.frames.utc_fields_to_gps_ns`)."""
+    that of its midnight, as for :func:`calib.core.frames.utc_fields_to_gps_ns`); cleared when
+    another leap-second table is installed."""
     date = _UNIX_EPOCH + _dt.timedelta(days=day)
     return utc_fields_to_gps_ns(date.year, date.month, date.day, 0)
 
 
-def utc_time_of_day_ns(gps_ns: int) -> int:
-    """GPS ns → UTC nanoseconds since midnight (the GPS epoch is a UTC midnight)."""
-    gps_ns = int(gps_ns)
-    return (gps_ns - leap_seconds_at_gps_ns(gps_ns) * NS_PER_S) % DAY_NS
+on_table_change(_gps_midnight_ns.cache_clear)
+
+
+def utc_time_of_day_ns(gps_ns: int, gps_minus_utc_s: int | None = None) -> int:
+    """GPS ns → UTC nanoseconds since midnight (up to 86 401 s: 23:59:60.x in an inserted
+    second); ``gps_minus_utc_s``: with this count instead of the table's."""
+    return gps_ns_to_utc_fields(gps_ns, gps_minus_utc_s)[1]

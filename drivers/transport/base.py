@@ -15,7 +15,10 @@ goes away (``_lost``) reports it and reconnects in the background with a back-of
 (``reconnect_min_s`` doubling to ``reconnect_max_s``).
 
 State changes are reported as :class:`TransportEvent` to the ``on_event`` callback and kept in
-``transport.events``; ``transport.connected`` and ``transport.reconnects`` give the state.
+``transport.events``; ``transport.connected`` and ``transport.reconnects`` give the state, and
+``transport.last_error`` why it is not connected: the OS error of the last failed open (``[Errno 2]
+... No such file or directory: '/dev/ttyUSB9'``, ``[Errno 98] Address already in use``) or the
+reason the device went away, None while connected.
 """
 
 from __future__ import annotations
@@ -65,6 +68,7 @@ class Transport:
         self.events: deque[TransportEvent] = deque(maxlen=100)
         self.connected = False
         self.reconnects = 0
+        self.last_error: str | None = None  # why not connected (None while connected)
         self._chunks: deque[Chunk] = deque()
         self._ready = asyncio.Event()  # replaced by open(), bound to its loop
         self._closing = False
@@ -80,6 +84,7 @@ class Transport:
         try:
             await self._connect()
         except OSError as exc:
+            self.last_error = str(exc)
             self._report("disconnected", f"cannot open: {exc}")
             self._schedule_reconnect()
             return
@@ -165,6 +170,7 @@ class Transport:
 
     def _set_connected(self, first: bool = False) -> None:
         self.connected = True
+        self.last_error = None
         if not first:
             self.reconnects += 1
         self._report("connected", self.describe())
@@ -174,6 +180,7 @@ class Transport:
         if not self.connected or self._closing:
             return
         self.connected = False
+        self.last_error = reason
         self._report("disconnected", reason)
         self._loop.create_task(self._disconnect())
         self._schedule_reconnect()
@@ -191,6 +198,7 @@ class Transport:
             try:
                 await self._connect()
             except OSError as exc:
+                self.last_error = str(exc)
                 failures += 1
                 if failures in (1, 10) or failures % 100 == 0:
                     self._report("reconnect_failed", f"attempt {failures}: {exc}")

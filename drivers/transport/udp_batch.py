@@ -6,9 +6,11 @@ costs a wake-up of the loop (an ``epoll_wait``, the callbacks, a task step) — 
 daemon's CPU at the full Z+F rate. This transport instead:
 
 - stamps each datagram with the **kernel's** receive time (``SO_TIMESTAMPNS``, moved from
-  ``CLOCK_REALTIME`` to ``CLOCK_MONOTONIC`` with the offset sampled at each read), so a stamp
-  does not depend on when the loop gets to the socket (the kernel switches stamping on a few
-  milliseconds after the first socket asks; datagrams before that carry their read time);
+  ``CLOCK_REALTIME`` to ``CLOCK_MONOTONIC`` with the offset sampled at each read, through
+  :class:`drivers.timing.RealtimeStamps`: a step of the realtime clock between a datagram's
+  arrival and its read does not shift its stamp), so a stamp does not depend on when the loop
+  gets to the socket (the kernel switches stamping on a few milliseconds after the first socket
+  asks; datagrams before that carry their read time);
 - drains every datagram waiting (``recvmmsg``, 64 datagrams per system call, through
   :mod:`drivers.transport.recvmmsg`; one ``recvmsg`` each where the C library lacks it; until
   ``EAGAIN``, at most ``burst`` per round),
@@ -32,7 +34,7 @@ import socket
 import struct
 import time
 
-from drivers.timing import realtime_minus_monotonic_ns
+from drivers.timing import RealtimeStamps
 from drivers.transport import recvmmsg
 from drivers.transport.base import Transport
 
@@ -72,6 +74,7 @@ class BatchUdpTransport(Transport):
         self._timer: asyncio.TimerHandle | None = None
         self._paused = False
         self._watching = False  # the socket is registered with the loop's selector
+        self.stamps = RealtimeStamps()
 
     def describe(self) -> str:
         return (
@@ -121,7 +124,7 @@ class BatchUdpTransport(Transport):
         if sock is None:
             return
         mono = time.monotonic_ns()
-        offset = realtime_minus_monotonic_ns()
+        offset = self.stamps.begin()
         chunks = self._chunks
         room = min(self.burst, self.max_chunks - len(chunks))
         mmsg = self._mmsg
@@ -148,7 +151,7 @@ class BatchUdpTransport(Transport):
             self._watching = on
 
     def _read_many(self, mmsg: recvmmsg.MmsgReceiver, room: int, mono: int, offset: int) -> int:
-        push, stats = self._push, self.stats
+        push, stats, conv = self._push, self.stats, self.stamps
         got = 0
         while got < room:
             want = min(mmsg.slots, room - got)
@@ -161,8 +164,14 @@ class BatchUdpTransport(Transport):
                 break
             if truncated:
                 stats.rejected["truncated"] += truncated
-            for data, t in zip(datagrams, stamps):
-                push(data, mono if t is None else t - offset)
+            if conv.exact:
+                for data, t in zip(datagrams, stamps):
+                    push(data, mono if t is None else t - offset)
+                if stamps and stamps[-1] is not None:
+                    conv.last_ns = stamps[-1] - offset
+            else:  # the realtime clock stepped: stamps on either side of the step
+                for data, t in zip(datagrams, stamps):
+                    push(data, mono if t is None else conv.convert(t, mono))
             k = len(datagrams) + truncated
             got += k
             if k < want:
@@ -170,7 +179,7 @@ class BatchUdpTransport(Transport):
         return got
 
     def _read_each(self, sock: socket.socket, room: int, mono: int, offset: int) -> int:
-        recvmsg, stats = sock.recvmsg, self.stats
+        recvmsg, stats, conv = sock.recvmsg, self.stats, self.stamps
         anc_size = socket.CMSG_SPACE(_TIMESPEC.size)
         got = 0
         for _ in range(room):
@@ -185,7 +194,11 @@ class BatchUdpTransport(Transport):
             for level, kind, value in anc:
                 if level == socket.SOL_SOCKET and kind == _SCM_TIMESTAMPNS and len(value) >= 16:
                     sec, nsec = _TIMESPEC.unpack_from(value)
-                    host_ns = sec * 1_000_000_000 + nsec - offset
+                    t = sec * 1_000_000_000 + nsec
+                    if conv.exact:
+                        host_ns = conv.last_ns = t - offset
+                    else:
+                        host_ns = conv.convert(t, mono)
             if flags & _MSG_TRUNC:
                 stats.rejected["truncated"] += 1
                 continue

@@ -220,6 +220,10 @@ class TruthClock:
             np.int64
         )
 
+    def host_ns(self, gps_ns: int) -> int:
+        """The host monotonic ns of a GPS instant (the inverse of :meth:`gps_ns`)."""
+        return self.host_anchor_ns + round((int(gps_ns) - self.gps_anchor_ns) / self.rate)
+
 
 class Recording:
     """What a collector received, as plain data (shareable between test workers as JSON)."""

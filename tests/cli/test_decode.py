@@ -3,8 +3,10 @@
 from __future__ import annotations
 
 import json
+import re
 
 import numpy as np
+import pytest
 from typer.testing import CliRunner
 
 from cli.app import app
@@ -110,3 +112,61 @@ def test_errors_are_clear():
     assert res.exit_code == 2 and "no such file" in res.output
     res = runner.invoke(app, ["decode", str(real_file("gpsd", "hemi.log")), "-f", "pcapng"])
     assert res.exit_code == 2 and "neither pcapng nor pcap" in res.output
+
+
+def test_timing_offset_is_signed_not_wrapped_mod_one_day():
+    """The V3 capture's INS tags run 6.6 ms ahead of the capture stamps: −0.0066 s, not the
+    86399.993 s that ``offset % 86400`` printed."""
+    res = runner.invoke(
+        app,
+        [
+            "decode",
+            str(real_file("ixblue-stdbin", "stdbin_V3_2Hz.pcapng")),
+            "-f",
+            "pcapng",
+            "--port",
+            "8200",
+            "--timing",
+        ],
+        env={"COLUMNS": "120"},
+    )
+    assert res.exit_code == 0, res.output
+    (line,) = [ln for ln in res.stdout.splitlines() if "offset_s" in ln]
+    (value,) = re.findall(r"[-+]\d+\.\d+", line)
+    assert float(value) == pytest.approx(-0.0066, abs=0.0002) and "86399" not in res.stdout
+
+
+@pytest.mark.parametrize(
+    "fmt, content",
+    [
+        ("stdbin", "random"),
+        ("zfp", "random"),
+        ("nmea", "random"),
+        ("stdbin", "empty"),
+        ("nmea", "empty"),
+    ],
+)
+def test_a_file_without_a_valid_record_fails_and_says_what_was_skipped(tmp_path, fmt, content):
+    path = tmp_path / f"{content}.bin"
+    data = (
+        np.random.default_rng(7).integers(0, 256, 100_000, np.uint8).tobytes() if content == "random" else b""
+    )
+    path.write_bytes(data)
+    res = runner.invoke(app, ["decode", str(path), "-f", fmt])
+    assert res.exit_code == 2, res.output
+    (line,) = [ln for ln in res.stderr.splitlines() if ln.startswith("error:")]
+    assert f"{path}: no valid {fmt} record in {len(data)} bytes (" in line
+    if content == "empty":
+        assert line.endswith("(the file is empty)")
+    else:
+        assert re.search(r"\(\d+ bytes skipped", line), line
+
+
+def test_a_capture_without_a_datagram_on_the_port_fails():
+    path = real_file("ixblue-stdbin", "stdbin_V3_2Hz.pcapng")
+    res = runner.invoke(app, ["decode", str(path), "-f", "pcapng", "--port", "9999"])
+    assert res.exit_code == 2, res.output
+    assert (
+        f"error: {path}: no valid stdbin record in 17140 bytes (36 packets, 0 UDP datagrams to or "
+        "from port 9999; skipped other_port: 36)"
+    ) in res.stderr

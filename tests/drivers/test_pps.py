@@ -1,9 +1,11 @@
-"""PPS: gpsd's labelling rule, the UDP datagram, the RFC 2783 ioctl structs, the three sources."""
+"""PPS: the labelling rule (any feeding order, ambiguous late messages), the UDP datagram, the
+RFC 2783 ioctl structs, the three sources."""
 
 from __future__ import annotations
 
 import asyncio
 import errno
+import itertools
 import os
 import socket
 import struct
@@ -40,7 +42,9 @@ def test_pulse_is_labelled_by_a_time_message_within_1_1_s():
     (e,) = lab.add_time(1_400_000_000, int(100.115 * S))
     assert e.gps_s == 1_400_000_000 and e.sequence == 1 and e.host_ns == 100 * S
     lab.add_edge(edge(101.0, 2))
-    (e,) = lab.add_time(1_400_000_001, int(102.09 * S))  # 1.09 s later: still within 1.1 s
+    # 1.09 s later: still within 1.1 s, decided once no pulse can come between (the stream ends)
+    assert lab.add_time(1_400_000_001, int(102.09 * S)) == []
+    (e,) = lab.flush()
     assert e.sequence == 2
     assert lab.stats.records == 2 and not lab.stats.events
 
@@ -48,8 +52,9 @@ def test_pulse_is_labelled_by_a_time_message_within_1_1_s():
 def test_late_time_message_leaves_the_pulse_unlabelled():
     lab = PpsLabeler()
     lab.add_edge(edge(200.0, 1))
-    assert lab.add_time(7, int(201.2 * S)) == []  # 1.2 s: too late
+    assert lab.add_time(7, int(201.2 * S)) == [] and lab.flush() == []  # 1.2 s: too late
     assert lab.stats.events["unlabelled"] == 1 and lab.stats.events["time_without_edge"] == 1
+    assert lab.take_dropped() == [(edge(200.0, 1), "unlabelled")]
 
 
 def test_duplicates_are_dropped_and_counted():
@@ -74,6 +79,104 @@ def test_missed_message_then_next_second_labels_only_the_latest_pulse():
     lab.add_edge(edge(1.0, 2))
     (e,) = lab.add_time(61, int(1.1 * S))
     assert e.sequence == 2 and lab.stats.events["unlabelled"] == 1
+
+
+def _interleavings(a: list, b: list):
+    """Every merge of two sequences that keeps the order within each."""
+    for slots in itertools.combinations(range(len(a) + len(b)), len(a)):
+        ia, ib, out = iter(a), iter(b), []
+        for k in range(len(a) + len(b)):
+            out.append(next(ia) if k in slots else next(ib))
+        yield out
+
+
+def _feed(lab: PpsLabeler, records) -> list[tuple[int, int, int]]:
+    out = []
+    for r in records:
+        out += lab.add_edge(r) if isinstance(r, PpsEdge) else lab.add_time(*r)
+    out += lab.flush()
+    return [(e.sequence, e.gps_s, e.host_ns) for e in out]
+
+
+@pytest.mark.parametrize("warm", [0, 6], ids=["from-start", "latency-known"])
+def test_labels_do_not_depend_on_the_order_pulses_and_messages_are_fed_in(warm):
+    """Pulses 1 s apart (jittered), their ZDA 50 ms later, the 3rd ZDA missing and the 5th pulse
+    lost: fed in each of the 126 interleavings of the two streams — as a stalled event loop
+    hands over its backlog — the labels and the dropped pulses are the same, in host order."""
+    g0 = 1_400_000_000
+    h = [int((k + 0.00002 * (k % 3)) * S) for k in range(warm, warm + 6)]
+    pulses = [PpsEdge(h[k], "pps", warm + k + 1) for k in range(6) if k != 4]
+    messages = [(g0 + warm + k, h[k] + 50_000_000 + 300_000 * (k % 2)) for k in range(5) if k != 2]
+    results = set()
+    for order in _interleavings(pulses, messages):
+        lab = PpsLabeler()
+        for k in range(warm):  # the latency statistics of earlier, orderly seconds
+            lab.add_edge(PpsEdge(k * S, "pps", k + 1))
+            lab.add_time(g0 + k, k * S + 50_000_000)
+        lab.flush()
+        labels = _feed(lab, order)
+        assert [h for *_, h in labels] == sorted(h for *_, h in labels)
+        dropped = [(e.sequence, why) for e, why in lab.take_dropped()]
+        results.add((tuple(labels), tuple(dropped)))
+    assert len(results) == 1, results
+    ((labels, dropped),) = results
+    expected = [(warm + k + 1, g0 + warm + k) for k in (0, 1, 3)]
+    assert [(q, g) for q, g, _ in labels] == expected
+    assert dropped == ((warm + 3, "unlabelled"), (warm + 6, "unlabelled"))
+
+
+def _warm(lab: PpsLabeler, seconds: int, g0: int = 1_000) -> None:
+    for k in range(seconds):
+        lab.add_edge(PpsEdge(k * S, "pps", k + 1))
+        lab.add_time(g0 + k, k * S + 50_000_000 + 1_000_000 * (k % 2))
+
+
+def test_a_time_message_800_ms_late_labels_nothing_and_is_counted_ambiguous():
+    """ZDAs come 50 ms after their pulse; one comes 850 ms after it — 150 ms before the next
+    pulse, where an early message of that pulse would be: it could belong to either, so
+    neither is labelled by it (gpsd's rule would guess; a nearest-latency rule would take the
+    next pulse, 1 s wrong)."""
+    lab = PpsLabeler()
+    _warm(lab, 6)
+    lab.add_edge(PpsEdge(6 * S, "pps", 7))
+    assert lab.add_time(1_006, 6 * S + 850_000_000) == []
+    assert lab.add_edge(PpsEdge(7 * S, "pps", 8)) == []  # the late message is decided: nothing
+    (e,) = lab.add_time(1_007, 7 * S + 50_000_000)
+    assert (e.sequence, e.gps_s) == (8, 1_007)
+    assert lab.stats.events["time_ambiguous"] == 1
+    assert lab.last_ambiguous["gps_s"] == 1_006 and lab.last_ambiguous["latency_ns"] == 850_000_000
+    assert abs(lab.last_ambiguous["expected_ns"] - 50_500_000) <= 500_000
+    assert lab.last_ambiguous["tolerance_ns"] == 50_000_000
+    assert [(d.sequence, why) for d, why in lab.take_dropped()] == [(7, "ambiguous")]
+
+
+def test_a_lasting_latency_change_is_learnt_after_eight_ambiguous_messages():
+    lab = PpsLabeler()
+    _warm(lab, 6)
+    got = []
+    for k in range(6, 20):
+        got += lab.add_edge(PpsEdge(k * S, "pps", k + 1))
+        got += lab.add_time(1_000 + k, k * S + 700_000_000)  # from now on 700 ms after the pulse
+    got += lab.flush()
+    assert lab.stats.events["time_ambiguous"] == 8 and lab.stats.events["latency_relearned"] == 1
+    assert [(e.sequence, e.gps_s) for e in got] == [(k + 1, 1_000 + k) for k in range(14, 20)]
+
+
+def test_tick_judges_at_the_previous_tick_so_a_stall_does_not_expire_its_backlog():
+    lab = PpsLabeler()
+    _warm(lab, 6)
+    lab.tick(6 * S)
+    lab.add_edge(PpsEdge(6 * S + 10_000_000, "pps", 7))
+    # the loop stalls 2 s right after the pulse: the next tick comes late, before the backlog
+    assert lab.tick(8 * S + 50_000_000) == [] and lab.take_dropped() == []
+    (e,) = lab.add_time(1_006, 6 * S + 60_000_000)  # the backlog: the pulse's ZDA
+    assert (e.sequence, e.gps_s) == (7, 1_006)
+    # a pulse with no message is dropped by the first tick judged 1.1 s after it
+    lab.add_edge(PpsEdge(7 * S + 10_000_000, "pps", 8))
+    lab.tick(8 * S + 300_000_000)
+    assert lab.take_dropped() == []
+    lab.tick(8 * S + 600_000_000)  # judged at 8.3 s: 1.29 s after the pulse
+    assert [(d.sequence, why) for d, why in lab.take_dropped()] == [(8, "unlabelled")]
 
 
 def test_gps_second_of_a_time_tag():

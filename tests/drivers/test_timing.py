@@ -1,11 +1,16 @@
-"""Clock fit of device time tags against receive stamps: drift, offset, jitter, outlier gating."""
+"""Clock fit of device time tags against receive stamps: drift, offset, jitter, outlier gating;
+the host's realtime clock: steps counted, kernel stamps converted across a step, the fake."""
 
 from __future__ import annotations
+
+import time
 
 import numpy as np
 import pytest
 
+from drivers import timing
 from drivers.timing import DAY_NS, fit_clock, unwrap_time_of_day_ns
+from tests.drivers.helpers import fake_host_clock
 
 
 def test_fit_recovers_drift_offset_and_jitter_and_gates_outliers():
@@ -37,3 +42,45 @@ def test_unwrap_time_of_day_across_midnight():
 def test_fit_needs_three_samples():
     with pytest.raises(ValueError, match="length >= 3"):
         fit_clock([1, 2], [1, 2])
+
+
+def test_a_step_of_the_realtime_clock_is_counted_by_any_read_of_the_offset(tmp_path):
+    now = time.monotonic_ns()
+    with fake_host_clock(tmp_path / "host_clock", [(now + 50_000_000, -3_600 * 10**9)]) as fake:
+        before = timing.realtime_minus_monotonic_ns()
+        count = timing.HOST_CLOCK_STEPS.count
+        assert abs(before - time.clock_gettime_ns(time.CLOCK_REALTIME) + time.monotonic_ns()) < 1_000_000
+        time.sleep(0.06)
+        after = timing.realtime_minus_monotonic_ns()
+        assert abs(after - before + 3_600 * 10**9) < 1_000_000
+        assert timing.HOST_CLOCK_STEPS.count == count + 1
+        t, step = timing.HOST_CLOCK_STEPS.last
+        assert step == pytest.approx(-3_600 * 10**9, abs=1_000_000) and t >= now + 50_000_000
+        timing.realtime_minus_monotonic_ns()  # no second step
+        assert timing.HOST_CLOCK_STEPS.count == count + 1
+        # kernel stamps taken after the step move with it, those before do not
+        real_now = time.clock_gettime_ns(time.CLOCK_REALTIME)
+        assert fake.kernel_stamp(real_now) == real_now - 3_600 * 10**9
+        assert fake.kernel_stamp(real_now - 10**9) == real_now - 10**9
+
+
+@pytest.mark.parametrize("step_s", [-3600.0, 2.0])
+def test_realtime_stamps_taken_before_a_step_keep_their_offset(tmp_path, step_s):
+    """Kernel stamps of datagrams that arrived before the step and are read after it: converted
+    with the new offset they would move by the step; they keep the old one. (The raw stamps are
+    the real kernel's: ``convert`` moves those taken after the step, as the faked clock would.)"""
+    t0 = time.monotonic_ns()
+    with fake_host_clock(tmp_path / "host_clock", [(t0 + 30_000_000, round(step_s * 10**9))]):
+        stamps = timing.RealtimeStamps()
+        stamps.begin()
+        before = [t0 + k * 5_000_000 for k in range(1, 5)]  # monotonic arrivals before the step
+        real_off = time.clock_gettime_ns(time.CLOCK_REALTIME) - time.monotonic_ns()
+        time.sleep(0.04)
+        stamps.begin()  # the read, after the step
+        assert stamps.steps == 1 and not stamps.exact
+        read = time.monotonic_ns()
+        got = [stamps.convert(m + real_off, read) for m in before]
+        after = time.monotonic_ns() - 1_000_000
+        got.append(stamps.convert(after + real_off, read))  # a stamp after the step (faked by convert)
+        assert max(abs(g - m) for g, m in zip(got, before + [after])) < 500_000
+        assert (stamps.repaired, stamps.unknown) == (4, 0)

@@ -12,6 +12,7 @@ import pytest
 from sim_devices.clock import TruthClock
 from sim_devices.faults import KINDS, FaultError, FaultPlan, Timeline, load_faults, parse_faults
 from sim_devices.feed import make_feed
+from sim_devices.ins import InsSettings
 from sim_devices.runner import DeviceRun, DevicesSpec
 
 NS = 1_000_000_000
@@ -50,6 +51,9 @@ faults:
   - {at_s: 20.0, kind: profiler_clock_offset, offset_s: 1.0, duration_s: 5.0}
   - {at_s: 30.0, kind: profiler_clock_drift, drift_ppm: 100.0}
   - {at_s: 40.0, kind: ins_latency_jump, latency_s: 0.02, duration_s: 5.0}
+  - {at_s: 41.0, kind: zda_late, delay_s: 0.8, duration_s: 2.0}
+  - {at_s: 44.0, kind: leap_second, gps_minus_utc_s: 19, duration_s: 3.0}
+  - {at_s: 48.0, kind: host_clock_step, step_s: -3600.5}
   - {at_s: 50.0, kind: gnss_outage}
 """
 
@@ -66,6 +70,10 @@ def test_a_timeline_with_every_kind_loads_with_defaults():
     assert by["profiler_clock_drift"].duration_s is None and by["gnss_outage"].end_s == float("inf")
     assert by["gnss_outage"].params == {"position_drift_m_s": 0.05}
     assert by["pps_loss"].where == "faults.yaml:9:5: faults[6]"
+    assert by["zda_late"].device == "ins" and by["zda_late"].params == {"delay_s": 0.8}
+    assert by["leap_second"].params == {"gps_minus_utc_s": 19} and by["leap_second"].end_s == 47.0
+    step = by["host_clock_step"]
+    assert (step.device, step.duration_s, step.params) == ("host", 0.0, {"step_s": -3600.5})
     t = Timeline(plan.for_device("profiler"), GPS0)
     assert t.active("udp_loss", GPS0 + 10 * NS) is by["udp_loss"]
     assert t.active("udp_loss", GPS0 + 11 * NS) is None  # half-open window
@@ -126,6 +134,31 @@ def test_a_timeline_with_every_kind_loads_with_defaults():
             r"faults.yaml:2:3: fault: unknown key 'fault'; allowed keys here: faults, seed",
         ),
         ("faults: [\n", r"faults.yaml:2:1: not valid YAML"),
+        ("faults:\n  - {at_s: 1, kind: zda_late}\n", r"faults\[0\]: a zda_late fault needs 'delay_s'"),
+        (
+            "faults:\n  - {at_s: 1, kind: zda_late, delay_s: 0}\n",
+            r"faults.yaml:2:40: faults\[0\].delay_s: got 0, expected a number > 0",
+        ),
+        (
+            "faults:\n  - {at_s: 1, kind: leap_second, gps_minus_utc_s: 18.5}\n",
+            r"faults\[0\].gps_minus_utc_s: got 18.5, expected an integer",
+        ),
+        (
+            "faults:\n  - {at_s: 1, kind: leap_second, gps_minus_utc_s: 300}\n",
+            r"faults\[0\].gps_minus_utc_s: got 300, expected an integer ≤ 255",
+        ),
+        (
+            "faults:\n  - {at_s: 1, kind: host_clock_step, step_s: 0.001}\n",
+            r"step_s: got 0.001, expected a step of at least 0.01 s either way",
+        ),
+        (
+            "faults:\n  - {at_s: 1, kind: host_clock_step, step_s: 5, duration_s: 1}\n",
+            r"faults\[0\].duration_s: not a key of a host_clock_step fault; allowed: at_s, device, kind, step_s",
+        ),
+        (
+            "faults:\n  - {at_s: 1, kind: host_clock_step, device: ins, step_s: 5}\n",
+            r"faults\[0\].device: got 'ins', expected one of host",
+        ),
     ],
 )
 def test_bad_timelines_name_file_line_and_key(text, message):
@@ -151,6 +184,9 @@ def test_faults_outside_the_window_or_for_a_device_not_running_are_refused(short
     ):
         DeviceRun(feed, DevicesSpec(run_dir=tmp_path, devices=("ins",)), pps)
     assert FaultPlan().schedule(feed.start_gps_ns) == []
+    late_zda = parse_faults("faults:\n  - {at_s: 1, kind: zda_late, delay_s: 0.5}\n")
+    with pytest.raises(FaultError, match=r"faults\[0\]: zda_late needs an NMEA INS"):
+        DeviceRun(feed, DevicesSpec(run_dir=tmp_path, ins=InsSettings(protocol="stdbin")), late_zda)
 
 
 def test_the_documented_example_timeline_is_valid():

@@ -159,3 +159,20 @@ def test_site_file_is_checked_with_the_site_reader(tmp_path):
     (tmp_path / "site.yaml").write_text("mount: {}\ntargets: []\nstandoff_m: -3\n")
     with pytest.raises(VesselConfigError, match=re.escape("standoff_m: got -3")):
         parse_vessel_config(_minimal(site_file="site.yaml"), base_dir=tmp_path)
+
+
+def test_disk_low_thresholds_default_and_are_checked():
+    s = parse_vessel_config(_minimal()).session
+    assert (s.disk_warning_bytes, s.disk_critical_bytes) == (10 * 2**30, 2 * 2**30)
+    assert load_vessel_config(EXAMPLE).session.disk_critical_bytes == 2 * 2**30
+    text = _minimal().replace("{directory: logs}", "{directory: logs, disk_warning_mb: 500}")
+    s = parse_vessel_config(text).session  # a lower warning lowers the default critical level
+    assert (s.disk_warning_bytes, s.disk_critical_bytes) == (500 * 2**20, 100 * 2**20)
+    text = _minimal().replace(
+        "{directory: logs}", "{directory: logs, disk_warning_mb: 500, disk_critical_mb: 600}"
+    )
+    with pytest.raises(
+        VesselConfigError,
+        match=r"session.disk_critical_mb: got 600, expected a number ≤ disk_warning_mb \(500\)",
+    ):
+        parse_vessel_config(text)

@@ -58,6 +58,37 @@ def test_watchdog_pings_only_while_every_check_passes(notify_socket):
     assert wd.pings == 2
 
 
+def test_an_advisory_is_named_in_status_but_never_withholds_the_ping(notify_socket):
+    """A device that is not connected: systemd shows it (STATUS=), the watchdog keeps pinging
+    (a restart would not bring the device back)."""
+    down = {"ins": "[Errno 2] could not open port /dev/ttyUSB9: [Errno 2] No such file or directory"}
+
+    def devices():
+        return (not down, "; ".join(f"{n} not connected: {e}" for n, e in down.items()))
+
+    health = {"log": (True, "ok")}
+    wd = HealthWatchdog({"log": lambda: health["log"]}, advisories={"devices": devices})
+    assert wd.beat()
+    assert notify_socket.recv(4096) == (
+        b"STATUS=running, degraded: devices: ins not connected: [Errno 2] could not open port "
+        b"/dev/ttyUSB9: [Errno 2] No such file or directory"
+    )
+    assert notify_socket.recv(4096) == b"WATCHDOG=1"
+    assert wd.beat() and notify_socket.recv(4096) == b"WATCHDOG=1"  # no repeated status
+    health["log"] = (False, "log writer stalled")
+    assert not wd.beat()
+    assert notify_socket.recv(4096) == (
+        b"STATUS=unhealthy: log: log writer stalled; devices: ins not connected: [Errno 2] could not "
+        b"open port /dev/ttyUSB9: [Errno 2] No such file or directory"
+    )
+    health["log"] = (True, "ok")
+    down.clear()
+    assert wd.beat()
+    assert notify_socket.recv(4096) == b"STATUS=running"
+    assert notify_socket.recv(4096) == b"WATCHDOG=1"
+    assert wd.pings == 3
+
+
 def test_outside_systemd_nothing_is_sent(monkeypatch):
     monkeypatch.delenv("NOTIFY_SOCKET", raising=False)
     assert notify("READY=1") is False

@@ -267,6 +267,7 @@ def test_the_daemon_publishes_the_guidance_on_the_socket_and_mqtt(site_file, tmp
     assert g["tolerances"]["max_xte_m"] == 1.5 and g["tolerances"]["min_points_per_target"] == 40
     checks = {c["name"]: c for c in g["prechecks"]}
     assert list(checks) == [
+        "devices_connected",
         "ins_navigating",
         "gnss_fix",
         "pps_locked",
@@ -275,9 +276,17 @@ def test_the_daemon_publishes_the_guidance_on_the_socket_and_mqtt(site_file, tmp
         "disk_space",
         "mount_targets",
     ]
-    for name in ("ins_navigating", "gnss_fix", "pps_locked", "clock_locked", "mount_targets"):
+    for name in (
+        "devices_connected",
+        "ins_navigating",
+        "gnss_fix",
+        "pps_locked",
+        "clock_locked",
+        "mount_targets",
+    ):
         assert checks[name]["ok"] is True, checks[name]
     assert checks["mount_targets"]["detail"] == "mount, 2 targets"
+    assert checks["devices_connected"]["detail"] == "3 connected"
     assert checks["clock_locked"]["detail"].startswith("LOCKED")
     # the fake vessel lies ~700 m from the site, heading 57°: pass 1 is the next line
     assert g["active"]["pass_id"] == 1 and g["active"]["state"] == "approach"

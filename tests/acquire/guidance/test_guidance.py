@@ -304,6 +304,17 @@ def test_prechecks_name_each_failure(nav_flags, over, name, detail):
     assert sum(not x.ok for x in c.values()) == (2 if name == "clock_locked" or "last edge" in detail else 1)
 
 
+def test_prechecks_name_each_device_that_is_not_connected_with_its_error():
+    c = _checks(devices={"ins": "[Errno 2] No such file or directory: '/dev/ttyUSB9'", "profiler": None})
+    assert c["devices_connected"].ok is False and c["devices_connected"].label == "Devices"
+    assert c["devices_connected"].detail == "ins: [Errno 2] No such file or directory: '/dev/ttyUSB9'"
+    assert sum(not x.ok for x in c.values()) == 1
+    c = _checks(devices={"ins": None, "profiler": "[Errno 98] Address already in use"})
+    assert c["devices_connected"].detail == "profiler: [Errno 98] Address already in use"
+    c = _checks(devices={"ins": None, "profiler": None})
+    assert c["devices_connected"].ok is True and c["devices_connected"].detail == "2 connected"
+
+
 def test_prechecks_without_data_are_unknown_not_green():
     c = {x.name: x for x in prechecks(None, None)}
     assert c["ins_navigating"].ok is None and c["clock_locked"].ok is None

@@ -209,6 +209,26 @@ def test_data_gap_and_rate_drop():
     assert m.stats("ins").rate_hz == pytest.approx(100.0, abs=2.0)
 
 
+def test_a_device_that_never_delivers_is_a_data_gap_from_the_first_look():
+    """A device silent since the monitor first looked at it (the daemon's start: a port that
+    cannot be opened, a cable never plugged) raises the critical data_gap after ``gap``."""
+    m = monitor_with()
+    ticks = [m.tick(HOST0_NS + k * NS // 4) for k in range(13)]  # 0 … 3 s, no record
+    raises = [(k / 4, e.alarm.name) for k, evs in enumerate(ticks) for e in evs if e.action == "raise"]
+    assert raises == [(1.25, "data_gap")]  # > 1 s of silence
+    alarm = m.alarms.get("data_gap", "ins")
+    assert alarm.severity == "critical" and alarm.message == "no record for 3.00 s (none since start)"
+    assert m.stats("ins").last_age_ns is None and m.stats("ins").records == 0
+    events = m.observe("ins", HOST0_NS + 3 * NS + NS // 10, OFFSET_NS + HOST0_NS + 3 * NS)
+    assert [(e.action, e.alarm.name) for e in events] == [("clear", "data_gap")]
+    assert m.alarms.get("data_gap", "ins").message == "first record after 3.10 s"
+    # a device whose first record comes within ``gap`` of the first look raises nothing
+    m2 = monitor_with()
+    m2.tick(HOST0_NS)
+    events = stream(m2, "ins", 200, 5.0, lambda t: 8 * MS, t_start_s=0.9)
+    assert raised(events) == []
+
+
 def test_no_sync_check_without_a_locked_clock_or_a_time_tag():
     m = LatencyMonitor(StubClock(ClockState.UNLOCKED))
     m.add_device("ins", LatencyLimits(rate_hz=200.0))

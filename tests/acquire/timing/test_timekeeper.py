@@ -4,16 +4,19 @@ the CAN frame records — the daemon's record plumbing, without I/O."""
 from __future__ import annotations
 
 import asyncio
+import time
 
 import numpy as np
 import pytest
 
+from acquire.alarms import AlarmBook
 from acquire.log.batch import LogBatcher
 from acquire.timing.clock import ClockModel, ClockState
 from acquire.timing.timekeeper import ClockCache, TimeKeeper, coarse_gps_offset_ns
 from drivers.base import DriverError
 from drivers.can import can_frame_bytes, parse_can_frame
 from drivers.pps import PpsEdge
+from tests.drivers.helpers import fake_host_clock
 
 NS = 1_000_000_000
 H0 = 5_000 * NS  # host monotonic of the first pulse
@@ -131,3 +134,95 @@ def test_log_batcher_submit_many_stamps_as_submit_does_one_by_one():
     a.flush()
     b.flush()
     assert many == one and len(one) == 80 and one[4][3] == H0 + 4 and one[3][3] is None
+
+
+def _keeper(alarms, log=None):
+    return TimeKeeper(ClockModel(), log, alarms=alarms)
+
+
+def _pulses(tk, g0: int, seconds, latency_ns=50_000_000, late: dict | None = None):
+    """Pulses 1 s apart from H0 labelled from GPS second g0, their time message ``latency_ns``
+    after them (``late``: k → another latency), a tick after each."""
+    for k in seconds:
+        tk.on_edge(PpsEdge(H0 + k * NS, "pps", k + 1))
+        tk.on_time(g0 + k, H0 + k * NS + (late or {}).get(k, latency_ns))
+        tk.tick(H0 + k * NS + 900_000_000)
+
+
+def test_a_late_time_message_raises_time_ambiguous_and_its_pulse_is_logged_ambiguous():
+    alarms, log = AlarmBook(), Log()
+    tk = _keeper(alarms, log)
+    _pulses(tk, G0, range(8), late={6: 850_000_000})
+    a = alarms.get("time_ambiguous", "clock")
+    assert a is not None and a.active and a.severity == "warning"
+    assert f"GPS second {G0 + 6} came 850.0 ms after the latest pulse, expected 50.0 ± 50.0 ms" in a.message
+    reasons = {p["sequence"]: p["reason"] for _, p, _, _ in log.rows}
+    assert reasons[7] == "ambiguous" and reasons[8] == "accepted"
+    assert tk.clock.edges_accepted == 7 and tk.status()["time_ambiguous"] == 1
+    _pulses(tk, G0, range(8, 19))  # on time again: cleared 10 s after the last one
+    assert not alarms.is_active("time_ambiguous", "clock")
+    assert [e.action for e in alarms.drain() if e.alarm.name == "time_ambiguous"] == ["raise", "clear"]
+
+
+def test_leap_table_stale_past_the_expiry_and_a_mismatching_announced_gps_minus_utc():
+    from calib.core.frames import utc_fields_to_gps_ns
+
+    alarms = AlarmBook()
+    tk = _keeper(alarms)
+    _pulses(tk, utc_fields_to_gps_ns(2026, 12, 27, 86_390 * NS) // NS, range(6))  # the table's last day
+    assert not alarms.is_active("leap_table_stale", "clock")
+    _pulses(tk, utc_fields_to_gps_ns(2026, 12, 27, 86_390 * NS) // NS, range(6, 12))  # 10 s on: 2026-12-28
+    a = alarms.get("leap_table_stale", "clock")
+    assert a.active and "the leap-second table expired on 2026-12-28" in a.message
+    tk.on_gps_minus_utc(19)
+    tk.tick(H0 + 12 * NS)
+    m = alarms.get("leap_second_mismatch", "clock")
+    assert m.active and "applies GPS − UTC = 19 s, the leap-second table 18 s" in m.message
+    tk.on_gps_minus_utc(18)
+    tk.tick(H0 + 12 * NS + 250_000_000)
+    assert not alarms.is_active("leap_second_mismatch", "clock")
+    assert tk.status()["leap_table"]["expires"] == "2026-12-28"
+
+
+def test_a_step_of_the_host_clock_raises_host_clock_step_and_refreshes_the_seed(tmp_path):
+    alarms = AlarmBook()
+    now = time.monotonic_ns()
+    with fake_host_clock(tmp_path / "host_clock", [(now + 20_000_000, 5 * NS)]):
+        clock = ClockModel(coarse_offset_ns=coarse_gps_offset_ns())
+        tk = TimeKeeper(clock, alarms=alarms)
+        seed = clock.coarse_offset_ns
+        tk.tick(now)
+        assert not alarms.is_active("host_clock_step", "clock")
+        time.sleep(0.03)
+        tk.tick(now + 250_000_000)
+        a = alarms.get("host_clock_step", "clock")
+        assert a.active and "the host's realtime clock stepped by +5.000 s" in a.message
+        assert abs(clock.coarse_offset_ns - seed - 5 * NS) < 1_000_000
+        tk.tick(now + 11 * NS)
+        assert not alarms.is_active("host_clock_step", "clock")
+
+
+def test_the_daemon_takes_a_newer_iers_list_from_tzdata_and_names_what_it_did(tmp_path):
+    import datetime as dt
+
+    from calib.core import gpstime
+
+    def ntp(d: dt.date) -> int:
+        return (d - dt.date(1900, 1, 1)).days * 86_400
+
+    rows = "".join(f"{ntp(d)}\t{n + 19}\n" for d, n in gpstime.BUILTIN.steps)
+    newer = tmp_path / "leap-seconds.list"  # with a leap second on 2027-07-01, expiring later
+    newer.write_text(
+        f"#$\t{ntp(dt.date(2027, 1, 7))}\n#@\t{ntp(dt.date(2027, 12, 28))}\n{rows}{ntp(dt.date(2027, 7, 1))}\t38\n"
+    )
+    try:
+        tk = TimeKeeper(ClockModel(), leap_list=newer)
+        assert tk.leap_note == f"{newer} in use"
+        assert tk.status()["leap_table"]["expires"] == "2027-12-28"
+        july_2027_unix_ns = 1_814_400_000 * NS
+        assert gpstime.leap_table().gps_minus_utc_at_unix_ns(july_2027_unix_ns) == 19
+        assert TimeKeeper(ClockModel(), leap_list=newer).leap_note.endswith("not newer than the table in use")
+        newer.write_text("#@ 1\n")
+        assert "not used: " in TimeKeeper(ClockModel(), leap_list=newer).leap_note
+    finally:
+        gpstime.reset_leap_table()

@@ -150,7 +150,34 @@ POINTS_CASES = [
         "-1,1313000000.5,10.0,45.0,0.5\n",
         r"points\.csv:3:1: pass_id is -1\.0, expected a non-negative integer",
     ),
-    (3, "1,1313000000.5,-10.0,45.0,0.5\n", r"points\.csv:3:3: range_m is -10\.0, expected ≥ 0"),
+    (
+        3,
+        "1,1313000000.5,-10.0,45.0,0.5\n",
+        r"points\.csv:3:3: range_m is -10\.0, expected 0\.3…119 m \(the Z\+F 9012's range window\)",
+    ),
+    (3, "1,1313000000.5,0.29,45.0,0.5\n", r"points\.csv:3:3: range_m is 0\.29, expected 0\.3…119 m"),
+    (5, "1,1313000000.5,119.001,45.0,0.5\n", r"points\.csv:5:3: range_m is 119\.001, expected 0\.3…119 m"),
+    (
+        4,
+        "1,1313000000.2,10.0,360.0,0.5\n",
+        r"points\.csv:4:4: scan_angle_deg is 360\.0, expected 0 ≤ angle < 360 \(the scanner's full circle\)",
+    ),
+    (
+        3,
+        "1,1313000000.1,10.0,-0.5,0.5\n",
+        r"points\.csv:3:4: scan_angle_deg is -0\.5, expected 0 ≤ angle < 360",
+    ),
+    (
+        4,
+        "1,1313000000.2,10.0,45.0,1.5\n",
+        r"points\.csv:4:5: intensity is 1\.5, expected 0…1: the file holds fractions \(line 2: 0\.5\), "
+        r"read as reflectances 0…1; counts must all be whole numbers 0…65535",
+    ),
+    (
+        3,
+        "99999999999999999999,1313000000.1,10.0,45.0,0.5\n",
+        r"points\.csv:3:1: pass_id is 99999999999999999999, expected a non-negative integer ≤ 9223372036854775807",
+    ),
     (
         4,
         "1,1312999999.0,10.0,45.0,0.5\n",
@@ -292,3 +319,100 @@ def test_truth_json_errors(bundle_dir):
     (bundle_dir / "truth.json").write_text('{"boresight_deg": [1, 2,\n}')
     with pytest.raises(BundleError, match=r"truth\.json:2:1: not valid JSON"):
         read_truth(bundle_dir)
+
+
+HEADER = "pass_id,gps_time,range_m,scan_angle_deg,intensity\n"
+
+
+def test_pass_ids_are_int64_end_to_end(tmp_path):
+    """Survey line ids exceed 32 bits (and ids above 2⁵³ exceed float64): each keeps its own
+    pass, exactly, through reading and writing."""
+    big = 2**53 + 1  # float64 would read it as 2**53
+    path = tmp_path / "points.csv"
+    path.write_text(
+        HEADER
+        + "20240709001,10.0,10,0,0.5\n20240709001,11.0,10,0,0.5\n"
+        + "20240709002,10.5,10,0,0.5\n"
+        + f"{big - 1},12.0,10,0,0.5\n{big},12.5,10,0,0.5\n"
+    )
+    pts = read_points_csv(path)
+    assert pts.pass_id.dtype == np.int64
+    assert pts.pass_ids() == [20240709001, 20240709002, big - 1, big]
+    out = tmp_path / "again.csv"
+    from calib.io.bundle import write_points_csv
+
+    write_points_csv(out, pts)
+    assert out.read_text().splitlines()[4].startswith(f"{big - 1},")
+    np.testing.assert_array_equal(read_points_csv(out).pass_id, pts.pass_id)
+
+
+def test_intensity_has_one_scale_per_file_and_a_stray_value_names_its_line(tmp_path):
+    from calib.io.bundle import intensity_scale
+
+    path = tmp_path / "points.csv"
+    rows = [f"1,{10 + i},10,0,{v}\n" for i, v in enumerate((0.25, 1.0, 0.0))]
+    path.write_text(HEADER + "".join(rows))
+    assert intensity_scale(read_points_csv(path).intensity).describe() == "reflectance 0…1, ×65535"
+    counts = [f"1,{10 + i},10,0,{v}\n" for i, v in enumerate((120, 0, 65535, 7))]
+    path.write_text(HEADER + "".join(counts))
+    assert intensity_scale(read_points_csv(path).intensity).kind == "counts"
+    # one count beyond 16 bits, or below zero: refused at its line, never clipped or rescaled
+    for bad, line in (("70000", 4), ("-3", 5)):
+        edited = counts.copy()
+        edited[line - 2] = f"1,{10 + line - 2},10,0,{bad}\n"
+        path.write_text(HEADER + "".join(edited))
+        with pytest.raises(
+            BundleError, match=rf"points\.csv:{line}:5: intensity is {bad}\.0, expected 0…65535"
+        ):
+            read_points_csv(path)
+    # reflectances with one whole number above 1: the line of that value, not a rescaled file
+    path.write_text(HEADER + "".join(rows) + "1,13,10,0,2\n")
+    with pytest.raises(
+        BundleError, match=r"points\.csv:5:5: intensity is 2\.0, expected 0…1: .*\(line 2: 0\.25\)"
+    ):
+        read_points_csv(path)
+
+
+def test_a_directory_where_a_bundle_file_belongs_is_one_line(tmp_path, bundle_dir):
+    for name, message in (
+        ("points.csv", r"points\.csv: is a directory, expected a file"),
+        ("trajectory.csv", r"trajectory\.csv: is a directory, expected a file"),
+        ("site.yaml", r"site\.yaml: is a directory, expected a YAML file"),
+    ):
+        d = tmp_path / f"dir-{name}"
+        shutil.copytree(bundle_dir, d)
+        (d / name).unlink()
+        (d / name).mkdir()
+        with pytest.raises(BundleError, match=message):
+            read_bundle(d)
+    (bundle_dir / "truth.json").unlink()
+    (bundle_dir / "truth.json").mkdir()
+    with pytest.raises(BundleError, match=r"truth\.json: is a directory, expected a file"):
+        read_truth(bundle_dir)
+
+
+def test_passes_of_the_plan_and_of_the_points_are_compared(tmp_path, bundle_parts):
+    site, traj, pts = bundle_parts  # site plans passes 1 and 2
+    pts = ScanPoints(
+        np.where(pts.pass_id == 2, 7, 1), pts.t_gps_s, pts.range_m, pts.scan_angle_rad, pts.intensity
+    )
+    b = read_bundle(write_bundle(tmp_path / "b", site, traj, pts))
+    warnings = b.pass_warnings()
+    assert warnings == [
+        f"pass 2 planned in {b.path / 'site.yaml'} has no points in {b.path / 'points.csv'}",
+        f"{b.path / 'points.csv'} holds points of pass 7 (200 points) not planned in {b.path / 'site.yaml'}",
+    ]
+    (b.path / "site.yaml").write_text(SITE.replace(SITE.splitlines()[-1], ""))  # no passes listed
+    warnings = read_bundle(b.path).pass_warnings()
+    assert warnings[0].startswith(
+        f"passes 2, 3, 4, 5, 6 planned in {b.path / 'site.yaml'} (it lists no passes: the default "
+        f"six-fold plan, ids 1–6) have no points in"
+    )
+
+
+def test_write_bundle_leaves_no_file_of_another_bundle(tmp_path, bundle_dir, bundle_parts):
+    (bundle_dir / "trajectory.sbet").write_bytes(b"old")
+    (bundle_dir / "notes.txt").write_text("mine")
+    write_bundle(bundle_dir, *bundle_parts, compress_points=True)  # no truth this time
+    names = sorted(p.name for p in bundle_dir.iterdir())
+    assert names == ["notes.txt", "points.csv.gz", "site.yaml", "trajectory.csv"]

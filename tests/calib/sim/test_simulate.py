@@ -371,3 +371,20 @@ def test_cli_reports_bad_input_clearly(tmp_path):
     res = _run_cli(["--scenario", "nowhere", "--out", str(tmp_path / "x")])
     assert res.exit_code == 2 and "neither a shipped scenario" in res.output
     assert not (tmp_path / "x").exists()
+
+
+def test_the_scanner_records_only_ranges_measured_inside_its_window():
+    """A return that a range offset (and noise) puts beyond the window's edge is not recorded,
+    as on the real scanner (the bundle reader refuses ranges outside the physical window); a
+    scenario window beyond the Z+F 9012's physical one is refused."""
+    from calib.io.configfile import ConfigError
+
+    r = simulate("montreal", seed=5, overrides={"scanner.max_range_m": 15.5, "truth.range_offset_m": -0.05})
+    assert 0.3 <= r.points.range_m.min() and r.points.range_m.max() <= 15.5
+    assert len(r.points) == len(r.surface_index) == len(r.p_true_lgf_m)
+    for key, value in (("max_range_m", 150), ("min_range_m", 0.1)):
+        with pytest.raises(
+            ConfigError,
+            match=rf"scanner\.{key}: got {value}, expected a range within the scanner's physical window 0\.3…119 m",
+        ):
+            load_scenario("montreal", [f"scanner.{key}={value}"])

@@ -134,3 +134,28 @@ def test_real_capture_packets_and_stamps():
     steps = [b.timestamp_ns - a.timestamp_ns for a, b in zip(grams, grams[1:])]
     assert all(abs(s - 500_000_000) < 1_000_000 for s in steps)  # 2 Hz
     assert 1_550_000_000 < grams[0].timestamp_ns / 1e9 < 1_560_000_000  # February 2019
+
+
+def test_blocks_are_read_one_at_a_time_and_oversized_ones_skipped_unread(monkeypatch, tmp_path):
+    import drivers.capture.pcapng as pcapng
+
+    monkeypatch.setattr(pcapng, "MAX_BLOCK", 200)
+    cap = (
+        _shb("<")
+        + _idb("<", 1)
+        + _epb("<", 0, 1, _eth(_udp_ipv4(b"first")))
+        + _block("<", 5, b"\0" * 400)  # interface statistics: not read, whatever its size
+        + _epb("<", 0, 2, _eth(_udp_ipv4(b"x" * 300)))  # a body longer than MAX_BLOCK
+        + _epb("<", 0, 3, _eth(_udp_ipv4(b"last")))
+    )
+    path = tmp_path / "cap.pcapng"
+    path.write_bytes(cap)
+    reader = CaptureReader(path)
+    offsets = []
+    payloads = []
+    for g in udp_datagrams(reader):
+        payloads.append(g.payload)
+        offsets.append(reader.offset)
+    assert payloads == [b"first", b"last"]
+    assert dict(reader.stats.rejected) == {"oversized_block": 1}
+    assert offsets[-1] == reader.size == len(cap) and 0 < offsets[0] < offsets[-1]

@@ -221,6 +221,50 @@ def test_udp_loopback_datagrams_and_large_receive_buffer():
     assert all(isinstance(c.host_ns, int) for c in chunks) and chunks[0].host_ns <= chunks[-1].host_ns
 
 
+def test_a_udp_port_in_use_is_the_last_error_until_it_is_freed():
+    """The profiler's port bound by another process: the transport keeps retrying and says why
+    (``last_error``), and binds it once it is free."""
+    from drivers.transport.udp_batch import BatchUdpTransport
+
+    other = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    other.bind(("127.0.0.1", 0))
+    port = other.getsockname()[1]
+
+    async def run():
+        t = BatchUdpTransport(port, host="127.0.0.1", reconnect_min_s=0.02, reconnect_max_s=0.05)
+        async with t:
+            seen = (t.connected, t.last_error)
+            other.close()
+            assert await until(lambda: t.connected), "the freed port was not bound within 10 s"
+            return seen, t.last_error
+
+    try:
+        (connected, error), after = asyncio.run(run())
+    finally:
+        other.close()
+    assert not connected and error == "[Errno 98] Address already in use"
+    assert after is None
+
+
+def test_a_missing_serial_path_is_the_last_error_until_it_appears(tmp_path):
+    link = tmp_path / "ttyUSB9"
+
+    async def run():
+        t = SerialTransport(str(link), reconnect_min_s=0.02, reconnect_max_s=0.05)
+        async with t:
+            seen = t.last_error
+            pty = Pty(link)
+            assert await until(lambda: t.connected), "port not opened within 10 s"
+            after = t.last_error
+            pty.unplug()
+            assert await until(lambda: not t.connected), "the unplug was not seen within 10 s"
+            return seen, after, t.last_error
+
+    seen, after, unplugged = asyncio.run(run())
+    assert f"No such file or directory: '{link}'" in seen
+    assert after is None and unplugged
+
+
 def test_udp_drops_and_counts_when_the_consumer_lags():
     async def run():
         t = create_transport({"kind": "udp", "host": "127.0.0.1", "port": 0, "max_chunks": 10})

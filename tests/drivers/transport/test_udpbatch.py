@@ -11,6 +11,7 @@ import pytest
 
 from drivers.transport import recvmmsg
 from drivers.transport.registry import create_transport
+from tests.drivers.helpers import fake_host_clock
 
 pytestmark = pytest.mark.integration
 
@@ -93,3 +94,40 @@ def test_recvmmsg_counts_a_datagram_larger_than_its_slot_and_reads_on():
     assert all(t0 - 1_000_000 <= t <= t1 + 1_000_000 for t in stamps) and stamps == sorted(stamps)
     tx.close()
     rx.close()
+
+
+@pytest.mark.parametrize("step_s", [-3600.0, 2.5])
+def test_a_realtime_step_while_datagrams_wait_moves_no_stamp(tmp_path, step_s):
+    """The host's realtime clock steps (NTP) while the loop is blocked: the datagrams that
+    arrived before the step are read after it. Their kernel stamps are still converted to their
+    arrival times (the fake host clock of the simulated devices stands in for the step)."""
+
+    async def run(t0: int):
+        t = create_transport({"kind": "udp-batch", "host": "127.0.0.1", "port": 0, "coalesce_s": 0.005})
+        await t.open()
+        await asyncio.sleep(max(t0 - time.monotonic_ns(), 0) / 1e9)  # stamping on meanwhile
+        sent: list[int] = []
+
+        def sender():
+            s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+            for k in range(30):
+                time.sleep(max(t0 + k * 10_000_000 - time.monotonic_ns(), 0) / 1e9)
+                sent.append(time.monotonic_ns())
+                s.sendto(k.to_bytes(4, "little"), ("127.0.0.1", t.port))
+            s.close()
+
+        loop = asyncio.get_running_loop()
+        loop.call_later(0.08, time.sleep, 0.12)  # the loop stalls across the step (at 0.15 s)
+        send = asyncio.create_task(asyncio.to_thread(sender))
+        got = [await asyncio.wait_for(t.read(), 5) for _ in range(30)]
+        await send
+        await t.close()
+        return sent, got, t.stamps
+
+    t0 = time.monotonic_ns() + 200_000_000
+    with fake_host_clock(tmp_path / "host_clock", [(t0 + 150_000_000, round(step_s * 1e9))]):
+        sent, got, stamps = asyncio.run(run(t0))
+    assert [int.from_bytes(d, "little") for d, _ in got] == list(range(30))
+    errors = [h - s for s, (_, h) in zip(sent, got)]
+    assert max(abs(e) for e in errors) < 3_000_000, errors  # at arrival, none a step away
+    assert stamps.steps == 1 and stamps.repaired >= 3 and stamps.unknown == 0
