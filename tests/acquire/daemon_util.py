@@ -23,6 +23,21 @@ MLS = [sys.executable, "-m", "cli.app"]
 ROOT = Path(__file__).resolve().parents[2]
 
 
+def sim_devices_cmd(
+    run: Path, duration_s: float, faults: Path, prof: int, pps: int, *extra: str
+) -> list[str]:
+    """``mls sim devices`` as the live daemon tests run it: montreal from pass 1, the INS on a pty,
+    profiler and PPS over UDP to the given ports, the fault timeline ``faults``; ``extra`` adds
+    options (clock drift, jitter, speed)."""
+    return [
+        *MLS,
+        *("sim", "devices", "--scenario", "montreal", "--start", "pass:1"),
+        *("--duration", str(duration_s), "--faults", str(faults), *extra),
+        *("--devices", "ins,profiler,pps", "--profiler-port", str(prof), "--pps-port", str(pps)),
+        *("--run-dir", str(run)),
+    ]
+
+
 def free_port(kind=socket.SOCK_DGRAM) -> int:
     with socket.socket(socket.AF_INET, kind) as s:
         s.bind(("127.0.0.1", 0))

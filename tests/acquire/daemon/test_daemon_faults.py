@@ -38,6 +38,7 @@ from tests.acquire.daemon_util import (
     TruthClock,
     free_port,
     run_once,
+    sim_devices_cmd,
     sleep_until_host_ns,
     wait_until,
 )
@@ -154,33 +155,19 @@ def _fault_run(tmp: Path) -> dict:
         wait_until(lambda: notify.with_line("READY=1"), 30, "READY=1 from the daemon", daemon)
         sock.start()
         sim = Proc(
-            [
-                *MLS,
-                "sim",
-                "devices",
-                "--scenario",
-                "montreal",
-                "--start",
-                "pass:1",
-                "--duration",
-                str(DURATION_S),
+            sim_devices_cmd(
+                run,
+                DURATION_S,
+                tmp / "faults.yaml",
+                prof,
+                pps,
                 "--speed",
                 "1",
                 "--clock-drift-ppm",
                 "35",
                 "--pps-jitter-us",
                 "20",
-                "--faults",
-                str(tmp / "faults.yaml"),
-                "--devices",
-                "ins,profiler,pps",
-                "--profiler-port",
-                str(prof),
-                "--pps-port",
-                str(pps),
-                "--run-dir",
-                str(run),
-            ],
+            ),
             tmp / "sim.log",
         )
         procs.append(sim)

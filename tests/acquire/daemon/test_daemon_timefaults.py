@@ -34,6 +34,7 @@ from tests.acquire.daemon_util import (
     TruthClock,
     free_port,
     run_once,
+    sim_devices_cmd,
     wait_until,
 )
 
@@ -91,27 +92,7 @@ def _time_run(tmp: Path) -> dict:
         wait_until(lambda: notify.with_line("READY=1"), 30, "READY=1 from the daemon", daemon)
         sock.start()
         sim = Proc(
-            [
-                *MLS,
-                "sim",
-                "devices",
-                "--scenario",
-                "montreal",
-                "--start",
-                "pass:1",
-                "--duration",
-                str(DURATION_S),
-                "--faults",
-                str(tmp / "faults.yaml"),
-                "--devices",
-                "ins,profiler,pps",
-                "--profiler-port",
-                str(prof),
-                "--pps-port",
-                str(pps),
-                "--run-dir",
-                str(run),
-            ],
+            sim_devices_cmd(run, DURATION_S, tmp / "faults.yaml", prof, pps),
             tmp / "sim.log",
         )
         procs.append(sim)
