@@ -4,6 +4,7 @@ group from their own modules."""
 
 from __future__ import annotations
 
+from contextlib import contextmanager
 from pathlib import Path
 
 import typer
@@ -12,6 +13,18 @@ app = typer.Typer(
     help="Simulators: calibration datasets, device emulators, replays.",
     no_args_is_help=True,
 )
+
+
+@contextmanager
+def simulation_bar(console, description: str):
+    """The transient bar under which a command simulates, titled ``description``: yields ``(bar, task, progress)``, with
+    ``progress`` the callback ``simulate`` reports to."""
+    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn
+
+    columns = (TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn())
+    with Progress(*columns, console=console, transient=True) as bar:
+        task = bar.add_task(description, total=None)
+        yield bar, task, lambda done, total: bar.update(task, completed=done, total=total)
 
 
 @app.command("dataset")
@@ -57,7 +70,6 @@ def dataset(
 
     from rich import box
     from rich.console import Console
-    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn
     from rich.table import Table
 
     from calib.core.errors import MlsError
@@ -71,20 +83,8 @@ def dataset(
     t0 = time.perf_counter()
     try:
         check_output_dir(out, "--out", force)  # before simulating
-        with Progress(
-            TextColumn("[bold]{task.description}"),
-            BarColumn(),
-            MofNCompleteColumn(),
-            console=console,
-            transient=True,
-        ) as bar:
-            task = bar.add_task(f"simulating {scenario}", total=None)
-            result = simulate(
-                scenario,
-                seed,
-                overrides=overrides,
-                progress=lambda done, total: bar.update(task, completed=done, total=total),
-            )
+        with simulation_bar(console, f"simulating {scenario}") as (bar, task, progress):
+            result = simulate(scenario, seed, overrides=overrides, progress=progress)
             bar.update(task, description="writing the bundle")
             path = result.write(out, compress_points=compress)
     except (MlsError, OSError) as e:

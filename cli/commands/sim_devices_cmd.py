@@ -15,7 +15,7 @@ from pathlib import Path
 
 import typer
 
-from cli.commands.sim_cmd import app
+from cli.commands.sim_cmd import app, simulation_bar
 
 
 def _parse_devices(text: str) -> tuple[str, ...]:
@@ -288,7 +288,6 @@ def devices(
     PPS its pulses over UDP, the CAN emulator sends pass start/end markers. All share one truth
     clock (RUN_DIR/truth_clock.json). Ctrl-C stops them cleanly."""
     from rich.console import Console
-    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn
 
     from calib.core.errors import MlsError
     from calib.sim.simulate import simulate
@@ -331,20 +330,8 @@ def devices(
                 lead_s=lead_s,
             )
             plan = load_faults(faults) if faults is not None else FaultPlan()
-            with Progress(
-                TextColumn("[bold]{task.description}"),
-                BarColumn(),
-                MofNCompleteColumn(),
-                console=console,
-                transient=True,
-            ) as bar:
-                task = bar.add_task(f"simulating {scenario}", total=None)
-                sim = simulate(
-                    scenario,
-                    seed,
-                    overrides=overrides,
-                    progress=lambda done, total: bar.update(task, completed=done, total=total),
-                )
+            with simulation_bar(console, f"simulating {scenario}") as (bar, task, progress):
+                sim = simulate(scenario, seed, overrides=overrides, progress=progress)
                 feed = make_feed(sim, start, duration, ins_rate, "now" if time_base == "now" else 0)
             run = DeviceRun(feed, spec, plan)
         except (MlsError, ValueError, OSError) as e:  # ValueError: the emulators' settings
