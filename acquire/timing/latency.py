@@ -41,6 +41,18 @@ from acquire.timing.clock import ClockState, GpsEstimate
 NS_PER_S = 1_000_000_000
 MS = 1_000_000
 STEP_NS = NS_PER_S // 2  # a latency change this large is a time step, not a jump
+#: (raise after, clear after) in seconds of each alarm: its condition must hold (or be over) for
+#: this long of stream time before the alarm is raised (or cleared)
+ALARM_DELAYS_S: dict[str, tuple[float, float]] = {
+    "data_gap": (0.0, 0.0),
+    "rate_drop": (1.0, 2.0),
+    "pps_flag_lost": (0.0, 2.0),
+    "time_step": (0.0, 3.0),
+    "latency_jump": (0.0, 2.0),
+    "latency_out_of_band": (1.0, 3.0),
+    "latency_jitter": (2.0, 5.0),
+    "clock_drift": (5.0, 5.0),
+}
 
 
 class Clock(Protocol):
@@ -244,7 +256,8 @@ class LatencyMonitor:
 
         events: list[AlarmEvent] = []
 
-        def update(name, cond, message, severity=WARNING, raise_s=0.0, clear_s=0.0):
+        def update(name, cond, message, severity=WARNING):
+            raise_s, clear_s = ALARM_DELAYS_S[name]
             ev = self.alarms.update(
                 name,
                 d.name,
@@ -284,8 +297,6 @@ class LatencyMonitor:
                 drop,
                 f"{rate:.1f} records/s, nominal {lim.rate_hz:g}/s" if rate is not None else "",
                 WARNING,
-                raise_s=1.0,
-                clear_s=2.0,
             )
         if lim.expect_pps_flag and d.pps_flag is not None:
             update(
@@ -293,7 +304,6 @@ class LatencyMonitor:
                 not d.pps_flag,
                 "device reports no PPS/UTC sync" if not d.pps_flag else "device PPS flag back",
                 CRITICAL,
-                clear_s=2.0,
             )
 
         # sync check on the latency samples
@@ -332,7 +342,7 @@ class LatencyMonitor:
                 )
             else:
                 msg = f"latency back at {_fmt_ms(short_med)}"
-            update("time_step", is_step, msg, CRITICAL, clear_s=3.0)
+            update("time_step", is_step, msg, CRITICAL)
             threshold = lim.jump_ns if not jump_on else lim.jump_ns / 2
             is_jump = d.baseline is not None and threshold <= abs(dev) < STEP_NS
             relearned = False
@@ -349,7 +359,7 @@ class LatencyMonitor:
                 msg = f"latency settled at {_fmt_ms(short_med)}: new baseline"
             else:
                 msg = f"latency {_fmt_ms(short_med)}, within {lim.jump_ns / MS:g} ms of baseline"
-            ev = update("latency_jump", is_jump and not is_step, msg, WARNING, clear_s=2.0)
+            ev = update("latency_jump", is_jump and not is_step, msg, WARNING)
             if ev is not None:
                 d.level_since = now if ev.action == "raise" else None
             if (is_step, is_jump) != d.level:  # the latency changed level: statistics,
@@ -367,8 +377,6 @@ class LatencyMonitor:
                 oob,
                 f"mean {_fmt_ms(mean)}, p99 {_fmt_ms(p99)}, band [{lo / MS:g}, {hi / MS:g}] ms",
                 WARNING,
-                raise_s=1.0,
-                clear_s=3.0,
             )
             jit_lim = lim.max_sigma_ns if not active("latency_jitter") else 0.8 * lim.max_sigma_ns
             update(
@@ -376,8 +384,6 @@ class LatencyMonitor:
                 not step_now and sigma > jit_lim,
                 f"σ {sigma / MS:.3f} ms, limit {lim.max_sigma_ns / MS:g} ms",
                 WARNING,
-                raise_s=2.0,
-                clear_s=5.0,
             )
 
         self._close_bins(d, now)
@@ -391,8 +397,6 @@ class LatencyMonitor:
                 f"device time tags drift {drift:+.2f} ± {drift_sigma:.2f} ppm against the PPS "
                 f"clock (limit {lim.max_drift_ppm:g} ppm)",
                 WARNING,
-                raise_s=5.0,
-                clear_s=5.0,
             )
 
         d.stats = LatencyStats(

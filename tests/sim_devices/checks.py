@@ -57,6 +57,39 @@ def assert_nav_matches(nav, track: InsTrack, k: int, protocol: str) -> None:
         _close(got, float(want), sig_pos, name)
 
 
+def serial_emissions(chunks: list, heads: tuple[bytes, ...]) -> list[tuple[bytes, int, int]]:
+    """Where each emission of a serial stream arrived: ``(head, chunk, leader)`` for every
+    emission in stream order, an emission being what starts with one of ``heads`` (e.g.
+    ``b"$HEHDT,"`` for an NMEA epoch block, ``b"$GPZDA,"``) up to the next one; ``chunk`` indexes
+    the ``(host_ns, bytes)`` chunk that brought its first byte and ``leader`` the emission whose
+    byte starts that chunk (itself, or an earlier one).
+
+    A chunk is stamped when its first bytes are ready, before the read (:mod:`drivers.transport`):
+    the stamp is no earlier than the sending of the ``leader``'s bytes, but a reader thread
+    descheduled between the stamp and the read (a loaded machine) also takes in what was sent
+    meanwhile, and those later emissions carry the same earlier stamp."""
+    stream = b"".join(data for _, data in chunks)
+    starts = sorted((i, h) for h in heads for i in _positions(stream, h))
+    pos = np.array([p for p, _ in starts], dtype=np.int64)
+    chunk_end = np.cumsum([len(data) for _, data in chunks])
+    chunk_start = chunk_end - [len(data) for _, data in chunks]
+    out = []
+    for p, head in starts:
+        c = int(np.searchsorted(chunk_end, p, side="right"))
+        leader = int(np.searchsorted(pos, chunk_start[c], side="right")) - 1
+        assert leader >= 0, f"chunk {c} starts before the first emission"
+        out.append((head, c, leader))
+    return out
+
+
+def _positions(stream: bytes, head: bytes) -> list[int]:
+    out, i = [], stream.find(head)
+    while i >= 0:
+        out.append(i)
+        i = stream.find(head, i + 1)
+    return out
+
+
 def profile_bounds(grid: ProfileGrid, max_payload: int = 1400) -> tuple[int, float]:
     """(time bound ns, angle bound rad) of ZFP1's integer t0/dt and angle0/dangle along a packet."""
     n = max(n for _, n in packet_layout(grid.runs, max_payload))

@@ -27,6 +27,9 @@ from sim_devices.runner import DeviceRun, DevicesSpec
 #: shared 2-core machine (other tests, other workers), so a read can come this late
 RX_SLACK_NS = 200_000_000
 
+#: the emulators end by themselves after their window; on a loaded machine, this late at most
+FINISH_TIMEOUT_S = 30.0
+
 #: shortened passes (10 s lines, 2 s apart), no scan-angle noise: ZFP1 then carries the exact angles
 SHORT_PASSES = ["site.pass_length_m=20", "motion.pass_gap_s=2", "noise.scanner.sigma_scan_angle_deg=0"]
 
@@ -160,6 +163,13 @@ async def _capture_with_gc_off(
             loop_tasks.append(asyncio.create_task(can_pump()))
         while time.monotonic_ns() < end:
             await asyncio.sleep(0.05)
+        # on a loaded machine the emulators run late: read until they have ended (the INS keeps
+        # its pty open a while after its last write), then what is still in transit
+        finish = time.monotonic_ns() + round(FINISH_TIMEOUT_S * 1e9)
+        if run.running():
+            while run.running() and time.monotonic_ns() < finish:
+                await asyncio.sleep(0.05)
+            await asyncio.sleep(grace_s)
         for t in loop_tasks:
             t.cancel()
         await asyncio.gather(*loop_tasks, return_exceptions=True)

@@ -15,7 +15,7 @@ from sim_devices.clock import TruthClock
 from sim_devices.ins import InsSettings
 from sim_devices.profiler import packet_layout
 from sim_devices.runner import free_udp_port
-from tests.sim_devices.checks import assert_nav_matches, assert_profile_matches
+from tests.sim_devices.checks import assert_nav_matches, assert_profile_matches, serial_emissions
 from tests.sim_devices.harness import capture, slack
 
 pytestmark = [pytest.mark.integration, pytest.mark.xdist_group("sim_devices_live")]
@@ -50,20 +50,49 @@ def test_every_emulator_finished_and_the_truth_clock_file(cap):
     assert not (cap.run.run_dir / "ins").exists(), "the INS link outlived the run"
 
 
+def _earliest_stamps(cap) -> tuple[list[int], list[int]]:
+    """The earliest receive stamp of each NMEA epoch and of each ZDA: the scheduled instant of
+    the emission whose byte starts the chunk that brought the record's first byte (the decoder
+    stamps a record with that chunk's stamp). The emulator never sends before its schedule (its
+    own timing errors are all ≥ 0) and a chunk is stamped once its first byte is there, so that
+    bound holds. It is the record's own schedule, unless the reader, descheduled between stamping
+    a chunk and reading it, also took in the record sent meanwhile: see
+    :func:`tests.sim_devices.checks.serial_emissions`."""
+    assert cap.stats["ins"]["timing"]["error_min_us"] >= 0, "the INS sent before its scheduled instant"
+    ins, track = cap.run.spec.ins, cap.run.feed.ins
+    zda_head = b"$GPZDA,"
+    emissions = serial_emissions(cap.chunks, (b"$" + ins.talker.encode() + b"HDT,", zda_head))
+    first_s = -(-cap.run.feed.start_gps_ns // NS)
+    scheduled, k, s = [], 0, first_s  # jitter ≥ 0: host(t_k) + latency is an epoch's earliest
+    for head, _, _ in emissions:
+        if head == zda_head:
+            scheduled.append(cap.clock.host_ns(s * NS) + round(ins.zda_delay_s * NS))
+            s += 1
+        else:
+            scheduled.append(cap.clock.host_ns(int(track.gps_ns[k])) + round(ins.latency_s * NS))
+            k += 1
+    assert k == len(track) and s - first_s == len(cap.zda)
+    earliest = [(head, scheduled[leader]) for head, _, leader in emissions]
+    return [t for h, t in earliest if h != zda_head], [t for h, t in earliest if h == zda_head]
+
+
 def test_ins_nmea_stream_is_the_observed_trajectory(cap):
     track = cap.run.feed.ins
     assert len(cap.nav) == len(track) == 1000
     assert cap.nav_stats.rejected_total == 0 and cap.nav_stats.skipped_bytes == 0
     latency, jitter = 3_000_000, 500_000
+    earliest, _ = _earliest_stamps(cap)
     for k, nav in enumerate(cap.nav):
         assert_nav_matches(nav, track, k, "nmea")
         assert nav.date_source in ("zda", "host")  # the host's date before the first ZDA: right, as now
         assert nav.time_of_day_ns == utc_time_of_day_ns(nav.gps_ns)
         assert nav.navigation and nav.fine_alignment and not nav.alignment and not nav.dead_reckoning
         assert nav.gps_valid and nav.utc_detected and nav.pps_detected
-        # it left at host(t_k) + latency + U(0, jitter), received within the slack
+        # it left at host(t_k) + latency + U(0, jitter), received within the slack; stamped no
+        # earlier than the send of the first byte of its chunk (itself, when it starts its chunk)
         delay = nav.host_ns - cap.clock.host_ns(nav.gps_ns) - latency
-        assert -1_000_000 <= delay <= jitter + slack(cap, "ins"), f"epoch {k}: delay {delay} ns"
+        assert nav.host_ns >= earliest[k], f"epoch {k}: delay {delay} ns, before its chunk's first send"
+        assert delay <= jitter + slack(cap, "ins"), f"epoch {k}: delay {delay} ns"
     assert {n.date_source for n in cap.nav[100:]} == {"zda"}
 
 
@@ -71,12 +100,14 @@ def test_zda_once_per_second_after_each_pps_edge(cap):
     seconds = list(range(-(-cap.run.feed.start_gps_ns // NS), -(-cap.run.feed.end_gps_ns // NS)))
     assert len(cap.zda) == len(seconds) == 10
     edges = {e.sequence: e.host_ns for _, e in cap.pps}
-    for zda, s, seq in zip(cap.zda, seconds, range(1, 11)):
+    _, earliest = _earliest_stamps(cap)
+    for zda, s, seq, lowest in zip(cap.zda, seconds, range(1, 11), earliest):
         assert zda.time_of_day_ns == utc_time_of_day_ns(s * NS)
         after = zda.host_ns - edges[seq]
-        assert 50_000_000 - 200_000 <= after <= 50_000_000 + slack(cap, "ins"), (
-            f"ZDA {s}: {after} ns after its edge"
-        )
+        # sent 50 ms after host(s) (the edge's stamp: host(s) ± its 80 µs jitter), stamped no
+        # earlier than the send of the first byte of its chunk (itself, when it starts its chunk)
+        assert zda.host_ns >= lowest, f"ZDA {s}: {after} ns after its edge, before its chunk's first send"
+        assert after <= 50_000_000 + slack(cap, "ins"), f"ZDA {s}: {after} ns after its edge"
 
 
 def test_profiler_stream_is_the_scenario_returns(cap, short_sim):

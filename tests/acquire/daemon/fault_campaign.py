@@ -111,8 +111,19 @@ DELAYS: dict[tuple[str, str], dict[str, tuple[str, float]]] = {
 # Alarms a fault may raise besides its own (never required, never elsewhere, cleared in time:
 # :func:`_optional_windows`): ``clock_holdover`` when the INS unplug or the late ZDAs leave the
 # pulses unlabelled for more than 1.5 s (§6.1), and for the monitor round after the loop stall
-# (that round judges the clock before the pulses of the backlog are labelled); at the end of
-# the run, when the emulators stop, the gaps and the INS pty going away.
+# (that round judges the clock before the pulses of the backlog are labelled), as ``data_gap``
+# of the INS or profiler (it may judge them silent before their backlog's records are handled:
+# seen under load, the profiler's kernel stamps without a gap); at the end of the run, when
+# the emulators stop, the gaps and the INS pty going away.
+# Alarms on a device's latency statistics (``time_step``, ``latency_jump``, ``latency_out_of_band``,
+# ``latency_jitter``, ``clock_drift``) that the same records raise when replayed through the same
+# monitor with the emulators' truth clock in place of the daemon's clock model
+# (:mod:`tests.acquire.daemon.latency_truth`): they are about the latency the devices really
+# arrived with on this host — on a loaded machine (CI's whole suite on two cores) the emulators
+# send late and the serial reader thread stamps late, by tens of ms at times — not about the
+# daemon's clock (a re-anchor at a relock, a wrong label: the replay does not raise those). One
+# may be raised from the alarm's raise delay + SLACK_S before the replay raises it until the
+# replay clears it, and must clear by the replay's clear + the alarm's clear delay (+ SLACK_S).
 ENVIRONMENT = {"leap_table_stale"}  # depends on the host's date and tzdata, not on the faults
 
 

@@ -46,6 +46,7 @@ import pytest
 from acquire.daemon.supervisor import LOSS_CLEAR_S
 from acquire.log.read import iter_messages
 from acquire.log.recover import session_info
+from acquire.timing.latency import ALARM_DELAYS_S
 from tests.acquire.daemon.fault_campaign import (
     DELAYS,
     ENVIRONMENT,
@@ -60,6 +61,7 @@ from tests.acquire.daemon.fault_campaign import (
     ZDA_LATE_S,
     run_campaign,
 )
+from tests.acquire.daemon.latency_truth import replay_latency_alarms
 from tests.acquire.daemon_util import MLS, ROOT, Recording, TruthClock, run_once
 
 pytestmark = [pytest.mark.integration, pytest.mark.slow, pytest.mark.xdist_group("fault-campaign")]
@@ -161,10 +163,28 @@ def _first(log: list, action: str, name: str, device: str, from_ns: int) -> tupl
     )
 
 
-def _optional_windows(r: dict) -> list[tuple[str, str, int, int, int]]:
+def _latency_truth_windows(r: dict) -> list[tuple[str, str, int, int, int | None]]:
+    """The windows of the latency alarms the replay on the truth clock raises too (the comment
+    above :data:`ENVIRONMENT`); cleared by None: the replay's alarm lasts to the end of the run."""
+    vessel = Path(r["run_dir"]).parent / "vessel.yaml"
+    out = []
+    for name, device, on, off in replay_latency_alarms(r["session"], r["truth"], vessel):
+        raise_s, clear_s = ALARM_DELAYS_S[name]
+        lo = on - round((raise_s + SLACK_S) * NS)
+        if off is None:
+            end = _instants(r)["end"] + round(60 * NS)  # the daemon evaluates until it is stopped
+            out.append(("devices' latency (truth clock)", f"{name}/{device}", lo, end, None))
+        else:
+            hi = max(_due(r, on, raise_s), off)
+            out.append(("devices' latency (truth clock)", f"{name}/{device}", lo, hi, _due(r, off, clear_s)))
+    return out
+
+
+def _optional_windows(r: dict) -> list[tuple[str, str, int, int, int | None]]:
     """(fault, alarm/device, raised from, raised by, cleared by) of the alarms a fault may raise
-    besides its own, and of the end of the run (the emulators stop: the devices go quiet and the
-    INS pty goes away; the daemon is stopped 1.5 s later)."""
+    besides its own, of the alarms the devices' real latency raises (:func:`_latency_truth_windows`)
+    and of the end of the run (the emulators stop: the devices go quiet and the INS pty goes away;
+    the daemon is stopped 1.5 s later)."""
     t = _instants(r)
 
     def s(seconds: float) -> int:
@@ -181,6 +201,10 @@ def _optional_windows(r: dict) -> list[tuple[str, str, int, int, int]]:
         ("INS unplugged", holdover, t["unplug (the last record)"], unplug_by, unplug_by),
         ("ZDA late 0.8 s", holdover, t["the first late ZDA"] - s(1.0), zda_by, zda_by),
         ("2-s loop stall", holdover, t["stall start"], stall_by, stall_by),
+        *(
+            ("2-s loop stall", f"data_gap/{d}", t["stall start"], stall_by, stall_by)
+            for d in ("ins", "profiler")
+        ),
         (
             "profiler port stolen",
             "packet_loss/profiler",
@@ -192,6 +216,7 @@ def _optional_windows(r: dict) -> list[tuple[str, str, int, int, int]]:
             ("end of the run", k, t["end"] - s(0.1), t["end"] + s(60), t["end"] + s(60))
             for k in ("device_unavailable/ins", "data_gap/ins", "data_gap/profiler", holdover)
         ),
+        *_latency_truth_windows(r),
     ]
 
 
@@ -284,7 +309,7 @@ def test_no_alarm_is_raised_without_a_fault_and_none_is_left_raised(campaign):
             unexplained.append(f"{key} {(h - t['start']) / NS:.3f} s into the run: {a['message']}")
             continue
         fault, deadline = window
-        if fault != "end of the run":
+        if fault != "end of the run" and deadline is not None:
             clear = _first(log, "clear", a["name"], a["device"], h + 1)
             if clear is None or clear[0] > deadline:
                 hanging.append(

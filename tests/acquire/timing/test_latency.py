@@ -270,6 +270,41 @@ def test_with_the_real_clock_model_fed_by_pps_edges():
     assert s.sigma_ns < 0.1 * MS  # only the clock model's own error remains
 
 
+def test_a_relock_after_unlabelled_pulses_does_not_move_the_latency():
+    """The fault campaign's late ZDAs: three pulses go unlabelled (HOLDOVER), then the next
+    labelled pulse relocks the clock model; the samples before, during and after are on one
+    line (host drifts 35 ppm, PPS jitter 20 µs), so a jitter or jump alarm would be the device's."""
+    rng = np.random.default_rng(5)
+    clock = ClockModel()
+    rate = 1 + 35e-6  # GPS ns per host ns
+    gps0 = OFFSET_NS + HOST0_NS
+
+    def host_of(gps_ns):
+        return HOST0_NS + round((gps_ns - gps0) / rate)
+
+    m = LatencyMonitor(clock, AlarmBook(to_gps=clock.gps_ns))
+    m.add_device("ins", LatencyLimits(band_ns=(0, 30 * MS), rate_hz=100.0))
+    events, states, next_edge, lat = [], [], 1, []
+    for k in range(100 * 40):
+        true_gps = gps0 + k * 10 * MS
+        while gps0 + next_edge * NS + 300 * MS <= true_gps:  # labelled 0.3 s after the pulse
+            if next_edge not in (20, 21, 22):  # their time messages came too late: unlabelled
+                clock.add_edge(
+                    host_of(gps0 + next_edge * NS) + round(rng.normal(0, 20_000)), gps0 // NS + next_edge
+                )
+            next_edge += 1
+        host = host_of(true_gps) + 3 * MS + round(rng.uniform(0, 0.5 * MS))
+        events += m.observe("ins", host, true_gps)
+        states.append(clock.state_at(host))
+        lat.append(clock.to_gps(host).gps_ns - true_gps)
+    assert states[100 * 22] == ClockState.HOLDOVER and states[-1] == ClockState.LOCKED
+    assert not [e.alarm.name for e in events if e.action == "raise"]
+    # the latency through the relock: the device's own 3–3.5 ms, the clock model's error aside
+    lat_ms = np.array(lat[100 * 10 :]) / MS
+    assert 3.0 - 0.1 <= lat_ms.min() and lat_ms.max() <= 3.5 + 0.1
+    assert m.stats("ins").sigma_ns < 0.2 * MS
+
+
 def test_real_capture_nbp1406_zda_latency_115ms():
     """Seapath 330 ZDA on a ship's logger: host receive − ZDA time tag ≈ 115 ms, σ ≈ 0.35 ms."""
     path = REAL / "openrvdas-nbp1406" / "NBP1406_s330-2014-08-01"
