@@ -104,6 +104,10 @@ class Site:
     reference: frames.LocalFrame | None = None
     vessel: str = "vessel"
     sigma_range_m: float = 0.003
+    #: range noise growing with range (m per m), and the beam divergence (full angle): on a
+    #: surface seen at incidence θ the footprint adds ρ·(divergence/2)·tan θ to the range σ
+    sigma_range_per_m: float = 0.0
+    beam_divergence_rad: float = 0.0
     sigma_scan_angle_rad: float = float(np.radians(0.005))
     sigma_position_m: np.ndarray = field(default_factory=lambda: np.array([0.02, 0.02, 0.03]))
     sigma_attitude_rad: np.ndarray = field(default_factory=lambda: np.radians([0.012, 0.012, 0.012]))
@@ -145,6 +149,10 @@ class Site:
             "sigma_range_m": float(self.sigma_range_m),
             "sigma_scan_angle_deg": float(np.degrees(self.sigma_scan_angle_rad)),
         }
+        if self.sigma_range_per_m:
+            d["scanner"]["sigma_range_per_m"] = float(self.sigma_range_per_m)
+        if self.beam_divergence_rad:
+            d["scanner"]["beam_divergence_mrad"] = float(self.beam_divergence_rad * 1e3)
         d["pos_sigmas"] = {
             "position_m": [float(x) for x in self.sigma_position_m],
             "attitude_deg": [float(x) for x in np.degrees(self.sigma_attitude_rad)],
@@ -245,9 +253,15 @@ def site_from_node(root: Node) -> Site:
     if "reference" in top:
         kw["reference"] = frames.LocalFrame(*_geodetic(top["reference"]))
     if "scanner" in top:
-        sm = top["scanner"].mapping(optional={"sigma_range_m", "sigma_scan_angle_deg"})
+        sm = top["scanner"].mapping(
+            optional={"sigma_range_m", "sigma_scan_angle_deg", "sigma_range_per_m", "beam_divergence_mrad"}
+        )
         if "sigma_range_m" in sm:
             kw["sigma_range_m"] = sm["sigma_range_m"].number(0.0, exclusive_minimum=True)
+        if "sigma_range_per_m" in sm:
+            kw["sigma_range_per_m"] = sm["sigma_range_per_m"].number(0.0, 0.01)
+        if "beam_divergence_mrad" in sm:
+            kw["beam_divergence_rad"] = sm["beam_divergence_mrad"].number(0.0, 20.0) * 1e-3
         if "sigma_scan_angle_deg" in sm:
             kw["sigma_scan_angle_rad"] = float(
                 np.radians(sm["sigma_scan_angle_deg"].number(0.0, exclusive_minimum=True))

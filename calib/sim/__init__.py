@@ -2,7 +2,9 @@
 
 Modules, each importing only modules above it:
 
-- ``scene``: planar rectangles and exact, vectorized ray casting against them;
+- ``surfaceshape``: a surface's waviness and roughness, a fixed displacement field along its
+  normal, and where a ray meets the displaced surface;
+- ``scene``: planar rectangles (optionally shaped) and exact, vectorized ray casting against them;
 - ``motion``: vessel motion along a pass plan → the true trajectory;
 - ``noise``: random errors of the scanner's observations and of the POS;
 - ``scenario``: a scenario (surfaces in the site frame, injected errors, scanner, motion and

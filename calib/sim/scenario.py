@@ -8,12 +8,13 @@ Scene coordinates are given in the *site frame*: ``along_m`` along the wall dire
 the left of the wall direction, so pass 0° sees the wall to starboard) and ``up_m`` above the
 scanner's mean height. The site frame's origin is the scenario's ``reference`` point, which is
 also the origin of the LGF (NED) the simulation and the bundle use. A surface faces the water
-unless ``facing_deg`` turns it (clockwise seen from above).
+unless ``facing_deg`` turns it (clockwise seen from above). A surface may have a shape
+(waviness and roughness, :mod:`calib.sim.surfaceshape`); its rectangle is then its mean plane.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -25,6 +26,7 @@ from calib.io.site import PassSpec, Site, Target
 from calib.sim.motion import MotionModel
 from calib.sim.noise import PosNoise, ScannerNoise
 from calib.sim.scene import Scene
+from calib.sim.surfaceshape import SurfaceShape
 
 # -- the scenario ---------------------------------------------------------------------------
 
@@ -43,6 +45,7 @@ class Surface:
     inclination_rad: float = float(np.pi / 2)
     facing_rad: float = 0.0  # relative to the water-facing direction
     reflectivity: float = 0.9
+    shape: SurfaceShape | None = None  # waviness and roughness; None = flat
 
 
 @dataclass(frozen=True)
@@ -173,7 +176,11 @@ class Scenario:
         )
 
     def scene(self) -> Scene:
-        return Scene(tuple(self.rectangle(s) for s in self.surfaces), tuple(s.kind for s in self.surfaces))
+        return Scene(
+            tuple(self.rectangle(s) for s in self.surfaces),
+            tuple(s.kind for s in self.surfaces),
+            tuple(s.shape for s in self.surfaces),
+        )
 
     def _targets(self, kind: str) -> tuple[Target, ...]:
         out = []
@@ -204,6 +211,8 @@ class Scenario:
         sn, pn = self.scanner_noise, self.pos_noise
         if sn.sigma_range_m > 0:
             kw["sigma_range_m"] = sn.sigma_range_m
+        kw["sigma_range_per_m"] = sn.sigma_range_per_m
+        kw["beam_divergence_rad"] = sn.beam_divergence_rad
         if sn.sigma_scan_angle_rad > 0:
             kw["sigma_scan_angle_rad"] = sn.sigma_scan_angle_rad
         if pn.model != "none" and np.all(pn.sigma_position_m > 0):
@@ -247,3 +256,9 @@ class Scenario:
             "motion": self.motion.to_dict(),
             "noise": {"scanner": self.scanner_noise.to_dict(), "pos": self.pos_noise.to_dict()},
         }
+
+
+def with_flat_surfaces(scenario: Scenario) -> Scenario:
+    """``scenario`` with every surface exactly planar (no waviness, no roughness): what the
+    scenario key ``scene.flat_surfaces: true`` gives."""
+    return replace(scenario, surfaces=tuple(replace(s, shape=None) for s in scenario.surfaces))

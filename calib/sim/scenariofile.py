@@ -1,5 +1,7 @@
 """Scenario files: YAML files (shipped ones by name, or any path), validated with errors that
-name the file, line, key and value, with ``key=value`` overrides on dotted keys, read into a
+name the file, line, key and value, with ``key=value`` overrides on dotted keys (a list item
+by index or, for a list of named items, by name: ``scene.surfaces.quay_wall.roughness_m=0`` or
+``scene.surfaces[quay_wall].roughness_m=0``), read into a
 :class:`~calib.sim.scenario.Scenario` (whose docstring describes the site frame the scene's
 coordinates are given in).
 
@@ -9,7 +11,9 @@ The shipped scenarios (``calib/sim/scenarios/*.yaml``) document every key.
 from __future__ import annotations
 
 import datetime as _dt
+import re
 from collections.abc import Mapping, Sequence
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -30,6 +34,7 @@ from calib.sim.motion import MotionModel, Wave
 from calib.sim.noise import POS_NOISE_MODELS, PosNoise, ScannerNoise
 from calib.sim.scenario import InjectedErrors, ScannerModel, Scenario, Surface
 from calib.sim.scene import BACKGROUND_KINDS
+from calib.sim.surfaceshape import SurfaceShape
 
 SCENARIO_DIR = Path(__file__).resolve().parent / "scenarios"
 #: When a scenario gives no ``start_utc``: the day of the thesis's Montreal survey.
@@ -81,6 +86,9 @@ def parse_scenario(
 # -- overrides ------------------------------------------------------------------------------
 
 
+_BRACKETS = re.compile(r"\[([^\[\]]*)\]")
+
+
 def _override_nodes(overrides) -> list[tuple[str, Node]]:
     items: list[tuple[str, str]] = []
     if isinstance(overrides, Mapping):
@@ -96,6 +104,7 @@ def _override_nodes(overrides) -> list[tuple[str, Node]]:
             items.append((key, text))
     out = []
     for key, text in items:
+        key = _BRACKETS.sub(r".\1", key)  # a[b].c → a.b.c
         if any(not part for part in key.split(".")):
             raise ConfigError(f"--set {key}: empty part in the dotted key")
         out.append((key, load_yaml(text, source="--set")))
@@ -128,12 +137,21 @@ def _set(node: Node, key: str, value: Node, full_key: str | None = None) -> Node
             new = _reroot(value, child_path)
         return Node({**node.value, head: new}, node.path, node.source, node.line, node.column)
     if isinstance(node.value, list):
-        if not head.isdigit() or int(head) >= len(node.value):
+        names = [
+            c.value["name"].value if isinstance(c.value, dict) and "name" in c.value else None
+            for c in node.value
+        ]
+        if head.isdigit() and int(head) < len(node.value):
+            i = int(head)
+        elif not head.isdigit() and names.count(head) == 1:
+            i = names.index(head)
+        else:
+            named = [str(n) for n in names if n is not None]
             raise ConfigError(
                 f"--set {full_key}: {head!r} is not an index of the "
                 f"{len(node.value)}-item list at {node.where()}"
+                + (f" nor the name of one of its items ({', '.join(named)})" if named else "")
             )
-        i = int(head)
         items = list(node.value)
         items[i] = _set(items[i], rest, value, full_key) if rest else _reroot(value, f"{node.path}[{i}]")
         return Node(items, node.path, node.source, node.line, node.column)
@@ -180,7 +198,36 @@ def _start_gps_s(n: Node) -> float:
     return frames.gps_ns_to_seconds(frames.utc_to_gps_ns(v))
 
 
-_SURFACE_KEYS = {"along_m", "out_m", "up_m", "size_m", "inclination_deg", "facing_deg", "reflectivity"}
+_SURFACE_KEYS = {
+    "along_m",
+    "out_m",
+    "up_m",
+    "size_m",
+    "inclination_deg",
+    "facing_deg",
+    "reflectivity",
+    "waviness",
+    "roughness_m",
+}
+
+
+def _shape(m: dict[str, Node]) -> SurfaceShape | None:
+    """A surface's ``waviness: {amplitude_m, wavelength_m: [shortest, longest]}`` and
+    ``roughness_m`` (both RMS, metres); None (flat) when neither is given."""
+    if "waviness" not in m and "roughness_m" not in m:
+        return None
+    amplitude, wavelength = 0.0, SurfaceShape().waviness_wavelength_m
+    if "waviness" in m:
+        w = m["waviness"].mapping(required={"amplitude_m", "wavelength_m"})
+        amplitude = w["amplitude_m"].number(0.0)
+        node = w["wavelength_m"]
+        lo, hi = node.vector(2)
+        if not (lo > 0 and hi > 0):
+            raise node.fail("[shortest, longest] wavelengths in metres, both > 0")
+        if lo > hi:
+            raise node.fail("[shortest, longest] wavelengths in metres, shortest first")
+        wavelength = (float(lo), float(hi))
+    return SurfaceShape(amplitude, wavelength, _opt(m, "roughness_m", _nonneg, 0.0))
 
 
 def _surface(n: Node, kind: str | None, default_reflectivity: float) -> Surface:
@@ -203,11 +250,12 @@ def _surface(n: Node, kind: str | None, default_reflectivity: float) -> Surface:
         inclination_rad=float(np.radians(_opt(m, "inclination_deg", _number(-90.0, 90.0), 90.0))),
         facing_rad=float(np.radians(_opt(m, "facing_deg", _number(-360.0, 360.0), 0.0))),
         reflectivity=_opt(m, "reflectivity", _number(0.0, 1.0), default_reflectivity),
+        shape=_shape(m),
     )
 
 
 def _scene(n: Node) -> tuple[Surface, ...]:
-    m = n.mapping(required={"targets"}, optional={"validation_planes", "surfaces"})
+    m = n.mapping(required={"targets"}, optional={"validation_planes", "surfaces", "flat_surfaces"})
     out = [_surface(t, "target", 0.9) for t in m["targets"].sequence(min_len=1)]
     if "validation_planes" in m:
         out += [_surface(t, "validation", 0.6) for t in m["validation_planes"].sequence()]
@@ -217,6 +265,8 @@ def _scene(n: Node) -> tuple[Surface, ...]:
     for i, name in enumerate(names):
         if name in names[:i]:
             raise n.fail(f"unique surface names ({name!r} appears twice)")
+    if _opt(m, "flat_surfaces", Node.boolean, False):  # every surface planar, whatever it says
+        out = [replace(s, shape=None) for s in out]
     return tuple(out)
 
 

@@ -6,7 +6,9 @@ A ray ``x = o + ρ·d`` (``d`` a unit vector) hits rectangle ``j`` at
     ρ_j = n_j·(c_j − o) / (n_j·d),     inside when |u_j·(x − c_j)| ≤ w_j/2 and |v_j·(x − c_j)| ≤ h_j/2
 
 and the nearest hit in ``[min_range, max_range]`` wins; everything else (water, sky) gives no
-return. Both faces of a rectangle return.
+return. Both faces of a rectangle return. A surface may have a shape (waviness, roughness: a
+fixed displacement field along its normal, :mod:`calib.sim.surfaceshape`): its rays then return
+the range to the displaced surface, and the rectangle is the surface's mean plane.
 
 For a 2D profiler the rays of one profile share their origin and lie in one plane, so the
 scene also answers the question the simulator asks first: for each scan plane, which sector of
@@ -23,6 +25,7 @@ from functools import cached_property
 import numpy as np
 
 from calib.core.geometry import Rectangle
+from calib.sim.surfaceshape import DisplacementField, SurfaceShape
 
 #: Kinds of surfaces; targets and validation planes are reported by name, the others are
 #: background (they make the scene realistic and occlude).
@@ -55,16 +58,21 @@ class ScanSectors:
 
 @dataclass(frozen=True)
 class Scene:
-    """Rectangles in the LGF with a kind each (see :data:`SURFACE_KINDS`)."""
+    """Rectangles in the LGF with a kind each (see :data:`SURFACE_KINDS`) and optionally a
+    shape each (None or an empty tuple: flat)."""
 
     rectangles: tuple[Rectangle, ...]
     kinds: tuple[str, ...]
+    shapes: tuple[SurfaceShape | None, ...] = ()
 
     def __post_init__(self):
         object.__setattr__(self, "rectangles", tuple(self.rectangles))
         object.__setattr__(self, "kinds", tuple(self.kinds))
+        object.__setattr__(self, "shapes", tuple(self.shapes) or (None,) * len(self.rectangles))
         if len(self.rectangles) != len(self.kinds):
             raise ValueError(f"Scene: {len(self.rectangles)} rectangles but {len(self.kinds)} kinds")
+        if len(self.shapes) != len(self.rectangles):
+            raise ValueError(f"Scene: {len(self.rectangles)} rectangles but {len(self.shapes)} shapes")
         for r, k in zip(self.rectangles, self.kinds):
             if k not in SURFACE_KINDS:
                 raise ValueError(
@@ -85,12 +93,21 @@ class Scene:
     def indices(self, kind: str) -> list[int]:
         return [i for i, k in enumerate(self.kinds) if k == kind]
 
+    @cached_property
+    def fields(self) -> tuple[DisplacementField | None, ...]:
+        """Each surface's displacement field (None: flat)."""
+        return tuple(
+            None if s is None else s.field(r.name, r.width_m, r.height_m)
+            for r, s in zip(self.rectangles, self.shapes)
+        )
+
     # -- packed geometry ----------------------------------------------------------------------
 
     @cached_property
     def _packed(self) -> dict[str, np.ndarray]:
         rs = self.rectangles
         return {
+            "edge": np.array([0.0 if f is None else f.edge_margin_m for f in self.fields]),
             "c": np.array([r.center_m for r in rs]).reshape(-1, 3),
             "n": np.array([r.normal for r in rs]).reshape(-1, 3),
             "u": np.array([r.u_axis for r in rs]).reshape(-1, 3),
@@ -107,9 +124,10 @@ class Scene:
     # -- exact ray casting ----------------------------------------------------------------------
 
     def hit_range(self, j: int, ox, oy, oz, dx, dy, dz) -> tuple[np.ndarray, np.ndarray]:
-        """Range to rectangle ``j`` along rays given by components (arrays of equal length) and
+        """Range to surface ``j`` along rays given by components (arrays of equal length) and
         whether the hit lies inside the rectangle (range may be negative or infinite: the
-        caller applies its range limits)."""
+        caller applies its range limits). A shaped surface returns the range to its displaced
+        surface, inside when the displaced hit is."""
         g = self._packed
         n, c, u, v = g["n"][j], g["c"][j], g["u"][j], g["v"][j]
         den = dx * n[0] + dy * n[1] + dz * n[2]
@@ -120,8 +138,74 @@ class Scene:
             qx, qy, qz = ox - c[0] + rho * dx, oy - c[1] + rho * dy, oz - c[2] + rho * dz
             a = qx * u[0] + qy * u[1] + qz * u[2]
             b = qx * v[0] + qy * v[1] + qz * v[2]
-        inside = (np.abs(a) <= g["hw"][j]) & (np.abs(b) <= g["hh"][j])
+        field = self.fields[j]
+        if field is None:
+            inside = (np.abs(a) <= g["hw"][j]) & (np.abs(b) <= g["hh"][j])
+            return rho, inside
+        # candidates: plane hits near the rectangle; then the displaced hit decides
+        m = g["edge"][j]
+        near = np.flatnonzero((np.abs(a) <= g["hw"][j] + m) & (np.abs(b) <= g["hh"][j] + m))
+        du = dx[near] * u[0] + dy[near] * u[1] + dz[near] * u[2]
+        dv = dx[near] * v[0] + dy[near] * v[1] + dz[near] * v[2]
+        a0, b0 = a[near], b[near]
+        t = field.solve(a0, b0, den[near], du, dv)
+        rho = np.array(rho, dtype=float, copy=True)
+        rho[near] += t
+        inside = np.zeros(np.shape(rho), bool)
+        inside[near] = (np.abs(a0 + t * du) <= g["hw"][j]) & (np.abs(b0 + t * dv) <= g["hh"][j])
         return rho, inside
+
+    def local_coordinates(self, surface, p_lgf_m) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(a, b, s) of points: along the width and height axes from the centre of their
+        surface (``surface``: an index per point, or one index) and along its normal from its
+        mean plane."""
+        g = self._packed
+        p = np.atleast_2d(np.asarray(p_lgf_m, float))
+        j = np.broadcast_to(np.asarray(surface, np.int64), p.shape[:1])
+        q = p - g["c"][j]
+        return (
+            np.einsum("ij,ij->i", q, g["u"][j]),
+            np.einsum("ij,ij->i", q, g["v"][j]),
+            np.einsum("ij,ij->i", q, g["n"][j]),
+        )
+
+    def displacement_m(self, surface, p_lgf_m) -> np.ndarray:
+        """h(a, b) of each point's surface at the point's (a, b) (0 on a flat surface)."""
+        a, b, _ = self.local_coordinates(surface, p_lgf_m)
+        j = np.broadcast_to(np.asarray(surface, np.int64), a.shape)
+        h = np.zeros(a.shape)
+        for k in np.unique(j):
+            f = self.fields[k]
+            if f is not None:
+                s = j == k
+                h[s] = f.height_m(a[s], b[s])
+        return h
+
+    def distance_m(self, surface, p_lgf_m) -> np.ndarray:
+        """Signed distance of points from their (shaped) surface along its normal: 0 for a point
+        on it (on a flat surface: the distance from its plane)."""
+        _, _, s = self.local_coordinates(surface, p_lgf_m)
+        return s - self.displacement_m(surface, p_lgf_m)
+
+    def normals(self, surface, p_lgf_m) -> np.ndarray:
+        """(n, 3) unit normals of the surfaces at points on them: the plane's normal, tilted by
+        the waviness's slopes on a shaped surface (its roughness is below the beam's footprint)."""
+        g = self._packed
+        p = np.atleast_2d(np.asarray(p_lgf_m, float))
+        j = np.broadcast_to(np.asarray(surface, np.int64), p.shape[:1])
+        out = g["n"][j].copy()
+        shaped = [k for k in np.unique(j) if self.fields[k] is not None]
+        if not shaped:
+            return out
+        a, b, _ = self.local_coordinates(j, p)
+        for k in shaped:
+            s = j == k
+            f = self.fields[k]
+            assert f is not None
+            ha, hb = f.waviness_gradient(a[s], b[s])
+            nk = g["n"][k] - ha[:, None] * g["u"][k] - hb[:, None] * g["v"][k]
+            out[s] = nk / np.linalg.norm(nk, axis=1)[:, None]
+        return out
 
     def intersect(
         self, origins_m, directions, min_range_m: float = 0.0, max_range_m: float = np.inf
@@ -141,7 +225,8 @@ class Scene:
             surf[ok] = j
         hit = surf >= 0
         cos_inc = np.full(n_rays, np.nan)
-        cos_inc[hit] = np.abs(np.einsum("ij,ij->i", d[hit], self._packed["n"][surf[hit]]))
+        x = o[hit] + best[hit, None] * d[hit]
+        cos_inc[hit] = np.abs(np.einsum("ij,ij->i", d[hit], self.normals(surf[hit], x)))
         return RayHits(np.where(hit, best, np.nan), surf, cos_inc)
 
     # -- sectors of scan planes -----------------------------------------------------------------
@@ -153,7 +238,8 @@ class Scene:
         along ``cos α·axis_y[p] + sin α·axis_z[p]`` (all (P, 3), LGF). Each rectangle is first
         grown by ``grow_m`` on every side, so that rays fired from nearby poses are covered too.
         The sector is the angle the plane's cut through the (grown) rectangle subtends from the
-        origin, always less than π.
+        origin, always less than π. A shaped surface's rectangle is grown further by its
+        :attr:`~calib.sim.surfaceshape.DisplacementField.edge_margin_m`.
         """
         o = np.asarray(origins_m, float)[:, None, None, :]  # (P, 1, 1, 3)
         ex = np.asarray(axis_x, float)[:, None, None, :]
@@ -162,10 +248,11 @@ class Scene:
         g = self._packed
         su = np.array([-1.0, 1.0, 1.0, -1.0])[:, None]  # corner signs, counter-clockwise
         sv = np.array([-1.0, -1.0, 1.0, 1.0])[:, None]
+        grow = grow_m + g["edge"]
         corners = (
             g["c"][:, None, :]
-            + su * (g["hw"] + grow_m)[:, None, None] * g["u"][:, None, :]
-            + sv * (g["hh"] + grow_m)[:, None, None] * g["v"][:, None, :]
+            + su * (g["hw"] + grow)[:, None, None] * g["u"][:, None, :]
+            + sv * (g["hh"] + grow)[:, None, None] * g["v"][:, None, :]
         )  # (R, 4, 3)
         rel = corners[None] - o  # (P, R, 4, 3)
         s = np.sum(rel * ex, axis=-1)  # signed distances to the scan plane

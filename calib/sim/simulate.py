@@ -4,6 +4,7 @@ a calibration bundle's content and its truth out.
     scenario ──► site (a-priori mount), scene of rectangles, pass plan
              ──► vessel motion along the plan ──► true trajectory
              ──► profiles at the profiler's rates, exact ray casting with the TRUE mount
+                 (against the walls' waviness and roughness where the scenario gives them)
              ──► observations: (time, range, scan angle) as the scanner reports them,
                  the observed trajectory (POS errors) with its sigmas, and the truth
 
@@ -11,7 +12,8 @@ The injected systematic errors are the truth of the geometry: the beam of a retu
 scanner along the true mount (a-priori mount with the true boresight and the lever-arm error)
 at the true time, and the reported observations follow the :class:`calib.core.georef.Mount` sign
 conventions, so that georeferencing them with the true mount and the true trajectory puts every
-noise-free return exactly on the rectangle it hit:
+noise-free return exactly on the surface it hit (:meth:`calib.sim.scene.Scene.distance_m` = 0:
+on its rectangle, or on the displaced surface of a wavy or rough one):
 
     ρ_reported = ρ_true − δρ,    α_beam = α_reported + δα,    pose sampled at t_reported + Δt.
 
@@ -60,7 +62,7 @@ class SimResult:
     scenario: Scenario
     seed: int
     site: Site  # a-priori mount, LGF reference, approximate target centres
-    scene: Scene  # the true rectangles in the LGF
+    scene: Scene  # the true surfaces in the LGF (rectangles = mean planes, and their shapes)
     plan: PassPlan
     mount_true: Mount
     trajectory_true: Trajectory
@@ -203,7 +205,6 @@ def _scan_batches(scanner, scene, traj, mount, t_start_s, t_end_s):
     grow_m = 0.02 + 2.0 * half * (v_max + w_max * reach)
     pad_rad = 2.0 * w_max * half + 2.0 * d_alpha
     batch = max(1, _BATCH_SLOTS // K)
-    normals = np.array([r.normal for r in scene.rectangles]).reshape(-1, 3)
     for p0 in range(0, n_prof, batch):
         prof = np.arange(p0, min(p0 + batch, n_prof))
         B = prof.size
@@ -257,13 +258,9 @@ def _scan_batches(scanner, scene, traj, mount, t_start_s, t_end_s):
             continue
         rho, s = best[keep], surf[keep]
         dk = d[keep]
+        x = o[keep] + rho[:, None] * dk
         yield ScanReturns(
-            t_rep[keep],
-            alpha[keep],
-            rho,
-            s,
-            np.abs(np.einsum("ij,ij->i", dk, normals[s])),
-            o[keep] + rho[:, None] * dk,
+            t_rep[keep], alpha[keep], rho, s, np.abs(np.einsum("ij,ij->i", dk, scene.normals(s, x))), x
         )
 
 
@@ -275,8 +272,8 @@ def _deg3(v_rad) -> dict:
     return {"roll": r, "pitch": p, "yaw": y}
 
 
-def _plane(rect, kind: str) -> dict:
-    return {
+def _plane(rect, kind: str, shape) -> dict:
+    out = {
         "name": rect.name,
         "kind": kind,
         "normal": [float(x) for x in rect.normal],
@@ -287,6 +284,9 @@ def _plane(rect, kind: str) -> dict:
         "inclination_deg": float(np.degrees(rect.inclination_rad)),
         "reflectivity": rect.reflectivity,
     }
+    if shape is not None and not shape.flat:  # the plane is the surface's least-squares plane
+        out["shape"] = shape.to_dict()
+    return out
 
 
 def _truth(
@@ -302,7 +302,9 @@ def _truth(
     t = sc.truth
 
     def planes(*kinds: str) -> list[dict]:
-        return [_plane(r, k) for r, k in zip(scene.rectangles, scene.kinds) if k in kinds]
+        return [
+            _plane(r, k, sh) for r, k, sh in zip(scene.rectangles, scene.kinds, scene.shapes) if k in kinds
+        ]
 
     return {
         "format": "marine-mls simulation truth v1",

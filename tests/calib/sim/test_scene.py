@@ -136,3 +136,5 @@ def test_scene_rejects_bad_input():
         Scene((r,), ("roof",))
     with pytest.raises(ValueError, match="1 rectangles but 2 kinds"):
         Scene((r,), ("wall", "wall"))
+    with pytest.raises(ValueError, match="1 rectangles but 2 shapes"):
+        Scene((r,), ("wall",), (None, None))
