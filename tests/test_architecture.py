@@ -23,7 +23,16 @@ PACKAGE_RANK = {"calib": 0, "drivers": 1, "sim_devices": 2, "acquire": 2, "cli":
 
 #: units inside a package (a subpackage or a top-level module) and their ranks
 UNIT_RANK = {
-    "calib": {"core": 0, "io": 1, "survey": 2, "sim": 3, "boresight": 3, "assess": 3, "design": 4},
+    "calib": {
+        "core": 0,
+        "io": 1,
+        "survey": 2,
+        "extraction": 2,
+        "sim": 3,
+        "boresight": 3,
+        "assess": 3,
+        "design": 4,
+    },
     "drivers": {
         "base": 0,
         "timing": 0,

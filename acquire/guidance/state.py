@@ -10,7 +10,8 @@ into a line's capture window (the first INS epoch past the window's start, withi
 target hits, and when the vessel leaves the window (its end, or off the line, turned away, gone
 back) accepts or rejects the pass with :func:`acquire.guidance.acceptance.evaluate_pass`. After each
 accepted pass it predicts the boresight σ of the accepted passes and ranks the remaining ones
-(:mod:`calib.design.passpredict`), and it renders all of it as the ``checklist`` status message
+(:mod:`calib.design.passpredict`; the GLS estimator's σ by default, which never rises when a pass
+is accepted), and it renders all of it as the ``checklist`` status message
 (:meth:`Guidance.message`).
 """
 
@@ -55,7 +56,9 @@ SCHEMA = "mls.checklist/1"  # of the message (the checklist topic's ``guidance``
 class SigmaReport:
     current: SigmaPrediction
     ranking: tuple[tuple[int, SigmaPrediction], ...]  # remaining passes, best first
-    rose: tuple[str, ...] = ()  # angles whose realistic σ the last accepted pass made larger
+    #: angles whose realistic σ the last accepted pass made larger (thesis estimator only:
+    #: the GLS σ never rises)
+    rose: tuple[str, ...] = ()
 
     def current_dict(self) -> dict:
         return {**self.current.as_dict(), "rose": list(self.rose)}
@@ -64,9 +67,12 @@ class SigmaReport:
 def sigma_rises(history: Sequence[dict], current: SigmaPrediction) -> tuple[str, ...]:
     """The angles whose realistic σ is larger than in the latest prediction of other passes.
 
-    That happens: within a pass the POS error acts as one bias, and the adjustment weighs each
-    pass by its number of points (the white model), so a pass with many points whose geometry
-    adds little to an angle passes its bias on to it. The formal σ never rises."""
+    With the default GLS prediction this is always empty: its covariance is the inverse of an
+    information matrix that each accepted pass can only add to. It names an angle with the
+    thesis estimator (``Guidance(estimator="thesis")``): within a pass the POS error acts as
+    one bias, and the white weights weigh each pass by its number of points, so a pass with
+    many points whose geometry adds little to an angle passes its bias on to it. The formal σ
+    never rises."""
     prev = next((h for h in reversed(history) if h["passes"] != list(current.pass_ids)), None)
     if prev is None:
         return ()
@@ -85,7 +91,8 @@ class Guidance(PassTracker):
 
     ``scanner`` describes the profiler for the candidate-pass predictions (rates, angular
     windows); ``thin_step`` how many points the σ prediction skips (None: about 100 k points/s
-    of the scanner are kept).
+    of the scanner are kept); ``estimator`` the calibration's estimator the σ is predicted for
+    (``"gls"``, the default, or ``"thesis"``: :class:`calib.design.passpredict.ObservationModel`).
     """
 
     def __init__(
@@ -99,6 +106,7 @@ class Guidance(PassTracker):
         settings: GuidanceSettings = GuidanceSettings(),
         scanner: ScannerModel = ScannerModel(),
         thin_step: int | None = None,
+        estimator: str = "gls",
     ):
         self.site = site
         frame = site.frame(frame)
@@ -115,7 +123,7 @@ class Guidance(PassTracker):
         )
         self.scanner = scanner
         self._centers = np.array([r.center_m for r in rects]).reshape(-1, 3)
-        self.obs_model = ObservationModel.from_site(site)
+        self.obs_model = ObservationModel.from_site(site, estimator)
         self._lock = threading.Lock()
         self._candidates: dict[int, tuple[float, PassGeometry]] = {}  # id → (down, geometry)
         self.sigma: SigmaReport | None = None

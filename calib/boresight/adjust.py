@@ -16,7 +16,7 @@ Uncertainty:
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 from scipy import stats
@@ -24,6 +24,7 @@ from scipy import stats
 from calib.boresight.covariance import information, propagated_covariance, reported_rows
 from calib.boresight.errormodel import ErrorModel
 from calib.boresight.gausshelmert import (
+    Solution,
     initial_state,
     leverage,
     observations_at,
@@ -32,6 +33,7 @@ from calib.boresight.gausshelmert import (
     solve,
 )
 from calib.boresight.ghmodel import State, linearize
+from calib.boresight.gls import solve_gls
 from calib.boresight.observability import ObservabilityError, check_observability
 from calib.boresight.observations import AdjustmentError, AdjustOptions, Observations, validate_input
 from calib.core import frames
@@ -92,27 +94,32 @@ class AdjustmentResult:
 # ---------------------------------------------------------------------------------------------
 
 
-def _plane_pass_stats(obs: Observations, residual: np.ndarray, state: State):
+def _plane_pass_stats(obs: Observations, residual: np.ndarray, state: State, roughness_m2):
     planes, passes = [], []
     for j, name in enumerate(obs.plane_names):
         r = residual[obs.plane_index == j]
         planes.append(
             {
                 "name": name,
+                "kind": "tie patch" if j in obs.patch_planes else "target",
+                "roughness_m": None if roughness_m2 is None else float(np.sqrt(roughness_m2[j])),
                 "normal": [float(x) for x in state.normals[j]],
                 "d": float(state.d_lgf_m[j]),
                 "n_points": int(r.size),
                 "rms_m": float(np.sqrt(np.mean(r**2))) if r.size else float("nan"),
             }
         )
+    on_patch = np.isin(obs.plane_index, obs.patch_planes)
     for k, pid in enumerate(obs.pass_ids):
-        r = residual[obs.pass_index == k]
+        in_pass = obs.pass_index == k
+        r = residual[in_pass & ~on_patch]  # the targets' points; the patches' are counted apart
         h = obs.pass_headings_rad.get(pid)
         passes.append(
             {
                 "id": int(pid),
                 "heading_deg": None if h is None else float(np.degrees(h) % 360.0),
                 "n_points": int(r.size),
+                "n_tie_patch_points": int(np.count_nonzero(in_pass & on_patch)),
                 "rms_m": float(np.sqrt(np.mean(r**2))) if r.size else float("nan"),
             }
         )
@@ -144,15 +151,18 @@ def adjust(
     if np.linalg.matrix_rank(prior_info.N) < prior_info.N.shape[0]:
         raise ObservabilityError(singular_message(prior_info.N, obs, prior_info.layout))
     check_observability(prior_info.Ninv[0:3, 0:3], obs, options.max_sigma_rad, options.estimate)
-    sol = solve(obs, state0, r_nom, options)
+    gls = options.estimator == "gls"
+    sol = _solve(obs, state0, r_nom, options)
     if not np.all(np.isfinite(sol.state.boresight_rad)):
         raise AdjustmentError("the adjustment diverged (non-finite estimates)")
     used = obs
     if options.outliers == "snooping":
         for _ in range(options.max_outlier_rounds):
             s0 = np.sqrt(sol.vtpv / sol.df)
-            # normalized residual of each condition: e_i / sqrt(M_i − A_i N⁻¹ A_iᵀ) / σ̂0
-            wn = sol.e / np.sqrt(np.maximum(sol.M - leverage(sol, used), 1e-12 * sol.M)) / s0
+            # normalized residual of each condition: e_i / sqrt(M_i − A_i N⁻¹ A_iᵀ) / σ̂0 (GLS:
+            # the white part of the misclosure over its σ; the leverage of n ≫ p points is small)
+            lev = 0.0 if gls else leverage(sol, used)
+            wn = sol.e / np.sqrt(np.maximum(sol.M - lev, 1e-12 * sol.M)) / s0
             bad = np.abs(wn) > _snooping_threshold(len(used), options.outlier_alpha)
             if not bad.any():
                 break
@@ -160,7 +170,7 @@ def adjust(
             active[idx_used[bad]] = False
             used = obs.select(active)
             validate_input(used)
-            sol = solve(used, sol.state, r_nom, options)
+            sol = _solve(used, sol.state, r_nom, options)
     # signed distances of the points georeferenced from the raw observations
     lin_raw = linearize(
         sol.state,
@@ -174,14 +184,15 @@ def adjust(
     # the realistic covariance of the boresight and of every extra unknown (not the planes):
     # an extra's formal σ is as optimistic as the boresight's under time-correlated POS errors
     rows = reported_rows(sol.layout)
+    # GLS: the model is the POS error process itself, so its formal covariance is realistic
     cov_real_rows = (
         propagated_covariance(sol, used, options.error_model, rows)
-        if options.error_model.kind != "white"
+        if options.error_model.kind != "white" and not gls
         else sol.Ninv[np.ix_(rows, rows)]
     )
     cov_real = cov_real_rows[0:3, 0:3].copy()
     sd_real = np.sqrt(np.diag(cov_real_rows))  # in the order of ``rows``
-    cov_jack = _jackknife(used, sol.state, r_nom, options) if options.jackknife else None
+    cov_jack = _jackknife(used, sol, r_nom, options) if options.jackknife else None
     names = sol.layout.names(used.plane_names, used.pass_ids)
     extras = {}
     sd = np.sqrt(np.diag(cov_formal_all))
@@ -215,7 +226,7 @@ def adjust(
                 # rows north, east, down; columns roll, pitch, yaw
                 "correlation_with_boresight": [corr_with_boresight(j + c) for c in range(3)],
             }
-    planes, passes = _plane_pass_stats(used, residual, sol.state)
+    planes, passes = _plane_pass_stats(used, residual, sol.state, getattr(sol, "plane_var_m2", None))
     return AdjustmentResult(
         boresight_rad=sol.state.boresight_rad.copy(),
         cov_formal=cov_formal_all[0:3, 0:3].copy(),
@@ -240,12 +251,30 @@ def adjust(
     )
 
 
-def _jackknife(obs: Observations, state: State, r_nom, options: AdjustOptions):
-    """Delete-one-pass jackknife covariance of the boresight (None with < 3 usable passes)."""
+def _solve(obs: Observations, state: State, r_nom, options: AdjustOptions) -> Solution:
+    """One solution with the chosen estimator (GLS: with the planes' roughness estimated)."""
+    if options.estimator == "thesis":
+        return solve(obs, state, r_nom, options)
+    if options.error_model.kind != "gauss_markov":
+        raise AdjustmentError(
+            f"the GLS estimator models the POS errors as Gauss–Markov processes; error model "
+            f"{options.error_model.kind!r} goes with the thesis estimator"
+        )
+    planes = {
+        "patches": np.asarray(obs.patch_planes, int),
+        "all": np.arange(len(obs.plane_names)),
+        "none": np.zeros(0, int),
+    }[options.roughness]
+    return solve_gls(obs, state, r_nom, options, options.error_model, rough_planes=planes)
+
+
+def _jackknife(obs: Observations, full: Solution, r_nom, options: AdjustOptions):
+    """Delete-one-pass jackknife covariance of the boresight (None with < 3 usable passes);
+    GLS keeps the planes' roughness of the full solution."""
+    state = full.state
+    pv = getattr(full, "plane_var_m2", None)
     est = []
-    quick = AdjustOptions(
-        estimate=options.estimate, tol_angle_rad=1e-9, tol_m=1e-7, max_iterations=options.max_iterations
-    )
+    quick = replace(options, tol_angle_rad=1e-9, tol_m=1e-7, outliers="none", jackknife=False)
     for k in range(len(obs.pass_ids)):
         sub = obs.select(obs.pass_index != k)
         keep = np.unique(sub.pass_index)
@@ -255,8 +284,12 @@ def _jackknife(obs: Observations, state: State, r_nom, options: AdjustOptions):
             continue
         s = state.copy()
         s.pass_offsets_m = s.pass_offsets_m[keep]
+        sol: Solution
         try:
-            sol = solve(sub, s, r_nom, quick)
+            if options.estimator == "gls":
+                sol = solve_gls(sub, s, r_nom, quick, options.error_model, plane_var_m2=pv)
+            else:
+                sol = solve(sub, s, r_nom, quick)
         except ObservabilityError:
             continue
         if np.all(np.sqrt(np.diag(sol.Ninv[0:3, 0:3])) < np.radians(1.0)):

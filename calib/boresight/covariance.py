@@ -6,8 +6,11 @@
   first-order Gauss–Markov correlation of the POS channels (σ from the trajectory, correlation
   time from the site or the caller), ``Cov = N⁻¹ (Σ_ij g_i g_jᵀ ρ(t_i − t_j)) N⁻¹`` — evaluated
   in O(n) with decayed cumulative sums (:mod:`calib.boresight.errormodel`);
-- :func:`predict_covariance`: both for a geometry (e.g. hypothetical passes and targets) from one
-  linearization at the truth, for the site design and the operator guidance.
+- :func:`predict_covariance`: the covariance an estimator would give for a geometry (e.g.
+  hypothetical passes and targets) from one linearization at the truth, for the site design and
+  the operator guidance: the GLS estimator's (:mod:`calib.boresight.gls`, the calibration's
+  default; its covariance is its realistic one and the Cramér–Rao bound of the Gauss–Markov
+  model) or the thesis estimator's (white weights; realistic σ by propagation).
 """
 
 from __future__ import annotations
@@ -19,13 +22,14 @@ from calib.boresight.gausshelmert import (
     Layout,
     Solution,
     initial_state,
+    linearize_at_state,
     normal_equations,
     offset_prior_sigma,
     plane_centers,
-    pose_rates,
 )
-from calib.boresight.ghmodel import State, linearize, tangent_basis
-from calib.boresight.observations import AdjustOptions, Observations
+from calib.boresight.ghmodel import State
+from calib.boresight.gls import gls_information
+from calib.boresight.observations import AdjustmentError, AdjustOptions, Observations
 from calib.core import frames
 
 
@@ -88,13 +92,7 @@ def information(obs: Observations, state: State, r_nom, estimate) -> Solution:
     """One linearization at ``state`` and the normal matrix (with the offset prior), wrapped as
     a solution so that the covariance machinery applies to it."""
     layout = Layout(len(obs.plane_names), len(obs.pass_ids), estimate)
-    rates = (
-        pose_rates(obs.latency_trajectory(), obs.t_gps_s + state.latency_s)
-        if "latency" in layout.extras
-        else None
-    )
-    bases = np.stack([tangent_basis(n) for n in state.normals])
-    lin = linearize(state, r_nom, obs.plane_index, obs.pass_index, obs.l, rates, bases)
+    lin = linearize_at_state(obs, state, r_nom, layout)
     M = np.einsum("ij,ij->i", lin.B**2, obs.sigma_l**2)
     N, _ = normal_equations(lin, layout, obs, np.zeros(len(obs)), M)
     if layout.offsets:
@@ -108,19 +106,70 @@ def information(obs: Observations, state: State, r_nom, estimate) -> Solution:
     return Solution(state, N, Ninv, lin, M, np.zeros(len(obs)), 0.0, len(obs) - layout.n, 0, True, layout)
 
 
+#: the estimators a prediction can stand for (``pass_offsets`` is ``"thesis"`` with
+#: ``estimate=("pass_offsets",)``)
+PREDICTION_ESTIMATORS = ("gls", "thesis")
+
+
+def default_estimator(model: ErrorModel) -> str:
+    """The estimator :func:`predict_covariance` assumes when none is given: GLS for Gauss–Markov
+    POS errors (the calibration's default), the thesis estimator for the other models."""
+    return "gls" if model.kind == "gauss_markov" else "thesis"
+
+
 def predict_covariance(
-    obs: Observations, mount, planes, estimate: tuple[str, ...] = (), model: ErrorModel = ErrorModel("white")
+    obs: Observations,
+    mount,
+    planes,
+    estimate: tuple[str, ...] = (),
+    model: ErrorModel = ErrorModel("white"),
+    estimator: str | None = None,
 ) -> dict:
     """Boresight covariance the geometry in ``obs`` would give, without adjusting.
 
     ``obs`` holds noise-free observations (e.g. simulated for hypothetical passes and targets)
-    with the sigmas to assume; ``planes`` the true (normal, d) per plane. Returns
-    ``{"formal": 3×3, "realistic": 3×3 under ``model``, "correlation": 3×3}`` in radians².
+    with the sigmas to assume, and its trajectory where there is one (the GLS knots are then its
+    epochs, as in the calibration); ``planes`` the true (normal, d) per plane. The normal
+    matrix is formed once, linearized at the truth (the mount's boresight, the true planes).
+
+    ``estimator``:
+
+    - ``"gls"``: the GLS estimator (:func:`calib.boresight.gls.gls_information`), with the POS
+      errors as Gauss–Markov processes of ``model`` (which must be ``gauss_markov``). Its
+      covariance ``S⁻¹`` is both its formal and its realistic covariance, and the Cramér–Rao
+      bound of the model: ``formal`` = ``realistic``.
+    - ``"thesis"``: white weights (the thesis's adjustment): ``formal`` = ``N⁻¹``, ``realistic``
+      = the errors of ``model`` propagated through it (= ``formal`` for a white model).
+    - ``None`` (default): ``"gls"`` when ``model`` is Gauss–Markov, else ``"thesis"``
+      (:func:`default_estimator`). Callers that pass only a white or pass-bias model get what
+      they always got; a Gauss–Markov model now means the calibration's default estimator.
+
+    ``estimate`` adds unknowns as in :class:`~calib.boresight.observations.AdjustOptions`
+    (``pass_offsets`` with the thesis estimator is the ``pass_offsets`` adjustment). Returns
+    ``{"formal": 3×3, "realistic": 3×3, "correlation": 3×3 (of formal), "estimator": name}``,
+    radians².
     """
+    est = default_estimator(model) if estimator is None else estimator
+    if est not in PREDICTION_ESTIMATORS:
+        raise AdjustmentError(f"estimator {est!r}: expected one of {', '.join(PREDICTION_ESTIMATORS)}")
+    if est == "gls" and model.kind != "gauss_markov":
+        raise AdjustmentError(
+            f"the GLS estimator models the POS errors as Gauss–Markov processes; error model "
+            f"{model.kind!r} goes with the thesis estimator"
+        )
     r_nom = frames.rotation_zyx(*mount.nominal_rad)
     state = initial_state(mount, planes, len(obs.pass_ids), plane_centers(obs, mount, r_nom))
-    sol = information(obs, state, r_nom, estimate)
-    formal = sol.Ninv[0:3, 0:3]
-    realistic = formal if model.kind == "white" else propagated_covariance(sol, obs, model)
+    if est == "gls":
+        _, S_inv, _ = gls_information(obs, state, r_nom, estimate, model)
+        formal = realistic = 0.5 * (S_inv[0:3, 0:3] + S_inv[0:3, 0:3].T)
+    else:
+        sol = information(obs, state, r_nom, estimate)
+        formal = sol.Ninv[0:3, 0:3]
+        realistic = formal if model.kind == "white" else propagated_covariance(sol, obs, model)
     s = np.sqrt(np.diag(formal))
-    return {"formal": formal, "realistic": realistic, "correlation": formal / np.outer(s, s)}
+    return {
+        "formal": formal,
+        "realistic": realistic,
+        "correlation": formal / np.outer(s, s),
+        "estimator": est,
+    }

@@ -215,6 +215,17 @@ def offset_prior_sigma(obs: Observations, options: AdjustOptions) -> np.ndarray:
     return out
 
 
+def linearize_at_state(obs: Observations, state: State, r_nom: np.ndarray, layout: Layout) -> Linearization:
+    """One linearization at ``state`` and the observations as given (predictions, judgements)."""
+    rates = (
+        pose_rates(obs.latency_trajectory(), obs.t_gps_s + state.latency_s)
+        if "latency" in layout.extras
+        else None
+    )
+    bases = np.stack([tangent_basis(n) for n in state.normals])
+    return linearize(state, r_nom, obs.plane_index, obs.pass_index, obs.l, rates, bases)
+
+
 def observations_at(obs: Observations, state: State, estimate_latency: bool) -> np.ndarray:
     """The observation vector; with latency estimated the poses move with Δt."""
     if not estimate_latency or state.latency_s == 0.0:
@@ -251,7 +262,7 @@ def solve(obs: Observations, state: State, r_nom: np.ndarray, options: AdjustOpt
             idx = np.arange(layout.i_offset, layout.n)
             N[idx, idx] += wt
             g[idx] += wt * o
-        dx = _solve_normal(N, -g, obs, layout)
+        dx = solve_normal(N, -g, obs, layout)
         e = _a_times(lin, layout, obs, dx) + w
         k = e / M
         v = -Q * lin.B * k[:, None]
@@ -261,29 +272,9 @@ def solve(obs: Observations, state: State, r_nom: np.ndarray, options: AdjustOpt
             # far from the solution the residuals of a linear step are not residuals of the
             # solution: keep linearizing at the observations until the boresight settles
             v[:] = 0.0
-        plane_steps = dx[layout.i_plane : layout.i_offset].reshape(-1, 3)
-        metric_step = np.max(np.abs(plane_steps[:, 2]))
-        angle_step = max(angle_step, np.max(np.abs(plane_steps[:, 0:2])))
-        for i, name in enumerate(layout.extras):
-            step = abs(dx[layout.i_extra + i])
-            if name in ("scan_angle_offset",):
-                angle_step = max(angle_step, step)
-            elif name == "latency":
-                metric_step = max(metric_step, step * 10.0)  # ~10 m/s: seconds → metres
-            else:
-                metric_step = max(metric_step, step)
-        if layout.offsets:
-            metric_step = max(metric_step, np.max(np.abs(dx[layout.i_offset :])))
-        if angle_step < options.tol_angle_rad and metric_step < options.tol_m:
+        if step_converged(dx, layout, options, N, it):
             converged = True
             break
-        if options.rel_tol > 0 and it > 1:
-            # steps that no longer matter against the unknowns' own σ (noisy data converge
-            # only linearly in the last digits: see the iteration scheme above)
-            sd = np.sqrt(np.diag(np.linalg.inv(N)))
-            if np.all(np.abs(dx) <= options.rel_tol * sd):
-                converged = True
-                break
     vtpv = float(np.sum(v**2 / Q))
     df = len(obs) - layout.n
     if prior_sigma is not None:  # layout.offsets
@@ -294,7 +285,33 @@ def solve(obs: Observations, state: State, r_nom: np.ndarray, options: AdjustOpt
     return Solution(state, N, Ninv, lin, M, e, vtpv, df, it, converged, layout)
 
 
-def _solve_normal(N, rhs, obs, layout):
+def step_converged(dx: np.ndarray, layout: Layout, options: AdjustOptions, N: np.ndarray, it: int) -> bool:
+    """Every step below the absolute tolerances, or (after the first iteration) below
+    ``options.rel_tol`` of its formal σ from the normal matrix ``N``."""
+    plane_steps = dx[layout.i_plane : layout.i_offset].reshape(-1, 3)
+    metric_step = float(np.max(np.abs(plane_steps[:, 2])))
+    angle_step = max(float(np.max(np.abs(dx[0:3]))), float(np.max(np.abs(plane_steps[:, 0:2]))))
+    for i, name in enumerate(layout.extras):
+        step = abs(dx[layout.i_extra + i])
+        if name == "scan_angle_offset":
+            angle_step = max(angle_step, step)
+        elif name == "latency":
+            metric_step = max(metric_step, step * 10.0)  # ~10 m/s: seconds → metres
+        else:
+            metric_step = max(metric_step, step)
+    if layout.offsets:
+        metric_step = max(metric_step, float(np.max(np.abs(dx[layout.i_offset :]))))
+    if angle_step < options.tol_angle_rad and metric_step < options.tol_m:
+        return True
+    if options.rel_tol > 0 and it > 1:
+        # steps that no longer matter against the unknowns' own σ (noisy data converge only
+        # linearly in the last digits: see the iteration scheme above)
+        sd = np.sqrt(np.diag(np.linalg.inv(N)))
+        return bool(np.all(np.abs(dx) <= options.rel_tol * sd))
+    return False
+
+
+def solve_normal(N, rhs, obs, layout):
     """Solve N dx = rhs; a singular N is an observability error naming the cause."""
     try:
         c = np.linalg.cholesky(N)

@@ -20,6 +20,8 @@ from calib.core.trajectory import Trajectory, TrajectoryError
 
 ESTIMABLE = EXTRA_NAMES + ("pass_offsets",)
 MIN_POINTS_PER_PLANE = 10
+#: adjustment-level estimators (``pass_offsets`` is the thesis estimator with pass offsets)
+ESTIMATORS = ("gls", "thesis")
 
 
 class AdjustmentError(CalibError, ValueError):
@@ -40,6 +42,10 @@ class Observations:
     point_ids: np.ndarray  # (n,) indices into the source point set (for outlier lists)
     trajectory: Trajectory | None = None  # needed to estimate a latency
     pass_headings_rad: dict[int, float] = field(default_factory=dict)  # relative to the wall
+    #: planes that are scene tie patches (the rest are targets), indices into plane_names
+    patch_planes: tuple[int, ...] = ()
+    #: half the beam divergence: the GLS adds ρ·this·tan(incidence) to each point's range σ
+    beam_half_divergence_rad: float = 0.0
 
     def __len__(self) -> int:
         return self.t_gps_s.shape[0]
@@ -62,6 +68,8 @@ class Observations:
             self.point_ids[mask],
             self.trajectory,
             self.pass_headings_rad,
+            self.patch_planes,
+            self.beam_half_divergence_rad,
         )
 
 
@@ -80,6 +88,8 @@ def build_observations(
     point_ids: np.ndarray | None = None,
     time_offset_s: float = 0.0,
     pass_headings_rad: dict[int, float] | None = None,
+    sigma_range_per_m: float = 0.0,
+    beam_divergence_rad: float = 0.0,
 ) -> Observations:
     """Interpolate the trajectory at the point times and attach the sigmas.
 
@@ -115,7 +125,7 @@ def build_observations(
     sig = np.empty((n, 8))
     sig[:, 0:3] = poses.sigma_p_m if poses.sigma_p_m is not None else sigma_position_m
     sig[:, 3:6] = poses.sigma_rpy_rad if poses.sigma_rpy_rad is not None else sigma_attitude_rad
-    sig[:, 6] = sigma_range_m
+    sig[:, 6] = sigma_range_m + sigma_range_per_m * np.asarray(range_m, float)
     sig[:, 7] = sigma_scan_angle_rad
     pass_ids = sorted(int(p) for p in np.unique(pid))
     pass_index = np.searchsorted(pass_ids, pid)
@@ -130,6 +140,8 @@ def build_observations(
         np.arange(n) if point_ids is None else np.asarray(point_ids),
         trajectory,
         dict(pass_headings_rad or {}),
+        (),
+        0.5 * beam_divergence_rad,
     )
 
 
@@ -164,6 +176,12 @@ class AdjustOptions:
     jackknife: bool = True
     max_sigma_rad: float = float(np.radians(0.05))  # observability limit for a boresight angle
     pass_offset_sigma_m: np.ndarray | None = None  # prior; default: the trajectory's σ
+    #: "gls": the POS errors as Gauss–Markov processes estimated jointly (calib.boresight.gls),
+    #: its σ is its realistic σ; "thesis": white weights, realistic σ by propagation
+    estimator: str = "gls"
+    knots_per_tau: float = 100.0  # GLS: knot spacing = the shortest τ over this
+    #: GLS: which planes get a roughness variance estimated from their residuals
+    roughness: str = "all"  # or "patches", "none"
 
     def __post_init__(self):
         unknown = [e for e in self.estimate if e not in ESTIMABLE]
@@ -178,5 +196,9 @@ class AdjustOptions:
                 "already contains for any mount (thesis §3.5.2 finds them correlated; here they "
                 "are identical), so the estimated boresight absorbs it"
             )
+        if self.estimator not in ESTIMATORS:
+            raise AdjustmentError(f"estimator {self.estimator!r}: expected one of {', '.join(ESTIMATORS)}")
+        if self.roughness not in ("patches", "all", "none"):
+            raise AdjustmentError(f"roughness={self.roughness!r}: expected 'patches', 'all' or 'none'")
         if self.outliers not in ("snooping", "none"):
             raise AdjustmentError(f"outliers={self.outliers!r}: expected 'snooping' or 'none'")

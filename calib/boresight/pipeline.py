@@ -7,12 +7,12 @@ uncertainties out.
                trajectory; with ``skip_uncovered`` the points outside its coverage are dropped
                and counted per pass instead)
            ──► georeference every pass with the a-priori mount
-           ──► extract each target of each pass (:mod:`calib.boresight.extract`), optional voxel
+           ──► extract each target of each pass (:mod:`calib.extraction.extract`), optional voxel
                subsampling
            ──► observations (:func:`calib.boresight.observations.build_observations`: trajectory at the
                point times, the trajectory's per-epoch σ or the site's), initial planes (each
                target's points over all passes combined, thesis §4.4.4; see
-               :func:`calib.boresight.extract.initial_planes`)
+               :func:`calib.extraction.extract.initial_planes`)
            ──► the Gauss–Helmert adjustment (:func:`calib.boresight.adjust.adjust`)
            ──► the result.json document (:func:`calib.boresight.result.result_to_dict`)
 
@@ -35,14 +35,23 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
 
 from calib.boresight.adjust import AdjustmentResult, adjust
 from calib.boresight.errormodel import DEFAULT_POS_CORRELATION_S, ErrorModel
-from calib.boresight.extract import (
+from calib.boresight.observations import AdjustOptions, Observations, build_observations, validate_input
+from calib.boresight.result import estimator_doc, result_to_dict, write_result
+from calib.boresight.scene_ties import patches_agree, tie_patches_from_points
+from calib.boresight.tau import estimate_tau, tau_sensitivity
+from calib.core import frames
+from calib.core.errors import CalibError
+from calib.core.georef import Mount
+from calib.core.trajectory import Poses, Trajectory
+from calib.core.version import software_version as _software_version
+from calib.extraction.extract import (
     Extraction,
     ExtractOptions,
     extract,
@@ -50,18 +59,15 @@ from calib.boresight.extract import (
     initial_planes,
     subsample,
 )
-from calib.boresight.observations import AdjustOptions, Observations, build_observations, validate_input
-from calib.boresight.result import result_to_dict, write_result
-from calib.core import frames
-from calib.core.errors import CalibError
-from calib.core.georef import Mount, georeference, georeference_poses
-from calib.core.trajectory import Poses, Trajectory
-from calib.core.version import software_version as _software_version
+from calib.extraction.points import georeference_passes
 from calib.io.bundle import ScanPoints, intensity_scale, read_bundle
 from calib.io.site import Site
 
 Progress = Callable[[str, float, float | None], None]
 ERROR_MODELS = ("gauss_markov", "pass_bias", "white")
+#: what ``--estimator`` offers: GLS over Gauss–Markov POS errors (the default), the thesis's
+#: white weights, and the thesis's weights with per-pass trajectory offsets
+ESTIMATORS = ("gls", "thesis", "pass_offsets")
 
 
 class CalibrationError(CalibError, ValueError):
@@ -72,6 +78,8 @@ class CalibrationError(CalibError, ValueError):
 class CalibrationOptions:
     subsample_m: float | None = None  # voxel edge; None: every extracted point
     estimate: tuple[str, ...] = ()  # extra unknowns (calib.boresight.observations.ESTIMABLE)
+    estimator: str = "gls"  # of ESTIMATORS
+    tie_patches: str = "auto"  # "auto": add planar patches of the scene (gls only); "off"
     apriori_rad: tuple[float, float, float] | None = None  # overrides site.yaml's boresight
     error_model: str = "gauss_markov"  # of the POS errors, for sigma_realistic
     correlation_time_s: float | tuple[float, ...] | None = None  # overrides site.yaml's
@@ -87,11 +95,24 @@ class CalibrationOptions:
     max_iterations: int = AdjustOptions.max_iterations
 
     def __post_init__(self):
-        self.adjust_options(ErrorModel("white"))  # unknown or refused extra unknowns: now
-        if self.error_model not in ERROR_MODELS:
+        if self.estimator not in ESTIMATORS:
+            raise CalibrationError(
+                f"estimator {self.estimator!r} (--estimator): expected one of {', '.join(ESTIMATORS)}"
+            )
+        if self.tie_patches not in ("auto", "off"):
+            raise CalibrationError(
+                f"tie patches {self.tie_patches!r} (--tie-patches): expected 'auto' or 'off'"
+            )
+        if self.error_model not in ERROR_MODELS:  # first: an unknown name is named as such
             raise CalibrationError(
                 f"error model {self.error_model!r}: expected one of {', '.join(ERROR_MODELS)}"
             )
+        if self.estimator == "gls" and self.error_model != "gauss_markov":
+            raise CalibrationError(
+                f"error model {self.error_model!r} goes with --estimator thesis or pass_offsets: the "
+                f"GLS estimator models the POS errors as Gauss–Markov processes"
+            )
+        self.adjust_options(ErrorModel("white"))  # unknown or refused extra unknowns: now
         if self.subsample_m is not None and not (np.isfinite(self.subsample_m) and self.subsample_m > 0):
             raise CalibrationError(
                 f"subsampling voxel {self.subsample_m!r} m: expected a positive size in metres, e.g. 0.05"
@@ -104,8 +125,14 @@ class CalibrationOptions:
                 )
 
     def adjust_options(self, model: ErrorModel) -> AdjustOptions:
+        offsets = (
+            ("pass_offsets",)
+            if self.estimator == "pass_offsets" and "pass_offsets" not in self.estimate
+            else ()
+        )
         return AdjustOptions(
-            estimate=tuple(self.estimate),
+            estimate=tuple(self.estimate) + offsets,
+            estimator="gls" if self.estimator == "gls" else "thesis",
             error_model=model,
             jackknife=self.jackknife,
             outliers=self.outliers,
@@ -133,6 +160,11 @@ class CalibrationRun:
     warnings: list[str]
     notes: list[str]  # assumptions the report states
     timings_s: dict[str, float]
+    #: the thesis estimator on the same targets (beside the default GLS in the report)
+    comparison: AdjustmentResult | None = None
+    #: GLS: "estimate" (τ from the data), "sensitivity" (τ/3, τ, 3τ), "targets_only" (the
+    #: solution before tie patches), "ties" (:class:`calib.boresight.scene_ties.TiePatches`)
+    gls: dict = field(default_factory=dict)
 
 
 # -- checks ---------------------------------------------------------------------------------
@@ -204,29 +236,6 @@ def drop_uncovered(
 # -- the steps ------------------------------------------------------------------------------
 
 
-def _georeference(
-    points: ScanPoints, trajectory: Trajectory, mount: Mount, poses: Poses | None, progress: Progress | None
-) -> tuple[np.ndarray, np.ndarray]:
-    """Points and beam origins (the scanner's position) in the LGF, pass by pass."""
-    n = len(points)
-    p, origin = np.empty((n, 3)), np.empty((n, 3))
-    pass_ids = points.pass_ids()
-    zero = np.zeros(n)
-    for k, pid in enumerate(pass_ids):
-        sel = np.flatnonzero(points.pass_id == pid)
-        t, rho, alpha = points.t_gps_s[sel], points.range_m[sel], points.scan_angle_rad[sel]
-        if poses is None:
-            p[sel] = georeference(t, rho, alpha, trajectory, mount)
-            origin[sel] = georeference(t, zero[sel], alpha, trajectory, mount)
-        else:
-            sub = Poses(poses.p_lgf_m[sel], poses.rpy_rad[sel], poses.r_b_n[sel])
-            p[sel] = georeference_poses(sub, rho, alpha, mount)
-            origin[sel] = georeference_poses(sub, zero[sel], alpha, mount)
-        if progress is not None:
-            progress("georeferencing passes", k + 1, len(pass_ids))
-    return p, origin
-
-
 def pass_headings(
     obs_heading_rad: np.ndarray, pass_id: np.ndarray, wall_azimuth_rad: float
 ) -> dict[int, float]:
@@ -279,7 +288,7 @@ def calibrate(
     (−1 none) instead of the extraction; ``point_rows``: per point its row in the source file
     (outlier ids name those rows; default: the point's index); ``warnings`` and ``notes``: about
     the input, reported first. Raises :class:`CalibrationError`,
-    :class:`calib.boresight.extract.ExtractionError` or :class:`calib.boresight.observations.AdjustmentError` (its
+    :class:`calib.extraction.extract.ExtractionError` or :class:`calib.boresight.observations.AdjustmentError` (its
     :class:`~calib.boresight.observability.ObservabilityError` names the weak angles and the passes that would
     observe them) with a message that says what to do.
     """
@@ -303,7 +312,7 @@ def calibrate(
     rects = site.target_rectangles(frame)
     names = [r.name for r in rects]
 
-    p, origin = _georeference(points, trajectory, mount, poses, progress)
+    p, origin = georeference_passes(points, trajectory, mount, poses, progress)
     timings["georeference_s"] = time.perf_counter() - clock
 
     clock = time.perf_counter()
@@ -358,6 +367,8 @@ def calibrate(
         point_ids=idx if point_rows is None else np.asarray(point_rows)[idx],
         time_offset_s=mount.time_offset_s,
         pass_headings_rad=headings,
+        sigma_range_per_m=site.sigma_range_per_m,
+        beam_divergence_rad=site.beam_divergence_rad,
     )
     if poses is not None:
         obs.l[:, 0:3] = poses.p_lgf_m[idx]
@@ -379,7 +390,25 @@ def calibrate(
         )
     planes = [plane for plane in planes_or_none if plane is not None]
     model, tau_source = error_model(options, site)
-    if tau_source.startswith("default"):
+    gls = options.estimator == "gls"
+    tau_doc: dict = {}
+    if tau_source.startswith("default") and gls:
+        if progress is not None:
+            progress("estimating the POS correlation time", 0, None)
+        est = estimate_tau(obs, mount, planes, options.adjust_options(model))
+        model, tau_source = ErrorModel("gauss_markov", est.tau_s), "estimated from the data"
+        tau_doc["estimate"] = {
+            "tau_s": est.tau_s,
+            "grid_s": list(est.grid_s),
+            "neg2_log_lik": list(est.neg2_log_lik),
+        }
+        notes.append(
+            f"no POS correlation time configured (site.yaml pos_sigmas.correlation_time_s): "
+            f"estimated {est.tau_s:.1f} s from the data (restricted likelihood"
+            f"{', at the edge of the searched range' if est.at_edge else ''}); the report shows "
+            f"the boresight at τ/3, τ and 3τ"
+        )
+    elif tau_source.startswith("default"):
         notes.append(
             f"no POS correlation time configured (site.yaml pos_sigmas."
             f"correlation_time_s): sigma_realistic assumes {DEFAULT_POS_CORRELATION_S:g} "
@@ -390,7 +419,42 @@ def calibrate(
     clock = time.perf_counter()
     if progress is not None:
         progress("adjusting", 0, 1)
-    res = adjust(obs, mount, planes, options.adjust_options(model))
+    adjust_opts = options.adjust_options(model)
+    ties_next = gls and options.tie_patches == "auto"
+    res = adjust(obs, mount, planes, replace(adjust_opts, jackknife=adjust_opts.jackknife and not ties_next))
+    comparison = None
+    if gls:
+        comparison = adjust(obs, mount, planes, replace(adjust_opts, estimator="thesis", jackknife=False))
+        if options.tie_patches == "auto":
+            if progress is not None:
+                progress("choosing tie patches", 0, None)
+            ties = tie_patches_from_points(obs, planes, res, site, mount, trajectory, points, poses, idx)
+            if ties is not None and point_rows is not None:  # outlier ids name rows of the file
+                n_t = len(obs)
+                ties.observations.point_ids[n_t:] = np.asarray(point_rows)[ties.observations.point_ids[n_t:]]
+            if ties is None:
+                notes.append("tie patches: no planar patch of the scene seen from two headings; targets only")
+            else:
+                targets_only = res
+                with_ties = adjust(
+                    ties.observations, mount.with_boresight(res.boresight_rad), ties.planes, adjust_opts
+                )
+                check = patches_agree(targets_only, with_ties)
+                tau_doc["patch_check"] = check
+                if check["agree"]:
+                    obs, planes, res = ties.observations, ties.planes, with_ties
+                    tau_doc["targets_only"] = targets_only
+                    tau_doc["ties"] = ties
+                else:
+                    run_warnings.append(
+                        f"tie patches disagree with the targets (χ² = {check['chi2']:.1f} on 3 degrees of "
+                        f"freedom, p = {check['p_value']:.2g}): the scene around the targets is not what "
+                        f"the model assumes; the result uses the targets alone"
+                    )
+        if tau_source == "estimated from the data":
+            tau_doc["sensitivity"] = tau_sensitivity(
+                obs, mount.with_boresight(res.boresight_rad), planes, adjust_opts, float(model.tau_s(0))
+            )
     if progress is not None:
         progress("adjusting", 1, 1)
     timings["adjust_s"] = time.perf_counter() - clock
@@ -417,10 +481,25 @@ def calibrate(
         "warnings": run_warnings,
         "notes": notes,
     }
+    extra.update(estimator_doc(options.estimator, options.tie_patches, tau_doc, comparison))
     doc = result_to_dict(res, mount.boresight_rad, software_version or _software_version(), extra)
     timings["total_s"] = sum(timings.values())
     return CalibrationRun(
-        source, site, frame, mount, options, ext, obs, planes, res, doc, run_warnings, notes, timings
+        source,
+        site,
+        frame,
+        mount,
+        options,
+        ext,
+        obs,
+        planes,
+        res,
+        doc,
+        run_warnings,
+        notes,
+        timings,
+        comparison,
+        tau_doc,
     )
 
 

@@ -23,6 +23,7 @@ from pathlib import Path
 import numpy as np
 
 from calib.boresight.observability import ANGLE_NAMES, OBSERVING_PAIRS, sailed_headings
+from calib.boresight.report_gls import estimator_section, tie_patch_plot
 from calib.boresight.result import OFFSET_COMPONENTS
 from calib.core import frames
 from calib.core.georef import Mount, georeference_poses
@@ -82,6 +83,8 @@ def edge_on(run) -> dict[str, dict]:
     p1 += st.pass_offsets_m[pass_index]
     out = {}
     for j, name in enumerate(obs.plane_names):
+        if j in obs.patch_planes:  # tie patches: in their own table and plot
+            continue
         m = plane_index == j
         n0, d0 = run.planes_init[j]
         horiz = np.cross([0.0, 0.0, 1.0], n0)
@@ -187,6 +190,9 @@ def write_plots(run, out_dir: Path) -> list[Path]:
     fig.suptitle("Residuals along time")
     fig.savefig(out_dir / "residuals_time.png", dpi=PLOT_DPI)
     paths.append(out_dir / "residuals_time.png")
+    patches_png = tie_patch_plot(run, out_dir)
+    if patches_png is not None:
+        paths.append(patches_png)
     colours = _pass_colours(len(obs.pass_ids))
     for name, e in edge_on(run).items():
         fig, axes = _figure(2, 5.0, 3.4)
@@ -379,7 +385,12 @@ def report_markdown(run, plot_names: list[str] | None = None) -> str:
         model = "POS errors constant within each pass and independent between passes"
     else:
         model = "independent POS errors per point (the formal model itself)"
-    if em.kind == "white":
+    if doc.get("estimator") == "gls":
+        L.append(
+            f"**Use the realistic σ** — for the GLS estimator it is its formal σ: the model "
+            f"holds {model}, so the correlation of the POS errors is estimated, not ignored."
+        )
+    elif em.kind == "white":
         L.append(
             "**Use the realistic σ** — here it equals the formal σ, because the white "
             "error model was chosen: POS errors correlated in time would make it "
@@ -412,6 +423,8 @@ def report_markdown(run, plot_names: list[str] | None = None) -> str:
         f"{res.n_points} kept)."
     )
     L.append("")
+    L.extend(estimator_section(run))
+    L.append("")
     L.append("## Correlations")
     L.append("")
     L.append("| | roll | pitch | yaw |")
@@ -433,6 +446,8 @@ def report_markdown(run, plot_names: list[str] | None = None) -> str:
     L.append("| target | points | RMS (mm) | normal (N, E, D) | d (m) |")
     L.append("|---|---:|---:|---|---:|")
     for p in res.plane_stats:
+        if p.get("kind") == "tie patch":
+            continue
         n = ", ".join(f"{x:+.4f}" for x in p["normal"])
         L.append(f"| {p['name']} | {p['n_points']} | {p['rms_m'] * 1e3:.2f} | {n} | {p['d']:.4f} |")
     L.append("")

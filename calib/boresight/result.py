@@ -116,3 +116,47 @@ def write_result(path: str | Path, doc: dict) -> Path:
     p = Path(path)
     p.write_text(json.dumps(doc, indent=2) + "\n", encoding="utf-8")
     return p
+
+
+def estimator_doc(estimator: str, tie_patches: str, gls: dict, comparison: AdjustmentResult | None) -> dict:
+    """What result.json says about the estimator, τ, the thesis comparison and the tie patches
+    (``gls``: :attr:`calib.boresight.pipeline.CalibrationRun.gls`)."""
+
+    def brief(r: AdjustmentResult) -> dict:
+        return {
+            "boresight_deg": [float(x) for x in np.degrees(r.boresight_rad)],
+            "sigma_realistic_deg": [float(x) for x in np.degrees(r.sigma_realistic_rad)],
+        }
+
+    out: dict = {"estimator": estimator, "tie_patches_mode": tie_patches}
+    if comparison is not None:
+        out["thesis_estimator"] = brief(comparison)
+    if "targets_only" in gls:
+        out["targets_only"] = brief(gls["targets_only"])
+    if "ties" in gls:
+        t = gls["ties"]
+        c = t.candidates
+        out["tie_patches"] = [
+            {
+                "name": c.names[j],
+                "n_points": int(c.n_points[j]),
+                "passes": [int(x) for x in c.passes[j]],
+                "normal": [float(x) for x in c.normals[j]],
+                "center_lgf_m": [float(x) for x in c.centers_m[j]],
+                "rms_m": float(c.rms_m[j]),
+                "info_gain": g,
+            }
+            for j, g in zip(t.chosen, t.gain)
+        ]
+        out["tie_patch_candidates"] = {
+            "found": len(c.names),
+            "size_m": float(c.size_m),
+            "rejected_cells": dict(c.rejected),
+        }
+    if "patch_check" in gls:
+        out["tie_patch_check"] = gls["patch_check"]
+    if "estimate" in gls:
+        out["tau_estimate"] = gls["estimate"]
+    if "sensitivity" in gls:
+        out["tau_sensitivity"] = gls["sensitivity"]
+    return out

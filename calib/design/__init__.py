@@ -6,9 +6,10 @@ Modules (each imports only those above it, ``criteria`` and ``passpredict`` none
 - ``criteria``: the systematic-error visibility criteria (Type I, Type II) of one target, pass
   by pass.
 - ``passpredict``: the predicted boresight σ during the survey, pass by pass, and the next pass
-  that helps most.
+  that helps most (the GLS estimator's σ by default).
 - ``prediction``: the predicted σ of the boresight for a configuration (observation sigmas,
-  observations of a simulated design scene, the five error models); ``DesignError``.
+  observations of a simulated design scene, the six error models — GLS, the calibration's
+  default estimator, gives the realistic σ); ``DesignError``.
 - ``scenes``: design scenes, the targets placed on a base scenario's site.
 - ``layouts``: the study's specification and its candidate target / inclination / pass layouts.
 - ``study``: running the study (the rows of ``sigma.csv``, tasks in parallel processes, the

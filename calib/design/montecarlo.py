@@ -1,5 +1,9 @@
 """Monte Carlo check of a prediction: a scenario simulated with its noise and adjusted, seed by
 seed, beside the covariance predicted from its noise-free twin.
+
+The adjustments are the calibration's estimators (``mls calib run --estimator``): ``gls`` (the
+default: the POS errors as Gauss–Markov processes with the scenario's correlation times),
+``thesis`` (white weights) and ``pass_offsets`` (white weights and per-pass trajectory offsets).
 """
 
 from __future__ import annotations
@@ -9,8 +13,10 @@ from collections.abc import Sequence
 import numpy as np
 
 from calib.boresight.adjust import adjust
+from calib.boresight.errormodel import ErrorModel
 from calib.boresight.observations import AdjustOptions
 from calib.design.prediction import (
+    ESTIMATOR_MODEL,
     UNOBSERVABLE_RAD,
     DesignError,
     Sigmas,
@@ -25,17 +31,29 @@ from calib.sim.scenario import Scenario
 from calib.sim.simulate import simulate
 
 
-def _mc_task(scenario: Scenario, seed: int, estimates: tuple[tuple[str, ...], ...]) -> np.ndarray:
+def adjust_options(estimator: str, sigmas: Sigmas) -> AdjustOptions:
+    """The adjustment of ``estimator`` (of :data:`calib.design.prediction.ESTIMATOR_MODEL`)
+    with the Gauss–Markov correlation times of ``sigmas``, no outlier search, no jackknife, and
+    the design's observability limit."""
+    if estimator not in ESTIMATOR_MODEL:
+        raise DesignError(f"unknown estimator {estimator!r}; expected one of {', '.join(ESTIMATOR_MODEL)}")
+    return AdjustOptions(
+        estimate=("pass_offsets",) if estimator == "pass_offsets" else (),
+        estimator="gls" if estimator == "gls" else "thesis",
+        error_model=ErrorModel("gauss_markov", tuple(sigmas.correlation_time_s)),
+        outliers="none",
+        jackknife=False,
+        max_sigma_rad=UNOBSERVABLE_RAD,
+    )
+
+
+def _mc_task(scenario: Scenario, seed: int, estimators: tuple[str, ...]) -> np.ndarray:
     sim = simulate(scenario, seed)
-    obs = observations(sim, Sigmas.of_scenario(scenario), noisy=True)
+    sigmas = Sigmas.of_scenario(scenario)
+    obs = observations(sim, sigmas, noisy=True)
     out = []
-    for est in estimates:
-        res = adjust(
-            obs,
-            sim.site.mount,
-            target_planes(sim),
-            AdjustOptions(estimate=est, outliers="none", jackknife=False, max_sigma_rad=UNOBSERVABLE_RAD),
-        )
+    for est in estimators:
+        res = adjust(obs, sim.site.mount, target_planes(sim), adjust_options(est, sigmas))
         out.append(res.boresight_rad - sim.mount_true.boresight_rad)
     return np.array(out)
 
@@ -43,14 +61,16 @@ def _mc_task(scenario: Scenario, seed: int, estimates: tuple[tuple[str, ...], ..
 def empirical_errors(
     scenario: Scenario,
     seeds: Sequence[int],
-    estimates: Sequence[tuple[str, ...]] = ((),),
+    estimators: Sequence[str] = ("gls",),
     jobs: int = 1,
     progress=None,
-) -> dict[tuple[str, ...], np.ndarray]:
-    """Boresight errors (estimate − truth, rad; (len(seeds), 3) per adjustment option) of the
-    scenario simulated with its noise, one simulation per seed adjusted with each of
-    ``estimates`` (``AdjustOptions.estimate`` values)."""
-    est = tuple(tuple(e) for e in estimates)
+) -> dict[str, np.ndarray]:
+    """Boresight errors (estimate − truth, rad; (len(seeds), 3) per estimator) of the scenario
+    simulated with its noise, one simulation per seed adjusted with each of ``estimators``
+    (``gls``, ``thesis``, ``pass_offsets``: :func:`adjust_options`)."""
+    est = tuple(estimators)
+    for e in est:
+        adjust_options(e, Sigmas.of_scenario(scenario))  # an unknown name: before simulating
     res = np.array(run_tasks([(_mc_task, (scenario, int(s), est)) for s in seeds], jobs, progress))
     return {e: res[:, k] for k, e in enumerate(est)}
 

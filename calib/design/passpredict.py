@@ -6,14 +6,27 @@ A pass enters the prediction as a :class:`PassGeometry`: a trajectory and the ra
 live target hits and the INS trajectory; for a pass still to sail, :func:`predict_pass` sails the
 planned line (straight, level, at the planned speed) and scans the targets with the simulator's
 exact ray casting (:func:`calib.sim.simulate.scan`). :func:`predict_sigma` then builds the
-adjustment's observations with the site's sigmas and asks
-:func:`calib.boresight.covariance.predict_covariance` for the boresight covariance, formal and realistic (POS
-errors correlated in time, as the calibration reports them).
+adjustment's observations with the site's sigmas (and the passes' trajectory epochs: the GLS
+knots) and asks :func:`calib.boresight.covariance.predict_covariance` for the boresight
+covariance of the calibration's estimator (:attr:`ObservationModel.estimator`):
+
+- ``"gls"`` (default): the GLS estimator, the POS errors as Gauss–Markov processes estimated
+  with the boresight. Its covariance is its realistic one (the Cramér–Rao bound of the model),
+  and it is the inverse of an information matrix that only grows with each pass: the predicted
+  σ of the accepted passes never rises when a pass is added. ``formal`` is still the white
+  formal σ (the geometry: the adjustment's observability gate judges that one).
+- ``"thesis"``: white weights, realistic σ by propagating the Gauss–Markov POS errors through
+  them. That σ can rise after a pass: the white weights give a pass with many points whose
+  geometry adds little to an angle the weight to pass its POS bias on to it.
 
 Density. A full-rate profiler puts ~10⁴ points on a target per pass; the prediction keeps every
 ``k``-th (``thin_step``) and scans candidates at 1/k of the point rate, then corrects to the
-full density: the formal covariance scales as ``1/k`` exactly (``N`` grows with the number of
-points), and in the realistic one only its white part does,
+full density. The white formal covariance scales as ``1/k`` exactly (``N`` grows with the number
+of points). For GLS, ``k`` neighbouring points share their POS errors (the same knots) and
+differ in range and scan-angle noise only, so they carry what one point with that white
+variance over ``k`` carries: the thinned points' range σ (beam footprint included) and
+scan-angle σ are divided by ``√k``.
+For the thesis estimator only the white part of the realistic covariance scales,
 ``C_real(full) ≈ C_real(thin) − (1 − 1/k)·C_formal(thin)`` (the diagonal of the propagated
 double sum is ``N`` itself; the correlated pairs keep their weight when the spacing stays well
 below the correlation time).
@@ -26,7 +39,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from calib.boresight.covariance import predict_covariance
+from calib.boresight.covariance import PREDICTION_ESTIMATORS, predict_covariance
 from calib.boresight.errormodel import DEFAULT_POS_CORRELATION_S, ErrorModel
 from calib.boresight.observations import AdjustmentError, Observations, build_observations
 from calib.core import frames
@@ -98,16 +111,33 @@ class PassGeometry:
 
 @dataclass(frozen=True)
 class ObservationModel:
-    """The sigmas and POS error model the prediction assumes (the calibration's own)."""
+    """The sigmas, the POS error model and the estimator the prediction assumes (the
+    calibration's own: GLS over Gauss–Markov POS errors by default; ``"thesis"`` for the thesis
+    estimator's realistic σ)."""
 
     sigma_range_m: float
     sigma_scan_angle_rad: float
     sigma_position_m: np.ndarray
     sigma_attitude_rad: np.ndarray
     error_model: ErrorModel
+    estimator: str = "gls"
+    #: range σ growing with range, and the beam divergence (full angle): the GLS adds the beam
+    #: footprint at each point's incidence to its range σ, as the calibration does
+    sigma_range_per_m: float = 0.0
+    beam_divergence_rad: float = 0.0
+
+    def __post_init__(self):
+        if self.estimator not in PREDICTION_ESTIMATORS:
+            raise AdjustmentError(
+                f"estimator {self.estimator!r}: expected one of {', '.join(PREDICTION_ESTIMATORS)}"
+            )
+        if self.estimator == "gls" and self.error_model.kind != "gauss_markov":
+            raise AdjustmentError(
+                f"the GLS estimator needs Gauss–Markov POS errors, not {self.error_model.kind!r}"
+            )
 
     @classmethod
-    def from_site(cls, site: Site) -> ObservationModel:
+    def from_site(cls, site: Site, estimator: str = "gls") -> ObservationModel:
         tau = site.pos_correlation_time_s
         model = ErrorModel(
             "gauss_markov", DEFAULT_POS_CORRELATION_S if tau is None else tuple(float(x) for x in tau)
@@ -118,6 +148,9 @@ class ObservationModel:
             np.asarray(site.sigma_position_m, float),
             np.asarray(site.sigma_attitude_rad, float),
             model,
+            estimator,
+            float(site.sigma_range_per_m),
+            float(site.beam_divergence_rad),
         )
 
 
@@ -126,9 +159,9 @@ class SigmaPrediction:
     """Predicted boresight uncertainty of a set of passes (radians)."""
 
     pass_ids: tuple[int, ...]
-    formal_rad: np.ndarray  # (3,) NaN where nothing can be said
-    realistic_rad: np.ndarray  # (3,)
-    correlation: np.ndarray  # (3, 3)
+    formal_rad: np.ndarray  # (3,) white formal σ (the geometry); NaN where nothing can be said
+    realistic_rad: np.ndarray  # (3,) the estimator's σ (GLS: its covariance, the CRLB)
+    correlation: np.ndarray  # (3, 3) GLS: of its covariance; thesis: of the formal one
     n_points: int
     limit_rad: float = DEFAULT_LIMIT_RAD
     note: str = ""
@@ -263,9 +296,12 @@ def build_pass_observations(
                 model.sigma_scan_angle_rad,
                 model.sigma_position_m,
                 model.sigma_attitude_rad,
+                sigma_range_per_m=model.sigma_range_per_m,
+                beam_divergence_rad=model.beam_divergence_rad,
             )
         )
     pass_ids = sorted({p.pass_id for p in passes if len(p)})
+    traj = joint_trajectory([p.trajectory for p in passes if len(p)])
     cat = lambda name: np.concatenate([getattr(o, name) for o in parts])  # noqa: E731
     pid = np.concatenate([np.full(len(o), o.pass_ids[0]) for o in parts])
     obs = Observations(
@@ -277,9 +313,39 @@ def build_pass_observations(
         [target_names[j] for j in used],
         pass_ids,
         np.arange(pid.size),
+        traj,
         pass_headings_rad={p.pass_id: p.relative_heading_rad for p in passes},
+        beam_half_divergence_rad=0.5 * model.beam_divergence_rad,
     )
     return obs, used
+
+
+def joint_trajectory(trajectories: Sequence[Trajectory]) -> Trajectory | None:
+    """The passes' trajectories as one (their epochs are the GLS knots, as in the calibration),
+    or None when two of them overlap in time (one vessel cannot sail both; the GLS then puts
+    its knots on a uniform grid)."""
+    if not trajectories:
+        return None
+    trs = sorted(trajectories, key=lambda tr: float(tr.t_gps_s[0]))
+    if len(trs) == 1:
+        return trs[0]
+    if any(float(a.t_gps_s[-1]) >= float(b.t_gps_s[0]) for a, b in zip(trs, trs[1:])):
+        return None
+    cat = lambda name: np.concatenate([getattr(tr, name) for tr in trs])  # noqa: E731
+    sig = {
+        name: cat(name)
+        for name in ("sigma_p_m", "sigma_rpy_rad")
+        if all(getattr(tr, name) is not None for tr in trs)
+    }
+    return Trajectory(
+        cat("t_gps_s"),
+        cat("p_lgf_m"),
+        cat("rpy_rad"),
+        trs[0].frame,
+        max_gap_s=max(tr.max_gap_s for tr in trs),
+        name="passes",
+        **sig,
+    )
 
 
 def predict_sigma(
@@ -303,16 +369,32 @@ def predict_sigma(
     if len(used) < 2:
         return _unknown(ids, n, limit_rad, "points on fewer than two targets")
     planes = [(targets[j].normal, targets[j].d) for j in used]
+    k = max(int(thin_step), 1)
     try:
         with np.errstate(all="ignore"):
-            cov = predict_covariance(obs, mount, planes, model=model.error_model)
+            # the thesis estimator's formal covariance is the white one whatever the model
+            thesis_model = model.error_model if model.estimator == "thesis" else ErrorModel("white")
+            cov = predict_covariance(obs, mount, planes, model=thesis_model, estimator="thesis")
+            white = cov["formal"]
+            if model.estimator == "gls":
+                # k points per kept one: their white noise (range, with the beam footprint,
+                # and scan angle) averages down
+                full = replace(
+                    obs,
+                    sigma_l=obs.sigma_l.copy(),
+                    beam_half_divergence_rad=obs.beam_half_divergence_rad / np.sqrt(k),
+                )
+                full.sigma_l[:, 6:8] /= np.sqrt(k)
+                cov = predict_covariance(full, mount, planes, model=model.error_model, estimator="gls")
     except (AdjustmentError, np.linalg.LinAlgError, ValueError) as e:
         return _unknown(ids, n, limit_rad, f"no prediction: {e}")
-    k = max(int(thin_step), 1)
-    formal = cov["formal"] / k
-    realistic = cov["realistic"] - (1.0 - 1.0 / k) * cov["formal"]
+    formal = white / k
     sf = np.sqrt(np.clip(np.diag(formal), 0.0, None))
-    sr = np.sqrt(np.maximum(np.diag(realistic), np.diag(formal)))
+    if model.estimator == "gls":
+        sr = np.sqrt(np.clip(np.diag(cov["realistic"]), 0.0, None))
+    else:
+        realistic = cov["realistic"] - (1.0 - 1.0 / k) * cov["formal"]
+        sr = np.sqrt(np.maximum(np.diag(realistic), np.diag(formal)))
     bad = ~np.isfinite(sf) | ~np.isfinite(sr)
     sf[bad], sr[bad] = np.nan, np.nan
     return SigmaPrediction(ids, sf, sr, cov["correlation"], n, limit_rad)

@@ -1,25 +1,32 @@
 """Predicted σ of the boresight for a configuration (thesis §4.4.1.2, Fig. 4.12): the observations
 of a simulated design scene and the adjustment's covariance predicted from them.
 
-A noise-free simulation of a configuration gives the geometry (true poses, ranges, scan angles);
-the adjustment's covariance is predicted at the truth
-(:func:`calib.boresight.covariance.predict_covariance`) with the scenario's observation sigmas under
-five models —
+A noise-free simulation of a configuration gives the geometry (true poses, ranges, scan angles,
+the trajectory's epochs); the adjustment's covariance is predicted at the truth
+(:func:`calib.boresight.covariance.predict_covariance`) with the scenario's observation sigmas
+under six models —
 
 - ``white``: every observation independent (the thesis's implicit model, the formal σ);
+- ``gls``: POS errors correlated in time (first-order Gauss–Markov with the trajectory's
+  correlation times, across passes too), adjusted by the GLS estimator
+  (:mod:`calib.boresight.gls`, the calibration's default): the POS error processes are
+  estimated with the boresight, and the predicted σ is the estimator's covariance — its
+  realistic σ and the Cramér–Rao bound of the model (no unbiased estimator does better);
 - ``pass_bias``: POS errors constant within a pass and independent between passes (what
   time-correlated INS errors do over a pass of a few seconds), adjusted as the thesis does;
-- ``gauss_markov``: POS errors correlated in time with the trajectory's correlation time
-  (first-order Gauss–Markov, across passes too), adjusted as the thesis does;
+- ``gauss_markov``: the Gauss–Markov POS errors adjusted as the thesis does (white weights,
+  ``--estimator thesis``), realistic σ by propagation;
 - ``…_offsets``: the same errors, adjusted with per-pass trajectory translations
-  (``estimate=("pass_offsets",)``, prior from the trajectory's σ).
+  (``estimate=("pass_offsets",)``, prior from the trajectory's σ; ``--estimator
+  pass_offsets``).
 
-The *realistic* σ of a configuration is the better of the two Gauss–Markov predictions, and
-the recommendation minimizes it. The pass-bias model is the Gauss–Markov model's limit of
-an infinite correlation time within a pass; with the INS's real τ (tens of seconds) the POS
-error still drifts by half its σ in the 2–3 s between the moments one pass sees two targets
-a few metres apart, which a layout that relies on the per-pass offsets must survive (a Monte
-Carlo with Gauss–Markov errors confirms the Gauss–Markov prediction, not the pass-bias one).
+The *realistic* σ of a configuration is the σ of the calibration's estimator: GLS (the default,
+what the recommendation minimizes); the thesis and pass-offset models stay beside it for
+comparison. A prediction without the ``gls`` model falls back to the better of the two
+Gauss–Markov thesis predictions (the pass-bias model is their limit of an infinite correlation
+time within a pass; with the INS's real τ the POS error still drifts by half its σ in the 2–3 s
+between the moments one pass sees two targets a few metres apart, which a layout that relies on
+the per-pass offsets must survive).
 """
 
 from __future__ import annotations
@@ -42,12 +49,20 @@ from calib.sim.scenario import Scenario
 from calib.sim.simulate import SimResult, simulate
 
 ANGLES = ("roll", "pitch", "yaw")
-#: Error models of a prediction: white noise; POS errors constant within a pass (pass_bias)
-#: or first-order Gauss–Markov with the trajectory's correlation time (gauss_markov), each
-#: adjusted as the thesis does or with per-pass trajectory offsets (…_offsets).
-MODELS = ("white", "pass_bias", "pass_bias_offsets", "gauss_markov", "gauss_markov_offsets")
-#: The realistic σ of a configuration is the better of these (what the design optimizes).
-REALISTIC = ("gauss_markov", "gauss_markov_offsets")
+#: Error models of a prediction: white noise; POS errors first-order Gauss–Markov with the
+#: trajectory's correlation times adjusted by GLS (gls); POS errors constant within a pass
+#: (pass_bias) or Gauss–Markov (gauss_markov), each adjusted as the thesis does or with per-pass
+#: trajectory offsets (…_offsets).
+MODELS = ("white", "gls", "pass_bias", "pass_bias_offsets", "gauss_markov", "gauss_markov_offsets")
+#: The model whose σ is each calibration estimator's realistic σ (``mls calib run --estimator``).
+ESTIMATOR_MODEL = {"gls": "gls", "thesis": "gauss_markov", "pass_offsets": "gauss_markov_offsets"}
+#: The calibration's default estimator: its σ is the realistic σ the design optimizes.
+DEFAULT_ESTIMATOR = "gls"
+#: The realistic models, one per estimator (the default first).
+REALISTIC = tuple(ESTIMATOR_MODEL.values())
+#: Without a GLS prediction the realistic σ is the better of these (the thesis's adjustment, with
+#: or without pass offsets).
+THESIS_REALISTIC = ("gauss_markov", "gauss_markov_offsets")
 #: The estimate of a boresight direction whose formal σ exceeds this is reported unobservable.
 UNOBSERVABLE_RAD = float(np.radians(1.0))
 _RANGE_SIGMA_FLOOR_M = 1e-4
@@ -97,7 +112,12 @@ class Sigmas:
     @classmethod
     def of_site(cls, site: Site) -> Sigmas:
         return cls(
-            ScannerNoise(sigma_range_m=site.sigma_range_m, sigma_scan_angle_rad=site.sigma_scan_angle_rad),
+            ScannerNoise(
+                sigma_range_m=site.sigma_range_m,
+                sigma_range_per_m=site.sigma_range_per_m,
+                beam_divergence_rad=site.beam_divergence_rad,
+                sigma_scan_angle_rad=site.sigma_scan_angle_rad,
+            ),
             np.asarray(site.sigma_position_m, float),
             np.asarray(site.sigma_attitude_rad, float),
             (DEFAULT_POS_CORRELATION_S,) * 6
@@ -260,9 +280,16 @@ class Prediction:
 
     @property
     def realistic_model(self) -> str:
-        """The better adjustment under Gauss–Markov POS errors: with or without per-pass
-        offsets."""
-        return min(REALISTIC, key=self.total_deg)
+        """The model of the realistic σ: the GLS estimator's when predicted, else the better
+        thesis adjustment under Gauss–Markov POS errors (with or without per-pass offsets)."""
+        if ESTIMATOR_MODEL[DEFAULT_ESTIMATOR] in self.covariances:
+            return ESTIMATOR_MODEL[DEFAULT_ESTIMATOR]
+        return min(THESIS_REALISTIC, key=self.total_deg)
+
+    @property
+    def estimator(self) -> str:
+        """The calibration estimator (``--estimator``) of :attr:`realistic_model`."""
+        return next(e for e, m in ESTIMATOR_MODEL.items() if m == self.realistic_model)
 
 
 def predict(
@@ -274,7 +301,8 @@ def predict(
 ) -> Prediction:
     """Predicted covariance of the boresight from noise-free ``obs`` at the true ``mount`` and
     ``planes`` under ``models`` (of :data:`MODELS`; Gauss–Markov with ``correlation_time_s``,
-    one value or six for north, east, down, roll, pitch, heading)."""
+    one value or six for north, east, down, roll, pitch, heading). ``obs`` should carry its
+    trajectory: the GLS knots are its epochs, as in the calibration."""
     n = len(obs)
     counts = dict(n_points=n, n_planes=len(planes), n_passes=len(obs.pass_ids))
     if n == 0 or not planes:
@@ -283,6 +311,7 @@ def predict(
     ev = np.linalg.eigvalsh(info)
     if not ev[0] > 0 or 1.0 / np.sqrt(ev[0]) > UNOBSERVABLE_RAD:
         return Prediction(**counts, observable=False, covariances={})
+    gm = ErrorModel("gauss_markov", tuple(np.atleast_1d(correlation_time_s)))
     covs = {}
     for model in models:
         if model == "white":  # = predict_covariance(...)["formal"], without a second pass
@@ -290,11 +319,10 @@ def predict(
             continue
         if model not in MODELS:
             raise DesignError(f"unknown error model {model!r}; expected one of {', '.join(MODELS)}")
+        if model == "gls":
+            covs[model] = predict_covariance(obs, mount, planes, (), gm, estimator="gls")["realistic"]
+            continue
         est = ("pass_offsets",) if model.endswith("_offsets") else ()
-        em = (
-            ErrorModel("pass_bias")
-            if model.startswith("pass_bias")
-            else ErrorModel("gauss_markov", tuple(np.atleast_1d(correlation_time_s)))
-        )
-        covs[model] = predict_covariance(obs, mount, planes, est, em)["realistic"]
+        em = ErrorModel("pass_bias") if model.startswith("pass_bias") else gm
+        covs[model] = predict_covariance(obs, mount, planes, est, em, estimator="thesis")["realistic"]
     return Prediction(**counts, observable=True, covariances=covs)

@@ -10,6 +10,9 @@ import numpy as np
 from calib.design.montecarlo import empirical_errors
 from calib.design.scenes import site_scenario
 
+#: the adjustments of the scenario's own site (the recommended one gets its own estimator)
+_OWN = {"gls": "GLS (default)", "thesis": "thesis adjustment", "pass_offsets": "pass offsets"}
+
 
 def compare_sites(base, rec, seeds: int, jobs: int, progress) -> dict:
     """Both sites simulated with the scenario's noise, adjusted; RMS errors side by side.
@@ -20,17 +23,12 @@ def compare_sites(base, rec, seeds: int, jobs: int, progress) -> dict:
     own = site_scenario(base, [s for s in base.surfaces if s.kind == "target"])
     new = site_scenario(base, rec.layout.targets)
     n = int(seeds)
-    runs = {
-        "scenario's site, thesis adjustment": (own, ()),
-        "scenario's site, pass offsets": (own, ("pass_offsets",)),
-        "recommended site": (new, rec.estimator),
-    }
-    errs_own = empirical_errors(own, range(n), ((), ("pass_offsets",)), jobs, progress)
-    errs_new = empirical_errors(new, range(n), (rec.estimator,), jobs, progress)
-    rms = {}
-    for name, (sc, est) in runs.items():
-        e = (errs_new if sc is new else errs_own)[est]
-        rms[name] = np.degrees(np.sqrt(np.mean(e**2, axis=0)))
+    est = rec.estimator_name
+    errs_own = empirical_errors(own, range(n), tuple(_OWN), jobs, progress)
+    errs_new = empirical_errors(new, range(n), (est,), jobs, progress)
+    runs = {f"scenario's site, {label}": errs_own[e] for e, label in _OWN.items()}
+    runs[f"recommended site, {_OWN[est]}"] = errs_new[est]
+    rms = {name: np.degrees(np.sqrt(np.mean(e**2, axis=0))) for name, e in runs.items()}
     lines = [
         f"{n} simulations of each site with the scenario's noise ({base.pos_noise.model} POS "
         f"errors), adjusted; RMS error of the estimates:",

@@ -29,6 +29,8 @@ from calib.design.criteria import criteria_rows, injected, summarize
 from calib.design.layouts import Constraint, Layout, StudySpec, default_spec, layouts
 from calib.design.prediction import (
     ANGLES,
+    DEFAULT_ESTIMATOR,
+    ESTIMATOR_MODEL,
     MODELS,
     REALISTIC,
     DesignError,
@@ -115,9 +117,10 @@ def sigma_row(
             row[f"sigma_{m}_{a}_deg"] = float(v)
         row[f"sigma_{m}_total_deg"] = float(np.sqrt(np.sum(s**2)))
     usable = pred if pred is not None and pred.observable else None  # a prediction with σ
-    real = usable.realistic_model if usable is not None else REALISTIC[0]
+    real = usable.realistic_model if usable is not None else ESTIMATOR_MODEL[DEFAULT_ESTIMATOR]
     row["realistic_total_deg"] = row[f"sigma_{real}_total_deg"]
-    row["estimator"] = ("pass_offsets" if real.endswith("_offsets") else "none") if usable is not None else ""
+    # the calibration's --estimator the realistic σ is for (gls, thesis or pass_offsets)
+    row["estimator"] = usable.estimator if usable is not None else ""
     for name, m in (("white", "white"), ("realistic", real)):
         c = usable.correlation(m) if usable is not None else np.full((3, 3), np.nan)
         for (a, b), v in zip(
@@ -132,7 +135,8 @@ def headings_deg(base: Scenario) -> dict:
     return {p.id: float(np.degrees(p.relative_heading_rad)) % 360.0 for p in base.passes}
 
 
-#: The recommendation's search predicts only these (the winner gets every model).
+#: The recommendation's search predicts only these: white, GLS (the realistic σ it minimizes)
+#: and the thesis adjustments for comparison (the winner gets every model).
 _SEARCH_MODELS = ("white",) + REALISTIC
 
 
@@ -205,8 +209,16 @@ class Recommendation:
     baseline_row: dict | None  # the scenario's own targets on the same passes
 
     @property
+    def estimator_name(self) -> str:
+        """The calibration's estimator to use (``mls calib run --estimator``): ``gls`` unless the
+        prediction was made without it."""
+        return self.row["estimator"]
+
+    @property
     def estimator(self) -> tuple[str, ...]:
-        """The adjustment options to use (``estimate=``)."""
+        """The adjustment's extra unknowns to use (``AdjustOptions.estimate``): per-pass offsets
+        with the ``pass_offsets`` estimator, none otherwise (GLS estimates the POS errors
+        itself)."""
         return ("pass_offsets",) if self.row["estimator"] == "pass_offsets" else ()
 
 
@@ -216,7 +228,8 @@ def recommend(
     constraint: Constraint,
     baseline_rows: Sequence[dict] = (),
 ) -> Recommendation:
-    """The ``layout`` row with the smallest realistic σ (ties: the smaller white σ)."""
+    """The ``layout`` row with the smallest realistic σ (the GLS estimator's; ties: the smaller
+    white σ)."""
     cands = [(r, lay) for r, lay in zip(rows, layouts_) if r["group"] == "layout" and r["observable"]]
     if not cands:
         raise DesignError(

@@ -20,7 +20,7 @@ from calib.design.criteria import (
     is_angular,
     plot_criteria,
 )
-from calib.design.prediction import ANGLES, MODELS, REALISTIC
+from calib.design.prediction import ANGLES, ESTIMATOR_MODEL, MODELS
 from calib.design.scenes import ground_based, surface_inclination_deg
 from calib.design.study import SIGMA_COLUMNS, Recommendation, StudyResult, run_tasks
 from calib.sim.scenario import Scenario
@@ -48,8 +48,8 @@ def write_csv(path: Path, rows: Sequence[dict], columns: Sequence[str]) -> Path:
 
 def plot_sigma_group(rows: Sequence[dict], group: str, path: Path, title: str = "") -> Path:
     """Thesis Fig. 4.12 style: σ of roll, pitch, yaw per configuration of one group's rows of
-    ``sigma.csv``, white noise (top) and realistic (bottom: Gauss–Markov POS errors, the better
-    adjustment)."""
+    ``sigma.csv``, white noise (top) and realistic (bottom: Gauss–Markov POS errors, the
+    calibration's estimator — GLS, its σ the Cramér–Rao bound)."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -69,12 +69,13 @@ def plot_sigma_group(rows: Sequence[dict], group: str, path: Path, title: str = 
     fig, axes = plt.subplots(2, 1, figsize=(fig_w, fig_h), sharex=True)
 
     def realistic(r, a):
-        return r[f"sigma_{REALISTIC[1] if r['estimator'] == 'pass_offsets' else REALISTIC[0]}_{a}_deg"]
+        return r[f"sigma_{ESTIMATOR_MODEL[r['estimator']]}_{a}_deg"]
 
     tau = _tau_text(rows[0]) if rows else "?"
+    est = ", ".join(dict.fromkeys(_ESTIMATOR_NAMES[r["estimator"]] for r in rows)) or "?"
     for ax, what, key in (
         (axes[0], "white noise (formal)", lambda r, a: r[f"sigma_white_{a}_deg"]),
-        (axes[1], f"realistic (Gauss–Markov POS errors, τ = {tau} s, better adjustment)", realistic),
+        (axes[1], f"realistic (Gauss–Markov POS errors, τ = {tau} s, {est})", realistic),
     ):
         for k, (a, colour) in enumerate(zip(ANGLES, ("tab:blue", "tab:orange", "tab:green"))):
             ax.bar(x + (k - 1) * width, [key(r, a) for r in rows], width, label=a, color=colour)
@@ -120,7 +121,7 @@ def findings(result: StudyResult) -> list[dict]:
             br = best(rows, "realistic_total_deg")
             out.append(
                 {
-                    "name": f"… realistic σ (time-correlated POS errors), {what}",
+                    "name": f"… realistic σ (time-correlated POS errors, GLS), {what}",
                     "holds": len(br["passes"]) == max(len(r["passes"]) for r in rows),
                     "ours": f"best subset {br['passes']}: {br['realistic_total_deg']:.4f}°",
                 }
@@ -152,6 +153,7 @@ def findings(result: StudyResult) -> list[dict]:
             ("white", "sigma_white_total_deg"),
             ("per-pass biases, thesis adjustment", "sigma_pass_bias_total_deg"),
             ("Gauss–Markov, thesis adjustment", "sigma_gauss_markov_total_deg"),
+            ("Gauss–Markov, GLS", "sigma_gls_total_deg"),
         ):
             triples = [r for k, r in planes.items() if len(k) == 3]
             b = min(triples, key=lambda r: r[key])
@@ -186,10 +188,19 @@ def findings(result: StudyResult) -> list[dict]:
 
 _MODEL_NAMES = {
     "white": "white noise (formal)",
+    "gls": "Gauss–Markov POS errors, GLS estimator (= CRLB)",
     "pass_bias": "per-pass POS biases, thesis adjustment",
     "pass_bias_offsets": "per-pass POS biases, with pass offsets",
     "gauss_markov": "Gauss–Markov POS errors, thesis adjustment",
     "gauss_markov_offsets": "Gauss–Markov POS errors, with pass offsets",
+}
+
+
+#: how summary.md names the calibration's estimators
+_ESTIMATOR_NAMES = {
+    "gls": "GLS estimator",
+    "thesis": "thesis adjustment",
+    "pass_offsets": "thesis adjustment with pass offsets",
 }
 
 
@@ -202,6 +213,7 @@ def _why(rec: Recommendation, sc: Scenario) -> str:
     layout's own parameters)."""
     tg, p = rec.layout.targets, rec.layout.params
     same_normal = len({round(surface_inclination_deg(t), 6) for t in tg}) == 1
+    gls = rec.estimator_name == "gls"
     txt = [
         "Under white noise (the thesis's model) a site's σ is set by how many points its "
         "targets return and how different their normals are, and the thesis's site (targets of "
@@ -210,11 +222,23 @@ def _why(rec: Recommendation, sc: Scenario) -> str:
         "errors are correlated in time: during the few seconds a pass sees the targets, the "
         "position error is nearly a constant translation of that pass's points, and seen from "
         f"{sc.standoff_m:g} m a translation of a centimetre looks like a boresight rotation of "
-        "a few hundredths of a degree. Adjusting per-pass trajectory offsets removes a "
-        "translation only where the targets can tell it from a rotation: with two targets of "
-        "different normals a per-pass translation explains both targets' offsets at once, so "
-        "the offsets take the boresight's signal with them."
+        "a few hundredths of a degree."
     ]
+    if gls:
+        txt.append(
+            "The GLS estimator estimates the POS errors (Gauss–Markov processes with the "
+            "trajectory's correlation times) together with the boresight: what is left is the "
+            "part of a rotation that a slowly drifting POS error can imitate on these targets, "
+            "and a layout is good when its targets make a rotation move them in ways no "
+            "translation or drift of the vessel does."
+        )
+    else:
+        txt.append(
+            "Adjusting per-pass trajectory offsets removes a translation only where the targets "
+            "can tell it from a rotation: with two targets of different normals a per-pass "
+            "translation explains both targets' offsets at once, so the offsets take the "
+            "boresight's signal with them."
+        )
     if rec.estimator and same_normal:
         txt.append(
             "The recommended targets share one normal: a translation moves both alike, "
@@ -228,7 +252,11 @@ def _why(rec: Recommendation, sc: Scenario) -> str:
             "cancels between them too (targets spread along the wall or in range are "
             "crossed seconds apart, and the drift over those seconds — half the POS σ for "
             f"correlation times of {_tau_text(rec.row)} s — corrupts exactly the difference "
-            "the design relies on). The height difference turns roll (a displacement across the "
+            "the design relies on)."
+        )
+    if p.get("stagger_m", 0.0) > 0:
+        txt.append(
+            f"The height difference ({p['stagger_m']:g} m) turns roll (a displacement across the "
             "track proportional to the height) and pitch (along the track, proportional "
             "to the height, seen at 45° by the oblique passes) into differences between "
             "the targets that no translation produces."
@@ -239,20 +267,67 @@ def _why(rec: Recommendation, sc: Scenario) -> str:
             "track in proportion to their horizontal range, a translation does not."
         )
     r, b = rec.row, rec.baseline_row
-    real = REALISTIC[1] if rec.estimator else REALISTIC[0]
-    if p.get("setback_m", 0.0) == 0 and max(ANGLES, key=lambda a: r[f"sigma_{real}_{a}_deg"]) == "yaw":
+    real = ESTIMATOR_MODEL[rec.estimator_name]
+    if max(ANGLES, key=lambda a: r[f"sigma_{real}_{a}_deg"]) == "yaw":
         txt.append(
             "Yaw stays the weakest angle: a profiler's yaw moves points along the track "
-            "by their horizontal range, the same for targets at one range, so only the "
-            "targets' own extent and the pass headings separate it from an along-track "
-            "translation."
+            "by their horizontal range, as an along-track POS error moves them, so only "
+            "differences in range, the targets' own extent and the pass headings separate "
+            "it from an along-track translation."
         )
     if b:
         txt.append(
-            f"Predicted realistic σ: {r['realistic_total_deg']:.4f}° against "
-            f"{b['realistic_total_deg']:.4f}° for the scenario's own site."
+            f"Predicted realistic σ ({_ESTIMATOR_NAMES[rec.estimator_name]}): "
+            f"{r['realistic_total_deg']:.4f}° against {b['realistic_total_deg']:.4f}° for the "
+            "scenario's own site."
         )
     return " ".join(txt)
+
+
+def _own_site_name(sc: Scenario) -> str:
+    return "the thesis's site (montreal)" if sc.name == "montreal" else f"the scenario's own site ({sc.name})"
+
+
+def _crlb_comparison(rec: Recommendation, sc: Scenario) -> list[str]:
+    """summary.md: the recommended site and the scenario's own (the thesis's, for montreal)
+    under the GLS estimator, whose predicted σ is the Cramér–Rao bound, beside the thesis's
+    adjustments."""
+    rows = [("recommended site", rec.row)] + (
+        [(_own_site_name(sc), rec.baseline_row)] if rec.baseline_row else []
+    )
+    if not all(math.isfinite(r.get("sigma_gls_total_deg", math.inf)) for _, r in rows):
+        return []
+    L = [
+        "",
+        "### Under the GLS estimator (the calibration's default)",
+        "",
+        "For the GLS model the predicted σ is the covariance of the GLS estimator — the inverse "
+        "of the Fisher information of the Gauss–Markov POS error model, linearized at the "
+        "truth — so it **is** the Cramér–Rao bound (CRLB): no unbiased estimator does better "
+        "with these targets, passes and sigmas, and the GLS estimator attains it (its formal σ "
+        "is its realistic σ). The thesis's adjustments under the same POS errors beside it:",
+        "",
+        "| site | GLS σ = CRLB: roll | pitch | yaw | total | thesis adjustment total | with pass offsets total |",
+        "|---|---|---|---|---|---|---|",
+    ]
+    for name, r in rows:
+        L.append(
+            f"| {name} | "
+            + " | ".join(f"{r[f'sigma_gls_{a}_deg']:.4f}°" for a in ANGLES)
+            + f" | {r['sigma_gls_total_deg']:.4f}° | {r['sigma_gauss_markov_total_deg']:.4f}° | "
+            f"{r['sigma_gauss_markov_offsets_total_deg']:.4f}° |"
+        )
+    if len(rows) == 2:
+        a, b = rows[0][1]["sigma_gls_total_deg"], rows[1][1]["sigma_gls_total_deg"]
+        L += [
+            "",
+            f"The recommended site's CRLB is {a:.4f}° against {b:.4f}° (×{a / b:.2f}) for "
+            f"{rows[1][0]}; on that site the GLS estimator is "
+            f"×{rows[1][1]['sigma_gauss_markov_total_deg'] / b:.1f} better than the thesis's "
+            f"adjustment and ×{rows[1][1]['sigma_gauss_markov_offsets_total_deg'] / b:.1f} better "
+            "than the one with pass offsets.",
+        ]
+    return L
 
 
 def _summary(result: StudyResult, empirical: dict | None) -> str:
@@ -341,22 +416,25 @@ def _summary(result: StudyResult, empirical: dict | None) -> str:
         lab = (lambda r: str(r["passes"])) if g.endswith("passes") else (lambda r: r["label"])
         L.append(
             f"| {g} | {lab(bw)} | {bw['sigma_white_total_deg']:.4f}° | {lab(br)} | "
-            f"{br['realistic_total_deg']:.4f}° | {br['estimator']} |"
+            f"{br['realistic_total_deg']:.4f}° | {br['estimator'] or '—'} |"
         )
     if result.sigma:
         L += [
             "",
             "Models: *white* treats every observation as independent (the thesis's "
-            "implicit model, the adjustment's formal σ); *per-pass biases* hold the POS errors "
-            "constant within a pass and independent between passes; *Gauss–Markov* correlates "
-            "them in time with the trajectory's correlation times "
+            "implicit model, the adjustment's formal σ); *Gauss–Markov* correlates the POS "
+            "errors in time with the trajectory's correlation times "
             f"({_tau_text(result.sigma[0])} s for north, east, down, roll, pitch, heading), "
-            "across passes too. Each realistic model is predicted for the thesis's "
-            "adjustment and for one with per-pass trajectory offsets. The realistic σ — what "
-            "the recommendation minimizes — is the better Gauss–Markov one: per-pass biases "
-            "are its limit of an infinite correlation time and miss the POS drift within a "
-            "pass, which decides between layouts whose targets are crossed at different "
-            "moments (a Gauss–Markov Monte Carlo follows the Gauss–Markov prediction).",
+            "across passes too; *per-pass biases* hold them constant within a pass and "
+            "independent between passes (the Gauss–Markov model's limit of an infinite "
+            "correlation time, which misses the POS drift within a pass). The realistic σ — "
+            "what the recommendation minimizes — is the GLS estimator's under the "
+            "Gauss–Markov errors (the calibration's default, `--estimator gls`: the POS errors "
+            "estimated as processes with the boresight); its predicted σ is the Cramér–Rao "
+            "bound of that model. The thesis's adjustment (`--estimator thesis`, white "
+            "weights) and the one with per-pass trajectory offsets (`--estimator "
+            "pass_offsets`) are predicted beside it under the same errors, and under per-pass "
+            "biases, for comparison.",
         ]
     rec = result.recommendation
     if rec is not None:
@@ -366,8 +444,8 @@ def _summary(result: StudyResult, empirical: dict | None) -> str:
             "## Recommended site",
             "",
             f"Constraint: {c.n_targets} target(s) of at most {c.max_size_m:g} m, passes "
-            f"{', '.join(map(str, c.passes))}. Adjust with "
-            f"{'per-pass trajectory offsets (estimate pass_offsets)' if rec.estimator else 'the boresight and planes only'}.",
+            f"{', '.join(map(str, c.passes))}. Adjust with the "
+            f"{_ESTIMATOR_NAMES[rec.estimator_name]} (`mls calib run --estimator {rec.estimator_name}`).",
             "",
             "| target | inclination | size | along the wall | out from the wall line | above the scanner |",
             "|---|---|---|---|---|---|",
@@ -389,6 +467,7 @@ def _summary(result: StudyResult, empirical: dict | None) -> str:
             return ", ".join(f"{a}–{c} {x[f'corr_realistic_{a}_{c}']:+.2f}" for a, c in pairs)
 
         L.append(f"| correlation (realistic) | {corr(r)} | {corr(b) if b else '—'} |")
+        L += _crlb_comparison(rec, sc)
         L += ["", "### Why it differs from the thesis's site", "", _why(rec, sc)]
     if empirical:
         L += ["", "## Monte Carlo check", "", empirical.get("text", "")]
@@ -398,8 +477,10 @@ def _summary(result: StudyResult, empirical: dict | None) -> str:
         "",
         "`criteria.csv` (per error, inclination and pass), `visibility.csv` (per error and "
         "inclination), `sigma.csv` (per configuration and pass subset; σ in degrees under "
-        "each model — the search's layouts under white noise and Gauss–Markov only, the "
-        "recommended one under all), `recommendation.json`, "
+        "each model — the search's layouts under white noise and the three Gauss–Markov "
+        "adjustments (GLS, thesis, pass offsets) only, the recommended one under all; "
+        "`estimator` names the calibration estimator of `realistic_total_deg`), "
+        "`recommendation.json`, "
         "`criteria_<error>.png`, `sigma_<group>.png`.",
     ]
     return "\n".join(L) + "\n"
@@ -421,6 +502,7 @@ def recommendation_json(result: StudyResult) -> dict:
     return {
         "scenario": result.scenario.name,
         "constraint": asdict(rec.constraint),
+        "estimator": rec.estimator_name,  # mls calib run --estimator
         "estimate": list(rec.estimator),
         "targets": [
             {

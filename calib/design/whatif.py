@@ -1,5 +1,6 @@
 """Site what-if (``mls design --site``): the predicted σ of a planned site config after each pass
-in its sailing order, and the pass that would help most next.
+in its sailing order, and the pass that would help most next (by the realistic σ: the GLS
+estimator's, the calibration's default).
 """
 
 from __future__ import annotations
@@ -92,7 +93,10 @@ def site_as_scenario(
             time_offset_s=0.0,
         ),
         scanner_noise=ScannerNoise(
-            sigma_range_m=site.sigma_range_m, sigma_scan_angle_rad=site.sigma_scan_angle_rad
+            sigma_range_m=site.sigma_range_m,
+            sigma_range_per_m=site.sigma_range_per_m,
+            beam_divergence_rad=site.beam_divergence_rad,
+            sigma_scan_angle_rad=site.sigma_scan_angle_rad,
         ),
         pos_noise=pos,
     )

@@ -38,7 +38,7 @@ matched clusters then seed step 1–4.
 (ties: the earliest), in the original order.
 
 The point-cloud building blocks (RANSAC plane, intensity split, incidence correction, clusters,
-extents) are in :mod:`calib.boresight.segmentation`.
+extents) are in :mod:`calib.extraction.segmentation`.
 """
 
 from __future__ import annotations
@@ -48,7 +48,9 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 from scipy.optimize import linear_sum_assignment
 
-from calib.boresight.segmentation import (
+from calib.core.errors import CalibError
+from calib.core.geometry import Rectangle, fit_plane
+from calib.extraction.segmentation import (
     clusters,
     in_plane_axes,
     incidence_corrected,
@@ -57,8 +59,6 @@ from calib.boresight.segmentation import (
     ransac_plane,
     robust_extent,
 )
-from calib.core.errors import CalibError
-from calib.core.geometry import Rectangle, fit_plane
 
 MODES = ("seeded", "auto")
 

@@ -1,4 +1,4 @@
-"""Point-cloud building blocks of the target extraction (:mod:`calib.boresight.extract`): a RANSAC
+"""Point-cloud building blocks of the target extraction (:mod:`calib.extraction.extract`): a RANSAC
 plane among admissible orientations, Otsu's two-class split of log intensities, intensities
 corrected for incidence, connected clusters, and a plane's in-plane axes and a cluster's robust
 extent on them.

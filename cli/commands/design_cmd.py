@@ -231,6 +231,7 @@ def _study_table(console, result, empirical) -> None:
     from rich import box
     from rich.table import Table
 
+    from calib.design.prediction import ESTIMATOR_MODEL
     from calib.design.scenes import surface_inclination_deg
 
     rec = result.recommendation
@@ -243,11 +244,11 @@ def _study_table(console, result, empirical) -> None:
     for col in ("site", "model", "roll", "pitch", "yaw", "total"):
         t.add_column(col, justify="left" if col in ("site", "model") else "right", no_wrap=True)
     if rec is not None:
-        real = "gauss_markov_offsets" if rec.estimator else "gauss_markov"
+        real = ESTIMATOR_MODEL.get(rec.estimator_name or "gls", "gls")
         for name, row in (("recommended", rec.row), ("scenario's", rec.baseline_row)):
             if row is None:
                 continue
-            for m, label in (("white", "white"), (real, "realistic")):
+            for m, label in (("white", "white"), (real, f"realistic ({rec.estimator_name or 'gls'})")):
                 t.add_row(
                     name,
                     label,
@@ -261,7 +262,7 @@ def _study_table(console, result, empirical) -> None:
                 f"up {s.up_m:.2f} m, out {s.out_m + 0.0:+.2f} m"
                 for s in rec.layout.targets
             )
-            + (" — adjust with pass offsets" if rec.estimator else ""),
+            + f" — adjust with --estimator {rec.estimator_name or 'gls'}",
             highlight=False,
         )
     from calib.design.summary import findings
@@ -284,6 +285,7 @@ def _what_if(console, site_path, out, force, template, scanner_height_m, seed) -
     from rich import box
     from rich.table import Table
 
+    from calib.design.prediction import ESTIMATOR_MODEL
     from calib.design.whatif import what_if, write_what_if
     from calib.io.outputs import check_output_dir
     from calib.io.site import load_site
@@ -314,7 +316,7 @@ def _what_if(console, site_path, out, force, template, scanner_height_m, seed) -
     ):
         t.add_column(col, justify="right", no_wrap=True)
     for r in w.rows:
-        real = "gauss_markov_offsets" if r["estimator"] == "pass_offsets" else "gauss_markov"
+        real = ESTIMATOR_MODEL.get(r["estimator"] or "gls", "gls")
         cells = [f"{r[f'sigma_{m}_{a}_deg']:.4f}" for m in ("white", real) for a in ("roll", "pitch", "yaw")]
         t.add_row(
             ",".join(map(str, r["passes"])),

@@ -13,7 +13,8 @@ RUN_HELP = (
     "Calibrate the boresight from a calibration bundle (or a recorded session).\n\n"
     "Georeferences every pass with the a-priori mount, extracts each target (seeded by its "
     "centre in site.yaml, RANSAC plane, its own rectangle by size and reflectivity), runs the "
-    "rigorous Gauss–Helmert adjustment and writes result.json, report.md and PNG plots into "
+    "plane-based adjustment (GLS over Gauss–Markov POS errors, with tie patches of the scene, "
+    "unless --estimator / --tie-patches say otherwise) and writes result.json, report.md and PNG plots into "
     "--out (default BUNDLE/calib/). Prints the estimates with their formal and realistic σ "
     "(use the realistic one: POS errors are correlated in time) and records the result in "
     "the calibration history. A session directory is first exported to OUT/bundle as 'mls "
@@ -162,6 +163,22 @@ def run(
         "lever_arm_x, lever_arm_y, latency, pass_offsets (each reported with its correlation "
         "to the boresight; refused with an explanation when not observable).",
     ),
+    estimator: str = typer.Option(
+        "gls",
+        "--estimator",
+        metavar="NAME",
+        help="gls (default): the POS errors as Gauss–Markov processes estimated with the "
+        "boresight (its σ is realistic); thesis: white weights as in the thesis, realistic σ by "
+        "propagation; pass_offsets: thesis weights plus a translation per pass. The report shows "
+        "the default beside the thesis estimator.",
+    ),
+    tie_patches: str = typer.Option(
+        "auto",
+        "--tie-patches",
+        metavar="MODE",
+        help="auto (default, with gls): add planar patches of the wall and other surfaces seen "
+        "from two or more headings, each with its own plane and roughness; off: targets only.",
+    ),
     apriori_deg: str | None = typer.Option(
         None,
         "--apriori-deg",
@@ -174,8 +191,8 @@ def run(
         "--correlation-time-s",
         metavar="S",
         help="Correlation time of the POS errors "
-        "that the realistic σ assumes (first-order Gauss–Markov); default site.yaml's "
-        "pos_sigmas.correlation_time_s, else 60 s (the report says so).",
+        "(first-order Gauss–Markov); default site.yaml's pos_sigmas.correlation_time_s, else "
+        "estimated from the data with gls (the report shows τ/3, τ, 3τ) or 60 s with thesis.",
     ),
     error_model: str = typer.Option(
         "gauss_markov",
@@ -228,9 +245,9 @@ def run(
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
     from calib.assess.history import record_result
-    from calib.boresight.extract import ExtractOptions
     from calib.boresight.pipeline import CalibrationOptions, run_bundle
     from calib.core.errors import MlsError
+    from calib.extraction.extract import ExtractOptions
     from calib.io.outputs import check_output_dir
 
     if not bundle.is_dir():
@@ -251,6 +268,8 @@ def run(
         options = CalibrationOptions(
             subsample_m=subsample,
             estimate=extras,
+            estimator=estimator,
+            tie_patches=tie_patches,
             apriori_rad=None if apriori is None else tuple(np.radians(apriori)),
             error_model=error_model,
             correlation_time_s=correlation_time_s,

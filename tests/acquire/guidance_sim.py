@@ -106,9 +106,10 @@ def profiles(sim: SimResult) -> list[Profile]:
     return out
 
 
-def adjust_simulated(sim: SimResult) -> AdjustmentResult:
+def adjust_simulated(sim: SimResult, beam: bool = False, roughness: str = "all") -> AdjustmentResult:
     """The adjustment of the simulated returns on the targets (the simulator's own labels),
-    with the site's sigmas and its Gauss–Markov correlation times."""
+    with the site's sigmas (``beam``: its range-per-metre σ and beam divergence too) and its
+    Gauss–Markov correlation times; ``roughness`` as AdjustOptions."""
     site, pts = sim.site, sim.points
     sel = sim.target_index >= 0
     obs = build_observations(
@@ -123,12 +124,13 @@ def adjust_simulated(sim: SimResult) -> AdjustmentResult:
         site.sigma_scan_angle_rad,
         site.sigma_position_m,
         site.sigma_attitude_rad,
+        sigma_range_per_m=site.sigma_range_per_m if beam else 0.0,
+        beam_divergence_rad=site.beam_divergence_rad if beam else 0.0,
     )
     rects = site.target_rectangles(site.frame())
     model = ErrorModel("gauss_markov", tuple(site.pos_correlation_time_s))
-    return adjust(
-        obs, site.mount, [(r.normal, r.d) for r in rects], AdjustOptions(jackknife=False, error_model=model)
-    )
+    options = AdjustOptions(jackknife=False, error_model=model, roughness=roughness)
+    return adjust(obs, site.mount, [(r.normal, r.d) for r in rects], options)
 
 
 @dataclass

@@ -14,7 +14,7 @@ import pytest
 from typer.testing import CliRunner
 
 from calib.assess.history import list_results
-from calib.boresight.pipeline import run_bundle
+from calib.boresight.pipeline import CalibrationOptions, run_bundle
 from calib.io.bundle import read_truth
 from calib.sim.simulate import simulate
 from cli.app import app
@@ -58,7 +58,7 @@ def bundle(tmp_path_factory):
 
 @pytest.mark.slow
 def test_realistic_sigma_covers_the_truth_through_the_files(tmp_path):
-    """20 simulated bundles with Gauss–Markov POS errors, calibrated from the files
+    """The thesis estimator's realistic σ: 20 simulated bundles with Gauss–Markov POS errors, calibrated from the files
     (seed 0 by the command itself, the others by the function it calls, without plots):
     sigma_realistic_deg covers the truth at 2σ for ≥ 90 % of the 60 angles, while the formal σ
     is optimistic by an order of magnitude, and the report says by how much."""
@@ -67,10 +67,10 @@ def test_realistic_sigma_covers_the_truth_through_the_files(tmp_path):
     for seed in range(20):
         b = sim_dataset(tmp_path / f"s{seed}", seed, *GAUSS_MARKOV)
         if seed == 0:
-            res = calib_run(b, "--db", str(db), "--mount", "mc")
+            res = calib_run(b, "--db", str(db), "--mount", "mc", "--estimator", "thesis")
             assert res.exit_code == 0, res.output
         else:
-            run_bundle(b, plots=False)
+            run_bundle(b, options=CalibrationOptions(estimator="thesis"), plots=False)
         doc = json.loads((b / "calib" / "result.json").read_text())
         truth = read_truth(b)["boresight_deg"]
         err = np.array([doc["boresight_deg"][a] - truth[a] for a in ANGLES])
@@ -132,6 +132,7 @@ def test_run_writes_the_result_report_and_plots_and_records_history(tmp_path, bu
         "residuals_time.png",
         "target_T1.png",
         "target_T2.png",
+        "tie_patches.png",  # the default GLS adds tie patches of the scene
     ]
     assert all((out / p).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" for p in pngs)
     assert "![target_T2](target_T2.png)" in (out / "report.md").read_text()
@@ -154,7 +155,9 @@ def test_a_target_missing_from_one_pass_warns_and_the_run_continues(tmp_path):
     assert res.exit_code == 0, res.output
     assert "warning: target T2 is missing from pass 3" in res.output
     doc = json.loads((b / "calib" / "result.json").read_text())
+    # a pass's n_points are its targets' points (its tie-patch points are counted apart)
     assert doc["extraction"]["points_per_pass"]["3"] == {"T1": doc["passes"][2]["n_points"], "T2": 0}
+    assert doc["passes"][2]["n_tie_patch_points"] > 0
 
 
 @pytest.mark.parametrize(
@@ -215,6 +218,14 @@ def test_bad_times_and_an_uncovering_trajectory_are_one_clear_line(tmp_path, bun
         (["--estimate", "scan_angle_offset"], 2, r"scan_angle_offset cannot be estimated"),
         (["--estimate", "lever_arm_z"], 2, r"unknown extra unknown\(s\) lever_arm_z"),
         (["--error-model", "pink"], 2, r"error model 'pink': expected one of gauss_markov"),
+        (
+            ["--estimator", "kalman"],
+            2,
+            r"estimator 'kalman' \(--estimator\): expected one of gls, thesis, pass_offsets",
+        ),
+        (["--tie-patches", "maybe"], 2, r"tie patches 'maybe' \(--tie-patches\): expected 'auto' or 'off'"),
+        # the GLS default refuses a non-Gauss–Markov error model and says which estimator takes it
+        (["--error-model", "white"], 2, r"error model 'white' goes with --estimator thesis or pass_offsets"),
         (["--subsample", "-0.1"], 2, r"--subsample -0.1: expected a positive voxel size"),
         (["--extraction", "manual"], 2, r"extraction mode 'manual'"),
         (["--correlation-time-s", "0"], 2, r"--correlation-time-s 0.0: expected a positive"),

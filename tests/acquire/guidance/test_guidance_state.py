@@ -1,6 +1,7 @@
 """The guidance state: the state machine on constructed tracks (rejection, resail, abort); and a
-whole simulated survey: six passes accepted, live hits close to the truth, the predicted σ
-shrinking and agreeing with the adjustment's own, and the guidance consumer publishing it."""
+whole simulated survey: six passes accepted, live hits close to the truth, the predicted σ (the
+GLS estimator's, the calibration's default) never rising and agreeing with the adjustment's own,
+and the guidance consumer publishing it."""
 
 from __future__ import annotations
 
@@ -14,7 +15,7 @@ from acquire.daemon.consumers import ChecklistPublisher, Tap
 from acquire.guidance.acceptance import AcceptanceTolerances
 from acquire.guidance.consumer import GuidanceConsumer
 from acquire.guidance.state import SCHEMA, Guidance, sigma_rises
-from calib.design.passpredict import SigmaPrediction
+from calib.design.passpredict import ObservationModel, SigmaPrediction, predict_sigma
 from calib.sim.scenariofile import load_scenario
 from calib.survey.passplan import PlannedPass, plan_site
 from drivers.hydrins.nav import NavRecord, status_words
@@ -208,8 +209,9 @@ def test_live_hits_are_close_to_the_simulator_truth(survey):
     assert c["profiles_dropped"] == 0 and c["points_uncovered"] == 0
 
 
-def test_predicted_sigma_shrinks_pass_by_pass_and_matches_the_adjustment(survey):
+def test_predicted_sigma_never_rises_pass_by_pass_and_matches_the_adjustment(survey):
     hist = survey.guidance.sigma_history  # before any pass, then after each accepted pass
+    assert survey.guidance.obs_model.estimator == "gls"  # the default
     assert [h["passes"] for h in hist] == [list(range(1, k + 1)) for k in range(7)]
     determined = [sum(h["observable"].values()) for h in hist]
     assert determined == sorted(determined) and determined[-1] == 3
@@ -218,6 +220,16 @@ def test_predicted_sigma_shrinks_pass_by_pass_and_matches_the_adjustment(survey)
     assert len(finite) >= 3
     assert all(b <= a for a, b in zip(worst, worst[1:]))  # never grows
     assert all(b < a for a, b in zip(finite, finite[1:]))  # shrinks once all are determined
+    # GLS: every accepted pass adds information, so no angle's σ rises (and nothing is marked ↑)
+    for before, after in zip(hist, hist[1:]):
+        for a in ("roll", "pitch", "yaw"):
+            if before["realistic_deg"][a] is not None:
+                assert after["realistic_deg"][a] is not None, a
+                assert after["realistic_deg"][a] <= before["realistic_deg"][a] * (1 + 1e-12), (
+                    after["passes"],
+                    a,
+                )
+        assert after["rose"] == []
     # each stage recommends a pass not sailed yet; the last has nothing left to recommend
     for name, msg in survey.stages:
         if name.endswith("accepted"):
@@ -226,11 +238,34 @@ def test_predicted_sigma_shrinks_pass_by_pass_and_matches_the_adjustment(survey)
             assert (nb is None) == (len(done) == 6)
             if nb is not None:
                 assert nb["pass_id"] not in done
-    # the prediction from the live hits agrees with the adjustment of the labelled returns
-    res = adjust_simulated(survey.sim)
+            assert msg["sigma"]["current"]["rose"] == []
+    # the prediction from the live hits agrees with the GLS adjustment of the labelled returns
+    # under the same model (the site's sigmas)
     predicted = np.radians([hist[-1]["realistic_deg"][a] for a in ("roll", "pitch", "yaw")])
-    ratio = predicted / res.sigma_realistic_rad
+    # the GLS adjustment under the model the prediction assumes: the site's sigmas with its
+    # beam divergence and correlation times, no roughness estimated
+    ratio = predicted / adjust_simulated(survey.sim, beam=True, roughness="none").sigma_realistic_rad
+    assert np.all((ratio > 0.8) & (ratio < 1.25)), ratio
+    # and with the calibration's defaults (GLS; each target's roughness estimated from its
+    # residuals, which finds the beam footprint that these observations do not model)
+    ratio = predicted / adjust_simulated(survey.sim).sigma_realistic_rad
     assert np.all((ratio > 0.75) & (ratio < 1.33)), ratio
+
+
+def test_the_thesis_estimators_live_sigma_is_larger_than_the_gls_one(survey):
+    """The accepted passes predicted for the thesis estimator (``Guidance(estimator="thesis")``,
+    where a rise is possible and marked ↑): the same white formal σ, a realistic σ no smaller
+    than GLS's on every angle."""
+    g = survey.guidance
+    accepted = [g._accepted[i] for i in g.accepted_ids]
+    thesis = ObservationModel.from_site(g.site, "thesis")
+    for k in range(3, len(accepted) + 1):
+        a = predict_sigma(accepted[:k], g.scene.rectangles, g.mount, g.obs_model, thin_step=g.thin_step)
+        b = predict_sigma(accepted[:k], g.scene.rectangles, g.mount, thesis, thin_step=g.thin_step)
+        np.testing.assert_array_equal(a.formal_rad, b.formal_rad)
+        ok = a.observable
+        assert np.all(a.realistic_rad[ok] <= b.realistic_rad[ok]), k
+    assert Guidance(g.site, g.plan, estimator="thesis").obs_model.estimator == "thesis"
 
 
 def test_a_realistic_sigma_that_rose_with_the_last_pass_is_named():

@@ -25,7 +25,7 @@ from calib.assess.pairs import parse_pairs, reciprocal_pairs
 from calib.assess.results import AssessError, AssessOptions
 from calib.assess.summary import assessment_markdown, write_assessment
 from calib.assess.surfaces import clean_patch, extract_common_patches, plane_candidates, within_coverage
-from calib.boresight.pipeline import calibrate_bundle
+from calib.boresight.pipeline import CalibrationOptions, calibrate_bundle
 from calib.boresight.result import write_result
 from calib.core.geometry import Rectangle
 from calib.core.georef import Mount
@@ -39,12 +39,14 @@ SCANNER_NOISE_ONLY = ("noise.pos.model=none", "noise.scanner.beam_divergence_mra
 PAIRS = [(1, 2), (5, 6)]  # the reciprocal pairs that see the tower (3:4 sails past the quay)
 
 
-def tower_bundle(path: Path, seed: int, *overrides: str) -> tuple[Path, dict]:
+def tower_bundle(
+    path: Path, seed: int, *overrides: str, options: CalibrationOptions = CalibrationOptions()
+) -> tuple[Path, dict]:
     """Simulate the tower scenario, write the bundle, calibrate it with the pipeline and write
     its result.json; returns (bundle directory, result document)."""
     sim = simulate("tower", seed, overrides=[ONE_DEGREE, *overrides])
     sim.write(path)
-    doc = calibrate_bundle(path).doc
+    doc = calibrate_bundle(path, options).doc
     write_result(path / "result.json", doc)
     return path, doc
 
@@ -73,7 +75,15 @@ def realistic_k12(realistic):
 
 @pytest.fixture(scope="module")
 def quiet(tmp_path_factory):
-    path, doc = tower_bundle(tmp_path_factory.mktemp("quiet") / "bundle", 4, *SCANNER_NOISE_ONLY)
+    # without POS errors the thesis's white weights are the right model: the default GLS
+    # assumes the POS errors of site.yaml's pos_sigmas (2 cm, 0.012°), which this bundle has not,
+    # and is then as precise as that model says (~0.01°), not to the 0.002° checked below
+    path, doc = tower_bundle(
+        tmp_path_factory.mktemp("quiet") / "bundle",
+        4,
+        *SCANNER_NOISE_ONLY,
+        options=CalibrationOptions(estimator="thesis"),
+    )
     return path, doc, assess(path, doc, pairs=PAIRS, options=K_WELL_CONDITIONED)
 
 
@@ -123,7 +133,9 @@ def test_distances_before_grow_with_height(realistic_k12):
     v2 = a.comparison("V2", (1, 2))
     slope, intercept = np.polyfit(v2.heights_m, v2.d_before_m, 1)
     assert v2.heights_m.min() < 3.0 and v2.heights_m.max() > 35.0
-    assert slope == pytest.approx(per_metre, rel=0.08) and abs(intercept) < 0.05
+    # the intercept is the two passes' offset at the scanner's height: their POS position
+    # errors (σ 2 cm each along the normal, drawn per seed) — within 3σ of their difference
+    assert slope == pytest.approx(per_metre, rel=0.08) and abs(intercept) < 3 * math.sqrt(2) * 0.02
     low = max(a.comparison(n, (1, 2)).before.median_m for n in ("V1", "V5"))
     assert v3.before.median_m > 8 * low  # V1 and V5 are at the platform's height
     for pair in PAIRS:

@@ -21,7 +21,7 @@ from tests.calib import synth
 
 TRUTH_RAD = np.radians([0.208, 1.245, 0.149])
 WHITE = ErrorModel("white")
-QUICK = AdjustOptions(jackknife=False, error_model=WHITE)
+QUICK = AdjustOptions(estimator="thesis", jackknife=False, error_model=WHITE)
 
 
 @pytest.fixture(scope="module")
@@ -99,7 +99,12 @@ def test_realistic_sigma_matches_gauss_markov_spread(clean):
             l[:, c] += _gauss_markov(obs.t_gps_s, obs.sigma_l[0, c], tau, rng)
         l[:, 6:] += rng.standard_normal((len(obs), 2)) * obs.sigma_l[:, 6:]
         o.l = l
-        res = adjust(o, Mount(), planes, AdjustOptions(jackknife=False, error_model=model, outliers="none"))
+        res = adjust(
+            o,
+            Mount(),
+            planes,
+            AdjustOptions(estimator="thesis", jackknife=False, error_model=model, outliers="none"),
+        )
         errs.append(res.boresight_rad - TRUTH_RAD)
         real, formal = res.sigma_realistic_rad, res.sigma_formal_rad
     spread = np.std(errs, axis=0)
@@ -145,7 +150,12 @@ def test_extra_unknowns_recover_injected_values(name, mount_kw, value, spread):
     planes_rect = _spread_site() if spread else synth.montreal_planes()
     obs, planes, _ = synth.observations(mount_true, planes_rect, points_per_plane_per_pass=60, noise=False)
     apriori = Mount(nominal_rad=mount_true.nominal_rad)
-    res = adjust(obs, apriori, planes, AdjustOptions(estimate=(name,), jackknife=False, error_model=WHITE))
+    res = adjust(
+        obs,
+        apriori,
+        planes,
+        AdjustOptions(estimator="thesis", estimate=(name,), jackknife=False, error_model=WHITE),
+    )
     assert res.extras[name]["value"] == pytest.approx(value, abs=1e-9)
     np.testing.assert_allclose(res.boresight_rad, TRUTH_RAD, atol=1e-10)
     corr = res.extras[name]["correlation_with_boresight"]
@@ -206,7 +216,10 @@ def test_latency_is_estimated_from_the_trajectory():
         pass_headings_rad=obs.pass_headings_rad,
     )
     res = adjust(
-        ob2, Mount(), planes, AdjustOptions(estimate=("latency",), jackknife=False, error_model=WHITE)
+        ob2,
+        Mount(),
+        planes,
+        AdjustOptions(estimator="thesis", estimate=("latency",), jackknife=False, error_model=WHITE),
     )
     assert res.extras["latency"]["value"] == pytest.approx(0.005, abs=1e-7)
     np.testing.assert_allclose(res.boresight_rad, TRUTH_RAD, atol=1e-8)
@@ -249,6 +262,7 @@ def test_pass_offsets_absorb_per_pass_translations():
         Mount(),
         truth_planes,
         AdjustOptions(
+            estimator="thesis",
             estimate=("pass_offsets",),
             jackknife=False,
             error_model=WHITE,
@@ -306,7 +320,13 @@ def test_extras_carry_a_realistic_sigma_under_gauss_markov_pos_errors(clean):
             o,
             Mount(),
             planes,
-            AdjustOptions(estimate=("range_offset",), jackknife=False, error_model=model, outliers="none"),
+            AdjustOptions(
+                estimator="thesis",
+                estimate=("range_offset",),
+                jackknife=False,
+                error_model=model,
+                outliers="none",
+            ),
         )
         e = res.extras["range_offset"]
         value.append(e["value"])

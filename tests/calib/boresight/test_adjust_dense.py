@@ -103,6 +103,7 @@ def test_adjustment_equals_dense_textbook_solution():
     init = [(nrm + 0.01, d + 0.05) for nrm, d in planes]
     init = [(nrm / np.linalg.norm(nrm), d) for nrm, d in init]
     opts = AdjustOptions(
+        estimator="thesis",
         outliers="none",
         jackknife=False,
         error_model=ErrorModel("white"),

@@ -19,7 +19,7 @@ from calib.sim.simulate import simulate
 #: The estimator's own stochastic model: independent POS errors for every point, and range
 #: noise without the beam-divergence term the site's σ_range does not describe.
 PER_POINT = {"noise.pos.model": "per_point", "noise.scanner.beam_divergence_mrad": 0.0}
-FAST = CalibrationOptions(jackknife=False, error_model="white")
+FAST = CalibrationOptions(estimator="thesis", jackknife=False, error_model="white")
 T1_ONLY = [
     {
         "name": "T1",
@@ -113,7 +113,7 @@ def test_an_extra_under_gauss_markov_pos_errors_is_judged_by_its_realistic_sigma
     σ, which result.json and the report state beside the formal one."""
     r = simulate("montreal", 3)
     assert r.mount_true.range_offset_m == 0.0
-    run = _run(r, CalibrationOptions(jackknife=False, estimate=("range_offset",)))
+    run = _run(r, CalibrationOptions(estimator="thesis", jackknife=False, estimate=("range_offset",)))
     e = run.doc["extras"]["range_offset_m"]
     assert set(e) == {"value", "sigma", "sigma_realistic", "correlation_with_boresight"}
     assert abs(e["value"]) > 10 * e["sigma"]
@@ -146,19 +146,21 @@ def test_hitting_the_iteration_cap_is_a_warning_and_not_converged():
 
 def test_correlation_time_comes_from_the_site_else_the_default_is_stated():
     r = simulate("montreal", 4)
-    run = _run(r, CalibrationOptions(jackknife=False))
+    run = _run(r, CalibrationOptions(estimator="thesis", jackknife=False))
     assert run.doc["realistic_error_model"] == {
         "kind": "gauss_markov",
         "correlation_time_s": [20.0, 20.0, 20.0, 10.0, 10.0, 10.0],
     }
     assert run.doc["realistic_correlation_time_source"].startswith("site.yaml")
     bare = replace(r.site, pos_correlation_time_s=None)
-    run = calibrate(bare, r.trajectory_observed, r.points, CalibrationOptions(jackknife=False))
+    run = calibrate(
+        bare, r.trajectory_observed, r.points, CalibrationOptions(estimator="thesis", jackknife=False)
+    )
     assert run.doc["realistic_error_model"]["correlation_time_s"] == 60.0
     assert any("assumes 60 s" in n for n in run.notes)
     res = run.result
     assert np.all(res.sigma_realistic_rad > 5 * res.sigma_formal_rad)
-    forced = _run(r, CalibrationOptions(jackknife=False, correlation_time_s=5.0))
+    forced = _run(r, CalibrationOptions(estimator="thesis", jackknife=False, correlation_time_s=5.0))
     assert forced.doc["realistic_error_model"]["correlation_time_s"] == 5.0
     assert forced.doc["realistic_correlation_time_source"] == "command line"
 

@@ -40,8 +40,10 @@ def test_the_narrative_states_the_numbers_of_the_result(misaligned):
         assert float(cells[5]) == pytest.approx(doc["sigma_realistic_deg"][a], rel=5e-3)
         assert float(cells[6]) == pytest.approx(doc["sigma_jackknife_deg"][a], rel=5e-3)
         assert float(cells[7]) == pytest.approx(doc["sigma_realistic_over_formal"][a], abs=0.05)
-    ratio = doc["sigma_realistic_over_formal"]
-    assert f"optimistic by a factor of {ratio['roll']:.1f} for roll" in md
+    # the default GLS: its formal σ is its realistic σ, nothing to call optimistic
+    assert doc["estimator"] == "gls"
+    assert all(v == pytest.approx(1.0, abs=0.05) for v in doc["sigma_realistic_over_formal"].values())
+    assert "optimistic by a factor" not in md
     assert "correlation time 20/20/20/10/10/10 s (N/E/D/roll/pitch/heading) (from site.yaml" in md
     c = res.chi2_test()
     assert f"σ̂0² = {res.sigma0_squared:.3f} with {c['df']} degrees of freedom" in md
@@ -93,13 +95,14 @@ def test_plots_are_written_and_linked(tmp_path, misaligned):
         "residuals_by_plane.png",
         "residuals_by_pass.png",
         "residuals_time.png",
+        "tie_patches.png",
         "target_T1.png",
         "target_T2.png",
     ]
     assert _png_size(tmp_path / "target_T1.png") == (1100, int(round(3.8 * 110)))  # 2 panels
     assert _png_size(tmp_path / "residuals_by_pass.png")[0] == int(round(3 * 4.2 * 110))
     md = (tmp_path / "report.md").read_text()
-    assert md.count("](") == 5 and "![residuals_time](residuals_time.png)" in md
+    assert md.count("](") == 6 and "![residuals_time](residuals_time.png)" in md
     assert write_report(run, tmp_path / "bare", plots=False) == [tmp_path / "bare" / "report.md"]
 
 
@@ -115,7 +118,7 @@ def test_white_model_default_tau_and_outliers_are_stated():
         site,
         r.trajectory_observed,
         pts,
-        CalibrationOptions(error_model="white"),
+        CalibrationOptions(estimator="thesis", error_model="white"),
         poses=r.observed_poses(),
         labels=r.target_index,
     )
@@ -125,6 +128,10 @@ def test_white_model_default_tau_and_outliers_are_stated():
     assert "failed the data-snooping test on normalized residuals and were removed" in md
     assert all(str(int(i)) in md.split("## Outliers")[1] for i in blunders)
     gm = calibrate(
-        site, r.trajectory_observed, pts, CalibrationOptions(jackknife=False), poses=r.observed_poses()
+        site,
+        r.trajectory_observed,
+        pts,
+        CalibrationOptions(estimator="thesis", jackknife=False),
+        poses=r.observed_poses(),
     )
     assert "sigma_realistic assumes 60 s" in report_markdown(gm)

@@ -1,4 +1,4 @@
-"""Target extraction (calib.boresight.extract): RANSAC, reflectivity and size, automatic mode, voxel
+"""Target extraction (calib.extraction.extract): RANSAC, reflectivity and size, automatic mode, voxel
 subsampling, and the extraction of the simulator's Montreal targets against its truth."""
 
 from __future__ import annotations
@@ -8,7 +8,9 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from calib.boresight.extract import (
+from calib.core.geometry import Rectangle
+from calib.core.georef import georeference
+from calib.extraction.extract import (
     ExtractionError,
     ExtractOptions,
     extract,
@@ -16,9 +18,7 @@ from calib.boresight.extract import (
     initial_planes,
     voxel_subsample,
 )
-from calib.boresight.segmentation import incidence_corrected, intensity_split, ransac_plane
-from calib.core.geometry import Rectangle
-from calib.core.georef import georeference
+from calib.extraction.segmentation import incidence_corrected, intensity_split, ransac_plane
 from calib.sim.simulate import simulate
 
 
@@ -249,7 +249,7 @@ def test_voxel_subsampling_keeps_the_point_nearest_each_voxel_centre():
 
 
 def test_subsampling_an_extraction_thins_each_pass_separately(montreal):
-    from calib.boresight.extract import subsample
+    from calib.extraction.extract import subsample
 
     r, p, o, rects = montreal
     ext = extract(p, r.points.intensity, r.points.pass_id, rects, ExtractOptions(), o)

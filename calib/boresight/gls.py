@@ -1,0 +1,415 @@
+"""The GLS boresight estimator: plane conditions with the POS errors as Gauss–Markov processes.
+
+The thesis model weighs every point as if its POS errors were independent; they are not (they
+drift with correlation times of tens of seconds), so within a pass they act as biases and a
+white-weighted adjustment wastes most of the information. Here the POS error of each channel
+is an unknown process on a knot grid (below) estimated jointly with the
+boresight, the planes and the extras, with its exact AR(1) prior. Linearized at the observations::
+
+    F_i + A_i·dx + J_i·z + ε_i = 0,      z ~ N(0, P⁻¹),   ε_i ~ N(0, m_i)
+
+``J_i`` carries ``B_ic·σ_ic`` times the bridge weights of channel c, ``m_i`` the range and
+scan-angle noise, the bridge variance of the POS channels and the roughness of the point's
+plane (a variance component estimated from the residuals at every iteration). The knots are
+eliminated with a banded Cholesky factor (bandwidth 11) and the unknowns solved from the
+Schur complement ``S = N_xx − N_xa N_aa⁻¹ N_ax``: time and memory O(n) in the points
+(O(K·p) in the K knots and p unknowns), never an n × n matrix. ``S⁻¹`` is the covariance of the
+estimate under the model (the Cramér–Rao bound at the solution): its formal σ is its realistic σ.
+
+**The POS error processes on a knot grid** (the state-space half of the estimator).
+Each POS channel c (north, east, down, roll, pitch, heading) carries an error
+``a_c(t) = σ_c(t) · z_c(t)`` where ``σ_c(t)`` is the trajectory's own σ at t and ``z_c`` a unit
+first-order Gauss–Markov (Ornstein–Uhlenbeck) process with correlation time ``τ_c``. The
+unknowns are ``z_c`` at knots ``t_0 < t_1 < … < t_{K−1}``; the prior of the knot values is the
+exact AR(1) chain, ``z_0 ~ N(0, 1)``, ``z_k | z_{k−1} ~ N(φ_k z_{k−1}, 1 − φ_k²)``: a tridiagonal
+precision per channel, stored as one banded matrix over the six channels (index ``6·k + c``),
+so that everything here is O(K) and the normal equations of the knots are banded (bandwidth 11:
+a point touches two knots × six channels).
+
+Where the knots come from:
+
+- **the trajectory's epochs** (the usual case): the points' poses are linear interpolations of
+  the trajectory, so their POS errors are exactly the same linear interpolation of the errors
+  at the two epochs around them. The knots are the epochs that bracket a point; the model is
+  exact, whatever the spacing.
+- **a uniform grid** (no trajectory, or so many epochs that the knots would exceed
+  :data:`MAX_KNOTS`): knots every ``min(τ)/100`` (or wider); between two knots the process is an
+  OU bridge, ``z(t) = a·z_k + b·z_{k+1} + r(t)`` with ``a = φ₁(1 − φ₂²)/(1 − φ²)``,
+  ``b = φ₂(1 − φ₁²)/(1 − φ²)`` and ``Var r = 1 − a·φ₁ − b·φ₂``; the bridge residual enters the
+  estimator as white noise (an approximation: its correlation within one interval is neglected,
+  which costs a little information, never adds any).
+
+Knots cover only the time spans that hold points (a gap gets no knots of its own: the AR(1)
+transition across it is exact), so passes separated by turns stay as correlated as the process
+says.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import scipy.sparse as sp
+from scipy.linalg import cho_solve_banded, cholesky_banded
+
+from calib.boresight.errormodel import ErrorModel
+from calib.boresight.gausshelmert import (
+    Layout,
+    Solution,
+    _apply,
+    linearize_at_state,
+    observations_at,
+    offset_prior_sigma,
+    pose_rates,
+    singular_message,
+    solve_normal,
+    step_converged,
+)
+from calib.boresight.ghmodel import State, linearize, tangent_basis
+from calib.boresight.observability import ObservabilityError
+from calib.boresight.observations import AdjustOptions, Observations
+
+CHANNELS = 6
+#: the knot normal equations have this lower bandwidth: two knots × six channels, minus one
+BANDWIDTH = 2 * CHANNELS - 1
+#: default knot spacing: the shortest correlation time over this
+KNOTS_PER_TAU = 100.0
+#: the spacing grows when the points span so long a time that more knots would be needed
+MAX_KNOTS = 20000
+
+
+@dataclass(frozen=True)
+class KnotGrid:
+    t_s: np.ndarray  # (K,) knot times, increasing
+    exact: bool  # the knots are trajectory epochs and points interpolate them linearly
+    spacing_s: float  # the median knot spacing within spans
+
+    @property
+    def n(self) -> int:
+        return int(self.t_s.size)
+
+
+def knot_grid(
+    t_s: np.ndarray,
+    tau_s: np.ndarray,
+    epochs_s: np.ndarray | None = None,
+    knots_per_tau: float = KNOTS_PER_TAU,
+) -> KnotGrid:
+    """The knots for points at ``t_s``: the trajectory ``epochs_s`` that bracket them when
+    given and few enough, else a uniform grid (see the module docstring)."""
+    ts = np.unique(np.asarray(t_s, float))
+    if epochs_s is not None and epochs_s.size >= 2:
+        ep = np.asarray(epochs_s, float)
+        k = np.clip(np.searchsorted(ep, ts, side="right") - 1, 0, ep.size - 2)
+        used = np.unique(np.concatenate([k, k + 1]))
+        if used.size <= MAX_KNOTS:
+            knots = ep[used]
+            return KnotGrid(knots, True, float(np.median(np.diff(knots))))
+    h = float(np.min(tau_s)) / knots_per_tau
+    for _ in range(8):
+        starts, ends = _spans(ts, h)
+        count = int(np.sum(np.ceil((ends - starts) / h) + 1))
+        if count <= MAX_KNOTS:
+            break
+        h *= count / MAX_KNOTS * 1.05
+    starts, ends = _spans(ts, h)
+    pieces = [a + h * np.arange(int(np.ceil((b - a) / h)) + 1) for a, b in zip(starts, ends)]
+    knots = np.concatenate(pieces)
+    if knots.size < 2:  # every point at one instant
+        knots = np.array([ts[0], ts[0] + h])
+    return KnotGrid(knots, False, h)
+
+
+def _spans(ts: np.ndarray, h: float) -> tuple[np.ndarray, np.ndarray]:
+    gap = np.flatnonzero(np.diff(ts) > h)
+    return ts[np.r_[0, gap + 1]], ts[np.r_[gap, ts.size - 1]]
+
+
+@dataclass(frozen=True)
+class Bridge:
+    """Where each point sits between knots, per channel."""
+
+    k: np.ndarray  # (n,) left knot
+    a: np.ndarray  # (n, 6) weight of knot k
+    b: np.ndarray  # (n, 6) weight of knot k + 1
+    var: np.ndarray  # (n, 6) bridge variance (unit process); zero on exact knots
+
+
+def bridge(grid: KnotGrid, t_s: np.ndarray, tau_s: np.ndarray) -> Bridge:
+    """Linear interpolation weights on exact knots, else the OU bridge (module docstring)."""
+    tk = grid.t_s
+    k = np.clip(np.searchsorted(tk, t_s, side="right") - 1, 0, tk.size - 2)
+    d1 = np.clip(t_s - tk[k], 0.0, None)[:, None]
+    d2 = np.clip(tk[k + 1] - t_s, 0.0, None)[:, None]
+    if grid.exact:
+        w = np.broadcast_to(d1 / (d1 + d2), (t_s.size, CHANNELS))
+        return Bridge(k, 1.0 - w, w.copy(), np.zeros((t_s.size, CHANNELS)))
+    tau = np.asarray(tau_s, float)[None, :]
+    p1, p2 = np.exp(-d1 / tau), np.exp(-d2 / tau)
+    den = -np.expm1(-2.0 * (d1 + d2) / tau)  # 1 − φ², accurate for short intervals
+    a = p1 * -np.expm1(-2.0 * d2 / tau) / den
+    b = p2 * -np.expm1(-2.0 * d1 / tau) / den
+    var = np.clip(1.0 - a * p1 - b * p2, 0.0, None)
+    return Bridge(k, a, b, var)
+
+
+def prior_banded(grid: KnotGrid, tau_s: np.ndarray) -> np.ndarray:
+    """The precision of the knot values in lower banded form ``(BANDWIDTH + 1, 6K)``
+    (``ab[i − j, j] = P[i, j]``), for ``scipy.linalg.cholesky_banded(lower=True)``."""
+    K = grid.n
+    tau = np.asarray(tau_s, float)
+    phi = np.exp(-np.diff(grid.t_s)[:, None] / tau[None, :])  # (K − 1, 6): transition k → k+1
+    q = -np.expm1(-2.0 * np.diff(grid.t_s)[:, None] / tau[None, :])  # 1 − φ²
+    diag = np.zeros((K, CHANNELS))
+    diag[0] = 1.0
+    diag[1:] += 1.0 / q
+    diag[:-1] += phi**2 / q
+    ab = np.zeros((BANDWIDTH + 1, CHANNELS * K))
+    ab[0] = diag.reshape(-1)
+    off = np.zeros((K, CHANNELS))
+    off[:-1] = -phi / q  # P[6(k+1)+c, 6k+c], stored at column 6k + c
+    ab[CHANNELS] = off.reshape(-1)
+    return ab
+
+
+def log_det_prior(grid: KnotGrid, tau_s: np.ndarray) -> float:
+    """log det of the prior precision (the AR(1) chain: −Σ log(1 − φ_k²))."""
+    q = -np.expm1(-2.0 * np.diff(grid.t_s)[:, None] / np.asarray(tau_s, float)[None, :])
+    return float(-np.sum(np.log(q)))
+
+
+def channel_taus(model: ErrorModel) -> np.ndarray:
+    """(6,) correlation times of the POS channels (north, east, down, roll, pitch, heading)."""
+    return np.array([model.tau_s(c) for c in range(CHANNELS)], float)
+
+
+@dataclass
+class GlsSolution(Solution):
+    z: np.ndarray  # (6K,) estimated unit POS error processes at the knots
+    grid: KnotGrid
+    plane_var_m2: np.ndarray  # (m,) roughness variance of each plane used
+    neg2_log_lik: float  # −2 log of the restricted likelihood (up to a constant), for τ
+
+
+@dataclass
+class _Frame:
+    """What does not change between iterations: the knots, the bridge, the prior."""
+
+    grid: KnotGrid
+    br: Bridge
+    prior: np.ndarray
+    log_det_prior: float
+
+
+def frame_for(obs: Observations, model: ErrorModel, knots_per_tau: float) -> _Frame:
+    tau = channel_taus(model)
+    epochs = obs.trajectory.t_gps_s if obs.trajectory is not None else None
+    grid = knot_grid(obs.t_gps_s, tau, epochs, knots_per_tau)
+    return _Frame(grid, bridge(grid, obs.t_gps_s, tau), prior_banded(grid, tau), log_det_prior(grid, tau))
+
+
+def design_matrix(lin, layout: Layout, obs: Observations) -> sp.csr_matrix:
+    """A (n × p) as a sparse matrix: the dense boresight/extras columns, three plane columns and
+    (with pass offsets) three offset columns per row."""
+    n = len(obs)
+    cols = [
+        np.broadcast_to(np.arange(3), (n, 3)),
+        *(np.full((n, 1), layout.i_extra + i) for i in range(len(layout.extras))),
+    ]
+    vals = [lin.A_boresight, *(lin.A_extra[name][:, None] for name in layout.extras)]
+    cols.append(layout.i_plane + 3 * obs.plane_index[:, None] + np.arange(3))
+    vals.append(lin.A_plane)
+    if layout.offsets:
+        cols.append(layout.i_offset + 3 * obs.pass_index[:, None] + np.arange(3))
+        vals.append(lin.A_offset)
+    c = np.concatenate(cols, axis=1)
+    v = np.concatenate(vals, axis=1)
+    per_row = c.shape[1]
+    return sp.csr_matrix(
+        (v.reshape(-1), c.reshape(-1), np.arange(0, n * per_row + 1, per_row)), shape=(n, layout.n)
+    )
+
+
+def knot_matrix(lin, obs: Observations, fr: _Frame) -> sp.csr_matrix:
+    """J (n × 6K): ``B_ic σ_ic`` times the bridge weights of the point's two knots."""
+    n = len(obs)
+    g = lin.B[:, :CHANNELS] * obs.sigma_l[:, :CHANNELS]
+    v = np.concatenate([g * fr.br.a, g * fr.br.b], axis=1)
+    c = CHANNELS * fr.br.k[:, None] + np.arange(2 * CHANNELS)
+    return sp.csr_matrix(
+        (v.reshape(-1), c.reshape(-1), np.arange(0, n * 2 * CHANNELS + 1, 2 * CHANNELS)),
+        shape=(n, CHANNELS * fr.grid.n),
+    )
+
+
+#: the footprint term is capped at this incidence (tan 89° ≈ 57)
+COS_GRAZING = float(np.cos(np.radians(89.0)))
+
+
+def range_sigma_m(lin, obs: Observations) -> np.ndarray:
+    """Each point's range σ: the observations' (constant and range-proportional parts) plus the
+    beam footprint on a surface at incidence θ, ρ·(divergence/2)·tan θ (``|B_range|`` is cos θ:
+    the plane normal against the unit beam direction); θ is capped at 89°."""
+    sig = obs.sigma_l[:, 6]
+    if obs.beam_half_divergence_rad == 0.0:
+        return sig
+    c = np.clip(np.abs(lin.B[:, 6]), COS_GRAZING, 1.0)
+    return sig + obs.l[:, 6] * obs.beam_half_divergence_rad * np.sqrt(1.0 - c * c) / c
+
+
+def white_variance(lin, obs: Observations, fr: _Frame, plane_var_m2: np.ndarray) -> np.ndarray:
+    """m_i: range and scan-angle noise, the POS bridge variance and the plane's roughness."""
+    bs = (lin.B[:, :CHANNELS] * obs.sigma_l[:, :CHANNELS]) ** 2
+    scanner = (lin.B[:, 6] * range_sigma_m(lin, obs)) ** 2 + (lin.B[:, 7] * obs.sigma_l[:, 7]) ** 2
+    return scanner + np.einsum("ij,ij->i", bs, fr.br.var) + plane_var_m2[obs.plane_index]
+
+
+def _to_banded(M: sp.spmatrix, size: int) -> np.ndarray:
+    coo = sp.coo_matrix(M)
+    keep = coo.row >= coo.col
+    ab = np.zeros((BANDWIDTH + 1, size))
+    np.add.at(ab, (coo.row[keep] - coo.col[keep], coo.col[keep]), coo.data[keep])
+    return ab
+
+
+@dataclass
+class _System:
+    S: np.ndarray  # Schur complement (p × p), offset prior included
+    r: np.ndarray  # its right-hand side (S dx = −r)
+    X: np.ndarray  # N_aa⁻¹ N_ax (6K × p)
+    y: np.ndarray  # N_aa⁻¹ g_a
+    chol: np.ndarray
+    m: np.ndarray
+    A: sp.csr_matrix
+    J: sp.csr_matrix
+
+
+def assemble(lin, layout, obs, fr: _Frame, plane_var_m2, state: State, prior_sigma) -> _System:
+    m = white_variance(lin, obs, fr, plane_var_m2)
+    A, J = design_matrix(lin, layout, obs), knot_matrix(lin, obs, fr)
+    w = 1.0 / m
+    Aw, Jw = sp.diags(w) @ A, sp.diags(w) @ J
+    N_xx = (A.T @ Aw).toarray()
+    N_xa = (A.T @ Jw).toarray()
+    g_x, g_a = Aw.T @ lin.F, Jw.T @ lin.F
+    ab = _to_banded(J.T @ Jw, CHANNELS * fr.grid.n) + fr.prior
+    try:
+        chol = cholesky_banded(ab, lower=True)
+    except np.linalg.LinAlgError:
+        raise ObservabilityError(
+            "the POS error processes are not determined (knot normal matrix singular)"
+        ) from None
+    X = cho_solve_banded((chol, True), N_xa.T)
+    y = cho_solve_banded((chol, True), g_a)
+    S = N_xx - N_xa @ X
+    S = 0.5 * (S + S.T)
+    r = g_x - N_xa @ y
+    if prior_sigma is not None:
+        wt = 1.0 / prior_sigma.reshape(-1) ** 2
+        idx = np.arange(layout.i_offset, layout.n)
+        S[idx, idx] += wt
+        r[idx] += wt * state.pass_offsets_m.reshape(-1)
+    return _System(S, r, X, y, chol, m, A, J)
+
+
+def solve_gls(
+    obs: Observations,
+    state: State,
+    r_nom: np.ndarray,
+    options: AdjustOptions,
+    model: ErrorModel,
+    plane_var_m2: np.ndarray | None = None,
+    fr: _Frame | None = None,
+    rough_planes: np.ndarray | None = None,
+) -> GlsSolution:
+    """The iterated GLS solution from ``state`` (linearized at the observations each time).
+
+    ``rough_planes``: planes whose roughness variance is re-estimated from the residuals at
+    every iteration (:func:`roughness_update`) until the steps and the variances settle."""
+    layout = Layout(len(obs.plane_names), len(obs.pass_ids), options.estimate)
+    est_latency = "latency" in layout.extras
+    fr = fr if fr is not None else frame_for(obs, model, options.knots_per_tau)
+    pv = np.zeros(len(obs.plane_names)) if plane_var_m2 is None else np.asarray(plane_var_m2, float).copy()
+    rough = np.zeros(0, int) if rough_planes is None else np.asarray(rough_planes, int)
+    prior_sigma = offset_prior_sigma(obs, options) if layout.offsets else None
+    converged, it = False, 0
+    for it in range(1, options.max_iterations + 1):
+        l_obs = observations_at(obs, state, est_latency)
+        rates = pose_rates(obs.latency_trajectory(), obs.t_gps_s + state.latency_s) if est_latency else None
+        bases = np.stack([tangent_basis(n) for n in state.normals])
+        lin = linearize(state, r_nom, obs.plane_index, obs.pass_index, l_obs, rates, bases)
+        sys = assemble(lin, layout, obs, fr, pv, state, prior_sigma)
+        dx = solve_normal(sys.S, -sys.r, obs, layout)
+        z = -(sys.y + sys.X @ dx)
+        e = lin.F + sys.A @ dx + sys.J @ z  # the white part of each misclosure after the fit
+        state = _apply(state, dx, layout, bases)
+        settled = True
+        if rough.size and it < options.max_iterations:
+            new = roughness_update(e, sys.m, pv, obs.plane_index, rough)
+            settled = bool(np.all(np.abs(new - pv) <= VC_TOL * (np.maximum(new, pv) + 1e-12)))
+        if step_converged(dx, layout, options, sys.S, it) and settled:
+            converged = True
+            break
+        if rough.size:
+            pv = new
+    zPz = _quad_banded(fr.prior, z)
+    ePe = float(np.sum(e**2 / sys.m))
+    vtpv = ePe + zPz
+    df = len(obs) - layout.n - rough.size
+    if prior_sigma is not None:
+        o = state.pass_offsets_m.reshape(-1)
+        vtpv += float(np.sum(o**2 / prior_sigma.reshape(-1) ** 2))
+        df += 3 * len(obs.pass_ids)
+    try:
+        Sinv = np.linalg.inv(sys.S)
+    except np.linalg.LinAlgError:
+        raise ObservabilityError(singular_message(sys.S, obs, layout)) from None
+    log_det_naa = 2.0 * float(np.sum(np.log(sys.chol[0])))
+    _, log_det_s = np.linalg.slogdet(sys.S)
+    neg2 = vtpv + log_det_naa - fr.log_det_prior + float(np.sum(np.log(sys.m))) + float(log_det_s)
+    return GlsSolution(
+        state, sys.S, Sinv, lin, sys.m, e, vtpv, df, it, converged, layout, z, fr.grid, pv, neg2
+    )
+
+
+def _quad_banded(ab: np.ndarray, z: np.ndarray) -> float:
+    """zᵀ P z for P in lower banded form."""
+    out = float(np.sum(ab[0] * z * z))
+    for d in range(1, ab.shape[0]):
+        out += 2.0 * float(np.sum(ab[d, :-d] * z[d:] * z[:-d]))
+    return out
+
+
+#: the roughness variances have settled when none changes by more than this fraction
+VC_TOL = 0.05
+
+
+def roughness_update(e, m, pv, plane_index, planes) -> np.ndarray:
+    """New roughness variances of ``planes`` (indices) from the white residuals ``e`` (with
+    variances ``m``, which hold the current ``pv``): the mean squared residual beyond what the
+    model explains without the roughness, with the plane's own three unknowns taken out of its
+    degrees of freedom (a simplified Helmert variance-component estimate)."""
+    out = pv.copy()
+    n = np.bincount(plane_index, minlength=pv.size)
+    e2 = np.bincount(plane_index, e**2, minlength=pv.size)
+    base = np.bincount(plane_index, m, minlength=pv.size) - n * pv
+    for j in planes:
+        if n[j] > 3:
+            out[j] = max(0.0, float(e2[j] / (n[j] - 3) - base[j] / n[j]))
+    return out
+
+
+def gls_information(obs: Observations, state: State, r_nom, estimate, model: ErrorModel, knots_per_tau=None):
+    """The GLS normal matrix (Schur complement over the POS processes) at ``state`` without
+    solving: ``(S, S⁻¹, layout)``, for predictions and the observability judgement."""
+    options = AdjustOptions(estimate=tuple(estimate))
+    layout = Layout(len(obs.plane_names), len(obs.pass_ids), options.estimate)
+    fr = frame_for(obs, model, knots_per_tau or options.knots_per_tau)
+    lin = linearize_at_state(obs, state, r_nom, layout)
+    prior_sigma = offset_prior_sigma(obs, options) if layout.offsets else None
+    sys = assemble(lin, layout, obs, fr, np.zeros(len(obs.plane_names)), state, prior_sigma)
+    try:
+        Sinv = np.linalg.inv(sys.S)
+    except np.linalg.LinAlgError:
+        Sinv = np.linalg.pinv(sys.S)
+    return sys.S, Sinv, layout
