@@ -123,7 +123,8 @@ def demo(
                 else "[bold red]NOT within 3σ (realistic) of the truth[/bold red]"
             )
             + f" · {res.accepted}/{res.n_passes} passes accepted live · "
-            f"{res.result.get('n_points', '?')} target points",
+            f"{sum(p['n_points'] for p in res.result.get('passes', []))} target points"
+            + (f" and {len(res.result['tie_patches'])} tie patches" if res.result.get("tie_patches") else ""),
             highlight=False,
         )
         console.print(f"result.json  {res.calib / 'result.json'}", highlight=False)
