@@ -18,7 +18,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from calib.boresight.ghmodel import EXTRA_NAMES, Linearization, State, linearize, tangent_basis
+from calib.boresight.ghmodel import EXTRA_NAMES, Linearization, State, linearize, tangent_bases
 from calib.boresight.observability import ANGLE_NAMES, ObservabilityError
 from calib.boresight.observations import AdjustOptions, Observations
 from calib.core import frames
@@ -222,7 +222,7 @@ def linearize_at_state(obs: Observations, state: State, r_nom: np.ndarray, layou
         if "latency" in layout.extras
         else None
     )
-    bases = np.stack([tangent_basis(n) for n in state.normals])
+    bases = tangent_bases(state.normals)
     return linearize(state, r_nom, obs.plane_index, obs.pass_index, obs.l, rates, bases)
 
 
@@ -251,7 +251,7 @@ def solve(obs: Observations, state: State, r_nom: np.ndarray, options: AdjustOpt
         l0 = l_obs + v
         if est_latency:
             rates = pose_rates(obs.latency_trajectory(), obs.t_gps_s + state.latency_s)
-        bases = np.stack([tangent_basis(n) for n in state.normals])
+        bases = tangent_bases(state.normals)
         lin = linearize(state, r_nom, obs.plane_index, obs.pass_index, l0, rates, bases)
         w = lin.F - np.einsum("ij,ij->i", lin.B, v)
         M = np.einsum("ij,ij->i", lin.B**2, Q)

@@ -26,14 +26,14 @@ EXTRA_NAMES = ("range_offset", "scan_angle_offset", "lever_arm_x", "lever_arm_y"
 _EX, _EY, _EZ = np.eye(3)
 
 
-def tangent_basis(normal: np.ndarray) -> np.ndarray:
-    """(3, 2) orthonormal basis of the plane orthogonal to a unit normal (deterministic)."""
-    n = np.asarray(normal, float)
-    helper = _EZ if abs(n[2]) < 0.9 else _EX
-    e1 = np.cross(n, helper)
-    e1 /= np.linalg.norm(e1)
-    e2 = np.cross(n, e1)
-    return np.stack([e1, e2], axis=1)
+def tangent_bases(normals: np.ndarray) -> np.ndarray:
+    """(m, 3, 2): an orthonormal basis of the plane orthogonal to each unit normal, row by row
+    of ``normals`` (m, 3) (deterministic: the first vector is n × z, or n × x near vertical)."""
+    n = np.asarray(normals, float).reshape(-1, 3)
+    helper = np.where((np.abs(n[:, 2]) < 0.9)[:, None], _EZ, _EX)
+    e1 = _cross(n, helper)
+    e1 /= np.linalg.norm(e1, axis=1, keepdims=True)
+    return np.stack([e1, _cross(n, e1)], axis=2)
 
 
 def _cross(a, b):
@@ -218,7 +218,7 @@ def linearize(
     """
     n = l.shape[0]
     if bases is None:
-        bases = np.stack([tangent_basis(nn) for nn in state.normals])
+        bases = tangent_bases(state.normals)
     names = list(EXTRA_NAMES[:4]) + (["latency"] if rates is not None else [])
     res = Linearization(
         F=np.empty(n),

@@ -50,7 +50,8 @@ from dataclasses import dataclass
 
 import numpy as np
 import scipy.sparse as sp
-from scipy.linalg import cho_solve_banded, cholesky_banded
+from scipy.linalg import cholesky_banded
+from scipy.linalg.lapack import dtbtrs
 
 from calib.boresight.errormodel import ErrorModel
 from calib.boresight.gausshelmert import (
@@ -65,7 +66,7 @@ from calib.boresight.gausshelmert import (
     solve_normal,
     step_converged,
 )
-from calib.boresight.ghmodel import State, linearize, tangent_basis
+from calib.boresight.ghmodel import State, linearize, tangent_bases
 from calib.boresight.observability import ObservabilityError
 from calib.boresight.observations import AdjustOptions, Observations
 
@@ -276,9 +277,9 @@ def _to_banded(M: sp.spmatrix, size: int) -> np.ndarray:
 class _System:
     S: np.ndarray  # Schur complement (p × p), offset prior included
     r: np.ndarray  # its right-hand side (S dx = −r)
-    X: np.ndarray  # N_aa⁻¹ N_ax (6K × p)
-    y: np.ndarray  # N_aa⁻¹ g_a
-    chol: np.ndarray
+    W: np.ndarray  # L⁻¹ N_ax (6K × p), N_aa = L Lᵀ
+    v: np.ndarray  # L⁻¹ g_a
+    chol: np.ndarray  # L in lower banded form
     m: np.ndarray
     A: sp.csr_matrix
     J: sp.csr_matrix
@@ -299,17 +300,31 @@ def assemble(lin, layout, obs, fr: _Frame, plane_var_m2, state: State, prior_sig
         raise ObservabilityError(
             "the POS error processes are not determined (knot normal matrix singular)"
         ) from None
-    X = cho_solve_banded((chol, True), N_xa.T)
-    y = cho_solve_banded((chol, True), g_a)
-    S = N_xx - N_xa @ X
+    # one triangular banded solve (half of N_aa⁻¹): S = N_xx − (L⁻¹N_ax)ᵀ(L⁻¹N_ax)
+    W = _tb_solve(chol, N_xa.T)
+    v = _tb_solve(chol, g_a)
+    S = N_xx - W.T @ W
     S = 0.5 * (S + S.T)
-    r = g_x - N_xa @ y
+    r = g_x - W.T @ v
     if prior_sigma is not None:
         wt = 1.0 / prior_sigma.reshape(-1) ** 2
         idx = np.arange(layout.i_offset, layout.n)
         S[idx, idx] += wt
         r[idx] += wt * state.pass_offsets_m.reshape(-1)
-    return _System(S, r, X, y, chol, m, A, J)
+    return _System(S, r, W, v, chol, m, A, J)
+
+
+def _tb_solve(chol: np.ndarray, b: np.ndarray, transpose: bool = False) -> np.ndarray:
+    """L⁻¹ b (or L⁻ᵀ b) for L in lower banded form (LAPACK dtbtrs)."""
+    x, info = dtbtrs(chol, b, uplo="L", trans="T" if transpose else "N")
+    if info != 0:
+        raise ObservabilityError("the POS error processes are not determined (singular knot factor)")
+    return x
+
+
+def knots_from_step(sys: _System, dx: np.ndarray) -> np.ndarray:
+    """The knot values after the step dx: z = −N_aa⁻¹ (g_a + N_ax dx) = −L⁻ᵀ (v + W dx)."""
+    return -_tb_solve(sys.chol, sys.v + sys.W @ dx, transpose=True)
 
 
 def solve_gls(
@@ -336,11 +351,11 @@ def solve_gls(
     for it in range(1, options.max_iterations + 1):
         l_obs = observations_at(obs, state, est_latency)
         rates = pose_rates(obs.latency_trajectory(), obs.t_gps_s + state.latency_s) if est_latency else None
-        bases = np.stack([tangent_basis(n) for n in state.normals])
+        bases = tangent_bases(state.normals)
         lin = linearize(state, r_nom, obs.plane_index, obs.pass_index, l_obs, rates, bases)
         sys = assemble(lin, layout, obs, fr, pv, state, prior_sigma)
         dx = solve_normal(sys.S, -sys.r, obs, layout)
-        z = -(sys.y + sys.X @ dx)
+        z = knots_from_step(sys, dx)
         e = lin.F + sys.A @ dx + sys.J @ z  # the white part of each misclosure after the fit
         state = _apply(state, dx, layout, bases)
         settled = True

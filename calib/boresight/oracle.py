@@ -31,7 +31,7 @@ from calib.boresight.gausshelmert import (
     pose_rates,
     step_converged,
 )
-from calib.boresight.ghmodel import linearize, tangent_basis
+from calib.boresight.ghmodel import linearize, tangent_bases
 from calib.boresight.gls import channel_taus, design_matrix, range_sigma_m
 from calib.boresight.observations import AdjustmentError, AdjustOptions, Observations
 from calib.core import frames
@@ -97,7 +97,7 @@ def dense_gls(
     for it in range(1, max_iterations + 1):
         l_obs = observations_at(obs, state, est_latency)
         rates = pose_rates(obs.latency_trajectory(), obs.t_gps_s + state.latency_s) if est_latency else None
-        bases = np.stack([tangent_basis(n) for n in state.normals])
+        bases = tangent_bases(state.normals)
         lin = linearize(state, r_nom, obs.plane_index, obs.pass_index, l_obs, rates, bases)
         A = design_matrix(lin, layout, obs).toarray()
         cf = cho_factor(misclosure_covariance(lin, obs, model))

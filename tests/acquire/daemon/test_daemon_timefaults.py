@@ -188,8 +188,10 @@ def test_an_ins_announcing_another_gps_minus_utc_raises_the_mismatch_and_its_tim
     nav = [(m.host_ns, m.payload) for m in iter_messages(time_run["session"], {"/ins/nav"})]
     after = [(h, p["time_gps_ns"]) for h, p in nav if h > f["start_host_ns"] + 200_000_000]
     assert len(after) >= 300 and all(p["time_source"] == "device" for h, p in nav[-50:])
-    late = [int(truth.gps_ns(h)) - g for h, g in after]  # the INS's latency, not a second
-    assert 0 < min(late) and max(late) < 30_000_000
+    # the INS's latency (milliseconds, tens under a loaded machine's late reader), not the
+    # second that the announced GPS−UTC would put on it
+    late = [int(truth.gps_ns(h)) - g for h, g in after]
+    assert 0 < min(late) and max(late) < NS // 2
     assert not _alarm(time_run, "time_step")
     end = truth.window["end_host_ns"]
     clock = [x.data for x in time_run["sock"].topic("clock") if f["start_host_ns"] + 2 * NS < x.host_ns < end]
@@ -272,7 +274,9 @@ def test_a_2_s_stall_after_a_pulse_before_its_zda_labels_nothing_wrong_and_loses
         run.stop()
     ((t0, t1),) = out["stalls"]
     clock, second = out["clock"], out["second"]
-    assert abs(t0 - clock.host_ns(second) - 5_000_000) < 2_000_000 and t1 - t0 >= 2 * NS
+    # the stall began after the pulse and before its ZDA (50 ms later), as scheduled 5 ms after
+    # the pulse (a loaded machine runs the callback a few ms late), and lasted 2 s
+    assert 0 < t0 - clock.host_ns(second) < 45_000_000 and t1 - t0 >= 2 * NS
     labels = _labels(out["session"])
     named = {g * NS: h for h, g, _ in labels if g is not None}
     wrong = {g: h for g, h in named.items() if abs(clock.gps_ns(h) - g) > 1_000_000}
