@@ -59,7 +59,7 @@ from calib.extraction.extract import (
     initial_planes,
     subsample,
 )
-from calib.extraction.points import georeference_passes
+from calib.extraction.points import georeference_passes, pass_headings
 from calib.io.bundle import ScanPoints, intensity_scale, read_bundle
 from calib.io.site import Site
 
@@ -234,19 +234,6 @@ def drop_uncovered(
 
 
 # -- the steps ------------------------------------------------------------------------------
-
-
-def pass_headings(
-    obs_heading_rad: np.ndarray, pass_id: np.ndarray, wall_azimuth_rad: float
-) -> dict[int, float]:
-    """Heading of each pass relative to the wall direction: the circular mean of the vessel's
-    heading at the pass's points."""
-    out = {}
-    for p in np.unique(pass_id):
-        h = obs_heading_rad[pass_id == p]
-        mean = np.arctan2(np.mean(np.sin(h)), np.mean(np.cos(h)))
-        out[int(p)] = float(frames.wrap_2pi(mean - wall_azimuth_rad))
-    return out
 
 
 def error_model(options: CalibrationOptions, site: Site) -> tuple[ErrorModel, str]:

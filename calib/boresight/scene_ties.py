@@ -26,7 +26,7 @@ from calib.boresight.ghmodel import linearize
 from calib.boresight.observations import Observations, build_observations
 from calib.core import frames
 from calib.extraction.patches import PatchCandidates, PatchOptions, extract_candidates, gather_members
-from calib.extraction.points import georeference_passes
+from calib.extraction.points import georeference_passes, pass_headings
 
 MAX_PATCHES = 30
 #: patches farther than this from every target point are not used: the scene *around* the
@@ -208,13 +208,10 @@ def tie_patches_from_points(
     excluded, with the ``site``'s sigmas."""
     est = mount.with_boresight(res.boresight_rad)
     p, origin = georeference_passes(points, trajectory, est, poses)
-    # the heading of every pass (a pass may see the scene and no target)
+    # the heading of every pass relative to the wall, as the targets' (a pass may see the scene
+    # and no target)
     yaw = poses.rpy_rad[:, 2] if poses is not None else trajectory.interpolate(points.t_gps_s).rpy_rad[:, 2]
-    headings = {
-        int(k): float(np.arctan2(np.mean(np.sin(yaw[m])), np.mean(np.cos(yaw[m]))))
-        for k in np.unique(points.pass_id)
-        if (m := points.pass_id == k).any()
-    }
+    headings = pass_headings(yaw, points.pass_id, site.wall_azimuth_rad)
     on_target = np.zeros(len(points), bool)
     on_target[idx] = True
     sigmas = {

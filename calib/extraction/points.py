@@ -1,4 +1,5 @@
-"""Raw scanner points georeferenced pass by pass (with the trajectory, or per-point poses)."""
+"""Raw scanner points georeferenced pass by pass (with the trajectory, or per-point poses), and
+the heading of each pass."""
 
 from __future__ import annotations
 
@@ -6,6 +7,7 @@ from collections.abc import Callable
 
 import numpy as np
 
+from calib.core import frames
 from calib.core.georef import Mount, georeference, georeference_poses
 from calib.core.trajectory import Poses, Trajectory
 from calib.io.bundle import ScanPoints
@@ -36,3 +38,16 @@ def georeference_passes(
         if progress is not None:
             progress("georeferencing passes", k + 1, len(pass_ids))
     return p, origin
+
+
+def pass_headings(
+    obs_heading_rad: np.ndarray, pass_id: np.ndarray, wall_azimuth_rad: float
+) -> dict[int, float]:
+    """Heading of each pass relative to the wall direction: the circular mean of the vessel's
+    heading at the pass's points."""
+    out = {}
+    for p in np.unique(pass_id):
+        h = obs_heading_rad[pass_id == p]
+        mean = np.arctan2(np.mean(np.sin(h)), np.mean(np.cos(h)))
+        out[int(p)] = float(frames.wrap_2pi(mean - wall_azimuth_rad))
+    return out

@@ -38,6 +38,32 @@ def sim_devices_cmd(
     ]
 
 
+def start_emulators(
+    run: Path, duration_s: float, faults: Path, prof: int, pps: int, log: Path, procs: list
+) -> tuple[Proc, TruthClock]:
+    """The emulators as the live fault tests run them (real time, the host clock 35 ppm off, PPS
+    jitter 20 µs), added to ``procs``; returns them and their truth clock once it is written."""
+    sim = Proc(
+        sim_devices_cmd(
+            run,
+            duration_s,
+            faults,
+            prof,
+            pps,
+            "--speed",
+            "1",
+            "--clock-drift-ppm",
+            "35",
+            "--pps-jitter-us",
+            "20",
+        ),
+        log,
+    )
+    procs.append(sim)
+    wait_until(lambda: (run / "truth_clock.json").exists(), 120, "the emulators to start", sim)
+    return sim, TruthClock.read(run / "truth_clock.json")
+
+
 def free_port(kind=socket.SOCK_DGRAM) -> int:
     with socket.socket(socket.AF_INET, kind) as s:
         s.bind(("127.0.0.1", 0))

@@ -29,10 +29,9 @@ from tests.acquire.daemon_util import (
     Proc,
     Recording,
     SocketCollector,
-    TruthClock,
     free_port,
-    sim_devices_cmd,
     sleep_until_host_ns,
+    start_emulators,
     wait_until,
 )
 
@@ -328,25 +327,7 @@ def run_campaign(tmp: Path) -> dict:
         procs.append(daemon)
         wait_until(lambda: notify.with_line("READY=1"), 30, "READY=1 from the daemon", daemon)
         sock.start()
-        sim = Proc(
-            sim_devices_cmd(
-                run,
-                DURATION_S,
-                tmp / "faults.yaml",
-                prof,
-                pps,
-                "--speed",
-                "1",
-                "--clock-drift-ppm",
-                "35",
-                "--pps-jitter-us",
-                "20",
-            ),
-            tmp / "sim.log",
-        )
-        procs.append(sim)
-        wait_until(lambda: (run / "truth_clock.json").exists(), 120, "the emulators to start", sim)
-        truth = TruthClock.read(run / "truth_clock.json")
+        sim, truth = start_emulators(run, DURATION_S, tmp / "faults.yaml", prof, pps, tmp / "sim.log", procs)
         g0 = truth.window["start_gps_ns"]
 
         def host(at_s: float) -> int:

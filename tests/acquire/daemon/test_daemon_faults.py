@@ -38,8 +38,8 @@ from tests.acquire.daemon_util import (
     TruthClock,
     free_port,
     run_once,
-    sim_devices_cmd,
     sleep_until_host_ns,
+    start_emulators,
     wait_until,
 )
 from tests.mosquitto import Mosquitto
@@ -154,25 +154,8 @@ def _fault_run(tmp: Path) -> dict:
         procs.append(daemon)
         wait_until(lambda: notify.with_line("READY=1"), 30, "READY=1 from the daemon", daemon)
         sock.start()
-        sim = Proc(
-            sim_devices_cmd(
-                run,
-                DURATION_S,
-                tmp / "faults.yaml",
-                prof,
-                pps,
-                "--speed",
-                "1",
-                "--clock-drift-ppm",
-                "35",
-                "--pps-jitter-us",
-                "20",
-            ),
-            tmp / "sim.log",
-        )
-        procs.append(sim)
-        wait_until(lambda: (run / "truth_clock.json").exists(), 120, "the emulators to start", sim)
-        start_ns = TruthClock.read(run / "truth_clock.json").window["start_host_ns"]
+        sim, truth = start_emulators(run, DURATION_S, tmp / "faults.yaml", prof, pps, tmp / "sim.log", procs)
+        start_ns = truth.window["start_host_ns"]
         sleep_until_host_ns(start_ns + int(BROKER_KILL_S * NS))
         killed_ns = time.monotonic_ns()
         broker.kill()

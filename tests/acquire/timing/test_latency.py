@@ -241,16 +241,21 @@ def test_no_sync_check_without_a_locked_clock_or_a_time_tag():
     assert m.stats("can").sync == "no_time_tag"
 
 
-def test_with_the_real_clock_model_fed_by_pps_edges():
-    """Latency through the clock model itself: host drifts 35 ppm, PPS jitter 20 µs."""
-    rng = np.random.default_rng(2)
-    clock = ClockModel()
+def _drifting_clock():
+    """A real clock model, the GPS time of the first sample, and host(GPS) for a host 35 ppm fast."""
     rate = 1 + 35e-6  # GPS ns per host ns
     gps0 = OFFSET_NS + HOST0_NS
 
     def host_of(gps_ns):
         return HOST0_NS + round((gps_ns - gps0) / rate)
 
+    return ClockModel(), gps0, host_of
+
+
+def test_with_the_real_clock_model_fed_by_pps_edges():
+    """Latency through the clock model itself: host drifts 35 ppm, PPS jitter 20 µs."""
+    rng = np.random.default_rng(2)
+    clock, gps0, host_of = _drifting_clock()
     m = LatencyMonitor(clock, AlarmBook(to_gps=clock.gps_ns))
     m.add_device("ins", LatencyLimits(band_ns=(0, 30 * MS), rate_hz=200.0))
     events, next_edge = [], 1
@@ -275,13 +280,7 @@ def test_a_relock_after_unlabelled_pulses_does_not_move_the_latency():
     labelled pulse relocks the clock model; the samples before, during and after are on one
     line (host drifts 35 ppm, PPS jitter 20 µs), so a jitter or jump alarm would be the device's."""
     rng = np.random.default_rng(5)
-    clock = ClockModel()
-    rate = 1 + 35e-6  # GPS ns per host ns
-    gps0 = OFFSET_NS + HOST0_NS
-
-    def host_of(gps_ns):
-        return HOST0_NS + round((gps_ns - gps0) / rate)
-
+    clock, gps0, host_of = _drifting_clock()
     m = LatencyMonitor(clock, AlarmBook(to_gps=clock.gps_ns))
     m.add_device("ins", LatencyLimits(band_ns=(0, 30 * MS), rate_hz=100.0))
     events, states, next_edge, lat = [], [], 1, []
