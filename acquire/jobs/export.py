@@ -38,7 +38,6 @@ lost; ``require_complete`` refuses such a session instead.
 from __future__ import annotations
 
 import math
-from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -315,56 +314,21 @@ def passes_from_plan(traj, site, t_ns: np.ndarray, options: ExportOptions) -> li
 # -- points -------------------------------------------------------------------------------------
 
 
-def _codec(protocol: str):
-    from drivers.zf.zfp1 import ZFP1
-
-    codecs = {"zfp1": ZFP1}
-    if protocol not in codecs:
-        raise ExportError(
-            f"/lidar/raw: protocol {protocol!r} has no decoder here (known: {', '.join(codecs)})"
-        )
-    return codecs[protocol]
-
-
 def _read_points(session: Path, windows: list[PassWindow], protocol: str, progress):
     """Decoded returns inside the pass windows: (pass_id, gps_ns, range_m, angle_deg,
     intensity), plus counters."""
-    from drivers.base import DriverError
+    from acquire.log.profiles import iter_packets
     from drivers.zf.zfp1 import RANGE_UNIT_M
 
-    codec = _codec(protocol)
     starts = np.array([w.start_gps_ns for w in windows], dtype=np.int64)
     ends = np.array([w.end_gps_ns for w in windows], dtype=np.int64)
     ids = np.array([w.pass_id for w in windows], dtype=np.int64)  # survey line ids exceed 32 bits
     order = np.argsort(starts)
     starts, ends, ids = starts[order], ends[order], ids[order]
     parts: list[tuple] = []
-    seen: set[tuple[int, int, int]] = set()  # recent packets (a duplicate follows its original)
-    recent: deque[tuple[int, int, int]] = deque()
-    packets = unsynced = bad = outside = 0
-    for env in iter_messages(session, {"/lidar/raw"}, progress):
-        try:
-            pk = codec.decode_packet(env.payload)
-        except DriverError:
-            bad += 1
-            continue
-        key = (pk.profile_counter, pk.packet_index, pk.t0_ns)
-        if key in seen:
-            continue  # a duplicated datagram
-        seen.add(key)
-        recent.append(key)
-        if len(recent) > 4096:
-            seen.discard(recent.popleft())
-        packets += 1
-        n = pk.n_points
-        if n == 0:
-            continue
-        i = np.arange(n, dtype=np.int64)
-        if pk.pps_locked and pk.time_valid:
-            t = pk.t0_ns + i * pk.dt_ns
-        else:
-            unsynced += 1
-            t = env.log_time_ns - (n - 1 - i) * pk.dt_ns
+    counts: dict[str, int] = {}
+    outside = 0
+    for _, pk, i, t in iter_packets(session, protocol, counts, progress=progress):
         r = pk.range_01mm
         hit = r > 0
         if not hit.any():
@@ -395,7 +359,7 @@ def _read_points(session: Path, windows: list[PassWindow], protocol: str, progre
             np.zeros(0),
             np.zeros(0, np.float32),
         ]
-    return cols, packets, unsynced, bad, outside
+    return cols, counts["packets"], counts["unsynced"], counts["bad"], outside
 
 
 # -- site ---------------------------------------------------------------------------------------
@@ -510,9 +474,12 @@ def export_session(
                 f"{options.max_heading_error_deg:g}° for {options.min_pass_s:g} s)"
             )
     protocol = meta.get("/lidar/raw", {}).get("protocol", "zfp1")
-    (pid, t_ns, rng, ang, inten), packets, unsynced, bad, outside = _read_points(
-        session, windows, protocol, step("decoding the profiler packets")
-    )
+    try:
+        (pid, t_ns, rng, ang, inten), packets, unsynced, bad, outside = _read_points(
+            session, windows, protocol, step("decoding the profiler packets")
+        )
+    except SessionReadError as e:  # a protocol without a decoder here
+        raise ExportError(str(e)) from None
     if t_ns.size == 0:
         raise ExportError(f"{session}: no profiler return inside the {len(windows)} passes")
     order = np.lexsort((t_ns, pid))

@@ -9,4 +9,6 @@
 - ``batch``: batching records from the event loop to the session writer (the hot path).
 - ``recover``: scanning, salvaging and summarizing sessions (``mls logs info`` / ``recover``).
 - ``read``: a session's messages read back, every segment in order, decoded; what it lost (torn segments).
+- ``indexed``: a few channels of a closed segment read through its MCAP index (read's fast path).
+- ``profiles``: the profiler's datagrams of a session, decoded once and timed (export, Foxglove).
 """

@@ -20,6 +20,7 @@ from dataclasses import dataclass, replace
 from pathlib import Path
 
 from acquire.errors import AcquireError
+from acquire.log.indexed import indexed_messages
 from acquire.log.recover import SegmentScan, scan_segment, segment_closed, segment_paths
 from acquire.log.schema import Envelope, decode
 
@@ -44,7 +45,9 @@ def _segments(session_dir: Path) -> list[Path]:
 def iter_messages(
     session_dir: str | Path, topics: Iterable[str] | None = None, progress=None
 ) -> Iterator[Envelope]:
-    """Every message of ``topics`` (all when None), decoded, segment after segment.
+    """Every message of ``topics`` (all when None), decoded, segment after segment, in file order:
+    through a closed segment's index when topics are named (:mod:`acquire.log.indexed`), else
+    by a scan that stops at a torn tail.
 
     ``progress(done_bytes, total_bytes)`` is called after each segment.
     """
@@ -53,6 +56,14 @@ def iter_messages(
     total = sum(p.stat().st_size for p in paths)
     done = 0
     for path in paths:
+        fast = None if wanted is None else indexed_messages(path, wanted)
+        if fast is not None:  # closed normally: only the wanted channels' records are read
+            for m in fast:
+                yield decode(m.topic, m.encoding, m.log_time, m.publish_time, m.data)
+            done += path.stat().st_size
+            if progress is not None:
+                progress(done, total)
+            continue
         channels = {}
         for rec in scan_segment(path):
             kind = type(rec).__name__
