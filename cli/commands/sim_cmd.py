@@ -123,3 +123,126 @@ def dataset(
         f"{b['roll']:.4f}°, pitch {b['pitch']:.4f}°, yaw {b['yaw']:.4f}° (truth.json)",
         highlight=False,
     )
+
+
+@app.command("session")
+def session(
+    out: Path = typer.Option(
+        ...,
+        "--out",
+        "-o",
+        help="Directory the session directory is created in (the daemon's session directory).",
+    ),
+    scenario: str = typer.Option(
+        "montreal",
+        "--scenario",
+        "-s",
+        metavar="NAME|FILE",
+        help="A shipped scenario (montreal, terrestrial, tower) or a scenario YAML file.",
+    ),
+    minutes: float = typer.Option(1.0, "--minutes", "-m", min=0.01, help="Length of the session (minutes)."),
+    rate_scale: float = typer.Option(
+        1.0,
+        "--rate-scale",
+        min=1e-4,
+        max=1.0,
+        help="Fraction of the full Z+F point rate (1 M points/s): profile rate and points per 360° "
+        "each × √F, as the simulator scales them.",
+    ),
+    seed: int = typer.Option(0, "--seed", help="Random seed: the same seed gives the same records."),
+    force: bool = typer.Option(
+        False,
+        "--force",
+        help="Replace a session of the same name (the scenario's vessel and start) in --out.",
+    ),
+    ins_protocol: str = typer.Option(
+        "nmea", "--ins-protocol", help="INS output: nmea (PHINS standard + ZDA) or stdbin."
+    ),
+    ins_rate: float = typer.Option(100.0, "--ins-rate", min=1.0, max=200.0, help="INS output rate (Hz)."),
+    surroundings: bool = typer.Option(
+        True,
+        "--surroundings/--no-surroundings",
+        help="Add the quay around the scenario's scene (a long quay wall, a warehouse, the water near "
+        "the vessel) so that the survey sees more than the calibration targets.",
+    ),
+    rotate_s: float | None = typer.Option(
+        None,
+        "--rotate-s",
+        min=10.0,
+        help="Segment rotation period in session seconds (default: the daemon's, 600).",
+    ),
+    set_: list[str] = typer.Option(
+        [],
+        "--set",
+        metavar="KEY=VALUE",
+        help="Override a scenario value by dotted key, e.g. --set site.pass_length_m=120 "
+        "--set motion.pass_gap_s=20 (repeatable; values are YAML).",
+    ),
+) -> None:
+    """Write a recorded session offline, faster than real time, from a simulator scenario.
+
+    The vessel sails lines back and forth along the quay (the scenario's line length, speed,
+    standoff and gap) for --minutes while the profiler records its full circle; the session
+    directory created in --out holds what the daemon would have written with the emulators as
+    its devices: MCAP segments (/ins/raw, /ins/nav, /lidar/raw, /pps, /can/marks, /events with a
+    pass_start/pass_end per line, /clock, /latency), vessel.yaml, site.yaml, session.json (with
+    the simulation's settings) and truth.json. A session of the same name is refused unless --force."""
+    import time
+
+    from rich.console import Console
+    from rich.markup import escape
+    from rich.progress import BarColumn, Progress, TextColumn, TimeRemainingColumn
+
+    from calib.core.errors import MlsError
+    from cli.simsession import SessionSpec, plan_session, record_session
+
+    console = Console(emoji=False)  # ":100:" of file:line:column is no emoji
+    spec = SessionSpec(
+        scenario=scenario,
+        out=out,
+        minutes=minutes,
+        rate_scale=rate_scale,
+        seed=seed,
+        force=force,
+        overrides=tuple(set_),
+        ins_protocol=ins_protocol,
+        ins_rate_hz=ins_rate,
+        surroundings=surroundings,
+        rotate_s=rotate_s,
+    )
+    try:
+        with simulation_bar(console, f"sailing the survey ({scenario}, {minutes:g} min)") as (_, _, progress):
+            plan = plan_session(spec, progress)
+        columns = (
+            TextColumn("[bold]{task.description}"),
+            BarColumn(),
+            TextColumn("{task.completed:.0f}/{task.total:.0f} s"),
+            TextColumn("{task.fields[rate]}"),
+            TimeRemainingColumn(),
+        )
+        t0 = time.perf_counter()
+        with Progress(*columns, console=console, transient=True) as bar:
+            task = bar.add_task("writing the session", total=plan.duration_s, rate="")
+
+            def written(done_s: float, total_s: float, returns: int) -> None:
+                rate = returns / max(time.perf_counter() - t0, 1e-9)
+                bar.update(task, completed=done_s, total=total_s, rate=f"{rate / 1e6:.2f} M returns/s")
+
+            result = record_session(plan, written)
+    except (MlsError, OSError) as e:
+        console.print(f"[red]error:[/red] {escape(str(e))}", highlight=False, soft_wrap=True)  # one line
+        raise typer.Exit(2) from None
+    except KeyboardInterrupt:
+        console.print("interrupted: the session written so far was closed", highlight=False)
+        raise typer.Exit(130) from None
+    r = result
+    mb = r.bytes_written / 1e6
+    console.print(
+        f"wrote {r.path}: {r.duration_s / 60:g} min, {r.returns:,} returns ({r.points:,} points: "
+        f"{r.profile_rate_hz:.1f} profiles/s × {r.points // max(r.profiles, 1)}), "
+        f"{len(r.passes)} pass{'es' if len(r.passes) != 1 else ''}, "
+        f"{r.segments} segment{'s' if r.segments != 1 else ''}, {mb:.1f} MB in {r.wall_s:.1f} s "
+        f"({r.returns / r.wall_s / 1e6:.2f} M returns/s, {mb / r.wall_s:.1f} MB/s)",
+        highlight=False,
+        soft_wrap=True,
+    )
