@@ -1,4 +1,5 @@
-"""``mls export SESSION --bundle DIR``: a recorded session → a calibration bundle (docs/architecture.md §4)."""
+"""``mls export SESSION --bundle DIR``: a recorded session → a calibration bundle (docs/architecture.md §4);
+``--foxglove OUT.mcap``: → a file Foxglove opens as it is (docs/architecture.md §8.4)."""
 
 from __future__ import annotations
 
@@ -7,7 +8,8 @@ from pathlib import Path
 import typer
 
 HELP = (
-    "Export a recorded session as a calibration bundle for `mls calib run`.\n\n"
+    "Export a recorded session as a calibration bundle for `mls calib run` (--bundle), and/or as one "
+    "MCAP file for Foxglove (--foxglove).\n\n"
     "Writes BUNDLE/trajectory.csv (the INS epochs of /ins/nav at their GPS time, canonical "
     "attitude, per-epoch sigmas), BUNDLE/points.csv (the profiler packets of /lidar/raw "
     "decoded again: per point GPS time, range, scan angle, intensity; no-returns dropped; "
@@ -22,18 +24,36 @@ HELP = (
     "A segment that did not end normally (a torn tail after a crash or power cut, unfinished or "
     "salvaged by `mls logs recover`) is exported with a warning naming the segment and the time "
     "span lost; --require-complete refuses such a session (exit status 1).\n\n"
+    "--foxglove OUT.mcap writes the session for Foxglove (open the file there, nothing to "
+    "configure): the vessel's track (/vessel/fix, foxglove.LocationFix), its pose (/tf, "
+    "foxglove.FrameTransform, world frame lgf_enu = east, north, up), the georeferenced profiles "
+    "as point clouds (/lidar/points, foxglove.PointCloud, one per 1/--cloud-rate-hz s, at most "
+    "--max-cloud-points points each, evenly decimated), alarms and events (/log, foxglove.Log) "
+    "and the clock and latency numbers to plot (/clock, /latency); times are UTC. With "
+    "--foxglove alone only the MCAP file is written; with --bundle as well, both. An existing "
+    "OUT.mcap is refused unless --force.\n\n"
     "Example: mls export /var/lib/mls/sessions/20240709T140000Z_survey-1 --bundle calib-0709 "
-    "--laz calib-0709/laz"
+    "--laz calib-0709/laz\n\n"
+    "Example: mls export /var/lib/mls/sessions/20240709T140000Z_survey-1 --foxglove 0709.mcap"
 )
 
 
 def export(
     session: Path = typer.Argument(..., help="Session directory (YYYYmmddTHHMMSSZ_<vessel>)."),
-    bundle: Path = typer.Option(..., "--bundle", "-o", help="Bundle directory to write (created)."),
+    bundle: Path | None = typer.Option(None, "--bundle", "-o", help="Bundle directory to write (created)."),
+    foxglove: Path | None = typer.Option(
+        None, "--foxglove", help="Write the session for Foxglove as this MCAP file (alone: only this file)."
+    ),
+    cloud_rate_hz: float = typer.Option(
+        2.0, "--cloud-rate-hz", min=0.01, max=1000.0, help="--foxglove: point clouds per second."
+    ),
+    max_cloud_points: int = typer.Option(
+        50_000, "--max-cloud-points", min=1, help="--foxglove: most points in one cloud (evenly decimated)."
+    ),
     force: bool = typer.Option(
         False,
         "--force",
-        help="Write into output directories (or over an --sbet file) that already hold data.",
+        help="Write into output directories (or over an --sbet or --foxglove file) that already hold data.",
     ),
     laz: Path | None = typer.Option(
         None, "--laz", help="Also write one LAZ per pass here (UTM, a-priori mount)."
@@ -67,7 +87,6 @@ def export(
     from rich.console import Console
     from rich.markup import escape
     from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
-    from rich.table import Table
 
     from acquire.jobs.export import ExportError, ExportOptions, export_session
     from calib.core.errors import MlsError
@@ -76,14 +95,24 @@ def export(
     console = Console()
     err = Console(stderr=True, emoji=False)  # ":100:" of file:line:column is no emoji
     t0 = time.perf_counter()
+    res = fox = None
     try:
         if not session.is_dir():
             raise ExportError(f"{session}: not a directory (a session is the directory the daemon recorded)")
-        check_output_dir(bundle, "--bundle", force)  # every output, before reading the session
+        if bundle is None and foxglove is None:
+            raise ExportError(
+                "nothing to write: give --bundle DIR (calibration bundle) and/or --foxglove OUT.mcap"
+            )
+        if bundle is None and (laz is not None or sbet is not None):
+            raise ExportError("--laz and --sbet come with --bundle DIR (they are written from the bundle)")
+        if bundle is not None:  # every output, before reading the session
+            check_output_dir(bundle, "--bundle", force)
         if laz is not None:
             check_output_dir(laz, "--laz", force)
         if sbet is not None:
             check_output_file(sbet, "--sbet", force)
+        if foxglove is not None:
+            check_output_file(foxglove, "--foxglove", force)
         opts = ExportOptions(
             passes=passes,
             site_file=site,
@@ -105,10 +134,34 @@ def export(
             def progress(stage: str, done: float, total: float | None) -> None:
                 bar.update(task, description=stage, completed=done, total=total)
 
-            res = export_session(session, bundle, opts, progress)
+            if bundle is not None:
+                res = export_session(session, bundle, opts, progress)
+            if foxglove is not None:
+                from acquire.jobs.foxglove import export_foxglove
+
+                fox = export_foxglove(
+                    session,
+                    foxglove,
+                    cloud_rate_hz=cloud_rate_hz,
+                    max_points_per_cloud=max_cloud_points,
+                    force=force,
+                    require_complete=require_complete,
+                    progress=progress,
+                )
     except (MlsError, OSError) as e:
         err.print(f"[red]error:[/red] {escape(str(e))}", highlight=False, soft_wrap=True)
         raise typer.Exit(1) from None
+    if res is not None:
+        _bundle_summary(console, err, session, res, laz, time.perf_counter() - t0)
+    if fox is not None:
+        _foxglove_summary(console, err, session, fox, time.perf_counter() - t0)
+
+
+def _bundle_summary(console, err, session: Path, res, laz: Path | None, elapsed_s: float) -> None:
+    """The passes table, the warnings (stderr) and the closing line of a bundle export."""
+    from rich.markup import escape
+    from rich.table import Table
+
     from calib.core import frames
 
     t = Table(title=f"{session.name} → {res.bundle} ({res.pass_source} passes)", title_justify="left")
@@ -134,10 +187,43 @@ def export(
     console.print(
         f"{res.epochs:,} INS epochs, {res.points:,} points from {res.packets:,} packets "
         f"({res.returns_outside_passes:,} returns outside the passes){extra} in "
-        f"{time.perf_counter() - t0:.1f} s"
+        f"{elapsed_s:.1f} s"
         + (
             f"; {len(res.warnings)} warning{'s' if len(res.warnings) > 1 else ''} (stderr)"
             if res.warnings
+            else ""
+        ),
+        highlight=False,
+    )
+
+
+def _foxglove_summary(console, err, session: Path, fox, elapsed_s: float) -> None:
+    """The channels table, the warnings (stderr) and the closing line of a Foxglove export."""
+    from rich.markup import escape
+    from rich.table import Table
+
+    from acquire.jobs.foxglove import SCHEMAS
+    from calib.core import frames
+
+    t = Table(title=f"{session.name} → {fox.path} (Foxglove)", title_justify="left")
+    for col in ("channel", "schema", "messages"):
+        t.add_column(col, justify="right" if col == "messages" else "left")
+    for topic, n in fox.messages.items():
+        t.add_row(topic, SCHEMAS[topic], f"{n:,}")
+    console.print(t)
+    for w in fox.warnings:
+        err.print(f"[yellow]warning:[/yellow] {escape(w)}", highlight=False, soft_wrap=True)
+    span = ""
+    if fox.end_gps_ns > fox.start_gps_ns:
+        start = frames.gps_ns_to_utc(fox.start_gps_ns).strftime("%Y-%m-%d %H:%M:%S")
+        span = f", {fox.span_s:.1f} s from {start} UTC"
+    console.print(
+        f"{sum(fox.messages.values()):,} messages on {len(fox.messages)} channels{span}; "
+        f"{fox.points:,} of {fox.returns:,} returns in {fox.messages['/lidar/points']:,} clouds "
+        f"({fox.cloud_rate_hz:g} Hz) in {elapsed_s:.1f} s"
+        + (
+            f"; {len(fox.warnings)} warning{'s' if len(fox.warnings) > 1 else ''} (stderr)"
+            if fox.warnings
             else ""
         ),
         highlight=False,

@@ -386,6 +386,60 @@ def test_demo_recovers_the_boresight_within_3_sigma_and_leaves_no_process(demo):
     assert [p["id"] for p in result["passes"]] == [1, 2, 3, 4, 5, 6]
 
 
+@pytest.mark.integration
+@pytest.mark.slow
+@pytest.mark.xdist_group("demo")
+def test_the_demo_session_exports_for_foxglove_and_reads_back(demo, tmp_path):
+    """``mls export SESSION --foxglove`` on the demo's recorded session: the read-back check of
+    ``test_foxglove.py``, and every return of the demo's bundle (its own export and georeference)
+    in the clouds, where calib puts it."""
+    import numpy as np
+    from scipy.spatial import cKDTree
+
+    from calib.core.georef import georeference
+    from calib.io.bundle import read_bundle
+    from tests.acquire.jobs.test_foxglove import check_foxglove_file
+
+    try:
+        rc = demo.p.wait(400)
+    except subprocess.TimeoutExpired:
+        raise AssertionError(f"mls demo still running after 400 s:\n{demo.output()[-3000:]}") from None
+    assert rc == 0, demo.output()[-3000:]
+    (session,) = (demo.out / "run" / "sessions").iterdir()
+    out = tmp_path / "demo.mcap"
+    r = subprocess.run(
+        [*MLS, "export", str(session), "--foxglove", str(out)],
+        capture_output=True,
+        text=True,
+        cwd=ROOT,
+        timeout=300,
+    )
+    assert r.returncode == 0, r.stdout + r.stderr
+    flat = " ".join(r.stdout.split())
+    m = re.search(
+        r"([\d,]+) messages on 6 channels, [\d.]+ s from .*?; ([\d,]+) of ([\d,]+) returns in", flat
+    )
+    assert m, flat
+    rb = check_foxglove_file(out, session)
+    assert int(m.group(1).replace(",", "")) == sum(len(v) for v in rb.messages.values())
+    assert m.group(2) == m.group(3)  # at 2 Hz no cloud of the demo is decimated
+    assert len(rb.messages["/vessel/fix"]) > 5000 and len(rb.messages["/lidar/points"]) >= 20
+    assert len(rb.messages["/clock"]) > 50 and len(rb.messages["/latency"]) > 50
+    assert rb.messages["/clock"][-1][1]["state"] == "LOCKED"
+    assert {"ins", "profiler"} <= set(rb.messages["/latency"][-1][1])
+    levels = {m["level"] for _, m in rb.messages["/log"]}
+    assert "INFO" in levels and any(m["message"].startswith("alarm ") for _, m in rb.messages["/log"])
+    # the bundle's returns, georeferenced by calib, are points of the clouds (within 1 mm)
+    b = read_bundle(demo.out / "bundle")
+    pts = b.points
+    x_ned = georeference(pts.t_gps_s, pts.range_m, pts.scan_angle_rad, b.trajectory, b.site.mount)
+    x_enu = np.column_stack([x_ned[:, 1], x_ned[:, 0], -x_ned[:, 2]])
+    clouds = [rb.points(k)[0] for k in range(len(rb.messages["/lidar/points"]))]
+    dist, _ = cKDTree(np.concatenate(clouds)).query(x_enu)
+    assert dist.max() < 1e-3, dist.max()
+    assert len(pts) >= 0.9 * sum(len(c) for c in clouds)  # the clouds are (mostly) the passes
+
+
 # -- interrupted and failing runs ---------------------------------------------------------------
 
 
