@@ -24,17 +24,17 @@ from cli.commands import (
     assess_cmd,  # noqa: F401  (adds calib c2c, history, compare)
     assess_run_cmd,  # noqa: F401  (adds calib assess)
     calib_cmd,
-    checklist_cmd,
     decode_cmd,
     demo_cmd,
     design_cmd,
     export_cmd,
+    georef_cmd,
     logs_cmd,
+    operator_cmd,
     plan_cmd,
     run_cmd,  # noqa: F401  (adds calib run)
     sim_cmd,
     sim_devices_cmd,  # noqa: F401  (adds sim devices, sim replay)
-    status_cmd,
 )
 
 #: Exit status of an :class:`MlsError` that no command handles itself.
@@ -71,11 +71,12 @@ app.command("decode")(decode_cmd.decode)
 app.command("demo", help=demo_cmd.HELP)(demo_cmd.demo)
 app.add_typer(sim_cmd.app, name="sim")
 app.add_typer(logs_cmd.app, name="logs")
-app.command("status")(status_cmd.status)
+app.command("status")(operator_cmd.status)
 app.command("acquire", help=acquire_cmd.HELP)(acquire_cmd.acquire)
 app.command("export", help=export_cmd.HELP)(export_cmd.export)
+app.command("georef", help=georef_cmd.HELP)(georef_cmd.georef)
 app.command("plan", help=plan_cmd.HELP)(plan_cmd.plan)
-app.command("checklist", help=checklist_cmd.HELP)(checklist_cmd.checklist)
+app.command("checklist", help=operator_cmd.CHECKLIST_HELP)(operator_cmd.checklist)
 app.command("design", help=design_cmd.HELP)(design_cmd.design)
 
 

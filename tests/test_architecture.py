@@ -53,6 +53,7 @@ UNIT_RANK = {
         "guidance": 5,
         "ui": 5,
         "jobs": 6,
+        "deliver": 7,
     },
 }
 

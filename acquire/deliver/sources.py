@@ -1,0 +1,260 @@
+"""What a survey is made of: a session (the daemon's MCAP segments) or a calibration bundle.
+
+:func:`open_source` reads what every chunk needs once (the site, the trajectory, the lines) and
+cuts the returns into :class:`ChunkSpec` time chunks; :func:`read_chunk` then reads the returns
+of one chunk, in whichever process runs it.
+
+A session's chunks are windows of ``chunk_s`` seconds of GPS log time (aligned to multiples of
+``chunk_s``) within each segment: a datagram belongs to exactly one chunk, and a chunk reads one
+segment through its index (a segment that did not close normally is scanned instead). The
+returns are timed as ``mls export`` times them (packet ``t0 + i·dt`` when the packet says
+PPS-locked and time-valid, else from its receipt on the clock model); duplicated datagrams are
+kept once within a chunk. A bundle's chunks carry their returns (a bundle is calibration-sized).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from acquire.deliver.options import GeorefError
+
+NS_PER_S = 1_000_000_000
+LIDAR_TOPIC = "/lidar/raw"
+
+
+@dataclass(frozen=True)
+class ChunkSpec:
+    index: int
+    t0_ns: int  # [t0, t1) of log time (session) or of point time (bundle)
+    t1_ns: int
+    segment: str | None = None  # session: the segment file
+    returns: Returns | None = None  # bundle: the returns themselves
+
+
+@dataclass(frozen=True)
+class Returns:
+    """Raw returns of one chunk (time-sorted for a profiler stream)."""
+
+    t_gps_ns: np.ndarray  # int64
+    range_m: np.ndarray
+    scan_angle_rad: np.ndarray
+    intensity: np.ndarray  # uint16 counts
+    pass_id: np.ndarray | None = None  # int64 when the source says (bundle); else from the lines
+    counters: dict = field(default_factory=dict)
+
+    @property
+    def size(self) -> int:
+        return int(self.t_gps_ns.size)
+
+
+@dataclass
+class Source:
+    kind: str  # "session" or "bundle"
+    path: Path
+    site: object  # calib.io.site.Site
+    trajectory: object  # calib.core.trajectory.Trajectory
+    lines: list[tuple[int, int, int]]  # (pass id, start GPS ns, end GPS ns), sorted by start
+    chunks: list[ChunkSpec]
+    mount_id: str | None = None
+    warnings: list[str] = field(default_factory=list)
+
+
+def _windows(t0_ns: int, t1_ns: int, chunk_ns: int) -> list[tuple[int, int]]:
+    first = t0_ns // chunk_ns * chunk_ns
+    return [(a, a + chunk_ns) for a in range(first, t1_ns + 1, chunk_ns)]
+
+
+def _segment_span(path: Path) -> tuple[int, int] | None:
+    """(first, last) log time of the /lidar/raw messages of a segment: from its summary, else by
+    scanning it."""
+    from mcap.reader import make_reader
+
+    try:
+        with open(path, "rb") as f:
+            summary = make_reader(f).get_summary()
+        if summary is not None and summary.statistics is not None:
+            ids = [c.id for c in summary.channels.values() if c.topic == LIDAR_TOPIC]
+            if not any(summary.statistics.channel_message_counts.get(i, 0) for i in ids):
+                return None
+            return int(summary.statistics.message_start_time), int(summary.statistics.message_end_time)
+    except Exception:  # noqa: BLE001 - a torn segment has no summary: scan it
+        pass
+    lo = hi = None
+    for t, _ in _scan_lidar(path, None, None):
+        lo = t if lo is None else min(lo, t)
+        hi = t if hi is None else max(hi, t)
+    return None if lo is None else (lo, hi)
+
+
+def _scan_lidar(path: Path, t0_ns: int | None, t1_ns: int | None):
+    """(log time, raw record) of the /lidar/raw messages of a segment, by a scan (torn ones too)."""
+    from acquire.log.recover import scan_segment
+
+    topic_of: dict[int, str] = {}
+    for rec in scan_segment(path):
+        kind = type(rec).__name__
+        if kind == "Channel":
+            topic_of[rec.id] = rec.topic
+        elif kind == "Message" and topic_of.get(rec.channel_id) == LIDAR_TOPIC:
+            if (t0_ns is None or rec.log_time >= t0_ns) and (t1_ns is None or rec.log_time < t1_ns):
+                yield rec.log_time, rec.data
+
+
+def _lidar_messages(path: Path, t0_ns: int, t1_ns: int):
+    from acquire.log.indexed import indexed_messages
+
+    try:
+        fast = indexed_messages(path, [LIDAR_TOPIC], t0_ns, t1_ns)
+    except OSError as e:
+        raise GeorefError(f"{path}: cannot read the segment ({e.strerror or e})") from None
+    if fast is None:  # not closed normally: scanned up to its torn tail
+        yield from _scan_lidar(path, t0_ns, t1_ns)
+        return
+    for m in fast:
+        yield m.log_time, m.data
+
+
+def read_session_chunk(spec: ChunkSpec) -> Returns:
+    """Decode the profiler datagrams of one session chunk into returns (module docstring)."""
+    from drivers.base import DriverError
+    from drivers.zf.codec import FLAG_PPS_LOCKED, FLAG_TIME_VALID
+    from drivers.zf.zfp1 import CRC_SIZE, HEADER_SIZE, POINT_DTYPE, RANGE_UNIT_M, decode_packet, scan_packets
+
+    assert spec.segment is not None
+    log_t, grams = [], []
+    for t, raw in _lidar_messages(Path(spec.segment), spec.t0_ns, spec.t1_ns):
+        hs = int.from_bytes(raw[2:4], "little")
+        log_t.append(t)
+        grams.append(bytes(raw[hs:]))
+    counters = {"datagrams": len(grams), "bad_datagrams": 0, "duplicates": 0, "unsynced_packets": 0}
+    empty = Returns(np.zeros(0, np.int64), np.zeros(0), np.zeros(0), np.zeros(0, np.uint16), None, counters)
+    if not grams:
+        return empty
+    head = scan_packets(grams)
+    if head is None:  # one at least is not a valid packet: keep the good ones, count the rest
+        good = []
+        for i, g in enumerate(grams):
+            try:
+                decode_packet(g)
+                good.append(i)
+            except DriverError:
+                counters["bad_datagrams"] += 1
+        grams = [grams[i] for i in good]
+        log_t = [log_t[i] for i in good]
+        head = scan_packets(grams) if grams else None
+        if head is None:
+            return empty
+    log_ns = np.asarray(log_t, np.int64)
+    key = np.stack(
+        [head["profile_counter"].astype(np.int64), head["packet_index"].astype(np.int64), head["t0_ns"]]
+    )
+    _, first = np.unique(key, axis=1, return_index=True)
+    keep = np.zeros(len(grams), bool)
+    keep[first] = True
+    counters["duplicates"] = int((~keep).sum())
+    n = head["n_points"].astype(np.int64)
+    n[~keep] = 0
+    pts = np.frombuffer(
+        b"".join(g[HEADER_SIZE : len(g) - CRC_SIZE] for g, k in zip(grams, keep) if k), POINT_DTYPE
+    )
+    pk = np.repeat(np.arange(len(grams)), n)
+    i = np.arange(pts.size, dtype=np.int64) - np.repeat(np.cumsum(n) - n, n)
+    dt = head["dt_ns"].astype(np.int64)[pk]
+    synced = (head["flags"] & FLAG_PPS_LOCKED).astype(bool) & (head["flags"] & FLAG_TIME_VALID).astype(bool)
+    counters["unsynced_packets"] = int((~synced & keep).sum())
+    t = np.where(synced[pk], head["t0_ns"][pk] + i * dt, log_ns[pk] - (n[pk] - 1 - i) * dt)
+    ang_udeg = head["angle0_udeg"].astype(np.int64)[pk] + i * head["dangle_udeg"].astype(np.int64)[pk]
+    hit = pts["range_01mm"] > 0
+    order = np.argsort(t[hit], kind="stable")
+    return Returns(
+        t[hit][order],
+        (pts["range_01mm"][hit].astype(np.float64) * RANGE_UNIT_M)[order],
+        np.radians(np.mod(ang_udeg[hit] * 1e-6, 360.0))[order],
+        pts["intensity"][hit][order],
+        None,
+        counters,
+    )
+
+
+def read_chunk(spec: ChunkSpec) -> Returns:
+    return spec.returns if spec.returns is not None else read_session_chunk(spec)
+
+
+def _session_source(path: Path, chunk_s: float, max_gap_s: float) -> Source:
+    from acquire.jobs.export import ExportError, ExportOptions
+    from acquire.jobs.sessionnav import session_navigation
+    from acquire.log.read import SessionReadError, session_summary
+    from acquire.log.recover import segment_paths
+
+    try:
+        nav = session_navigation(path, ExportOptions(max_gap_s=max_gap_s))
+        summary = session_summary(path)
+    except (ExportError, SessionReadError) as e:
+        raise GeorefError(str(e)) from None
+    chunk_ns = round(chunk_s * NS_PER_S)
+    chunks: list[ChunkSpec] = []
+    for seg in segment_paths(path):
+        span = _segment_span(seg)
+        if span is None:
+            continue
+        for a, b in _windows(span[0], span[1], chunk_ns):
+            chunks.append(ChunkSpec(len(chunks), a, b, segment=str(seg)))
+    if not chunks:
+        raise GeorefError(f"{path}: no {LIDAR_TOPIC} message in any segment: nothing to georeference")
+    lines = sorted((w.pass_id, w.start_gps_ns, w.end_gps_ns) for w in nav.passes)
+    mount_id = summary.get("mount_id") if isinstance(summary, dict) else None
+    return Source(
+        "session",
+        path,
+        nav.site,
+        nav.trajectory,
+        sorted(lines, key=lambda x: x[1]),
+        chunks,
+        mount_id,
+        list(nav.warnings),
+    )
+
+
+def _bundle_source(path: Path, chunk_s: float, max_gap_s: float) -> Source:
+    from calib.io.bundle import BundleError, intensity_scale, read_bundle
+
+    try:
+        bundle = read_bundle(path, max_gap_s=max_gap_s)
+    except BundleError as e:
+        raise GeorefError(str(e)) from None
+    pts = bundle.points
+    scale = intensity_scale(pts.intensity, bundle.points_path)
+    t_ns = np.round(pts.t_gps_s * NS_PER_S).astype(np.int64)
+    order = np.argsort(t_ns, kind="stable")
+    t_ns = t_ns[order]
+    inten = np.round(pts.intensity[order] * scale.factor).astype(np.uint16)
+    chunk_ns = round(chunk_s * NS_PER_S)
+    chunks = []
+    for a, b in _windows(int(t_ns[0]), int(t_ns[-1]), chunk_ns):
+        lo, hi = np.searchsorted(t_ns, [a, b])
+        if hi > lo:
+            sel = order[lo:hi]
+            r = Returns(
+                t_ns[lo:hi], pts.range_m[sel], pts.scan_angle_rad[sel], inten[lo:hi], pts.pass_id[sel]
+            )
+            chunks.append(ChunkSpec(len(chunks), a, b, returns=r))
+    lines = []
+    for pid in pts.pass_ids():
+        t = t_ns[pts.pass_id[order] == pid]
+        lines.append((int(pid), int(t[0]), int(t[-1])))
+    return Source("bundle", path, bundle.site, bundle.trajectory, sorted(lines, key=lambda x: x[1]), chunks)
+
+
+def open_source(path: str | Path, chunk_s: float, max_gap_s: float = 1.0) -> Source:
+    """A session directory (``seg-*.mcap``) or a bundle directory (``points.csv``)."""
+    p = Path(path)
+    if not p.is_dir():
+        raise GeorefError(f"{p}: not a directory (expected a session or a calibration bundle)")
+    if any(p.glob("seg-*.mcap")):
+        return _session_source(p, chunk_s, max_gap_s)
+    if (p / "points.csv").exists() or (p / "points.csv.gz").exists():
+        return _bundle_source(p, chunk_s, max_gap_s)
+    raise GeorefError(f"{p}: neither a session (seg-*.mcap) nor a calibration bundle (points.csv)")

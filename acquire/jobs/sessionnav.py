@@ -1,0 +1,59 @@
+"""A session's navigation without a bundle: what ``mls georef`` and the Foxglove export need to
+georeference a session (the site with the session's mount, the /ins/nav trajectory, the passes
+marked in /events), read exactly as :func:`acquire.jobs.export.export_session` reads them."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+from acquire.jobs.export import (
+    ExportError,
+    ExportOptions,
+    PassWindow,
+    _fill_sigmas,
+    _read_nav_and_events,
+    _site,
+    _trajectory,
+    passes_from_events,
+)
+from acquire.log.read import SessionReadError, session_summary
+
+
+@dataclass(frozen=True)
+class SessionNavigation:
+    """What a session says of where the vessel was: for the jobs that georeference a session
+    without writing a bundle (``mls georef``, the Foxglove export)."""
+
+    site: object  # calib.io.site.Site, with the mount of the session's vessel config
+    site_path: Path
+    trajectory: object  # calib.core.trajectory.Trajectory of /ins/nav (LGF of the site)
+    passes: list[PassWindow]  # from the /events marks (empty when the session has none)
+    warnings: list[str]
+
+
+def session_navigation(
+    session_dir: str | Path, options: ExportOptions = ExportOptions()
+) -> SessionNavigation:
+    """The site, the /ins/nav trajectory (with its sigmas when at least half the epochs carry
+    them) and the passes marked in /events of a session, read as :func:`export_session` does."""
+    from acquire.log.read import session_losses
+    from calib.core.trajectory import TrajectoryError
+
+    session = Path(session_dir)
+    try:
+        summary = session_summary(session)
+        warnings = [loss.describe() for loss in session_losses(session)]
+        site, site_path = _site(session, options, summary)
+        nav, events = _read_nav_and_events(session, None)
+    except SessionReadError as e:
+        raise ExportError(str(e)) from None
+    sig, filled = _fill_sigmas(nav.t_ns, nav.sig)
+    if filled:
+        warnings.append(f"{filled} of {nav.t_ns.size} INS epochs had no sigmas: interpolated")
+    try:
+        traj = _trajectory(nav, sig, site.reference, options.max_gap_s)
+    except TrajectoryError as e:
+        raise ExportError(f"{session}: /ins/nav: {e}") from None
+    windows, w = passes_from_events(events, int(nav.t_ns[-1]))
+    return SessionNavigation(site, site_path, traj, windows, warnings + w)

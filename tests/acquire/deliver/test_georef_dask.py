@@ -1,0 +1,67 @@
+"""``mls georef`` on a real ``dask.distributed`` LocalCluster of two worker processes: a worker
+killed (SIGKILL) in the middle of the job, the job still finishes and every tile is complete and
+byte-identical to an in-process run."""
+
+from __future__ import annotations
+
+import os
+import signal
+from pathlib import Path
+
+import pytest
+
+from acquire.deliver.chunkjob import process_chunk
+from acquire.deliver.engine import run_georef
+from acquire.deliver.executors import DaskExecutor
+from acquire.deliver.options import GeorefOptions
+from tests.acquire.deliver.slowtasks import slow_process_chunk
+
+pytestmark = [pytest.mark.integration]
+
+
+@pytest.fixture(scope="module")
+def bundle(tmp_path_factory) -> Path:
+    from calib.sim.simulate import simulate
+
+    out = tmp_path_factory.mktemp("georef-dask") / "bundle"
+    simulate("montreal", 5, overrides=["scanner.point_rate_scale=0.05"]).write(out)
+    return out
+
+
+class KillsAWorker(DaskExecutor):
+    """Chunks slowed to 0.3 s each; when the first one is back, the other worker (busy with a
+    chunk of its own) is killed."""
+
+    killed: int | None = None
+    pids: set[int] = set()
+
+    def submit(self, fn, item):
+        super().submit(slow_process_chunk if fn is process_chunk else fn, item)
+
+    def results(self):
+        for res in super().results():
+            self.pids.add(res.pid)
+            if self.killed is None:
+                victim = next(p for p in self.worker_pids() if p != res.pid)
+                os.kill(victim, signal.SIGKILL)
+                self.killed = victim
+            yield res
+
+
+def test_a_worker_killed_mid_job_costs_nothing(bundle, tmp_path):
+    opts = GeorefOptions(chunk_s=0.5, tiling="square", tile_m=2.0)
+    ref = run_georef(bundle, tmp_path / "ref", opts)
+    ex = KillsAWorker(workers=2)
+    try:
+        assert len(ex.worker_pids()) == 2
+        res = run_georef(bundle, tmp_path / "out", opts, executor=ex)
+        ex.client.wait_for_workers(2, timeout=60)  # the job may end before the nanny's restart
+        after = ex.worker_pids()
+    finally:
+        ex.close()
+    assert ex.killed is not None and ex.killed not in after and len(after) == 2  # the nanny replaced it
+    assert res.chunks_run == res.chunks >= 12 and res.n_points == ref.n_points
+    want = {p.name: p.read_bytes() for p in (tmp_path / "ref").glob("*.laz")}
+    got = {p.name: p.read_bytes() for p in (tmp_path / "out").glob("*.laz")}
+    assert got == want and len(got) >= 3
+    assert not list((tmp_path / "out").rglob("*.tmp")) and not list((tmp_path / "out").glob("*.partial"))
