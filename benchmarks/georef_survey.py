@@ -106,8 +106,8 @@ def row(label: str, res, wall: float) -> str:
     return (
         f"  {label:<22} {wall:7.1f} s  {returns / wall / 1e6:6.2f} M returns/s  "
         f"{res.n_points / wall / 1e6:6.2f} M points/s  peak/worker {peak:6.0f} MB  "
-        f"({res.n_points:,} points in {len(res.files)} files; plan / chunks / tiles "
-        + " / ".join(f"{res.stage_s[k]:.1f}" for k in ("plan", "chunks", "files"))
+        f"({res.n_points:,} points in {len(res.files)} files; plan / tasks / last tiles "
+        + " / ".join(f"{res.stage_s[k]:.1f}" for k in ("plan", "tasks", "last tiles"))
         + " s)"
     )
 

@@ -64,7 +64,9 @@ class GeorefResult:
     warnings: list[str] = field(default_factory=list)
     peak_rss_mb: dict[int, float] = field(default_factory=dict)  # worker pid → peak RSS
     wall_s: float = 0.0
-    stage_s: dict[str, float] = field(default_factory=dict)  # plan, chunks, files: wall seconds
+    #: wall seconds of the plan (this process), of the tasks (chunks, and the line tiles ready
+    #: meanwhile) and of the tiles left for the end (squares, transits, late parts)
+    stage_s: dict[str, float] = field(default_factory=dict)
 
     @property
     def n_points(self) -> int:
@@ -290,7 +292,7 @@ def run_georef(
         warnings,
         rss,
         time.monotonic() - t_start,
-        {"plan": t_plan - t_start, "chunks": t_chunks - t_plan, "files": t_files - t_chunks},  # overlapping
+        {"plan": t_plan - t_start, "tasks": t_chunks - t_plan, "last tiles": t_files - t_chunks},
     )
     _write_summary(result, options)
     shutil.rmtree(state_dir(out) / "parts", ignore_errors=True)
