@@ -65,3 +65,20 @@ def test_a_worker_killed_mid_job_costs_nothing(bundle, tmp_path):
     got = {p.name: p.read_bytes() for p in (tmp_path / "out").glob("*.laz")}
     assert got == want and len(got) >= 3
     assert not list((tmp_path / "out").rglob("*.tmp")) and not list((tmp_path / "out").glob("*.partial"))
+
+
+def test_mls_georef_on_a_running_cluster_named_by_its_address(bundle, tmp_path):
+    from distributed import LocalCluster
+    from typer.testing import CliRunner
+
+    from cli.app import app
+
+    opts = GeorefOptions(chunk_s=1.0)
+    run_georef(bundle, tmp_path / "ref", opts)
+    with LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None) as cluster:
+        args = ["georef", str(bundle), "--out", str(tmp_path / "out"), "--chunk-s", "1"]
+        r = CliRunner().invoke(app, [*args, "--scheduler", cluster.scheduler_address], env={"COLUMNS": "250"})
+    assert r.exit_code == 0, r.output
+    assert f"dask {cluster.scheduler_address}" in r.output
+    want = {p.name: p.read_bytes() for p in (tmp_path / "ref").glob("*.laz")}
+    assert {p.name: p.read_bytes() for p in (tmp_path / "out").glob("*.laz")} == want and want
