@@ -57,9 +57,7 @@ def scanner_sigmas(site) -> ScannerSigmas:
     )
 
 
-def load_calibration(
-    site, ref: str | None, software: str, db=None, vessel_mount_id: str | None = None
-) -> Calibration:
+def load_calibration(site, ref: str | None, software: str, db=None) -> Calibration:
     """The mount for ``site`` (its vessel's) calibrated by ``ref`` (module docstring)."""
     from calib.assess.history import HistoryError, ResultFormatError, resolve_result
 
@@ -67,7 +65,7 @@ def load_calibration(
     if ref is None:
         prov = {
             "calibration": None,
-            "mount_id": vessel_mount_id or site.vessel,
+            "mount_id": site.vessel,
             "boresight_deg": [float(v) for v in np.degrees(base.boresight_rad)],
             "software": software,
         }
@@ -86,7 +84,7 @@ def load_calibration(
     except (HistoryError, ResultFormatError) as e:
         raise GeorefError(str(e)) from None
     result = found if isinstance(found, dict) else found.result
-    mount_id = found.mount_id if not isinstance(found, dict) else (vessel_mount_id or site.vessel)
+    mount_id = site.vessel if isinstance(found, dict) else found.mount_id
     b = result["boresight_deg"]
     mount = base.with_boresight(np.radians([float(b[k]) for k in ("roll", "pitch", "yaw")]))
     extras = result.get("extras") or {}

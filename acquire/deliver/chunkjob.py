@@ -74,8 +74,8 @@ def slice_trajectory(traj, t0_s: float, t1_s: float):
     tt = traj.t_gps_s
     a = max(int(np.searchsorted(tt, t0_s - TRAJECTORY_OVERLAP_S)) - 1, 0)
     b = min(int(np.searchsorted(tt, t1_s + TRAJECTORY_OVERLAP_S)) + 1, tt.size)
-    if b - a < 2:
-        a, b = max(min(a, tt.size - 2), 0), max(min(a, tt.size - 2), 0) + 2
+    a = min(a, tt.size - 2)  # two epochs at least (a trajectory has two or more)
+    b = max(b, a + 2)
     sl = slice(a, b)
     return Trajectory(
         tt[sl],

@@ -73,8 +73,10 @@ class GeorefResult:
         return sum(int(f["n_points"]) for f in self.files)
 
 
-def _prepare_out(out: Path, resume: bool, force: bool, fingerprint: str) -> None:
-    from calib.io.outputs import OutputError, check_output_dir, make_output_dir
+def _prepare_out(out: Path, resume: bool, fingerprint: str) -> None:
+    """A resumed job's plan must be this one; a new job starts in an empty (checked) or forced
+    ``out`` without the old job's state."""
+    from calib.io.outputs import OutputError, make_output_dir
 
     plan = state_dir(out) / "plan.json"
     if resume:
@@ -88,7 +90,6 @@ def _prepare_out(out: Path, resume: bool, force: bool, fingerprint: str) -> None
             )
         return
     try:
-        check_output_dir(out, "--out", force)
         make_output_dir(out, "--out")
     except OutputError as e:
         raise GeorefError(str(e)) from None
@@ -121,7 +122,7 @@ def run_georef(
     t_start = time.monotonic()
     executor = executor or InProcess()
     out = Path(out_dir)
-    if not resume:  # before reading anything (the plan's own check follows, with its fingerprint)
+    if not resume:  # before reading anything (a resumed job's plan is checked once it is made)
         try:
             check_output_dir(out, "--out", force)
         except OutputError as e:
@@ -143,7 +144,7 @@ def run_georef(
         warnings.append(f"{traj_name} carries no sigmas: σ uses the site's pos_sigmas for every epoch")
     traj = with_site_sigmas(traj, source.site)
     software = software_version()
-    cal = load_calibration(source.site, calibration, software, db, source.mount_id)
+    cal = load_calibration(source.site, calibration, software, db)
     warnings += cal.warnings
     try:
         crs_name = output_crs(options.crs, traj.frame).name
@@ -160,7 +161,7 @@ def run_georef(
         ],
     }
     fingerprint = hashlib.sha256(json.dumps(plan, sort_keys=True, default=str).encode()).hexdigest()
-    _prepare_out(out, resume, force, fingerprint)
+    _prepare_out(out, resume, fingerprint)
     if not resume:
         write_atomic(
             state_dir(out) / "plan.json", json.dumps(dict(plan, fingerprint=fingerprint), indent=1).encode()
@@ -231,7 +232,7 @@ def run_georef(
     for c in todo:
         executor.submit(
             process_chunk,
-            ChunkTask(ctx, c, slice_trajectory(traj, c.t0_ns / NS_PER_S - 1.0, c.t1_ns / NS_PER_S + 1.0)),
+            ChunkTask(ctx, c, slice_trajectory(traj, c.t0_ns / NS_PER_S, c.t1_ns / NS_PER_S)),
         )
     submit_files(ready_lines())
     if progress:

@@ -58,7 +58,6 @@ class Source:
     trajectory: object  # calib.core.trajectory.Trajectory
     lines: list[tuple[int, int, int]]  # (pass id, start GPS ns, end GPS ns), sorted by start
     chunks: list[ChunkSpec]
-    mount_id: str | None = None
     warnings: list[str] = field(default_factory=list)
 
 
@@ -186,13 +185,11 @@ def read_chunk(spec: ChunkSpec) -> Returns:
 def _session_source(path: Path, chunk_s: float, max_gap_s: float) -> Source:
     from acquire.jobs.export import ExportError, ExportOptions
     from acquire.jobs.sessionnav import session_navigation
-    from acquire.log.read import SessionReadError, session_summary
     from acquire.log.recover import segment_paths
 
     try:
         nav = session_navigation(path, ExportOptions(max_gap_s=max_gap_s))
-        summary = session_summary(path)
-    except (ExportError, SessionReadError) as e:
+    except ExportError as e:
         raise GeorefError(str(e)) from None
     chunk_ns = round(chunk_s * NS_PER_S)
     chunks: list[ChunkSpec] = []
@@ -204,16 +201,14 @@ def _session_source(path: Path, chunk_s: float, max_gap_s: float) -> Source:
             chunks.append(ChunkSpec(len(chunks), a, b, segment=str(seg)))
     if not chunks:
         raise GeorefError(f"{path}: no {LIDAR_TOPIC} message in any segment: nothing to georeference")
-    lines = sorted((w.pass_id, w.start_gps_ns, w.end_gps_ns) for w in nav.passes)
-    mount_id = summary.get("mount_id") if isinstance(summary, dict) else None
+    lines = sorted(((w.pass_id, w.start_gps_ns, w.end_gps_ns) for w in nav.passes), key=lambda x: x[1])
     return Source(
         "session",
         path,
         nav.site,
         nav.trajectory,
-        sorted(lines, key=lambda x: x[1]),
+        lines,
         chunks,
-        mount_id,
         list(nav.warnings),
     )
 
@@ -241,9 +236,10 @@ def _bundle_source(path: Path, chunk_s: float, max_gap_s: float) -> Source:
                 t_ns[lo:hi], pts.range_m[sel], pts.scan_angle_rad[sel], inten[lo:hi], pts.pass_id[sel]
             )
             chunks.append(ChunkSpec(len(chunks), a, b, returns=r))
+    pid_sorted = pts.pass_id[order]
     lines = []
     for pid in pts.pass_ids():
-        t = t_ns[pts.pass_id[order] == pid]
+        t = t_ns[pid_sorted == pid]
         lines.append((int(pid), int(t[0]), int(t[-1])))
     return Source("bundle", path, bundle.site, bundle.trajectory, sorted(lines, key=lambda x: x[1]), chunks)
 

@@ -413,6 +413,25 @@ def _summary_mount(path: Path, m) -> dict[str, np.ndarray]:
     return out
 
 
+def _navigation(session: Path, options: ExportOptions, summary: dict, progress):
+    """The site (with the session's mount), the INS epochs and events, their sigmas (filled:
+    :func:`_fill_sigmas`) and the trajectory, as every job that reads a session's navigation
+    reads them: ``(site, site path, nav, events, sigmas, epochs filled, trajectory)``."""
+    from calib.core.trajectory import TrajectoryError
+
+    try:
+        site, site_path = _site(session, options, summary)
+        nav, events = _read_nav_and_events(session, progress)
+    except SessionReadError as e:
+        raise ExportError(str(e)) from None
+    sig, filled = _fill_sigmas(nav.t_ns, nav.sig)
+    try:
+        traj = _trajectory(nav, sig, site.reference, options.max_gap_s)
+    except TrajectoryError as e:
+        raise ExportError(f"{session}: /ins/nav: {e}") from None
+    return site, site_path, nav, events, sig, filled, traj
+
+
 # -- the export ---------------------------------------------------------------------------------
 
 
@@ -425,7 +444,6 @@ def export_session(
     """Write the calibration bundle of a session (module docstring); returns what it wrote."""
     from acquire.log.read import session_losses
     from acquire.log.recover import segment_paths
-    from calib.core.trajectory import TrajectoryError
     from calib.io.bundle import SCANNER_RANGE_M, ScanPoints, pass_warnings, write_bundle
 
     session = Path(session_dir)
@@ -444,15 +462,11 @@ def export_session(
             lost = "; ".join(loss.describe() for loss in losses)
             raise ExportError(f"{session}: nothing to export, no segment holds a complete message: {lost}")
         meta = channel_metadata(session)
-        site, site_path = _site(session, options, summary)
-        nav, events = _read_nav_and_events(session, step("reading navigation and events"))
     except SessionReadError as e:
         raise ExportError(str(e)) from None
-    sig, filled = _fill_sigmas(nav.t_ns, nav.sig)
-    try:
-        traj = _trajectory(nav, sig, site.reference, options.max_gap_s)
-    except TrajectoryError as e:
-        raise ExportError(f"{session}: /ins/nav: {e}") from None
+    site, site_path, nav, events, sig, filled, traj = _navigation(
+        session, options, summary, step("reading navigation and events")
+    )
     warnings: list[str] = [loss.describe() for loss in losses]
     windows: list[PassWindow] = []
     source = options.passes

@@ -11,10 +11,7 @@ from acquire.jobs.export import (
     ExportError,
     ExportOptions,
     PassWindow,
-    _fill_sigmas,
-    _read_nav_and_events,
-    _site,
-    _trajectory,
+    _navigation,
     passes_from_events,
 )
 from acquire.log.read import SessionReadError, session_summary
@@ -38,22 +35,15 @@ def session_navigation(
     """The site, the /ins/nav trajectory (with its sigmas when at least half the epochs carry
     them) and the passes marked in /events of a session, read as :func:`export_session` does."""
     from acquire.log.read import session_losses
-    from calib.core.trajectory import TrajectoryError
 
     session = Path(session_dir)
     try:
         summary = session_summary(session)
         warnings = [loss.describe() for loss in session_losses(session)]
-        site, site_path = _site(session, options, summary)
-        nav, events = _read_nav_and_events(session, None)
     except SessionReadError as e:
         raise ExportError(str(e)) from None
-    sig, filled = _fill_sigmas(nav.t_ns, nav.sig)
+    site, site_path, nav, events, _, filled, traj = _navigation(session, options, summary, None)
     if filled:
         warnings.append(f"{filled} of {nav.t_ns.size} INS epochs had no sigmas: interpolated")
-    try:
-        traj = _trajectory(nav, sig, site.reference, options.max_gap_s)
-    except TrajectoryError as e:
-        raise ExportError(f"{session}: /ins/nav: {e}") from None
     windows, w = passes_from_events(events, int(nav.t_ns[-1]))
     return SessionNavigation(site, site_path, traj, windows, warnings + w)

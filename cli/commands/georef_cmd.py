@@ -130,12 +130,8 @@ def georef(
                 import time
 
                 if stage not in tasks:
-                    tasks[stage] = (
-                        bar.add_task(stage, total=total, points=0, rate=0.0),
-                        time.monotonic(),
-                        done,
-                    )
-                task, t0, done0 = tasks[stage]
+                    tasks[stage] = (bar.add_task(stage, total=total, points=0, rate=0.0), time.monotonic())
+                task, t0 = tasks[stage]
                 dt = time.monotonic() - t0
                 bar.update(
                     task, completed=done, total=total, points=points, rate=points / dt if dt > 0 else 0.0
