@@ -8,8 +8,14 @@ Modules, each importing only modules above it:
 - ``motion``: vessel motion along a pass plan → the true trajectory;
 - ``noise``: random errors of the scanner's observations and of the POS;
 - ``scenario``: a scenario (surfaces in the site frame, injected errors, scanner, motion and
-  noise models) and the scene and site config that follow from it;
+  noise models, optionally a production survey and its mount event) and the scene and site
+  config that follow from it;
+- ``harbour``: the harbour front a production survey sails along, and the swell that moves its
+  moored hulls;
 - ``scenariofile``: scenario YAML files (shipped ones by name, or any path), validated, with
   ``key=value`` overrides on dotted keys;
-- ``simulate``: the simulation itself (profiles, observations, the observed trajectory, truth).
+- ``scanning``: the profiler's exact returns (profiles cast against the scene with the true mount);
+- ``result``: what a simulation produced and how returns become observations and truth;
+- ``production``: the production survey (lines along the harbour front, the mount event);
+- ``simulate``: the simulation itself (passes around the targets, or a production survey).
 """

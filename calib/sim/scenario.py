@@ -10,6 +10,10 @@ scanner's mean height. The site frame's origin is the scenario's ``reference`` p
 also the origin of the LGF (NED) the simulation and the bundle use. A surface faces the water
 unless ``facing_deg`` turns it (clockwise seen from above). A surface may have a shape
 (waviness and roughness, :mod:`calib.sim.surfaceshape`); its rectangle is then its mean plane.
+
+A scenario with a :class:`ProductionSpec` is a *production survey* (:mod:`calib.sim.production`):
+lines along the harbour front of :mod:`calib.sim.harbour` instead of calibration passes, with an
+optional :class:`MountEvent` (the boresight changing during the survey).
 """
 
 from __future__ import annotations
@@ -29,6 +33,9 @@ from calib.sim.scene import Scene
 from calib.sim.surfaceshape import SurfaceShape
 
 # -- the scenario ---------------------------------------------------------------------------
+
+#: The largest boresight change a mount event may inject (rad): a knocked scanner, not a new mount.
+MAX_MOUNT_STEP_RAD = float(np.radians(5.0))
 
 
 @dataclass(frozen=True)
@@ -129,6 +136,115 @@ class ScannerModel:
 
 
 @dataclass(frozen=True)
+class MountEvent:
+    """A change of the scanner's boresight during a production survey (what the mount watch must
+    detect): ``step_rad`` (canonical roll, pitch, yaw, added to the true boresight) at ``t_s``
+    seconds after the survey's start, at once (``creep_s`` 0) or as a linear ramp over
+    ``creep_s`` seconds (a mount slowly giving way)."""
+
+    t_s: float
+    step_rad: np.ndarray
+    creep_s: float = 0.0
+
+    def __post_init__(self):
+        step = np.asarray(self.step_rad, float).reshape(-1)
+        object.__setattr__(self, "step_rad", step)
+        object.__setattr__(self, "t_s", float(self.t_s))
+        object.__setattr__(self, "creep_s", float(self.creep_s))
+        if step.shape != (3,) or not np.all(np.isfinite(step)):
+            raise ValueError(f"MountEvent.step_rad must be 3 finite angles, got {self.step_rad!r}")
+        if np.any(np.abs(step) > MAX_MOUNT_STEP_RAD):
+            raise ValueError(f"MountEvent.step_rad must stay within ±5°, got {np.degrees(step)!r}°")
+        if not (np.isfinite(self.t_s) and self.t_s >= 0):
+            raise ValueError(f"MountEvent.t_s must be ≥ 0, got {self.t_s!r}")
+        if not (np.isfinite(self.creep_s) and self.creep_s >= 0):
+            raise ValueError(f"MountEvent.creep_s must be ≥ 0, got {self.creep_s!r}")
+
+    def delta_rad(self, t_rel_s) -> np.ndarray:
+        """(n, 3) boresight change at ``t_rel_s`` seconds after the survey's start: 0 before
+        ``t_s``, the whole step from ``t_s + creep_s`` on, linear in between."""
+        t = np.atleast_1d(np.asarray(t_rel_s, float))
+        if self.creep_s > 0:
+            f = np.clip((t - self.t_s) / self.creep_s, 0.0, 1.0)
+        else:
+            f = (t >= self.t_s).astype(float)
+        return f[:, None] * self.step_rad
+
+    def to_dict(self) -> dict:
+        return {
+            "t_s": self.t_s,
+            "step_deg": [float(x) for x in np.degrees(self.step_rad)],
+            "creep_s": self.creep_s,
+        }
+
+
+@dataclass(frozen=True)
+class ProductionSpec:
+    """A production survey of the harbour front (:mod:`calib.sim.production`): lines parallel to
+    the quay wall at ``offsets_m`` from its face, each pair of lines there and back at one offset
+    (consecutive lines always on opposite headings), ``line_length_m`` long, each at its own
+    speed drawn uniformly in ``speeds_mps`` (min, max), joined by Dubins turns, until
+    ``duration_s`` (the line under way is finished) or for ``n_lines`` lines when given. The
+    profiler records its full circle at ``rate_scale`` of the full Z+F point rate. Harbour
+    options: ``wavy_wall`` (the quay wall 4.5 cm RMS wavy over 1.5–6 m instead of 1 cm over
+    3–8 m), ``moving_hulls`` (the moored hulls heave, sway and roll in the swell and drift
+    between lines), ``water`` (the water surface, which returns every downward ray: about
+    doubles the returns)."""
+
+    duration_s: float = 3600.0
+    offsets_m: tuple[float, ...] = (12.0, 20.0, 30.0)
+    line_length_m: float = 350.0
+    speeds_mps: tuple[float, float] = (1.5, 3.5)
+    mount_event: MountEvent | None = None
+    wavy_wall: bool = False
+    moving_hulls: bool = False
+    water: bool = False
+    rate_scale: float = 0.02
+    n_lines: int | None = None
+
+    #: Lines keep this far from the wall face (the moored hull and the jetty reach 6.5 m) and
+    #: no farther than the hull moored across the basin (66 m) minus a margin.
+    MIN_OFFSET_M = 10.0
+    MAX_OFFSET_M = 55.0
+
+    def __post_init__(self):
+        offsets = tuple(float(x) for x in np.atleast_1d(self.offsets_m))
+        speeds = tuple(float(x) for x in np.atleast_1d(self.speeds_mps))
+        object.__setattr__(self, "offsets_m", offsets)
+        object.__setattr__(self, "speeds_mps", speeds)
+        if not offsets or not all(self.MIN_OFFSET_M <= o <= self.MAX_OFFSET_M for o in offsets):
+            raise ValueError(
+                f"ProductionSpec.offsets_m must be one or more distances in "
+                f"{self.MIN_OFFSET_M:g}…{self.MAX_OFFSET_M:g} m, got {self.offsets_m!r}"
+            )
+        if len(speeds) != 2 or not 0 < speeds[0] <= speeds[1] <= 10.0:
+            raise ValueError(f"ProductionSpec.speeds_mps must be (min, max) in 0…10 m/s, got {speeds!r}")
+        if not (np.isfinite(self.duration_s) and self.duration_s > 0):
+            raise ValueError(f"ProductionSpec.duration_s must be > 0, got {self.duration_s!r}")
+        if not 10.0 <= self.line_length_m <= 5000.0:
+            raise ValueError(f"ProductionSpec.line_length_m must be 10…5000 m, got {self.line_length_m!r}")
+        if not 0 < self.rate_scale <= 1.0:
+            raise ValueError(f"ProductionSpec.rate_scale must be in (0, 1], got {self.rate_scale!r}")
+        if self.n_lines is not None and self.n_lines < 1:
+            raise ValueError(f"ProductionSpec.n_lines must be ≥ 1, got {self.n_lines!r}")
+
+    def to_dict(self) -> dict:
+        """For truth.json (degrees at the edge)."""
+        return {
+            "duration_s": float(self.duration_s),
+            "offsets_m": list(self.offsets_m),
+            "line_length_m": float(self.line_length_m),
+            "speeds_mps": list(self.speeds_mps),
+            "mount_event": None if self.mount_event is None else self.mount_event.to_dict(),
+            "wavy_wall": bool(self.wavy_wall),
+            "moving_hulls": bool(self.moving_hulls),
+            "water": bool(self.water),
+            "rate_scale": float(self.rate_scale),
+            "n_lines": self.n_lines,
+        }
+
+
+@dataclass(frozen=True)
 class Scenario:
     name: str
     description: str
@@ -148,6 +264,7 @@ class Scenario:
     motion: MotionModel
     scanner_noise: ScannerNoise
     pos_noise: PosNoise
+    production: ProductionSpec | None = None  # a production survey instead of the passes
 
     # -- geometry ---------------------------------------------------------------------------
 

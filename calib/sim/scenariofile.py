@@ -5,7 +5,9 @@ by index or, for a list of named items, by name: ``scene.surfaces.quay_wall.roug
 :class:`~calib.sim.scenario.Scenario` (whose docstring describes the site frame the scene's
 coordinates are given in).
 
-The shipped scenarios (``calib/sim/scenarios/*.yaml``) document every key.
+The shipped scenarios (``calib/sim/scenarios/*.yaml``) document every key; ``harbour.yaml``
+the ``production`` section (a production survey of :mod:`calib.sim.harbour`'s harbour front,
+with an optional mount event).
 """
 
 from __future__ import annotations
@@ -30,9 +32,18 @@ from calib.io.site import (
     PassSpec,
     six_fold_passes,
 )
+from calib.sim.harbour import harbour_scenario
 from calib.sim.motion import MotionModel, Wave
 from calib.sim.noise import POS_NOISE_MODELS, PosNoise, ScannerNoise
-from calib.sim.scenario import InjectedErrors, ScannerModel, Scenario, Surface
+from calib.sim.scenario import (
+    MAX_MOUNT_STEP_RAD,
+    InjectedErrors,
+    MountEvent,
+    ProductionSpec,
+    ScannerModel,
+    Scenario,
+    Surface,
+)
 from calib.sim.scene import BACKGROUND_KINDS
 from calib.sim.surfaceshape import SurfaceShape
 
@@ -433,6 +444,74 @@ def _noise(n: Node) -> tuple[ScannerNoise, PosNoise]:
     return sn, pn
 
 
+def _mount_event(n: Node, duration_s: float) -> MountEvent | None:
+    """``mount_event: null`` or ``{t_s (default: half the duration), step_deg, creep_s}``."""
+    if n.value is None:
+        return None
+    m = n.mapping(required={"step_deg"}, optional={"t_s", "creep_s"})
+    step = _vec_deg(m["step_deg"])
+    if np.any(np.abs(step) > MAX_MOUNT_STEP_RAD):
+        raise m["step_deg"].fail(f"3 angles within ±{np.degrees(MAX_MOUNT_STEP_RAD):g}° (roll, pitch, yaw)")
+    return MountEvent(
+        t_s=_opt(m, "t_s", _nonneg, 0.5 * duration_s),
+        step_rad=step,
+        creep_s=_opt(m, "creep_s", _nonneg, 0.0),
+    )
+
+
+def _production(n: Node, scanner: Node | None) -> ProductionSpec:
+    """The ``production`` section (harbour.yaml documents it). ``rate_scale`` defaults to the
+    scanner's ``point_rate_scale`` when the file gives one, else 0.02; an override of
+    ``scanner.point_rate_scale`` (``--point-rate-scale``) wins over it."""
+    m = n.mapping(
+        optional={
+            "duration_s",
+            "n_lines",
+            "offsets_m",
+            "line_length_m",
+            "speeds_mps",
+            "wavy_wall",
+            "moving_hulls",
+            "water",
+            "rate_scale",
+            "mount_event",
+        }
+    )
+    d = ProductionSpec()
+    duration = _opt(m, "duration_s", _positive, d.duration_s)
+    offsets = d.offsets_m
+    if "offsets_m" in m:
+        lo, hi = ProductionSpec.MIN_OFFSET_M, ProductionSpec.MAX_OFFSET_M
+        offsets = tuple(x.number(lo, hi) for x in m["offsets_m"].sequence(min_len=1))
+    speeds = d.speeds_mps
+    if "speeds_mps" in m:
+        node = m["speeds_mps"]
+        lo_v, hi_v = node.vector(2)
+        if not 0 < lo_v <= hi_v <= 10.0:
+            raise node.fail("[min, max] speeds in m/s with 0 < min ≤ max ≤ 10")
+        speeds = (float(lo_v), float(hi_v))
+    sm = scanner.value if scanner is not None and isinstance(scanner.value, dict) else {}
+    prs = sm.get("point_rate_scale")
+    rate = _opt(m, "rate_scale", _number(0.0, 1.0, exclusive=True), d.rate_scale)
+    if prs is not None and ("rate_scale" not in m or prs.source == "--set"):
+        rate = prs.number(0.0, 1.0, exclusive_minimum=True)
+    n_lines = None
+    if "n_lines" in m and m["n_lines"].value is not None:
+        n_lines = m["n_lines"].integer(minimum=1)
+    return ProductionSpec(
+        duration_s=duration,
+        offsets_m=offsets,
+        line_length_m=_opt(m, "line_length_m", _number(10.0, 5000.0), d.line_length_m),
+        speeds_mps=speeds,
+        mount_event=_mount_event(m["mount_event"], duration) if "mount_event" in m else None,
+        wavy_wall=_opt(m, "wavy_wall", Node.boolean, d.wavy_wall),
+        moving_hulls=_opt(m, "moving_hulls", Node.boolean, d.moving_hulls),
+        water=_opt(m, "water", Node.boolean, d.water),
+        rate_scale=rate,
+        n_lines=n_lines,
+    )
+
+
 _TOP_KEYS = {
     "name",
     "description",
@@ -446,11 +525,18 @@ _TOP_KEYS = {
     "scanner",
     "motion",
     "noise",
+    "production",
 }
 
 
 def _scenario(root: Node, default_name: str) -> Scenario:
-    top = root.mapping(required={"reference", "site", "scene"}, optional=_TOP_KEYS)
+    """The scenario of a YAML tree; with a ``production`` section, a production survey of the
+    harbour front (``scene``, when given, is checked and then replaced by the harbour's)."""
+    section = root.value.get("production") if isinstance(root.value, dict) else None
+    production = section is not None and section.value is not None  # production: null = none
+    top = root.mapping(
+        required={"reference", "site"} | (set() if production else {"scene"}), optional=_TOP_KEYS
+    )
     ref = top["reference"].mapping(required={"lat_deg", "lon_deg"}, optional={"height_m"})
     reference = frames.LocalFrame(
         ref["lat_deg"].number(-90.0, 90.0),
@@ -470,7 +556,7 @@ def _scenario(root: Node, default_name: str) -> Scenario:
         }
     )
     scanner_noise, pos_noise = _noise(top["noise"]) if "noise" in top else (ScannerNoise(), PosNoise())
-    return Scenario(
+    scenario = Scenario(
         name=_opt(top, "name", Node.string, default_name),
         description=_opt(top, "description", Node.string, ""),
         reference=reference,
@@ -482,7 +568,7 @@ def _scenario(root: Node, default_name: str) -> Scenario:
         safe_wall_distance_m=_opt(sm, "safe_wall_distance_m", _nonneg, 5.0),
         capture_margin_m=_opt(sm, "capture_margin_m", _nonneg, 3.0),
         capture_validation_planes=_opt(sm, "capture_validation_planes", Node.boolean, False),
-        surfaces=_scene(top["scene"]),
+        surfaces=_scene(top["scene"]) if "scene" in top else (),
         mount=_opt(top, "mount", _mount, Mount()),
         truth=_opt(top, "truth", _truth, InjectedErrors()),
         scanner=_opt(top, "scanner", _scanner, ScannerModel()),
@@ -490,3 +576,6 @@ def _scenario(root: Node, default_name: str) -> Scenario:
         scanner_noise=scanner_noise,
         pos_noise=pos_noise,
     )
+    if production:
+        scenario = harbour_scenario(scenario, _production(top["production"], top.get("scanner")))
+    return scenario

@@ -19,6 +19,7 @@ rectangles that are out of view.
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass
 from functools import cached_property
 
@@ -92,6 +93,20 @@ class Scene:
 
     def indices(self, kind: str) -> list[int]:
         return [i for i, k in enumerate(self.kinds) if k == kind]
+
+    def with_rectangles(self, moved: Mapping[int, Rectangle]) -> Scene:
+        """The scene with some rectangles replaced (surfaces moved: a hull in the swell), indices,
+        kinds and shapes kept. A moved surface keeps its name and size, so the displacement fields
+        (which depend on nothing else) are shared rather than built again."""
+        rects = list(self.rectangles)
+        for j, r in moved.items():
+            old = rects[j]
+            if (r.name, r.width_m, r.height_m) != (old.name, old.width_m, old.height_m):
+                raise ValueError(f"Scene.with_rectangles: surface {j} ({old.name!r}) may move, not change")
+            rects[j] = r
+        out = Scene(tuple(rects), self.kinds, self.shapes)
+        out.__dict__["fields"] = self.fields  # the cached property, filled with the shared fields
+        return out
 
     @cached_property
     def fields(self) -> tuple[DisplacementField | None, ...]:

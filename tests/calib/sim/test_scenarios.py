@@ -20,7 +20,7 @@ scene:
 
 
 def test_shipped_scenarios():
-    assert set(scenario_names()) >= {"montreal", "terrestrial", "tower"}
+    assert set(scenario_names()) >= {"harbour", "montreal", "terrestrial", "tower"}
 
 
 def test_montreal_is_the_thesis_site():
@@ -143,7 +143,7 @@ def test_errors_name_the_place_and_what_was_expected(tmp_path):
     with pytest.raises(
         ConfigError,
         match="'atlantis': neither a shipped scenario "
-        r"\(montreal, terrestrial, tower\) nor an existing file",
+        r"\(harbour, montreal, terrestrial, tower\) nor an existing file",
     ):
         load_scenario("atlantis")
     with pytest.raises(
