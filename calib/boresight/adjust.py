@@ -147,10 +147,12 @@ def adjust(
     active = np.ones(len(obs), bool)
     # observability is judged on the geometry at the a-priori values: an unobservable angle
     # would otherwise wander during the iterations and make the verdict arbitrary
-    prior_info = information(obs, state0, r_nom, options.estimate)
-    if np.linalg.matrix_rank(prior_info.N) < prior_info.N.shape[0]:
-        raise ObservabilityError(singular_message(prior_info.N, obs, prior_info.layout))
-    check_observability(prior_info.Ninv[0:3, 0:3], obs, options.max_sigma_rad, options.estimate)
+    # (a boresight prior makes every angle determined: a weak one stays near its prior)
+    if options.boresight_prior_rad is None:
+        prior_info = information(obs, state0, r_nom, options.estimate)
+        if np.linalg.matrix_rank(prior_info.N) < prior_info.N.shape[0]:
+            raise ObservabilityError(singular_message(prior_info.N, obs, prior_info.layout))
+        check_observability(prior_info.Ninv[0:3, 0:3], obs, options.max_sigma_rad, options.estimate)
     gls = options.estimator == "gls"
     sol = _solve(obs, state0, r_nom, options)
     if not np.all(np.isfinite(sol.state.boresight_rad)):

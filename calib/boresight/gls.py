@@ -285,7 +285,9 @@ class _System:
     J: sp.csr_matrix
 
 
-def assemble(lin, layout, obs, fr: _Frame, plane_var_m2, state: State, prior_sigma) -> _System:
+def assemble(
+    lin, layout, obs, fr: _Frame, plane_var_m2, state: State, prior_sigma, boresight_prior=None
+) -> _System:
     m = white_variance(lin, obs, fr, plane_var_m2)
     A, J = design_matrix(lin, layout, obs), knot_matrix(lin, obs, fr)
     w = 1.0 / m
@@ -311,6 +313,10 @@ def assemble(lin, layout, obs, fr: _Frame, plane_var_m2, state: State, prior_sig
         idx = np.arange(layout.i_offset, layout.n)
         S[idx, idx] += wt
         r[idx] += wt * state.pass_offsets_m.reshape(-1)
+    if boresight_prior is not None:  # (mean, σ): ½ Σ ((b − mean)/σ)² joins the objective
+        wt = 1.0 / boresight_prior[1] ** 2
+        S[0:3, 0:3] += np.diag(wt)
+        r[0:3] += wt * (state.boresight_rad - boresight_prior[0])
     return _System(S, r, W, v, chol, m, A, J)
 
 
@@ -347,13 +353,14 @@ def solve_gls(
     pv = np.zeros(len(obs.plane_names)) if plane_var_m2 is None else np.asarray(plane_var_m2, float).copy()
     rough = np.zeros(0, int) if rough_planes is None else np.asarray(rough_planes, int)
     prior_sigma = offset_prior_sigma(obs, options) if layout.offsets else None
+    bs_prior = None if options.boresight_prior_rad is None else np.asarray(options.boresight_prior_rad, float)
     converged, it = False, 0
     for it in range(1, options.max_iterations + 1):
         l_obs = observations_at(obs, state, est_latency)
         rates = pose_rates(obs.latency_trajectory(), obs.t_gps_s + state.latency_s) if est_latency else None
         bases = tangent_bases(state.normals)
         lin = linearize(state, r_nom, obs.plane_index, obs.pass_index, l_obs, rates, bases)
-        sys = assemble(lin, layout, obs, fr, pv, state, prior_sigma)
+        sys = assemble(lin, layout, obs, fr, pv, state, prior_sigma, bs_prior)
         dx = solve_normal(sys.S, -sys.r, obs, layout)
         z = knots_from_step(sys, dx)
         e = lin.F + sys.A @ dx + sys.J @ z  # the white part of each misclosure after the fit
@@ -375,6 +382,9 @@ def solve_gls(
         o = state.pass_offsets_m.reshape(-1)
         vtpv += float(np.sum(o**2 / prior_sigma.reshape(-1) ** 2))
         df += 3 * len(obs.pass_ids)
+    if bs_prior is not None:
+        vtpv += float(np.sum(((state.boresight_rad - bs_prior[0]) / bs_prior[1]) ** 2))
+        df += 3
     try:
         Sinv = np.linalg.inv(sys.S)
     except np.linalg.LinAlgError:

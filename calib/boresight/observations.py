@@ -182,6 +182,9 @@ class AdjustOptions:
     knots_per_tau: float = 100.0  # GLS: knot spacing = the shortest τ over this
     #: GLS: which planes get a roughness variance estimated from their residuals
     roughness: str = "all"  # or "patches", "none"
+    #: GLS: a Gaussian prior on the boresight, (2, 3): its mean and σ per angle (the mount
+    #: watch: a block that barely sees an angle must not wander off on it); None: none
+    boresight_prior_rad: np.ndarray | None = None
 
     def __post_init__(self):
         unknown = [e for e in self.estimate if e not in ESTIMABLE]

@@ -119,17 +119,18 @@ def choose(
     gains: list[float] = []
     current = base.copy()
     _, ld = np.linalg.slogdet(current)
-    left = set(range(len(info)))
-    while left and len(chosen) < max_patches:
-        scores = {j: np.linalg.slogdet(current + info[j])[1] - ld for j in left}
-        j = max(scores, key=lambda k: scores[k])
+    left = np.ones(len(info), bool)
+    while left.any() and len(chosen) < max_patches:
+        scores = np.linalg.slogdet(current[None] + info)[1] - ld  # every candidate at once
+        scores[~left] = -np.inf
+        j = int(np.argmax(scores))  # the first of equal scores, as before
         if scores[j] < MIN_GAIN:
             break
         chosen.append(j)
         gains.append(float(scores[j]))
         current = current + info[j]
         ld += scores[j]
-        left.discard(j)
+        left[j] = False
     return chosen, gains
 
 

@@ -166,3 +166,23 @@ def test_a_rough_plane_gets_its_roughness_and_the_boresight_stays_put(small):
         if name != obs.plane_names[j]:
             assert p["roughness_m"] < 0.002, (name, p["roughness_m"])
     assert np.all(np.abs(res.boresight_rad - TRUTH) <= 3 * res.sigma_realistic_rad)
+
+
+def test_a_boresight_prior_combines_with_the_data_as_information(small):
+    # (the mount watch's regularization) a Gaussian prior on the boresight: the solution is the
+    # information-weighted mean of the data's solution and the prior's mean, to linearization
+    obs = small.draw(3, 20.0)
+    model = ErrorModel("gauss_markov", 20.0)
+    free = _gls(obs, small.planes, model)
+    b, C = free.state.boresight_rad, free.Ninv[:3, :3]
+    mean = b + np.radians([0.05, -0.03, 0.02])
+    sig = np.radians([0.01, 0.02, 0.5])
+    prior = _gls(
+        obs, small.planes, model, AdjustOptions(outliers="none", boresight_prior_rad=np.stack([mean, sig]))
+    )
+    P = np.diag(1.0 / sig**2)
+    post = np.linalg.inv(np.linalg.inv(C) + P)
+    expect = post @ (np.linalg.solve(C, b) + P @ mean)
+    assert np.allclose(prior.Ninv[:3, :3], post, rtol=0.02)
+    assert np.allclose(prior.state.boresight_rad, expect, atol=np.radians(2e-4))
+    assert prior.df == free.df + 3
