@@ -32,6 +32,7 @@ UNIT_RANK = {
         "boresight": 3,
         "assess": 3,
         "design": 4,
+        "watch": 4,
     },
     "drivers": {
         "base": 0,
@@ -52,6 +53,7 @@ UNIT_RANK = {
         "daemon": 4,
         "guidance": 5,
         "ui": 5,
+        "watch": 5,
         "jobs": 6,
         "deliver": 7,
     },

@@ -1,0 +1,327 @@
+"""One block of the mount watch: the boresight correction that best reconciles the tie patches
+seen by a few consecutive survey lines of different headings.
+
+A mount change does not move a surface seen from one heading alone (the surface's own plane
+absorbs it); it moves the surface *differently* from opposite headings — a roll change tilts a
+wall one way from a line sailed north and the other way from the line sailed back. So a block is
+two or more consecutive lines whose headings differ (:func:`block_ready`); its points,
+georeferenced with the **calibrated** mount, are cut into tie patches
+(:func:`calib.extraction.patches.extract_candidates`: planar cells seen by lines of different
+headings), the most informative are chosen (:func:`calib.boresight.scene_ties.choose`) and the
+boresight alone is adjusted against them with the GLS estimator
+(:func:`calib.boresight.adjust.adjust`, ``estimator="gls"``): the POS errors are Gauss–Markov
+processes estimated jointly, so a drift of the INS between two lines is not read as a mount
+change; every patch gets its own roughness variance, so a wavy wall widens its own σ instead of
+bending the estimate.
+
+**Moving things.** A moored hull rising in the swell is planar within a line and somewhere else
+on the next one. After each solution the mean residual of every (patch, line) is compared with
+the others (robustly: over 1.4826 × their median absolute deviation); a patch with a line beyond
+:data:`MOVED_Z` is dropped and the block solved again (at most :data:`MOVED_ROUNDS` times).
+A mount change does not survive this test as a "moving" patch: the residuals are taken *after*
+the fit, which already contains the change.
+
+**What comes out** (:class:`BlockEstimate`): the correction ``delta_rad`` (estimated boresight
+minus the calibrated one, canonical roll, pitch, yaw) and its covariance, scaled up by the a
+posteriori variance factor when that exceeds 1 (a misspecified model then widens the σ rather
+than raising alarms); a block that observes nothing (no patch, one heading, a singular system)
+has ``status`` saying why and no estimate — it carries no evidence either way.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field, replace
+from typing import Any
+
+import numpy as np
+
+from calib.boresight.adjust import adjust
+from calib.boresight.errormodel import ErrorModel
+from calib.boresight.observability import ObservabilityError
+from calib.boresight.observations import AdjustmentError, AdjustOptions, build_observations
+from calib.boresight.scene_ties import boresight_information, choose
+from calib.core import frames
+from calib.core.georef import Mount
+from calib.core.trajectory import Trajectory
+from calib.extraction.patches import PatchError, PatchOptions, extract_candidates, gather_members
+from calib.extraction.points import georeference_passes, pass_headings
+from calib.io.bundle import ScanPoints
+
+MOVED_Z = 6.0  # robust z of a (patch, line) mean residual beyond which the patch moved
+MOVED_ROUNDS = 2
+MIN_MOVED_SCALE_M = 0.002  # the robust scale's floor (noise-free data)
+#: the selection's starting information: a (1°)⁻² prior per angle (a ranking device only)
+SELECTION_PRIOR_RAD = np.radians(1.0)
+
+
+@dataclass(frozen=True)
+class WatchOptions:
+    """How a block is cut into tie patches and solved."""
+
+    patch: PatchOptions = PatchOptions(size_m=1.5, max_points_per_patch=300)
+    max_patches: int = 60
+    min_heading_spread_deg: float = 90.0  # a block needs two lines this far apart in heading
+    min_offset_spread_m: float = 5.0  # … and two this far apart across the track (for yaw)
+    max_lines_per_block: int = 3  # … or this many lines (a survey at one offset)
+    min_range_m: float = 2.0  # returns nearer are the vessel's own rails
+    max_range_m: float = 60.0  # farther returns are sparse and their footprint is wide
+    max_points: int = 3_000_000  # a block's points are thinned evenly beyond this
+    knots_per_tau: float = 20.0  # GLS knot spacing (the trajectory's epochs when fewer)
+    #: the prior of the correction: an angle the block barely sees stays near the calibrated
+    #: value with about this σ (and so moves the test hardly at all)
+    prior_sigma_rad: float = float(np.radians(0.5))
+
+    def __post_init__(self):
+        if not 0 < self.min_range_m < self.max_range_m:
+            raise ValueError(
+                f"watch range window [{self.min_range_m}, {self.max_range_m}] m: expected 0 < min < max"
+            )
+        if self.max_patches < 1 or self.max_points < 1000:
+            raise ValueError("watch: max_patches ≥ 1 and max_points ≥ 1000 expected")
+
+
+@dataclass(frozen=True)
+class PatchUse:
+    """A chosen patch and what it gave the block."""
+
+    name: str
+    center_lgf_m: tuple[float, ...]  # (3,)
+    normal_lgf: tuple[float, ...]  # (3,)
+    pass_ids: tuple[int, ...]
+    n_points: int
+    info_rad2: tuple[float, ...]  # (3,) its diagonal of the boresight information (white)
+
+
+@dataclass(frozen=True)
+class BlockEstimate:
+    t_start_gps_s: float
+    t_end_gps_s: float
+    pass_ids: tuple[int, ...]
+    headings_deg: tuple[float, ...]  # of the lines, relative to the wall direction
+    status: str  # "ok", or why the block carries no estimate
+    delta_rad: np.ndarray | None = None  # estimated − calibrated boresight (roll, pitch, yaw)
+    cov_rad2: np.ndarray | None = None
+    sigma0_squared: float = float("nan")
+    n_points: int = 0  # points adjusted
+    n_candidates: int = 0
+    patches: tuple[PatchUse, ...] = ()
+    moved_patches: tuple[str, ...] = ()  # dropped as moving between lines
+    runtime_s: float = 0.0
+    extra: dict = field(default_factory=dict)
+
+    @property
+    def ok(self) -> bool:
+        return self.status == "ok"
+
+    @property
+    def sigma_rad(self) -> np.ndarray:
+        if self.cov_rad2 is None:
+            return np.full(3, np.inf)
+        return np.sqrt(np.clip(np.diag(self.cov_rad2), 0.0, None))
+
+    def as_dict(self) -> dict:
+        deg = lambda v: None if v is None else [float(x) for x in np.degrees(v)]  # noqa: E731
+        return {
+            "t_start_gps_s": self.t_start_gps_s,
+            "t_end_gps_s": self.t_end_gps_s,
+            "pass_ids": list(self.pass_ids),
+            "headings_deg": list(self.headings_deg),
+            "status": self.status,
+            "delta_deg": deg(self.delta_rad),
+            "sigma_deg": deg(self.sigma_rad) if self.ok else None,
+            "correlation": None if self.cov_rad2 is None else _correlation(self.cov_rad2).tolist(),
+            "sigma0_squared": None if not self.ok else float(self.sigma0_squared),
+            "n_points": self.n_points,
+            "n_candidates": self.n_candidates,
+            "patches": [
+                {
+                    "name": p.name,
+                    "center_lgf_m": list(p.center_lgf_m),
+                    "normal_lgf": list(p.normal_lgf),
+                    "pass_ids": list(p.pass_ids),
+                    "n_points": p.n_points,
+                    "info_deg2": [float(x) * (np.pi / 180) ** 2 for x in p.info_rad2],
+                }
+                for p in self.patches
+            ],
+            "moved_patches": list(self.moved_patches),
+            "runtime_s": self.runtime_s,
+        }
+
+
+def _correlation(cov: np.ndarray) -> np.ndarray:
+    s = np.sqrt(np.clip(np.diag(cov), 1e-300, None))
+    return cov / np.outer(s, s)
+
+
+def heading_spread_deg(headings_rad) -> float:
+    """The largest difference between two headings (mod 360°, 0…180°)."""
+    h = np.asarray(list(headings_rad), float)
+    if h.size < 2:
+        return 0.0
+    d = np.abs(frames.wrap_pi(h[:, None] - h[None, :]))
+    return float(np.degrees(d.max()))
+
+
+def block_ready(headings_rad, options: WatchOptions = WatchOptions()) -> bool:
+    """Whether lines of these headings (relative, radians) make a block."""
+    return heading_spread_deg(headings_rad) >= options.min_heading_spread_deg
+
+
+def site_sigmas(site) -> dict:
+    """The observation sigmas of a :class:`calib.io.site.Site` as :func:`build_observations`
+    takes them."""
+    return {
+        "sigma_range_m": site.sigma_range_m,
+        "sigma_range_per_m": site.sigma_range_per_m,
+        "beam_divergence_rad": site.beam_divergence_rad,
+        "sigma_scan_angle_rad": site.sigma_scan_angle_rad,
+        "sigma_position_m": site.sigma_position_m,
+        "sigma_attitude_rad": site.sigma_attitude_rad,
+    }
+
+
+def site_error_model(site) -> ErrorModel:
+    """The Gauss–Markov POS error model of a site (its correlation times, else the default)."""
+    from calib.boresight.pipeline import CalibrationOptions, error_model
+
+    return error_model(CalibrationOptions(), site)[0]
+
+
+def _thin(points: ScanPoints, options: WatchOptions) -> ScanPoints:
+    keep = (points.range_m >= options.min_range_m) & (points.range_m <= options.max_range_m)
+    idx = np.flatnonzero(keep)
+    if idx.size > options.max_points:  # evenly in time: every k-th return
+        idx = idx[:: int(np.ceil(idx.size / options.max_points))]
+    return points.select(idx) if idx.size < len(points) else points
+
+
+def estimate_block(
+    points: ScanPoints,
+    trajectory: Trajectory,
+    mount: Mount,
+    sigmas: dict,
+    model: ErrorModel,
+    wall_azimuth_rad: float,
+    options: WatchOptions = WatchOptions(),
+) -> BlockEstimate:
+    """The boresight correction of one block (module docstring). ``points``: the block's lines
+    (``pass_id`` = line id); ``trajectory``: the POS solution with its σ; ``mount``: the
+    calibrated mount; ``sigmas``: :func:`site_sigmas`; ``model``: the POS error model (its
+    correlation times)."""
+    import time
+
+    clock = time.perf_counter()
+    pts = _thin(points, options)
+    pids = tuple(int(p) for p in pts.pass_ids()) if len(pts) else ()
+    base: dict[str, Any] = {
+        "t_start_gps_s": float(points.t_gps_s.min()) if len(points) else float("nan"),
+        "t_end_gps_s": float(points.t_gps_s.max()) if len(points) else float("nan"),
+        "pass_ids": tuple(int(p) for p in np.unique(points.pass_id)),
+    }
+    if len(pts) == 0:
+        return BlockEstimate(**base, headings_deg=(), status="no returns in the range window")
+    yaw = trajectory.interpolate(pts.t_gps_s + mount.time_offset_s).rpy_rad[:, 2]
+    headings = pass_headings(yaw, pts.pass_id, wall_azimuth_rad)
+    hdeg = tuple(float(np.degrees(headings[p]) % 360.0) for p in pids)
+    base["headings_deg"] = hdeg
+    if not block_ready(headings.values(), options):
+        return BlockEstimate(**base, status="lines of one heading")
+    p_lgf, origin = georeference_passes(pts, trajectory, mount, None)
+    opt = replace(options.patch, min_heading_spread_deg=options.min_heading_spread_deg)
+    try:
+        cands = extract_candidates(p_lgf, origin, pts.pass_id, headings, np.zeros(len(pts), bool), opt)
+    except PatchError as e:
+        return BlockEstimate(**base, status=f"no tie patch ({e})")
+    if len(cands.names) == 0:
+        return BlockEstimate(**base, status="no tie patch seen from two headings")
+    cands = gather_members(cands, p_lgf, pts.pass_id, np.zeros(len(pts), bool), opt)
+    idx = np.flatnonzero(cands.labels >= 0)
+    obs = build_observations(
+        trajectory,
+        pts.t_gps_s[idx],
+        pts.range_m[idx],
+        pts.scan_angle_rad[idx],
+        cands.labels[idx],
+        pts.pass_id[idx],
+        list(cands.names),
+        point_ids=idx,
+        time_offset_s=mount.time_offset_s,
+        pass_headings_rad=headings,
+        **sigmas,
+    )
+    # knots on a uniform grid of min(τ)/knots_per_tau rather than at every INS epoch (100 Hz):
+    # the same model to the bridge's approximation, a hundred times fewer unknowns
+    obs.trajectory = None
+    planes = [(n, d) for n, d in zip(cands.normals, cands.d_m)]
+    info = boresight_information(obs, mount, planes)
+    chosen, _ = choose(info, np.eye(3) / SELECTION_PRIOR_RAD**2, options.max_patches)
+    if not chosen:
+        return BlockEstimate(**base, status="no tie patch adds information", n_candidates=len(cands.names))
+    moved: list[str] = []
+    adj = AdjustOptions(
+        estimate=(),
+        error_model=model,
+        jackknife=False,
+        boresight_prior_rad=np.stack([mount.boresight_rad, np.full(3, options.prior_sigma_rad)]),
+        estimator="gls",
+        roughness="all",
+        knots_per_tau=options.knots_per_tau,
+    )
+    for _ in range(MOVED_ROUNDS + 1):
+        order = sorted(chosen)
+        sub = obs.select(np.isin(obs.plane_index, order))
+        sub.plane_index = np.searchsorted(order, sub.plane_index)
+        sub.plane_names = [cands.names[j] for j in order]
+        sub.patch_planes = tuple(range(len(order)))
+        try:
+            res = adjust(sub, mount, [planes[j] for j in order], adj)
+        except (ObservabilityError, AdjustmentError, np.linalg.LinAlgError) as e:
+            return BlockEstimate(**base, status=f"not observable ({e})", n_candidates=len(cands.names))
+        bad = _moved(sub, res)
+        if not bad.size:
+            break
+        moved += [sub.plane_names[j] for j in bad]
+        chosen = [j for j in chosen if cands.names[j] not in moved]
+        if not chosen:
+            return BlockEstimate(**base, status="every tie patch moved", moved_patches=tuple(moved))
+    cov = res.cov_realistic * max(1.0, float(res.sigma0_squared))
+    uses = []
+    for k, j in enumerate(order):
+        in_p = sub.plane_index == k
+        uses.append(
+            PatchUse(
+                cands.names[j],
+                tuple(float(x) for x in cands.centers_m[j]),
+                tuple(float(x) for x in res.state.normals[k]),
+                tuple(int(sub.pass_ids[i]) for i in np.unique(sub.pass_index[in_p])),
+                int(np.count_nonzero(in_p)),
+                tuple(float(x) for x in np.diag(info[j])),
+            )
+        )
+    return BlockEstimate(
+        **base,
+        status="ok",
+        delta_rad=res.boresight_rad - mount.boresight_rad,
+        cov_rad2=cov,
+        sigma0_squared=float(res.sigma0_squared),
+        n_points=res.n_points,
+        n_candidates=len(cands.names),
+        patches=tuple(uses),
+        moved_patches=tuple(moved),
+        runtime_s=time.perf_counter() - clock,
+    )
+
+
+def _moved(obs, res) -> np.ndarray:
+    """Indices of the planes of ``obs`` with a (plane, line) mean residual beyond
+    :data:`MOVED_Z` robust σ of all such means."""
+    used = np.isin(obs.point_ids, res.used_point_ids)
+    plane, line = obs.plane_index[used], obs.pass_index[used]
+    m = int(line.max()) + 1
+    key = plane * m + line
+    uniq, inv = np.unique(key, return_inverse=True)
+    mean = np.bincount(inv, res.residual_m) / np.bincount(inv)
+    dev = np.abs(mean - np.median(mean))
+    scale = max(1.4826 * float(np.median(dev)), MIN_MOVED_SCALE_M)
+    return np.unique(uniq[dev > MOVED_Z * scale] // m)
