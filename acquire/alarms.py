@@ -9,6 +9,12 @@ is the caller's, see :meth:`AlarmBook.is_active`). Each transition is an :class:
 critical is never silent), returned by ``update`` and queued for :meth:`AlarmBook.drain`, which the daemon publishes (socket,
 MQTT ``alarms``) and logs (``/events``).
 
+Besides the monitors' alarms (docs/architecture.md §6.4), the mount watch
+(:mod:`acquire.watch`) raises ``mount_shift`` (:data:`MOUNT_SHIFT`, critical, device ``mount``)
+when its sequential test finds the boresight moved since the calibration: the message names the
+angle(s), the size with σ and since when; it is never cleared during the session (the mount
+needs a new calibration).
+
 Times: ``now_ns`` is the monitor's stream time (host monotonic ns); the book converts it to GPS
 ns with ``to_gps`` (the clock model) for the alarm's ``first_gps_ns``/``last_gps_ns``.
 The book is thread-safe (the log writer updates it from its own thread).
@@ -22,6 +28,7 @@ from dataclasses import asdict, dataclass, replace
 from typing import Literal
 
 INFO, WARNING, CRITICAL = "info", "warning", "critical"
+MOUNT_SHIFT = ("mount_shift", "mount")  # (name, device) of the mount watch's alarm
 SEVERITIES = (INFO, WARNING, CRITICAL)
 _RANK = {CRITICAL: 0, WARNING: 1, INFO: 2}
 

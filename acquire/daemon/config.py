@@ -28,7 +28,13 @@ default shown in the example):
   (``profile_rate_hz``, ``points_per_360``), the publication period ``period_s`` and
   ``enabled``. The tolerances live here rather than in the site file: they describe how this
   vessel is steered and how densely its profiler scans, not the site (whose keys docs/architecture.md §4
-  fixes).
+  fixes);
+- ``watch`` (optional; needs ``site_file``): the mount watch (:mod:`acquire.watch`), which runs
+  when ``calibration`` names the calibrated mount (a calibration ``result.json``, relative to
+  this file; its boresight and extras on the config's mount) — the sequential test's
+  ``shift_deg`` and ``false_alarms_per_hour``, the returns kept per second
+  ``max_points_per_s``, the shortest and longest line ``min_line_s``, ``max_line_s``, and
+  ``enabled``. The site file gives the LGF, the wall azimuth, the sigmas and τ.
 """
 
 from __future__ import annotations
@@ -51,7 +57,7 @@ from acquire.daemon.confignodes import (
     resolved_path,
     valid_name,
 )
-from acquire.daemon.configschema import GuidanceConfig, MountConfig, StatusSettings, VesselConfig
+from acquire.daemon.configschema import GuidanceConfig, MountConfig, StatusSettings, VesselConfig, WatchConfig
 from acquire.log.session import COMPRESSIONS, SessionOptions
 from acquire.status.mqtt import MqttSettings
 from acquire.timing.clock import ClockParams
@@ -270,6 +276,65 @@ def _guidance(node: Node, errs: Errors) -> GuidanceConfig:
     )
 
 
+def _calibration(node: Node, base: Path) -> Path:
+    """A calibration result.json (or the directory holding it), read and checked."""
+    from calib.assess.history import ResultFormatError, load_result
+
+    path = resolved_path(node, base)
+    file = path / "result.json" if path.is_dir() else path
+    if not file.is_file():
+        raise node.fail(f"a calibration result.json ({file} not found)")
+    try:
+        load_result(file)
+    except ResultFormatError as e:
+        raise node.fail(f"a calibration result.json ({e})") from None
+    return file
+
+
+def _watch(node: Node, errs: Errors, base: Path) -> WatchConfig:
+    m = mapping_keys(
+        node,
+        errs,
+        optional={
+            "calibration",
+            "enabled",
+            "shift_deg",
+            "false_alarms_per_hour",
+            "max_points_per_s",
+            "min_line_s",
+            "max_line_s",
+        },
+    )
+    d = WatchConfig()
+    min_line = opt(m, "min_line_s", errs, lambda n: n.number(1.0, 3600.0), d.min_line_s)
+
+    def max_line(n: Node) -> float:
+        v = n.number(60.0, 7200.0)
+        if v <= min_line:
+            raise n.fail(f"a number > min_line_s ({min_line:g})")
+        return v
+
+    return WatchConfig(
+        calibration=opt(m, "calibration", errs, lambda n: _calibration(n, base), None),
+        enabled=opt(m, "enabled", errs, Node.boolean, d.enabled),
+        shift_deg=opt(
+            m, "shift_deg", errs, lambda n: n.number(0.0, 5.0, exclusive_minimum=True), d.shift_deg
+        ),
+        false_alarms_per_hour=opt(
+            m,
+            "false_alarms_per_hour",
+            errs,
+            lambda n: n.number(0.0, 10.0, exclusive_minimum=True),
+            d.false_alarms_per_hour,
+        ),
+        max_points_per_s=opt(
+            m, "max_points_per_s", errs, lambda n: int_between(n, 100, 2_000_000), d.max_points_per_s
+        ),
+        min_line_s=min_line,
+        max_line_s=opt(m, "max_line_s", errs, max_line, d.max_line_s),
+    )
+
+
 def vessel_config_from_node(root: Node, base_dir: Path) -> VesselConfig:
     """Validate a loaded YAML tree; raise :class:`VesselConfigError` with every error."""
     errs = Errors()
@@ -277,7 +342,7 @@ def vessel_config_from_node(root: Node, base_dir: Path) -> VesselConfig:
         root,
         errs,
         required={"vessel", "devices", "session"},
-        optional={"clock", "status", "mqtt", "mount", "site_file", "guidance"},
+        optional={"clock", "status", "mqtt", "mount", "site_file", "guidance", "watch"},
     )
     vessel = errs.get(lambda: valid_name(top["vessel"])) if "vessel" in top else None
     devices = parse_devices(top["devices"], errs) if "devices" in top else []
@@ -305,6 +370,19 @@ def vessel_config_from_node(root: Node, base_dir: Path) -> VesselConfig:
             f"{top['guidance'].where()}: the guidance needs the site's targets and pass "
             f"plan: add site_file (or set guidance.enabled: false)"
         )
+    watch = _watch(top["watch"], errs, base_dir) if "watch" in top else WatchConfig()
+    if "watch" in top and watch.enabled:
+        m = top["watch"].value if isinstance(top["watch"].value, dict) else {}
+        if "calibration" not in m:
+            errs.add(
+                f"{top['watch'].where()}: the mount watch needs the calibrated mount: add "
+                f"watch.calibration (a calibration result.json; or set watch.enabled: false)"
+            )
+        if "site_file" not in top:
+            errs.add(
+                f"{top['watch'].where()}: the mount watch needs the site's frame, wall azimuth and "
+                f"sigmas: add site_file (or set watch.enabled: false)"
+            )
     if errs.items:
         raise VesselConfigError(root.source, sorted(errs.items, key=_position))
     assert vessel is not None and session_dir is not None
@@ -320,6 +398,7 @@ def vessel_config_from_node(root: Node, base_dir: Path) -> VesselConfig:
         mount,
         site_file,
         guidance,
+        watch,
     )
 
 

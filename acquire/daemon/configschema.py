@@ -86,6 +86,25 @@ class GuidanceConfig:
 
 
 @dataclass(frozen=True)
+class WatchConfig:
+    """The ``watch`` section: the mount watch the daemon runs when it names the calibrated mount
+    (:mod:`acquire.watch`; defaults = :class:`calib.watch.sequential.WatchDesign`'s)."""
+
+    calibration: Path | None = None  # the calibration's result.json: the calibrated mount
+    enabled: bool = True
+    shift_deg: float = 0.1  # the boresight change the sequential test is tuned to
+    false_alarms_per_hour: float = 0.01
+    max_points_per_s: int = 20_000  # returns kept for the watch (decimation budget)
+    min_line_s: float = 20.0  # a shorter line is ignored
+    max_line_s: float = 900.0  # a longer line is closed anyway (memory)
+
+    @property
+    def active(self) -> bool:
+        """Whether the daemon runs the watch (enabled, and the calibrated mount named)."""
+        return self.enabled and self.calibration is not None
+
+
+@dataclass(frozen=True)
 class VesselConfig:
     source: Path
     vessel: str
@@ -98,6 +117,7 @@ class VesselConfig:
     mount: MountConfig | None
     site_file: Path | None
     guidance: GuidanceConfig = GuidanceConfig()
+    watch: WatchConfig = WatchConfig()
 
     def device(self, name: str) -> DeviceConfig:
         for d in self.devices:

@@ -9,6 +9,7 @@ topic          retained  QoS  content
 status         yes       1    daemon state, session, active alarms (will: lost)
 sensors/<n>    yes       1    one device: connection, rate, latency, flags
 checklist      yes       1    pre-survey checks and pass guidance
+mount          yes       1    the mount watch: estimate, σ, test statistic, alarm
 clock          no        0    clock model status (1 Hz)
 metrics        no        0    latency statistics, writer counters (1 Hz)
 alarms         no        1    each alarm raise/clear as it happens
@@ -44,6 +45,7 @@ _POLICY: dict[str, tuple[bool, int]] = {
     "status": (True, 1),
     "sensors": (True, 1),
     "checklist": (True, 1),
+    "mount": (True, 1),
     "clock": (False, 0),
     "metrics": (False, 0),
     "alarms": (False, 1),
@@ -56,7 +58,7 @@ def topic_policy(topic: str) -> tuple[bool, int]:
     if head in _POLICY and (bool(rest) == (head == "sensors")) and "/" not in rest:
         return _POLICY[head]
     raise ValueError(
-        f"status topic {topic!r}: expected status, sensors/<name>, checklist, clock, metrics or alarms"
+        f"status topic {topic!r}: expected status, sensors/<name>, checklist, mount, clock, metrics or alarms"
     )
 
 

@@ -1,8 +1,8 @@
 """Client side of the daemon's status bus: the local socket or MQTT as one async stream of
 ``(topic, data)`` (what ``mls checklist`` and ``mls plan --follow`` read).
 
-Topics are the status bus's (``status``, ``sensors/<name>``, ``checklist``, ``clock``,
-``metrics``, ``alarms``), without the MQTT ``<prefix>/<vessel>/`` part. Besides them a feed
+Topics are the status bus's (``status``, ``sensors/<name>``, ``checklist``, ``mount``,
+``clock``, ``metrics``, ``alarms``), without the MQTT ``<prefix>/<vessel>/`` part. Besides them a feed
 yields its own link events on the topic :data:`LINK`: ``{"up": bool, "detail": str}``. A lost
 connection is retried with back-off until the consumer stops iterating.
 """

@@ -39,6 +39,7 @@ CHECK_LABELS = {
     "disk_space": "Disk space",
     "mount_configured": "Mount",
     "mount_targets": "Mount+targets",
+    "mount_watch": "Mount watch",
 }
 PRECHECK_ROWS = 7
 PASS_ROWS = 7
@@ -76,7 +77,8 @@ class ChecklistState:
     def checks(self) -> list[dict]:
         """The pre-survey checks: the daemon's ``presurvey`` section (``{name: {ok, detail}}``)
         merged with the guidance's own ``prechecks`` (a list; same name: the guidance's wins,
-        it knows the plan)."""
+        it knows the plan), then the mount watch's verdict (its ``mount`` section: ok while
+        steady, failing after a shift, waiting before the first pair of opposite lines)."""
         c = self.topics.get("checklist") or {}
         merged: dict[str, dict] = {}
         for name, v in (c.get("presurvey") or {}).items():
@@ -89,6 +91,14 @@ class ChecklistState:
                 }
         for v in self.checklist.get("prechecks") or []:
             merged[v.get("name", v.get("label", "?"))] = dict(v)
+        watch = c.get("mount")
+        if isinstance(watch, dict) and "verdict" in watch:
+            merged["mount_watch"] = {
+                "name": "mount_watch",
+                "label": CHECK_LABELS["mount_watch"],
+                "ok": watch.get("ok"),
+                "detail": str(watch.get("verdict", "")),
+            }
         return list(merged.values())
 
     def alarms(self) -> list[dict]:

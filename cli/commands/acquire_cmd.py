@@ -25,6 +25,11 @@ HELP = (
     "pattern (pass acceptance with the tolerances of the config's guidance section, predicted "
     "boresight σ, pre-survey checks) and publishes it on the checklist topic that mls checklist "
     "shows.\n\n"
+    "When the config's watch section names the calibrated mount (watch.calibration, a "
+    "calibration result.json), the daemon also watches the mount during the survey: the "
+    "boresight re-estimated from each pair of opposite lines, a sequential test against the "
+    "calibration, published on the mount topic and the checklist, and the critical alarm "
+    "mount_shift when it moved.\n\n"
     "Example: mls acquire --config /etc/mls/vessel.yaml"
 )
 
@@ -41,6 +46,14 @@ def acquire(
     ),
 ) -> None:
     """``mls acquire`` (its help text is :data:`HELP`)."""
+    import os
+
+    # BLAS on one thread (before numpy loads; the environment's own setting wins): the daemon's
+    # numeric work — the guidance's σ prediction, the mount watch's block solves — runs in worker
+    # threads beside the acquisition, and a BLAS spinning on every core starves the event loop
+    # (and solves no faster on a 2-core vessel PC)
+    for var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
+        os.environ.setdefault(var, "1")
     import asyncio
     import logging
     import sys
@@ -65,15 +78,19 @@ def acquire(
 
     from acquire.daemon.supervisor import StartupError, Supervisor
     from acquire.guidance.daemon import guidance_consumer
+    from acquire.watch.daemon import mount_watch_consumer
 
     try:
         sup = Supervisor(cfg)
         guidance = guidance_consumer(cfg, sup)
-    except MlsError as e:  # the config asks for what cannot be done (StartupError, GuidanceSetupError)
+        watch = mount_watch_consumer(cfg, sup)
+    except MlsError as e:  # the config asks for what cannot be done (StartupError, *SetupError)
         print(f"mls acquire: {e}", file=sys.stderr)
         raise typer.Exit(EXIT_CONFIG) from None
     if guidance is not None:
         sup.consumers.append(guidance)
+    if watch is not None:
+        sup.consumers.append(watch)
     if check:
         from rich.console import Console
         from rich.table import Table
@@ -93,6 +110,14 @@ def acquire(
                 f"{tol.max_xte_m:g} m XTE, {tol.max_heading_error_deg:g}° heading, "
                 f"±{tol.max_speed_error_mps:g} m/s, ≥ {tol.min_points_per_target} points per "
                 f"target, gaps ≤ {tol.max_gap_s:g} s"
+            )
+        if watch is not None:
+            w, b = cfg.watch, watch.info["boresight_deg"]
+            print(
+                f"mount watch: calibrated boresight roll {b[0]:+.4f}°, pitch {b[1]:+.4f}°, yaw "
+                f"{b[2]:+.4f}° of {w.calibration}; tuned to {w.shift_deg:g}°, "
+                f"{w.false_alarms_per_hour:g} false alarms per hour; {w.max_points_per_s} returns/s "
+                f"kept; lines of {w.min_line_s:g}–{w.max_line_s:g} s"
             )
         raise typer.Exit(EXIT_OK)
 

@@ -33,7 +33,8 @@ def status(
     as_json: bool = typer.Option(False, "--json", help="Print the raw snapshot as JSON."),
     timeout_s: float = typer.Option(3.0, "--timeout", help="Seconds to wait for the daemon."),
 ) -> None:
-    """Show the running daemon's status once: state, clock, devices, log, active alarms.
+    """Show the running daemon's status once: state, clock, devices, log, active alarms (and the
+    mount watch's verdict when it runs).
 
     Exit status: 0 ok, 1 daemon unreachable, 2 critical alarms active or daemon state lost.
     """
@@ -83,6 +84,8 @@ def status(
             for k, v in snap["checklist"].items():
                 ct.add_row(k, _fmt(v))
             con.print(ct)
+        if mount := snap.get("mount"):  # the mount watch's verdict, on a line of its own
+            con.print(f"mount watch: {mount.get('verdict', '?')}", highlight=False)
         at = Table(title=f"active alarms: {len(alarms)}")
         for c in ("severity", "name", "device", "message"):
             at.add_column(c)

@@ -26,6 +26,7 @@ def test_topic_policy_follows_design_section_8():
     assert topic_policy("status") == (True, 1)
     assert topic_policy("sensors/ins") == (True, 1)
     assert topic_policy("checklist") == (True, 1)
+    assert topic_policy("mount") == (True, 1)
     assert topic_policy("clock") == (False, 0) and topic_policy("metrics") == (False, 0)
     assert topic_policy("alarms") == (False, 1)
     for bad in ("sensors", "sensors/a/b", "status/x", "gossip"):
@@ -160,6 +161,7 @@ def test_mls_status_prints_the_snapshot_and_sets_the_exit_code(tmp_path):
         ("clock", {"state": "LOCKED", "drift_ppm": 35.0}),
         ("sensors/ins", {"connected": True, "rate_hz": 200.0}),
         ("sensors/profiler", {"connected": False}),
+        ("mount", {"verdict": "mount steady: roll +0.003 ± 0.004° (2 blocks)", "alarm": None}),
     ]
     with _ServerThread(path, ok):
         assert read_snapshot(path)["clock"] == {"state": "LOCKED", "drift_ppm": 35.0}
@@ -173,6 +175,7 @@ def test_mls_status_prints_the_snapshot_and_sets_the_exit_code(tmp_path):
             "profiler",
             "False",
             "active alarms: 1",
+            "mount watch: mount steady: roll +0.003 ± 0.004° (2 blocks)",
         ):
             assert text in r.output, text
         r = runner.invoke(app, ["status", "--socket", str(path), "--json"])
