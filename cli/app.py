@@ -27,8 +27,6 @@ from cli.commands import (
     decode_cmd,
     demo_cmd,
     design_cmd,
-    export_cmd,
-    georef_cmd,
     logs_cmd,
     operator_cmd,
     plan_cmd,
@@ -36,6 +34,7 @@ from cli.commands import (
     sim_cmd,
     sim_devices_cmd,  # noqa: F401  (adds sim devices, sim replay)
 )
+from cli.commands.survey import export_cmd, georef_cmd, watch_cmd
 
 #: Exit status of an :class:`MlsError` that no command handles itself.
 EXIT_ERROR = 1
@@ -75,6 +74,7 @@ app.command("status")(operator_cmd.status)
 app.command("acquire", help=acquire_cmd.HELP)(acquire_cmd.acquire)
 app.command("export", help=export_cmd.HELP)(export_cmd.export)
 app.command("georef", help=georef_cmd.HELP)(georef_cmd.georef)
+app.command("watch", help=watch_cmd.HELP)(watch_cmd.watch)
 app.command("plan", help=plan_cmd.HELP)(plan_cmd.plan)
 app.command("checklist", help=operator_cmd.CHECKLIST_HELP)(operator_cmd.checklist)
 app.command("design", help=design_cmd.HELP)(design_cmd.design)

@@ -292,6 +292,12 @@ def plan_session(spec: SessionSpec, sim_progress: Callable[[int, int], None] | N
         raise SimSessionError(f"INS protocol {spec.ins_protocol!r}: expected nmea or stdbin")
     duration_ns = round(spec.minutes * 60 * NS_PER_S)
     base = load_scenario(spec.scenario, list(spec.overrides))
+    if base.production is not None:
+        raise SimSessionError(
+            f"scenario {base.name!r} is a production survey (its 'production' section): mls sim session "
+            f"sails the calibration scene's lines; play a production survey with mls sim devices and the "
+            f"daemon, or write it as a bundle with mls sim dataset"
+        )
     t0 = int(seconds_to_ns(base.start_gps_s))  # the first line starts at the scenario's start
     _check_out(Path(spec.out), session_name(base.vessel, gps_ns_to_utc(t0)), spec.force)
     survey = survey_scenario(base, duration_ns / NS_PER_S, spec.rate_scale, spec.surroundings)

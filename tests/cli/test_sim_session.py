@@ -268,3 +268,13 @@ def test_an_existing_session_is_replaced_only_with_force(tmp_path):
     assert channel_metadata(path)["/ins/raw"]["protocol"] == "stdbin"
     nav = [e.payload for e in iter_messages(path, ["/ins/nav"])]
     assert len(nav) == 2000 and {n["time_source"] for n in nav} == {"device"}
+
+
+def test_a_production_survey_is_refused_with_what_plays_it(tmp_path):
+    res = CliRunner().invoke(
+        app, ["sim", "session", "--scenario", "harbour", "--out", str(tmp_path), "--minutes", "0.1"], env=ENV
+    )
+    assert res.exit_code == 2, res.output
+    text = " ".join(res.output.split())
+    assert "'harbour' is a production survey" in text and "mls sim devices" in text
+    assert list(tmp_path.iterdir()) == []
