@@ -20,9 +20,11 @@ offline exactly as the daemon watches live (:func:`calib.watch.runner.run_watch`
    within 30 minutes, by the CUSUM fed with the no-event blocks' (σ, z) plus the step (the
    blocks' σ are what the scene gives; the step adds to δ), checked against the simulated
    0.1° steps of part 2.
-4. **CPU**: the block solves' CPU seconds per survey second at this rate; the solves' cost does
-   not grow with the Z+F rate (the daemon thins to a fixed budget of returns per second), the
-   thinning does — measured by the daemon's consumer when present.
+4. **CPU** in the daemon at the full Z+F rate: a block's solve with the returns thinned to the
+   daemon's budget (20,000/s, from a survey simulated at 0.3 of the rate), per second of
+   survey, plus the intake of :class:`acquire.watch.consumer.MountWatchConsumer` fed a line's
+   records at the full rate (200 profiles/s × 5080 points and a 100-Hz INS); the solves at
+   ``--rate-scale`` are printed too.
 
     .venv/bin/python benchmarks/watch.py [--quick] [--seeds 3] [--hours 1.0]
 """
@@ -70,7 +72,7 @@ def watch(sim, tau_factor: float = 1.0):
     if tau_factor != 1.0:
         tau = np.atleast_1d(model.correlation_time_s)
         model = ErrorModel("gauss_markov", tuple(float(t) * tau_factor for t in tau))
-    mount = sim.truth_mount_calibrated if hasattr(sim, "truth_mount_calibrated") else sim.mount_true
+    mount = sim.mount_true.with_boresight(np.radians(sim.truth["mount_calibrated"]))
     return run_watch(
         sim.points, sim.trajectory_observed, mount, site_sigmas(site), model, site.wall_azimuth_rad
     )
