@@ -417,3 +417,33 @@ def parse_vessel_config(
     text: str, source: str = "vessel.yaml", base_dir: str | Path | None = None
 ) -> VesselConfig:
     return vessel_config_from_node(load_yaml(text, source=source), Path(base_dir or os.getcwd()))
+
+
+def site_of(cfg: VesselConfig, error: type[Exception]):
+    """The site of ``cfg.site_file`` (``error`` naming the file on a bad one), its LGF (the
+    reference point, else the targets' mean centre, else None) and the mount installed (the
+    vessel config's ``mount``, else None) — what the daemon's consumers build on."""
+    import numpy as np
+
+    from calib.core import frames
+    from calib.core.georef import Mount
+    from calib.io.site import load_site
+
+    path = Path(str(cfg.site_file))
+    try:
+        site = load_site(path)
+    except (ConfigError, OSError) as e:
+        raise error(f"site_file {path}: {e}") from None
+    frame = site.reference
+    if frame is None and site.targets:  # no reference point: the LGF at the targets' mean centre
+        c = np.mean([(t.lat_deg, t.lon_deg, t.height_m) for t in site.targets], axis=0)
+        frame = frames.LocalFrame(float(c[0]), float(c[1]), float(c[2]))
+    mount = None
+    if cfg.mount is not None:
+        m = cfg.mount
+        mount = Mount(
+            lever_arm_m=np.asarray(m.lever_arm_m, float),
+            nominal_rad=np.radians(m.nominal_deg),
+            boresight_rad=np.radians(m.boresight_apriori_deg),
+        )
+    return site, frame, mount

@@ -20,8 +20,7 @@ import math
 import time
 from pathlib import Path
 
-import numpy as np
-
+from acquire.daemon.config import site_of
 from acquire.daemon.configschema import GuidanceConfig, VesselConfig
 from acquire.errors import AcquireError
 from acquire.guidance.acceptance import AcceptanceTolerances
@@ -48,10 +47,6 @@ def tolerances(g: GuidanceConfig) -> AcceptanceTolerances:
 
 def make_guidance(cfg: VesselConfig) -> Guidance:
     """The guidance of a vessel config with a ``site_file`` (see the module docstring)."""
-    from calib.core import frames
-    from calib.core.georef import Mount
-    from calib.io.configfile import ConfigError
-    from calib.io.site import load_site
     from calib.sim.scenario import ScannerModel
     from calib.survey.passplan import PassPlanError, plan_site
 
@@ -60,26 +55,13 @@ def make_guidance(cfg: VesselConfig) -> Guidance:
             f"{cfg.source}: no site_file: the guidance needs the site's targets and pass plan"
         )
     path = Path(cfg.site_file)
-    try:
-        site = load_site(path)
-    except (ConfigError, OSError) as e:
-        raise GuidanceSetupError(f"site_file {path}: {e}") from None
-    frame = site.reference
-    if frame is None:  # no reference point: the LGF at the targets' mean centre
-        c = np.mean([(t.lat_deg, t.lon_deg, t.height_m) for t in site.targets], axis=0)
-        frame = frames.LocalFrame(float(c[0]), float(c[1]), float(c[2]))
+    site, frame, mount = site_of(cfg, GuidanceSetupError)
+    if frame is None:
+        raise GuidanceSetupError(f"site_file {path}: neither a reference point nor a target: no LGF")
     try:
         plan = plan_site(site, frame)
     except PassPlanError as e:
         raise GuidanceSetupError(f"site_file {path}: no pass plan: {e}") from None
-    mount = None
-    if cfg.mount is not None:  # the vessel config's mount is what is installed
-        m = cfg.mount
-        mount = Mount(
-            lever_arm_m=np.asarray(m.lever_arm_m, float),
-            nominal_rad=np.radians(m.nominal_deg),
-            boresight_rad=np.radians(m.boresight_apriori_deg),
-        )
     g = cfg.guidance
     scanner = ScannerModel(profile_rate_hz=g.profile_rate_hz, points_per_360=g.points_per_360)
     return Guidance(site, plan, frame=frame, mount=mount, tolerances=tolerances(g), scanner=scanner)

@@ -20,6 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
+from acquire.daemon.config import site_of
 from acquire.daemon.configschema import VesselConfig
 from acquire.errors import AcquireError
 from acquire.watch.blockjob import WatchModel
@@ -36,11 +37,7 @@ def watch_model(cfg: VesselConfig) -> tuple[WatchModel, dict]:
     and what the ``mount`` topic says of the calibration."""
     from calib.assess.history import load_result
     from calib.assess.mounts import mount_from_result
-    from calib.core import frames
     from calib.core.errors import CalibError
-    from calib.core.georef import Mount
-    from calib.io.configfile import ConfigError
-    from calib.io.site import load_site
     from calib.watch.block import site_error_model, site_sigmas
 
     w = cfg.watch
@@ -49,26 +46,12 @@ def watch_model(cfg: VesselConfig) -> tuple[WatchModel, dict]:
             f"{cfg.source}: the mount watch needs watch.calibration (the calibrated mount) and site_file"
         )
     path = Path(cfg.site_file)
-    try:
-        site = load_site(path)
-    except (ConfigError, OSError) as e:
-        raise WatchSetupError(f"site_file {path}: {e}") from None
-    frame = site.reference
-    if frame is None and not site.targets:
+    site, frame, installed = site_of(cfg, WatchSetupError)
+    if frame is None:
         raise WatchSetupError(
             f"site_file {path}: the mount watch needs the site's reference point (LGF origin)"
         )
-    if frame is None:  # no reference point: the LGF at the targets' mean centre
-        c = np.mean([(t.lat_deg, t.lon_deg, t.height_m) for t in site.targets], axis=0)
-        frame = frames.LocalFrame(float(c[0]), float(c[1]), float(c[2]))
-    apriori = site.mount
-    if cfg.mount is not None:  # the vessel config's mount is what is installed
-        m = cfg.mount
-        apriori = Mount(
-            lever_arm_m=np.asarray(m.lever_arm_m, float),
-            nominal_rad=np.radians(m.nominal_deg),
-            boresight_rad=np.radians(m.boresight_apriori_deg),
-        )
+    apriori = site.mount if installed is None else installed
     try:
         result = load_result(w.calibration)
         mount, notes = mount_from_result(apriori, result, str(w.calibration))

@@ -30,7 +30,7 @@ has ``status`` saying why and no estimate — it carries no evidence either way.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
@@ -107,7 +107,6 @@ class BlockEstimate:
     patches: tuple[PatchUse, ...] = ()
     moved_patches: tuple[str, ...] = ()  # dropped as moving between lines
     runtime_s: float = 0.0
-    extra: dict = field(default_factory=dict)
 
     @property
     def ok(self) -> bool:
