@@ -396,6 +396,7 @@ def test_the_demo_session_exports_for_foxglove_and_reads_back(demo, tmp_path):
     import numpy as np
     from scipy.spatial import cKDTree
 
+    from acquire.log.read import iter_messages
     from calib.core.georef import georeference
     from calib.io.bundle import read_bundle
     from tests.acquire.jobs.test_foxglove import check_foxglove_file
@@ -428,7 +429,12 @@ def test_the_demo_session_exports_for_foxglove_and_reads_back(demo, tmp_path):
     assert rb.messages["/clock"][-1][1]["state"] == "LOCKED"
     assert {"ins", "profiler"} <= set(rb.messages["/latency"][-1][1])
     levels = {m["level"] for _, m in rb.messages["/log"]}
-    assert "INFO" in levels and any(m["message"].startswith("alarm ") for _, m in rb.messages["/log"])
+    assert "INFO" in levels
+    # every alarm the demo happened to raise or clear is one Log (check_foxglove_file matches each
+    # to its event), and no Log claims an alarm the session does not hold; how many alarms a demo
+    # raises depends on the host's timing, so their number is not asserted
+    alarms = [e for e in iter_messages(session, {"/events"}) if e.payload.get("event") == "alarm"]
+    assert sum(m["message"].startswith("alarm ") for _, m in rb.messages["/log"]) == len(alarms)
     # the bundle's returns, georeferenced by calib, are points of the clouds (within 1 mm)
     b = read_bundle(demo.out / "bundle")
     pts = b.points
