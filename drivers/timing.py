@@ -33,8 +33,11 @@ DAY_NS = 86_400 * 1_000_000_000
 
 
 #: realtime − monotonic moving more than this between two reads is a step of CLOCK_REALTIME
-#: (an NTP/chrony step or a manual ``date -s``; a slew moves it by at most 500 µs per second)
+#: (an NTP/chrony step or a manual ``date -s``; a slew moves both clocks alike)
 STEP_THRESHOLD_NS = 1_000_000
+#: a step at least this large is worth the operator's attention (``host_clock_step``); smaller
+#: ones are a virtual machine's or PTP's clock discipline — handled and counted alike, no alarm
+STEP_ALARM_NS = 10_000_000
 _REALTIME = time.CLOCK_REALTIME
 #: the environment variable naming the simulated devices' fake host-clock file (tests only)
 FAKE_HOST_CLOCK_ENV = "MLS_SIM_HOST_CLOCK"
@@ -61,33 +64,32 @@ def realtime_minus_monotonic_ns(tries: int = 3) -> int:
     realtime clock. With ``$MLS_SIM_HOST_CLOCK`` set (the simulated devices' tests only) the
     offset is the faked one of :class:`FakeHostClock`."""
     offset = _kernel_offset_ns(tries) if FAKE_HOST_CLOCK is None else FAKE_HOST_CLOCK.offset_ns(tries)
-    steps = HOST_CLOCK_STEPS
-    last = steps.offset_ns
-    if last is None or abs(offset - last) > STEP_THRESHOLD_NS:
-        steps.observe(offset)
-    else:
-        steps.offset_ns = offset
+    HOST_CLOCK_STEPS.observe(offset)
     return offset
 
 
 class HostClockSteps:
     """The steps of ``CLOCK_REALTIME`` this process has seen (through any
-    :func:`realtime_minus_monotonic_ns` read): ``count``, and the latest as
-    ``(host monotonic ns, step ns)`` in ``last``. The daemon reads ``count`` for its alarm
-    ``host_clock_step``; the host's own stamps are monotonic and never move."""
+    :func:`realtime_minus_monotonic_ns` read): ``count`` (every step > :data:`STEP_THRESHOLD_NS`),
+    ``large`` (those of at least :data:`STEP_ALARM_NS`), and the latest as
+    ``(host monotonic ns, step ns)`` in ``last``. The daemon raises ``host_clock_step`` when
+    ``large`` grows and refreshes its system-clock seed when ``count`` does; the host's own
+    stamps are monotonic and never move."""
 
     def __init__(self) -> None:
         self.offset_ns: int | None = None
         self.count = 0
+        self.large = 0
         self.last: tuple[int, int] | None = None
         self._lock = threading.Lock()
 
     def observe(self, offset_ns: int) -> None:
-        with self._lock:
+        with self._lock:  # one read's compare and store at a time (reads come from any thread)
             last = self.offset_ns
             self.offset_ns = offset_ns
             if last is not None and abs(offset_ns - last) > STEP_THRESHOLD_NS:
                 self.count += 1
+                self.large += abs(offset_ns - last) >= STEP_ALARM_NS
                 self.last = (time.monotonic_ns(), offset_ns - last)
 
 

@@ -28,8 +28,10 @@ Alarms on ``clock`` (with an :class:`~acquire.alarms.AlarmBook`, evaluated by :m
   other than the table's for now: its UTC tags are read with its own count (its GPS time stays
   exact), while UTC from the table — the system clock's seed, UTC shown to the operator — may be
   off by the difference;
-- ``host_clock_step`` (warning): ``CLOCK_REALTIME`` stepped (NTP, ``date -s``; seen by
-  :data:`drivers.timing.HOST_CLOCK_STEPS` at each tick's read of realtime − monotonic): the
+- ``host_clock_step`` (warning): ``CLOCK_REALTIME`` stepped by 10 ms or more (NTP, ``date -s``;
+  seen by :data:`drivers.timing.HOST_CLOCK_STEPS` at each tick's read of realtime − monotonic;
+  smaller steps, a virtual machine's clock discipline, are handled alike and counted in the
+  metrics' ``host_clock_steps``, without an alarm): the
   daemon's stamps are monotonic and do not move, the transports keep kernel stamps taken before
   the step on the old offset (:class:`drivers.timing.RealtimeStamps`), and the clock model's
   system-clock seed is refreshed; clears 10 s later.
@@ -50,7 +52,7 @@ from acquire.timing.clock import ClockModel, ClockState
 from calib.core.frames import leap_seconds_at_gps_ns, leap_seconds_at_utc
 from calib.core.gpstime import GPS_EPOCH_UNIX_S, leap_table, parse_leap_seconds_list, use_leap_table
 from drivers.pps import PpsEdge, PpsLabeler
-from drivers.timing import HOST_CLOCK_STEPS, realtime_minus_monotonic_ns
+from drivers.timing import HOST_CLOCK_STEPS, STEP_ALARM_NS, realtime_minus_monotonic_ns
 
 NS_PER_S = 1_000_000_000
 UNIX_TO_GPS_EPOCH_S = 315_964_800  # 1980-01-06T00:00:00Z in Unix seconds
@@ -107,7 +109,8 @@ class TimeKeeper:
         self.leap_note = "built-in table" if leap_list is None else load_leap_list(leap_list)
         self.gps_minus_utc_s: int | None = None  # as the time device announces it
         self._ambiguous = (0, 0)  # (events seen, host ns of the latest)
-        self._host_steps = (HOST_CLOCK_STEPS.count, 0)  # (steps seen, host ns of the latest)
+        # (steps seen, steps of >= STEP_ALARM_NS seen, host ns of the latest of those)
+        self._host_steps = (HOST_CLOCK_STEPS.count, HOST_CLOCK_STEPS.large, 0)
 
     # -- inputs -----------------------------------------------------------------------------
 
@@ -176,11 +179,14 @@ class TimeKeeper:
             al.clear_now("time_ambiguous", "clock", now, message="time messages on time again")
         # a step of the host's realtime clock
         realtime_minus_monotonic_ns()  # a read shows a step to HOST_CLOCK_STEPS
-        count, since = self._host_steps
-        if HOST_CLOCK_STEPS.count > count:
-            self._host_steps = (HOST_CLOCK_STEPS.count, now)
-            step_ns = HOST_CLOCK_STEPS.last[1] if HOST_CLOCK_STEPS.last else 0
+        steps = HOST_CLOCK_STEPS
+        count, large, since = self._host_steps
+        if steps.count > count:  # any step: the system-clock seed follows it
             self.clock.coarse_offset_ns = coarse_gps_offset_ns()
+            self._host_steps = (steps.count, large, since)
+        if steps.large > large:
+            self._host_steps = (steps.count, steps.large, now)
+            step_ns = steps.last[1] if steps.last else 0
             al.raise_now(
                 "host_clock_step",
                 "clock",
@@ -188,7 +194,8 @@ class TimeKeeper:
                 severity=WARNING,
                 message=f"the host's realtime clock stepped by {step_ns / 1e9:+.3f} s: stamps are "
                 "monotonic, kernel stamps before the step kept their offset, the system-clock "
-                f"seed refreshed ({HOST_CLOCK_STEPS.count} steps so far)",
+                f"seed refreshed ({steps.large} steps of ≥ {STEP_ALARM_NS / 1e6:.0f} ms so far, "
+                f"{steps.count - steps.large} smaller)",
             )
         elif since and now - since > EVENT_CLEAR_NS and al.is_active("host_clock_step", "clock"):
             al.clear_now("host_clock_step", "clock", now, message="no host clock step for 10 s")
@@ -257,6 +264,7 @@ class TimeKeeper:
             "leap_table": {**leap_table().as_dict(), "note": self.leap_note},
             "gps_minus_utc_announced_s": self.gps_minus_utc_s,
             "host_clock_steps": HOST_CLOCK_STEPS.count,
+            "host_clock_steps_alarmed": HOST_CLOCK_STEPS.large,
         }
 
 

@@ -176,7 +176,9 @@ def test_a_host_clock_step_raises_host_clock_step_and_moves_no_stamp(time_run):
     latency = truth.gps_ns(host) - np.array([t for _, t in raw], dtype=np.int64)
     around = np.abs(host - f["start_host_ns"]) < 2 * NS
     assert around.sum() >= 200
-    assert 0 <= latency.min() and latency.max() < 60_000_000  # an hour's step would show as 3600 s
+    # the profiler's latency (≤ 40 ms, more under a loaded machine's late sender: CI saw 71 ms),
+    # not the hour a stamp converted with the wrong offset would show
+    assert 0 <= latency.min() and latency.max() < NS // 2
     assert not _alarm(time_run, "time_step")
 
 

@@ -202,7 +202,12 @@ def test_status_socket_notify_and_checklist(fake_run):
         "marks": "connected",
     }
     assert snap["sensors/profiler"]["records"] == len(fake_run["fake"].datagrams) // 3
-    assert snap["sensors/ins"]["sync"] == "ok" and snap["sensors/ins"]["pps_flag"] is True
+    ins = snap["sensors/ins"]
+    assert ins["pps_flag"] is True
+    # in sync; or, after a change of latency level (a loaded machine's late sender at the end of
+    # the run), waiting for three samples at the new level — with the change alarmed, not silent
+    relevel = {a["name"] for a in st["alarms"] if a["device"] == "ins"} & {"latency_jump", "time_step"}
+    assert ins["sync"] == "ok" or (ins["sync"] == "waiting" and relevel), (ins, st["alarms"])
     check = snap["checklist"]
     assert check["presurvey"]["clock_locked"]["ok"] and check["presurvey"]["ins_navigating"]["ok"]
     assert check["presurvey"]["mount_configured"]["ok"]

@@ -202,6 +202,33 @@ def test_a_step_of_the_host_clock_raises_host_clock_step_and_refreshes_the_seed(
         assert not alarms.is_active("host_clock_step", "clock")
 
 
+def test_a_few_milliseconds_step_is_counted_and_followed_without_an_alarm(tmp_path):
+    """A virtual machine's clock discipline steps the realtime clock by a millisecond or two:
+    the seed follows it, the metrics count it, nobody is alarmed; a 10-ms step alarms."""
+    alarms = AlarmBook()
+    now = time.monotonic_ns()
+    with fake_host_clock(
+        tmp_path / "host_clock", [(now + 20_000_000, 3_000_000), (now + 60_000_000, 12_000_000)]
+    ):
+        clock = ClockModel(coarse_offset_ns=coarse_gps_offset_ns())
+        tk = TimeKeeper(clock, alarms=alarms)
+        seed, before = clock.coarse_offset_ns, tk.status()
+        tk.tick(now)
+        time.sleep(0.03)
+        tk.tick(now + 250_000_000)
+        assert not alarms.is_active("host_clock_step", "clock")
+        assert abs(clock.coarse_offset_ns - seed - 3_000_000) < 1_000_000
+        assert tk.status()["host_clock_steps"] == before["host_clock_steps"] + 1
+        assert tk.status()["host_clock_steps_alarmed"] == before["host_clock_steps_alarmed"]
+        time.sleep(0.04)
+        tk.tick(now + 500_000_000)
+        a = alarms.get("host_clock_step", "clock")
+        after = tk.status()
+        assert after["host_clock_steps_alarmed"] == before["host_clock_steps_alarmed"] + 1
+        small = after["host_clock_steps"] - after["host_clock_steps_alarmed"]
+        assert a.active and "stepped by +0.012 s" in a.message and f"{small} smaller" in a.message
+
+
 def test_the_daemon_takes_a_newer_iers_list_from_tzdata_and_names_what_it_did(tmp_path):
     import datetime as dt
 
