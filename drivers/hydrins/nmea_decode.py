@@ -82,9 +82,9 @@ class NmeaDecoder:
 
     def feed(self, data: bytes, host_ns: int | None = None) -> list:
         """Decode what ``data`` completes; a sentence's ``host_ns`` is the stamp of the chunk that
-        brought its first byte."""
+        brought its start (``$`` or ``!``: bytes of line noise before it do not date it)."""
         self.stats.bytes_in += len(data)
-        first_ns = self._buf_ns if self._buf else host_ns
+        first_ns = self._buf_ns if self._buf and self._buf_ns is not None else host_ns
         buf = self._buf + bytes(data) if self._buf else bytes(data)
         if b"\r" in buf:
             buf = buf.replace(b"\r", b"\n")
@@ -99,7 +99,8 @@ class NmeaDecoder:
                 self.stats.rejected["too_long"] += 1
             rest = keep
         self._buf = rest
-        self._buf_ns = host_ns if lines else first_ns
+        # the stamp of the buffered start; None while the buffer holds no start (noise only)
+        self._buf_ns = (host_ns if lines else first_ns) if b"$" in rest or b"!" in rest else None
         out = []
         for i, line in enumerate(lines):
             if line:

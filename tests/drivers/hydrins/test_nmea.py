@@ -166,6 +166,23 @@ def test_sentence_split_across_reads_and_overlong_garbage():
     assert len(dec.feed(s)) == 1
 
 
+def test_line_noise_before_a_sentence_does_not_date_it():
+    """Noise read well before a sentence (no line end between them) is skipped with it; the
+    sentence keeps the stamp of the chunk that brought its ``$``."""
+    s = encode_sentence("PIXSE,ATITUD,0.5,-0.25")
+    dec = NmeaDecoder()
+    assert dec.feed(b"\x01\x7fnoise", host_ns=1_000) == []
+    (rec,) = dec.feed(s, host_ns=9_000)
+    assert rec.host_ns == 9_000
+    assert dec.feed(b"\x02noise" + s[:5], host_ns=20_000) == []  # the start came with the noise
+    (rec,) = dec.feed(s[5:], host_ns=29_000)
+    assert rec.host_ns == 20_000
+    assert dec.feed(b"noise", host_ns=30_000) == [] and dec.feed(b"more", host_ns=31_000) == []
+    assert dec.feed(s[:3], host_ns=35_000) == []
+    (rec,) = dec.feed(s[3:], host_ns=39_000)
+    assert rec.host_ns == 35_000
+
+
 def test_flush_decodes_a_last_line_without_terminator():
     dec = NmeaDecoder()
     assert dec.feed(encode_sentence("HEHDT,2.0,T")[:-2]) == []
