@@ -1,4 +1,4 @@
-"""One block of the live mount watch, as the worker thread runs it: the block's navigation
+"""One block of the live mount watch, as the worker process runs it: the block's navigation
 becomes a :class:`~calib.core.trajectory.Trajectory` in the site's LGF (with the INS σ), its
 kept returns a :class:`~calib.io.bundle.ScanPoints` (``pass_id`` = line id), and
 :func:`calib.watch.block.estimate_block` adjusts the boresight correction — exactly what
@@ -8,22 +8,15 @@ Nothing here raises: a block that cannot be estimated (no navigation, no returns
 the estimator) comes back as a :class:`~calib.watch.block.BlockEstimate` whose ``status`` says
 why, which the sequential test takes as no evidence.
 
-:func:`in_daemon_thread` runs the job off the daemon's event loop in a *daemon* thread: the
-loop only awaits a future, and a daemon stopping mid-estimate does not wait for it (a block
-takes seconds; ``asyncio.to_thread``'s executor is joined at exit). The thread runs at a lower
-priority (:data:`WORKER_NICE`): on a loaded machine the acquisition's threads get the CPU first.
+The daemon runs it in a worker process (:mod:`acquire.watch.solver`).
 """
 
 from __future__ import annotations
 
-import asyncio
-import contextlib
-import os
-import threading
 import time
 import traceback
-from collections.abc import Callable
 from dataclasses import dataclass, field, replace
+from pathlib import Path
 
 import numpy as np
 
@@ -52,18 +45,18 @@ class WatchModel:
 
 
 NAV_MARGIN_S = 1.0  # navigation kept on both sides of a block's lines
-WORKER_NICE = 10  # the block solves run this much nicer than the acquisition
 
 
 @dataclass(frozen=True)
 class BlockJob:
     """A closed block: its lines and the buffers' arrays when it closed (snapshots: the
-    selection runs in the worker thread, off the event loop)."""
+    selection runs in the worker process, off the event loop)."""
 
     lines: tuple[Line, ...]
     nav_chunks: list  # NavBuffer.snapshot()
     point_chunks: list  # PointBuffer.snapshot()
     closed_mono_ns: int = 0
+    family: int = 0  # the block's (calib.watch.runner.BlockCutter)
 
     @property
     def line_ids(self) -> tuple[int, ...]:
@@ -115,11 +108,10 @@ def block_trajectory(nav: np.ndarray, frame: frames.LocalFrame, max_gap_s: float
     )
 
 
-def run_block(job: BlockJob, model: WatchModel) -> BlockEstimate:
-    """The estimate of one block (module docstring); never raises."""
-    clock = time.perf_counter()
+def block_identity(job: BlockJob, model: WatchModel) -> dict:
+    """The fields of a :class:`BlockEstimate` that name the block (times, lines, headings)."""
     lines = job.lines
-    empty = dict(
+    return dict(
         t_start_gps_s=lines[0].t_start_s if lines else float("nan"),
         t_end_gps_s=lines[-1].t_end_s if lines else float("nan"),
         pass_ids=job.line_ids,
@@ -127,10 +119,18 @@ def run_block(job: BlockJob, model: WatchModel) -> BlockEstimate:
             float(np.degrees(frames.wrap_2pi(ln.heading_rad - model.wall_azimuth_rad))) for ln in lines
         ),
     )
+
+
+def run_block(job: BlockJob, model: WatchModel) -> BlockEstimate:
+    """The estimate of one block (module docstring); never raises."""
+    clock = time.perf_counter()
+    empty = block_identity(job, model)
     try:
         traj = block_trajectory(job.nav(), model.frame, model.max_gap_s)
     except TrajectoryError as e:
         return BlockEstimate(**empty, status=f"no trajectory ({e})")
+    except Exception as e:  # noqa: BLE001 — as below
+        return _failed(empty, e)
     try:
         line_id, t, r, a = job.points()
         keep = ~traj.uncovered(t + model.mount.time_offset_s)
@@ -147,42 +147,13 @@ def run_block(job: BlockJob, model: WatchModel) -> BlockEstimate:
             model.options,
         )
     except Exception as e:  # noqa: BLE001 — a block that fails is no evidence, never a crash
-        return BlockEstimate(
-            **empty,
-            status=f"failed ({type(e).__name__}: {e})",
-            extra={"traceback": traceback.format_exc(limit=-4)},
-        )
+        return _failed(empty, e)
     return replace(est, runtime_s=time.perf_counter() - clock)
 
 
-def in_daemon_thread(fn: Callable, *args, nice: int = WORKER_NICE) -> asyncio.Future:
-    """``fn(*args)`` in a new daemon thread, ``nice`` steps below the daemon's priority; a future
-    of the running loop gets its result (or its exception). Cancelling the future abandons the
-    thread's result."""
-    loop = asyncio.get_running_loop()
-    fut: asyncio.Future = loop.create_future()
-
-    def settle(ok: bool, value) -> None:
-        if fut.done():
-            return
-        if ok:
-            fut.set_result(value)
-        else:
-            fut.set_exception(value)
-
-    def target() -> None:
-        if nice:  # background work: the acquisition's threads first (Linux: per thread)
-            with contextlib.suppress(AttributeError, OSError):
-                tid = threading.get_native_id()
-                os.setpriority(os.PRIO_PROCESS, tid, os.getpriority(os.PRIO_PROCESS, tid) + nice)
-        try:
-            ok, value = True, fn(*args)
-        except BaseException as e:  # noqa: BLE001 — handed to the awaiting task
-            ok, value = False, e
-        try:
-            loop.call_soon_threadsafe(settle, ok, value)
-        except RuntimeError:  # the loop has closed (the daemon stopped): nobody waits
-            pass
-
-    threading.Thread(target=target, name="mount-watch-block", daemon=True).start()
-    return fut
+def _failed(identity: dict, e: Exception) -> BlockEstimate:
+    """A block that failed, its status naming the error and where it was raised."""
+    where = traceback.extract_tb(e.__traceback__)[-1]
+    return BlockEstimate(
+        **identity, status=f"failed ({type(e).__name__}: {e}; {Path(where.filename).name}:{where.lineno})"
+    )

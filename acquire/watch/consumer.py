@@ -8,12 +8,14 @@
   line is open; ``event`` records' ``pass_start`` / ``pass_end`` to the line cutter. Records
   that are not what they should be are counted and ignored.
 - A closed line's heading (relative to the wall) goes to a
-  :class:`~calib.watch.runner.BlockCutter`; at most :data:`MAX_PENDING_LINES` lines wait for a
-  partner of another heading (the oldest is dropped). When a block closes, its data (snapshots of
-  the buffers) is queued and :func:`~acquire.watch.blockjob.run_block` runs in a worker thread,
-  one block at a time; at most :data:`MAX_WAITING_BLOCKS` wait behind it (more: the oldest is
+  :class:`~calib.watch.runner.BlockCutter`, which closes a block with the lines before it (each
+  line is in up to two blocks; a line that leaves the cutter's window without a partner of
+  another heading is dropped and counted). When a block closes, its data (snapshots of the
+  buffers) and its family are queued and :func:`~acquire.watch.blockjob.run_block` runs in the
+  worker process (:class:`~acquire.watch.solver.BlockSolver`: never the event loop's), one block
+  at a time; at most :data:`MAX_WAITING_BLOCKS` wait behind it (more: the oldest is
   skipped, counted, and the state says the watch is behind). The buffers keep nothing older than
-  the oldest line still needed.
+  the oldest line the cutter may still take.
 - Each block's estimate goes to the :class:`~calib.watch.sequential.MountTest`; the state is
   published on the retained status topic ``mount`` and as the ``mount`` section of the
   ``checklist`` topic (a one-line verdict), and the block is logged on ``/events``
@@ -30,13 +32,12 @@ import time
 from collections import deque
 from collections.abc import Callable
 
-import numpy as np
-
 from acquire.alarms import CRITICAL, MOUNT_SHIFT, AlarmBook
-from acquire.watch.blockjob import BlockJob, WatchModel, in_daemon_thread, run_block
+from acquire.watch.blockjob import BlockJob, WatchModel
 from acquire.watch.buffers import NavBuffer, PointBuffer
 from acquire.watch.lines import Line, LineCutter
 from acquire.watch.report import block_summary, checklist_section
+from acquire.watch.solver import BlockSolver
 from calib.core import frames
 from calib.watch.block import BlockEstimate
 from calib.watch.report import verdict
@@ -44,7 +45,6 @@ from calib.watch.runner import BlockCutter
 from calib.watch.sequential import MountTest, WatchDesign
 
 SCHEMA = "mls.mount/1"
-MAX_PENDING_LINES = 3  # lines of one heading waiting for a partner
 MAX_WAITING_BLOCKS = 2  # closed blocks waiting for the worker
 NAV_KEEP_S = 2.0  # navigation kept before the oldest line still needed
 TRIM_EVERY = 200  # INS epochs between trims of the buffers
@@ -86,20 +86,21 @@ class MountWatchConsumer:
         self.alarms = alarms
         self.log_event = log_event
         self.info = dict(info or {})
-        self.lines: dict[int, Line] = {}  # closed lines waiting in the block cutter
+        self.lines: dict[int, Line] = {}  # closed lines a later block may still take
         self.last_lines: deque[Line] = deque(maxlen=4)
         self.waiting: deque[BlockJob] = deque()
         self.running: BlockJob | None = None
         self.last_block: BlockEstimate | None = None
         self.checklist = None
         self._task: asyncio.Task | None = None
+        self.solver = BlockSolver()
         self._epochs = 0
         self.counters = {
             "records": 0,
             "nav_ignored": 0,
             "profiles_ignored": 0,
             "events_ignored": 0,
-            "lines_dropped": 0,  # waited too long for a partner of another heading
+            "lines_dropped": 0,  # left the block cutter's window without a partner of another heading
             "blocks_skipped": 0,  # the worker was behind
         }
 
@@ -177,30 +178,17 @@ class MountWatchConsumer:
             self.last_lines.append(line)
             self.lines[line.id] = line
             rel = float(frames.wrap_2pi(line.heading_rad - self.model.wall_azimuth_rad))
-            ids = self.blocks.add(line.id, rel, self._position(line))
-            if ids is None:
-                while len(self.blocks.pending) > MAX_PENDING_LINES:
-                    old = self.blocks.pending.pop(0)[0]
-                    self.lines.pop(old, None)
-                    self.counters["lines_dropped"] += 1
-            else:
-                self._queue(tuple(self.lines.pop(i) for i in ids))
+            block = self.blocks.add(line.id, rel)
+            if block is not None:
+                self._queue(tuple(self.lines[i] for i in block.line_ids), block.family)
+            kept = set(self.blocks.kept)
+            self.lines = {i: ln for i, ln in self.lines.items() if i in kept}
+            self.counters["lines_dropped"] = self.blocks.dropped
             self._trim()
             self.publish()
 
-    def _position(self, line: Line) -> np.ndarray | None:
-        """A line's mean north/east position in the wall's frame (as
-        :func:`calib.watch.runner.line_geometry` gives it): the block cutter's offsets."""
-        if not (math.isfinite(line.lat_deg) and math.isfinite(line.lon_deg)):
-            return None
-        f = self.model.frame
-        ne = f.to_lgf([line.lat_deg], [line.lon_deg], [f.height_m])[0, :2]
-        a = -self.model.wall_azimuth_rad
-        c, s = math.cos(a), math.sin(a)
-        return np.array([c * ne[0] - s * ne[1], s * ne[0] + c * ne[1]])
-
-    def _queue(self, lines: tuple[Line, ...]) -> None:
-        job = BlockJob(lines, self.nav.snapshot(), self.points.snapshot(), time.monotonic_ns())
+    def _queue(self, lines: tuple[Line, ...], family: int) -> None:
+        job = BlockJob(lines, self.nav.snapshot(), self.points.snapshot(), time.monotonic_ns(), family)
         self.waiting.append(job)
         while len(self.waiting) > MAX_WAITING_BLOCKS:
             self.waiting.popleft()
@@ -219,15 +207,16 @@ class MountWatchConsumer:
         self.nav.trim_before(keep - NAV_KEEP_S)
         self.points.trim_before(keep)
 
-    def take(self, block: BlockEstimate) -> None:
+    def take(self, block: BlockEstimate, family: int = 0) -> None:
         """A block's estimate (in the loop): the test, the alarm, the publications."""
         self.last_block = block
-        self.test.update(block)
+        self.test.update(block, family)
         if self.log_event is not None:
             self.log_event(
                 {
                     "event": "mount_watch_block",
                     **block_summary(block),
+                    "family": family,
                     "statistic": self.test.state()["statistic"],
                 }
             )
@@ -245,17 +234,17 @@ class MountWatchConsumer:
             self.running = job
             self.publish()
             try:
-                block = await in_daemon_thread(run_block, job, self.model)
+                block = await self.solver.solve(job, self.model)
             finally:
                 self.running = None
-            self.take(block)
+            self.take(block, job.family)
 
     # -- publication ----------------------------------------------------------------------
 
     def state(self) -> dict:
         """The ``mount`` status topic."""
         st = self.test.state()
-        pending = [self.lines[i].as_dict() for i, *_ in self.blocks.pending if i in self.lines]
+        pending = [self.lines[i].as_dict() for i in self.blocks.pending if i in self.lines]
         last_ok = st.get("last_block")
         doc = {
             "schema": SCHEMA,
@@ -301,6 +290,7 @@ class MountWatchConsumer:
     async def run(self, tap, checklist) -> None:
         self.checklist = checklist
         self.publish()
+        self.solver.start()  # its imports now, not at the first block
         try:
             async for kind, record, gps_ns in tap:
                 self.feed(kind, record, gps_ns)
@@ -315,3 +305,4 @@ class MountWatchConsumer:
                 self._task.cancel()
                 await asyncio.gather(self._task, return_exceptions=True)
                 self._task = None
+            self.solver.close()

@@ -50,6 +50,7 @@ from calib.io.bundle import ScanPoints
 MOVED_Z = 6.0  # robust z of a (patch, line) mean residual beyond which the patch moved
 MOVED_ROUNDS = 2
 MIN_MOVED_SCALE_M = 0.002  # the robust scale's floor (noise-free data)
+HOLD_SIGMA_RAD = 1e-7  # the prior σ that holds an unobserved angle at the calibrated value
 #: the selection's starting information: a (1°)⁻² prior per angle (a ranking device only)
 SELECTION_PRIOR_RAD = np.radians(1.0)
 
@@ -61,8 +62,7 @@ class WatchOptions:
     patch: PatchOptions = PatchOptions(size_m=1.5, max_points_per_patch=300)
     max_patches: int = 60
     min_heading_spread_deg: float = 90.0  # a block needs two lines this far apart in heading
-    min_offset_spread_m: float = 5.0  # … and two this far apart across the track (for yaw)
-    max_lines_per_block: int = 3  # … or this many lines (a survey at one offset)
+    max_lines_per_block: int = 3  # … among at most this many consecutive lines
     min_range_m: float = 2.0  # returns nearer are the vessel's own rails
     max_range_m: float = 60.0  # farther returns are sparse and their footprint is wide
     max_points: int = 3_000_000  # a block's points are thinned evenly beyond this
@@ -70,14 +70,17 @@ class WatchOptions:
     #: the prior of the correction: an angle the block barely sees stays near the calibrated
     #: value with about this σ (and so moves the test hardly at all)
     prior_sigma_rad: float = float(np.radians(0.5))
+    #: an angle the block resolves no better than this is held at the calibrated value while
+    #: the others are solved (and carries no evidence: the sequential test's same bound)
+    max_sigma_rad: float = float(np.radians(0.1))
 
     def __post_init__(self):
         if not 0 < self.min_range_m < self.max_range_m:
             raise ValueError(
                 f"watch range window [{self.min_range_m}, {self.max_range_m}] m: expected 0 < min < max"
             )
-        if self.max_patches < 1 or self.max_points < 1000:
-            raise ValueError("watch: max_patches ≥ 1 and max_points ≥ 1000 expected")
+        if self.max_patches < 1 or self.max_points < 1000 or self.max_lines_per_block < 2:
+            raise ValueError("watch: max_patches ≥ 1, max_points ≥ 1000 and max_lines_per_block ≥ 2 expected")
 
 
 @dataclass(frozen=True)
@@ -284,7 +287,7 @@ def estimate_block(
         chosen = [j for j in chosen if cands.names[j] not in moved]
         if not chosen:
             return BlockEstimate(**base, status="every tie patch moved", moved_patches=tuple(moved))
-    cov = res.cov_realistic * max(1.0, float(res.sigma0_squared))
+    delta, cov = _held(sub, mount, [planes[j] for j in order], adj, res, options)
     uses = []
     for k, j in enumerate(order):
         in_p = sub.plane_index == k
@@ -301,7 +304,7 @@ def estimate_block(
     return BlockEstimate(
         **base,
         status="ok",
-        delta_rad=res.boresight_rad - mount.boresight_rad,
+        delta_rad=delta,
         cov_rad2=cov,
         sigma0_squared=float(res.sigma0_squared),
         n_points=res.n_points,
@@ -310,6 +313,32 @@ def estimate_block(
         moved_patches=tuple(moved),
         runtime_s=time.perf_counter() - clock,
     )
+
+
+def _held(sub, mount: Mount, planes, adj: AdjustOptions, res, options: WatchOptions):
+    """The correction and its covariance (scaled by the variance factor when above 1), with the
+    angles the block does not observe (σ above :attr:`WatchOptions.max_sigma_rad`) held at the
+    calibrated value and the others solved again: a barely observed angle otherwise wanders
+    several of its σ on small systematic misfits and drags the others with it through their
+    correlation. A held angle keeps its first value and σ, uncorrelated (no evidence)."""
+    delta = res.boresight_rad - mount.boresight_rad
+    cov = res.cov_realistic * max(1.0, float(res.sigma0_squared))
+    held = np.sqrt(np.clip(np.diag(cov), 0.0, None)) > options.max_sigma_rad
+    if not held.any() or held.all():
+        return delta, cov
+    sig = np.where(held, HOLD_SIGMA_RAD, options.prior_sigma_rad)
+    try:
+        res2 = adjust(
+            sub, mount, planes, replace(adj, boresight_prior_rad=np.stack([mount.boresight_rad, sig]))
+        )
+    except (ObservabilityError, AdjustmentError, np.linalg.LinAlgError):
+        return delta, cov
+    delta2 = np.where(held, delta, res2.boresight_rad - mount.boresight_rad)
+    cov2 = res2.cov_realistic * max(1.0, float(res2.sigma0_squared))
+    cov2[held, :] = 0.0
+    cov2[:, held] = 0.0
+    cov2[held, held] = np.diag(cov)[held]
+    return delta2, cov2
 
 
 def _moved(obs, res) -> np.ndarray:

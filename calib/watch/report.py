@@ -14,7 +14,7 @@ import numpy as np
 from calib.core.frames import gps_ns_to_utc
 from calib.watch.block import BlockEstimate
 from calib.watch.runner import WatchRun
-from calib.watch.sequential import ANGLES, MountAlarm
+from calib.watch.sequential import ANGLES, FAMILIES, MountAlarm
 
 NS_PER_S = 1_000_000_000
 
@@ -64,7 +64,7 @@ def as_document(run: WatchRun, meta: dict) -> dict:
         "verdict": run_verdict(run),
         "alarm": None if run.alarm is None else run.alarm.as_dict(),
         "lines": run.line_order,
-        "blocks": [b.as_dict() for b in run.blocks],
+        "blocks": [b.as_dict() | {"family": f} for b, f in zip(run.blocks, run.families)],
         "states": run.states,
     }
 
@@ -105,14 +105,14 @@ def markdown(run: WatchRun, meta: dict) -> str:
         f"- source: `{meta.get('source', '?')}`; calibration: `{meta.get('calibration') or 'the site a priori'}`",
         f"- test: CUSUM per angle and sign tuned to a {math.degrees(d.shift_rad):.3f}° change; "
         f"threshold h = {d.threshold:.2f} (≤ {d.false_alarms_per_hour:g} false alarms per hour at "
-        f"≤ {d.max_blocks_per_hour:g} blocks per hour); an angle a block resolves no better than "
-        f"{math.degrees(d.max_sigma_rad):.2f}° is not evidence",
+        f"≤ {d.max_blocks_per_hour:g} blocks per hour in each of {FAMILIES} families of blocks that share no "
+        f"line); an angle a block resolves no better than {math.degrees(d.max_sigma_rad):.2f}° is not evidence",
         f"- lines: {len(run.line_order)}; blocks: {len(run.blocks)} ({sum(b.ok for b in run.blocks)} with an estimate)",
         "",
-        "| block | lines | headings ° | start (UTC) | patches | roll ° | pitch ° | yaw ° | statistic |",
-        "|---|---|---|---|---|---|---|---|---|",
+        "| block | family | lines | headings ° | start (UTC) | patches | roll ° | pitch ° | yaw ° | statistic |",
+        "|---|---|---|---|---|---|---|---|---|---|",
     ]
-    for k, (b, s) in enumerate(zip(run.blocks, run.states)):
+    for k, (b, s, f) in enumerate(zip(run.blocks, run.states, run.families)):
         if b.delta_rad is not None:
             cells = [
                 f"{math.degrees(x):+.3f} ± {math.degrees(sd):.3f}" for x, sd in zip(b.delta_rad, b.sigma_rad)
@@ -121,7 +121,7 @@ def markdown(run: WatchRun, meta: dict) -> str:
             cells = [b.status, "", ""]
         stat = " / ".join(f"{x:.2f}" for x in s["statistic"])
         lines.append(
-            f"| {k + 1} | {', '.join(map(str, b.pass_ids))} | {', '.join(f'{h:.0f}' for h in b.headings_deg)} | "
+            f"| {k + 1} | {chr(ord('A') + f)} | {', '.join(map(str, b.pass_ids))} | {', '.join(f'{h:.0f}' for h in b.headings_deg)} | "
             f"{_utc(b.t_start_gps_s)} | {len(b.patches)} | {' | '.join(cells)} | {stat} |"
         )
     lines += ["", "## Where the information came from", ""]

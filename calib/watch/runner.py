@@ -2,10 +2,14 @@
 fed to the sequential test, in time order — what the daemon does live, line by line, and what
 ``mls watch`` and the benchmark run offline.
 
-:class:`BlockCutter` is the grouping both use: lines are added as they end; a block closes as
-soon as its lines span :attr:`WatchOptions.min_heading_spread_deg` in heading (two lines sailed
-in opposite directions, usually), so blocks never share a line and their estimates are
-independent but for the POS errors' correlation across the turn between them.
+:class:`BlockCutter` is the grouping both use: every line that ends closes a block with the
+lines just before it, as soon as they span :attr:`WatchOptions.min_heading_spread_deg` in
+heading — usually the line and the one sailed back before it. So a mount change is seen in the
+first pair of lines sailed wholly after it, wherever in the survey it falls: at most about two
+lines after the line it happened in. Consecutive blocks share a line, so they are dealt into
+:data:`FAMILIES` interleaved families in which blocks never share a line (the sequential test
+runs one CUSUM per family: within a family blocks are independent but for the POS errors'
+correlation across the turns between them).
 """
 
 from __future__ import annotations
@@ -21,75 +25,88 @@ from calib.core.georef import Mount
 from calib.core.trajectory import Trajectory
 from calib.io.bundle import ScanPoints
 from calib.watch.block import BlockEstimate, WatchOptions, block_ready, estimate_block
-from calib.watch.sequential import MountAlarm, MountTest, WatchDesign
+from calib.watch.sequential import FAMILIES, MountAlarm, MountTest, WatchDesign
+
+
+@dataclass(frozen=True)
+class Block:
+    """The lines of a block, in the order sailed, and its family (0 or 1)."""
+
+    line_ids: tuple[int, ...]
+    family: int
 
 
 @dataclass
 class BlockCutter:
-    """Groups lines into blocks as they end.
+    """Cuts blocks from lines as they end (module docstring).
 
-    Roll and pitch need two headings; heading (yaw) needs two *distances* from the scene: a yaw
-    change turns the scan plane about the vertical, which moves a point along the wall by its
-    horizontal range times the change — the same world shift from either heading, so only lines
-    at different offsets tell it from the scene. A block therefore closes when its headings span
-    :attr:`WatchOptions.min_heading_spread_deg` and its lines lie
-    :attr:`WatchOptions.min_offset_spread_m` apart across the track, or when it holds
-    :attr:`WatchOptions.max_lines_per_block` lines (a survey at one offset: yaw stays unseen).
-    A line given without its position counts as at the others' offset."""
+    A block is the shortest run of the latest lines, ending with the one just added and at most
+    :attr:`WatchOptions.max_lines_per_block` long, whose headings span
+    :attr:`WatchOptions.min_heading_spread_deg`. It joins a family whose last block ended before
+    its first line (of two, the one that ended later: the families then alternate); when
+    neither has, the block is not formed. Lines sailed one after another at different offsets
+    also give yaw (a yaw change turns the scan plane about the vertical, which moves a point
+    along the wall by its horizontal range times the change: only lines at different distances
+    tell that from the scene); those at one offset give roll and pitch."""
 
     options: WatchOptions = field(default_factory=WatchOptions)
-    pending: list[tuple[int, float, np.ndarray | None]] = field(default_factory=list)
+    recent: list[tuple[int, int, float]] = field(default_factory=list)  # (number, id, heading)
+    last_end: list[int] = field(default_factory=lambda: [-1] * FAMILIES)  # a family's last line
+    used: set[int] = field(default_factory=set)  # numbers of the recent lines in some block
+    added: int = 0
+    dropped: int = 0  # lines that left the window without being in any block
 
-    def add(self, line_id: int, heading_rad: float, position_ne_m=None) -> tuple[int, ...] | None:
-        """Add a finished line (its relative heading and mean north/east position); the ids of
-        a block when this line closes one."""
-        pos = None if position_ne_m is None else np.asarray(position_ne_m, float)[:2]
-        self.pending.append((int(line_id), float(heading_rad), pos))
+    def add(self, line_id: int, heading_rad: float) -> Block | None:
+        """Add a finished line (its heading, relative to the wall); the block it closes."""
         o = self.options
-        if not block_ready([h for _, h, _ in self.pending], o):
-            return None
-        if self.offset_spread_m() >= o.min_offset_spread_m or len(self.pending) >= o.max_lines_per_block:
-            ids = tuple(i for i, _, _ in self.pending)
-            self.pending = []
-            return ids
+        n = self.added
+        self.added += 1
+        self.recent.append((n, int(line_id), float(heading_rad)))
+        while len(self.recent) > o.max_lines_per_block:
+            old = self.recent.pop(0)[0]
+            if old not in self.used:
+                self.dropped += 1
+            self.used.discard(old)
+        for k in range(2, len(self.recent) + 1):
+            run = self.recent[-k:]
+            if not block_ready([h for _, _, h in run], o):
+                continue
+            free = [f for f in range(FAMILIES) if self.last_end[f] < run[0][0]]
+            if not free:
+                return None
+            f = max(free, key=lambda i: self.last_end[i])
+            self.last_end[f] = n
+            self.used.update(m for m, _, _ in run)
+            return Block(tuple(i for _, i, _ in run), f)
         return None
 
-    def offset_spread_m(self) -> float:
-        """The largest distance of a pending line's position across another's track."""
-        best = 0.0
-        for _, h, p in self.pending:
-            if p is None:
-                continue
-            n = np.array([-np.sin(h), np.cos(h)])  # across the track (the relative frame: any rotation)
-            for _, _, q in self.pending:
-                if q is not None:
-                    best = max(best, abs(float((q - p) @ n)))
-        return best
+    @property
+    def pending(self) -> list[int]:
+        """The ids of the recent lines no block has taken yet (waiting for a partner)."""
+        return [i for m, i, _ in self.recent if m not in self.used]
+
+    @property
+    def kept(self) -> list[int]:
+        """The ids of the lines a later block may still take."""
+        return [i for _, i, _ in self.recent]
 
 
-def line_geometry(
-    points: ScanPoints, trajectory: Trajectory, wall_azimuth_rad: float
-) -> dict[int, tuple[float, np.ndarray]]:
-    """Each line's mean heading relative to the wall (radians) and mean north/east position in
-    the same relative frame (m), from the trajectory at its returns (every 50th suffices)."""
+def line_headings(points: ScanPoints, trajectory: Trajectory, wall_azimuth_rad: float) -> dict[int, float]:
+    """Each line's mean heading relative to the wall (radians), from the trajectory at its
+    returns (every 50th suffices)."""
     out = {}
-    c, s = np.cos(-wall_azimuth_rad), np.sin(-wall_azimuth_rad)
     for pid in points.pass_ids():
         t = points.t_gps_s[points.pass_id == pid][::50]
-        poses = trajectory.interpolate(t)
-        yaw = poses.rpy_rad[:, 2]
+        yaw = trajectory.interpolate(t).rpy_rad[:, 2]
         mean = np.arctan2(np.mean(np.sin(yaw)), np.mean(np.cos(yaw)))
-        ne = poses.p_lgf_m[:, :2].mean(axis=0)
-        out[int(pid)] = (
-            float(frames.wrap_2pi(mean - wall_azimuth_rad)),
-            np.array([c * ne[0] - s * ne[1], s * ne[0] + c * ne[1]]),
-        )
+        out[int(pid)] = float(frames.wrap_2pi(mean - wall_azimuth_rad))
     return out
 
 
 @dataclass
 class WatchRun:
     blocks: list[BlockEstimate]
+    families: list[int]  # each block's (BlockCutter)
     test: MountTest
     alarm: MountAlarm | None
     states: list[dict]  # the test's published state after each block
@@ -112,14 +129,14 @@ def run_watch(
     ids = points.pass_ids()
     first = {int(p): float(points.t_gps_s[points.pass_id == p].min()) for p in ids}
     order = sorted(first, key=first.__getitem__)
-    geometry = line_geometry(points, trajectory, wall_azimuth_rad)
+    headings = line_headings(points, trajectory, wall_azimuth_rad)
     cutter = BlockCutter(options)
-    groups = [g for g in (cutter.add(i, *geometry[i]) for i in order) if g is not None]
+    groups = [g for g in (cutter.add(i, headings[i]) for i in order) if g is not None]
     test = MountTest(design)
     states = []
     for k, g in enumerate(groups):
         blk = estimate_block(
-            points.select(np.isin(points.pass_id, g)),
+            points.select(np.isin(points.pass_id, g.line_ids)),
             trajectory,
             mount,
             sigmas,
@@ -127,8 +144,8 @@ def run_watch(
             wall_azimuth_rad,
             options,
         )
-        test.update(blk)
+        test.update(blk, g.family)
         states.append(test.state())
         if progress is not None:
             progress(k + 1, len(groups), blk)
-    return WatchRun(test.blocks, test, test.alarm, states, order)
+    return WatchRun(test.blocks, test.families, test, test.alarm, states, order)

@@ -11,11 +11,17 @@ large ``σ_b`` and moves the statistic hardly at all: a line without patches is 
 design shift ``μ`` (:attr:`WatchDesign.shift_rad`) is the change the test is tuned to detect
 fastest; larger changes are detected faster still, smaller ones later.
 
+**Families.** Consecutive blocks share a line (:class:`calib.watch.runner.BlockCutter`: each
+line closes a block with the one before it), so they are not independent; they are dealt into
+:data:`FAMILIES` interleaved families whose blocks share no line, and each family has its own
+six statistics. The alarm is raised by whichever family crosses first.
+
 **The false-alarm rate.** For a CUSUM of log-likelihood ratios of independent blocks, the mean
 number of blocks to a false alarm is at least ``e^h`` (Lorden 1971; the bound holds for any
 σ_b sequence, since each Λ_b is a likelihood ratio with expectation 1 of ``e^Λ`` under no
-change). The watch runs six one-sided statistics, so with at most ``B`` blocks per hour the
-false alarms per hour are at most ``6·B·e^{−h}``; :meth:`WatchDesign.threshold` solves that for
+change). Each family runs six one-sided statistics, so with at most ``B`` blocks per hour in a
+family the false alarms per hour are at most ``6·FAMILIES·B·e^{−h}`` (a union bound: the
+families need not be independent of each other); :meth:`WatchDesign.threshold` solves that for
 the requested rate (default :data:`FALSE_ALARMS_PER_HOUR`: one in 100 survey hours). The bound
 is conservative, and it assumes the σ_b are right: a model that understates them raises the
 rate, which is why blocks scale their covariance by the variance factor and the benchmark
@@ -23,10 +29,11 @@ measures the rate on data the model did not generate (``benchmarks/watch.py``).
 
 **The running estimate** (:class:`MountTest.estimate_rad`): a Kalman filter of the correction as
 a random walk (:attr:`WatchDesign.walk_rad_per_sqrt_h`) updated with each block — it follows a
-slow creep and settles on a step. **The alarm's size** is the information-weighted mean of the
-blocks of the alarmed statistic's run — from the block where it last left zero, the CUSUM's
-estimate of the change time — after that first block, which holds the change only in part;
-with its σ.
+slow creep and settles on a step; every line is in two blocks, so each block enters it with
+twice its covariance. **The alarm's size** is the information-weighted mean of the blocks of
+the alarmed statistic's run (in its family) — from the block where it last left zero, the
+CUSUM's estimate of the change time — after that first block, which holds the change only in
+part; with its σ.
 """
 
 from __future__ import annotations
@@ -41,7 +48,8 @@ from calib.watch.block import BlockEstimate
 
 ANGLES = ("roll", "pitch", "yaw")
 FALSE_ALARMS_PER_HOUR = 0.01  # one in 100 survey hours
-MAX_BLOCKS_PER_HOUR = 60.0  # a block is two lines: at least a minute each
+MAX_BLOCKS_PER_HOUR = 60.0  # in a family: a block is two lines of at least half a minute each
+FAMILIES = 2  # interleaved block sequences (module docstring)
 UNSEEN_RAD = 100.0  # the σ given to an angle a block does not observe
 
 
@@ -60,15 +68,16 @@ class WatchDesign:
 
     @property
     def threshold(self) -> float:
-        """h such that 6 one-sided CUSUMs at ``max_blocks_per_hour`` raise at most
-        ``false_alarms_per_hour`` (Lorden's bound, module docstring)."""
-        return math.log(6.0 * self.max_blocks_per_hour / self.false_alarms_per_hour)
+        """h such that 6 one-sided CUSUMs in each family at ``max_blocks_per_hour`` raise at
+        most ``false_alarms_per_hour`` (Lorden's bound, module docstring)."""
+        return math.log(6.0 * FAMILIES * self.max_blocks_per_hour / self.false_alarms_per_hour)
 
     def as_dict(self) -> dict:
         return {
             "shift_deg": math.degrees(self.shift_rad),
             "false_alarms_per_hour": self.false_alarms_per_hour,
             "max_blocks_per_hour": self.max_blocks_per_hour,
+            "families": FAMILIES,
             "threshold": self.threshold,
             "walk_deg_per_sqrt_h": math.degrees(self.walk_rad_per_sqrt_h),
         }
@@ -117,17 +126,21 @@ class MountTest:
     """The sequential test over blocks (module docstring). ``update`` each block in time order."""
 
     design: WatchDesign = field(default_factory=WatchDesign)
-    S: np.ndarray = field(default_factory=lambda: np.zeros((3, 2)))  # [angle, (+, −)]
-    run_start: np.ndarray = field(default_factory=lambda: np.full((3, 2), -1, int))  # block index
+    S: np.ndarray = field(default_factory=lambda: np.zeros((FAMILIES, 3, 2)))  # [family, angle, (+, −)]
+    run_start: np.ndarray = field(default_factory=lambda: np.full((FAMILIES, 3, 2), -1, int))  # block
     estimate_rad: np.ndarray = field(default_factory=lambda: np.zeros(3))
     cov_rad2: np.ndarray = field(default_factory=lambda: np.eye(3) * np.radians(1.0) ** 2)
     blocks: list[BlockEstimate] = field(default_factory=list)
+    families: list[int] = field(default_factory=list)  # each block's
     alarm: MountAlarm | None = None
     _t_last: float | None = None
 
-    def update(self, block: BlockEstimate) -> MountAlarm | None:
-        """Take one block; returns the alarm when this block raised it (once)."""
+    def update(self, block: BlockEstimate, family: int = 0) -> MountAlarm | None:
+        """Take one block of a family; returns the alarm when this block raised it (once)."""
+        if not 0 <= family < FAMILIES:
+            raise ValueError(f"watch test: family {family} outside 0…{FAMILIES - 1}")
         self.blocks.append(block)
+        self.families.append(family)
         b = len(self.blocks) - 1
         if not block.ok:
             return None
@@ -137,17 +150,17 @@ class MountTest:
         self._filter(block, delta, cov)
         mu = self.design.shift_rad
         var = np.diag(cov)
+        S, start = self.S[family], self.run_start[family]
         for s, sign in enumerate((1.0, -1.0)):
             llr = np.where(seen, (sign * mu / var) * (delta - sign * mu / 2.0), 0.0)
-            new = self.S[:, s] + llr
-            starting = (self.S[:, s] <= 0.0) & (new > 0.0)
-            self.run_start[starting, s] = b
-            self.S[:, s] = np.maximum(0.0, new)
-            self.run_start[self.S[:, s] <= 0.0, s] = -1
+            new = S[:, s] + llr
+            start[(S[:, s] <= 0.0) & (new > 0.0), s] = b
+            S[:, s] = np.maximum(0.0, new)
+            start[S[:, s] <= 0.0, s] = -1
         if self.alarm is None:
-            hit = self.S.max(axis=1) >= self.design.threshold
+            hit = S.max(axis=1) >= self.design.threshold
             if hit.any():
-                self.alarm = self._raise(b, hit)
+                self.alarm = self._raise(b, family, hit)
                 return self.alarm
         else:  # raised once; its size keeps being refined by the blocks after the change
             self.alarm = self._sized(self.alarm, self.alarm.first_block, b)
@@ -155,8 +168,8 @@ class MountTest:
 
     @property
     def statistic(self) -> np.ndarray:
-        """(3,) the larger of each angle's two CUSUMs, over the threshold (alarm at 1)."""
-        return self.S.max(axis=1) / self.design.threshold
+        """(3,) the largest of each angle's CUSUMs, over the threshold (alarm at 1)."""
+        return self.S.max(axis=(0, 2)) / self.design.threshold
 
     @property
     def sigma_rad(self) -> np.ndarray:
@@ -180,15 +193,16 @@ class MountTest:
             self.cov_rad2 = self.cov_rad2 + q * np.eye(3)
         self._t_last = t
         P = self.cov_rad2
-        K = P @ np.linalg.inv(P + R)
+        K = P @ np.linalg.inv(P + FAMILIES * R)  # every line is in FAMILIES blocks
         self.estimate_rad = self.estimate_rad + K @ (delta - self.estimate_rad)
         self.cov_rad2 = (np.eye(3) - K) @ P
         self.cov_rad2 = 0.5 * (self.cov_rad2 + self.cov_rad2.T)
 
-    def _raise(self, b: int, hit: np.ndarray) -> MountAlarm:
+    def _raise(self, b: int, family: int, hit: np.ndarray) -> MountAlarm:
         angles = tuple(ANGLES[i] for i in np.flatnonzero(hit))
-        side = np.argmax(self.S, axis=1)
-        starts = [self.run_start[i, side[i]] for i in np.flatnonzero(hit)]
+        S, start = self.S[family], self.run_start[family]
+        side = np.argmax(S, axis=1)
+        starts = [start[i, side[i]] for i in np.flatnonzero(hit)]
         first = min(s for s in starts if s >= 0) if any(s >= 0 for s in starts) else b
         alarm = MountAlarm(
             t_gps_s=self.blocks[b].t_end_gps_s,
@@ -196,15 +210,21 @@ class MountTest:
             angles=angles,
             size_rad=np.zeros(3),
             sigma_rad=np.zeros(3),
-            statistic=float(self.S.max()),
+            statistic=float(S.max()),
             first_block=int(first),
         )
         return self._sized(alarm, first, b)
 
     def _sized(self, alarm: MountAlarm, first: int, b: int) -> MountAlarm:
-        """``alarm`` with its size from blocks ``first``…``b``: those after the first (during
-        which the change happened, so that it holds only part of it), or the first alone."""
-        run = [blk for blk in self.blocks[first : b + 1] if blk.ok]
+        """``alarm`` with its size from the blocks ``first``…``b`` of the first one's family
+        (which share no line): those after the first (during which the change happened, so
+        that it holds only part of it), or the first alone."""
+        family = self.families[first]
+        run = [
+            blk
+            for blk, f in zip(self.blocks[first : b + 1], self.families[first : b + 1])
+            if blk.ok and f == family
+        ]
         used = run[1:] if len(run) > 1 else run
         parts = [self.usable(blk) for blk in used]
         info = sum(np.linalg.inv(c) for _, c, _ in parts)

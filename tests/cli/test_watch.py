@@ -71,6 +71,7 @@ def test_a_moved_mount_is_reported_with_its_angle_and_time(moved):
     assert (out / "watch.png").stat().st_size > 10_000
     md = (out / "watch.md").read_text()
     assert "MOUNT SHIFT" in md and "Where the information came from" in md
+    assert "| block | family | lines |" in md and {b["family"] for b in doc["blocks"]} == {0, 1}
     # the report exists: not replaced without --force
     again = CliRunner().invoke(app, ["watch", str(bundle), "--out", str(out)], env=ENV)
     assert again.exit_code == 1 and "--force" in again.output

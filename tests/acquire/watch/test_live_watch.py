@@ -2,7 +2,7 @@
 of the harbour front, no pass marks) → the real ``mls acquire`` with the watch enabled → a real
 mosquitto on loopback.
 
-Two runs of the same survey, six 80-m lines there and back at 12 and 20 m from the wall,
+Two runs of the same survey, seven 80-m lines there and back at 12 and 20 m from the wall,
 played at ×:data:`SPEED` (the INS at :data:`INS_RATE_HZ` Hz): one with a 0.3° roll step of the
 scanner mount in the turn between the third and the fourth line, one without. The daemon is
 given the scenario's calibrated boresight (a ``result.json`` written here) and cuts the lines
@@ -47,7 +47,7 @@ SPEED = 10  # with the INS at 50 Hz: 500 epochs/s through the pty, as the export
 INS_RATE_HZ = 50
 PREFIX = "watchtest"
 STEP_DEG = (0.3, 0.0, 0.0)
-LINES = 6  # the last one never ends (the survey does): it closes no block
+LINES = 7  # the last one never ends (the survey does): it closes no block
 GOAL_DELAY_PAIRS = 2  # benchmarks/watch.py: the alarm within two pairs of lines after the event
 SOLVE_WALL_S = 60.0  # the block's solve after its last line, at most (wall seconds, loaded CI)
 SURVEY = [
@@ -201,7 +201,12 @@ def test_a_mount_step_raises_mount_shift_on_mqtt_within_two_pairs_of_lines(tmp_p
     assert with_alarm, [m.data.get("verdict") for m in mounts]
     first = with_alarm[0]
     alarm = first.data["alarm"]
-    assert alarm["angles"] == ["roll"] and alarm["size_deg"][0] == pytest.approx(STEP_DEG[0], abs=0.1)
+    # raised by the pair of lines either side of the step it may hold only part of the step;
+    # the blocks after it refine the size to the whole step
+    assert alarm["angles"] == ["roll"] and 0.05 < alarm["size_deg"][0] < STEP_DEG[0] + 0.1
+    last = [m.data["alarm"] for m in with_alarm][-1]
+    assert last["blocks_after"] >= 1, last
+    assert abs(last["size_deg"][0] - STEP_DEG[0]) < 3 * last["sigma_deg"][0] + 0.02, last
     assert first.data["verdict"].startswith("MOUNT SHIFT: ") and alarm["message"] == a["message"]
     assert first.data["lines"]["mode"] == "heading"
     # within the stated delay: the block that crossed ended by the end of the second pair of
@@ -215,7 +220,7 @@ def test_a_mount_step_raises_mount_shift_on_mqtt_within_two_pairs_of_lines(tmp_p
         f"{(t_mqtt - t_event) / 60:.2f} min after it; {alarm['message']}; "
         f"wall {r['wall_s']:.0f} s (emulators {r['emulated_s']:.0f} s), event loop lag ≤ {r['loop_lag_ms']:.0f} ms"
     )
-    # the blocks are solved in the worker thread: the daemon's loop never waits for one (a
+    # the blocks are solved in the worker process: the daemon's loop never waits for one (a
     # solve takes seconds here; the loop's worst lag, the emulators at ×10 sharing the two
     # cores, stays a fraction of that)
     assert r["loop_lag_ms"] < 1000.0

@@ -11,7 +11,7 @@ import pytest
 
 from calib.sim.production import MountEvent, ProductionSpec, simulate_production
 from calib.watch.block import WatchOptions, estimate_block, site_error_model, site_sigmas
-from calib.watch.runner import BlockCutter, run_watch
+from calib.watch.runner import Block, BlockCutter, run_watch
 
 DEG = math.pi / 180.0
 
@@ -57,6 +57,20 @@ def test_a_steady_mount_gives_a_correction_within_its_sigma(steady):
     assert b.as_dict()["status"] == "ok"
 
 
+def test_an_angle_the_block_does_not_resolve_is_held_and_carries_no_correlation(steady):
+    # lines 1 and 2 are sailed at one offset: yaw is not resolved (only ranges that differ tell
+    # it from the scene); it is held at the calibrated value while roll and pitch are solved
+    b = block_of(steady, [1, 2])
+    free = block_of(steady, [1, 2], WatchOptions(max_sigma_rad=np.inf))
+    assert b.sigma_rad[2] > WatchOptions().max_sigma_rad
+    assert np.all(b.cov_rad2[2, :2] == 0.0) and np.all(b.cov_rad2[:2, 2] == 0.0)
+    assert b.delta_rad[2] == free.delta_rad[2] and b.sigma_rad[2] == free.sigma_rad[2]
+    assert free.cov_rad2[2, :2].any()  # left free, yaw is correlated with roll and pitch
+    # held, roll and pitch are conditional on yaw: their σ no larger, their values within 4σ
+    assert np.all(b.sigma_rad[:2] <= free.sigma_rad[:2] * 1.01)  # (the variance factors differ a little)
+    assert np.all(np.abs(b.delta_rad[:2]) < 4.0 * b.sigma_rad[:2]), b.delta_rad / DEG
+
+
 def test_a_step_of_roll_and_pitch_is_found(stepped):
     b = block_of(stepped, [1, 2])
     assert b.ok, b.status
@@ -86,22 +100,41 @@ def test_a_line_that_sees_no_patch_raises_no_alarm(steady):
         site.wall_azimuth_rad,
     )  # fmt: skip
     assert run.alarm is None
-    assert [(b.pass_ids, b.status) for b in run.blocks] == [((1, 2, 3), "lines of one heading")]
+    assert [(b.pass_ids, b.status) for b in run.blocks] == [
+        ((1, 2), "lines of one heading"),
+        ((2, 3), "lines of one heading"),
+    ]
     assert run.test.statistic.max() == 0.0
 
 
-def test_blocks_close_on_two_headings_and_two_offsets():
+def test_every_line_closes_a_block_with_the_one_before_and_families_share_no_line():
     c = BlockCutter(WatchOptions())
-    assert c.add(1, 0.0, [0.0, -12.0]) is None
-    assert c.add(2, math.pi, [0.0, -12.1]) is None  # back at the same offset: yaw unseen yet
-    assert c.add(3, 0.0, [0.0, -20.0]) == (1, 2, 3)
-    assert c.add(4, math.pi, [0.0, -20.0]) is None
-    assert c.add(5, 0.0, [5.0, -30.0]) == (4, 5)
-    # at one offset a block closes at three lines; without positions at two headings
-    assert [c.add(i, h, [0.0, -12.0]) for i, h in ((6, 0.0), (7, math.pi), (8, 0.0))] == [
+    got = [c.add(i, h) for i, h in ((1, 0.0), (2, math.pi), (3, 0.0), (4, math.pi))]
+    assert got == [None, Block((1, 2), 0), Block((2, 3), 1), Block((3, 4), 0)]
+    # two lines of one heading: the next line of the other heading takes the later one only
+    assert c.add(5, math.pi) is None and c.pending == [5]  # 4 and 5: one heading
+    assert c.add(6, 0.0) == Block((5, 6), 0) and c.add(7, math.pi) == Block((6, 7), 1)
+    # lines of one heading: a line that leaves the window in no block is dropped
+    assert [c.add(i, math.pi) for i in (8, 9, 10)] == [None, None, None]
+    assert c.dropped == 0 and c.pending == [8, 9, 10]
+    assert c.add(11, math.pi) is None and c.dropped == 1 and c.kept == [9, 10, 11]
+    # a block whose first line is in both families' last blocks is not formed
+    d = BlockCutter(WatchOptions())
+    assert [d.add(i, h) for i, h in ((1, 0.0), (2, math.pi), (3, 0.0))] == [
         None,
-        None,
-        (6, 7, 8),
+        Block((1, 2), 0),
+        Block((2, 3), 1),
     ]
-    c2 = BlockCutter(WatchOptions(max_lines_per_block=2))
-    assert c2.add(1, 0.0) is None and c2.add(2, math.pi) == (1, 2)
+    assert d.add(4, 0.1) is None and d.add(5, math.pi) == Block((4, 5), 1)
+    # three lines to span the heading: a line at 60° between lines at 0° and 120°
+    e = BlockCutter(WatchOptions())
+    assert [e.add(i, np.radians(h)) for i, h in ((1, 0.0), (2, 60.0), (3, 120.0))] == [
+        None,
+        None,
+        Block((1, 2, 3), 0),
+    ]
+    f = BlockCutter(WatchOptions(max_lines_per_block=2))
+    assert [f.add(i, np.radians(h)) for i, h in ((1, 0.0), (2, 60.0), (3, 120.0))] == [None, None, None]
+    assert f.dropped == 1
+    with pytest.raises(ValueError, match="max_lines_per_block"):
+        WatchOptions(max_lines_per_block=1)

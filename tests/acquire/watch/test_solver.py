@@ -1,0 +1,87 @@
+"""The block solves' worker process (:mod:`acquire.watch.solver`): a real spawned process, a
+block that kills it, and the next block on a new one."""
+
+from __future__ import annotations
+
+import asyncio
+import os
+import re
+import threading
+import time
+
+import numpy as np
+
+from acquire.watch.blockjob import BlockJob, WatchModel
+from acquire.watch.lines import Line
+from acquire.watch.solver import BlockSolver
+from calib.boresight.errormodel import ErrorModel
+from calib.core import frames
+from calib.core.georef import Mount
+
+MODEL = WatchModel(
+    mount=Mount(np.zeros(3), np.zeros(3), np.zeros(3)),
+    frame=frames.LocalFrame(45.5, -73.55, 0.0),
+    wall_azimuth_rad=0.0,
+    sigmas={},
+    error_model=ErrorModel("gauss_markov", 60.0),
+)
+LINES = (
+    Line(7, 100.0, 160.0, 0.0, None, "heading", "turn"),
+    Line(8, 170.0, 230.0, np.pi, None, "heading", "turn"),
+)
+
+
+class _Exits:
+    """Unpickled in the worker, it ends the process (a worker killed mid-block, as the kernel's
+    OOM killer would)."""
+
+    def __reduce__(self):
+        return (os._exit, (3,))
+
+
+def test_a_block_is_solved_in_another_process_and_a_dead_worker_fails_only_its_block():
+    solver = BlockSolver()
+    try:
+        # no navigation: the worker answers with the block's status (nothing raised across)
+        first = asyncio.run(solver.solve(BlockJob(LINES, [], []), MODEL))
+        assert first.pass_ids == (7, 8) and first.status.startswith("no trajectory")
+        assert first.headings_deg == (0.0, 180.0)
+        pid = solver._proc.pid
+        assert pid != os.getpid() and solver.started == 1
+        # a block that ends the worker: failed, with the exit code; the next one gets a new worker
+        dead = solver.solve_blocking(BlockJob(LINES, [_Exits()], []), MODEL)
+        assert re.fullmatch(r"failed \(the solver process ended, exit code 3; .*\)", dead.status), dead.status
+        assert dead.pass_ids == (7, 8) and not dead.ok
+        again = solver.solve_blocking(BlockJob(LINES, [], []), MODEL)
+        assert again.status.startswith("no trajectory") and solver.started == 2 and solver._proc.pid != pid
+    finally:
+        solver.close()
+    assert solver._proc is None
+
+
+class _Sleeps:
+    """Unpickled in the worker, it keeps it busy for a minute (a long solve)."""
+
+    def __reduce__(self):
+        return (time.sleep, (60,))
+
+
+def test_close_ends_the_worker_at_once_and_the_waiting_block_fails():
+    solver = BlockSolver()
+    solver.start()
+    proc = solver._proc
+    out: list = []
+    waiting = threading.Thread(
+        target=lambda: out.append(solver.solve_blocking(BlockJob(LINES, [_Sleeps()], []), MODEL))
+    )
+    waiting.start()
+    time.sleep(0.5)
+    t0 = time.monotonic()
+    solver.close()
+    waiting.join(10)
+    assert time.monotonic() - t0 < 5 and not proc.is_alive() and proc.exitcode == -9
+    assert out and out[0].status.startswith("failed (the solver process ended, exit code -9"), out
+    # a later block starts a new worker (a consumer restarted by the supervisor)
+    out = solver.solve_blocking(BlockJob(LINES, [], []), MODEL)
+    assert out.status.startswith("no trajectory") and solver.started == 2
+    solver.close()
