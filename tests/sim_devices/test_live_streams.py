@@ -18,7 +18,7 @@ from sim_devices.runner import free_udp_port
 from tests.sim_devices.checks import assert_nav_matches, assert_profile_matches, serial_emissions
 from tests.sim_devices.harness import capture, slack
 
-pytestmark = [pytest.mark.integration, pytest.mark.xdist_group("sim_devices_live")]
+pytestmark = [pytest.mark.realtime, pytest.mark.integration, pytest.mark.xdist_group("sim_devices_live")]
 
 SPEED = 4.0
 NS = 1_000_000_000

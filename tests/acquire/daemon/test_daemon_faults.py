@@ -44,7 +44,7 @@ from tests.acquire.daemon_util import (
 )
 from tests.mosquitto import Mosquitto
 
-pytestmark = [pytest.mark.integration, pytest.mark.xdist_group("daemon-faults")]
+pytestmark = [pytest.mark.realtime, pytest.mark.integration, pytest.mark.xdist_group("daemon-faults")]
 
 NS = 1_000_000_000
 DURATION_S = 50.0

@@ -38,7 +38,7 @@ from tests.acquire.daemon_util import (
     wait_until,
 )
 
-pytestmark = [pytest.mark.integration, pytest.mark.xdist_group("daemon-timefaults")]
+pytestmark = [pytest.mark.realtime, pytest.mark.integration, pytest.mark.xdist_group("daemon-timefaults")]
 
 NS = 1_000_000_000
 DURATION_S = 16.0

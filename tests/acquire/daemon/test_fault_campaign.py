@@ -64,7 +64,12 @@ from tests.acquire.daemon.fault_campaign import (
 from tests.acquire.daemon.latency_truth import replay_latency_alarms
 from tests.acquire.daemon_util import MLS, ROOT, Recording, TruthClock, run_once
 
-pytestmark = [pytest.mark.integration, pytest.mark.slow, pytest.mark.xdist_group("fault-campaign")]
+pytestmark = [
+    pytest.mark.realtime,
+    pytest.mark.integration,
+    pytest.mark.slow,
+    pytest.mark.xdist_group("fault-campaign"),
+]
 
 
 @pytest.fixture(scope="session")

@@ -24,7 +24,7 @@ from drivers.can import parse_can_frame
 from tests.acquire.daemon_util import MLS, ROOT, NotifyCollector, free_port
 from tests.acquire.fakedevices import FakeDevices, devices_yaml
 
-pytestmark = [pytest.mark.integration, pytest.mark.xdist_group("daemon-fake")]
+pytestmark = [pytest.mark.realtime, pytest.mark.integration, pytest.mark.xdist_group("daemon-fake")]
 NS = 1_000_000_000
 
 

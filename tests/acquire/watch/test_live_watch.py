@@ -39,9 +39,14 @@ from tests.acquire.daemon_util import (
 )
 from tests.acquire.watch.records import write_result
 
-# in the fault campaign's worker: a daemon at ×10 beside it would load the host under the
-# campaign's latency checks (one latency_jump false alarm seen so)
-pytestmark = [pytest.mark.integration, pytest.mark.slow, pytest.mark.xdist_group("fault-campaign")]
+# realtime (make test runs it alone, after the rest); in the fault campaign's group besides, so
+# that a parallel run never puts a daemon at ×10 beside the campaign's latency checks
+pytestmark = [
+    pytest.mark.realtime,
+    pytest.mark.integration,
+    pytest.mark.slow,
+    pytest.mark.xdist_group("fault-campaign"),
+]
 
 SPEED = 10  # with the INS at 50 Hz: 500 epochs/s through the pty, as the export's live test at ×5
 INS_RATE_HZ = 50
