@@ -7,7 +7,8 @@ angle offsets, latency, lever-arm x/y). The boresight covariance is the result's
 (the GLS formal σ; else the scaled σ) with its correlation; the lever arm's is the estimated
 components' realistic σ (components not estimated: 0 — the lever arm as measured is taken as
 exact). Without ``--calibration`` the a-priori boresight is used and its uncertainty is not in
-the per-point σ: a warning says so.
+the per-point σ: a warning says so. A result whose verdict is not ``trusted`` (or that has none)
+is used as given, with a warning naming its verdict and reasons; the provenance records it.
 """
 
 from __future__ import annotations
@@ -19,6 +20,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from acquire.deliver.options import GeorefError
+from calib.boresight.checks.verdict import untrusted_warning
 from calib.core.georef import Mount
 from calib.core.tpu import MountCovariance, ScannerSigmas
 
@@ -111,6 +113,8 @@ def load_calibration(site, ref: str | None, software: str, db=None) -> Calibrati
         "boresight_sigma_deg": [float(v) for v in np.degrees(np.sqrt(np.diag(cov.boresight_cov_rad2)))],
         "extras_applied": applied,
         "calibration_software": result.get("software_version"),
+        "calibration_verdict": result.get("verdict"),
         "software": software,
     }
-    return Calibration(mount, cov, scanner_sigmas(site), prov)
+    warning = untrusted_warning(result, label)
+    return Calibration(mount, cov, scanner_sigmas(site), prov, [] if warning is None else [warning])

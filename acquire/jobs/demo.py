@@ -19,7 +19,8 @@ and runs each step as a child process in **its own process group**, its output i
 3. When every pass is accepted, or the scenario has ended, the daemon is stopped (SIGTERM: the
    session is closed cleanly), then the devices.
 4. ``export`` — ``mls export SESSION --bundle OUT/bundle``;
-5. ``calibration`` — ``mls calib run OUT/bundle --out OUT/calib --no-history``;
+5. ``calibration`` — ``mls calib run OUT/bundle --out OUT/calib --no-history --accept-refused``
+   (its verdict is shown beside the truth, whatever it is);
 6. the comparison of the recovered boresight with the truth the devices were fed
    (``OUT/run/scenario_truth.json``): :mod:`acquire.jobs.demo_compare`.
 
@@ -287,7 +288,8 @@ def run_demo(settings: DemoSettings, console, interrupted: Callable[[], None] = 
         _step(
             children,
             "calibration (mls calib run)",
-            [*MLS, "calib", "run", str(bundle), "--out", str(calib), "--no-history"],
+            # --accept-refused: the demo shows every verdict, refused included, beside the truth
+            [*MLS, "calib", "run", str(bundle), "--out", str(calib), "--no-history", "--accept-refused"],
             logs / "calib.log",
             settings.step_timeout_s,
             interrupted,

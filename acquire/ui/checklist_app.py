@@ -54,6 +54,7 @@ from acquire.ui.panels import (
     render_sigma,
 )
 from acquire.ui.planview import render_plan
+from calib.boresight.checks.verdict import REFUSED_EXIT_STATUS
 
 # =============================================================================================
 # Calibration runner
@@ -87,14 +88,14 @@ def run_calib_cli(session: str | None) -> CalibrationOutcome:
         proc = subprocess.run(cmd, capture_output=True, text=True, timeout=3600)
     except (OSError, subprocess.TimeoutExpired) as e:
         return CalibrationOutcome(False, f"mls calib run failed to run: {e}")
-    if proc.returncode != 0:
+    if proc.returncode not in (0, REFUSED_EXIT_STATUS):  # a refused result is shown with its reasons
         tail = (proc.stderr or proc.stdout).strip().splitlines()[-3:]
         return CalibrationOutcome(False, f"mls calib run exited with {proc.returncode}: " + " / ".join(tail))
     try:
         result = json.loads((out / "result.json").read_text(encoding="utf-8"))
     except (OSError, ValueError) as e:
         return CalibrationOutcome(False, f"{out / 'result.json'}: {e}", out_dir=str(out))
-    return CalibrationOutcome(True, "calibrated", result, str(out))
+    return CalibrationOutcome(True, str(result.get("verdict", "calibrated")), result, str(out))
 
 
 # =============================================================================================

@@ -409,6 +409,22 @@ def render_live(st: ChecklistState, width: int = 38, rows: int = LIVE_ROWS) -> T
     return _lines(lines)
 
 
+_VERDICT_STYLE = {"trusted": "bold green", "questionable": "bold yellow", "refused": "bold red"}
+
+
+def _verdict_text(result: dict) -> Text:
+    """The calibration's verdict and its reasons (an older result has none)."""
+    status = result.get("verdict")
+    if status is None:
+        return Text("verdict: none (an older result: its reliability was not checked)", "yellow")
+    out = Text(f"verdict: {status}", _VERDICT_STYLE.get(status, "bold"))
+    if status == "refused":
+        out.append(" — do not use this result", "bold red")
+    for reason in result.get("verdict_reasons") or []:
+        out.append(f"\n  · {reason}", "")
+    return out
+
+
 def render_result(outcome) -> Group | Text:
     """The calibration result (a :class:`acquire.ui.checklist_app.CalibrationOutcome`): the
     boresight table, then the fit's figures and the output directory as text that wraps."""
@@ -429,7 +445,7 @@ def render_result(outcome) -> Group | Text:
         f"{_fmt(r.get('runtime_s'), '.2f', ' s')}",
         "dim",
     )
-    parts: list = [Text("boresight (canonical, degrees)", "italic"), tab, figures]
+    parts: list = [_verdict_text(r), Text("boresight (canonical, degrees)", "italic"), tab, figures]
     if outcome.out_dir:  # on a line of its own: a path longer than the line folds
         parts += [Text("written to", "dim"), Text(outcome.out_dir, "dim")]
     return Group(*parts)

@@ -297,6 +297,12 @@ class HistoryRecord:
         return validate_result(self.result)["boresight_deg"]
 
     @property
+    def verdict(self) -> str | None:
+        """The result's verdict (trusted, questionable, refused); None for an older result."""
+        v = self.result.get("verdict")
+        return v if isinstance(v, str) else None
+
+    @property
     def date_utc(self) -> str:
         """The survey date when known, else the recording date."""
         return self.survey_utc or self.recorded_utc

@@ -16,11 +16,12 @@ Uncertainty:
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 from scipy import stats
 
+from calib.boresight.checks.grouptest import group_tests, target_groups, worst_gross_error
 from calib.boresight.covariance import information, propagated_covariance, reported_rows
 from calib.boresight.errormodel import ErrorModel
 from calib.boresight.gausshelmert import (
@@ -65,6 +66,9 @@ class AdjustmentResult:
     error_model: ErrorModel
     names: list[str]  # names of all unknowns (for cov_all)
     cov_all: np.ndarray  # formal covariance of all unknowns (σ0 = 1)
+    #: target groups (a target in one pass) removed as gross errors, in the order removed
+    #: (:mod:`calib.boresight.checks.grouptest`), each with its statistic; their points are outliers
+    removed_groups: list[dict] = field(default_factory=list)
 
     @property
     def sigma_formal_rad(self) -> np.ndarray:
@@ -157,22 +161,10 @@ def adjust(
     sol = _solve(obs, state0, r_nom, options)
     if not np.all(np.isfinite(sol.state.boresight_rad)):
         raise AdjustmentError("the adjustment diverged (non-finite estimates)")
-    used = obs
-    if options.outliers == "snooping":
-        for _ in range(options.max_outlier_rounds):
-            s0 = np.sqrt(sol.vtpv / sol.df)
-            # normalized residual of each condition: e_i / sqrt(M_i − A_i N⁻¹ A_iᵀ) / σ̂0 (GLS:
-            # the white part of the misclosure over its σ; the leverage of n ≫ p points is small)
-            lev = 0.0 if gls else leverage(sol, used)
-            wn = sol.e / np.sqrt(np.maximum(sol.M - lev, 1e-12 * sol.M)) / s0
-            bad = np.abs(wn) > _snooping_threshold(len(used), options.outlier_alpha)
-            if not bad.any():
-                break
-            idx_used = np.flatnonzero(active)
-            active[idx_used[bad]] = False
-            used = obs.select(active)
-            validate_input(used)
-            sol = _solve(used, sol.state, r_nom, options)
+    used, sol = _snoop_points(obs, sol, active, r_nom, options)
+    removed: list[dict] = []
+    if gls and options.outliers == "snooping":
+        used, sol = _remove_gross_groups(obs, sol, active, r_nom, options, removed)
     # signed distances of the points georeferenced from the raw observations
     lin_raw = linearize(
         sol.state,
@@ -250,6 +242,69 @@ def adjust(
         error_model=options.error_model,
         names=names,
         cov_all=cov_formal_all,
+        removed_groups=removed,
+    )
+
+
+def _snoop_points(obs: Observations, sol: Solution, active: np.ndarray, r_nom, options: AdjustOptions):
+    """Point-wise data snooping: the points whose normalized residual exceeds the Šidák
+    threshold are deactivated (``active`` is updated) and the adjustment solved again, for
+    at most ``max_outlier_rounds`` rounds. Returns (observations used, solution)."""
+    used = obs.select(active)
+    if options.outliers != "snooping":
+        return used, sol
+    gls = options.estimator == "gls"
+    for _ in range(options.max_outlier_rounds):
+        s0 = np.sqrt(sol.vtpv / sol.df)
+        # normalized residual of each condition: e_i / sqrt(M_i − A_i N⁻¹ A_iᵀ) / σ̂0 (GLS:
+        # the white part of the misclosure over its σ; the leverage of n ≫ p points is small)
+        lev = 0.0 if gls else leverage(sol, used)
+        wn = sol.e / np.sqrt(np.maximum(sol.M - lev, 1e-12 * sol.M)) / s0
+        bad = np.abs(wn) > _snooping_threshold(len(used), options.outlier_alpha)
+        if not bad.any():
+            break
+        idx_used = np.flatnonzero(active)
+        active[idx_used[bad]] = False
+        used = obs.select(active)
+        validate_input(used)
+        sol = _solve(used, sol.state, r_nom, options)
+    return used, sol
+
+
+def _remove_gross_groups(obs, sol, active, r_nom, options: AdjustOptions, removed: list[dict]):
+    """Group data snooping (:mod:`calib.boresight.checks.grouptest`): the worst target group beyond
+    the family-wise level goes, the adjustment is solved again, until none is left or a target
+    would keep fewer than two passes (then the remaining evidence cannot tell it apart: the
+    group stays and the verdict says so). ``removed`` receives each removed group's test."""
+    used = obs.select(active)
+    while True:
+        worst = worst_gross_error(group_tests(sol, used))
+        if worst is None:
+            return used, sol
+        j = used.plane_names.index(worst.plane)
+        passes_left = {k for jj, k, _ in target_groups(used) if jj == j}
+        if len(passes_left) <= 2:
+            removed.append(
+                {
+                    **worst.as_dict(),
+                    "removed": False,
+                    "reason": "kept: its target would be left in fewer than 2 passes",
+                }
+            )
+            return used, sol
+        k = used.pass_ids.index(worst.pass_id)
+        idx_used = np.flatnonzero(active)
+        active[idx_used[(used.plane_index == j) & (used.pass_index == k)]] = False
+        removed.append({**worst.as_dict(), "removed": True, "reason": _group_reason(worst)})
+        used = obs.select(active)
+        validate_input(used)
+        sol = _solve(used, sol.state, r_nom, options)
+
+
+def _group_reason(t) -> str:
+    return (
+        f"{t.plane} in pass {t.pass_id}: its {t.n_points} points lie {100 * t.offset_m:+.1f} cm off the "
+        f"adjusted plane (group test T = {t.statistic:.1f} on {t.df} degrees of freedom, p = {t.p_value:.2g})"
     )
 
 

@@ -190,6 +190,7 @@ class GlsSolution(Solution):
     grid: KnotGrid
     plane_var_m2: np.ndarray  # (m,) roughness variance of each plane used
     neg2_log_lik: float  # −2 log of the restricted likelihood (up to a constant), for τ
+    system: _System  # the last iteration's normal equations (the group tests reuse them)
 
 
 @dataclass
@@ -366,14 +367,14 @@ def solve_gls(
         e = lin.F + sys.A @ dx + sys.J @ z  # the white part of each misclosure after the fit
         state = _apply(state, dx, layout, bases)
         settled = True
+        new = pv
         if rough.size and it < options.max_iterations:
             new = roughness_update(e, sys.m, pv, obs.plane_index, rough)
             settled = bool(np.all(np.abs(new - pv) <= VC_TOL * (np.maximum(new, pv) + 1e-12)))
         if step_converged(dx, layout, options, sys.S, it) and settled:
             converged = True
             break
-        if rough.size:
-            pv = new
+        pv = new
     zPz = _quad_banded(fr.prior, z)
     ePe = float(np.sum(e**2 / sys.m))
     vtpv = ePe + zPz
@@ -393,7 +394,7 @@ def solve_gls(
     _, log_det_s = np.linalg.slogdet(sys.S)
     neg2 = vtpv + log_det_naa - fr.log_det_prior + float(np.sum(np.log(sys.m))) + float(log_det_s)
     return GlsSolution(
-        state, sys.S, Sinv, lin, sys.m, e, vtpv, df, it, converged, layout, z, fr.grid, pv, neg2
+        state, sys.S, Sinv, lin, sys.m, e, vtpv, df, it, converged, layout, z, fr.grid, pv, neg2, sys
     )
 
 

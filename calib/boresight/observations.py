@@ -161,6 +161,10 @@ def validate_input(obs: Observations) -> None:
         )
 
 
+#: the largest iteration cap an adjustment accepts (it converges in 3–8 on any sane input)
+MAX_ITERATIONS = 1000
+
+
 @dataclass(frozen=True)
 class AdjustOptions:
     estimate: tuple[str, ...] = ()
@@ -205,3 +209,7 @@ class AdjustOptions:
             raise AdjustmentError(f"roughness={self.roughness!r}: expected 'patches', 'all' or 'none'")
         if self.outliers not in ("snooping", "none"):
             raise AdjustmentError(f"outliers={self.outliers!r}: expected 'snooping' or 'none'")
+        if not (isinstance(self.max_iterations, int) and 1 <= self.max_iterations <= MAX_ITERATIONS):
+            raise AdjustmentError(
+                f"max_iterations={self.max_iterations!r}: expected a whole number from 1 to {MAX_ITERATIONS}"
+            )

@@ -41,13 +41,31 @@ from pathlib import Path
 import numpy as np
 
 from calib.boresight.adjust import AdjustmentResult, adjust
-from calib.boresight.errormodel import DEFAULT_POS_CORRELATION_S, ErrorModel
-from calib.boresight.observations import AdjustOptions, Observations, build_observations, validate_input
+from calib.boresight.checks.inputs import (
+    CalibrationError,
+    check_input,
+    check_points,
+    check_within_reach,
+    drop_uncovered,
+)
+from calib.boresight.checks.verdict import Verdict, as_doc, evidence, judge
+from calib.boresight.errormodel import ErrorModel
+from calib.boresight.observations import (
+    MIN_POINTS_PER_PLANE,
+    AdjustOptions,
+    Observations,
+    build_observations,
+    validate_input,
+)
 from calib.boresight.result import estimator_doc, result_to_dict, write_result
-from calib.boresight.scene_ties import patches_agree, tie_patches_from_points
-from calib.boresight.tau import estimate_tau, tau_sensitivity
+from calib.boresight.scene_ties import patches_agree, targets_without_exposed_groups, tie_patches_from_points
+from calib.boresight.tau import (
+    TauChoice,
+    choose_tau,
+    error_model,  # noqa: F401  (where calib.watch and the tests take it)
+    tau_sensitivity,
+)
 from calib.core import frames
-from calib.core.errors import CalibError
 from calib.core.georef import Mount
 from calib.core.trajectory import Poses, Trajectory
 from calib.core.version import software_version as _software_version
@@ -68,10 +86,6 @@ ERROR_MODELS = ("gauss_markov", "pass_bias", "white")
 #: what ``--estimator`` offers: GLS over Gauss–Markov POS errors (the default), the thesis's
 #: white weights, and the thesis's weights with per-pass trajectory offsets
 ESTIMATORS = ("gls", "thesis", "pass_offsets")
-
-
-class CalibrationError(CalibError, ValueError):
-    """The input cannot be calibrated as given (the message says why and what to do)."""
 
 
 @dataclass(frozen=True)
@@ -165,92 +179,206 @@ class CalibrationRun:
     #: GLS: "estimate" (τ from the data), "sensitivity" (τ/3, τ, 3τ), "targets_only" (the
     #: solution before tie patches), "ties" (:class:`calib.boresight.scene_ties.TiePatches`)
     gls: dict = field(default_factory=dict)
-
-
-# -- checks ---------------------------------------------------------------------------------
-
-
-def check_points(points: ScanPoints, trajectory: Trajectory, time_offset_s: float = 0.0) -> None:
-    """Refuse what cannot be georeferenced: non-finite times or observations, times going
-    backwards within a pass, and points the trajectory does not cover (named by pass)."""
-    t, pid = points.t_gps_s, points.pass_id
-    bad = ~np.isfinite(t)
-    if bad.any():
-        i = int(np.argmax(bad))
-        raise CalibrationError(
-            f"{int(bad.sum())} point time(s) are NaN or infinite (first: "
-            f"point {i}, pass {int(pid[i])}); fix or drop them"
-        )
-    for name, arr in (("range", points.range_m), ("scan angle", points.scan_angle_rad)):
-        bad = ~np.isfinite(arr)
-        if bad.any():
-            i = int(np.argmax(bad))
-            raise CalibrationError(
-                f"{name} is NaN or infinite for {int(bad.sum())} point(s) "
-                f"(first: point {i}, pass {int(pid[i])})"
-            )
-    back = (pid[1:] == pid[:-1]) & (np.diff(t) < 0)
-    if back.any():
-        i = int(np.argmax(back)) + 1
-        raise CalibrationError(
-            f"point times go backwards within pass {int(pid[i])} at point {i} "
-            f"({t[i]:.6f} s after {t[i - 1]:.6f} s): the points of a pass "
-            f"must be in time order"
-        )
-    uncovered = trajectory.uncovered(t + time_offset_s)
-    if uncovered.any():
-        parts = []
-        for p in np.unique(pid[uncovered]):
-            m = uncovered & (pid == p)
-            parts.append(
-                f"pass {int(p)}: {int(m.sum())} of {int(np.sum(pid == p))} points, "
-                f"{t[m].min():.3f}…{t[m].max():.3f} s ({trajectory.where_uncovered(t[m] + time_offset_s)})"
-            )
-        raise CalibrationError(
-            f"the trajectory does not cover the points: {trajectory.name} spans "
-            f"{trajectory.t_gps_s[0]:.3f}…{trajectory.t_gps_s[-1]:.3f} s (gaps > "
-            f"{trajectory.max_gap_s:g} s refused); {'; '.join(parts)}. Export the trajectory over "
-            f"every pass, or drop these points with --skip-uncovered (mls calib run)."
-        )
-
-
-def drop_uncovered(
-    points: ScanPoints, trajectory: Trajectory, time_offset_s: float = 0.0
-) -> tuple[ScanPoints, np.ndarray, list[str]]:
-    """The points the trajectory covers, their indices in ``points`` and one warning per pass
-    that lost points (``--skip-uncovered``)."""
-    bad = trajectory.uncovered(points.t_gps_s + time_offset_s)
-    keep = np.flatnonzero(~bad)
-    warnings = []
-    for p in np.unique(points.pass_id[bad]):
-        m = points.pass_id == p
-        n, total = int(np.sum(bad & m)), int(np.sum(m))
-        warnings.append(
-            f"pass {int(p)}: dropped {n:,} of {total:,} points outside the trajectory's coverage "
-            f"({trajectory.t_gps_s[0]:.3f}…{trajectory.t_gps_s[-1]:.3f} s, gaps > "
-            f"{trajectory.max_gap_s:g} s) (--skip-uncovered)"
-        )
-    return points.select(keep), keep, warnings
+    #: trusted, questionable or refused, with the reasons (:mod:`calib.boresight.checks.verdict`)
+    verdict: Verdict = field(default_factory=lambda: Verdict("trusted", [], []))
 
 
 # -- the steps ------------------------------------------------------------------------------
 
 
-def error_model(options: CalibrationOptions, site: Site) -> tuple[ErrorModel, str]:
-    """The POS error model for ``sigma_realistic`` and where its correlation time came from."""
-    if options.error_model != "gauss_markov":
-        return ErrorModel(options.error_model), "not used"
-    if options.correlation_time_s is not None:
-        tau = np.atleast_1d(np.asarray(options.correlation_time_s, float))
-        source = "command line"
-    elif site.pos_correlation_time_s is not None:
-        tau = np.asarray(site.pos_correlation_time_s, float)
-        source = "site.yaml pos_sigmas.correlation_time_s"
+def _extract_targets(
+    p, origin, points: ScanPoints, rects, options: CalibrationOptions, labels, progress
+) -> Extraction:
+    """The targets' points of every pass: the extraction, or the given labels."""
+    if labels is None:
+        ext = extract(
+            p,
+            points.intensity,
+            points.pass_id,
+            rects,
+            options.extraction,
+            origin,
+            progress=None
+            if progress is None
+            else (lambda done, total: progress("extracting targets", done, total)),
+        )
     else:
-        tau = np.array([DEFAULT_POS_CORRELATION_S])
-        source = "default (not configured)"
-    value = float(tau[0]) if np.all(tau == tau[0]) else tuple(float(x) for x in tau)
-    return ErrorModel("gauss_markov", value), source
+        lab = np.asarray(labels)
+        if lab.shape != (len(points),):
+            raise CalibrationError(f"labels for {lab.shape} points, expected ({len(points)},)")
+        ext = from_labels(lab, points.pass_id, [r.name for r in rects])
+    if options.subsample_m is not None:
+        ext = subsample(ext, p, options.subsample_m)
+    return ext
+
+
+def _target_observations(
+    site: Site, trajectory: Trajectory, points: ScanPoints, mount: Mount, ext: Extraction, poses, point_rows
+) -> Observations:
+    """The adjustment's observations of the extracted targets' points."""
+    idx, tgt = ext.indices()
+    if idx.size == 0:
+        raise CalibrationError(
+            f"no target found in any pass ({', '.join(ext.target_names)}): check the targets' centres "
+            f"and sizes in site.yaml (search radius beyond each target: see the warnings), or try the "
+            f"automatic extraction"
+        )
+    pid = points.pass_id[idx]
+    if poses is None:
+        heading = trajectory.interpolate(points.t_gps_s[idx] + mount.time_offset_s).rpy_rad[:, 2]
+    else:
+        heading = poses.rpy_rad[idx, 2]
+    obs = build_observations(
+        trajectory,
+        points.t_gps_s[idx],
+        points.range_m[idx],
+        points.scan_angle_rad[idx],
+        tgt,
+        pid,
+        ext.target_names,
+        site.sigma_range_m,
+        site.sigma_scan_angle_rad,
+        site.sigma_position_m,
+        site.sigma_attitude_rad,
+        point_ids=idx if point_rows is None else np.asarray(point_rows)[idx],
+        time_offset_s=mount.time_offset_s,
+        pass_headings_rad=pass_headings(heading, pid, site.wall_azimuth_rad),
+        sigma_range_per_m=site.sigma_range_per_m,
+        beam_divergence_rad=site.beam_divergence_rad,
+    )
+    if poses is not None:
+        obs.l[:, 0:3] = poses.p_lgf_m[idx]
+        obs.l[:, 3:6] = poses.rpy_rad[idx]
+        if poses.sigma_p_m is not None and poses.sigma_rpy_rad is not None:
+            obs.sigma_l[:, 0:3] = poses.sigma_p_m[idx]
+            obs.sigma_l[:, 3:6] = poses.sigma_rpy_rad[idx]
+    validate_input(obs)  # a target with too few points, a single target: clear errors
+    return obs
+
+
+def _without_unseen_targets(ext: Extraction, rects, warnings: list[str]):
+    """The extraction and rectangles without the targets seen too little to be adjusted (fewer
+    than the adjustment's minimum points, or never 3 in one pass), as long as two targets remain
+    (else the adjustment's own error names them); each dropped target is a warning, and the
+    verdict counts it lost in every pass."""
+    counts = ext.counts()
+    unseen = [
+        name
+        for name in ext.target_names
+        if ext.totals()[name] < MIN_POINTS_PER_PLANE or max(c[name] for c in counts.values()) < 3
+    ]
+    if not unseen or len(ext.target_names) - len(unseen) < 2:
+        return ext, rects
+    for name in unseen:
+        warnings.append(
+            f"target {name} is left out of the adjustment: {ext.totals()[name]} points over all passes "
+            f"(the extraction did not find it; see its passes above)"
+        )
+    return ext.without(unseen), [r for r in rects if r.name not in unseen]
+
+
+def _planes(ext: Extraction, p, rects) -> list[tuple[np.ndarray, float]]:
+    planes_or_none = initial_planes(ext, p, rects)
+    unplaced = [name for name, plane in zip(ext.target_names, planes_or_none) if plane is None]
+    if unplaced:  # enough points over all passes, but fewer than 3 in every pass
+        raise CalibrationError(
+            f"target(s) {', '.join(unplaced)}: no pass holds 3 of its points, so it has no "
+            f"a-priori plane; re-extract them (a smaller subsampling voxel) or remove them from the site"
+        )
+    return [plane for plane in planes_or_none if plane is not None]
+
+
+@dataclass
+class _Adjusted:
+    obs: Observations
+    planes: list[tuple[np.ndarray, float]]
+    result: AdjustmentResult
+    comparison: AdjustmentResult | None
+
+
+@dataclass(frozen=True)
+class _Inputs:
+    """What the adjustment stage needs beyond the observations (the tie patches' source)."""
+
+    options: CalibrationOptions
+    mount: Mount
+    site: Site
+    trajectory: Trajectory
+    points: ScanPoints
+    poses: Poses | None
+    target_rows: np.ndarray  # the extracted targets' point indices
+    point_rows: np.ndarray | None
+
+
+def _adjust_with_ties(
+    run_in: _Inputs, obs, planes, tau: TauChoice, warnings: list[str], notes: list[str], progress
+) -> _Adjusted:
+    """The default estimator, the thesis comparison and (GLS, ``tie_patches='auto'``) the
+    scene's tie patches, kept when they agree with the targets. When they do not, the result is
+    the targets alone with its σ widened to cover the other solution (the verdict says so)."""
+    options, mount = run_in.options, run_in.mount
+    adjust_opts = options.adjust_options(tau.model)
+    gls = options.estimator == "gls"
+    ties_next = gls and options.tie_patches == "auto"
+    res = adjust(obs, mount, planes, replace(adjust_opts, jackknife=adjust_opts.jackknife and not ties_next))
+    if not gls:
+        return _Adjusted(obs, planes, res, None)
+    comparison = adjust(obs, mount, planes, replace(adjust_opts, estimator="thesis", jackknife=False))
+    if ties_next:
+        if progress is not None:
+            progress("choosing tie patches", 0, None)
+        ties = tie_patches_from_points(
+            obs,
+            planes,
+            res,
+            run_in.site,
+            mount,
+            run_in.trajectory,
+            run_in.points,
+            run_in.poses,
+            run_in.target_rows,
+        )
+        if ties is None:
+            notes.append("tie patches: no planar patch of the scene seen from two headings; targets only")
+        else:
+            point_rows = run_in.point_rows
+            if point_rows is not None:  # outlier ids name rows of the file
+                n_t = len(obs)
+                ties.observations.point_ids[n_t:] = np.asarray(point_rows)[ties.observations.point_ids[n_t:]]
+            with_ties = adjust(
+                ties.observations, mount.with_boresight(res.boresight_rad), ties.planes, adjust_opts
+            )
+            check = patches_agree(res, with_ties)
+            if not check["agree"]:  # a target group the patches exposed: judge the targets without it
+                res, check = targets_without_exposed_groups(
+                    obs, mount, planes, adjust_opts, res, with_ties, check
+                )
+            tau.doc["patch_check"] = check
+            if check["agree"]:
+                tau.doc["targets_only"] = res
+                tau.doc["ties"] = ties
+                obs, planes, res = ties.observations, ties.planes, with_ties
+            else:
+                d = with_ties.boresight_rad - res.boresight_rad
+                res = replace(res, cov_realistic=res.cov_realistic + np.diag(d**2))
+                warnings.append(
+                    f"tie patches disagree with the targets (χ² = {check['chi2']:.1f} on 3 degrees of "
+                    f"freedom, p = {check['p_value']:.2g}): the result uses the targets alone, its σ "
+                    f"widened by the difference (roll/pitch/yaw "
+                    f"{', '.join(f'{x:+.3f}' for x in np.degrees(d))}°)"
+                )
+    if tau.estimated:
+        tau.doc["sensitivity"] = tau_sensitivity(
+            obs, mount.with_boresight(res.boresight_rad), planes, adjust_opts, float(tau.model.tau_s(0))
+        )
+    return _Adjusted(obs, planes, res, comparison)
+
+
+def _scaled_by_variance_factor(res: AdjustmentResult) -> AdjustmentResult:
+    """The realistic covariance scaled by σ̂0² when that exceeds 1: a misfit the model does
+    not explain widens σ instead of being ignored."""
+    f = max(1.0, float(res.sigma0_squared))
+    return replace(res, cov_realistic=res.cov_realistic * f)
 
 
 def calibrate(
@@ -277,171 +405,56 @@ def calibrate(
     the input, reported first. Raises :class:`CalibrationError`,
     :class:`calib.extraction.extract.ExtractionError` or :class:`calib.boresight.observations.AdjustmentError` (its
     :class:`~calib.boresight.observability.ObservabilityError` names the weak angles and the passes that would
-    observe them) with a message that says what to do.
+    observe them) with a message that says what to do. The run's verdict
+    (:mod:`calib.boresight.checks.verdict`) is in ``doc["verdict"]``.
     """
     timings: dict[str, float] = {}
     clock = time.perf_counter()
-    input_warnings, notes = list(warnings), list(notes)
-    if not site.targets:
-        raise CalibrationError(
-            "site.yaml configures no targets: list the planar targets "
-            "(name, centre, size, inclination, facing) under 'targets'"
-        )
-    mount = site.mount
-    if options.apriori_rad is not None:
-        mount = mount.with_boresight(np.asarray(options.apriori_rad, float))
-    if len(points) == 0:
-        raise CalibrationError("the bundle holds no points")
-    if poses is not None and poses.p_lgf_m.shape != (len(points), 3):
-        raise CalibrationError(f"per-point poses for {poses.p_lgf_m.shape[0]} points, expected {len(points)}")
+    notes = list(notes)
+    check_input(site, points, poses)
+    mount = (
+        site.mount
+        if options.apriori_rad is None
+        else site.mount.with_boresight(np.asarray(options.apriori_rad, float))
+    )
     check_points(points, trajectory, mount.time_offset_s)
-    frame = trajectory.frame
-    rects = site.target_rectangles(frame)
-    names = [r.name for r in rects]
-
+    rects = site.target_rectangles(trajectory.frame)
+    check_within_reach(trajectory, rects)
     p, origin = georeference_passes(points, trajectory, mount, poses, progress)
     timings["georeference_s"] = time.perf_counter() - clock
 
     clock = time.perf_counter()
-    if labels is None:
-        ext = extract(
-            p,
-            points.intensity,
-            points.pass_id,
-            rects,
-            options.extraction,
-            origin,
-            progress=None
-            if progress is None
-            else (lambda done, total: progress("extracting targets", done, total)),
-        )
-    else:
-        lab = np.asarray(labels)
-        if lab.shape != (len(points),):
-            raise CalibrationError(f"labels for {lab.shape} points, expected ({len(points)},)")
-        ext = from_labels(lab, points.pass_id, names)
-    if options.subsample_m is not None:
-        ext = subsample(ext, p, options.subsample_m)
+    ext = _extract_targets(p, origin, points, rects, options, labels, progress)
     timings["extract_s"] = time.perf_counter() - clock
-    run_warnings = input_warnings + list(ext.warnings)
+    run_warnings = list(warnings) + list(ext.warnings)
 
     clock = time.perf_counter()
-    idx, tgt = ext.indices()
-    if idx.size == 0:
-        raise CalibrationError(
-            f"no target found in any pass ({', '.join(names)}): check the targets' centres "
-            f"and sizes in site.yaml (search radius {options.extraction.search_radius_m:g} m "
-            f"beyond each target), or try the automatic extraction"
-        )
-    pid = points.pass_id[idx]
-    if poses is None:
-        heading = trajectory.interpolate(points.t_gps_s[idx] + mount.time_offset_s).rpy_rad[:, 2]
-    else:
-        heading = poses.rpy_rad[idx, 2]
-    headings = pass_headings(heading, pid, site.wall_azimuth_rad)
-    obs = build_observations(
-        trajectory,
-        points.t_gps_s[idx],
-        points.range_m[idx],
-        points.scan_angle_rad[idx],
-        tgt,
-        pid,
-        names,
-        site.sigma_range_m,
-        site.sigma_scan_angle_rad,
-        site.sigma_position_m,
-        site.sigma_attitude_rad,
-        point_ids=idx if point_rows is None else np.asarray(point_rows)[idx],
-        time_offset_s=mount.time_offset_s,
-        pass_headings_rad=headings,
-        sigma_range_per_m=site.sigma_range_per_m,
-        beam_divergence_rad=site.beam_divergence_rad,
+    used, used_rects = _without_unseen_targets(ext, rects, run_warnings)
+    obs = _target_observations(site, trajectory, points, mount, used, poses, point_rows)
+    notes.append(
+        "POS σ per point from the trajectory's per-epoch sigmas"
+        if trajectory.has_sigmas
+        else "POS σ from site.yaml pos_sigmas (the trajectory carries none)"
     )
-    if poses is not None:
-        obs.l[:, 0:3] = poses.p_lgf_m[idx]
-        obs.l[:, 3:6] = poses.rpy_rad[idx]
-        if poses.sigma_p_m is not None and poses.sigma_rpy_rad is not None:
-            obs.sigma_l[:, 0:3] = poses.sigma_p_m[idx]
-            obs.sigma_l[:, 3:6] = poses.sigma_rpy_rad[idx]
-    if trajectory.has_sigmas:
-        notes.append("POS σ per point from the trajectory's per-epoch sigmas")
-    else:
-        notes.append("POS σ from site.yaml pos_sigmas (the trajectory carries none)")
-    validate_input(obs)  # a target with too few points, a single target: clear errors
-    planes_or_none = initial_planes(ext, p, rects)
-    unplaced = [name for name, plane in zip(names, planes_or_none) if plane is None]
-    if unplaced:  # enough points over all passes, but fewer than 3 in every pass
-        raise CalibrationError(
-            f"target(s) {', '.join(unplaced)}: no pass holds 3 of its points, so it has no "
-            f"a-priori plane; re-extract them (a smaller subsampling voxel) or remove them from the site"
-        )
-    planes = [plane for plane in planes_or_none if plane is not None]
-    model, tau_source = error_model(options, site)
-    gls = options.estimator == "gls"
-    tau_doc: dict = {}
-    if tau_source.startswith("default") and gls:
-        if progress is not None:
-            progress("estimating the POS correlation time", 0, None)
-        est = estimate_tau(obs, mount, planes, options.adjust_options(model))
-        model, tau_source = ErrorModel("gauss_markov", est.tau_s), "estimated from the data"
-        tau_doc["estimate"] = {
-            "tau_s": est.tau_s,
-            "grid_s": list(est.grid_s),
-            "neg2_log_lik": list(est.neg2_log_lik),
-        }
-        notes.append(
-            f"no POS correlation time configured (site.yaml pos_sigmas.correlation_time_s): "
-            f"estimated {est.tau_s:.1f} s from the data (restricted likelihood"
-            f"{', at the edge of the searched range' if est.at_edge else ''}); the report shows "
-            f"the boresight at τ/3, τ and 3τ"
-        )
-    elif tau_source.startswith("default"):
-        notes.append(
-            f"no POS correlation time configured (site.yaml pos_sigmas."
-            f"correlation_time_s): sigma_realistic assumes {DEFAULT_POS_CORRELATION_S:g} "
-            f"s"
-        )
+    planes = _planes(used, p, used_rects)
+    tau = choose_tau(options, site, obs, mount, planes, notes, progress)
     timings["observations_s"] = time.perf_counter() - clock
 
     clock = time.perf_counter()
     if progress is not None:
         progress("adjusting", 0, 1)
-    adjust_opts = options.adjust_options(model)
-    ties_next = gls and options.tie_patches == "auto"
-    res = adjust(obs, mount, planes, replace(adjust_opts, jackknife=adjust_opts.jackknife and not ties_next))
-    comparison = None
-    if gls:
-        comparison = adjust(obs, mount, planes, replace(adjust_opts, estimator="thesis", jackknife=False))
-        if options.tie_patches == "auto":
-            if progress is not None:
-                progress("choosing tie patches", 0, None)
-            ties = tie_patches_from_points(obs, planes, res, site, mount, trajectory, points, poses, idx)
-            if ties is not None and point_rows is not None:  # outlier ids name rows of the file
-                n_t = len(obs)
-                ties.observations.point_ids[n_t:] = np.asarray(point_rows)[ties.observations.point_ids[n_t:]]
-            if ties is None:
-                notes.append("tie patches: no planar patch of the scene seen from two headings; targets only")
-            else:
-                targets_only = res
-                with_ties = adjust(
-                    ties.observations, mount.with_boresight(res.boresight_rad), ties.planes, adjust_opts
-                )
-                check = patches_agree(targets_only, with_ties)
-                tau_doc["patch_check"] = check
-                if check["agree"]:
-                    obs, planes, res = ties.observations, ties.planes, with_ties
-                    tau_doc["targets_only"] = targets_only
-                    tau_doc["ties"] = ties
-                else:
-                    run_warnings.append(
-                        f"tie patches disagree with the targets (χ² = {check['chi2']:.1f} on 3 degrees of "
-                        f"freedom, p = {check['p_value']:.2g}): the scene around the targets is not what "
-                        f"the model assumes; the result uses the targets alone"
-                    )
-        if tau_source == "estimated from the data":
-            tau_doc["sensitivity"] = tau_sensitivity(
-                obs, mount.with_boresight(res.boresight_rad), planes, adjust_opts, float(model.tau_s(0))
-            )
+    run_in = _Inputs(
+        options=options,
+        mount=mount,
+        site=site,
+        trajectory=trajectory,
+        points=points,
+        poses=poses,
+        target_rows=ext.indices()[0],
+        point_rows=point_rows,
+    )
+    adj = _adjust_with_ties(run_in, obs, planes, tau, run_warnings, notes, progress)
+    res = _scaled_by_variance_factor(adj.result) if options.estimator == "gls" else adj.result
     if progress is not None:
         progress("adjusting", 1, 1)
     timings["adjust_s"] = time.perf_counter() - clock
@@ -451,43 +464,67 @@ def calibrate(
             f"not use the result; check the a-priori boresight and the "
             f"extraction"
         )
+    verdict = judge(evidence(res, ext.lost_passes(), tau.doc.get("patch_check"), tau.doc.get("sensitivity")))
+    doc = _result_doc(
+        res, mount, options, ext, labels, tau, adj.comparison, verdict, source, software_version
+    )
+    doc["warnings"], doc["notes"] = run_warnings, notes
+    timings["total_s"] = sum(timings.values())
+    return CalibrationRun(
+        source=source,
+        site=site,
+        frame=trajectory.frame,
+        mount_apriori=mount,
+        options=options,
+        extraction=ext,
+        observations=adj.obs,
+        planes_init=adj.planes,
+        result=res,
+        doc=doc,
+        warnings=run_warnings,
+        notes=notes,
+        timings_s=timings,
+        comparison=adj.comparison,
+        gls=tau.doc,
+        verdict=verdict,
+    )
 
-    formal = res.sigma_formal_rad
-    ratio = res.sigma_realistic_rad / formal
+
+def _result_doc(
+    res,
+    mount,
+    options,
+    ext: Extraction,
+    labels,
+    tau: TauChoice,
+    comparison,
+    verdict: Verdict,
+    source,
+    version,
+) -> dict:
+    """result.json (warnings and notes are added by the caller)."""
+    ratio = res.sigma_realistic_rad / res.sigma_formal_rad
     extra = {
         "source": source,
+        **as_doc(verdict),
+        "removed_groups": list(res.removed_groups),
         "extraction": {
             "mode": options.extraction.mode if labels is None else "labels",
             "subsample_m": options.subsample_m,
             "points_per_pass": {str(k): v for k, v in ext.counts().items()},
             "points_per_target": ext.totals(),
+            "lost": [
+                {"target": f.target, "pass_id": int(f.pass_id), "status": f.status, "reason": f.note}
+                for f in ext.found
+                if f.n_points == 0
+            ],
         },
-        "realistic_correlation_time_source": tau_source,
+        "realistic_correlation_time_source": tau.source,
         "sigma_realistic_over_formal": {a: float(r) for a, r in zip(("roll", "pitch", "yaw"), ratio)},
         "outlier_point_ids_refer_to": "0-based data rows of points.csv (after the header)",
-        "warnings": run_warnings,
-        "notes": notes,
     }
-    extra.update(estimator_doc(options.estimator, options.tie_patches, tau_doc, comparison))
-    doc = result_to_dict(res, mount.boresight_rad, software_version or _software_version(), extra)
-    timings["total_s"] = sum(timings.values())
-    return CalibrationRun(
-        source,
-        site,
-        frame,
-        mount,
-        options,
-        ext,
-        obs,
-        planes,
-        res,
-        doc,
-        run_warnings,
-        notes,
-        timings,
-        comparison,
-        tau_doc,
-    )
+    extra.update(estimator_doc(options.estimator, options.tie_patches, tau.doc, comparison))
+    return result_to_dict(res, mount.boresight_rad, version or _software_version(), extra)
 
 
 def calibrate_bundle(

@@ -62,12 +62,25 @@ def _poses(obs) -> Poses:
     return Poses(obs.l[:, 0:3], rpy, frames.attitude_matrix(*rpy.T))
 
 
+def _removed_group_mask(run) -> np.ndarray:
+    """Mask of the observations in target groups removed by the group test."""
+    obs = run.observations
+    out = np.zeros(len(obs), bool)
+    for g in run.result.removed_groups:
+        if g.get("removed") and g["plane"] in obs.plane_names and g["pass_id"] in obs.pass_ids:
+            j, k = obs.plane_names.index(g["plane"]), obs.pass_ids.index(g["pass_id"])
+            out |= (obs.plane_index == j) & (obs.pass_index == k)
+    return out
+
+
 def edge_on(run) -> dict[str, dict]:
-    """Per target, for the kept points: horizontal position on the plane (m) and distance to
-    the plane (m), before (a-priori mount, initial plane) and after (estimated mount and
-    extras, adjusted plane), and each point's pass index."""
+    """Per target, for the kept points and those of removed groups (``removed``): horizontal
+    position on the plane (m) and distance to the plane (m), before (a-priori mount, initial
+    plane) and after (estimated mount and extras, adjusted plane), and each point's pass
+    index."""
     obs, res = run.observations, run.result
-    used = _used(run)
+    shown = _used(run) | _removed_group_mask(run)
+    removed = _removed_group_mask(run)[shown]
     poses = _poses(obs)
     st = res.state
     after_mount = Mount(
@@ -77,9 +90,9 @@ def edge_on(run) -> dict[str, dict]:
         st.range_offset_m,
         st.scan_angle_offset_rad,
     )
-    p0 = georeference_poses(poses, obs.l[:, 6], obs.l[:, 7], run.mount_apriori)[used]
-    p1 = georeference_poses(poses, obs.l[:, 6], obs.l[:, 7], after_mount)[used]
-    plane_index, pass_index = obs.plane_index[used], obs.pass_index[used]
+    p0 = georeference_poses(poses, obs.l[:, 6], obs.l[:, 7], run.mount_apriori)[shown]
+    p1 = georeference_poses(poses, obs.l[:, 6], obs.l[:, 7], after_mount)[shown]
+    plane_index, pass_index = obs.plane_index[shown], obs.pass_index[shown]
     p1 += st.pass_offsets_m[pass_index]
     out = {}
     for j, name in enumerate(obs.plane_names):
@@ -90,18 +103,23 @@ def edge_on(run) -> dict[str, dict]:
         horiz = np.cross([0.0, 0.0, 1.0], n0)
         horiz = horiz / np.linalg.norm(horiz) if np.linalg.norm(horiz) > 1e-6 else np.eye(3)[0]
         q0, q1 = p0[m], p1[m]
-        centre = q1.mean(axis=0)
+        centre = q1[~removed[m]].mean(axis=0) if (~removed[m]).any() else q1.mean(axis=0)
         out[name] = {
             "along_before_m": (q0 - centre) @ horiz,
             "before_m": q0 @ n0 + d0,
             "along_after_m": (q1 - centre) @ horiz,
-            "after_m": res.residual_m[m],
+            "after_m": q1 @ st.normals[j] + st.d_lgf_m[j],
             "pass_index": pass_index[m],
+            "removed": removed[m],
         }
     return out
 
 
 # -- plots --------------------------------------------------------------------------------------
+
+
+#: the colour of a target group removed as a gross error (the passes take the tab10 colours)
+REMOVED_COLOUR = "black"
 
 
 def _figure(n_panels: int, width_in: float = 4.2, height_in: float = 3.0):
@@ -194,6 +212,10 @@ def write_plots(run, out_dir: Path) -> list[Path]:
     if patches_png is not None:
         paths.append(patches_png)
     colours = _pass_colours(len(obs.pass_ids))
+    removed_by_target: dict[str, list[dict]] = {}
+    for g in res.removed_groups:
+        if g.get("removed"):
+            removed_by_target.setdefault(g["plane"], []).append(g)
     for name, e in edge_on(run).items():
         fig, axes = _figure(2, 5.0, 3.4)
         for ax, key, title in (
@@ -201,7 +223,9 @@ def write_plots(run, out_dir: Path) -> list[Path]:
             (axes[1], "after", "after: estimated boresight"),
         ):
             for k, pid in enumerate(obs.pass_ids):
-                m = e["pass_index"] == k
+                m = (e["pass_index"] == k) & ~e["removed"]
+                if not m.any():
+                    continue
                 ax.plot(
                     e[f"along_{key}_m"][m],
                     e[f"{key}_m"][m] * 1e3,
@@ -209,6 +233,16 @@ def write_plots(run, out_dir: Path) -> list[Path]:
                     ms=2,
                     color=colours[k],
                     label=f"pass {pid}",
+                )
+            for g in removed_by_target.get(name, []):
+                m = e["removed"] & (e["pass_index"] == obs.pass_ids.index(g["pass_id"]))
+                ax.plot(
+                    e[f"along_{key}_m"][m],
+                    e[f"{key}_m"][m] * 1e3,
+                    "x",
+                    ms=3,
+                    color=REMOVED_COLOUR,
+                    label=f"removed: pass {g['pass_id']} (group test T = {g['statistic']:.0f}, {100 * g['offset_m']:+.1f} cm)",
                 )
             ax.set_title(title, fontsize=10)
             ax.set_xlabel("along the target (m)")
@@ -324,6 +358,46 @@ def extras_table(extras: dict) -> list[str]:
     return L
 
 
+def _verdict_section(run) -> list[str]:
+    v = run.verdict
+    L = ["## Verdict", "", f"**{v.status}**" + (": do not use this result." if v.status == "refused" else "")]
+    L.append("")
+    L.extend(f"- {r}" for r in v.reasons)
+    L.extend(f"- {n}" for n in v.notes)
+    if v.reasons or v.notes:
+        L.append("")
+    return L
+
+
+def _lost_and_removed(run) -> list[str]:
+    """Targets the extraction lost per pass, and target groups the group test removed."""
+    L: list[str] = []
+    lost = [f for f in run.extraction.found if f.n_points == 0]
+    if lost:
+        L += ["## Targets lost in a pass", "", "| target | pass | status | reason |", "|---|---:|---|---|"]
+        L += [f"| {f.target} | {f.pass_id} | {f.status} | {f.note} |" for f in lost]
+        L.append("")
+    groups = run.result.removed_groups
+    L += ["## Gross errors per group", ""]
+    if not groups:
+        L.append(
+            "No target group (a target in one pass) failed the group test (offset and tilt from the "
+            "adjusted plane, family-wise false-rejection rate 0.1 %)."
+        )
+    else:
+        L += [
+            "| target | pass | points | T | df | p | offset (cm) | action |",
+            "|---|---:|---:|---:|---:|---:|---:|---|",
+        ]
+        L += [
+            f"| {g['plane']} | {g['pass_id']} | {g['n_points']} | {g['statistic']:.1f} | {g['df']} | "
+            f"{g['p_value']:.2g} | {100 * g['offset_m']:+.1f} | {'removed' if g['removed'] else g['reason']} |"
+            for g in groups
+        ]
+    L.append("")
+    return L
+
+
 def report_markdown(run, plot_names: list[str] | None = None) -> str:
     res, doc, obs = run.result, run.doc, run.observations
     site = run.site
@@ -350,6 +424,7 @@ def report_markdown(run, plot_names: list[str] | None = None) -> str:
     ap = np.degrees(run.mount_apriori.boresight_rad)
     L.append(f"- A-priori boresight (canonical): roll {ap[0]:.4f}°, pitch {ap[1]:.4f}°, yaw {ap[2]:.4f}°")
     L.append("")
+    L.extend(_verdict_section(run))
     L.append("## Boresight")
     L.append("")
     L.append(
@@ -480,6 +555,7 @@ def report_markdown(run, plot_names: list[str] | None = None) -> str:
         )
     )
     L.append("")
+    L.extend(_lost_and_removed(run))
     L.append("## Outliers")
     L.append("")
     n_out = res.outlier_point_ids.size

@@ -21,6 +21,7 @@ import numpy as np
 from scipy import stats
 from scipy.spatial import cKDTree
 
+from calib.boresight.adjust import adjust
 from calib.boresight.gausshelmert import initial_state, plane_centers
 from calib.boresight.ghmodel import linearize
 from calib.boresight.observations import Observations, build_observations
@@ -262,3 +263,31 @@ def patches_agree(targets_only, with_patches, alpha: float = PATCH_TEST_ALPHA) -
     dof = int(np.count_nonzero(keep))
     p = float(stats.chi2.sf(chi2, dof)) if dof else 1.0
     return {"chi2": chi2, "dof": dof, "p_value": p, "alpha": alpha, "agree": p >= alpha}
+
+
+def targets_without_exposed_groups(obs, mount, planes, adjust_opts, targets_only, with_ties, check):
+    """Disagreement resolved by evidence: target groups the adjustment with the tie patches
+    removed as gross errors (the patches' evidence exposed them) but the targets alone kept are
+    taken out of the targets' solution too, and the two are compared again. Returns the
+    (targets-only result, check) to use: the new ones when any group was taken out."""
+    kept = {(g["plane"], g["pass_id"]) for g in targets_only.removed_groups if g["removed"]}
+    exposed = [
+        (g["plane"], g["pass_id"])
+        for g in with_ties.removed_groups
+        if g["removed"] and (g["plane"], g["pass_id"]) not in kept and g["plane"] in obs.plane_names
+    ]
+    if not exposed:
+        return targets_only, check
+    keep = np.ones(len(obs), bool)
+    for plane, pass_id in exposed:
+        keep &= ~(
+            (obs.plane_index == obs.plane_names.index(plane))
+            & (obs.pass_index == obs.pass_ids.index(pass_id))
+        )
+    again = adjust(obs.select(keep), mount, planes, replace(adjust_opts, jackknife=False))
+    again = replace(
+        again,
+        removed_groups=[g for g in with_ties.removed_groups if (g["plane"], g["pass_id"]) in exposed]
+        + again.removed_groups,
+    )
+    return again, patches_agree(again, with_ties)

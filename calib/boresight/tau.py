@@ -5,7 +5,8 @@ six channels) that maximizes the restricted likelihood of the GLS model
 (:attr:`calib.boresight.gls.GlsSolution.neg2_log_lik`): the residuals' correlation along each
 pass tells a drift of 5 s from one of 100 s. :func:`tau_sensitivity` solves again at τ/3, τ and
 3τ, for the report: a boresight that moves by more than its σ between them says that τ matters
-and should be configured.
+and should be configured. :func:`choose_tau` is the calibration's choice: τ from the command
+line, else site.yaml, else (GLS) estimated from the data, else the default, and where it came from.
 """
 
 from __future__ import annotations
@@ -14,11 +15,12 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from calib.boresight.errormodel import ErrorModel
+from calib.boresight.errormodel import DEFAULT_POS_CORRELATION_S, ErrorModel
 from calib.boresight.gausshelmert import initial_state, plane_centers
 from calib.boresight.gls import solve_gls
 from calib.boresight.observations import AdjustOptions, Observations
 from calib.core import frames
+from calib.io.site import Site
 
 #: the τ grid of the likelihood search (s)
 TAU_GRID_S = (2.0, 5.0, 10.0, 20.0, 40.0, 80.0, 160.0, 320.0)
@@ -84,3 +86,62 @@ def tau_sensitivity(
             }
         )
     return rows
+
+
+# -- the POS error model a calibration uses ------------------------------------------------
+
+
+def error_model(options, site: Site) -> tuple[ErrorModel, str]:
+    """The POS error model for ``sigma_realistic`` and where its correlation time came from."""
+    if options.error_model != "gauss_markov":
+        return ErrorModel(options.error_model), "not used"
+    if options.correlation_time_s is not None:
+        tau = np.atleast_1d(np.asarray(options.correlation_time_s, float))
+        source = "command line"
+    elif site.pos_correlation_time_s is not None:
+        tau = np.asarray(site.pos_correlation_time_s, float)
+        source = "site.yaml pos_sigmas.correlation_time_s"
+    else:
+        tau = np.array([DEFAULT_POS_CORRELATION_S])
+        source = "default (not configured)"
+    value = float(tau[0]) if np.all(tau == tau[0]) else tuple(float(x) for x in tau)
+    return ErrorModel("gauss_markov", value), source
+
+
+def _tau_configured(options, site: Site) -> bool:
+    """Whether the POS correlation time was given (command line or site.yaml)."""
+    return options.correlation_time_s is not None or site.pos_correlation_time_s is not None
+
+
+@dataclass
+class TauChoice:
+    model: ErrorModel
+    source: str  # for result.json and the report
+    estimated: bool  # from the data (none configured, GLS)
+    doc: dict  # the GLS dict of CalibrationRun: "estimate", later "sensitivity", the ties'
+
+
+def choose_tau(options, site, obs, mount, planes, notes: list[str], progress) -> TauChoice:
+    """The POS error model; with none configured the GLS estimates τ from the data."""
+    model, source = error_model(options, site)
+    if _tau_configured(options, site) or options.error_model != "gauss_markov":
+        return TauChoice(model, source, False, {})
+    if options.estimator != "gls":
+        notes.append(
+            f"no POS correlation time configured (site.yaml pos_sigmas.correlation_time_s): "
+            f"sigma_realistic assumes {DEFAULT_POS_CORRELATION_S:g} s"
+        )
+        return TauChoice(model, source, False, {})
+    if progress is not None:
+        progress("estimating the POS correlation time", 0, None)
+    est = estimate_tau(obs, mount, planes, options.adjust_options(model))
+    notes.append(
+        f"no POS correlation time configured (site.yaml pos_sigmas.correlation_time_s): "
+        f"estimated {est.tau_s:.1f} s from the data (restricted likelihood"
+        f"{', at the edge of the searched range' if est.at_edge else ''}); the report shows "
+        f"the boresight at τ/3, τ and 3τ"
+    )
+    doc = {
+        "estimate": {"tau_s": est.tau_s, "grid_s": list(est.grid_s), "neg2_log_lik": list(est.neg2_log_lik)}
+    }
+    return TauChoice(ErrorModel("gauss_markov", est.tau_s), "estimated from the data", True, doc)

@@ -10,23 +10,32 @@ operator's click replaced by the approximate centre in site.yaml):
    intensities are divided by the cosine of incidence (when the beam origins are given: a 45°
    target seen from below is otherwise hardly brighter than the wall), then a two-class split
    of their logarithms (Otsu's threshold) is used when the two classes differ by at least
-   ``min_contrast``; the target is the bright class (the dark one when its configured
-   reflectivity is below 0.5). Without contrast every candidate is kept and a warning says so;
-3. **RANSAC plane** on those points (thesis defaults: inlier distance 0.01 m, stop as soon as
+   ``min_contrast``; when the corrected intensities show no contrast the raw ones are tried (a
+   scanner whose intensity does not fall with incidence). The target is the bright class (the
+   dark one when its configured reflectivity is below 0.5). Without contrast every candidate is
+   kept and a warning says so;
+3. **RANSAC planes** on those points (thesis defaults: inlier distance 0.01 m, stop as soon as
    a plane holds 98 % of the points; otherwise the adaptive number of samples for a 99.9 %
    chance of one all-inlier sample), among planes within ``max_tilt_rad`` of the configured
-   normal; the plane is refined by least squares and the points kept within a band of five
-   robust σ of it (at least three inlier distances): the band removes gross outliers only, so
-   the noise of the kept points is not truncated (truncating it would bias σ̂0²);
-4. **the target's own rectangle**: the kept points fall into connected clusters; the cluster
-   whose extent (along the target's width axis and up its slope) best matches the configured
-   size is the target; then a box of the configured size around it, shrunk by
-   ``edge_margin_m`` (mixed returns on the edges), keeps the target and nothing of its
-   surroundings.
+   normal; each plane is refined by least squares and its points kept within a band of five
+   robust σ of it (at least three inlier distances: the band removes gross outliers only, so
+   the noise of the kept points is not truncated, which would bias σ̂0²). The band is taken out
+   and the next plane sought, up to :data:`MAX_PARALLEL_PLANES`: without contrast, a target
+   standing proud of a wall of its own orientation is the second plane, the wall the first;
+4. **the target's own rectangle**: each plane's points fall into connected clusters; among the
+   clusters no larger than the configured size (a partial view may be smaller) the best size
+   match is the target (near-equal matches: the one nearer the seed along the normal, then the
+   larger); a box of the configured size around it, shrunk by ``edge_margin_m`` (mixed returns
+   on the edges), keeps the target and nothing of its surroundings. When every cluster is
+   larger than the target (the wall beside it, a neighbour touching it) the target is
+   **rejected** in that pass with the nearest cluster's size: it is never trimmed to a box
+   around a median point, which would hand the adjustment a piece of wall as the target.
 
-A target with fewer than ``min_points_per_pass`` points in a pass is *missing* from that pass:
-a warning names both, its few points are dropped, and the run continues (a target with too few
-points over all passes is the adjustment's error, not the extraction's).
+A target with fewer than ``min_points_per_pass`` points in a pass is *missing* from that pass
+(*rejected* as above when points of its orientation were there): a warning names both, its few
+points are dropped, and the run continues (a target with too few points over all passes is the
+adjustment's error, not the extraction's; one lost in two passes or more makes the calibration's
+verdict questionable, :mod:`calib.boresight.checks.verdict`).
 
 ``auto`` mode finds the seeds itself: per pass, the bright points (the same two-class split
 over the whole pass) are grouped into connected clusters, each gets a RANSAC plane and its
@@ -37,7 +46,8 @@ matched clusters then seed step 1–4.
 :func:`voxel_subsample` keeps one point per cubic voxel: the point nearest the voxel's centre
 (ties: the earliest), in the original order.
 
-The point-cloud building blocks (RANSAC plane, intensity split, incidence correction, clusters,
+One target in one pass (steps 1–4, the options and the error) is :mod:`calib.extraction.target`;
+the point-cloud building blocks (RANSAC plane, intensity split, incidence correction, clusters,
 extents) are in :mod:`calib.extraction.segmentation`.
 """
 
@@ -48,7 +58,6 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 from scipy.optimize import linear_sum_assignment
 
-from calib.core.errors import CalibError
 from calib.core.geometry import Rectangle, fit_plane
 from calib.extraction.segmentation import (
     clusters,
@@ -59,225 +68,14 @@ from calib.extraction.segmentation import (
     ransac_plane,
     robust_extent,
 )
-
-MODES = ("seeded", "auto")
-
-
-class ExtractionError(CalibError, ValueError):
-    """The extraction cannot run on this input (the message says why and what to do)."""
-
-
-@dataclass(frozen=True)
-class ExtractOptions:
-    mode: str = "seeded"
-    search_radius_m: float = 2.0  # plus each target's half-diagonal
-    ransac_distance_m: float = 0.01
-    ransac_stop_fraction: float = 0.98
-    ransac_max_iterations: int = 2000
-    max_tilt_rad: float = float(np.radians(30.0))  # RANSAC planes vs the configured normal
-    min_contrast: float = 2.0  # intensity ratio (geometric means) target / surroundings
-    edge_margin_m: float = 0.02
-    size_tolerance: float = 0.25  # relative; beyond it the cluster is not the target alone
-    min_points_per_pass: int = 10
-    seed: int = 0  # RANSAC's random generator
-
-    def __post_init__(self):
-        if self.mode not in MODES:
-            raise ExtractionError(f"extraction mode {self.mode!r}: expected seeded or auto")
-        for name in ("search_radius_m", "ransac_distance_m", "min_contrast"):
-            v = getattr(self, name)
-            if not (np.isfinite(v) and v > 0):
-                raise ExtractionError(f"extraction option {name} = {v!r}: expected a positive number")
-        if not 0.0 < self.ransac_stop_fraction <= 1.0:
-            raise ExtractionError(
-                f"ransac_stop_fraction = {self.ransac_stop_fraction!r}: expected a fraction in (0, 1]"
-            )
-        if self.edge_margin_m < 0:
-            raise ExtractionError(f"edge_margin_m = {self.edge_margin_m!r}: expected ≥ 0")
-
-
-# -- one target in one pass ----------------------------------------------------------------
-
-
-@dataclass(frozen=True)
-class TargetPass:
-    """What the extraction found of one target in one pass."""
-
-    target: str
-    pass_id: int
-    indices: np.ndarray  # into the points given to the extraction
-    n_candidates: int  # within the search radius
-    n_target_class: int  # of those, in the target's intensity class
-    contrast: float  # intensity ratio of the two classes (1 when none)
-    normal: np.ndarray | None  # RANSAC plane of the pass
-    rms_m: float  # of the kept points about that plane
-    extent_m: np.ndarray | None  # (width, height) of the chosen cluster
-    note: str = ""  # why nothing (or something doubtful) was kept
-
-    @property
-    def n_points(self) -> int:
-        return int(self.indices.size)
-
-
-def _missing(target, pass_id, n_cand, n_class, contrast, note) -> TargetPass:
-    return TargetPass(
-        target, pass_id, np.empty(0, np.int64), n_cand, n_class, contrast, None, float("nan"), None, note
-    )
-
-
-def extract_target(
-    p_m: np.ndarray,
-    intensity: np.ndarray,
-    idx: np.ndarray,
-    rect: Rectangle,
-    pass_id: int,
-    opts: ExtractOptions,
-    rng: np.random.Generator,
-    seed_m=None,
-    origin_m: np.ndarray | None = None,
-) -> TargetPass:
-    """Steps 1–4 of the module docstring for one target (``rect``: configured size,
-    orientation and approximate centre) among the points ``idx`` of one pass. With the beam
-    origins ``origin_m`` (n, 3) the intensities are corrected for incidence first."""
-    centre = rect.center_m if seed_m is None else np.asarray(seed_m, float)
-    radius = opts.search_radius_m + 0.5 * np.hypot(rect.width_m, rect.height_m)
-    pts = p_m[idx]
-    near = np.sum((pts - centre) ** 2, axis=1) <= radius**2
-    cand = idx[near]
-    n_cand = cand.size
-    if n_cand < opts.min_points_per_pass:
-        return _missing(
-            rect.name, pass_id, n_cand, 0, 1.0, f"{n_cand} points within {radius:.1f} m of its centre"
-        )
-    refl = (
-        intensity[cand]
-        if origin_m is None
-        else incidence_corrected(p_m[cand], intensity[cand], origin_m[cand])
-    )
-    split = intensity_split(refl, opts.min_contrast)
-    note = ""
-    if split.threshold is None:
-        cls = cand
-        note = (
-            f"no reflectivity contrast around it (ratio {split.contrast:.2f} < "
-            f"{opts.min_contrast:g}): separated from its surroundings by geometry only"
-        )
-    elif rect.reflectivity >= 0.5:
-        cls = cand[refl >= split.threshold]
-    else:
-        cls = cand[refl < split.threshold]
-    if cls.size < opts.min_points_per_pass:
-        return _missing(
-            rect.name,
-            pass_id,
-            n_cand,
-            cls.size,
-            split.contrast,
-            f"{cls.size} of {n_cand} nearby points have its reflectivity",
-        )
-    q = p_m[cls]
-    plane = ransac_plane(
-        q,
-        opts.ransac_distance_m,
-        opts.ransac_stop_fraction,
-        opts.ransac_max_iterations,
-        rng,
-        rect.normal,
-        opts.max_tilt_rad,
-    )
-    if plane is None or plane.inliers.sum() < opts.min_points_per_pass:
-        return _missing(
-            rect.name,
-            pass_id,
-            n_cand,
-            cls.size,
-            split.contrast,
-            "no plane with its orientation among its points",
-        )
-    normal, d = plane.normal, plane.d
-    keep = plane.inliers
-    cos_tilt = np.cos(opts.max_tilt_rad)
-    for _ in range(3):  # least squares on the band, then a band of five robust σ
-        fit = fit_plane(q[keep], orient_like=normal)
-        if abs(fit.normal @ rect.normal) < cos_tilt:  # the points are not a plane of that
-            return _missing(
-                rect.name,
-                pass_id,
-                n_cand,
-                cls.size,
-                split.contrast,  # tilt
-                "no plane with its orientation among its points",
-            )
-        normal, d = fit.normal, fit.d
-        dist = q @ normal + d
-        sigma = 1.4826 * np.median(np.abs(dist[keep] - np.median(dist[keep])))
-        band = max(3.0 * opts.ransac_distance_m, 5.0 * sigma)
-        keep = np.abs(dist) <= band
-    q, sel = q[keep], cls[keep]
-    # clusters of the kept points; the one whose extent matches the configured size
-    u, v = in_plane_axes(normal, rect.u_axis)
-    ab = np.column_stack([(q - centre) @ u, (q - centre) @ v])
-    size = np.array([rect.width_m, rect.height_m])
-    labels = clusters(q, link_radius(q, min(rect.width_m, rect.height_m)))
-    best, best_key = None, None
-    for lab in np.unique(labels):
-        m = labels == lab
-        if m.sum() < opts.min_points_per_pass:
-            continue
-        ext = robust_extent(ab[m])
-        mismatch = float(np.sum(np.abs(np.log(np.maximum(ext, 1e-3) / size))))
-        key = (round(mismatch, 1), -int(m.sum()))  # near-equal matches: the larger cluster
-        if best_key is None or key < best_key:
-            best, best_key = m, key
-    if best is None:
-        return _missing(
-            rect.name,
-            pass_id,
-            n_cand,
-            cls.size,
-            split.contrast,
-            f"its points form no cluster of at least {opts.min_points_per_pass} points",
-        )
-    ext = robust_extent(ab[best])
-    too_big = np.any(ext > size * (1.0 + opts.size_tolerance) + 0.05)
-    if too_big:
-        # the cluster is more than the target (no contrast, or a bright neighbour touching
-        # it): centre a target-sized box on the cluster's median point
-        mid = np.median(ab[best], axis=0)
-        note = "; ".join(
-            filter(
-                None,
-                [
-                    note,
-                    (
-                        f"its cluster measures {ext[0]:.2f} × {ext[1]:.2f} m against the configured "
-                        f"{size[0]:.2f} × {size[1]:.2f} m: a box of the configured size around its median "
-                        f"point was kept"
-                    ),
-                ],
-            )
-        )
-    else:
-        # the middle of the robust span (stray points do not pull it); on a partial view
-        # (extent below the size) the box still holds the whole cluster
-        mid = np.percentile(ab[best], [2.0, 98.0], axis=0).mean(axis=0)
-    half = 0.5 * size - opts.edge_margin_m
-    inside = np.all(np.abs(ab - mid) <= half, axis=1) & best
-    sel = sel[inside]
-    if sel.size < opts.min_points_per_pass:
-        return _missing(
-            rect.name,
-            pass_id,
-            n_cand,
-            cls.size,
-            split.contrast,
-            f"only {sel.size} points inside its rectangle",
-        )
-    rms = float(np.sqrt(np.mean((p_m[sel] @ normal + d) ** 2)))
-    return TargetPass(
-        rect.name, pass_id, np.sort(sel), n_cand, cls.size, split.contrast, normal, rms, ext, note
-    )
-
+from calib.extraction.target import (  # noqa: F401  (MODES, extract_target: the package's interface)
+    MODES,
+    ExtractionError,
+    ExtractOptions,
+    TargetPass,
+    extract_target,
+    missing_target,
+)
 
 # -- automatic seeds -----------------------------------------------------------------------
 
@@ -368,6 +166,20 @@ class Extraction:
             out[f.pass_id][f.target] += f.n_points
         return out
 
+    def without(self, names: list[str]) -> Extraction:
+        """The extraction with the targets ``names`` left out (their warnings stay)."""
+        keep = [n for n in self.target_names if n not in names]
+        found = [f for f in self.found if f.target in keep]
+        return Extraction(keep, self.pass_ids, found, self.subsample_m, list(self.warnings))
+
+    def lost_passes(self) -> dict[str, list[int]]:
+        """Per target, the passes it is missing from or rejected in."""
+        out: dict[str, list[int]] = {}
+        for f in self.found:
+            if f.n_points == 0:
+                out.setdefault(f.target, []).append(f.pass_id)
+        return out
+
     def totals(self) -> dict[str, int]:
         out = dict.fromkeys(self.target_names, 0)
         for f in self.found:
@@ -406,13 +218,15 @@ def extract(
             seeds = auto_seeds(p, inten, idx, rects, options, rng, origin)
         for r in rects:
             if options.mode == "auto" and r.name not in seeds:
-                tp = _missing(
+                tp = missing_target(
                     r.name, pass_no, 0, 0, 1.0, "no bright planar cluster of its size and inclination"
                 )
             else:
                 tp = extract_target(p, inten, idx, r, pass_no, options, rng, seeds.get(r.name), origin)
             out.found.append(tp)
-            if tp.n_points == 0:
+            if tp.status == "rejected":
+                out.warnings.append(f"target {r.name} is rejected in pass {pass_no}: {tp.note}")
+            elif tp.n_points == 0:
                 out.warnings.append(f"target {r.name} is missing from pass {pass_no}: {tp.note}")
             elif tp.note:
                 out.warnings.append(f"target {r.name} in pass {pass_no}: {tp.note}")

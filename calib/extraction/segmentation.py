@@ -41,6 +41,7 @@ def ransac_plane(
     normal_hint=None,
     max_tilt_rad: float | None = None,
     confidence: float = 0.999,
+    local_radius_m: float | None = None,
 ) -> RansacPlane | None:
     """RANSAC plane of points (n, 3), or None when no admissible plane has 3 inliers.
 
@@ -50,6 +51,11 @@ def ransac_plane(
     or at ``max_iterations``. With ``normal_hint`` and ``max_tilt_rad`` only planes whose
     normal is within that angle of the hint are admissible. The best plane is refined by
     least squares on its inliers.
+
+    With ``local_radius_m`` every other batch draws its triplets locally: the first point at
+    random, the other two among its neighbours within that radius. A small target among a
+    wall's points (3 % of them, say) is then sampled whole about 3 % of the time instead of
+    0.003 % — a global draw of three would almost never find it within ``max_iterations``.
     """
     p = np.asarray(p_m, float)
     n = p.shape[0]
@@ -62,8 +68,14 @@ def ransac_plane(
     best_count, best = 0, None
     needed = max_iterations
     drawn = 0
+    local = None if local_radius_m is None else (cKDTree(p), float(local_radius_m))
+    batch = 0
     while drawn < min(needed, max_iterations):
-        idx = rng.integers(0, n, (_BATCH, 3))
+        batch += 1
+        if local is not None and batch % 2 == 0:
+            idx = _local_triplets(p, local[0], local[1], rng)
+        else:
+            idx = rng.integers(0, n, (_BATCH, 3))
         a, b, c = p[idx[:, 0]], p[idx[:, 1]], p[idx[:, 2]]
         ab, ac = b - a, c - a
         nrm = np.cross(ab, ac)
@@ -100,6 +112,17 @@ def ransac_plane(
     if hint is not None and normal @ hint < 0:
         normal, d = -normal, -d
     return RansacPlane(np.asarray(normal, float), float(d), inliers, drawn)
+
+
+def _local_triplets(p: np.ndarray, tree: cKDTree, radius_m: float, rng: np.random.Generator) -> np.ndarray:
+    """(_BATCH, 3) indices: a random first point and two of its neighbours within the radius
+    (the first point thrice where it has fewer than two: a degenerate triplet, dropped)."""
+    first = rng.integers(0, p.shape[0], _BATCH)
+    out = np.repeat(first[:, None], 3, axis=1)
+    for row, near in enumerate(tree.query_ball_point(p[first], radius_m)):
+        if len(near) >= 3:
+            out[row, 1:] = rng.choice(near, 2, replace=False)
+    return out
 
 
 @dataclass(frozen=True)

@@ -127,6 +127,12 @@ def demo(
             + (f" and {len(res.result['tie_patches'])} tie patches" if res.result.get("tie_patches") else ""),
             highlight=False,
         )
+        verdict = res.result.get("verdict", "none")
+        console.print(
+            f"verdict      {verdict}"
+            + "".join(f"\n             · {escape(r)}" for r in res.result.get("verdict_reasons") or []),
+            highlight=False,
+        )
         console.print(f"result.json  {res.calib / 'result.json'}", highlight=False)
         console.print(f"report.md    {res.calib / 'report.md'}", highlight=False)
         for p in res.plots:

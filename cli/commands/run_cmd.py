@@ -22,6 +22,11 @@ RUN_HELP = (
     "already holds files is refused unless --force. Warnings (a pass planned in site.yaml "
     "without points, points of an unplanned pass, points dropped by --skip-uncovered, …) go "
     "to stderr and into report.md.\n\n"
+    "Every result carries a verdict (result.json 'verdict' and its reasons): trusted; questionable "
+    "(a check failed: a target group removed as a gross error, a target lost in two passes, targets "
+    "and scene disagreeing, τ-sensitivity, jackknife, a poorly observed angle); refused (no "
+    "convergence, σ̂0² > 2, a gross error that could not be removed). A refused result exits with "
+    "status 4 and is not recorded in the history unless --accept-refused.\n\n"
     "Example: mls sim dataset --scenario montreal --out sim-mtl && mls calib run sim-mtl "
     "--mount lidar-2024"
 )
@@ -87,6 +92,16 @@ def _table(run, out_dir: Path):
     ):
         table.add_row(name, f"{b:.4f}", f"{sf:.4f}", f"{sr:.4f}")
     return table
+
+
+def _say_verdict(console, verdict) -> None:
+    """The verdict, and each reason on its own line."""
+    from rich.markup import escape
+
+    colour = {"trusted": "green", "questionable": "yellow", "refused": "red"}[verdict.status]
+    console.print(f"verdict: [bold {colour}]{verdict.status}[/]", highlight=False)
+    for r in verdict.reasons:
+        console.print(f"  · {escape(r)}", highlight=False, soft_wrap=True)
 
 
 def _export(session: Path, bundle_dir: Path, console, columns) -> Path:
@@ -235,6 +250,12 @@ def run(
         False, "--no-history", help="Do not record the result in the calibration history."
     ),
     no_plots: bool = typer.Option(False, "--no-plots", help="Write result.json and report.md only (faster)."),
+    accept_refused: bool = typer.Option(
+        False,
+        "--accept-refused",
+        help="Exit 0 and record the result in the history even when its verdict is 'refused' (it stays "
+        "marked refused in result.json, the report and the history).",
+    ),
 ) -> None:
     """``mls calib run`` (its help text is :data:`RUN_HELP`)."""
     import math
@@ -245,10 +266,11 @@ def run(
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
     from calib.assess.history import record_result
+    from calib.boresight.checks.verdict import REFUSED_EXIT_STATUS
     from calib.boresight.pipeline import CalibrationOptions, run_bundle
     from calib.core.errors import MlsError
     from calib.extraction.extract import ExtractOptions
-    from calib.io.outputs import check_output_dir
+    from calib.io.outputs import hold_output_dir
 
     if not bundle.is_dir():
         _fail(
@@ -278,8 +300,8 @@ def run(
     except MlsError as e:  # an option the pipeline refuses
         _fail(str(e), 2)
     out_dir = out if out is not None else bundle / "calib"
-    try:  # before anything is computed or exported
-        check_output_dir(out_dir, "--out" if out is not None else "the output directory (--out)", force)
+    try:  # before anything is computed or exported; held until the command ends
+        hold_output_dir(out_dir, "--out" if out is not None else "the output directory (--out)", force)
     except MlsError as e:
         _fail(str(e), 2)
 
@@ -305,6 +327,14 @@ def run(
     console.print(
         f"wrote result.json, report.md{f' and {pngs} plots' if pngs else ''} to {out_dir}", highlight=False
     )
+    verdict = cal.verdict
+    _say_verdict(console, verdict)
+    if verdict.status == "refused" and not accept_refused:
+        _fail(
+            f"verdict refused: the result in {out_dir} must not be used (see report.md); it was not recorded "
+            f"in the history. --accept-refused records it anyway, marked",
+            REFUSED_EXIT_STATUS,
+        )
     if not no_history:
         try:
             row = record_result(cal.doc, bundle, vessel, mount, db=db)

@@ -281,3 +281,50 @@ def test_a_session_is_exported_then_calibrated(tmp_path, monkeypatch, bundle):
 def test_a_missing_directory_is_one_clear_line(tmp_path):
     line = one_line_error(calib_run(tmp_path / "nowhere"))
     assert "not a directory" in line
+
+
+def test_a_refused_result_exits_4_is_not_recorded_and_accept_refused_marks_it(tmp_path, bundle):
+    """The trajectory claims a POS ten times better than the simulated one (per-epoch sigmas
+    divided by 10) and the thesis estimator weighs by them: σ̂0² far beyond 2, the verdict is
+    refused, the command says why, exits 4 and records nothing; with --accept-refused it records
+    the result, still marked refused in the history."""
+    import shutil
+
+    bad = tmp_path / "bad"
+    shutil.copytree(bundle, bad, ignore=shutil.ignore_patterns("calib"))
+    lines = (bad / "trajectory.csv").read_text().splitlines()
+    sigma_cols = [i for i, c in enumerate(lines[0].split(",")) if c.startswith("sigma_")]
+    assert len(sigma_cols) == 6
+    rows = [lines[0]]
+    for line in lines[1:]:
+        f = line.split(",")
+        for i in sigma_cols:
+            f[i] = repr(float(f[i]) / 10)
+        rows.append(",".join(f))
+    (bad / "trajectory.csv").write_text("\n".join(rows) + "\n")
+    db = tmp_path / "h.sqlite"
+    res = calib_run(bad, "--no-plots", "--estimator", "thesis", "--db", str(db), "--mount", "m1")
+    assert res.exit_code == 4, res.output
+    assert "verdict: refused" in res.output and "do not fit the error model" in res.output
+    assert "verdict refused" in res.stderr and "not recorded" in res.stderr
+    doc = json.loads((bad / "calib" / "result.json").read_text())
+    assert doc["verdict"] == "refused" and doc["sigma0_squared"] > 2.0
+    assert "## Verdict\n\n**refused**: do not use this result." in (bad / "calib" / "report.md").read_text()
+    assert list_results(db=db) == []
+    res = calib_run(
+        bad,
+        "--no-plots",
+        "--estimator",
+        "thesis",
+        "--force",
+        "--db",
+        str(db),
+        "--mount",
+        "m1",
+        "--accept-refused",
+    )
+    assert res.exit_code == 0, res.output
+    [rec] = list_results(db=db)
+    assert rec.verdict == "refused"
+    hist = runner.invoke(app, ["calib", "history", "--db", str(db)], env=WIDE)
+    assert hist.exit_code == 0 and "refused" in hist.output

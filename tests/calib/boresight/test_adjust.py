@@ -448,3 +448,18 @@ def test_out_of_order_times_are_refused():
 def test_points_outside_the_trajectory_are_refused():
     with pytest.raises(AdjustmentError, match="does not cover the points.*2 of 3 times"):
         _build([1001.0, 1020.0, 1030.0])
+
+
+def test_one_gls_iteration_with_roughness_stops_unconverged_instead_of_crashing():
+    """The GLS with its roughness components and an iteration cap of 1 (it once raised
+    UnboundLocalError there): one iteration, not converged; a cap outside 1…1000 is refused."""
+    truth = np.radians([2.0, -2.0, 2.0])
+    obs, planes, _ = synth.observations(
+        Mount(boresight_rad=truth), synth.montreal_planes(), points_per_plane_per_pass=40, noise=True
+    )
+    gls = AdjustOptions(jackknife=False, outliers="none", roughness="all", max_iterations=1)
+    res = adjust(obs, Mount(), planes, gls)
+    assert res.iterations == 1 and not res.converged
+    for cap in (0, -3, 1001, 2.5):
+        with pytest.raises(AdjustmentError, match="max_iterations"):
+            AdjustOptions(max_iterations=cap)

@@ -265,3 +265,12 @@ def test_a_target_missing_from_one_pass_is_a_warning_and_the_run_continues():
     assert res.converged
     err = np.abs(res.boresight_rad - r.mount_true.boresight_rad)
     assert np.all(err <= 3 * res.sigma_realistic_rad)
+
+
+def test_a_trajectory_far_from_the_site_names_the_distance():
+    """The trajectory 470 km from the targets (another datum, a wrong reference point): one
+    error naming the closest approach per target, before any extraction."""
+    r = simulate("montreal", 0)
+    far = replace(r.trajectory_observed, p_lgf_m=r.trajectory_observed.p_lgf_m + [470e3, 0.0, 0.0])
+    with pytest.raises(CalibrationError, match=r"closest approach is T1 4\d\d\.\d km, T2 4\d\d\.\d km"):
+        calibrate(r.site, far, r.points, FAST)

@@ -258,3 +258,59 @@ def test_subsampling_an_extraction_thins_each_pass_separately(montreal):
         assert 0 < b.n_points < a.n_points and set(b.indices) <= set(a.indices)
         assert len(voxel_subsample(p[b.indices], 0.05)) == b.n_points
     assert thin.subsample_m == 0.05 and replace(thin, subsample_m=None).pass_ids == ext.pass_ids
+
+
+def _wall_and_target(proud_m: float, rng, target_seen: bool = True):
+    """A 1.23 × 1.22 m target ``proud_m`` in front of an 8 × 3 m wall of the same
+    reflectivity (no contrast at all), seen from the origin; the wall behind it occluded."""
+    az = np.radians(270.0)
+    target = Rectangle.from_orientation("T1", [0.0, 15.0 - proud_m, -5.0], 1.23, 1.22, np.pi / 2, az, 0.9)
+    wall = Rectangle.from_orientation("W", [0.0, 15.0, -5.0], 8.0, 3.0, np.pi / 2, az, 0.9)
+    pw = _grid(wall, 0.03, rng)
+    shadow = target.translated(target.normal * -proud_m)  # about what the target hides
+    pw = pw[~shadow.contains(pw, 0.0)]
+    pt = _grid(target, 0.03, rng) if target_seen else np.empty((0, 3))
+    p = np.vstack([pw, pt])
+    return target, p, len(pw)
+
+
+def test_a_target_proud_of_a_wall_without_contrast_is_found_on_its_own_plane():
+    """No reflectivity contrast: the largest plane of the target's orientation is the wall;
+    the target is the next plane, 30 cm in front, with a cluster of its size."""
+    rng = np.random.default_rng(7)
+    target, p, n_wall = _wall_and_target(0.3, rng)
+    idx = np.arange(len(p))
+    got = extract_target(
+        p,
+        np.full(len(p), 0.9),
+        idx,
+        target.translated([0.2, 0.0, 0.1]),
+        1,
+        ExtractOptions(),
+        rng,
+        origin_m=np.zeros_like(p),
+    )
+    assert got.status == "found" and got.n_points >= 0.85 * (len(p) - n_wall)
+    assert np.all(got.indices >= n_wall)  # no wall point
+    assert "no reflectivity contrast" in got.note
+
+
+def test_a_wall_cluster_is_rejected_with_its_size_never_trimmed_to_a_box():
+    """The target not hit at all (the pass saw only the wall around it) and no contrast:
+    every cluster of its orientation is the wall, larger than the target: rejected, named."""
+    rng = np.random.default_rng(8)
+    target, p, _ = _wall_and_target(0.3, rng, target_seen=False)
+    got = extract_target(
+        p,
+        np.full(len(p), 0.9),
+        np.arange(len(p)),
+        target,
+        4,
+        ExtractOptions(),
+        rng,
+        origin_m=np.zeros_like(p),
+    )
+    assert got.status == "rejected" and got.n_points == 0
+    assert "against the configured 1.23 × 1.22 m: more than the target alone" in got.note
+    ext = extract(p, np.full(len(p), 0.9), np.full(len(p), 4), [target], ExtractOptions(), np.zeros_like(p))
+    assert ext.warnings[0].startswith("target T1 is rejected in pass 4: ")
