@@ -46,8 +46,8 @@ import _onecore  # noqa: F401  (first: BLAS on one thread)
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 import numpy as np  # noqa: E402
+from _crlb import ANGLES, angles_rad, targets_only_crlb_rad  # noqa: E402
 
-ANGLES = ("roll", "pitch", "yaw")
 ESTIMATORS = ("default", "targets_only", "thesis")
 LABEL = {"default": "GLS + tie patches", "targets_only": "GLS, targets only", "thesis": "thesis"}
 
@@ -115,17 +115,10 @@ def build_cases(names, jobs, no_design):
 # --------------------------------------------------------------------------- one seed
 
 
-def _vec(v):
-    return np.radians([v[a] for a in ANGLES] if isinstance(v, dict) else list(v))
-
-
 def run_seed(task):
     """One simulation + calibration; errors, σ (rad) per estimator and the CRLB σ (rad)."""
     name, case, seed = task
-    from calib.boresight.covariance import predict_covariance
-    from calib.boresight.errormodel import ErrorModel
     from calib.boresight.pipeline import CalibrationOptions, calibrate_bundle
-    from calib.core.georef import Mount
     from calib.sim.simulate import simulate
 
     t0 = time.perf_counter()
@@ -134,7 +127,7 @@ def run_seed(task):
             bundle = Path(tmp) / "bundle"
             simulate(case["scenario"], seed, overrides=case["overrides"]).write(bundle)
             truth = json.loads((bundle / "truth.json").read_text())
-            true_b = _vec(truth["boresight_deg"])
+            true_b = angles_rad(truth["boresight_deg"])
             # the true error model: site.yaml's, as the simulator wrote it (a targets-only run)
             off = calibrate_bundle(bundle, CalibrationOptions(tie_patches="off"))
             model_true = off.result.error_model
@@ -148,33 +141,23 @@ def run_seed(task):
             run = calibrate_bundle(bundle, opts)
             doc = run.doc
             est = {
-                "default": (_vec(doc["boresight_deg"]), _vec(doc["sigma_realistic_deg"])),
+                "default": (angles_rad(doc["boresight_deg"]), angles_rad(doc["sigma_realistic_deg"])),
                 "thesis": (
-                    _vec(doc["thesis_estimator"]["boresight_deg"]),
-                    _vec(doc["thesis_estimator"]["sigma_realistic_deg"]),
+                    angles_rad(doc["thesis_estimator"]["boresight_deg"]),
+                    angles_rad(doc["thesis_estimator"]["sigma_realistic_deg"]),
                 ),
             }
             if "targets_only" in doc:
                 t = doc["targets_only"]
-                est["targets_only"] = (_vec(t["boresight_deg"]), _vec(t["sigma_realistic_deg"]))
+                est["targets_only"] = (angles_rad(t["boresight_deg"]), angles_rad(t["sigma_realistic_deg"]))
             elif "tau_factor" in case:  # no patches chosen: the default is the targets-only GLS
                 est["targets_only"] = est["default"]
             else:
                 est["targets_only"] = (off.result.boresight_rad.copy(), off.result.sigma_realistic_rad.copy())
             n_patches = len(doc.get("tie_patches") or [])
             # CRLB of the targets alone at the truth
-            planes = {p["name"]: (np.asarray(p["normal"], float), float(p["d"])) for p in truth["targets"]}
             obs = off.observations
-            mount = Mount(
-                lever_arm_m=np.asarray(truth["lever_arm_m"], float),
-                nominal_rad=np.radians(truth["nominal_deg"]),
-                boresight_rad=true_b,
-            )
-            model = ErrorModel("gauss_markov", model_true.correlation_time_s)
-            cov = predict_covariance(
-                obs, mount, [planes[n] for n in obs.plane_names], model=model, estimator="gls"
-            )
-            crlb = np.sqrt(np.diag(cov["realistic"]))
+            crlb = targets_only_crlb_rad(truth, obs, model_true.correlation_time_s)
         return {
             "case": name,
             "seed": seed,

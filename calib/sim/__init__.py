@@ -14,6 +14,9 @@ Modules, each importing only modules above it:
   moored hulls;
 - ``scenariofile``: scenario YAML files (shipped ones by name, or any path), validated, with
   ``key=value`` overrides on dotted keys;
+- ``randomdraw``: the randomized calibration scenario (``random``): a geometry drawn from a
+  seed (mount tilt, wall azimuth, standoff, targets, contrast, waviness, lever arm, boresight,
+  POS noise, headings), read as a scenario document, its passes placed from the standoff;
 - ``scanning``: the profiler's exact returns (profiles cast against the scene with the true mount);
 - ``result``: what a simulation produced and how returns become observations and truth;
 - ``production``: the production survey (lines along the harbour front, the mount event);

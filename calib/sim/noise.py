@@ -74,6 +74,8 @@ class PosNoise:
     sigma_attitude_rad: np.ndarray = field(default_factory=lambda: np.zeros(3))
     tau_position_s: np.ndarray = field(default_factory=lambda: np.full(3, 20.0))
     tau_attitude_s: np.ndarray = field(default_factory=lambda: np.full(3, 10.0))
+    #: site.yaml states the correlation times (False: the calibration must estimate them)
+    tau_in_site: bool = True
 
     def __post_init__(self):
         if self.model not in POS_NOISE_MODELS:
@@ -138,6 +140,9 @@ class ScannerNoise:
     sigma_range_per_m: float = 0.0
     beam_divergence_rad: float = 0.0
     sigma_scan_angle_rad: float = 0.0
+    #: the returned intensity is reflectivity × cos(incidence) (Lambertian); False: reflectivity
+    #: alone (a scanner that normalizes its intensity, as an independent simulator's did)
+    intensity_follows_incidence: bool = True
 
     def __post_init__(self):
         for attr in ("sigma_range_m", "sigma_range_per_m", "beam_divergence_rad", "sigma_scan_angle_rad"):

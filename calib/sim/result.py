@@ -222,7 +222,10 @@ def observe(
         t_gps_s=ret.t_gps_s[rec],
         range_m=measured_m[rec],
         scan_angle_rad=frames.wrap_2pi(ret.alpha_rad + d_angle)[rec],
-        intensity=(scene.reflectivity[ret.surface] * ret.cos_incidence)[rec],
+        intensity=(
+            scene.reflectivity[ret.surface]
+            * (ret.cos_incidence if sc.scanner_noise.intensity_follows_incidence else 1.0)
+        )[rec],
     )
 
     pos = sc.pos_noise

@@ -31,6 +31,7 @@ from calib.sim.motion import MotionModel
 from calib.sim.noise import PosNoise, ScannerNoise
 from calib.sim.scene import Scene
 from calib.sim.surfaceshape import SurfaceShape
+from calib.survey.passplan import PassPlan, plan_passes
 
 # -- the scenario ---------------------------------------------------------------------------
 
@@ -265,6 +266,9 @@ class Scenario:
     scanner_noise: ScannerNoise
     pos_noise: PosNoise
     production: ProductionSpec | None = None  # a production survey instead of the passes
+    #: what a randomized scenario drew (:mod:`calib.sim.randomdraw`, JSON-ready, degrees at the
+    #: edge), written to truth.json's ``settings.random_draw``; None for a scenario file
+    draw: dict | None = None
 
     # -- geometry ---------------------------------------------------------------------------
 
@@ -297,6 +301,22 @@ class Scenario:
             tuple(self.rectangle(s) for s in self.surfaces),
             tuple(s.kind for s in self.surfaces),
             tuple(s.shape for s in self.surfaces),
+        )
+
+    def pass_plan(self) -> PassPlan:
+        """The calibration passes around the targets (the scanner at up = 0 on a level
+        vessel); :class:`~calib.survey.passplan.PassPlanError` when they cannot be sailed."""
+        scene = self.scene()
+        rects = lambda kind: [scene.rectangles[i] for i in scene.indices(kind)]  # noqa: E731
+        return plan_passes(
+            rects("target"),
+            self.wall_azimuth_rad,
+            self.standoff_m,
+            self.passes,
+            track_down_m=-float(self.mount.lever_arm_m[2]),
+            safe_wall_distance_m=self.safe_wall_distance_m,
+            capture_margin_m=self.capture_margin_m,
+            also_capture=rects("validation") if self.capture_validation_planes else (),
         )
 
     def _targets(self, kind: str) -> tuple[Target, ...]:
@@ -336,7 +356,7 @@ class Scenario:
             kw["sigma_position_m"] = pn.sigma_position_m
         if pn.model != "none" and np.all(pn.sigma_attitude_rad > 0):
             kw["sigma_attitude_rad"] = pn.sigma_attitude_rad
-        if pn.model == "gauss_markov":
+        if pn.model == "gauss_markov" and pn.tau_in_site:
             kw["pos_correlation_time_s"] = np.concatenate(
                 [np.broadcast_to(pn.tau_position_s, 3), np.broadcast_to(pn.tau_attitude_s, 3)]
             )
@@ -355,7 +375,7 @@ class Scenario:
     def to_dict(self) -> dict:
         """The resolved settings (for truth.json)."""
         m = self.mount
-        return {
+        out = {
             "name": self.name,
             "description": self.description,
             "reference": self.reference.as_dict(),
@@ -373,6 +393,9 @@ class Scenario:
             "motion": self.motion.to_dict(),
             "noise": {"scanner": self.scanner_noise.to_dict(), "pos": self.pos_noise.to_dict()},
         }
+        if self.draw is not None:
+            out["random_draw"] = self.draw
+        return out
 
 
 def with_flat_surfaces(scenario: Scenario) -> Scenario:

@@ -97,6 +97,13 @@ def parse_scenario(
 # -- overrides ------------------------------------------------------------------------------
 
 
+def override_strings(overrides: Sequence[str] | Mapping[str, Any]) -> list[str]:
+    """The overrides as truth.json lists them."""
+    if isinstance(overrides, Mapping):
+        return [f"{k}={v!r}" for k, v in overrides.items()]
+    return [str(o) for o in overrides]
+
+
 _BRACKETS = re.compile(r"\[([^\[\]]*)\]")
 
 
@@ -413,18 +420,26 @@ def _noise(n: Node) -> tuple[ScannerNoise, PosNoise]:
     if "scanner" in m:
         s = m["scanner"].mapping(
             optional={"sigma_range_m", "sigma_range_per_m", "beam_divergence_mrad", "sigma_scan_angle_deg"}
+            | {"intensity_follows_incidence"}
         )
         sn = ScannerNoise(
             sigma_range_m=_opt(s, "sigma_range_m", _nonneg, 0.0),
             sigma_range_per_m=_opt(s, "sigma_range_per_m", _nonneg, 0.0),
             beam_divergence_rad=_opt(s, "beam_divergence_mrad", _nonneg, 0.0) * 1e-3,
             sigma_scan_angle_rad=float(np.radians(_opt(s, "sigma_scan_angle_deg", _nonneg, 0.0))),
+            intensity_follows_incidence=_opt(s, "intensity_follows_incidence", Node.boolean, True),
         )
     pn = PosNoise()
     if "pos" in m:
         p = m["pos"].mapping(
             required={"model"},
-            optional={"sigma_position_m", "sigma_attitude_deg", "tau_position_s", "tau_attitude_s"},
+            optional={
+                "sigma_position_m",
+                "sigma_attitude_deg",
+                "tau_position_s",
+                "tau_attitude_s",
+                "tau_in_site",
+            },
         )
         kw = {}
         for key, attr, conv in (
@@ -440,7 +455,7 @@ def _noise(n: Node) -> tuple[ScannerNoise, PosNoise]:
             for key in ("tau_position_s", "tau_attitude_s"):
                 if key in p and np.any(p[key].vector(3) <= 0):
                     raise p[key].fail("3 correlation times > 0")
-        pn = PosNoise(model=model, **kw)
+        pn = PosNoise(model=model, tau_in_site=_opt(p, "tau_in_site", Node.boolean, True), **kw)
     return sn, pn
 
 

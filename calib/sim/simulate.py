@@ -33,10 +33,11 @@ import numpy as np
 
 from calib.sim.motion import sail
 from calib.sim.production import sail_production, scenario_of
+from calib.sim.randomdraw import RANDOM_SCENARIO, random_scenario
 from calib.sim.result import SimResult, SimulationError, observe
 from calib.sim.scanning import ScanReturns, scan, scan_batches
 from calib.sim.scenario import Scenario
-from calib.survey.passplan import plan_passes
+from calib.sim.scenariofile import override_strings
 
 __all__ = ["ScanReturns", "SimResult", "SimulationError", "scan", "simulate"]
 
@@ -49,26 +50,20 @@ def simulate(
     progress: Callable[[int, int], None] | None = None,
 ) -> SimResult:
     """Simulate a scenario (a :class:`Scenario`, or a shipped name / YAML path loaded with
-    ``overrides``). ``progress(done, total)`` is called after each pass (each line of a
-    production survey)."""
-    sc, applied = scenario_of(scenario, overrides)
+    ``overrides``; ``"random"``: the geometry :mod:`calib.sim.randomdraw` draws from ``seed``,
+    with ``overrides`` on top). ``progress(done, total)`` is called after each pass (each line
+    of a production survey)."""
+    if isinstance(scenario, str) and scenario == RANDOM_SCENARIO:
+        sc, applied = random_scenario(seed, overrides), override_strings(overrides)
+    else:
+        sc, applied = scenario_of(scenario, overrides)
     if sc.production is not None:  # a production survey of the harbour scene
         return sail_production(sc, sc.production, seed, applied, progress)
     rng_motion, rng_pos, rng_scan, rng_point = (
         np.random.default_rng(s) for s in np.random.SeedSequence(seed).spawn(4)
     )
     scene = sc.scene()
-    rects = lambda kind: [scene.rectangles[i] for i in scene.indices(kind)]  # noqa: E731
-    plan = plan_passes(
-        rects("target"),
-        sc.wall_azimuth_rad,
-        sc.standoff_m,
-        sc.passes,
-        track_down_m=-float(sc.mount.lever_arm_m[2]),  # the scanner at up = 0 on a level vessel
-        safe_wall_distance_m=sc.safe_wall_distance_m,
-        capture_margin_m=sc.capture_margin_m,
-        also_capture=rects("validation") if sc.capture_validation_planes else (),
-    )
+    plan = sc.pass_plan()
     run = sail(plan, sc.motion, sc.start_gps_s, sc.reference, rng_motion)
     traj = run.trajectory
     mount = sc.truth.true_mount(sc.mount)
