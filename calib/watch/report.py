@@ -114,9 +114,7 @@ def markdown(run: WatchRun, meta: dict) -> str:
     ]
     for k, (b, s, f) in enumerate(zip(run.blocks, run.states, run.families)):
         if b.delta_rad is not None:
-            cells = [
-                f"{math.degrees(x):+.3f} ± {math.degrees(sd):.3f}" for x, sd in zip(b.delta_rad, b.sigma_rad)
-            ]
+            cells = [_angle_cell(x, sd, d.max_sigma_rad) for x, sd in zip(b.delta_rad, b.sigma_rad)]
         else:
             cells = [b.status, "", ""]
         stat = " / ".join(f"{x:.2f}" for x in s["statistic"])
@@ -141,6 +139,14 @@ def markdown(run: WatchRun, meta: dict) -> str:
             + (f"; dropped as moving: {', '.join(b.moved_patches)}" if b.moved_patches else "")
         )
     return "\n".join(lines) + "\n"
+
+
+def _angle_cell(delta_rad: float, sigma_rad: float, max_sigma_rad: float) -> str:
+    """A block's correction of one angle, or "no verdict" when it resolves the angle no better
+    than the test's bound (held at the calibrated value: its value is no evidence)."""
+    if sigma_rad > max_sigma_rad:
+        return f"no verdict (σ {math.degrees(sigma_rad):.3f})"
+    return f"{math.degrees(delta_rad):+.3f} ± {math.degrees(sigma_rad):.3f}"
 
 
 def _line_shares(b) -> dict[int, float]:
@@ -192,3 +198,45 @@ def plot_watch(run: WatchRun, path: Path) -> None:
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)
+
+
+#: what the watch says of a result.json written before calibrations carried a verdict
+OLDER_CALIBRATION = "no verdict (older calibration)"
+
+
+def calibration_verdict(result: dict | None) -> tuple[str | None, str | None]:
+    """The calibration's verdict line for the watch's report, and the warning to print (None
+    when the calibration is trusted). ``result``: the result.json the watch is given (None:
+    none given, the vessel's a-priori boresight — :mod:`acquire.deliver.calibration` warns)."""
+    if result is None:
+        return None, None
+    verdict_ = result.get("verdict")
+    if verdict_ is None:
+        line = f"calibration verdict: {OLDER_CALIBRATION}"
+        return line, f"the calibration has {OLDER_CALIBRATION}: the watch tests against a mount not checked"
+    reasons = [str(r) for r in result.get("verdict_reasons") or []]
+    line = f"calibration verdict: {verdict_}" + (f" ({'; '.join(reasons)})" if reasons else "")
+    if verdict_ == "trusted":
+        return line, None
+    return line, (
+        f"the calibration is {verdict_}"
+        + (f" ({'; '.join(reasons)})" if reasons else "")
+        + ": the watch tests the mount against it, so a shift it reports may be the calibration's error"
+    )
+
+
+def add_calibration_verdict(out_dir: Path, line: str, warning: str | None) -> None:
+    """Write the calibration's verdict into a written ``watch.md`` (under the verdict, a
+    warning when the calibration is not trusted) and ``watch.json``."""
+    md = out_dir / "watch.md"
+    if md.exists():
+        text = md.read_text(encoding="utf-8").split("\n")
+        note = [f"> **Warning:** {warning}", ""] if warning else []
+        at = next((i + 2 for i, s in enumerate(text) if s.startswith("**")), len(text))
+        md.write_text("\n".join(text[:at] + note + [f"- {line}"] + text[at:]), encoding="utf-8")
+    js = out_dir / "watch.json"
+    if js.exists():
+        doc = json.loads(js.read_text(encoding="utf-8"))
+        doc["calibration_verdict"] = line
+        doc["calibration_warning"] = warning
+        js.write_text(json.dumps(doc, indent=1, allow_nan=False) + "\n", encoding="utf-8")

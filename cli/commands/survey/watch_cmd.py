@@ -60,14 +60,17 @@ def watch(
     """``mls watch`` (its help text is :data:`HELP`)."""
     from rich.console import Console
     from rich.markup import escape
-    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TaskID, TextColumn, TimeElapsedColumn
 
     from acquire import __version__
     from acquire.deliver.watchjob import WatchJob, run_watch_job
-    from calib.watch.report import run_verdict
+    from calib.watch.report import add_calibration_verdict, calibration_verdict, run_verdict
     from calib.watch.sequential import WatchDesign
 
     console, err = Console(), Console(stderr=True, emoji=False)
+    from calib.io.outputs import hold_output_dir  # the report's writer lock, held to the end
+
+    hold_output_dir(out, "--out", force)
     job = WatchJob(
         source,
         out,
@@ -80,7 +83,7 @@ def watch(
     )
     columns = (TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn())
     with Progress(*columns, console=err, transient=True) as bar:
-        tasks: dict[str, int] = {}
+        tasks: dict[str, TaskID] = {}
 
         def progress(stage: str, done: int, total: int) -> None:
             if stage not in tasks:
@@ -90,6 +93,11 @@ def watch(
         outcome = run_watch_job(job, f"marine-mls {__version__}", progress)
     for w in outcome.warnings:
         err.print(f"[yellow]warning:[/] {escape(w)}")
+    line, warning = calibration_verdict(_calibration_result(calibration))
+    if line is not None:
+        add_calibration_verdict(out, line, warning)
+    if warning is not None:
+        err.print(f"[yellow]warning:[/] {escape(warning)}")
     run = outcome.run
     console.print(
         f"{len(outcome.lines)} line(s), {len(run.blocks)} block(s), {outcome.n_points:,} returns used"
@@ -99,3 +107,13 @@ def watch(
         console.print(f"  {escape(str(p))}")
     if run.alarm is not None:
         raise typer.Exit(EXIT_SHIFT)
+
+
+def _calibration_result(ref: str | None) -> dict | None:
+    """The result.json ``--calibration`` names (the job has read it already; None without)."""
+    if ref is None:
+        return None
+    from calib.assess.history import resolve_result
+
+    found, _ = resolve_result(ref, which="--calibration")
+    return found if isinstance(found, dict) else found.result

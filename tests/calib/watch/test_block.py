@@ -62,9 +62,11 @@ def test_an_angle_the_block_does_not_resolve_is_held_and_carries_no_correlation(
     # it from the scene); it is held at the calibrated value while roll and pitch are solved
     b = block_of(steady, [1, 2])
     free = block_of(steady, [1, 2], WatchOptions(max_sigma_rad=np.inf))
+    # judged at the calibrated mount, where the watch tests: yaw there is not resolved
+    assert b.held == (False, False, True) and free.held == (False, False, False)
     assert b.sigma_rad[2] > WatchOptions().max_sigma_rad
     assert np.all(b.cov_rad2[2, :2] == 0.0) and np.all(b.cov_rad2[:2, 2] == 0.0)
-    assert b.delta_rad[2] == free.delta_rad[2] and b.sigma_rad[2] == free.sigma_rad[2]
+    assert b.delta_rad[2] == 0.0  # held at the calibrated value: no evidence either way
     assert free.cov_rad2[2, :2].any()  # left free, yaw is correlated with roll and pitch
     # held, roll and pitch are conditional on yaw: their σ no larger, their values within 4σ
     assert np.all(b.sigma_rad[:2] <= free.sigma_rad[:2] * 1.01)  # (the variance factors differ a little)
@@ -77,7 +79,8 @@ def test_a_step_of_roll_and_pitch_is_found(stepped):
     found = b.delta_rad[:2] / DEG
     sig = b.sigma_rad[:2] / DEG
     assert np.all(np.abs(found - [0.15, -0.15]) < 4 * sig + 0.01), (found, sig)
-    assert np.all(np.abs(found) > 8 * sig)  # far from the calibrated mount
+    # far from the calibrated mount (σ includes the patch groups' dispersion, up to ~1.5× the model's)
+    assert np.all(np.abs(found) > 5 * sig)
 
 
 def test_one_heading_and_an_empty_window_are_no_evidence(steady):

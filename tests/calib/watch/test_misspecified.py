@@ -38,7 +38,7 @@ def test_a_wavy_wall_and_moving_hulls_raise_no_alarm(rough_run):
     assert len(ok) == len(run.blocks) == 4  # every line after the first closes a block
     for b in ok:
         d, cov, seen = MountTest().usable(b)
-        assert seen[0] and seen[1]
+        assert seen[0]  # roll always; pitch only where planar patches see it (no verdict else)
         z = d[seen] / np.sqrt(np.diag(cov)[seen])
         assert np.all(np.abs(z) < 4.0), (b.pass_ids, z)
 
