@@ -4,6 +4,10 @@
 until the port accepts connections. ``kill()`` / ``start()`` again on the same port simulate a
 broker crash and restart. A missing binary is an error (never a skip): the CI installs
 ``mosquitto`` with apt.
+
+``Mosquitto(workdir, tls=make_test_pki(dir))`` listens with TLS only (TLS ≥ 1.2, the server
+certificate of ``localhost``/``127.0.0.1``, client certificates required and verified against the
+test CA). :func:`make_test_pki` makes the certificates with the ``openssl`` command line.
 """
 
 from __future__ import annotations
@@ -14,6 +18,7 @@ import signal
 import socket
 import subprocess
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
 CANDIDATES = ("mosquitto", "/usr/sbin/mosquitto", "/usr/local/sbin/mosquitto")
@@ -36,8 +41,67 @@ def free_port() -> int:
         return s.getsockname()[1]
 
 
+@dataclass(frozen=True)
+class BrokerPki:
+    ca: Path  # the test CA's certificate
+    server_cert: Path
+    server_key: Path
+    client_cert: Path
+    client_key: Path
+    other_ca: Path  # a CA that signed nothing here: verifying the broker with it fails
+
+
+def _openssl(*args: str | Path, cwd: Path) -> None:
+    subprocess.run(["openssl", *map(str, args)], cwd=cwd, check=True, capture_output=True, timeout=60)
+
+
+def _key_and_csr(d: Path, name: str, cn: str) -> None:
+    _openssl("ecparam", "-name", "prime256v1", "-genkey", "-noout", "-out", f"{name}.key", cwd=d)
+    _openssl("req", "-new", "-key", f"{name}.key", "-subj", f"/CN={cn}", "-out", f"{name}.csr", cwd=d)
+    os.chmod(d / f"{name}.key", 0o600)
+
+
+def _self_signed_ca(d: Path, name: str) -> None:
+    _openssl("ecparam", "-name", "prime256v1", "-genkey", "-noout", "-out", f"{name}.key", cwd=d)
+    _openssl(
+        "req", "-x509", "-new", "-key", f"{name}.key", "-subj", f"/CN={name}", "-days", "2",
+        "-addext", "basicConstraints=critical,CA:TRUE", "-addext", "keyUsage=critical,keyCertSign,cRLSign",
+        "-out", f"{name}.crt", cwd=d,
+    )  # fmt: skip
+
+
+def _sign(d: Path, name: str, ext: str) -> None:
+    (d / f"{name}.ext").write_text(ext)
+    _openssl(
+        "x509", "-req", "-in", f"{name}.csr", "-CA", "ca.crt", "-CAkey", "ca.key", "-CAcreateserial",
+        "-days", "2", "-extfile", f"{name}.ext", "-out", f"{name}.crt", cwd=d,
+    )  # fmt: skip
+
+
+def make_test_pki(directory: Path) -> BrokerPki:
+    """A CA, a server certificate for localhost/127.0.0.1 and a client certificate, signed by
+    it, and an unrelated CA (EC P-256 keys, valid 2 days), made with ``openssl``."""
+    d = Path(directory)
+    d.mkdir(parents=True, exist_ok=True)
+    _self_signed_ca(d, "ca")
+    _self_signed_ca(d, "other-ca")
+    _key_and_csr(d, "server", "localhost")
+    _sign(d, "server", "subjectAltName=DNS:localhost,IP:127.0.0.1\nextendedKeyUsage=serverAuth\n")
+    _key_and_csr(d, "client", "mls-test-client")
+    _sign(d, "client", "extendedKeyUsage=clientAuth\n")
+    return BrokerPki(
+        d / "ca.crt",
+        d / "server.crt",
+        d / "server.key",
+        d / "client.crt",
+        d / "client.key",
+        d / "other-ca.crt",
+    )
+
+
 class Mosquitto:
-    def __init__(self, workdir: Path, port: int | None = None):
+    def __init__(self, workdir: Path, port: int | None = None, tls: BrokerPki | None = None):
+        self.tls = tls
         self.workdir = Path(workdir)
         self.workdir.mkdir(parents=True, exist_ok=True)
         self.port = port or free_port()
@@ -47,9 +111,16 @@ class Mosquitto:
 
     def start(self, timeout_s: float = 10.0) -> Mosquitto:
         conf = self.workdir / "mosquitto.conf"
+        tls = ""
+        if self.tls is not None:
+            tls = (
+                f"cafile {self.tls.ca}\ncertfile {self.tls.server_cert}\nkeyfile {self.tls.server_key}\n"
+                "tls_version tlsv1.2\nrequire_certificate true\n"
+            )
+            if os.geteuid() == 0:  # as root, mosquitto drops to user mosquitto before reading
+                tls += "user root\n"  # the files, which live in a private tmp_path
         conf.write_text(
-            f"listener {self.port} {self.host}\n"
-            "allow_anonymous true\n"
+            f"listener {self.port} {self.host}\n" + tls + "allow_anonymous true\n"
             "persistence false\n"
             "log_dest stderr\n"
             "log_type error\nlog_type warning\nlog_type notice\n"

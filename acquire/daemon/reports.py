@@ -149,15 +149,7 @@ class StatusReports:
                 "served": self.server.clients_served,
                 "dropped": self.server.clients_dropped,
             },
-            "mqtt": None
-            if self.mqtt is None
-            else {
-                "connected": self.mqtt.connected,
-                "connects": self.mqtt.connects,
-                "published": self.mqtt.published,
-                "dropped": self.mqtt.dropped,
-                "last_error": self.mqtt.last_error,
-            },
+            "mqtt": None if self.mqtt is None else self.mqtt.metrics(),
             "devices": {n: d.status() for n, d in self.devices.items()},
             "consumers": self.hub.status(),
             "loop_lag_ms": round(self.loop_lag_ns / 1e6, 3),

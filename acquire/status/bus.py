@@ -32,6 +32,7 @@ import contextlib
 import json
 import os
 import socket
+import stat
 import threading
 import time
 from pathlib import Path
@@ -107,13 +108,23 @@ class StatusServer:
         self.clients_dropped = 0  # disconnected for not keeping up
 
     async def start(self) -> None:
+        """Bind the socket. Its directory must be safe (:func:`check_run_dir`); whatever is at its
+        path must be this user's socket or stale plain file, never a symlink (:func:`check_own_entry`):
+        :class:`UnsafeRunFile` otherwise."""
+        from acquire.status.runfiles import UnsafeRunFile, check_own_entry, check_run_dir
+
         self.path.parent.mkdir(parents=True, exist_ok=True)
-        if self.path.exists() or self.path.is_symlink():
+        check_run_dir(self.path.parent)
+        if check_own_entry(self.path):
             if _socket_alive(self.path):
                 raise RuntimeError(f"{self.path}: another daemon is serving status on this socket")
             self.path.unlink()  # stale, from a daemon that died
         self._server = await asyncio.start_unix_server(self._handle, path=str(self.path))
-        st = os.stat(self.path)
+        st = os.lstat(self.path)
+        if not stat.S_ISSOCK(st.st_mode):  # replaced since it was bound: chmod would follow it
+            self._server.close()
+            self._server = None
+            raise UnsafeRunFile(f"{self.path}: replaced by another file while it was made: refused")
         self._bound = (st.st_dev, st.st_ino)
         os.chmod(self.path, self.mode)
 
