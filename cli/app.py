@@ -19,6 +19,7 @@ import typer
 from typer.core import TyperGroup
 
 from calib.core.errors import MlsError
+from calib.io.dirlock import release_held
 from cli.commands import (
     acquire_cmd,
     assess_cmd,  # noqa: F401  (adds calib c2c, history, compare)
@@ -51,6 +52,8 @@ class MlsGroup(TyperGroup):
         except MlsError as e:
             typer.echo(f"{typer.style('error:', fg=typer.colors.RED)} {e}", err=True)
             raise typer.Exit(EXIT_ERROR) from None
+        finally:
+            release_held()  # the output directories the command held (calib/io/dirlock.py)
 
 
 app = typer.Typer(

@@ -11,6 +11,10 @@ The kernel releases a flock when its holder dies, so a lock that can be taken bu
 holder was left by a daemon that ended without releasing it (``kill -9``, power cut): it is taken
 over, and :meth:`PidLock.acquire` returns the old holder for the caller's warning. An orderly
 release empties the file and keeps it (unlinking a lock file races with the next taker).
+
+The daemon often runs as root: the lock file is opened with ``O_NOFOLLOW`` and refused when it is
+a symlink, another user's file or a hard link, or when its directory is writable by others
+(:mod:`acquire.status.runfiles`), so that nobody can have it truncate a file of their choosing.
 """
 
 from __future__ import annotations
@@ -26,6 +30,7 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 
 from acquire.errors import AcquireError
+from acquire.status.runfiles import check_run_dir, open_private
 
 
 class LockHeld(AcquireError, RuntimeError):
@@ -109,11 +114,14 @@ class PidLock:
     def acquire(self) -> LockHolder | None:
         """Take the lock, write this process into it. Returns the previous holder when a stale
         lock (its holder gone without releasing it) was taken over, else None. Raises
-        :class:`LockHeld` when another process holds it, OSError when the file cannot be made."""
+        :class:`LockHeld` when another process holds it, :class:`UnsafeRunFile` (an OSError) when
+        the file is a symlink, another user's, or in a directory others may write
+        (:mod:`acquire.status.runfiles`), OSError when the file cannot be made."""
         if self._fd is not None:
             return None
         self.path.parent.mkdir(parents=True, exist_ok=True)
-        fd = os.open(self.path, os.O_RDWR | os.O_CREAT | os.O_CLOEXEC, 0o644)
+        check_run_dir(self.path.parent)
+        fd = open_private(self.path, os.O_RDWR | os.O_CREAT)
         try:
             try:
                 fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)

@@ -114,14 +114,19 @@ def part_path(out_dir: str | Path, tile: str, index: int) -> Path:
 
 
 def write_atomic(path: Path, data: bytes) -> None:
-    """``path`` appears whole or not at all (temporary name, fsync, rename)."""
+    """``path`` appears whole or not at all (temporary name, fsync, rename); a write that fails
+    (the disk full) leaves no temporary file."""
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    with open(tmp, "wb") as f:
-        f.write(data)
-        f.flush()
-        os.fsync(f.fileno())
-    os.replace(tmp, path)
+    try:
+        with open(tmp, "wb") as f:
+            f.write(data)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
 
 
 def _save_part(path: Path, part: np.ndarray) -> None:

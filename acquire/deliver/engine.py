@@ -38,6 +38,7 @@ from acquire.deliver.chunkjob import (
 )
 from acquire.deliver.executors import InProcess
 from acquire.deliver.options import GeorefError, GeorefOptions
+from acquire.deliver.space import check_space, is_out_of_space, out_of_space, source_returns, space_needed
 from acquire.deliver.tiles import (
     FileTask,
     file_done,
@@ -75,13 +76,9 @@ class GeorefResult:
 
 def _prepare_out(out: Path, resume: bool, fingerprint: str) -> None:
     """A resumed job's plan must be this one; a new job starts in an empty (checked) or forced
-    ``out`` without the old job's state."""
-    from calib.io.outputs import OutputError, make_output_dir
-
+    ``out`` (created and locked: :func:`_claim_out`) without the old job's state."""
     plan = state_dir(out) / "plan.json"
     if resume:
-        if not plan.exists():
-            raise GeorefError(f"{out}: --resume: no job to resume here (no .georef/plan.json)")
         old = json.loads(plan.read_text()).get("fingerprint")
         if old != fingerprint:
             raise GeorefError(
@@ -89,10 +86,6 @@ def _prepare_out(out: Path, resume: bool, fingerprint: str) -> None:
                 f"(plan {str(old)[:12]}…, now {fingerprint[:12]}…); use a new --out, or --force to start over"
             )
         return
-    try:
-        make_output_dir(out, "--out")
-    except OutputError as e:
-        raise GeorefError(str(e)) from None
     if state_dir(out).exists():
         shutil.rmtree(state_dir(out))
 
@@ -112,21 +105,76 @@ def run_georef(
     max_gap_s: float = 1.0,
     progress: Progress | None = None,
 ) -> GeorefResult:
-    """Georeference a survey into tiles (module docstring)."""
+    """Georeference a survey into tiles (module docstring), holding ``out``'s writer lock."""
+    out = Path(out_dir)
+    lock = _claim_out(out, resume, force)
+    space = _Space()
+    try:
+        return _georef(
+            source_path,
+            out,
+            options,
+            calibration,
+            executor=executor,
+            resume=resume,
+            sbet=sbet,
+            smrmsg=smrmsg,
+            db=db,
+            max_gap_s=max_gap_s,
+            progress=progress,
+            space=space,
+        )
+    except OSError as e:
+        if is_out_of_space(e):
+            raise out_of_space(out, space.need) from None
+        raise
+    finally:
+        lock.release()
+
+
+class _Space:
+    """What the job needs on disk (bytes), once its source is planned."""
+
+    need: int | None = None
+
+
+def _claim_out(out: Path, resume: bool, force: bool):
+    """Check ``out`` (a new job: empty, or ``force``; a resumed job: its plan is there), create
+    it and take its writer lock (:func:`calib.io.outputs.lock_output_dir`) before reading anything."""
+    from calib.io.dirlock import OutputLocked
+    from calib.io.outputs import OutputError, lock_output_dir
+
+    if resume and not (state_dir(out) / "plan.json").exists():
+        raise GeorefError(f"{out}: --resume: no job to resume here (no .georef/plan.json)")
+    try:
+        return lock_output_dir(out, "--out", force or resume)
+    except (OutputError, OutputLocked) as e:
+        raise GeorefError(str(e)) from None
+
+
+def _georef(
+    source_path: str | Path,
+    out: Path,
+    options: GeorefOptions,
+    calibration: str | None,
+    *,
+    executor,
+    resume: bool,
+    sbet: str | Path | None,
+    smrmsg: str | Path | None,
+    db,
+    max_gap_s: float,
+    progress: Progress | None,
+    space: _Space,
+) -> GeorefResult:
+    """:func:`run_georef` with ``out`` held."""
     from acquire.deliver.calibration import load_calibration
     from acquire.deliver.sources import open_source
     from calib.core.version import software_version
     from calib.io.laz import LasOutputError, output_crs
-    from calib.io.outputs import OutputError, check_output_dir
 
     t_start = time.monotonic()
     executor = executor or InProcess()
-    out = Path(out_dir)
-    if not resume:  # before reading anything (a resumed job's plan is checked once it is made)
-        try:
-            check_output_dir(out, "--out", force)
-        except OutputError as e:
-            raise GeorefError(str(e)) from None
     source = open_source(source_path, options.chunk_s, max_gap_s)
     warnings = list(source.warnings)
     traj, traj_name = source.trajectory, "/ins/nav" if source.kind == "session" else "trajectory.csv"
@@ -162,6 +210,9 @@ def run_georef(
     }
     fingerprint = hashlib.sha256(json.dumps(plan, sort_keys=True, default=str).encode()).hexdigest()
     _prepare_out(out, resume, fingerprint)
+    share = sum(not chunk_record_path(out, c.index).exists() for c in source.chunks) / len(source.chunks)
+    space.need = space_needed(source_returns(source), options.compress, share)
+    check_space(out, space.need)
     if not resume:
         write_atomic(
             state_dir(out) / "plan.json", json.dumps(dict(plan, fingerprint=fingerprint), indent=1).encode()

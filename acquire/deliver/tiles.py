@@ -100,9 +100,14 @@ def write_file(task: FileTask) -> FileDone:
             yield np.load(part_path(task.out_dir, task.tile, index), mmap_mode="r", allow_pickle=False)
 
     path = Path(task.out_dir) / f"{task.name}{task.suffix}"
-    summary = write_tile(
-        path, parts(), crs_for(task.crs, task.frame), task.software, task.provenance, task.first_t_gps_s
-    ).as_dict()
+    try:
+        summary = write_tile(
+            path, parts(), crs_for(task.crs, task.frame), task.software, task.provenance, task.first_t_gps_s
+        ).as_dict()
+    except BaseException:
+        # write_tile removes its partial file, unless closing it failed too (the disk full)
+        path.with_name(path.name + ".partial").unlink(missing_ok=True)
+        raise
     record = {"summary": summary, "chunks": list(task.chunks)}
     write_atomic(file_record_path(task.out_dir, task.name), json.dumps(record, sort_keys=True).encode())
     rss_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0

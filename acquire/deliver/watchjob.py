@@ -111,8 +111,10 @@ def collect_points(src, lines, max_points_per_s: float, progress=None) -> ScanPo
 
 def run_watch_job(job: WatchJob, software: str, progress: Callable | None = None) -> WatchOutcome:
     """Read, watch and report (module docstring); :class:`GeorefError` on bad input."""
-    out = Path(job.out)
-    if out.exists() and any(out.iterdir()) and not job.force:
+    from calib.io.dirlock import LOCK_NAME
+
+    out = Path(job.out)  # (its writer lock, taken by mls watch, is no content)
+    if out.exists() and any(p.name != LOCK_NAME for p in out.iterdir()) and not job.force:
         raise GeorefError(f"{out}: not empty; add --force to replace the report in it")
     src = open_source(job.source, chunk_s=10.0)
     warnings = list(src.warnings)

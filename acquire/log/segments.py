@@ -336,7 +336,7 @@ class SegmentLog:
         path = self.session_dir / RESERVE_NAME
         if path.exists() and path.stat().st_size >= self.options.reserve_bytes:
             return
-        fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_CLOEXEC, 0o640)
+        fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_CLOEXEC | os.O_NOFOLLOW, 0o640)
         try:
             os.posix_fallocate(fd, 0, self.options.reserve_bytes)
             os.fsync(fd)

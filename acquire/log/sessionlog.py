@@ -126,7 +126,7 @@ class SessionWriter(SegmentLog):
             raise LogError(f"{self.root}: cannot create a new session directory")
         fsync_dir(self.root)
         self.session_dir = d
-        self._lock_fd = os.open(d / LOCK_NAME, os.O_RDWR | os.O_CREAT | os.O_CLOEXEC, 0o640)
+        self._lock_fd = os.open(d / LOCK_NAME, os.O_RDWR | os.O_CREAT | os.O_CLOEXEC | os.O_NOFOLLOW, 0o640)
         fcntl.flock(self._lock_fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
         os.write(self._lock_fd, f"{os.getpid()}\n".encode())
         now = self._now()
@@ -155,7 +155,8 @@ class SessionWriter(SegmentLog):
         if log_time_ns is None:
             if self.clock is not None:
                 est = self.clock.to_gps(host_ns)
-                log_time_ns, clock_state = est.gps_ns, getattr(est.state, "value", est.state)
+                log_time_ns = est.gps_ns
+                clock_state = getattr(est, "record_state", None) or getattr(est.state, "value", est.state)
             else:
                 log_time_ns = host_ns
         return self.submit_batch([(topic, payload, host_ns, device_ns, log_time_ns, clock_state)]) == 1

@@ -11,6 +11,10 @@ Writers never overwrite data silently. Every command that writes into a director
 - a missing directory is fine: :func:`make_output_dir` creates it (and its parents) when the
   command writes.
 
+While it writes, a command holds the directory's writer lock (:func:`lock_output_dir`,
+:mod:`calib.io.dirlock`): a second writer into the same directory is refused, ``--force`` or not.
+The lock file ``.mls-lock`` does not count as content (a killed writer leaves it behind).
+
 A file output (``mls export --sbet FILE``) is checked by :func:`check_output_file`: a directory
 there is refused, an existing file only replaced with ``--force``. Each refusal is one line
 naming the path and the option (:class:`OutputError`).
@@ -25,6 +29,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from calib.core.errors import CalibError
+from calib.io.dirlock import LOCK_NAME, DirLock, hold
 
 
 class OutputError(CalibError, ValueError):
@@ -45,7 +50,7 @@ def check_output_dir(path: str | Path, option: str = "--out", force: bool = Fals
         raise OutputError(f"{d}: {option} names a directory, but this is a file")
     if d.is_dir() and not force:
         try:
-            entries = list(d.iterdir())
+            entries = [e for e in d.iterdir() if e.name != LOCK_NAME]
         except OSError as e:
             raise OutputError(f"{d}: {option}: cannot read the directory ({e.strerror or e})") from None
         if entries:
@@ -66,6 +71,35 @@ def make_output_dir(path: str | Path, option: str = "--out") -> Path:
     except OSError as e:
         raise OutputError(f"{d}: {option}: cannot create the directory ({e.strerror or e})") from None
     return d
+
+
+def lock_output_dir(
+    path: str | Path, option: str = "--out", force: bool = False, command: str | None = None
+) -> DirLock:
+    """``path`` checked (:func:`check_output_dir`), created and locked for this writer, then
+    checked again under the lock (another writer may have finished meanwhile). The caller
+    releases the returned :class:`DirLock` when it is done (or ends: the kernel releases it);
+    :class:`calib.io.dirlock.OutputLocked` when another writer holds it."""
+    d = check_output_dir(path, option, force)
+    created = not d.exists()
+    make_output_dir(d, option)
+    lock = DirLock(d, command)
+    lock.remove_dir_if_empty = created
+    lock.acquire()
+    try:
+        check_output_dir(d, option, force)
+    except BaseException:
+        lock.release()
+        raise
+    return lock
+
+
+def hold_output_dir(
+    path: str | Path, option: str = "--out", force: bool = False, command: str | None = None
+) -> DirLock:
+    """:func:`lock_output_dir` for a command of the ``mls`` CLI: the lock is kept until the
+    command ends (:func:`calib.io.dirlock.release_held`, called by the ``mls`` group)."""
+    return hold(lock_output_dir(path, option, force, command))
 
 
 def check_output_file(path: str | Path, option: str, force: bool = False) -> Path:

@@ -102,10 +102,10 @@ def assess_cmd(
     from calib.assess.pairs import parse_pairs
     from calib.assess.results import AssessError, AssessOptions
     from calib.assess.summary import fmt_ratio, summary_lines, write_assessment
-    from calib.io.outputs import check_output_dir
+    from calib.io.outputs import hold_output_dir
 
     err = Console(stderr=True, emoji=False)  # ":100:" of file:line:column is no emoji
-    check_output_dir(out, "--out", force)  # before the assessment (an MlsError: one line, status 1)
+    hold_output_dir(out, "--out", force)  # before the assessment (an MlsError: one line, status 1)
     try:
         pair_list = parse_pairs(pairs) if pairs else None
     except AssessError as e:

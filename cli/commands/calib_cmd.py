@@ -92,9 +92,9 @@ def run_georef(bundle: Path, out: Path, force: bool = False, **kwargs) -> list[P
     )
 
     from calib.io.georef_bundle import georeference_bundle
-    from calib.io.outputs import check_output_dir
+    from calib.io.outputs import hold_output_dir
 
-    check_output_dir(out, "--out", force)  # before reading anything
+    hold_output_dir(out, "--out", force)  # before reading anything; held to the end
     console = Console()
     columns = (
         TextColumn("[bold]{task.description}"),

@@ -194,7 +194,7 @@ def _study(
     from calib.design.sitecheck import compare_sites
     from calib.design.study import run_study
     from calib.design.summary import write_study
-    from calib.io.outputs import check_output_dir
+    from calib.io.outputs import hold_output_dir
     from calib.sim.scenariofile import load_scenario
 
     base = load_scenario(scenario, list(overrides))
@@ -204,7 +204,7 @@ def _study(
     if error:
         changes["errors"] = () if list(error) == ["none"] else tuple(error)
     spec = default_spec(base, **changes)
-    check_output_dir(out, "--out", force)  # the options are valid: before the study
+    hold_output_dir(out, "--out", force)  # the options are valid: before the study; held to the end
     with _progress(console) as bar:
         task = bar.add_task(f"design study of {base.name}", total=None)
         result = run_study(
@@ -287,12 +287,12 @@ def _what_if(console, site_path, out, force, template, scanner_height_m, seed) -
 
     from calib.design.prediction import ESTIMATOR_MODEL
     from calib.design.whatif import what_if, write_what_if
-    from calib.io.outputs import check_output_dir
+    from calib.io.outputs import hold_output_dir
     from calib.io.site import load_site
 
     site = load_site(site_path)
     if out is not None:
-        check_output_dir(out, "--out", force)  # before the prediction
+        hold_output_dir(out, "--out", force)  # before the prediction; held to the end
     with _progress(console) as bar:
         bar.add_task(f"predicting σ for {site_path}", total=None)
         w = what_if(site, template, scanner_height_m, seed)

@@ -34,7 +34,8 @@ def dataset(
         "--scenario",
         "-s",
         metavar="NAME|PATH",
-        help="A shipped scenario (montreal, terrestrial, tower) or a scenario YAML file.",
+        help="A shipped scenario (montreal, terrestrial, tower), random (a geometry "
+        "drawn from --seed; the draw lands in truth.json) or a scenario YAML file.",
     ),
     out: Path = typer.Option(..., "--out", "-o", help="Bundle directory to write (created)."),
     force: bool = typer.Option(
@@ -73,7 +74,7 @@ def dataset(
     from rich.table import Table
 
     from calib.core.errors import MlsError
-    from calib.io.outputs import check_output_dir
+    from calib.io.outputs import hold_output_dir
     from calib.sim.simulate import simulate
 
     console = Console(emoji=False)  # ":100:" of file:line:column is no emoji
@@ -82,7 +83,7 @@ def dataset(
         overrides.append(f"scanner.point_rate_scale={point_rate_scale!r}")
     t0 = time.perf_counter()
     try:
-        check_output_dir(out, "--out", force)  # before simulating
+        hold_output_dir(out, "--out", force)  # before simulating; held to the end
         with simulation_bar(console, f"simulating {scenario}") as (bar, task, progress):
             result = simulate(scenario, seed, overrides=overrides, progress=progress)
             bar.update(task, description="writing the bundle")

@@ -90,7 +90,7 @@ def export(
 
     from acquire.jobs.export import ExportError, ExportOptions, export_session
     from calib.core.errors import MlsError
-    from calib.io.outputs import check_output_dir, check_output_file
+    from calib.io.outputs import check_output_file, hold_output_dir
 
     console = Console()
     err = Console(stderr=True, emoji=False)  # ":100:" of file:line:column is no emoji
@@ -106,9 +106,9 @@ def export(
         if bundle is None and (laz is not None or sbet is not None):
             raise ExportError("--laz and --sbet come with --bundle DIR (they are written from the bundle)")
         if bundle is not None:  # every output, before reading the session
-            check_output_dir(bundle, "--bundle", force)
+            hold_output_dir(bundle, "--bundle", force)
         if laz is not None:
-            check_output_dir(laz, "--laz", force)
+            hold_output_dir(laz, "--laz", force)
         if sbet is not None:
             check_output_file(sbet, "--sbet", force)
         if foxglove is not None:

@@ -143,3 +143,99 @@ def test_the_lock_names_its_holder_and_an_orderly_release_empties_it(tmp_path):
     b = PidLock(path)
     assert b.acquire() is None  # empty: nothing stale to report
     b.release()
+
+
+# -- the files a root daemon opens: never through a symlink, never another user's -------------------
+
+
+def test_a_symlink_at_the_lock_path_is_refused_and_its_target_left_whole(tmp_path):
+    from acquire.status.runfiles import UnsafeRunFile
+
+    target = tmp_path / "precious"
+    target.write_text("do not truncate me\n")
+    run = tmp_path / "run"
+    run.mkdir()
+    lock = run / "status.sock.lock"
+    lock.symlink_to(target)
+    with pytest.raises(UnsafeRunFile, match="symbolic link: refused") as e:
+        PidLock(lock).acquire()
+    assert isinstance(e.value, OSError) and "\n" not in str(e.value)  # the supervisor's StartupError
+    assert target.read_text() == "do not truncate me\n" and lock.is_symlink()
+
+
+def test_a_hard_link_or_another_users_lock_file_is_refused(tmp_path):
+    from acquire.status.runfiles import UnsafeRunFile
+
+    target = tmp_path / "precious"
+    target.write_text("keep\n")
+    lock = tmp_path / "run" / "status.sock.lock"
+    lock.parent.mkdir()
+    os.link(target, lock)
+    with pytest.raises(UnsafeRunFile, match="2 hard links"):
+        PidLock(lock).acquire()
+    assert target.read_text() == "keep\n"
+    if os.geteuid() == 0:  # root can give the file away: another user's lock file
+        lock.unlink()
+        lock.write_text("")
+        os.chown(lock, 65534, 65534)
+        with pytest.raises(UnsafeRunFile, match="belongs to uid 65534"):
+            PidLock(lock).acquire()
+
+
+def test_a_run_directory_others_can_write_is_refused_unless_sticky(tmp_path):
+    from acquire.status.runfiles import UnsafeRunFile
+
+    run = tmp_path / "run"
+    run.mkdir()
+    os.chmod(run, 0o777)
+    with pytest.raises(UnsafeRunFile, match=r"writable by every user \(mode 777, no sticky bit\).*chmod o-w"):
+        PidLock(run / "status.sock.lock").acquire()
+    assert not (run / "status.sock.lock").exists()
+    with pytest.raises(UnsafeRunFile, match="writable by every user"):
+        asyncio.run(_serve_once(run / "status.sock"))
+    os.chmod(run, 0o1777)  # as /tmp: others cannot replace this user's files
+    lock = PidLock(run / "status.sock.lock")
+    lock.acquire()
+    lock.release()
+
+
+async def _serve_once(path: Path) -> None:
+    from acquire.status.bus import StatusServer
+
+    async with StatusServer(path):
+        pass
+
+
+def test_the_status_socket_path_must_be_a_socket_of_this_user(tmp_path):
+    from acquire.status.runfiles import UnsafeRunFile
+
+    target = tmp_path / "precious"
+    target.write_text("keep\n")
+    sock = tmp_path / "run" / "status.sock"
+    sock.parent.mkdir()
+    sock.symlink_to(target)
+    with pytest.raises(UnsafeRunFile, match="symbolic link"):
+        asyncio.run(_serve_once(sock))
+    assert sock.is_symlink() and target.read_text() == "keep\n"
+    os.chmod(target, 0o600)
+    sock.unlink()
+    sock.mkdir()
+    with pytest.raises(UnsafeRunFile, match="not a socket: refused \\(not removed\\)"):
+        asyncio.run(_serve_once(sock))
+    assert sock.is_dir() and oct(target.stat().st_mode & 0o777) == "0o600"
+    sock.rmdir()
+    asyncio.run(_serve_once(sock))  # a stale socket or none: served, then removed
+    assert not sock.exists()
+
+
+def test_mls_acquire_refuses_a_symlinked_lock_in_one_line(tmp_path):
+    cfg = _config(tmp_path)
+    target = tmp_path / "precious"
+    target.write_text("keep\n")
+    (tmp_path / "run").mkdir()
+    (tmp_path / "run" / "status.sock.lock").symlink_to(target)
+    r = _mls("acquire", "--config", str(cfg))
+    assert r.returncode == 1, r.stderr
+    assert "mls acquire: cannot start: daemon lock:" in r.stderr and "symbolic link" in r.stderr
+    assert "Traceback" not in r.stderr and target.read_text() == "keep\n"
+    assert not (tmp_path / "sessions").exists() or not any((tmp_path / "sessions").iterdir())
