@@ -115,7 +115,10 @@ class Recorder:
             cm.add_edge(clock.host_ns(s * NS_PER_S), s)
         self.alarms = AlarmBook(to_gps=cm.gps_ns)
         self.monitor = LatencyMonitor(cm, self.alarms)
-        self.timekeeper = TimeKeeper(cm, self._submit, alarms=self.alarms)
+        # the simulated host's system clock is disciplined: its view of GPS time is the truth clock's
+        self.timekeeper = TimeKeeper(
+            cm, self._submit, alarms=self.alarms, host_gps_offset_ns=lambda: clock.gps_ns(self.now) - self.now
+        )
         self.ctx = DaemonContext(
             self._submit,
             cm,

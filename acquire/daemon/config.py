@@ -19,8 +19,10 @@ default shown in the example):
   ``time_messages`` that label the pulses; ``latency`` thresholds;
 - ``session`` (log directory, rotation, flush, fsync, queue, free-space thresholds
   ``min_free_mb``, ``disk_warning_mb``, ``disk_critical_mb``), ``clock`` (fit window, gates,
-  holdover), ``status`` (socket), ``mqtt`` (optional: host, port, credentials file, topic
-  prefix, commands), ``mount`` (lever arm, nominal mount, a-priori boresight), ``site_file``;
+  holdover, ``host_offset_alarm_s``: the host clock's allowed offset from GPS time), ``status``
+  (socket), ``mqtt`` (optional: host, port, credentials file, topic prefix, commands,
+  ``commands_insecure_ok``, ``tls``: CA file, client certificate),
+  ``mount`` (lever arm, nominal mount, a-priori boresight), ``site_file``;
 - ``guidance`` (optional; needs ``site_file``): the line guidance the daemon runs when the config
   names a site file (:mod:`acquire.guidance.daemon`) — the pass acceptance tolerances
   (``max_xte_m``, ``max_heading_error_deg``, ``max_speed_error_mps``, ``min_points_per_target``,
@@ -41,6 +43,7 @@ from __future__ import annotations
 
 import os
 import re
+import ssl
 import stat
 from pathlib import Path
 
@@ -55,11 +58,11 @@ from acquire.daemon.confignodes import (
     mapping_keys,
     opt,
     resolved_path,
-    valid_name,
+    vessel_name,
 )
 from acquire.daemon.configschema import GuidanceConfig, MountConfig, StatusSettings, VesselConfig, WatchConfig
 from acquire.log.session import COMPRESSIONS, SessionOptions
-from acquire.status.mqtt import MqttSettings
+from acquire.status.mqtt import MqttSettings, MqttTls, command_policy, tls_context
 from acquire.timing.clock import ClockParams
 from calib.io.configfile import ConfigError, Node, load_yaml
 
@@ -140,6 +143,7 @@ def _clock(node: Node, errs: Errors) -> ClockParams:
             "loss_timeout_s",
             "holdover_limit_us",
             "holdover_wander_ppm",
+            "host_offset_alarm_s",
         },
     )
     d = ClockParams()
@@ -169,6 +173,16 @@ def _clock(node: Node, errs: Errors) -> ClockParams:
             lambda n: n.number(0.0, exclusive_minimum=True),
             d.holdover_wander_ppm,
         ),
+        host_offset_alarm_ns=round(
+            opt(
+                m,
+                "host_offset_alarm_s",
+                errs,
+                lambda n: n.number(0.001, 86_400.0),
+                d.host_offset_alarm_ns / NS_PER_S,
+            )
+            * NS_PER_S
+        ),
     )
 
 
@@ -193,7 +207,15 @@ def _mqtt(node: Node, errs: Errors, base: Path) -> MqttSettings | None:
         node,
         errs,
         required={"host"},
-        optional={"port", "credentials_file", "topic_prefix", "commands_enabled", "keepalive_s"},
+        optional={
+            "port",
+            "credentials_file",
+            "topic_prefix",
+            "commands_enabled",
+            "commands_insecure_ok",
+            "keepalive_s",
+            "tls",
+        },
     )
 
     def prefix(n: Node) -> str:
@@ -204,15 +226,58 @@ def _mqtt(node: Node, errs: Errors, base: Path) -> MqttSettings | None:
 
     host = opt(m, "host", errs, host_name, None)
     user_pass = opt(m, "credentials_file", errs, lambda n: _credentials(n, base), (None, None))
+    tls = _mqtt_tls(m["tls"], errs, base) if "tls" in m else None
     kw = dict(
-        port=opt(m, "port", errs, lambda n: int_between(n, 1, 65535), 1883),
+        port=opt(m, "port", errs, lambda n: int_between(n, 1, 65535), 1883 if "tls" not in m else 8883),
         topic_prefix=opt(m, "topic_prefix", errs, prefix, "mls"),
         commands_enabled=opt(m, "commands_enabled", errs, Node.boolean, False),
+        commands_insecure_ok=opt(m, "commands_insecure_ok", errs, Node.boolean, False),
         keepalive_s=opt(m, "keepalive_s", errs, lambda n: int_between(n, 2, 3600), 10),
     )
     if host is None:
         return None
-    return MqttSettings(host, username=user_pass[0], password=user_pass[1], **kw)
+    settings = MqttSettings(host, username=user_pass[0], password=user_pass[1], tls=tls, **kw)
+    why = command_policy(settings) if settings.commands_enabled and ("tls" not in m or tls) else None
+    if why is not None:
+        errs.add(f"{m['commands_enabled'].where()}: {why}")
+    return settings
+
+
+def _mqtt_tls(node: Node, errs: Errors, base: Path) -> MqttTls | None:
+    """``mqtt.tls``: the CA file that verifies the broker, an optional client certificate."""
+    m = mapping_keys(node, errs, required={"ca_file"}, optional={"cert_file", "key_file", "verify_hostname"})
+    ca = opt(m, "ca_file", errs, lambda n: _tls_file(n, base, "CA certificates"), None)
+    cert = opt(m, "cert_file", errs, lambda n: _tls_file(n, base, "client certificate"), None)
+    key = opt(m, "key_file", errs, lambda n: _tls_file(n, base, "client key", private=True), None)
+    if "key_file" in m and "cert_file" not in m:
+        errs.add(f"{m['key_file'].where()}: a client key needs its certificate: add cert_file")
+    verify = opt(m, "verify_hostname", errs, Node.boolean, True)
+    if ca is None:
+        return None
+    tls = MqttTls(ca, cert, key, verify)
+    try:
+        tls_context(tls)
+    except (OSError, ssl.SSLError) as e:
+        where = m["cert_file"] if cert is not None else m["ca_file"]
+        errs.add(f"{where.where()}: these TLS files cannot be used together ({e})")
+        return None
+    return tls
+
+
+def _tls_file(node: Node, base: Path, what: str, private: bool = False) -> Path:
+    path = resolved_path(node, base)
+    try:
+        st = path.stat()
+        path.read_bytes()
+    except OSError as e:
+        raise node.fail(f"a readable PEM file of the {what} ({e.strerror})") from None
+    if private and st.st_mode & stat.S_IROTH:
+        raise node.fail(
+            f"a {what} file not readable by others ({path} has mode {stat.filemode(st.st_mode)}; chmod 600 it)"
+        )
+    if b"-----BEGIN " not in path.read_bytes():
+        raise node.fail(f"a PEM file of the {what} (no '-----BEGIN' block in {path})")
+    return path
 
 
 def _mount(node: Node, errs: Errors) -> MountConfig | None:
@@ -344,7 +409,7 @@ def vessel_config_from_node(root: Node, base_dir: Path) -> VesselConfig:
         required={"vessel", "devices", "session"},
         optional={"clock", "status", "mqtt", "mount", "site_file", "guidance", "watch"},
     )
-    vessel = errs.get(lambda: valid_name(top["vessel"])) if "vessel" in top else None
+    vessel = errs.get(lambda: vessel_name(top["vessel"])) if "vessel" in top else None
     devices = parse_devices(top["devices"], errs) if "devices" in top else []
     session_dir, session = (
         _session(top["session"], errs, base_dir) if "session" in top else (None, SessionOptions())

@@ -194,6 +194,71 @@ def parse_devices(node: Node, errs: Errors) -> list[DeviceConfig]:
 
 
 def _cross_checks(devices: list[DeviceConfig], dev_nodes: dict[str, Node], errs: Errors) -> None:
+    _one_of_each(devices, dev_nodes, errs)
+    _port_collisions(devices, dev_nodes, errs)
+    _time_devices(devices, dev_nodes, errs)
+
+
+def _one_of_each(devices: list[DeviceConfig], dev_nodes: dict[str, Node], errs: Errors) -> None:
+    """One ins and one profiler: the session has one ``/ins/raw`` and one ``/lidar/raw``."""
+    for kind, channel in (("ins", "/ins/raw"), ("profiler", "/lidar/raw")):
+        same = [d for d in devices if d.kind == kind]
+        first = dev_nodes[same[0].name] if same else None
+        for extra in same[1:]:
+            assert first is not None
+            errs.add(
+                f"{dev_nodes[extra.name].where()}: a second {kind} device ({extra.name!r}; the first, "
+                f"{same[0].name!r}, at {first.source}:{first.line}): the session has one {channel} "
+                f"channel: configure one {kind}"
+            )
+
+
+def listen_endpoints(devices) -> list[tuple[DeviceConfig, str, str, int]]:
+    """``(device, protocol, bind address, port)`` of every socket the daemon listens on: the
+    UDP transports and a UDP PPS source (a TCP transport connects out: it listens on nothing)."""
+    out = []
+    for d in devices:
+        t, src = d.transport, d.source
+        if isinstance(t, NetTransport) and t.type == "udp":
+            out.append((d, "udp", t.host, t.port))
+        if src is not None and src.type == "udp" and src.host is not None and src.udp_port is not None:
+            out.append((d, "udp", src.host, src.udp_port))
+    return out
+
+
+WILDCARD_HOSTS = ("", "0.0.0.0", "::", "*")
+
+
+def _port_collisions(devices: list[DeviceConfig], dev_nodes: dict[str, Node], errs: Errors) -> None:
+    """Two devices bound to the same UDP port (the same address, or either on every address):
+    the second bind would fail, or the two would share each other's datagrams."""
+    seen: list[tuple[DeviceConfig, str, str, int]] = []
+    for d, proto, host, port in listen_endpoints(devices):
+        for other, proto2, host2, port2 in seen:
+            if other.name == d.name or (proto, port) != (proto2, port2):
+                continue
+            if host == host2 or host in WILDCARD_HOSTS or host2 in WILDCARD_HOSTS:
+                first = _port_node(dev_nodes[other.name])
+                errs.add(
+                    f"{_port_node(dev_nodes[d.name]).where()}: {proto} port {port} of device "
+                    f"{d.name!r} ({host}) is also the port of device {other.name!r} ({host2}, at "
+                    f"{first.source}:{first.line}): two devices cannot listen on one port"
+                )
+                break
+        seen.append((d, proto, host, port))
+
+
+def _port_node(dev_node: Node) -> Node:
+    """The ``port`` node of a device's ``transport`` or ``source`` (for the error's line)."""
+    value = dev_node.value if isinstance(dev_node.value, dict) else {}
+    for key in ("source", "transport"):
+        inner = value.get(key)
+        if inner is not None and isinstance(inner.value, dict) and "port" in inner.value:
+            return inner.value["port"]
+    return dev_node
+
+
+def _time_devices(devices: list[DeviceConfig], dev_nodes: dict[str, Node], errs: Errors) -> None:
     seen = {d.name: d for d in devices}
     pps = [d for d in devices if d.kind == "pps"]
     if len(pps) > 1:

@@ -13,6 +13,9 @@ from typing import Any
 from calib.io.configfile import ConfigError, Node
 
 NAME_RE = re.compile(r"[A-Za-z0-9][A-Za-z0-9_.-]*")
+#: the vessel name is a path component (``YYYYmmddTHHMMSSZ_<vessel>/``) and an MQTT topic level
+#: (``<prefix>/<vessel>/…``): short enough for either with room to spare (a file name ≤ 255 bytes)
+VESSEL_NAME_MAX_CHARS = 64
 MS, US, NS_PER_S = 1_000_000, 1_000, 1_000_000_000
 
 
@@ -65,6 +68,17 @@ def valid_name(node: Node) -> str:
     v = node.string()
     if not NAME_RE.fullmatch(v):
         raise node.fail("a name of letters, digits, '_', '.', '-' (starting with a letter or digit)")
+    return v
+
+
+def vessel_name(node: Node) -> str:
+    """The ``vessel``: a :func:`valid_name` of at most :data:`VESSEL_NAME_MAX_CHARS` characters."""
+    v = valid_name(node)
+    if len(v) > VESSEL_NAME_MAX_CHARS:
+        raise node.fail(
+            f"a name of at most {VESSEL_NAME_MAX_CHARS} characters (got {len(v)}): it names the "
+            "session directories and the MQTT topics"
+        )
     return v
 
 

@@ -265,7 +265,9 @@ class Supervisor(StatusReports):
         if cfg.mqtt is not None:
             from acquire.status.mqtt import MqttPublisher
 
-            self.mqtt = MqttPublisher(cfg.mqtt, cfg.vessel, on_command=self.command)
+            self.mqtt = MqttPublisher(
+                cfg.mqtt, cfg.vessel, on_command=self.command, alarms=self.alarms, on_event=self.log_event
+            )
             self.bus.add_sink(self.mqtt)
             self._spawn(self.mqtt.run(), "mqtt")
         self.log_event(

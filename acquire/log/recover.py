@@ -328,6 +328,9 @@ class ChannelInfo:
     missing_ranges: list[tuple[int, int]] = field(default_factory=list)  # first few
     gaps: list[tuple[int, float]] = field(default_factory=list)  # (log_time before, seconds)
     unlocked: int = 0  # messages whose log_time came from an unlocked clock (JSON: read; raw: flag)
+    # of those, stamped before any PPS fit: log_time is the host's clock, not GPS (schema's
+    # host-time mark); counted here, kept out of first/last, the gaps and the span
+    host_time: int = 0
     _period_ns: float | None = None
 
 
@@ -343,6 +346,7 @@ class SegmentInfo:
     problem: str | None
     recovery: dict | None  # the mls.recovery metadata of a recovered segment
     end_reason: str | None  # rotation | shutdown | requested (mls.segment_end)
+    host_time: int = 0  # messages stamped in host time (before the PPS lock), outside first/last
 
 
 @dataclass
@@ -356,7 +360,13 @@ class SessionInfo:
         return sum(c.messages for c in self.channels.values())
 
     @property
+    def host_time_messages(self) -> int:
+        """Messages stamped before the PPS lock (host time), outside :attr:`span_ns`."""
+        return sum(c.host_time for c in self.channels.values())
+
+    @property
     def span_ns(self) -> tuple[int | None, int | None]:
+        """First and last GPS ``log_time`` (messages stamped in host time left out)."""
         firsts = [c.first_log_ns for c in self.channels.values() if c.first_log_ns is not None]
         lasts = [c.last_log_ns for c in self.channels.values() if c.last_log_ns is not None]
         return (min(firsts) if firsts else None, max(lasts) if lasts else None)
@@ -371,6 +381,7 @@ class SessionInfo:
             "session": self.session,
             "messages": self.messages,
             "span_ns": list(self.span_ns),
+            "host_time_messages": self.host_time_messages,
             "segments": [asdict(s) for s in self.segments],
             "channels": chans,
         }
@@ -404,7 +415,7 @@ def session_info(
     for path in paths:
         scan = SegmentScan(path, 0)
         topics: dict[int, ChannelInfo] = {}
-        n, first, last = 0, None, None
+        n, first, last, host_time = 0, None, None, 0
         recovery = end_reason = None
         for rec in scan_segment(path, scan):
             if isinstance(rec, Channel):
@@ -420,12 +431,17 @@ def session_info(
                 if ci is None:
                     continue
                 n += 1
+                _account_sequence(ci, rec.sequence)
+                if _unlocked(ci.encoding, rec.data):
+                    ci.unlocked += 1
+                if _host_time(ci.encoding, rec.data):
+                    ci.host_time += 1  # not GPS time: out of the span and the gaps
+                    host_time += 1
+                    continue
                 t = rec.log_time
                 first = t if first is None else min(first, t)
                 last = t if last is None else max(last, t)
-                _account(ci, rec.sequence, t, gap_ns)
-                if _unlocked(ci.encoding, rec.data):
-                    ci.unlocked += 1
+                _account_time(ci, t, gap_ns)
         if scan.footer:
             state = "complete" if scan.indexed else "closed-after-error"
         elif scan.problem and scan.good_bytes <= 8:
@@ -444,6 +460,7 @@ def session_info(
                 scan.problem,
                 recovery,
                 end_reason,
+                host_time,
             )
         )
         done += scan.size
@@ -452,7 +469,16 @@ def session_info(
     return SessionInfo(session_dir.name, segments, channels)
 
 
-def _account(ci: ChannelInfo, seq: int, t: int, gap_ns: float) -> None:
+def _host_time(encoding: str, data: bytes) -> bool:
+    """The writer's mark of a message stamped before any PPS fit (:mod:`acquire.log.schema`)."""
+    from acquire.log.schema import FLAG_HOST_TIME, RAW_ENCODING
+
+    if encoding == RAW_ENCODING:
+        return len(data) > 1 and bool(data[1] & FLAG_HOST_TIME)
+    return b'"time_base":"host"' in data
+
+
+def _account_sequence(ci: ChannelInfo, seq: int) -> None:
     ci.messages += 1
     if ci.seq_last is None:
         ci.seq_first = seq
@@ -467,6 +493,9 @@ def _account(ci: ChannelInfo, seq: int, t: int, gap_ns: float) -> None:
             if len(ci.missing_ranges) < 20:
                 ci.missing_ranges.append((ci.seq_last + 1, seq - 1))
     ci.seq_last = seq
+
+
+def _account_time(ci: ChannelInfo, t: int, gap_ns: float) -> None:
     if ci.last_log_ns is not None and ci.topic != "/events":
         dt = t - ci.last_log_ns
         threshold = max(gap_ns, 5 * ci._period_ns) if ci._period_ns else None

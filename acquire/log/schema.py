@@ -16,7 +16,9 @@ Two encodings:
 
     u8  version = 1
     u8  flags     bit0 clock LOCKED, bit1 clock HOLDOVER (neither: UNLOCKED),
-                  bit2 device time tag present
+                  bit2 device time tag present,
+                  bit3 host time: stamped before any PPS fit, log_time is the host's system
+                       clock, not GPS (UNLOCKED; written since issue 26, 0 in older files)
     u16 header_size = 28 (readers skip this many bytes: later versions may append fields)
     u64 sequence  per-channel counter, from 1
     i64 host_ns   host monotonic receive stamp
@@ -28,7 +30,14 @@ by the drivers' codecs at any time.
 
 **JSON** (``message_encoding = "json"``, schema ``mls.Envelope`` in JSON Schema; every other
 channel): ``{"seq": n, "host_ns": …, "device_ns": … | null, "clock": "LOCKED", "data": {…}}``
-with NaN written as ``null``.
+with NaN written as ``null``; a record stamped before any PPS fit also has ``"time_base":
+"host"`` after ``"clock": "UNLOCKED"`` (absent: the clock model's GPS time; older files never
+have it).
+
+Backward compatible both ways: a reader of the older format ignores flag bit3 and the extra key
+and sees an UNLOCKED record, as before; this reader reads an older file's records as GPS time.
+The writer's pipeline carries the host-time case as the clock state
+:data:`~acquire.timing.clock.HOST_TIME_STATE`, which only the encoders here turn into the marks.
 """
 
 from __future__ import annotations
@@ -41,6 +50,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from acquire.errors import AcquireError
+from acquire.timing.clock import HOST_TIME_STATE
 
 RAW_ENCODING = "mls.raw.v1"
 JSON_ENCODING = "json"
@@ -52,6 +62,8 @@ RAW_VERSION = 1
 FLAG_LOCKED = 0x01
 FLAG_HOLDOVER = 0x02
 FLAG_DEVICE_TIME = 0x04
+FLAG_HOST_TIME = 0x08
+HOST_TIME_BASE = "host"  # the JSON envelope's "time_base" of a host-time record
 
 CLOCK_STATES = ("LOCKED", "HOLDOVER", "UNLOCKED")
 
@@ -78,6 +90,10 @@ ENVELOPE_SCHEMA = json.dumps(
             "host_ns": {"type": "integer", "description": "host monotonic receive stamp"},
             "device_ns": {"type": ["integer", "null"], "description": "device time tag, GPS ns"},
             "clock": {"enum": list(CLOCK_STATES), "description": "clock state at log_time"},
+            "time_base": {
+                "enum": [HOST_TIME_BASE],
+                "description": "present when log_time is the host's clock (stamped before any PPS fit)",
+            },
             "data": {"type": "object"},
         },
         "required": ["seq", "host_ns", "device_ns", "clock", "data"],
@@ -97,6 +113,8 @@ def channel_kind(topic: str) -> str:
 
 
 def clock_flags(clock_state: str) -> int:
+    if clock_state == HOST_TIME_STATE:
+        return FLAG_HOST_TIME
     return FLAG_LOCKED if clock_state == "LOCKED" else FLAG_HOLDOVER if clock_state == "HOLDOVER" else 0
 
 
@@ -133,6 +151,17 @@ def dumps(obj: Any) -> bytes:
 
 
 def encode_json(seq: int, host_ns: int, device_ns: int | None, clock_state: str, data: dict) -> bytes:
+    if clock_state == HOST_TIME_STATE:
+        return dumps(
+            {
+                "seq": seq,
+                "host_ns": host_ns,
+                "device_ns": device_ns,
+                "clock": "UNLOCKED",
+                "time_base": HOST_TIME_BASE,
+                "data": data,
+            }
+        )
     return dumps({"seq": seq, "host_ns": host_ns, "device_ns": device_ns, "clock": clock_state, "data": data})
 
 
@@ -148,6 +177,7 @@ class Envelope:
     log_time_ns: int
     publish_time_ns: int
     payload: bytes | dict  # the exact received bytes (raw channels) or the JSON data
+    host_time: bool = False  # log_time is the host's clock (stamped before any PPS fit)
 
 
 class FormatError(AcquireError, ValueError):
@@ -173,6 +203,7 @@ def decode(
             log_time_ns,
             publish_time_ns,
             bytes(data[size:]),
+            bool(flags & FLAG_HOST_TIME),
         )
     if message_encoding == JSON_ENCODING:
         try:
@@ -186,6 +217,7 @@ def decode(
                 log_time_ns,
                 publish_time_ns,
                 obj["data"],
+                obj.get("time_base") == HOST_TIME_BASE,
             )
         except (ValueError, KeyError, TypeError) as e:
             raise FormatError(f"{topic}: JSON envelope unreadable ({e})") from None

@@ -54,6 +54,9 @@ class ClockParams:
     holdover_wander_ppm: float = 0.1  # assumed frequency wander in holdover (bound growth)
     holdover_limit_ns: int = 200_000  # holdover bound above this → UNLOCKED
     bound_sigmas: float = 3.0  # the error bound is this many σ of the prediction
+    # the host's system clock off GPS time by more than this once the PPS gives GPS time: the
+    # alarm host_clock_offset (acquire.timing.timekeeper); 1 s, chrony's usual `makestep 1.0`
+    host_offset_alarm_ns: int = NS_PER_S
 
     def __post_init__(self) -> None:
         if self.window_edges < 2 or self.min_edges < 2 or self.min_edges > self.window_edges:
@@ -61,6 +64,13 @@ class ClockParams:
                 f"clock window_edges={self.window_edges}, min_edges={self.min_edges}: "
                 "expected 2 ≤ min_edges ≤ window_edges"
             )
+        if self.host_offset_alarm_ns <= 0:
+            raise ValueError(f"clock host_offset_alarm_ns={self.host_offset_alarm_ns}: expected > 0")
+
+
+#: the clock state of a record stamped before any PPS fit: UNLOCKED, its ``log_time`` the host's
+#: system clock (the coarse seed), not GPS — the session log marks it (acquire.log.schema)
+HOST_TIME_STATE = "UNLOCKED_HOST_TIME"
 
 
 @dataclass(frozen=True)
@@ -68,6 +78,14 @@ class GpsEstimate:
     gps_ns: int
     state: ClockState
     error_bound_ns: int | None  # None when there is no PPS fit at all
+
+    @property
+    def record_state(self) -> str:
+        """The clock state a record stamped with this estimate carries: the state's name, or
+        :data:`HOST_TIME_STATE` when there is no PPS fit (the time is the host's)."""
+        if self.error_bound_ns is None and self.state == ClockState.UNLOCKED:
+            return HOST_TIME_STATE
+        return self.state.value
 
 
 @dataclass(frozen=True)

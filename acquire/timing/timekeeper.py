@@ -28,6 +28,11 @@ Alarms on ``clock`` (with an :class:`~acquire.alarms.AlarmBook`, evaluated by :m
   other than the table's for now: its UTC tags are read with its own count (its GPS time stays
   exact), while UTC from the table — the system clock's seed, UTC shown to the operator — may be
   off by the difference;
+- ``host_clock_offset`` (warning): once the PPS gives GPS time (LOCKED or HOLDOVER), the host's
+  system clock (UTC + leap seconds) is off it by more than the clock params'
+  ``host_offset_alarm_ns`` [1 s] — chrony or gpsd is not disciplining it; the message names the
+  offset and ``chronyc tracking``; cleared once back within the limit (records stamped before the
+  first PPS fit carry the host's time: the session log marks them, :mod:`acquire.log.schema`);
 - ``host_clock_step`` (warning): ``CLOCK_REALTIME`` stepped by 10 ms or more (NTP, ``date -s``;
   seen by :data:`drivers.timing.HOST_CLOCK_STEPS` at each tick's read of realtime − monotonic;
   smaller steps, a virtual machine's clock discipline, are handled alike and counted in the
@@ -95,8 +100,13 @@ class TimeKeeper:
         on_edge_added: Callable[[], None] | None = None,
         alarms: AlarmBook | None = None,
         leap_list: str | Path | None = None,
+        host_gps_offset_ns: Callable[[], int] | None = None,
     ) -> None:
+        """``host_gps_offset_ns``: GPS − host monotonic as the host's system clock says it
+        (default :func:`coarse_gps_offset_ns`; tests inject a host clock)."""
         self.clock = clock
+        self.host_gps_offset_ns = host_gps_offset_ns or coarse_gps_offset_ns
+        self.host_clock_offset_ns: int | None = None  # system clock − GPS, once GPS time is known
         self.on_edge_added = on_edge_added
         self.labeler = PpsLabeler()
         self.submit = submit
@@ -182,7 +192,7 @@ class TimeKeeper:
         steps = HOST_CLOCK_STEPS
         count, large, since = self._host_steps
         if steps.count > count:  # any step: the system-clock seed follows it
-            self.clock.coarse_offset_ns = coarse_gps_offset_ns()
+            self.clock.coarse_offset_ns = self.host_gps_offset_ns()
             self._host_steps = (steps.count, large, since)
         if steps.large > large:
             self._host_steps = (steps.count, steps.large, now)
@@ -230,6 +240,31 @@ class TimeKeeper:
             if mismatch
             else f"GPS − UTC {leap} s as the table says",
         )
+        self._host_clock_offset_alarm(al, now)
+
+    def _host_clock_offset_alarm(self, al: AlarmBook, now: int) -> None:
+        """``host_clock_offset``: the system clock off GPS time by more than the clock params'
+        ``host_offset_alarm_ns``, judged only while the PPS gives GPS time (LOCKED, HOLDOVER);
+        cleared once back within it."""
+        if self.clock.state_at(now) == ClockState.UNLOCKED:
+            return  # GPS time not known: the alarm keeps its state
+        offset = self.host_gps_offset_ns() - (self.clock.gps_ns(now) - now)
+        self.host_clock_offset_ns = offset
+        limit = self.clock.params.host_offset_alarm_ns
+        off = abs(offset) > limit
+        side = "ahead of" if offset > 0 else "behind"
+        al.update(
+            "host_clock_offset",
+            "clock",
+            off,
+            now,
+            severity=WARNING,
+            message=f"host clock {abs(offset) / NS_PER_S:,.3f} s {side} GPS time (limit "
+            f"{limit / NS_PER_S:g} s): is chrony (or gpsd) disciplining it? see `chronyc tracking`; "
+            "records stamped before the PPS lock carry the host's time"
+            if off
+            else f"host clock within {limit / NS_PER_S:g} s of GPS time ({offset / NS_PER_S:+.3f} s)",
+        )
 
     def _log(self, edge: PpsEdge, result, reason: str) -> None:
         if self.submit is None:
@@ -265,6 +300,9 @@ class TimeKeeper:
             "gps_minus_utc_announced_s": self.gps_minus_utc_s,
             "host_clock_steps": HOST_CLOCK_STEPS.count,
             "host_clock_steps_alarmed": HOST_CLOCK_STEPS.large,
+            "host_clock_offset_s": None
+            if self.host_clock_offset_ns is None
+            else round(self.host_clock_offset_ns / NS_PER_S, 6),
         }
 
 
@@ -290,13 +328,14 @@ class ClockCache:
         self._until = -1
 
     def estimate(self, host_ns: int) -> tuple[int, str]:
-        """(GPS ns, clock state name) of a host monotonic stamp."""
+        """(GPS ns, clock state name) of a host monotonic stamp; the state is
+        :data:`~acquire.timing.clock.HOST_TIME_STATE` before any PPS fit (host time)."""
         if not self._h0 <= host_ns <= self._until:
             a = self.clock.to_gps(host_ns)
             b = self.clock.to_gps(host_ns + NS_PER_S)
             self._h0, self._g0 = host_ns, a.gps_ns
             self._rate = (b.gps_ns - a.gps_ns) / NS_PER_S
-            self._state = a.state.value
+            self._state = a.record_state
             self._until = host_ns + self.max_age_ns
             return a.gps_ns, self._state
         return self._g0 + round((host_ns - self._h0) * self._rate), self._state

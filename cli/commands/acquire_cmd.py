@@ -39,7 +39,10 @@ def acquire(
         ..., "--config", "-c", help="Vessel config (YAML), see systemd/vessel.example.yaml."
     ),
     check: bool = typer.Option(
-        False, "--check", help="Validate the config, print a summary of the devices and exit."
+        False,
+        "--check",
+        help="Validate the config, print a summary of the devices, test-bind every UDP port the "
+        "daemon listens on (exit 1 when one is taken) and exit.",
     ),
     log_level: str = typer.Option(
         "info", "--log-level", help="Log level on stderr: debug, info, warning, error."
@@ -102,6 +105,9 @@ def acquire(
             where = d.transport or d.source
             t.add_row(d.name, d.kind, d.protocol or "-", _describe(where))
         Console().print(t)
+        busy = _bind_failures(cfg)
+        for line in busy:
+            print(line, file=sys.stderr)
         if guidance is not None:
             g, tol = guidance.guidance, cfg.guidance
             print(
@@ -119,6 +125,9 @@ def acquire(
                 f"{w.false_alarms_per_hour:g} false alarms per hour; {w.max_points_per_s} returns/s "
                 f"kept; lines of {w.min_line_s:g}–{w.max_line_s:g} s"
             )
+        if busy:
+            print(f"mls acquire: {config}: {len(busy)} port(s) cannot be bound", file=sys.stderr)
+            raise typer.Exit(EXIT_FAILED)
         raise typer.Exit(EXIT_OK)
 
     logging.basicConfig(
@@ -134,10 +143,35 @@ def acquire(
     raise typer.Exit(code)
 
 
+def _bind_failures(cfg) -> list[str]:
+    """Test-bind every port the daemon will listen on (then release it): one line per port
+    another process holds (or the address is not this host's), naming the device."""
+    import socket
+
+    from acquire.daemon.configdevices import listen_endpoints
+
+    out = []
+    for d, proto, host, port in listen_endpoints(cfg.devices):
+        kind = socket.SOCK_DGRAM if proto == "udp" else socket.SOCK_STREAM
+        try:
+            with socket.socket(socket.AF_INET, kind) as sock:
+                sock.bind((host, port))
+        except OSError as e:
+            out.append(
+                f"{cfg.source}: device {d.name!r}: cannot bind {proto} {host}:{port} "
+                f"({e.strerror or e}): another process listens there (a daemon already running?)"
+            )
+    return out
+
+
 def _describe(where) -> str:
+    from acquire.daemon.configschema import PpsSource
+
     if where is None:
         return "-"
     t = getattr(where, "type", "")
+    if isinstance(where, PpsSource) and t == "udp":
+        return f"udp PPS {where.host}:{where.udp_port}"
     if t == "serial":
         return f"serial {where.port} {where.baud} Bd"
     if t in ("udp", "tcp"):

@@ -36,6 +36,9 @@ def info(
 ) -> None:
     """Segments, channels, message counts, time span, gaps and sequence continuity of a session.
 
+    Times are GPS (the clock model's log time); messages stamped before the PPS lock carry the
+    host's clock instead: they are counted ("before lock") and left out of the span and gaps.
+
     Exit status 0 when every segment is complete and every sequence contiguous, 1 otherwise.
     """
     import json
@@ -59,8 +62,8 @@ def info(
         raise typer.Exit(1 if bad_segments or discontinuous else 0)
     con = Console()
     st = Table(title=f"{session.name}: segments")
-    for c in ("segment", "state", "MiB", "messages", "first (UTC, log time)", "last", "note"):
-        st.add_column(c, justify="right" if c in ("MiB", "messages") else "left")
+    for col in ("segment", "state", "MiB", "messages", "first (UTC, GPS log time)", "last", "note"):
+        st.add_column(col, justify="right" if col in ("MiB", "messages") else "left")
     for s in info_.segments:
         note = []
         if s.torn_bytes:
@@ -71,6 +74,8 @@ def info(
             note.append(f"recovered (torn {s.recovery.get('torn_bytes')} B)")
         if s.end_reason:
             note.append(s.end_reason)
+        if s.host_time:
+            note.append(f"{s.host_time} before the PPS lock (host time)")
         st.add_row(
             s.name,
             s.state,
@@ -82,8 +87,18 @@ def info(
         )
     con.print(st)
     ct = Table(title="channels")
-    for c in ("channel", "messages", "seq", "missing", "dup", "gaps", "longest gap s", "unlocked"):
-        ct.add_column(c, justify="left" if c == "channel" else "right")
+    for col in (
+        "channel",
+        "messages",
+        "seq",
+        "missing",
+        "dup",
+        "gaps",
+        "longest gap s",
+        "unlocked",
+        "before lock",
+    ):
+        ct.add_column(col, justify="left" if col == "channel" else "right")
     for t, c in sorted(info_.channels.items()):
         longest = max((g[1] for g in c.gaps), default=0.0)
         ct.add_row(
@@ -95,15 +110,21 @@ def info(
             str(len(c.gaps)),
             f"{longest:.2f}" if c.gaps else "-",
             str(c.unlocked),
+            str(c.host_time),
         )
     con.print(ct)
     first, last = info_.span_ns
     span = (last - first) / 1e9 if first is not None and last is not None else 0.0
     con.print(
         f"{len(info_.segments)} segments, {info_.messages} messages, {_utc(first)} → "
-        f"{_utc(last)} UTC ({span:.1f} s); {len(bad_segments)} segment(s) not complete, "
+        f"{_utc(last)} UTC ({span:.1f} s of GPS time); {len(bad_segments)} segment(s) not complete, "
         f"{sum(c.missing for c in info_.channels.values())} sequence number(s) missing"
     )
+    if info_.host_time_messages:
+        con.print(
+            f"{info_.host_time_messages} message(s) stamped before the PPS lock carry the host's "
+            "clock, not GPS time: counted, left out of the span and the gaps"
+        )
     for c in info_.channels.values():
         for a, b in c.missing_ranges[:5]:
             con.print(f"  {c.topic}: sequence {a}–{b} missing")

@@ -39,6 +39,7 @@ import dataclasses
 import datetime as _dt
 import math
 import re
+import stat
 import struct
 from collections.abc import Iterator
 from pathlib import Path
@@ -133,6 +134,31 @@ def _date_hint(date: str | None) -> int | None:
     return (d - _dt.date(1970, 1, 1)).days * 86_400_000_000_000 + 43_200_000_000_000  # noon
 
 
+def _check_regular_file(path: Path) -> None:
+    """DriverError naming why ``path`` cannot be decoded: missing, a directory, or a FIFO,
+    socket or device (not a regular file: no size, and a read may block forever)."""
+    try:
+        mode = path.stat().st_mode
+    except FileNotFoundError:
+        raise DriverError(f"{path}: no such file") from None
+    except OSError as exc:
+        raise DriverError(f"{path}: {exc.strerror}") from None
+    if stat.S_ISDIR(mode):
+        raise DriverError(f"{path}: is a directory, expected a recorded file")
+    if not stat.S_ISREG(mode):
+        raise DriverError(f"{path}: not a regular file ({_file_kind(mode)}), expected a recorded file")
+
+
+def _file_kind(mode: int) -> str:
+    if stat.S_ISFIFO(mode):
+        return "a FIFO"
+    if stat.S_ISSOCK(mode):
+        return "a socket"
+    if stat.S_ISCHR(mode) or stat.S_ISBLK(mode):
+        return "a device"
+    return "a special file"
+
+
 class FileDecoder:
     """Iterate the records of a recorded file (see the module docstring)."""
 
@@ -150,8 +176,7 @@ class FileDecoder:
         if fmt == "pcapng" and payload not in PAYLOADS:
             raise DriverError(f"payload {payload!r}: expected one of {', '.join(PAYLOADS)}")
         self.path = Path(path)
-        if not self.path.is_file():
-            raise DriverError(f"{self.path}: no such file")
+        _check_regular_file(self.path)
         self.fmt, self.payload, self.port, self.nav = fmt, payload, port, nav
         self.date_hint_ns = _date_hint(date)
         self.size = self.path.stat().st_size

@@ -50,6 +50,8 @@ _MIN_BODY = {IDB: 8, PB: 20, EPB: 20, SPB: 4}
 #: nothing a device sends: skipped unread, counted in ``rejected['oversized_block']``
 MAX_BLOCK = 64 << 20
 READ_BUFFER = 1 << 20
+#: capture stamps are int64 ns since the Unix epoch (1677-09-21 to 2262-04-11)
+MAX_TIMESTAMP_NS, MIN_TIMESTAMP_NS = 2**63 - 1, -(2**63)
 _PCAP_MAGICS = (b"\xd4\xc3\xb2\xa1", b"\xa1\xb2\xc3\xd4", b"\x4d\x3c\xb2\xa1", b"\xa1\xb2\x3c\x4d")
 _U32X2 = {"<": struct.Struct("<II"), ">": struct.Struct(">II")}
 _ntop, _AF_INET = socket.inet_ntop, socket.AF_INET
@@ -167,6 +169,10 @@ class CaptureReader:
                 linktype, units, offset = interfaces[iface]
                 ticks = (hi << 32) | lo
                 ts_ns = ticks * 1_000_000_000 // units + offset * 1_000_000_000
+                if not MIN_TIMESTAMP_NS <= ts_ns <= MAX_TIMESTAMP_NS:
+                    raise PcapError(
+                        _overflow(self.name, self.stats.records + 1, pos - blen, ticks, units, offset)
+                    )
                 self.stats.records += 1
                 yield CapturedPacket(ts_ns, iface, linktype, body[20 : min(20 + caplen, n)])
             elif btype == IDB:
@@ -225,6 +231,16 @@ class CaptureReader:
             self.stats.rejected["truncated"] += 1
             self.stats.skipped_bytes += size - pos
             self._skip_to(f, size)
+
+
+def _overflow(name: str, packet: int, offset: int, ticks: int, units: int, offset_s: int) -> str:
+    """The one-line reason a pcapng packet's timestamp cannot be a 64-bit ns stamp."""
+    tail = f" + if_tsoffset {offset_s} s" if offset_s else ""
+    return (
+        f"{name}: packet {packet} at offset {offset}: timestamp {ticks} ticks at {units} per s{tail} "
+        f"is {ticks // units + offset_s} s since 1970, beyond 64-bit nanoseconds (year 2262): "
+        "a damaged block or a wrong if_tsresol"
+    )
 
 
 def _options(raw: bytes, e: str) -> Iterator[tuple[int, bytes]]:

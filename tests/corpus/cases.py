@@ -227,7 +227,7 @@ CASES: list[Case] = [
         "vessel-empty-section",
         CHECK,
         CONFIG_INVALID,
-        "{case}/vessel.yaml:67:6: mqtt: got None, expected a mapping",
+        "{case}/vessel.yaml:68:6: mqtt: got None, expected a mapping",
     ),
     Case(
         "vessel-session-dir-is-a-file",
@@ -240,7 +240,7 @@ CASES: list[Case] = [
         "vessel-site-file-is-a-directory",
         CHECK,
         CONFIG_INVALID,
-        "{case}/vessel.yaml:80:12: site_file: got 'site.yaml', expected an existing site file "
+        "{case}/vessel.yaml:87:12: site_file: got 'site.yaml', expected an existing site file "
         "({case}/site.yaml is a directory)",
     ),
     Case(

@@ -85,6 +85,7 @@ EXPECTED = [
     (14, 11, "devices[2].kind", "'lidar'", "one of ins, profiler, pps, can"),
     (17, 13, "devices[3].source", None, "missing required key 'device' for a kernel PPS source"),
     (15, 5, "devices[3].time_device", "'profiler'", "the name of an ins device (ins, udp)"),
+    (19, 5, "devices[4]: a second ins", None, "('udp'; the first, 'ins', at bad.yaml:4)"),
     (22, 49, "devices[4].transport.port", "70000", "an integer between 1 and 65535"),
     (25, 12, "session.flush_s", "2.0", "a number ≤ 1"),
     (26, 16, "session.compression", "'gzip'", "one of zstd, lz4, none"),

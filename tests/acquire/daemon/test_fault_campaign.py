@@ -51,6 +51,7 @@ from tests.acquire.daemon.fault_campaign import (
     DELAYS,
     ENVIRONMENT,
     EVENT_CLEAR_S,
+    HOST_STEP_S,
     MONITOR_S,
     NET_BACKOFF_S,
     NS,
@@ -220,6 +221,14 @@ def _optional_windows(r: dict) -> list[tuple[str, str, int, int, int | None]]:
         *(
             ("end of the run", k, t["end"] - s(0.1), t["end"] + s(60), t["end"] + s(60))
             for k in ("device_unavailable/ins", "data_gap/ins", "data_gap/profiler", holdover)
+        ),
+        # the step leaves the host clock that far off GPS time: host_clock_offset stays raised
+        (
+            "host clock step",
+            "host_clock_offset/clock",
+            t["the step"],
+            _due(r, t["the step"], HOST_STEP_S),
+            None,
         ),
         *_latency_truth_windows(r),
     ]

@@ -273,7 +273,10 @@ def test_check_mode_and_a_second_ins_is_refused(tmp_path):
     )
     cfg.write_text(two)
     r = _mls("acquire", "--config", str(cfg))
-    assert r.returncode == 2 and "2 ins devices (ins2, ins)" in r.stderr, r.stderr
+    # refused when the config is read, at the second one's line, naming the first's
+    assert (
+        r.returncode == 2 and "devices[1]: a second ins device ('ins'; the first, 'ins2', at " in r.stderr
+    ), r.stderr
 
 
 def test_a_status_socket_in_use_is_a_start_failure_that_leaves_it_and_no_session(tmp_path):

@@ -11,7 +11,7 @@ import pytest
 
 from acquire.alarms import AlarmBook
 from acquire.log.batch import LogBatcher
-from acquire.timing.clock import ClockModel, ClockState
+from acquire.timing.clock import HOST_TIME_STATE, ClockModel, ClockState
 from acquire.timing.timekeeper import ClockCache, TimeKeeper, coarse_gps_offset_ns
 from drivers.base import DriverError
 from drivers.can import can_frame_bytes, parse_can_frame
@@ -63,7 +63,7 @@ def test_pulses_are_labelled_by_time_messages_and_every_pulse_is_logged_once():
 def test_clock_cache_gives_the_models_estimate_and_refreshes_after_an_edge():
     clock = ClockModel(coarse_offset_ns=123 * NS)
     cache = ClockCache(clock)
-    assert cache.estimate(H0) == (H0 + 123 * NS, "UNLOCKED")
+    assert cache.estimate(H0) == (H0 + 123 * NS, HOST_TIME_STATE)  # no PPS fit: host time
     rng = np.random.default_rng(3)
     for k in range(10):  # host runs 35 ppm slow against GPS, 20 µs jitter
         clock.add_edge(H0 + round(k * NS / (1 + 35e-6)) + int(rng.normal(0, 20_000)), G0 + k)
@@ -98,7 +98,7 @@ def test_log_batcher_keeps_the_order_stamps_the_clock_and_hands_over_in_batches(
     assert [c[0] for c in calls[:2]] == ["/ins/raw", "/lidar/raw"] and all(
         c[2] == H0 + i for i, c in enumerate(calls)
     )
-    assert all(c[4] == H0 + i + 7 * NS and c[5] == "UNLOCKED" for i, c in enumerate(calls))
+    assert all(c[4] == H0 + i + 7 * NS and c[5] == HOST_TIME_STATE for i, c in enumerate(calls))
     assert calls[0][3] is None and calls[5][3] == 5
     assert b.batches == 3 and b.records == 120
 
