@@ -41,9 +41,15 @@ test: prereqs lint
 	$(PY) -m pytest -n $(JOBS) --dist loadgroup -q -m "not realtime"
 	$(PY) -m pytest -q -m realtime
 
+# the long Monte Carlos and the soak run short here; their full runs are in their docstrings
 bench: $(STAMP)
 	@set -e; for b in benchmarks/[!_]*.py; do echo "== $$b"; \
-	  if [ $$b = benchmarks/accuracy.py ]; then $(PY) $$b --quick; else $(PY) $$b; fi; done
+	  case $$b in \
+	    benchmarks/accuracy.py|benchmarks/honesty.py) $(PY) $$b --quick ;; \
+	    benchmarks/soak.py) $(PY) $$b --minutes 5 ;; \
+	    benchmarks/watch_honesty.py) $(PY) $$b --production 5 --six-pass 3 ;; \
+	    *) $(PY) $$b ;; \
+	  esac; done
 
 clean:
 	rm -rf $(VENV) build *.egg-info .pytest_cache .hypothesis .mypy_cache .ruff_cache

@@ -29,8 +29,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import signal
-import socket
 import subprocess
 import sys
 import tempfile
@@ -42,6 +40,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from acquire.status.bus import read_snapshot  # noqa: E402
+from benchmarks._procs import free_port, stop, wait_for  # noqa: E402
 
 MLS = [sys.executable, "-m", "cli.app"]
 TICK = os.sysconf("SC_CLK_TCK")
@@ -62,12 +61,6 @@ SIM_ARGS = [
     "--lead-s",
     "2",
 ]
-
-
-def free_port(kind=socket.SOCK_DGRAM) -> int:
-    with socket.socket(socket.AF_INET, kind) as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 def cpu_s(pid: int) -> float:
@@ -98,25 +91,6 @@ def vessel_yaml(run: Path, prof_port: int, pps_port: int, speed: float) -> str:
         session: {{directory: {run}/sessions, queue_size: 200000}}
         status: {{socket: {run}/status.sock}}
         """)
-
-
-def wait_for(cond, timeout_s: float, what: str) -> None:
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        if cond():
-            return
-        time.sleep(0.05)
-    raise RuntimeError(f"timed out waiting for {what}")
-
-
-def stop(proc: subprocess.Popen) -> None:
-    if proc.poll() is None:
-        os.killpg(proc.pid, signal.SIGTERM)
-        try:
-            proc.wait(30)
-        except subprocess.TimeoutExpired:
-            os.killpg(proc.pid, signal.SIGKILL)
-            proc.wait(10)
 
 
 def run_sim(
