@@ -26,47 +26,16 @@ import logging
 import os
 import socket
 import time
-from dataclasses import asdict, dataclass
+from dataclasses import asdict
 from pathlib import Path
 
 from acquire.errors import AcquireError
 from acquire.status.runfiles import check_run_dir, open_private
+from calib.io.dirlock import LockHolder
 
 
 class LockHeld(AcquireError, RuntimeError):
     """The lock is held by another process (the message names its PID and the lock file)."""
-
-
-@dataclass(frozen=True)
-class LockHolder:
-    """What a lock file says about its holder (``None``: not written)."""
-
-    pid: int | None
-    host: str | None
-    started_utc: str | None
-    config: str | None = None
-
-    def describe(self) -> str:
-        who = f"pid {self.pid}" if self.pid is not None else "a process whose pid is not written"
-        if self.host:
-            who += f" on {self.host}"
-        if self.started_utc:
-            who += f", started {self.started_utc}"
-        if self.config:
-            who += f", config {self.config}"
-        return who
-
-    def running_here(self) -> bool:
-        """The PID is a live process of this host."""
-        if self.pid is None or (self.host and self.host != socket.gethostname()):
-            return False
-        try:
-            os.kill(self.pid, 0)
-        except ProcessLookupError:
-            return False
-        except PermissionError:  # alive, another user's
-            return True
-        return True
 
 
 def lock_path_for(socket_path: str | Path) -> Path:

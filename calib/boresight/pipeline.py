@@ -261,17 +261,17 @@ def _without_unseen_targets(ext: Extraction, rects, warnings: list[str]):
     than the adjustment's minimum points, or never 3 in one pass), as long as two targets remain
     (else the adjustment's own error names them); each dropped target is a warning, and the
     verdict counts it lost in every pass."""
-    counts = ext.counts()
+    counts, totals = ext.counts(), ext.totals()
     unseen = [
         name
         for name in ext.target_names
-        if ext.totals()[name] < MIN_POINTS_PER_PLANE or max(c[name] for c in counts.values()) < 3
+        if totals[name] < MIN_POINTS_PER_PLANE or max(c[name] for c in counts.values()) < 3
     ]
     if not unseen or len(ext.target_names) - len(unseen) < 2:
         return ext, rects
     for name in unseen:
         warnings.append(
-            f"target {name} is left out of the adjustment: {ext.totals()[name]} points over all passes "
+            f"target {name} is left out of the adjustment: {totals[name]} points over all passes "
             f"(the extraction did not find it; see its passes above)"
         )
     return ext.without(unseen), [r for r in rects if r.name not in unseen]

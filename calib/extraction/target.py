@@ -302,13 +302,11 @@ def extract_target(
         return missing_target(
             rect.name, pass_id, n_cand, 0, 1.0, f"{n_cand} points within {radius:.1f} m of its centre"
         )
-    tried = [
-        _find_in_class(p_m, cls, rect, centre, pass_id, n_cand, opts, rng)
-        for cls in _target_classes(p_m, intensity, cand, rect, opts, origin_m)
-    ]
-    found = next((t for t in tried if t.status == "found"), None)
-    if found is not None:
-        return found
+    tried = []  # the classes in turn, up to the first that holds the target
+    for cls in _target_classes(p_m, intensity, cand, rect, opts, origin_m):
+        tried.append(_find_in_class(p_m, cls, rect, centre, pass_id, n_cand, opts, rng))
+        if tried[-1].status == "found":
+            return tried[-1]
     return next((t for t in tried if t.status == "rejected"), tried[0])
 
 

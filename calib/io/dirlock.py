@@ -45,13 +45,15 @@ class OutputLocked(CalibError, RuntimeError):
 
 
 @dataclass(frozen=True)
-class DirHolder:
-    """What a lock file says about its holder (``None``: not written)."""
+class LockHolder:
+    """What a lock file says about its holder (``None``: not written): an output directory's
+    writer (its ``command``) or the acquisition daemon (its ``config``)."""
 
     pid: int | None
     host: str | None
-    command: str | None
     started_utc: str | None
+    config: str | None = None
+    command: str | None = None
 
     def describe(self) -> str:
         who = f"pid {self.pid}" if self.pid is not None else "a process whose pid is not written yet"
@@ -61,24 +63,38 @@ class DirHolder:
             who += f" ({self.command})"
         if self.started_utc:
             who += f", started {self.started_utc}"
+        if self.config:
+            who += f", config {self.config}"
         return who
 
+    def running_here(self) -> bool:
+        """The PID is a live process of this host."""
+        if self.pid is None or (self.host and self.host != socket.gethostname()):
+            return False
+        try:
+            os.kill(self.pid, 0)
+        except ProcessLookupError:
+            return False
+        except PermissionError:  # alive, another user's
+            return True
+        return True
 
-def _parse_holder(data: bytes) -> DirHolder | None:
+
+def _parse_holder(data: bytes) -> LockHolder | None:
     try:
         d = json.loads(data.decode("utf-8"))
         pid = d.get("pid")
-        return DirHolder(
+        return LockHolder(
             pid if isinstance(pid, int) else None,
             d.get("host") or None,
-            d.get("command") or None,
             d.get("started_utc") or None,
+            command=d.get("command") or None,
         )
     except (ValueError, AttributeError, UnicodeDecodeError):
         return None
 
 
-def _read_holder(fd: int) -> DirHolder:
+def _read_holder(fd: int) -> LockHolder:
     """The holder written in the open lock file ``fd``; a holder that has just taken the lock
     writes itself at once, so an empty file is read again for a moment."""
     for _ in range(25):
@@ -86,7 +102,7 @@ def _read_holder(fd: int) -> DirHolder:
         if holder is not None:
             return holder
         time.sleep(0.02)
-    return DirHolder(None, None, None, None)
+    return LockHolder(None, None, None)
 
 
 def default_command() -> str:

@@ -8,10 +8,10 @@ import builtins
 import errno
 import json
 import os
+import select
 import socket
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 import pytest
@@ -56,14 +56,11 @@ def leftovers(out: Path) -> list[str]:
     return sorted(str(p.relative_to(out)) for p in out.rglob("*") if p.name.endswith((".tmp", ".partial")))
 
 
-def wait_for(cond, timeout_s: float, what: str, proc: subprocess.Popen) -> None:
-    deadline = time.monotonic() + timeout_s
-    while not cond():
-        if proc.poll() is not None:
-            raise AssertionError(f"{what}: the writer ended ({proc.returncode}): {proc.stderr.read()}")
-        if time.monotonic() > deadline:
-            raise AssertionError(f"timed out after {timeout_s} s waiting for {what}")
-        time.sleep(0.02)
+def wait_readable(fd: int, timeout_s: float, what: str, proc: subprocess.Popen) -> None:
+    """Block until the pipe ``fd`` has a byte (the writer's signal), at most ``timeout_s``."""
+    if not select.select([fd], [], [], timeout_s)[0]:
+        state = "running" if proc.poll() is None else f"ended ({proc.returncode}): {proc.stderr.read()}"
+        raise AssertionError(f"no signal within {timeout_s} s for {what}; the writer is {state}")
 
 
 def mls(*args: str) -> subprocess.CompletedProcess:
@@ -73,17 +70,27 @@ def mls(*args: str) -> subprocess.CompletedProcess:
 
 
 def test_a_second_writer_into_the_same_out_is_refused_naming_the_first(bundle, reference, tmp_path):
-    out, flags = tmp_path / "out", tmp_path / "flags"
-    flags.mkdir()
+    out = tmp_path / "out"
+    started_r, started_w = os.pipe()
+    go_r, go_w = os.pipe()
     first = subprocess.Popen(
-        [sys.executable, "-m", "tests.acquire.deliver.heldwriter", str(bundle), str(out), str(flags)],
+        [
+            sys.executable,
+            "-m",
+            "tests.acquire.deliver.heldwriter",
+            str(bundle),
+            str(out),
+            str(started_w),
+            str(go_r),
+        ],
         cwd=ROOT,
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,
         text=True,
+        pass_fds=(started_w, go_r),
     )
     try:
-        wait_for(lambda: (flags / "started").exists(), 60, "the first writer planned", first)
+        wait_readable(started_r, 60, "the first writer planned", first)
         for mode in ("--force", "--resume"):
             second = mls("georef", str(bundle), "--out", str(out), "--chunk-s", "1", mode)
             assert second.returncode == 1, (mode, second.stdout, second.stderr)
@@ -91,12 +98,14 @@ def test_a_second_writer_into_the_same_out_is_refused_naming_the_first(bundle, r
             assert len(lines) == 1 and "Traceback" not in second.stderr, second.stderr
             assert f"pid {first.pid} on {socket.gethostname()}" in lines[0]
             assert "heldwriter" in lines[0] and "started 20" in lines[0] and str(out) in lines[0]
-        (flags / "go").touch()
+        os.write(go_w, b"g")
         assert first.wait(120) == 0, first.stderr.read()
     finally:
         if first.poll() is None:
             first.kill()
             first.wait()
+        for fd in (started_r, started_w, go_r, go_w):
+            os.close(fd)
     assert tiles_of(out) == reference  # the first writer's tiles, with its provenance, untouched
     assert all(read_provenance(p)["crs"] for p in out.glob("*.laz"))
     assert not (out / LOCK_NAME).exists()  # released: the deliverable holds no lock file

@@ -14,6 +14,7 @@ from acquire.daemon.config import load_vessel_config
 from acquire.daemon.supervisor import Supervisor
 from acquire.log.read import iter_messages
 from tests.acquire.daemon_util import free_port
+from tests.acquire.status.test_mqtt import until
 
 pytestmark = pytest.mark.integration
 
@@ -38,10 +39,7 @@ def test_daemon_ignores_retained_commands_and_logs_refusals(tmp_path, mosquitto)
             await op.subscribe(f"{base}/result", qos=1)
             sup = Supervisor(load_vessel_config(cfg))
             task = asyncio.create_task(sup.run())
-            deadline = asyncio.get_running_loop().time() + 20
-            while not (sup.mqtt and sup.mqtt.commands["retained"] == 1):
-                assert asyncio.get_running_loop().time() < deadline, "the retained command was not seen"
-                await asyncio.sleep(0.02)
+            await until(lambda: sup.mqtt and sup.mqtt.commands["retained"] == 1, 20.0, "the retained command")
             await op.publish(f"{base}/pass_start", b'{"pass_id": 9223372036854775808, "id": 1}', qos=1)
             await op.publish(f"{base}/pass_start", b'{"pass_id": 4, "id": 2}', qos=1)
             results = []

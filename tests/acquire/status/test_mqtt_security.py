@@ -5,6 +5,7 @@ with certificates made by ``openssl``) and, for the MQTT 5 takeover, a scripted 
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import json
 import ssl
 
@@ -257,6 +258,7 @@ class ScriptedBroker:
 
     def __init__(self) -> None:
         self.writers: list[asyncio.StreamWriter] = []
+        self.closed: dict[int, asyncio.Event] = {}  # per writer: the client closed its side
         self.connects = 0
 
     async def __aenter__(self):
@@ -274,11 +276,13 @@ class ScriptedBroker:
         writer = self.writers[-1]
         writer.write(bytes([0xE0, 2, 0x8E, 0]))
         await writer.drain()
-        await asyncio.sleep(0.05)  # the client reads the DISCONNECT before the close
+        # the client reads the DISCONNECT and closes its side before ours closes
+        await asyncio.wait_for(self.closed[id(writer)].wait(), 10.0)
         writer.close()
 
     async def _client(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
         self.writers.append(writer)
+        self.closed[id(writer)] = asyncio.Event()
         try:
             while True:
                 kind, body = await _read_packet(reader)
@@ -289,6 +293,7 @@ class ScriptedBroker:
                 await writer.drain()
         except (asyncio.IncompleteReadError, ConnectionError):
             pass
+        self.closed[id(writer)].set()
         writer.close()
 
     def _reply(self, kind: int, body: bytes) -> bytes | None:
@@ -358,8 +363,9 @@ def test_a_fight_over_the_client_id_with_a_silent_broker_raises_the_takeover_ala
                     connects += 1
                     async for _ in c.messages:  # until the daemon takes the id back
                         pass
-            except aiomqtt.MqttError:
-                await asyncio.sleep(0.05)
+            except aiomqtt.MqttError:  # refused while the daemon holds the id: try again, or stop
+                with contextlib.suppress(TimeoutError):
+                    await asyncio.wait_for(done.wait(), 0.05)
         return connects
 
     async def main():
