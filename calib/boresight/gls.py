@@ -4,7 +4,8 @@ The thesis model weighs every point as if its POS errors were independent; they 
 drift with correlation times of tens of seconds), so within a pass they act as biases and a
 white-weighted adjustment wastes most of the information. Here the POS error of each channel
 is an unknown process on a knot grid (below) estimated jointly with the
-boresight, the planes and the extras, with its exact AR(1) prior. Linearized at the observations::
+boresight, the planes and the extras, with its exact AR(1) prior. Linearized at the adjusted
+scanner observations (Gauss–Helmert, below)::
 
     F_i + A_i·dx + J_i·z + ε_i = 0,      z ~ N(0, P⁻¹),   ε_i ~ N(0, m_i)
 
@@ -15,6 +16,21 @@ eliminated with a banded Cholesky factor (bandwidth 11) and the unknowns solved 
 Schur complement ``S = N_xx − N_xa N_aa⁻¹ N_ax``: time and memory O(n) in the points
 (O(K·p) in the K knots and p unknowns), never an n × n matrix. ``S⁻¹`` is the covariance of the
 estimate under the model (the Cramér–Rao bound at the solution): its formal σ is its realistic σ.
+
+**Linearized at the adjusted range and scan angle, not the measured ones.** ``A_i`` depends on
+the range: a yaw moves a point by its horizontal range times the angle. Evaluated at the
+*measured* range, the range noise sits in both ``F_i`` and ``A_i``, and the estimating equation
+``Σ w_i F_i A_i = 0`` has the expectation ``Σ w_i σ_ρ² B_ρ ∂B_ρ/∂b ≠ 0`` at the truth: the
+solution leans towards the angle that makes the beams more grazing (the errors-in-variables
+bias). On a line oblique to a wall, where a yaw shows only through the range's change along the
+line, the mount watch's blocks came out 4–6σ wrong on a flat wall with no POS error at all,
+as soon as the scanner had noise. So, as the thesis estimator does (:mod:`.gausshelmert`), each
+iteration linearizes at ``l + v`` with the scanner residuals ``v = −Q B_scannerᵀ ε/m`` of the
+previous one and the misclosure ``F(l + v) − B v`` (:func:`scanner_residuals`, each residual
+within a few σ: far from the solution a misclosure is not the scanner's noise), and the
+solution is not converged before a step has been taken from there. (Resetting ``v`` after a
+large step, as the thesis estimator does, made the watch's blocks oscillate: the correction's
+own step — 0.03° in yaw on a 45° line — counted as large.)
 
 **The POS error processes on a knot grid** (the state-space half of the estimator).
 Each POS channel c (north, east, down, roll, pitch, heading) carries an error
@@ -244,6 +260,9 @@ def knot_matrix(lin, obs: Observations, fr: _Frame) -> sp.csr_matrix:
     )
 
 
+#: a scanner residual of the Gauss–Helmert linearization is clipped to this many σ
+MAX_RESIDUAL_SIGMA = 5.0
+
 #: the footprint term is capped at this incidence (tan 89° ≈ 57)
 COS_GRAZING = float(np.cos(np.radians(89.0)))
 
@@ -264,6 +283,34 @@ def white_variance(lin, obs: Observations, fr: _Frame, plane_var_m2: np.ndarray)
     bs = (lin.B[:, :CHANNELS] * obs.sigma_l[:, :CHANNELS]) ** 2
     scanner = (lin.B[:, 6] * range_sigma_m(lin, obs)) ** 2 + (lin.B[:, 7] * obs.sigma_l[:, 7]) ** 2
     return scanner + np.einsum("ij,ij->i", bs, fr.br.var) + plane_var_m2[obs.plane_index]
+
+
+def scanner_residuals(lin, obs: Observations, k: np.ndarray, plane_var_m2: np.ndarray) -> np.ndarray:
+    """v (n, 2): the range and scan-angle residuals of the Gauss–Helmert adjustment for the
+    correlates ``k`` (``C⁻¹`` times the misclosures after the fit: ``ε/m`` here), ``−Q Bᵀ k``.
+
+    The range's ``Q`` holds the plane's roughness as well, at ``σ²/cos²θ`` (incidence θ): a
+    surface standing off its plane by s moves the return along the beam by s/cos θ, exactly as
+    range noise does, and biases the angles the same way (the foreign bundles' wavy walls: yaw
+    0.25° → 0.08° on a 45° line). Each residual is kept within ±:data:`MAX_RESIDUAL_SIGMA` of
+    its σ: far from the solution, or at an outlier, a misclosure is not noise and must not move
+    the linearization far."""
+    cos_incidence = np.clip(np.abs(lin.B[:, 6]), COS_GRAZING, 1.0)
+    q_range = range_sigma_m(lin, obs) ** 2 + plane_var_m2[obs.plane_index] / cos_incidence**2
+    sigma = np.stack([np.sqrt(q_range), obs.sigma_l[:, 7]], axis=1)
+    v = -(sigma**2) * lin.B[:, 6:8] * k[:, None]
+    return np.clip(v, -MAX_RESIDUAL_SIGMA * sigma, MAX_RESIDUAL_SIGMA * sigma)
+
+
+def linearize_adjusted(obs: Observations, state: State, r_nom, v: np.ndarray, latency: bool, bases):
+    """The linearization at the observations with the scanner residuals ``v`` (n, 2) added,
+    its misclosure ``F(l + v) − B v`` (module docstring)."""
+    l_obs = observations_at(obs, state, latency).copy()
+    l_obs[:, 6:8] += v
+    rates = pose_rates(obs.latency_trajectory(), obs.t_gps_s + state.latency_s) if latency else None
+    lin = linearize(state, r_nom, obs.plane_index, obs.pass_index, l_obs, rates, bases)
+    lin.F -= np.einsum("ij,ij->i", lin.B[:, 6:8], v)
+    return lin
 
 
 def _to_banded(M: sp.spmatrix, size: int) -> np.ndarray:
@@ -356,22 +403,22 @@ def solve_gls(
     prior_sigma = offset_prior_sigma(obs, options) if layout.offsets else None
     bs_prior = None if options.boresight_prior_rad is None else np.asarray(options.boresight_prior_rad, float)
     converged, it = False, 0
+    v = np.zeros((len(obs), 2))  # the scanner residuals (range, scan angle)
     for it in range(1, options.max_iterations + 1):
-        l_obs = observations_at(obs, state, est_latency)
-        rates = pose_rates(obs.latency_trajectory(), obs.t_gps_s + state.latency_s) if est_latency else None
         bases = tangent_bases(state.normals)
-        lin = linearize(state, r_nom, obs.plane_index, obs.pass_index, l_obs, rates, bases)
+        lin = linearize_adjusted(obs, state, r_nom, v, est_latency, bases)
         sys = assemble(lin, layout, obs, fr, pv, state, prior_sigma, bs_prior)
         dx = solve_normal(sys.S, -sys.r, obs, layout)
         z = knots_from_step(sys, dx)
         e = lin.F + sys.A @ dx + sys.J @ z  # the white part of each misclosure after the fit
         state = _apply(state, dx, layout, bases)
+        v = scanner_residuals(lin, obs, e / sys.m, pv)
         settled = True
         new = pv
         if rough.size and it < options.max_iterations:
             new = roughness_update(e, sys.m, pv, obs.plane_index, rough)
             settled = bool(np.all(np.abs(new - pv) <= VC_TOL * (np.maximum(new, pv) + 1e-12)))
-        if step_converged(dx, layout, options, sys.S, it) and settled:
+        if step_converged(dx, layout, options, sys.S, it) and settled and it > 1:
             converged = True
             break
         pv = new

@@ -8,7 +8,7 @@ For tests and benchmarks only (n ≤ :data:`MAX_POINTS`): the misclosures' full 
 is formed as an n × n matrix from the exponential correlation of each POS channel — at the
 trajectory's epochs, linearly interpolated to the points as the poses are (the simulator's
 truth), or at the point times when there is no trajectory — and the plane conditions are solved
-by iterated GLS, linearized at the observations like :mod:`calib.boresight.gls`. ``(Aᵀ C⁻¹ A)⁻¹`` at the solution is the
+by iterated GLS, linearized at the adjusted scanner observations like :mod:`calib.boresight.gls`. ``(Aᵀ C⁻¹ A)⁻¹`` at the solution is the
 Cramér–Rao bound of the unknowns for that model: the σ no unbiased estimator can beat.
 ``σ_range,i`` includes the beam footprint at the point's incidence when the observations carry
 a beam divergence (:func:`calib.boresight.gls.range_sigma_m`).
@@ -26,13 +26,17 @@ from calib.boresight.gausshelmert import (
     Layout,
     _apply,
     initial_state,
-    observations_at,
     plane_centers,
-    pose_rates,
     step_converged,
 )
-from calib.boresight.ghmodel import linearize, tangent_bases
-from calib.boresight.gls import channel_taus, design_matrix, range_sigma_m
+from calib.boresight.ghmodel import tangent_bases
+from calib.boresight.gls import (
+    channel_taus,
+    design_matrix,
+    linearize_adjusted,
+    range_sigma_m,
+    scanner_residuals,
+)
 from calib.boresight.observations import AdjustmentError, AdjustOptions, Observations
 from calib.core import frames
 
@@ -94,18 +98,18 @@ def dense_gls(
     layout = Layout(len(obs.plane_names), len(obs.pass_ids), estimate)
     est_latency = "latency" in layout.extras
     it = 0
+    v = np.zeros((len(obs), 2))
     for it in range(1, max_iterations + 1):
-        l_obs = observations_at(obs, state, est_latency)
-        rates = pose_rates(obs.latency_trajectory(), obs.t_gps_s + state.latency_s) if est_latency else None
         bases = tangent_bases(state.normals)
-        lin = linearize(state, r_nom, obs.plane_index, obs.pass_index, l_obs, rates, bases)
+        lin = linearize_adjusted(obs, state, r_nom, v, est_latency, bases)
         A = design_matrix(lin, layout, obs).toarray()
         cf = cho_factor(misclosure_covariance(lin, obs, model))
         CiA = cho_solve(cf, A)
         N = A.T @ CiA
         dx = -np.linalg.solve(N, CiA.T @ lin.F)
         state = _apply(state, dx, layout, bases)
-        if step_converged(dx, layout, options, N, it):
+        v = scanner_residuals(lin, obs, cho_solve(cf, lin.F + A @ dx), np.zeros(len(obs.plane_names)))
+        if step_converged(dx, layout, options, N, it) and it > 1:
             break
     return OracleResult(
         state.boresight_rad.copy(), np.linalg.inv(N), layout.names(obs.plane_names, obs.pass_ids), it
