@@ -21,13 +21,18 @@ an INS unplug and a profiler pause of a few seconds. Random faults drawn from ``
 Measured, each with its goal:
 
 - **records lost**: profiler datagrams the emulators sent minus the ``/lidar/raw`` messages the
-  session log holds (the MCAP summaries of its segments), and INS epochs emitted (less those
-  of the unplug windows: scenario seconds × 200 Hz, ±1 an unplug) minus the ``/ins/nav``
-  messages — goal 0;
+  session log holds (the MCAP summaries of its segments), and INS epochs the daemon could read
+  minus the ``/ins/nav`` messages — goal 0. The INS emulator counts what the unplugs took
+  (``sim_devices.ins``): the epochs written while unplugged and those in flight at the unplug
+  (written before it, still in the pty or the emulated UART's FIFO when it closed); every other
+  epoch, those written after a replug included, is the daemon's to record: one the pty dropped
+  because the daemon was not reading (``bytes_overrun``), or had not reopened the port yet, is
+  the daemon's loss; the report lists when the pty overflowed, and whether just after a replug;
 - **RSS growth** of the daemon (``/proc/PID/status`` VmRSS every 2 s) from the end of the
   warm-up (the first 5 minutes, or a third of a shorter run) to the end — goal ≤ 5 %;
 - **open file descriptors** (``/proc/PID/fd``) and **threads** (``Threads``): first sample after
-  the warm-up, last, max — goal stable (last ≤ first + 2);
+  the warm-up, last, max — goal stable (last ≤ first + 2); the host's load average alongside
+  (other work on the machine delays the daemon: read the losses with it);
 - the **alarms** raised and cleared by each fault (from the status socket's ``alarms``; an
   alarm belongs to the latest fault that began before it, up to 30 s after that fault's end,
   one about the alarm's device first: ``ins``/``profiler``/``pps``/``clock`` for the devices'
@@ -36,7 +41,8 @@ Measured, each with its goal:
   ``mqtt.commands``) and the ``cmd/result`` replies received.
 
 A benchmark exits 0 whatever the figures. It stops the daemon (SIGTERM), the emulators and the
-broker at the end and removes its temporary directory unless ``--keep``.
+broker at the end and removes its temporary directory unless ``--keep`` (which keeps the
+daemon's samples too, ``samples.json``).
 
 Run: ``.venv/bin/python benchmarks/soak.py [--minutes 30] [--speed 3] [--seed 1] [--keep]``
 """
@@ -64,7 +70,7 @@ sys.path.insert(0, str(ROOT))
 
 from acquire.status.bus import StatusListener, read_snapshot  # noqa: E402
 from benchmarks import _soak_faults as faults  # noqa: E402
-from benchmarks._procs import free_port, stop, wait_for  # noqa: E402
+from benchmarks._procs import Sampler, free_port, stop, udp_drops, wait_for  # noqa: E402
 from benchmarks._soak_faults import Ballast, DiskLimits, Fault, ResultCounter  # noqa: E402
 from tests.mosquitto import Mosquitto  # noqa: E402
 
@@ -74,7 +80,6 @@ VESSEL = "soak"
 BASE = f"mls/{VESSEL}"
 SCENARIO_S = 329.0  # montreal is 330 scenario seconds long
 SIM_START_S = 8.0  # host seconds for `mls sim devices` to be ready (simulation + --lead-s)
-SAMPLE_S = 2.0
 AFTER_FAULT_S = 30.0  # alarms this long after a fault's end are still its own
 INS_RATE_HZ = 200
 _DEVICES = {"ins", "profiler", "pps", "clock"}
@@ -126,42 +131,6 @@ def vessel_yaml(tmp: Path, ports: dict, speed: float, warning_mb: int) -> str:
 # -- watching the daemon ------------------------------------------------------------------------
 
 
-@dataclass(frozen=True)
-class Sample:
-    t_ns: int
-    rss_kb: int
-    fds: int
-    threads: int
-
-
-def proc_sample(pid: int) -> Sample | None:
-    try:
-        status = Path(f"/proc/{pid}/status").read_text()
-        fds = len(os.listdir(f"/proc/{pid}/fd"))
-    except OSError:
-        return None
-    fields = dict(line.split(":", 1) for line in status.splitlines() if ":" in line)
-    if "VmRSS" not in fields:  # a zombie: the daemon has exited
-        return None
-    return Sample(
-        time.monotonic_ns(), int(fields["VmRSS"].split()[0]), fds, int(fields["Threads"].split()[0])
-    )
-
-
-class Sampler(threading.Thread):
-    """VmRSS, open file descriptors and threads of the daemon every :data:`SAMPLE_S`."""
-
-    def __init__(self, pid: int):
-        super().__init__(daemon=True, name="sampler")
-        self.pid, self.samples = pid, []
-        self.halt = threading.Event()
-
-    def run(self) -> None:
-        while not self.halt.wait(SAMPLE_S):
-            if (s := proc_sample(self.pid)) is not None:
-                self.samples.append(s)
-
-
 class AlarmListener(StatusListener):
     """The status socket: every alarm raise/clear with its arrival time, the latest of the rest."""
 
@@ -192,7 +161,6 @@ class Segments(threading.Thread):
     stats: list[dict] = field(default_factory=list)
     done: list[Fault] = field(default_factory=list)
     errors: list[str] = field(default_factory=list)
-    unplugged_epochs: int = 0  # INS epochs of the unplug windows (scenario s × rate)
 
     def __post_init__(self) -> None:
         threading.Thread.__init__(self, daemon=True, name="segments")
@@ -258,8 +226,6 @@ class Segments(threading.Thread):
             t0 = start_host_ns + round(f["at_s"] / self.speed * NS)
             t1 = t0 + round(f["duration_s"] / self.speed * NS)
             kind = "ins_unplug" if f["kind"] == "serial_unplug" else "profiler_pause"
-            if kind == "ins_unplug":
-                self.unplugged_epochs += round(f["duration_s"] * INS_RATE_HZ)
             self.done.append(Fault(kind, f"{f['duration_s'] / self.speed:.1f} s", t0, t1))
 
 
@@ -471,16 +437,6 @@ def settle(sock: Path) -> dict:
     return snap
 
 
-def udp_drops(port: int) -> int | None:
-    """Datagrams the kernel dropped at the socket bound to ``port`` (``/proc/net/udp``)."""
-    with open("/proc/net/udp") as f:
-        for line in f.readlines()[1:]:
-            fields = line.split()
-            if int(fields[1].split(":")[1], 16) == port:
-                return int(fields[-1])
-    return None
-
-
 # -- the report ---------------------------------------------------------------------------------
 
 
@@ -497,6 +453,8 @@ def emulator_totals(stats: list[dict]) -> dict:
         out["datagrams"] += p["datagrams_sent"]
         out["paused"] += p["lost"]
         out["epochs"] += i["epochs"]
+        out["unplugged_epochs"] += i["epochs_unplugged"]
+        out["in_flight_epochs"] += i["epochs_in_flight"]
         total = i["bytes_written"] + i["bytes_overrun"] + i["bytes_unplugged"]
         per_epoch = total / max(i["epochs"], 1)
         out["overrun_epochs"] += round(i["bytes_overrun"] / per_epoch) if per_epoch else 0
@@ -507,12 +465,11 @@ def emulator_totals(stats: list[dict]) -> dict:
 
 def report_losses(r: dict) -> None:
     em = emulator_totals(r["segments"].stats)
-    em["unplugged_epochs"] = r["segments"].unplugged_epochs
     logged = r["counts"]
     m = r["snap"]["metrics"]
     log_dropped = sum(m["log"]["dropped"].values())
     lost = em["datagrams"] - logged["/lidar/raw"]
-    ins_expected = em["epochs"] - em["unplugged_epochs"]
+    ins_expected = em["epochs"] - em["unplugged_epochs"] - em["in_flight_epochs"]
     ins_lost = ins_expected - logged["/ins/nav"]
     print(
         f"records lost, profiler: {lost:,} of {em['datagrams']:,} datagrams sent "
@@ -521,11 +478,26 @@ def report_losses(r: dict) -> None:
         f"overflows {r['kernel_drops']}; {em['paused']:,} withheld by the pauses)   goal 0 ({goal(lost == 0)})"
     )
     print(
-        f"records lost, INS: {ins_lost:,} of {ins_expected:,} epochs ({em['epochs']:,} emitted, "
-        f"{em['unplugged_epochs']:,} in the {em['unplugs']} unplug windows, ±1 an unplug; {logged['/ins/nav']:,} "
-        f"/ins/nav logged, daemon decoded {m['devices']['ins']['records']:,}; pty overrun "
-        f"{em['overrun_bytes']:,} bytes ≈ {em['overrun_epochs']:,} epochs)   goal 0 ({goal(abs(ins_lost) <= em['unplugs'])})"
+        f"records lost, INS: {ins_lost:,} of {ins_expected:,} epochs the daemon could read ({em['epochs']:,} "
+        f"emitted; the {em['unplugs']} unplugs took {em['unplugged_epochs']:,} written while unplugged and "
+        f"{em['in_flight_epochs']:,} in flight; {logged['/ins/nav']:,} /ins/nav logged, daemon decoded "
+        f"{m['devices']['ins']['records']:,}; pty overrun {em['overrun_bytes']:,} bytes ≈ "
+        f"{em['overrun_epochs']:,} epochs, the daemon's)   goal 0 ({goal(ins_lost == 0)})"
     )
+    report_overruns(r)
+
+
+def report_overruns(r: dict) -> None:
+    """When the INS pty overflowed (the daemon not reading), and whether just after a replug."""
+    done = r["segments"].done
+    back = [f.end_ns for f in done if f.kind in ("ins_unplug", "emulators_restart", "start-up")]
+    eps = sorted(tuple(e) for s in r["segments"].stats for e in s["ins"]["stats"].get("overruns", []))
+    parts = []
+    for t0, t1, n in eps[:20]:
+        after = [t0 - b for b in back if 0 <= t0 - b <= 2 * NS]
+        where = f", {after[0] / NS:.2f} s after the device came back" if after else ""
+        parts.append(f"{(t0 - r['t0']) / NS:.1f} s ({n:,} B in {(t1 - t0) / NS:.2f} s{where})")
+    print("INS pty overruns (host s after the start): " + ("; ".join(parts) or "none"))
 
 
 def report_resources(r: dict, warmup_s: float) -> None:
@@ -546,6 +518,11 @@ def report_resources(r: dict, warmup_s: float) -> None:
             f"{'open file descriptors' if what == 'fds' else 'threads'}: first after the warm-up {a}, "
             f"last {b}, max {mx}   goal stable ({goal(b <= a + 2)})"
         )
+    loads = sorted(s.load1 for s in r["samples"])
+    print(
+        f"host load (1-min average, {os.cpu_count()} CPUs) during the run: median "
+        f"{loads[len(loads) // 2]:.1f}, max {loads[-1]:.1f} (other work on the host delays the daemon)"
+    )
 
 
 def attribute_alarms(r: dict) -> tuple[list[Fault], list[dict]]:
@@ -640,7 +617,10 @@ def main() -> None:
             f"{run.disk.warning_mb} ({faults.free_bytes(tmp) / faults.GIB:.1f} GiB free now)",
             flush=True,
         )
-        report(run.execute(), run)
+        r = run.execute()
+        report(r, run)
+        samples = [[(x.t_ns - r["t0"]) / NS, x.rss_kb, x.fds, x.threads, x.load1] for x in r["samples"]]
+        (tmp / "samples.json").write_text(json.dumps({"s, rss_kb, fds, threads, load1": samples}))
     finally:
         if args.keep:
             print(f"kept {tmp}")

@@ -15,6 +15,10 @@ and PPS detected. A ``gnss_outage`` fault sets dead reckoning and clears GPS rec
 for the epochs in its window, and lets the reported position drift north at
 ``position_drift_m_s`` with the north/east σ growing alike.
 
+Counts (:meth:`InsEmulator.stats`): ``epochs`` written, of which ``epochs_unplugged`` while
+unplugged and ``epochs_in_flight`` cut off by an unplug (not yet read when the pty closed): what
+a reader can be held to is ``epochs`` less those two.
+
 Faults (:mod:`sim_devices.faults`): ``serial_unplug``, ``garbage``, ``bad_checksum``,
 ``ins_latency_jump`` (on the epochs whose time tag is in the window), ``gnss_outage``,
 ``zda_late`` (NMEA: the ZDAs of the seconds in the window leave ``delay_s`` later),
@@ -27,6 +31,7 @@ from __future__ import annotations
 
 import math
 import time
+from collections import deque
 from dataclasses import dataclass, replace
 from pathlib import Path
 
@@ -114,7 +119,15 @@ class InsEmulator:
         self.start_gps_ns, self.end_gps_ns = start_gps_ns, end_gps_ns
         self.port = PtyPort(link, settings.backlog_s)
         self.rng = np.random.default_rng([seed, 1])
-        self.counts = {"epochs": 0, "zda": 0, "corrupted": 0, "garbage_bytes": 0}
+        self.counts = {
+            "epochs": 0,
+            "epochs_unplugged": 0,  # written while unplugged: lost to the fault
+            "epochs_in_flight": 0,  # written before an unplug, not yet read at it: lost to the fault too
+            "zda": 0,
+            "corrupted": 0,
+            "garbage_bytes": 0,
+        }
+        self._epoch_ends: deque[int] = deque(maxlen=4096)  # port.accepted after each epoch since the plug
         self.applied: list[dict] = []
         # an NMEA INS with a leap_second fault announces its GPS − UTC all along ($PMLS,GPSUTC)
         self.announce = settings.protocol == "nmea" and any(f.kind == "leap_second" for f in faults)
@@ -255,7 +268,7 @@ class InsEmulator:
             gps_now = clock.gps_ns(host)
             if kind == _EV_LINK:
                 if arg == 0:
-                    port.unplug()
+                    self._count_in_flight(port.unplug())
                     self.applied.append({"kind": "unplugged", "host_ns": mono()})
                 else:
                     path = port.plug()
@@ -272,13 +285,30 @@ class InsEmulator:
                 continue
             port.write(self._checksums(data, gps_now))
             timing.record(host, mono())
-            self.counts["epochs" if kind == _EV_NAV else "zda"] += 1
+            if kind == _EV_NAV:
+                self._count_epoch()
+            else:
+                self.counts["zda"] += 1
         # closing a pty discards what its reader has not read yet: stay plugged a moment
         pacer.wait_until(mono() + round(self.s.linger_s * NS_PER_S))
         return True
+
+    def _count_epoch(self) -> None:
+        self.counts["epochs"] += 1
+        if self.port.plugged:
+            self._epoch_ends.append(self.port.accepted)
+        else:
+            self.counts["epochs_unplugged"] += 1
+
+    def _count_in_flight(self, lost_bytes: int) -> None:
+        """The epochs an unplug cut off: those whose last byte was among the ``lost_bytes`` it
+        dropped (the last written)."""
+        delivered = self.port.accepted - lost_bytes
+        self.counts["epochs_in_flight"] += sum(1 for end in self._epoch_ends if end > delivered)
+        self._epoch_ends.clear()
 
     def close(self) -> None:
         self.port.close()
 
     def stats(self) -> dict:
-        return {**self.counts, **self.port.stats, "applied": self.applied}
+        return {**self.counts, **self.port.stats, "applied": self.applied, "overruns": self.port.overruns}

@@ -21,7 +21,8 @@ default shown in the example):
   ``min_free_mb``, ``disk_warning_mb``, ``disk_critical_mb``), ``clock`` (fit window, gates,
   holdover, ``host_offset_alarm_s``: the host clock's allowed offset from GPS time), ``status``
   (socket), ``mqtt`` (optional: host, port, credentials file, topic prefix, commands,
-  ``commands_insecure_ok``, ``tls``: CA file, client certificate),
+  ``commands_insecure_ok``, ``tls``: CA file, client certificate, ``outage_alarm_s``: no
+  connection this long raises ``mqtt_unreachable``, default 30),
   ``mount`` (lever arm, nominal mount, a-priori boresight), ``site_file``;
 - ``guidance`` (optional; needs ``site_file``): the line guidance the daemon runs when the config
   names a site file (:mod:`acquire.guidance.daemon`) — the pass acceptance tolerances
@@ -214,6 +215,7 @@ def _mqtt(node: Node, errs: Errors, base: Path) -> MqttSettings | None:
             "commands_enabled",
             "commands_insecure_ok",
             "keepalive_s",
+            "outage_alarm_s",
             "tls",
         },
     )
@@ -233,6 +235,7 @@ def _mqtt(node: Node, errs: Errors, base: Path) -> MqttSettings | None:
         commands_enabled=opt(m, "commands_enabled", errs, Node.boolean, False),
         commands_insecure_ok=opt(m, "commands_insecure_ok", errs, Node.boolean, False),
         keepalive_s=opt(m, "keepalive_s", errs, lambda n: int_between(n, 2, 3600), 10),
+        outage_alarm_s=opt(m, "outage_alarm_s", errs, lambda n: n.number(1.0, 86400.0), 30.0),
     )
     if host is None:
         return None

@@ -2,9 +2,11 @@
 
 :class:`Supervisor` runs one vessel config (docs/architecture.md §4, §6, §8) in one asyncio loop:
 
-- **start-up**: take the daemon lock (:mod:`acquire.daemon.pidlock`: a second daemon on the
-  same config is refused before it touches anything); salvage every unfinished session under
-  the log directory (:func:`acquire.log.recover.salvage_root`); serve the status socket; seed
+- **start-up**: check the session root (made if missing; refused when another user's or
+  writable by others: :func:`acquire.status.runfiles.check_session_root`); take the daemon lock
+  (:mod:`acquire.daemon.pidlock`: a second daemon on the same config is refused before it
+  touches anything); salvage every unfinished session under the log directory
+  (:func:`acquire.log.recover.salvage_root`); serve the status socket; seed
   the :class:`~acquire.timing.clock.ClockModel` from the system clock (UTC + leap seconds,
   flagged UNLOCKED until PPS); open the session
   (:class:`~acquire.log.sessionlog.SessionWriter`) and copy the vessel config (``vessel.yaml``),
@@ -65,6 +67,7 @@ from acquire.log.batch import LogBatcher
 from acquire.log.session import LogError
 from acquire.log.sessionlog import SessionWriter
 from acquire.status.bus import StatusBus, StatusServer
+from acquire.status.runfiles import check_session_root
 from acquire.timing.clock import ClockModel, ClockState
 from acquire.timing.latency import LatencyMonitor
 from acquire.timing.timekeeper import SYSTEM_LEAP_SECONDS_LIST, ClockCache, TimeKeeper, coarse_gps_offset_ns
@@ -228,6 +231,10 @@ class Supervisor(StatusReports):
 
     async def start(self) -> None:
         cfg = self.config
+        try:  # before the salvage opens what it finds there (made if missing: nothing else)
+            check_session_root(cfg.session_dir)
+        except OSError as e:
+            raise StartupError(f"session directory: {e}") from None
         try:  # before anything is touched: a refused daemon leaves no trace
             self.stale_lock = self.lock.take(log)
         except (OSError, LockHeld) as e:
@@ -405,13 +412,8 @@ class Supervisor(StatusReports):
         else:
             self.crashed[dev.name] = text
             name, what = "driver_failed", "driver failed"
-        self.alarms.raise_now(
-            name,
-            dev.name,
-            now,
-            severity=CRITICAL,
-            message=f"{dev.name} ({dev.kind}) {what}: {text}; retrying",
-        )
+        message = f"{dev.name} ({dev.kind}) {what}: {text}; retrying"
+        self.alarms.raise_now(name, dev.name, now, severity=CRITICAL, message=message)
         self.log_event(
             {
                 "event": name,

@@ -23,6 +23,11 @@ taken over", mosquitto ≥ 2.0.15) raises ``mqtt_taken_over`` (warning); so does
 closes silently, a fight over the id (:data:`FLAP_SESSIONS` sessions in :data:`FLAP_WINDOW_S`
 each closed within ``stable_s`` of connecting). It clears once a connection has held ``stable_s``.
 
+**Outage**: no connection to the broker for ``outage_alarm_s`` (from start-up, or since the last
+session ended) raises ``mqtt_unreachable`` (warning, device ``mqtt``) with how long and the last
+error; the status goes on on the local socket, the alarm says so. It clears on the next
+connection (found within the back-off, ``backoff_max_s`` at most).
+
 **Commands** (``<base>/cmd/<name>``, validated by :mod:`acquire.status.commands`) are accepted
 only when the config enables them and :func:`command_policy` allows it (TLS with credentials,
 or a broker on loopback, or ``commands_insecure_ok``). Every command is answered on
@@ -81,6 +86,7 @@ LOST = b'{"state":"lost"}'
 SESSION_TAKEN_OVER = 0x8E  # MQTT 5 DISCONNECT reason code
 REFUSED_ALARM = ("mqtt_refused", "mqtt")
 TAKEOVER_ALARM = ("mqtt_taken_over", "mqtt")
+UNREACHABLE_ALARM = ("mqtt_unreachable", "mqtt")
 FLAP_SESSIONS, FLAP_WINDOW_S = 3, 120.0  # this many short sessions in this window: a takeover fight
 CommandHandler = Callable[[str, dict], tuple[bool, str] | Awaitable[tuple[bool, str]]]
 
@@ -108,6 +114,7 @@ class MqttSettings:
     publish_timeout_s: float = 10.0
     tls: MqttTls | None = None
     commands_insecure_ok: bool = False  # commands over plaintext to a remote broker
+    outage_alarm_s: float = 30.0  # no connection this long: mqtt_unreachable
 
 
 def tls_context(tls: MqttTls) -> ssl.SSLContext:
@@ -161,7 +168,8 @@ def _reason_code(err: BaseException) -> int | None:
 class MqttPublisher:
     """Status bus sink publishing to an MQTT broker; ``await run()`` in a task, ``stop()`` it.
 
-    ``alarms``: the daemon's alarm book (``mqtt_refused``, ``mqtt_taken_over``);
+    ``alarms``: the daemon's alarm book (``mqtt_refused``, ``mqtt_taken_over``,
+    ``mqtt_unreachable``);
     ``on_event``: receives the session events of refused commands."""
 
     def __init__(
@@ -198,6 +206,8 @@ class MqttPublisher:
         self.last_error: str | None = None
         self.takeovers = 0
         self._session_s: float | None = None  # how long the last session was connected
+        self._down_since: float | None = None  # monotonic s since when not connected
+        self._outage_timer: asyncio.TimerHandle | None = None
         self._short_sessions: deque[float] = deque()  # ends of sessions shorter than stable_s
         self.commands = {"accepted": 0, "refused": 0, "rate_limited": 0, "retained": 0, "dropped": 0}
         if self.command_refusal is not None:
@@ -216,6 +226,7 @@ class MqttPublisher:
             "dropped": self.dropped,
             "last_error": self.last_error,
             "takeovers": self.takeovers,
+            "down_s": None if self._down_since is None else round(time.monotonic() - self._down_since, 1),
             "commands": dict(self.commands),
         }
 
@@ -236,6 +247,13 @@ class MqttPublisher:
 
     async def run(self) -> None:
         """Connect, publish, reconnect with back-off; returns after :meth:`stop`."""
+        self._went_down()
+        try:
+            await self._sessions()
+        finally:
+            self._cancel_outage()
+
+    async def _sessions(self) -> None:
         s = self.settings
         backoff = s.backoff_min_s
         while not self._stop.is_set():
@@ -280,6 +298,46 @@ class MqttPublisher:
             )
         elif isinstance(err, MqttConnectError) or (self._tls is not None and _is_tls_error(text)):
             self._raise(REFUSED_ALARM, CRITICAL, f"MQTT broker {s.host}:{s.port} refused: {text}; retrying")
+        if self.alarms is not None and self.alarms.is_active(*UNREACHABLE_ALARM):
+            self._outage_due()  # the message: how long now, the latest error
+
+    # -- outage -----------------------------------------------------------------------------
+
+    def _went_down(self) -> None:
+        """Not connected from now: ``mqtt_unreachable`` once this lasts ``outage_alarm_s``."""
+        self._down_since = time.monotonic()
+        self._cancel_outage()
+        self._outage_timer = asyncio.get_running_loop().call_later(
+            self.settings.outage_alarm_s, self._outage_due
+        )
+
+    def _cancel_outage(self) -> None:
+        if self._outage_timer is not None:
+            self._outage_timer.cancel()
+            self._outage_timer = None
+
+    def _outage_over(self) -> None:
+        """Connected: no outage, ``mqtt_unreachable`` cleared with how long it lasted."""
+        self._cancel_outage()
+        since, self._down_since = self._down_since, None
+        if since is None or self.alarms is None or not self.alarms.is_active(*UNREACHABLE_ALARM):
+            return
+        s = self.settings
+        message = f"MQTT broker {s.host}:{s.port} reachable again after {time.monotonic() - since:.0f} s"
+        self.alarms.clear_now(*UNREACHABLE_ALARM, time.monotonic_ns(), message=message)
+
+    def _outage_due(self) -> None:
+        if self.connected or self._down_since is None or self._stop.is_set():
+            return
+        s = self.settings
+        down_s = time.monotonic() - self._down_since
+        self._raise(
+            UNREACHABLE_ALARM,
+            WARNING,
+            f"MQTT broker {s.host}:{s.port} unreachable for {down_s:.0f} s (alarm after "
+            f"{s.outage_alarm_s:g} s): {self.last_error or 'no connection yet'}; status on the local "
+            "socket only; retrying",
+        )
 
     def _flapping(self, session_s: float) -> bool:
         """Whether sessions keep ending soon after they start (a silent takeover fight)."""
@@ -299,6 +357,7 @@ class MqttPublisher:
         self.connects += 1
         self.last_error = None
         self._clear(REFUSED_ALARM)
+        self._outage_over()
 
     def _clear(self, key: tuple[str, str]) -> None:
         if self.alarms is not None and self.alarms.is_active(*key):
@@ -363,6 +422,7 @@ class MqttPublisher:
                 await asyncio.gather(listener, publisher, stable, return_exceptions=True)
                 self.connected = False
                 self._session_s = time.monotonic() - started
+                self._went_down()
 
     async def _publish_loop(self, client: aiomqtt.Client) -> None:
         timeout = self.settings.publish_timeout_s

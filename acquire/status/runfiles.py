@@ -1,4 +1,5 @@
-"""The files the daemon (often root) opens beside its status socket: never another user's.
+"""The files the daemon (often root) opens beside its status socket, and its session root: never
+another user's.
 
 The status socket and its lock (``<socket>.lock``, :mod:`acquire.daemon.pidlock`) live in a run
 directory (``/run/mls``). Whoever can write that directory can put a symbolic link or a hard
@@ -11,7 +12,11 @@ their choosing. So:
 - :func:`open_private`: the file is opened with ``O_NOFOLLOW | O_CLOEXEC`` (a symlink is refused,
   not followed) and refused unless it is a regular file of this user with one link;
 - :func:`check_own_entry`: an entry found at the socket's path is a socket (or a stale plain
-  file) of this user, not a symlink (it is then removed, never followed).
+  file) of this user, not a symlink (it is then removed, never followed);
+- :func:`check_session_root`: the directory of the sessions (``session.directory``), made if
+  missing, must be owned by this user or root and not writable by others — the sticky bit is no
+  excuse there: at start-up the daemon salvages every session it finds in it, and a session
+  another user planted (with links to files of their choosing) would have it write there.
 
 Each refusal is :class:`UnsafeRunFile`: one line naming the path and what to do.
 """
@@ -35,20 +40,38 @@ def _owner_ok(uid: int) -> bool:
     return uid in (os.geteuid(), 0)
 
 
-def check_run_dir(directory: str | Path) -> None:
-    """:class:`UnsafeRunFile` when ``directory`` is writable by others or another user's."""
+def check_private_dir(directory: str | Path, what: str, instead: str, *, sticky_ok: bool) -> None:
+    """:class:`UnsafeRunFile` when ``directory`` is another user's (not this one's nor root's)
+    or writable by every user (with ``sticky_ok``, unless it has the sticky bit, as ``/tmp``).
+    The message names ``what`` it is, the owner and mode found, and the fix: chown, chmod, or
+    ``instead``."""
     d = Path(directory)
     st = os.stat(d)
+    mode = stat.S_IMODE(st.st_mode)
     if not _owner_ok(st.st_uid):
         raise UnsafeRunFile(
-            f"{d}: the run directory belongs to uid {st.st_uid}, not to this user (uid {os.geteuid()}) "
-            f"or root: refused; give it to this user (chown) or choose another status.socket"
+            f"{d}: the {what} belongs to uid {st.st_uid} (mode {mode:o}), not to this user (uid "
+            f"{os.geteuid()}) or root: refused; give it to this user (chown {os.geteuid()} {d}) or {instead}"
         )
-    if st.st_mode & stat.S_IWOTH and not st.st_mode & stat.S_ISVTX:
+    if mode & stat.S_IWOTH and not (sticky_ok and mode & stat.S_ISVTX):
+        sticky = "sticky bit, not enough here" if mode & stat.S_ISVTX else "no sticky bit"
         raise UnsafeRunFile(
-            f"{d}: the run directory is writable by every user (mode {stat.S_IMODE(st.st_mode):o}, no "
-            f"sticky bit): refused; chmod o-w {d} (or +t), or choose another status.socket"
+            f"{d}: the {what} (owner uid {st.st_uid}) is writable by every user (mode {mode:o}, {sticky}): "
+            f"refused; chmod o-w {d}{' (or +t)' if sticky_ok else ''}, or {instead}"
         )
+
+
+def check_run_dir(directory: str | Path) -> None:
+    """:class:`UnsafeRunFile` when ``directory`` is writable by others (without the sticky bit)
+    or another user's."""
+    check_private_dir(directory, "run directory", "choose another status.socket", sticky_ok=True)
+
+
+def check_session_root(directory: str | Path) -> None:
+    """Make the session root if it is missing (this user's, mode 755), then
+    :class:`UnsafeRunFile` when it is another user's or writable by others (sticky or not)."""
+    Path(directory).mkdir(mode=0o755, parents=True, exist_ok=True)
+    check_private_dir(directory, "session root", "choose another session.directory", sticky_ok=False)
 
 
 def open_private(path: str | Path, flags: int, mode: int = 0o644) -> int:

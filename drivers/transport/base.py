@@ -12,7 +12,8 @@ or by the serial port's reader thread), and is used the same way (aiomqtt style)
 (:func:`drivers.transport.registry.create_transport` builds one from a config.) A subclass
 implements ``_connect`` / ``_disconnect``; the base class queues the chunks, and when the device
 goes away (``_lost``) reports it and reconnects in the background with a back-off
-(``reconnect_min_s`` doubling to ``reconnect_max_s``).
+(``reconnect_min_s`` doubling to ``reconnect_max_s``; a subclass may wait for its device to
+appear instead, ``_wait_retry``: the serial port watches its path).
 
 State changes are reported as :class:`TransportEvent` to the ``on_event`` callback and kept in
 ``transport.events``; ``transport.connected`` and ``transport.reconnects`` give the state, and
@@ -194,7 +195,7 @@ class Transport:
         delay = self.reconnect_min_s
         failures = 0
         while not self._closing:
-            await asyncio.sleep(delay)
+            appeared = await self._wait_retry(delay)
             try:
                 await self._connect()
             except OSError as exc:
@@ -202,10 +203,16 @@ class Transport:
                 failures += 1
                 if failures in (1, 10) or failures % 100 == 0:
                     self._report("reconnect_failed", f"attempt {failures}: {exc}")
-                delay = min(delay * 2.0, self.reconnect_max_s)
+                delay = self.reconnect_min_s if appeared else min(delay * 2.0, self.reconnect_max_s)
                 continue
             self._set_connected()
             return
+
+    async def _wait_retry(self, delay_s: float) -> bool:
+        """Wait before the next attempt to connect; True when the device has just appeared (the
+        back-off then starts over). Here: sleep ``delay_s``; the serial port waits for its path."""
+        await asyncio.sleep(delay_s)
+        return False
 
     def describe(self) -> str:
         return self.kind

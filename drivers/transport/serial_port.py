@@ -4,17 +4,29 @@ pyserial opens and configures the port; a thread of its own reads it (:class:`_P
 ``poll`` and ``os.read``, the GIL released while it waits) and stamps the bytes when they are
 ready, so a busy event loop delays their decoding but neither their stamp nor their reading (a
 pty or UART buffers only a few kB). When the port vanishes (EIO/EOF: a USB adapter unplugged, an
-emulator's pty closed) the transport reports ``disconnected``, backs off (``reconnect_min_s``
-doubling to ``reconnect_max_s``, 0.5 s for a serial port: trying to open a missing path costs
-nothing, and every second waited after the INS is back is a second of navigation lost) and
-reopens the same path — a stable symlink such as ``/dev/serial/by-id/...`` or an emulator's
-``<run dir>/ins`` then reaches the new device — and reports ``connected``. A slow consumer pauses
-reading (the kernel buffers) instead of losing bytes.
+emulator's pty closed) the transport reports ``disconnected`` and reopens the same path — a
+stable symlink such as ``/dev/serial/by-id/...`` or an emulator's ``<run dir>/ins`` then reaches
+the new device — and reports ``connected``. Every second waited after the INS is back is a
+second of navigation lost, so:
+
+- while the path is missing the transport waits for it to appear
+  (:func:`drivers.transport.pathwatch.wait_for_path`: inotify, no polling) and opens it at
+  once, within milliseconds; it still looks every ``reconnect_max_s`` (0.5 s) in case the watch
+  misses it (a link that comes before its target);
+- while the path is there but cannot be opened (busy, permissions not yet set by udev) it backs
+  off, ``reconnect_min_s`` doubling to ``reconnect_max_s``, starting over when the path
+  (re)appears;
+- a reopened port keeps what the device sent since it came back: pyserial's ``open`` flushes the
+  input (``TCIFLUSH``), which would throw away the first epochs after a replug; only the first
+  open of the transport flushes (what waited there may be from before the daemon started).
+
+A slow consumer pauses reading (the kernel buffers) instead of losing bytes.
 """
 
 from __future__ import annotations
 
 import asyncio
+import functools
 import os
 import select
 import threading
@@ -24,6 +36,7 @@ from collections.abc import Callable
 
 from drivers.base import DriverError
 from drivers.transport.base import Chunk, Transport
+from drivers.transport.pathwatch import wait_for_path
 
 
 class _PortReader:
@@ -110,6 +123,28 @@ class _PortReader:
         os.close(self._wake_w)
 
 
+@functools.cache
+def _keep_input_port() -> type:  # (made once: pyserial is imported lazily)
+    """pyserial's port whose ``open`` keeps the bytes waiting in the input (no ``TCIFLUSH``)."""
+    import serial
+
+    class KeepInputSerial(serial.Serial):
+        _opening = False
+
+        def open(self) -> None:
+            self._opening = True
+            try:
+                super().open()
+            finally:
+                self._opening = False
+
+        def _reset_input_buffer(self) -> None:  # reset_input_buffer() still flushes
+            if not self._opening:
+                super()._reset_input_buffer()
+
+    return KeepInputSerial
+
+
 class SerialTransport(Transport):
     """A serial port (or pty) read by a thread of its own; reopens the same path after a loss."""
 
@@ -131,22 +166,37 @@ class SerialTransport(Transport):
         self.settings = {"baudrate": baudrate, "bytesize": bytesize, "parity": parity, "stopbits": stopbits}
         self._serial = None
         self._reader: _PortReader | None = None
+        self._opened = False  # opened once: a reopened port keeps what waits in its input
 
     def describe(self) -> str:
         s = self.settings
         return f"serial {self.port} {s['baudrate']} {s['bytesize']}{s['parity']}{s['stopbits']}"
 
+    async def _wait_retry(self, delay_s: float) -> bool:
+        """A missing path: wait for it to appear (at most ``reconnect_max_s`` between looks) and
+        say so; a path that is there but failed to open: back off ``delay_s``."""
+        if os.path.exists(self.port):
+            await asyncio.sleep(delay_s)
+            return False
+        deadline = self._loop.time() + self.reconnect_max_s
+        while not self._closing and (left := deadline - self._loop.time()) > 0:
+            if await wait_for_path(self.port, left):
+                return True
+        return False
+
     async def _connect(self) -> None:
         import serial  # pyserial
 
+        port_class = _keep_input_port() if self._opened else serial.Serial
         try:
-            ser = serial.Serial(self.port, timeout=0, exclusive=True, **self.settings)
+            ser = port_class(self.port, timeout=0, exclusive=True, **self.settings)
         except serial.SerialException as exc:
             raise OSError(str(exc)) from exc
         except ValueError as exc:  # a bad setting is a configuration error, not a missing device
             raise DriverError(f"serial {self.port}: {exc}") from exc
         os.set_blocking(ser.fileno(), False)
         self._serial = ser
+        self._opened = True
         reader: _PortReader | None = None
 
         def deliver(item: Chunk | str) -> None:
