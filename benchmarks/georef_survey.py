@@ -66,17 +66,17 @@ def make_session(root: Path, minutes: float, rate_scale: float) -> Path:
 
 
 def _warm(_):
-    import acquire.deliver.chunkjob  # noqa: F401
-    import acquire.deliver.tiles  # noqa: F401
+    import office.deliver.chunkjob  # noqa: F401
+    import office.deliver.tiles  # noqa: F401
 
     return 0
 
 
 def run(session: Path, out: Path, workers: int | None, chunk_s: float, repeat: int):
     """The fastest of ``repeat`` runs (a shared 2-core VM varies by ±15 % from run to run)."""
-    from acquire.deliver.engine import run_georef
-    from acquire.deliver.executors import DaskExecutor, InProcess
-    from acquire.deliver.options import GeorefOptions
+    from office.deliver.engine import run_georef
+    from office.deliver.executors import DaskExecutor, InProcess
+    from office.deliver.options import GeorefOptions
 
     best = None
     for _ in range(repeat):

@@ -17,9 +17,10 @@ import shutil
 import signal
 import socket
 import subprocess
-import time
 from dataclasses import dataclass
 from pathlib import Path
+
+from tests.waiting import wait_until
 
 CANDIDATES = ("mosquitto", "/usr/sbin/mosquitto", "/usr/local/sbin/mosquitto")
 
@@ -127,21 +128,24 @@ class Mosquitto:
         )
         with open(self.log, "ab") as log:
             self.proc = subprocess.Popen([mosquitto_binary(), "-c", str(conf)], stdout=log, stderr=log)
-        deadline = time.monotonic() + timeout_s
-        while time.monotonic() < deadline:
+
+        def listening() -> bool:
             if self.proc.poll() is not None:
                 raise RuntimeError(
                     f"mosquitto exited with {self.proc.returncode}: {self.log.read_text()[-2000:]}"
                 )
             try:
                 socket.create_connection((self.host, self.port), timeout=0.2).close()
-                return self
+                return True
             except OSError:
-                time.sleep(0.05)
-        self.stop()
-        raise RuntimeError(
-            f"mosquitto did not open port {self.port} in {timeout_s} s: {self.log.read_text()[-2000:]}"
-        )
+                return False
+
+        if not wait_until(listening, timeout_s, "mosquitto", interval_s=0.05, fail=False):
+            self.stop()
+            raise RuntimeError(
+                f"mosquitto did not open port {self.port} in {timeout_s} s: {self.log.read_text()[-2000:]}"
+            )
+        return self
 
     def kill(self) -> None:
         """Crash the broker (SIGKILL): clients see the connection drop."""

@@ -16,10 +16,10 @@ import pytest
 
 from tests.conftest import PROJECT_ROOT
 
-PACKAGES = ("calib", "drivers", "sim_devices", "acquire", "cli")
+PACKAGES = ("calib", "drivers", "sim_devices", "acquire", "office", "cli")
 
-#: top-level packages: calib ← drivers ← sim_devices / acquire ← cli
-PACKAGE_RANK = {"calib": 0, "drivers": 1, "sim_devices": 2, "acquire": 2, "cli": 3}
+#: top-level packages: calib ← drivers ← sim_devices / acquire (the vessel) ← office ← cli
+PACKAGE_RANK = {"calib": 0, "drivers": 1, "sim_devices": 2, "acquire": 2, "office": 3, "cli": 4}
 
 #: units inside a package (a subpackage or a top-level module) and their ranks
 UNIT_RANK = {
@@ -54,8 +54,12 @@ UNIT_RANK = {
         "guidance": 5,
         "ui": 5,
         "watch": 5,
-        "jobs": 6,
-        "deliver": 7,
+        "doctor": 5,
+    },
+    "office": {
+        "simsession": 0,
+        "jobs": 1,
+        "deliver": 2,
     },
 }
 

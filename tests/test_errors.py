@@ -19,13 +19,13 @@ from drivers.base import DriverError
 from sim_devices.errors import SimDevicesError
 from tests.conftest import PROJECT_ROOT
 
-PACKAGES = ("calib", "drivers", "sim_devices", "acquire", "cli")
+PACKAGES = ("calib", "drivers", "sim_devices", "acquire", "office", "cli")
 
 #: Exception classes that are not errors, and why.
 NOT_ERRORS = {
     # A control-flow signal, not an error: Ctrl-C, SIGTERM or SIGHUP while the demo runs; the
     # demo catches it to stop its processes and exit with the signal's status.
-    "acquire.jobs.demo.Interrupted",
+    "office.jobs.demo.Interrupted",
 }
 
 #: The base each package's errors derive from (ConfigError, for every configuration file, is the
@@ -35,6 +35,7 @@ LAYER_BASES = {
     "drivers": (DriverError,),
     "sim_devices": (SimDevicesError, ConfigError),
     "acquire": (AcquireError, ConfigError),
+    "office": (AcquireError, ConfigError),  # the office's jobs are acquire's batch side
     "cli": (MlsError,),
 }
 

@@ -88,7 +88,7 @@ class MonitorParams:
     relearn_ns: int = 60 * NS_PER_S  # a jump to a level stable this long becomes the baseline
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, kw_only=True)
 class LatencyStats:
     device: str
     sync: str  # "ok", "waiting" (not enough samples), "no_clock" (clock UNLOCKED), "no_time_tag"
@@ -219,20 +219,20 @@ class LatencyMonitor:
         d = self._devices[device]
         if d.stats is None:
             return LatencyStats(
-                device,
-                "waiting",
-                0,
-                None,
-                None,
-                None,
-                None,
-                None,
-                None,
-                None,
-                None,
-                None,
-                d.pps_flag,
-                d.records,
+                device=device,
+                sync="waiting",
+                n=0,
+                mean_ns=None,
+                sigma_ns=None,
+                p99_ns=None,
+                max_ns=None,
+                baseline_ns=None,
+                drift_ppm=None,
+                drift_sigma_ppm=None,
+                rate_hz=None,
+                last_age_ns=None,
+                pps_flag=d.pps_flag,
+                records=d.records,
             )
         return d.stats
 

@@ -157,7 +157,7 @@ class CalibrationOptions:
         )
 
 
-@dataclass
+@dataclass(kw_only=True)
 class CalibrationRun:
     """Everything a calibration produced (the report is written from it)."""
 

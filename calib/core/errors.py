@@ -10,9 +10,14 @@ CLI prints it as it is, once, without a traceback.
 The tree lives at the bottom of the import graph (``calib.core``) so that every layer can
 derive from it. The concrete classes keep the builtin exception they always were
 (``ValueError`` for bad input, ``RuntimeError`` for a failed operation) as a second base.
+
+:func:`read_file` is the one mapping of a failed file read (missing, a directory, permission, an
+I/O error) to such a one-line message naming the file.
 """
 
 from __future__ import annotations
+
+from pathlib import Path
 
 
 class MlsError(Exception):
@@ -25,3 +30,24 @@ class ConfigError(MlsError, ValueError):
 
 class CalibError(MlsError):
     """Base of the errors of the calibration library (``calib``)."""
+
+
+def read_file(
+    path: Path, error: type[MlsError], *, expected: str = "a file", max_bytes: int | None = None
+) -> bytes:
+    """The bytes of the file ``path`` (at most ``max_bytes`` + 1 of them when bounded, so that the
+    caller can tell a file too large), or ``error`` with one line naming the file:
+    ``<path>: file not found``, ``<path>: is a directory, expected <expected>`` or
+    ``<path>: cannot read (<reason>)`` (permission refused, an I/O error, …).
+
+    The one mapping of a failed read for the readers of ``calib.io`` (configuration files,
+    bundle CSVs, SBET records); decoding the bytes, and its message, stay with the format."""
+    try:
+        with path.open("rb") as f:
+            return f.read() if max_bytes is None else f.read(max_bytes + 1)
+    except FileNotFoundError:
+        raise error(f"{path}: file not found") from None
+    except IsADirectoryError:
+        raise error(f"{path}: is a directory, expected {expected}") from None
+    except OSError as e:
+        raise error(f"{path}: cannot read ({e.strerror or e})") from None

@@ -36,7 +36,7 @@ from pathlib import Path
 import numpy as np
 
 from calib.core import frames
-from calib.core.errors import CalibError
+from calib.core.errors import CalibError, read_file
 from calib.core.trajectory import Trajectory, TrajectoryError
 from calib.io.configfile import ConfigError
 from calib.io.outputs import make_output_dir
@@ -163,14 +163,7 @@ class IntensityScale:
 
 
 def _open_text(path: Path) -> str:
-    try:
-        raw = path.read_bytes()
-    except FileNotFoundError:
-        raise BundleError(f"{path}: file not found") from None
-    except IsADirectoryError:
-        raise BundleError(f"{path}: is a directory, expected a file") from None
-    except OSError as e:
-        raise BundleError(f"{path}: cannot read ({e.strerror or e})") from None
+    raw = read_file(path, BundleError)
     if path.suffix == ".gz":
         try:
             raw = gzip.decompress(raw)

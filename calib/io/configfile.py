@@ -28,7 +28,10 @@ from typing import Any
 import numpy as np
 import yaml
 
-from calib.core.errors import ConfigError  # the one ConfigError (re-exported): every accessor raises it
+from calib.core.errors import (
+    ConfigError,  # the one ConfigError (re-exported): every accessor raises it
+    read_file,
+)
 
 #: Largest configuration text read (bytes): configs are a few kB; a larger file is not one.
 MAX_YAML_BYTES = 1 << 20
@@ -239,15 +242,7 @@ def _to_node(node: yaml.Node, path: str, source: str) -> Node:
 
 def _read_text(path: Path) -> str:
     source = str(path)
-    try:
-        with path.open("rb") as f:
-            raw = f.read(MAX_YAML_BYTES + 1)
-    except FileNotFoundError:
-        raise ConfigError(f"{source}: file not found") from None
-    except IsADirectoryError:
-        raise ConfigError(f"{source}: is a directory, expected a YAML file") from None
-    except OSError as e:
-        raise ConfigError(f"{source}: cannot read ({e.strerror or e})") from None
+    raw = read_file(path, ConfigError, expected="a YAML file", max_bytes=MAX_YAML_BYTES)
     if len(raw) > MAX_YAML_BYTES:
         raise ConfigError(
             f"{source}: larger than {MAX_YAML_BYTES >> 20} MiB, expected a configuration file (a few kB)"

@@ -21,7 +21,7 @@ naming the path and the option (:class:`OutputError`).
 
 ``mls demo`` is the one exception, on purpose: its run directory is its own (a marker file
 ``.mls-demo``), and it empties it at every start so that it can run twice in a row
-(:func:`acquire.jobs.demo.prepare_out`); a directory it did not make is refused.
+(:func:`office.jobs.demo.prepare_out`); a directory it did not make is refused.
 """
 
 from __future__ import annotations

@@ -23,7 +23,7 @@ from pathlib import Path
 import numpy as np
 
 from calib.core import frames
-from calib.core.errors import CalibError
+from calib.core.errors import CalibError, read_file
 from calib.core.trajectory import Trajectory, TrajectoryError
 
 SBET_FIELDS = (
@@ -76,14 +76,7 @@ class SbetError(CalibError, ValueError):
 def _read_records(path: str | Path, dtype: np.dtype, kind: str) -> np.ndarray:
     assert dtype.names is not None  # a structured record dtype (SBET_DTYPE, SMRMSG_DTYPE)
     path = Path(path)
-    try:
-        raw = path.read_bytes()
-    except FileNotFoundError:
-        raise SbetError(f"{path}: file not found") from None
-    except IsADirectoryError:
-        raise SbetError(f"{path}: is a directory, expected an {kind} file") from None
-    except OSError as e:
-        raise SbetError(f"{path}: cannot read ({e.strerror or e})") from None
+    raw = read_file(path, SbetError, expected=f"an {kind} file")
     if len(raw) % dtype.itemsize:
         raise SbetError(
             f"{path}: size {len(raw)} bytes is not a multiple of the {kind} record size "

@@ -102,6 +102,7 @@ def markdown(run: WatchRun, meta: dict) -> str:
         "",
         f"**{run_verdict(run)}**",
         "",
+        *_calibration_lines(meta),
         f"- source: `{meta.get('source', '?')}`; calibration: `{meta.get('calibration') or 'the site a priori'}`",
         f"- test: CUSUM per angle and sign tuned to a {math.degrees(d.shift_rad):.3f}° change; "
         f"threshold h = {d.threshold:.2f} (≤ {d.false_alarms_per_hour:g} false alarms per hour at "
@@ -204,39 +205,20 @@ def plot_watch(run: WatchRun, path: Path) -> None:
 OLDER_CALIBRATION = "no verdict (older calibration)"
 
 
-def calibration_verdict(result: dict | None) -> tuple[str | None, str | None]:
-    """The calibration's verdict line for the watch's report, and the warning to print (None
-    when the calibration is trusted). ``result``: the result.json the watch is given (None:
-    none given, the vessel's a-priori boresight — :mod:`acquire.deliver.calibration` warns)."""
-    if result is None:
-        return None, None
-    verdict_ = result.get("verdict")
+def _calibration_lines(meta: dict) -> list[str]:
+    """Under the watch's verdict: the warning of a calibration not trusted, its verdict line."""
+    warning, line = meta.get("calibration_warning"), meta.get("calibration_verdict")
+    return ([f"> **Warning:** {warning}", ""] if warning else []) + ([f"- {line}"] if line else [])
+
+
+def calibration_verdict(provenance: dict) -> str | None:
+    """The calibration's verdict line for the watch's report from its provenance
+    (:func:`office.deliver.calibration.load_calibration`); None without a calibration (the
+    vessel's a-priori boresight: the calibration loader warns)."""
+    if provenance.get("calibration") is None:
+        return None
+    verdict_ = provenance.get("calibration_verdict")
     if verdict_ is None:
-        line = f"calibration verdict: {OLDER_CALIBRATION}"
-        return line, f"the calibration has {OLDER_CALIBRATION}: the watch tests against a mount not checked"
-    reasons = [str(r) for r in result.get("verdict_reasons") or []]
-    line = f"calibration verdict: {verdict_}" + (f" ({'; '.join(reasons)})" if reasons else "")
-    if verdict_ == "trusted":
-        return line, None
-    return line, (
-        f"the calibration is {verdict_}"
-        + (f" ({'; '.join(reasons)})" if reasons else "")
-        + ": the watch tests the mount against it, so a shift it reports may be the calibration's error"
-    )
-
-
-def add_calibration_verdict(out_dir: Path, line: str, warning: str | None) -> None:
-    """Write the calibration's verdict into a written ``watch.md`` (under the verdict, a
-    warning when the calibration is not trusted) and ``watch.json``."""
-    md = out_dir / "watch.md"
-    if md.exists():
-        text = md.read_text(encoding="utf-8").split("\n")
-        note = [f"> **Warning:** {warning}", ""] if warning else []
-        at = next((i + 2 for i, s in enumerate(text) if s.startswith("**")), len(text))
-        md.write_text("\n".join(text[:at] + note + [f"- {line}"] + text[at:]), encoding="utf-8")
-    js = out_dir / "watch.json"
-    if js.exists():
-        doc = json.loads(js.read_text(encoding="utf-8"))
-        doc["calibration_verdict"] = line
-        doc["calibration_warning"] = warning
-        js.write_text(json.dumps(doc, indent=1, allow_nan=False) + "\n", encoding="utf-8")
+        return f"calibration verdict: {OLDER_CALIBRATION}"
+    reasons = provenance.get("calibration_verdict_reasons") or []
+    return f"calibration verdict: {verdict_}" + (f" ({'; '.join(reasons)})" if reasons else "")

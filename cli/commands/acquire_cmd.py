@@ -3,8 +3,11 @@
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Annotated
 
 import typer
+
+from cli.options import vessel_config_option
 
 EXIT_OK, EXIT_FAILED, EXIT_CONFIG = 0, 1, 2
 
@@ -35,9 +38,9 @@ HELP = (
 
 
 def acquire(
-    config: Path = typer.Option(
-        ..., "--config", "-c", help="Vessel config (YAML), see systemd/vessel.example.yaml."
-    ),
+    config: Annotated[
+        Path, vessel_config_option("Vessel config (YAML), see systemd/vessel.example.yaml.")
+    ] = ...,
     check: bool = typer.Option(
         False,
         "--check",

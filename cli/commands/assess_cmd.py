@@ -7,10 +7,12 @@ The commands are added to the ``mls calib`` group of :mod:`cli.commands.calib_cm
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Annotated
 
 import typer
 
 from cli.commands.calib_cmd import app
+from cli.options import HistoryDb, knn_option
 
 
 def _fail(message: str) -> None:
@@ -40,13 +42,13 @@ def c2c_cmd(
         ..., help="Compared cloud (LAS/LAZ, or ASCII 'x y z' per line): every point of it gets a distance."
     ),
     reference: Path = typer.Argument(..., help="Reference cloud the local planes are fitted to."),
-    knn: int = typer.Option(
-        6,
-        "--knn",
-        min=3,
-        help="Neighbours of the nearest reference point "
-        "in each local least-squares plane (CloudCompare's '-MODEL LS KNN k').",
-    ),
+    knn: Annotated[
+        int,
+        knn_option(
+            "Neighbours of the nearest reference point "
+            "in each local least-squares plane (CloudCompare's '-MODEL LS KNN k')."
+        ),
+    ] = 6,
     out: Path | None = typer.Option(
         None,
         "--out",
@@ -194,14 +196,12 @@ def c2c_cmd(
 
 # -- history --------------------------------------------------------------------------------
 
-_DB_HELP = "History database (default: $MLS_HISTORY_DB, else ~/.local/share/marine-mls/history.sqlite)."
-
 
 @app.command("history")
 def history_cmd(
     vessel: str | None = typer.Option(None, "--vessel", help="Only this vessel's calibrations."),
     mount: str | None = typer.Option(None, "--mount", help="Only this mount id."),
-    db: Path | None = typer.Option(None, "--db", help=_DB_HELP),
+    db: HistoryDb = None,
 ) -> None:
     """List the recorded boresight calibrations, oldest survey first."""
     from rich.console import Console
@@ -262,7 +262,7 @@ def compare_cmd(
     a: str = typer.Argument(..., help="First calibration: a history id or a result.json path."),
     b: str = typer.Argument(..., help="Second calibration: a history id or a result.json path."),
     k_sigma: float = typer.Option(3.0, "--k", min=0.1, help="Flag a change beyond k times the combined σ."),
-    db: Path | None = typer.Option(None, "--db", help=_DB_HELP),
+    db: HistoryDb = None,
 ) -> None:
     """Has the mount moved? Test two calibrations against their combined σ.
 

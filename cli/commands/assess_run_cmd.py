@@ -6,10 +6,12 @@
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Annotated
 
 import typer
 
 from cli.commands.calib_cmd import app
+from cli.options import Force, bundle_argument, knn_option, out_option
 
 ASSESS_HELP = (
     "Relative accuracy: compare reciprocal passes before and after a calibration.\n\n"
@@ -35,41 +37,40 @@ def _mm(x_m) -> str:
 
 @app.command("assess", help=ASSESS_HELP)
 def assess_cmd(
-    bundle: Path = typer.Argument(
-        ...,
-        metavar="BUNDLE",
-        help="Calibration bundle directory (site.yaml, trajectory, points; truth.json when simulated).",
-    ),
+    bundle: Annotated[
+        Path,
+        bundle_argument(
+            "Calibration bundle directory (site.yaml, trajectory, points; truth.json when simulated)."
+        ),
+    ] = ...,
     result: Path = typer.Option(
         ...,
         "--result",
         "-r",
         help="Calibration result (result.json, or the directory holding it) whose boresight is assessed.",
     ),
-    out: Path = typer.Option(
-        ...,
-        "--out",
-        "-o",
-        help="Output directory (created) for assessment.md, assessment.json and the figures; "
-        "one that holds files is refused unless --force.",
-    ),
-    force: bool = typer.Option(
-        False, "--force", help="Write into an --out directory that already holds files (same names replaced)."
-    ),
+    out: Annotated[
+        Path,
+        out_option(
+            "Output directory (created) for assessment.md, assessment.json and the figures; "
+            "one that holds files is refused unless --force."
+        ),
+    ] = ...,
+    force: Force = False,
     pairs: str | None = typer.Option(
         None,
         "--pairs",
         metavar="A:B[,C:D]",
         help="Pass pairs to compare, compared pass first (e.g. 1:2,5:6); default: the reciprocal pairs.",
     ),
-    knn: int = typer.Option(
-        6,
-        "--knn",
-        min=3,
-        help="Neighbours of each local least-squares "
-        "plane (CloudCompare's '-MODEL LS KNN k'). On sparse scan lines "
-        "6 neighbours can be collinear; the run says so: then try 12.",
-    ),
+    knn: Annotated[
+        int,
+        knn_option(
+            "Neighbours of each local least-squares "
+            "plane (CloudCompare's '-MODEL LS KNN k'). On sparse scan lines "
+            "6 neighbours can be collinear; the run says so: then try 12."
+        ),
+    ] = 6,
     gate_m: float = typer.Option(
         1.0,
         "--gate",

@@ -4,10 +4,12 @@ their commands to :data:`app`)."""
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Annotated
 
 import typer
 
 from calib.io.georef_bundle import DEFAULT_CHUNK_POINTS, PassOutput
+from cli.options import Force, Las, bundle_argument, crs_option, out_option, skip_uncovered_option
 
 app = typer.Typer(
     help="Calibration: georeferencing, boresight adjustment and assessment of bundles/results.",
@@ -125,25 +127,23 @@ GEOREF_HELP = (
 
 @app.command("georef", help=GEOREF_HELP)
 def georef(
-    bundle: Path = typer.Argument(
-        ...,
-        metavar="BUNDLE",
-        help="Calibration bundle directory: site.yaml, trajectory.csv (or trajectory.sbet "
-        "[+ trajectory.smrmsg]) and points.csv[.gz].",
-    ),
-    out: Path = typer.Option(
-        ..., "--out", "-o", help="Output directory (created); one file pass-<id>.laz per pass."
-    ),
-    force: bool = typer.Option(
-        False, "--force", help="Write into an --out directory that already holds files (same names replaced)."
-    ),
-    crs: str = typer.Option(
-        "utm",
-        "--crs",
-        help="Output CRS: 'utm' (the UTM zone of the reference point, WGS84 "
-        "ellipsoidal heights), 'lgf' (the local frame as x east, y north, z up), or any "
-        "pyproj CRS such as EPSG:2950 (a 2D CRS keeps ellipsoidal heights).",
-    ),
+    bundle: Annotated[
+        Path,
+        bundle_argument(
+            "Calibration bundle directory: site.yaml, trajectory.csv (or trajectory.sbet "
+            "[+ trajectory.smrmsg]) and points.csv[.gz]."
+        ),
+    ] = ...,
+    out: Annotated[Path, out_option("Output directory (created); one file pass-<id>.laz per pass.")] = ...,
+    force: Force = False,
+    crs: Annotated[
+        str,
+        crs_option(
+            "Output CRS: 'utm' (the UTM zone of the reference point, WGS84 "
+            "ellipsoidal heights), 'lgf' (the local frame as x east, y north, z up), or any "
+            "pyproj CRS such as EPSG:2950 (a 2D CRS keeps ellipsoidal heights)."
+        ),
+    ] = "utm",
     boresight_deg: str = typer.Option(
         None,
         "--boresight-deg",
@@ -152,16 +152,17 @@ def georef(
         "canonical convention (docs/architecture.md §3; thesis pitch is negated); default: site.yaml's "
         "mount.boresight_apriori_deg.",
     ),
-    las: bool = typer.Option(False, "--las", help="Write uncompressed .las instead of .laz."),
+    las: Las = False,
     max_gap_s: float = typer.Option(
         1.0, "--max-gap-s", min=0.0, help="Longest trajectory gap to interpolate across (s)."
     ),
-    skip_uncovered: bool = typer.Option(
-        False,
-        "--skip-uncovered",
-        help="Drop points outside the trajectory or in its gaps "
-        "(counted in the table) instead of stopping with an error.",
-    ),
+    skip_uncovered: Annotated[
+        bool,
+        skip_uncovered_option(
+            "Drop points outside the trajectory or in its gaps "
+            "(counted in the table) instead of stopping with an error."
+        ),
+    ] = False,
     chunk_points: int = typer.Option(
         DEFAULT_CHUNK_POINTS,
         "--chunk-points",

@@ -7,8 +7,11 @@ import sys
 from array import array
 from enum import Enum
 from pathlib import Path
+from typing import Annotated
 
 import typer
+
+from cli.options import json_option
 
 
 class Format(str, Enum):
@@ -38,9 +41,7 @@ def decode(
     port: int | None = typer.Option(
         None, "--port", help="pcapng only: keep UDP datagrams to or from this port."
     ),
-    as_json: bool = typer.Option(
-        False, "--json", help="Print one JSON object per record (summary on stderr)."
-    ),
+    as_json: Annotated[bool, json_option("Print one JSON object per record (summary on stderr).")] = False,
     nav: bool = typer.Option(
         False, "--nav", help="INS formats: print canonical navigation records (radians → degrees, NED, FRD)."
     ),

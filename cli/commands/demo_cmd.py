@@ -1,11 +1,14 @@
 """``mls demo``: the end-to-end job on simulated devices (what ``make demo`` runs); the work is
-:func:`acquire.jobs.demo.run_demo`."""
+:func:`office.jobs.demo.run_demo`."""
 
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Annotated
 
 import typer
+
+from cli.options import out_option, seed_option, set_option
 
 EXIT_OK, EXIT_FAILED, EXIT_INTERRUPTED = 0, 1, 130
 
@@ -27,15 +30,15 @@ HELP = (
 
 
 def demo(
-    out: Path = typer.Option(
-        Path("demo-out"),
-        "--out",
-        "-o",
-        help="Run directory (emptied of "
-        "a previous demo's files; a non-empty directory of anything else "
-        "is refused).",
-    ),
-    seed: int = typer.Option(0, "--seed", help="Random seed of the simulation."),
+    out: Annotated[
+        Path,
+        out_option(
+            "Run directory (emptied of "
+            "a previous demo's files; a non-empty directory of anything else "
+            "is refused)."
+        ),
+    ] = Path("demo-out"),
+    seed: Annotated[int, seed_option("Random seed of the simulation.")] = 0,
     line_m: float = typer.Option(
         18.0,
         "--line-m",
@@ -57,12 +60,9 @@ def demo(
         max=120.0,
         help="Transit time from the end of a line to the start of the next.",
     ),
-    set_: list[str] = typer.Option(
-        [],
-        "--set",
-        metavar="KEY=VALUE",
-        help="Further scenario override (repeatable), e.g. scanner.point_rate_scale=0.05.",
-    ),
+    set_: Annotated[
+        list[str], set_option("Further scenario override (repeatable), e.g. scanner.point_rate_scale=0.05.")
+    ] = (),
 ) -> None:
     """``mls demo`` (its help text is :data:`HELP`)."""
     import signal
@@ -71,8 +71,8 @@ def demo(
     from rich.console import Console
     from rich.markup import escape
 
-    from acquire.jobs.demo import DemoError, DemoSettings, Interrupted, run_demo
-    from acquire.jobs.demo_compare import comparison_table
+    from office.jobs.demo import DemoError, DemoSettings, Interrupted, run_demo
+    from office.jobs.demo_compare import comparison_table
 
     console = Console(soft_wrap=True, emoji=False)  # long lines (paths) stay whole; ":100:" no emoji
     t0 = time.monotonic()

@@ -3,8 +3,11 @@
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Annotated
 
 import typer
+
+from cli.options import Force, out_option, scenario_option, seed_option, set_option
 
 HELP = (
     "Site design study: which targets, inclinations, sizes and passes observe the boresight "
@@ -36,29 +39,24 @@ def _passes(text: str | None) -> tuple[int, ...] | None:
 
 
 def design(
-    scenario: str | None = typer.Option(
-        None,
-        "--scenario",
-        "-s",
-        metavar="NAME|PATH",
-        help="Study a shipped scenario (montreal, terrestrial, tower) or a scenario YAML file.",
-    ),
+    scenario: Annotated[
+        str | None,
+        scenario_option("Study a shipped scenario (montreal, terrestrial, tower) or a scenario YAML file."),
+    ] = None,
     site: Path | None = typer.Option(
         None,
         "--site",
         metavar="SITE.YAML",
         help="Predict σ for the planned site and pattern of a site config (what-if).",
     ),
-    out: Path | None = typer.Option(
-        None,
-        "--out",
-        "-o",
-        help="Output directory (created): CSV tables, PNG figures, summary.md. Required with "
-        "--scenario; with --site it receives whatif.csv. One that holds files is refused unless --force.",
-    ),
-    force: bool = typer.Option(
-        False, "--force", help="Write into an --out directory that already holds files (same names replaced)."
-    ),
+    out: Annotated[
+        Path | None,
+        out_option(
+            "Output directory (created): CSV tables, PNG figures, summary.md. Required with "
+            "--scenario; with --site it receives whatif.csv. One that holds files is refused unless --force."
+        ),
+    ] = None,
+    force: Force = False,
     jobs: int = typer.Option(
         1, "--jobs", "-j", min=1, help="Worker processes (results do not depend on it)."
     ),
@@ -114,13 +112,10 @@ def design(
         help="With --site: ellipsoidal height of the scanner on the water (default: the site's "
         "reference height).",
     ),
-    seed: int = typer.Option(0, "--seed", help="Simulation seed (vessel motion phases)."),
-    set_: list[str] = typer.Option(
-        [],
-        "--set",
-        metavar="KEY=VALUE",
-        help="Override a scenario value by dotted key, as for mls sim dataset (repeatable).",
-    ),
+    seed: Annotated[int, seed_option("Simulation seed (vessel motion phases).")] = 0,
+    set_: Annotated[
+        list[str], set_option("Override a scenario value by dotted key, as for mls sim dataset (repeatable).")
+    ] = (),
     figures: bool = typer.Option(True, "--figures/--no-figures", help="Write the PNG figures."),
 ) -> None:
     """``mls design`` (its help text is :data:`HELP`)."""

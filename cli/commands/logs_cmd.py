@@ -3,8 +3,11 @@
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Annotated
 
 import typer
+
+from cli.options import SessionDir, json_option, session_argument
 
 app = typer.Typer(
     help="Session logs: summary (info) and salvage of torn segments (recover).", no_args_is_help=True
@@ -28,11 +31,11 @@ def _session_arg(session: Path) -> Path:
 
 @app.command("info")
 def info(
-    session: Path = typer.Argument(..., help="Session directory (YYYYmmddTHHMMSSZ_<vessel>)."),
+    session: SessionDir = ...,
     gap_s: float = typer.Option(
         1.0, "--gap", help="Report pauses longer than this (s) and than 5 × the channel's typical period."
     ),
-    as_json: bool = typer.Option(False, "--json", help="Print the summary as JSON."),
+    as_json: Annotated[bool, json_option("Print the summary as JSON.")] = False,
 ) -> None:
     """Segments, channels, message counts, time span, gaps and sequence continuity of a session.
 
@@ -135,7 +138,7 @@ def info(
 
 @app.command("recover")
 def recover(
-    session: Path = typer.Argument(..., help="Session directory to salvage."),
+    session: Annotated[Path, session_argument("Session directory to salvage.")] = ...,
     keep_torn: bool = typer.Option(
         True, "--keep-torn/--delete-torn", help="Keep each original torn segment as seg-NNNNNN.mcap.torn."
     ),

@@ -4,9 +4,11 @@ status socket) and ``mls checklist`` (the Textual screen for the calibration sur
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Any
+from typing import Annotated, Any
 
 import typer
+
+from cli.options import json_option, socket_option, vessel_config_option
 
 DEFAULT_SOCKET = Path("/run/mls/status.sock")
 
@@ -24,13 +26,14 @@ def _fmt(value: Any) -> str:
 
 
 def status(
-    socket: Path = typer.Option(
-        None,
-        "--socket",
-        help=f"Status socket of the daemon [default: the config's status.socket, else {DEFAULT_SOCKET}].",
-    ),
-    config: Path = typer.Option(None, "--config", "-c", help="Vessel config: take the socket path from it."),
-    as_json: bool = typer.Option(False, "--json", help="Print the raw snapshot as JSON."),
+    socket: Annotated[
+        Path,
+        socket_option(
+            f"Status socket of the daemon [default: the config's status.socket, else {DEFAULT_SOCKET}]."
+        ),
+    ] = None,
+    config: Annotated[Path, vessel_config_option("Vessel config: take the socket path from it.")] = None,
+    as_json: Annotated[bool, json_option("Print the raw snapshot as JSON.")] = False,
     timeout_s: float = typer.Option(3.0, "--timeout", help="Seconds to wait for the daemon."),
 ) -> None:
     """Show the running daemon's status once: state, clock, devices, log, active alarms (and the
@@ -112,11 +115,12 @@ CHECKLIST_HELP = (
 
 
 def checklist(
-    socket: Path = typer.Option(
-        None,
-        "--socket",
-        help="Status socket of the daemon (default: the config's status.socket, else /run/mls/status.sock).",
-    ),
+    socket: Annotated[
+        Path,
+        socket_option(
+            "Status socket of the daemon (default: the config's status.socket, else /run/mls/status.sock)."
+        ),
+    ] = None,
     mqtt: str = typer.Option(
         None, "--mqtt", metavar="HOST:PORT", help="Read the status from an MQTT broker instead of the socket."
     ),
@@ -124,13 +128,12 @@ def checklist(
         "+", "--vessel", help="Vessel name in the MQTT topics (<prefix>/<vessel>/…); + for any."
     ),
     prefix: str = typer.Option("mls", "--prefix", help="MQTT topic prefix."),
-    config: Path = typer.Option(
-        None,
-        "--config",
-        "-c",
-        help="Vessel config: the socket path, "
-        "the MQTT credentials, prefix and vessel, the session directory.",
-    ),
+    config: Annotated[
+        Path,
+        vessel_config_option(
+            "Vessel config: the socket path, the MQTT credentials, prefix and vessel, the session directory."
+        ),
+    ] = None,
     session: Path = typer.Option(
         None,
         "--session",

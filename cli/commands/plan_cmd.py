@@ -4,8 +4,11 @@ from __future__ import annotations
 
 import re
 from pathlib import Path
+from typing import Annotated
 
 import typer
+
+from cli.options import out_option, socket_option
 
 HELP = (
     "Plan the calibration lines of a site (the six-fold pattern of its pass plan) and write them "
@@ -46,9 +49,9 @@ def plan(
         metavar="SITE",
         help="Site config (site.yaml) with reference, targets, wall azimuth, standoff and passes.",
     ),
-    out: Path = typer.Option(
-        None, "--out", "-o", help="GeoJSON file to write (the lines, capture windows and targets)."
-    ),
+    out: Annotated[
+        Path, out_option("GeoJSON file to write (the lines, capture windows and targets).")
+    ] = None,
     capture_margin_m: float = typer.Option(
         3.0,
         "--capture-margin-m",
@@ -77,8 +80,8 @@ def plan(
         "--follow",
         help="Follow the vessel from the daemon's status socket and emit at every update until Ctrl-C.",
     ),
-    socket: Path = typer.Option(
-        Path("/run/mls/status.sock"), "--socket", help="Status socket of the daemon (with --follow)."
+    socket: Annotated[Path, socket_option("Status socket of the daemon (with --follow).")] = Path(
+        "/run/mls/status.sock"
     ),
     nmea_out: str = typer.Option(
         "-",

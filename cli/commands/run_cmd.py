@@ -4,10 +4,12 @@ group of :mod:`cli.commands.calib_cmd`; the work is :func:`calib.boresight.pipel
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Annotated
 
 import typer
 
 from cli.commands.calib_cmd import app, parse_triple_deg
+from cli.options import HistoryDb, bundle_argument, force_option, out_option, skip_uncovered_option
 
 RUN_HELP = (
     "Calibrate the boresight from a calibration bundle (or a recorded session).\n\n"
@@ -108,8 +110,8 @@ def _export(session: Path, bundle_dir: Path, console, columns) -> Path:
     """Export a recorded session to a bundle (what ``mls export`` does); returns the bundle."""
     from rich.progress import Progress
 
-    from acquire.jobs.export import export_session
     from calib.core.errors import MlsError
+    from office.jobs.export import export_session
 
     try:
         with Progress(*columns, console=console, transient=True) as progress:
@@ -141,27 +143,29 @@ def _warn(warnings) -> None:
 
 @app.command("run", help=RUN_HELP)
 def run(
-    bundle: Path = typer.Argument(
-        ...,
-        metavar="BUNDLE|SESSION",
-        help="Calibration bundle "
-        "directory (site.yaml, trajectory.csv or .sbet, "
-        "points.csv[.gz]), or a recorded session directory.",
-    ),
-    out: Path | None = typer.Option(
-        None, "--out", "-o", help="Output directory (created); default BUNDLE/calib/."
-    ),
-    force: bool = typer.Option(
-        False,
-        "--force",
-        help="Write into an output directory that already holds files (a previous run's: same names replaced).",
-    ),
-    skip_uncovered: bool = typer.Option(
-        False,
-        "--skip-uncovered",
-        help="Drop the points outside the trajectory or in its gaps (counted per pass in the "
-        "warnings and the report) instead of stopping with an error.",
-    ),
+    bundle: Annotated[
+        Path,
+        bundle_argument(
+            "Calibration bundle "
+            "directory (site.yaml, trajectory.csv or .sbet, "
+            "points.csv[.gz]), or a recorded session directory.",
+            metavar="BUNDLE|SESSION",
+        ),
+    ] = ...,
+    out: Annotated[Path | None, out_option("Output directory (created); default BUNDLE/calib/.")] = None,
+    force: Annotated[
+        bool,
+        force_option(
+            "Write into an output directory that already holds files (a previous run's: same names replaced)."
+        ),
+    ] = False,
+    skip_uncovered: Annotated[
+        bool,
+        skip_uncovered_option(
+            "Drop the points outside the trajectory or in its gaps (counted per pass in the "
+            "warnings and the report) instead of stopping with an error."
+        ),
+    ] = False,
     subsample: float | None = typer.Option(
         None,
         "--subsample",
@@ -241,11 +245,7 @@ def run(
     vessel: str | None = typer.Option(
         None, "--vessel", help="Vessel name for the history; default site.yaml's vessel."
     ),
-    db: Path | None = typer.Option(
-        None,
-        "--db",
-        help="History database (default $MLS_HISTORY_DB, else ~/.local/share/marine-mls/history.sqlite).",
-    ),
+    db: HistoryDb = None,
     no_history: bool = typer.Option(
         False, "--no-history", help="Do not record the result in the calibration history."
     ),

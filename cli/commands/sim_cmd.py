@@ -6,8 +6,20 @@ from __future__ import annotations
 
 from contextlib import contextmanager
 from pathlib import Path
+from typing import Annotated
 
 import typer
+
+from cli.options import (
+    InsProtocol,
+    InsRate,
+    PointRateScale,
+    force_option,
+    out_option,
+    scenario_option,
+    seed_option,
+    set_option,
+)
 
 app = typer.Typer(
     help="Simulators: calibration datasets, device emulators, replays.",
@@ -29,35 +41,26 @@ def simulation_bar(console, description: str):
 
 @app.command("dataset")
 def dataset(
-    scenario: str = typer.Option(
-        ...,
-        "--scenario",
-        "-s",
-        metavar="NAME|PATH",
-        help="A shipped scenario (montreal, terrestrial, tower), random (a geometry "
-        "drawn from --seed; the draw lands in truth.json) or a scenario YAML file.",
-    ),
-    out: Path = typer.Option(..., "--out", "-o", help="Bundle directory to write (created)."),
-    force: bool = typer.Option(
-        False,
-        "--force",
-        help="Write into an --out directory that already holds files (bundle files replaced).",
-    ),
-    seed: int = typer.Option(0, "--seed", help="Random seed: the same seed gives the same bytes."),
-    point_rate_scale: float | None = typer.Option(
-        None,
-        "--point-rate-scale",
-        min=1e-6,
-        max=1.0,
-        help="Scale the profiler's point rate (1 = the full Z+F rate); overrides the scenario.",
-    ),
-    set_: list[str] = typer.Option(
-        [],
-        "--set",
-        metavar="KEY=VALUE",
-        help="Override a scenario value by dotted key, e.g. --set noise.pos.model=white "
-        "--set truth.boresight_deg=[0.2,1.2,0.15] (repeatable; values are YAML).",
-    ),
+    scenario: Annotated[
+        str,
+        scenario_option(
+            "A shipped scenario (montreal, terrestrial, tower), random (a geometry "
+            "drawn from --seed; the draw lands in truth.json) or a scenario YAML file."
+        ),
+    ] = ...,
+    out: Annotated[Path, out_option("Bundle directory to write (created).")] = ...,
+    force: Annotated[
+        bool, force_option("Write into an --out directory that already holds files (bundle files replaced).")
+    ] = False,
+    seed: Annotated[int, seed_option("Random seed: the same seed gives the same bytes.")] = 0,
+    point_rate_scale: PointRateScale = None,
+    set_: Annotated[
+        list[str],
+        set_option(
+            "Override a scenario value by dotted key, e.g. --set noise.pos.model=white "
+            "--set truth.boresight_deg=[0.2,1.2,0.15] (repeatable; values are YAML)."
+        ),
+    ] = (),
     compress: bool = typer.Option(False, "--gzip", help="Write points.csv.gz instead of points.csv."),
 ) -> None:
     """Simulate a calibration bundle with its truth.json.
@@ -128,19 +131,12 @@ def dataset(
 
 @app.command("session")
 def session(
-    out: Path = typer.Option(
-        ...,
-        "--out",
-        "-o",
-        help="Directory the session directory is created in (the daemon's session directory).",
-    ),
-    scenario: str = typer.Option(
-        "montreal",
-        "--scenario",
-        "-s",
-        metavar="NAME|FILE",
-        help="A shipped scenario (montreal, terrestrial, tower) or a scenario YAML file.",
-    ),
+    out: Annotated[
+        Path, out_option("Directory the session directory is created in (the daemon's session directory).")
+    ] = ...,
+    scenario: Annotated[
+        str, scenario_option("A shipped scenario (montreal, terrestrial, tower) or a scenario YAML file.")
+    ] = "montreal",
     minutes: float = typer.Option(1.0, "--minutes", "-m", min=0.01, help="Length of the session (minutes)."),
     rate_scale: float = typer.Option(
         1.0,
@@ -150,16 +146,12 @@ def session(
         help="Fraction of the full Z+F point rate (1 M points/s): profile rate and points per 360° "
         "each × √F, as the simulator scales them.",
     ),
-    seed: int = typer.Option(0, "--seed", help="Random seed: the same seed gives the same records."),
-    force: bool = typer.Option(
-        False,
-        "--force",
-        help="Replace a session of the same name (the scenario's vessel and start) in --out.",
-    ),
-    ins_protocol: str = typer.Option(
-        "nmea", "--ins-protocol", help="INS output: nmea (PHINS standard + ZDA) or stdbin."
-    ),
-    ins_rate: float = typer.Option(100.0, "--ins-rate", min=1.0, max=200.0, help="INS output rate (Hz)."),
+    seed: Annotated[int, seed_option("Random seed: the same seed gives the same records.")] = 0,
+    force: Annotated[
+        bool, force_option("Replace a session of the same name (the scenario's vessel and start) in --out.")
+    ] = False,
+    ins_protocol: InsProtocol = "nmea",
+    ins_rate: InsRate = 100.0,
     surroundings: bool = typer.Option(
         True,
         "--surroundings/--no-surroundings",
@@ -172,13 +164,13 @@ def session(
         min=10.0,
         help="Segment rotation period in session seconds (default: the daemon's, 600).",
     ),
-    set_: list[str] = typer.Option(
-        [],
-        "--set",
-        metavar="KEY=VALUE",
-        help="Override a scenario value by dotted key, e.g. --set site.pass_length_m=120 "
-        "--set motion.pass_gap_s=20 (repeatable; values are YAML).",
-    ),
+    set_: Annotated[
+        list[str],
+        set_option(
+            "Override a scenario value by dotted key, e.g. --set site.pass_length_m=120 "
+            "--set motion.pass_gap_s=20 (repeatable; values are YAML)."
+        ),
+    ] = (),
 ) -> None:
     """Write a recorded session offline, faster than real time, from a simulator scenario.
 
@@ -195,7 +187,7 @@ def session(
     from rich.progress import BarColumn, Progress, TextColumn, TimeRemainingColumn
 
     from calib.core.errors import MlsError
-    from cli.simsession import SessionSpec, plan_session, record_session
+    from office.simsession.record import SessionSpec, plan_session, record_session
 
     console = Console(emoji=False)  # ":100:" of file:line:column is no emoji
     spec = SessionSpec(

@@ -12,10 +12,29 @@ from __future__ import annotations
 import signal
 import threading
 from pathlib import Path
+from typing import Annotated
 
 import typer
 
 from cli.commands.sim_cmd import app, simulation_bar
+from cli.options import (
+    CanChannel,
+    InsProtocol,
+    InsRate,
+    PointRateScale,
+    PpsPort,
+    ProfilerPort,
+    can_port_option,
+    profiler_host_option,
+    realtime_option,
+    run_dir_option,
+    scenario_option,
+    seed_option,
+    session_argument,
+    set_option,
+    speed_option,
+    write_config_option,
+)
 
 
 def _parse_devices(text: str) -> tuple[str, ...]:
@@ -162,23 +181,18 @@ def _check_config(path: Path, console) -> None:
 
 @app.command("devices")
 def devices(
-    scenario: str = typer.Option(
-        ...,
-        "--scenario",
-        "-s",
-        metavar="NAME|PATH",
-        help="A shipped scenario (montreal, terrestrial, tower) or a scenario YAML file.",
-    ),
-    seed: int = typer.Option(0, "--seed", help="Random seed of the simulation, the jitters and the faults."),
-    speed: float = typer.Option(
-        1.0,
-        "--speed",
-        min=0.01,
-        max=100.0,
-        help="Scenario seconds per real second (2 = twice as fast; the GPS clock then "
-        "runs 2× the host's, and above 2 the PPS comes faster than gpsd's rules "
-        "accept, so a daemon's clock model will not lock).",
-    ),
+    scenario: Annotated[
+        str, scenario_option("A shipped scenario (montreal, terrestrial, tower) or a scenario YAML file.")
+    ] = ...,
+    seed: Annotated[int, seed_option("Random seed of the simulation, the jitters and the faults.")] = 0,
+    speed: Annotated[
+        float,
+        speed_option(
+            "Scenario seconds per real second (2 = twice as fast; the GPS clock then "
+            "runs 2× the host's, and above 2 the PPS comes faster than gpsd's rules "
+            "accept, so a daemon's clock model will not lock)."
+        ),
+    ] = 1.0,
     faults: Path | None = typer.Option(
         None,
         "--faults",
@@ -188,17 +202,12 @@ def devices(
         "INS latency jump, GNSS outage, late ZDA, INS leap second, host clock step "
         "(for a daemon started with MLS_SIM_HOST_CLOCK=RUN_DIR/host_clock).",
     ),
-    write_config: Path | None = typer.Option(
-        None,
-        "--write-config",
-        metavar="vessel.yaml",
-        help="Write a vessel config for `mls acquire` that uses these devices.",
-    ),
-    run_dir: Path = typer.Option(
-        Path("mls-sim"),
-        "--run-dir",
-        help="Run directory: the INS link 'ins', truth_clock.json, faults.json, stats/.",
-    ),
+    write_config: Annotated[
+        Path | None, write_config_option("Write a vessel config for `mls acquire` that uses these devices.")
+    ] = None,
+    run_dir: Annotated[
+        Path, run_dir_option("Run directory: the INS link 'ins', truth_clock.json, faults.json, stats/.")
+    ] = Path("mls-sim"),
     start: str | None = typer.Option(
         None,
         "--start",
@@ -209,29 +218,18 @@ def devices(
     duration: float | None = typer.Option(
         None, "--duration", min=0.001, help="Scenario seconds to run (default: to the scenario's end)."
     ),
-    point_rate_scale: float | None = typer.Option(
-        None,
-        "--point-rate-scale",
-        min=1e-6,
-        max=1.0,
-        help="Scale the profiler's point rate (1 = the full Z+F rate); overrides the scenario.",
-    ),
-    set_: list[str] = typer.Option(
-        [],
-        "--set",
-        metavar="KEY=VALUE",
-        help="Override a scenario value by dotted key (repeatable; values are YAML).",
-    ),
+    point_rate_scale: PointRateScale = None,
+    set_: Annotated[
+        list[str], set_option("Override a scenario value by dotted key (repeatable; values are YAML).")
+    ] = (),
     only: str = typer.Option(
         "ins,profiler,pps,can",
         "--devices",
         metavar="LIST",
         help="The emulators to run (comma-separated subset of ins,profiler,pps,can).",
     ),
-    ins_protocol: str = typer.Option(
-        "nmea", "--ins-protocol", help="INS output: nmea (PHINS standard + ZDA) or stdbin."
-    ),
-    ins_rate: float = typer.Option(100.0, "--ins-rate", min=1.0, max=200.0, help="INS output rate (Hz)."),
+    ins_protocol: InsProtocol = "nmea",
+    ins_rate: InsRate = 100.0,
     ins_latency_ms: float = typer.Option(3.0, "--ins-latency-ms", min=0.0, help="INS output latency (ms)."),
     ins_jitter_ms: float = typer.Option(
         0.5, "--ins-jitter-ms", min=0.0, help="INS output jitter, uniform (ms)."
@@ -240,31 +238,26 @@ def devices(
         0.0, "--ins-alignment-s", min=0.0, help="Seconds of INS alignment at the start (status: aligning)."
     ),
     stdbin_version: int = typer.Option(3, "--stdbin-version", min=2, max=5, help="STDBIN protocol version."),
-    profiler_host: str = typer.Option(
-        "127.0.0.1", "--profiler-host", help="Where the profiler sends its datagrams."
-    ),
-    profiler_port: int = typer.Option(
-        0, "--profiler-port", min=0, max=65535, help="Profiler UDP port (0: a free one)."
-    ),
-    pps_port: int = typer.Option(0, "--pps-port", min=0, max=65535, help="PPS UDP port (0: a free one)."),
+    profiler_host: Annotated[
+        str, profiler_host_option("Where the profiler sends its datagrams.")
+    ] = "127.0.0.1",
+    profiler_port: ProfilerPort = 0,
+    pps_port: PpsPort = 0,
     pps_jitter_us: float = typer.Option(20.0, "--pps-jitter-us", min=0.0, help="PPS stamp jitter σ (µs)."),
-    can_channel: str = typer.Option("239.74.163.2", "--can-channel", help="CAN udp_multicast group."),
-    can_port: int = typer.Option(
-        43113,
-        "--can-port",
-        min=1,
-        max=65535,
-        help="CAN udp_multicast port (a vessel config can only use 43113).",
-    ),
+    can_channel: CanChannel = "239.74.163.2",
+    can_port: Annotated[
+        int, can_port_option("CAN udp_multicast port (a vessel config can only use 43113).")
+    ] = 43113,
     clock_drift_ppm: float = typer.Option(
         0.0, "--clock-drift-ppm", help="Truth clock: GPS time runs this much faster than the host clock."
     ),
-    realtime: bool = typer.Option(
-        False,
-        "--realtime",
-        help="Run the emulators SCHED_FIFO where permitted (root or RLIMIT_RTPRIO): "
-        "sub-millisecond timing on a busy machine.",
-    ),
+    realtime: Annotated[
+        bool,
+        realtime_option(
+            "Run the emulators SCHED_FIFO where permitted (root or RLIMIT_RTPRIO): "
+            "sub-millisecond timing on a busy machine."
+        ),
+    ] = False,
     lead_s: float = typer.Option(
         0.25,
         "--lead-s",
@@ -430,31 +423,22 @@ def read_session(session_dir: Path):
 
 @app.command("replay")
 def replay(
-    session: Path = typer.Argument(
-        ..., help="A session directory (YYYYmmddTHHMMSSZ_<vessel>/ with seg-*.mcap)."
+    session: Annotated[
+        Path, session_argument("A session directory (YYYYmmddTHHMMSSZ_<vessel>/ with seg-*.mcap).")
+    ] = ...,
+    speed: Annotated[float, speed_option("Replay speed (2 = twice as fast).")] = 1.0,
+    run_dir: Annotated[Path, run_dir_option("Run directory: the INS link 'ins', devices.json.")] = Path(
+        "mls-replay"
     ),
-    speed: float = typer.Option(
-        1.0, "--speed", min=0.01, max=100.0, help="Replay speed (2 = twice as fast)."
-    ),
-    run_dir: Path = typer.Option(
-        Path("mls-replay"), "--run-dir", help="Run directory: the INS link 'ins', devices.json."
-    ),
-    write_config: Path | None = typer.Option(
-        None,
-        "--write-config",
-        metavar="vessel.yaml",
-        help="Write a vessel config for `mls acquire` that uses the replay.",
-    ),
-    profiler_host: str = typer.Option(
-        "127.0.0.1", "--profiler-host", help="Where the profiler datagrams go."
-    ),
-    profiler_port: int = typer.Option(
-        0, "--profiler-port", min=0, max=65535, help="Profiler UDP port (0: a free one)."
-    ),
-    pps_port: int = typer.Option(0, "--pps-port", min=0, max=65535, help="PPS UDP port (0: a free one)."),
-    can_channel: str = typer.Option("239.74.163.2", "--can-channel", help="CAN udp_multicast group."),
-    can_port: int = typer.Option(43113, "--can-port", min=1, max=65535, help="CAN udp_multicast port."),
-    realtime: bool = typer.Option(False, "--realtime", help="Run the replay SCHED_FIFO where permitted."),
+    write_config: Annotated[
+        Path | None, write_config_option("Write a vessel config for `mls acquire` that uses the replay.")
+    ] = None,
+    profiler_host: Annotated[str, profiler_host_option("Where the profiler datagrams go.")] = "127.0.0.1",
+    profiler_port: ProfilerPort = 0,
+    pps_port: PpsPort = 0,
+    can_channel: CanChannel = "239.74.163.2",
+    can_port: Annotated[int, can_port_option("CAN udp_multicast port.")] = 43113,
+    realtime: Annotated[bool, realtime_option("Run the replay SCHED_FIFO where permitted.")] = False,
 ) -> None:
     """Re-emit a recorded session's raw channels with their original timing.
 

@@ -19,10 +19,10 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from acquire.deliver.options import GeorefError
 from calib.boresight.checks.verdict import untrusted_warning
 from calib.core.georef import Mount
 from calib.core.tpu import MountCovariance, ScannerSigmas
+from office.deliver.options import GeorefError
 
 _EXTRAS = {  # result.json extras → Mount field, scale to SI
     "range_offset_m": ("range_offset_m", 1.0),
@@ -38,6 +38,8 @@ class Calibration:
     scanner: ScannerSigmas
     provenance: dict
     warnings: list[str] = field(default_factory=list)
+    #: the warning of a result whose verdict is not trusted (also in ``warnings``); None else
+    untrusted: str | None = None
 
 
 def fingerprint(result: dict) -> str:
@@ -114,7 +116,8 @@ def load_calibration(site, ref: str | None, software: str, db=None) -> Calibrati
         "extras_applied": applied,
         "calibration_software": result.get("software_version"),
         "calibration_verdict": result.get("verdict"),
+        "calibration_verdict_reasons": [str(r) for r in result.get("verdict_reasons") or []],
         "software": software,
     }
     warning = untrusted_warning(result, label)
-    return Calibration(mount, cov, scanner_sigmas(site), prov, [] if warning is None else [warning])
+    return Calibration(mount, cov, scanner_sigmas(site), prov, [] if warning is None else [warning], warning)

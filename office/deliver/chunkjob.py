@@ -1,7 +1,7 @@
 """One time chunk of a survey: filter, georeference, per-point σ, sort into tile parts.
 
 :func:`process_chunk` is the task a worker runs (this process, or a Dask worker process). It
-reads the chunk's returns (:func:`acquire.deliver.sources.read_chunk`), drops what the filters
+reads the chunk's returns (:func:`office.deliver.sources.read_chunk`), drops what the filters
 say (counted per reason), georeferences the rest on the chunk's slice of the trajectory,
 computes σ_h and σ_v (:func:`calib.core.tpu.point_sigmas`), converts to the output CRS, and
 writes one part per tile it touches, ``<out>/.georef/parts/<tile>/c<chunk>.npy``
@@ -22,8 +22,8 @@ from pathlib import Path
 
 import numpy as np
 
-from acquire.deliver.options import Filters
-from acquire.deliver.sources import ChunkSpec, Returns, read_chunk
+from office.deliver.options import Filters
+from office.deliver.sources import ChunkSpec, Returns, read_chunk
 
 NS_PER_S = 1_000_000_000
 STATE_DIR = ".georef"

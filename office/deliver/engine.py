@@ -2,8 +2,8 @@
 
 :func:`run_georef` plans the job in this process (the source's trajectory, lines and time
 chunks, the calibration, the output CRS), writes the plan to ``<out>/.georef/plan.json``, runs
-every chunk (:func:`acquire.deliver.chunkjob.process_chunk`) and then every tile file
-(:func:`acquire.deliver.tiles.write_file`) on the executor, and ends with ``summary.json`` and
+every chunk (:func:`office.deliver.chunkjob.process_chunk`) and then every tile file
+(:func:`office.deliver.tiles.write_file`) on the executor, and ends with ``summary.json`` and
 ``summary.md`` in ``<out>``. The chunks' parts are removed once every file is written.
 
 Resuming (``resume=True``): the plan must be the same (same source, calibration, options:
@@ -25,7 +25,7 @@ from pathlib import Path
 
 import numpy as np
 
-from acquire.deliver.chunkjob import (
+from office.deliver.chunkjob import (
     ChunkContext,
     ChunkDone,
     ChunkTask,
@@ -36,10 +36,10 @@ from acquire.deliver.chunkjob import (
     with_site_sigmas,
     write_atomic,
 )
-from acquire.deliver.executors import InProcess
-from acquire.deliver.options import GeorefError, GeorefOptions
-from acquire.deliver.space import check_space, is_out_of_space, out_of_space, source_returns, space_needed
-from acquire.deliver.tiles import (
+from office.deliver.executors import InProcess
+from office.deliver.options import GeorefError, GeorefOptions
+from office.deliver.space import check_space, is_out_of_space, out_of_space, source_returns, space_needed
+from office.deliver.tiles import (
     FileTask,
     file_done,
     file_record_path,
@@ -52,7 +52,7 @@ NS_PER_S = 1_000_000_000
 Progress = Callable[[str, int, int, int], None]  # stage, done, total, points so far
 
 
-@dataclass
+@dataclass(kw_only=True)
 class GeorefResult:
     out_dir: Path
     files: list[dict]
@@ -168,10 +168,10 @@ def _georef(
     space: _Space,
 ) -> GeorefResult:
     """:func:`run_georef` with ``out`` held."""
-    from acquire.deliver.calibration import load_calibration
-    from acquire.deliver.sources import open_source
     from calib.core.version import software_version
     from calib.io.laz import LasOutputError, output_crs
+    from office.deliver.calibration import load_calibration
+    from office.deliver.sources import open_source
 
     t_start = time.monotonic()
     executor = executor or InProcess()
@@ -333,18 +333,18 @@ def _georef(
         for k, v in r["counters"].items():
             counters[k] = counters.get(k, 0) + int(v)
     result = GeorefResult(
-        out,
-        files,
-        counters,
-        len(source.chunks),
-        len(todo),
-        stats["files_run"],
-        executor.name,
-        provenance,
-        warnings,
-        rss,
-        time.monotonic() - t_start,
-        {"plan": t_plan - t_start, "tasks": t_chunks - t_plan, "last tiles": t_files - t_chunks},
+        out_dir=out,
+        files=files,
+        counters=counters,
+        chunks=len(source.chunks),
+        chunks_run=len(todo),
+        files_run=stats["files_run"],
+        executor=executor.name,
+        provenance=provenance,
+        warnings=warnings,
+        peak_rss_mb=rss,
+        wall_s=time.monotonic() - t_start,
+        stage_s={"plan": t_plan - t_start, "tasks": t_chunks - t_plan, "last tiles": t_files - t_chunks},
     )
     _write_summary(result, options)
     shutil.rmtree(state_dir(out) / "parts", ignore_errors=True)

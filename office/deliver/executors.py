@@ -6,7 +6,7 @@
   ``scheduler="tcp://host:8786"`` connects to a cluster that is already running (its workers
   must see the same output directory, e.g. a shared disk, and have marine-mls installed). A
   worker that dies is replaced by its nanny and its tasks run again elsewhere (they are
-  idempotent: :mod:`acquire.deliver.chunkjob`); a task that kills
+  idempotent: :mod:`office.deliver.chunkjob`); a task that kills
   :data:`ALLOWED_FAILURES` + 1 workers in a row fails the job with Dask's message.
 
 Both take tasks with :meth:`submit` (also while :meth:`results` is being iterated: the engine
@@ -19,7 +19,7 @@ import os
 from collections import deque
 from collections.abc import Callable, Iterator
 
-from acquire.deliver.options import GeorefError
+from office.deliver.options import GeorefError
 
 ALLOWED_FAILURES = 3
 
@@ -78,7 +78,9 @@ class DaskExecutor:
                     n_workers=n,
                     threads_per_worker=1,
                     processes=True,
-                    dashboard_address=None,
+                    # the scheduler serves HTTP even without a dashboard, on :8787 unless told:
+                    # a second job on the machine then warns and moves; a free port from the start
+                    dashboard_address=":0",
                     memory_limit=memory_limit,
                 )
                 self.client = Client(self.cluster)

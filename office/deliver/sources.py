@@ -19,7 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
-from acquire.deliver.options import GeorefError
+from office.deliver.options import GeorefError
 
 NS_PER_S = 1_000_000_000
 LIDAR_TOPIC = "/lidar/raw"
@@ -183,9 +183,9 @@ def read_chunk(spec: ChunkSpec) -> Returns:
 
 
 def _session_source(path: Path, chunk_s: float, max_gap_s: float) -> Source:
-    from acquire.jobs.export import ExportError, ExportOptions
-    from acquire.jobs.sessionnav import session_navigation
     from acquire.log.recover import segment_paths
+    from office.jobs.export import ExportError, ExportOptions
+    from office.jobs.sessionnav import session_navigation
 
     try:
         nav = session_navigation(path, ExportOptions(max_gap_s=max_gap_s))

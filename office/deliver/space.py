@@ -17,7 +17,7 @@ import errno
 import shutil
 from pathlib import Path
 
-from acquire.deliver.options import GeorefError
+from office.deliver.options import GeorefError
 
 #: bytes a return costs at the job's peak: its part, its share of a tile (LAZ, LAS)
 PART_BYTES = 54

@@ -20,7 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
-from acquire.deliver.chunkjob import part_path, state_dir, write_atomic
+from office.deliver.chunkjob import part_path, state_dir, write_atomic
 
 
 @dataclass(frozen=True)
@@ -92,8 +92,8 @@ def file_done(out_dir: str | Path, name: str, suffix: str, chunks: tuple[int, ..
 
 def write_file(task: FileTask) -> FileDone:
     """Write one tile file from its parts, then its record (module docstring)."""
-    from acquire.deliver.chunkjob import crs_for
     from calib.io.lastile import write_tile
+    from office.deliver.chunkjob import crs_for
 
     def parts():
         for index in task.chunks:

@@ -1,7 +1,7 @@
 """``mls watch SESSION|BUNDLE``: the mount watch over a finished survey, block by block as the
 daemon runs it live (:mod:`calib.watch`), with its report (:mod:`calib.watch.report`).
 
-The survey is read as ``mls georef`` reads it (:func:`acquire.deliver.sources.open_source`: a
+The survey is read as ``mls georef`` reads it (:func:`office.deliver.sources.open_source`: a
 session's /lidar/raw chunk by chunk through the MCAP index, or a bundle's points); the lines
 are the passes marked in /events (a bundle: its pass ids) or, in a session without marks, the
 straight runs of the vessel's heading, cut by the daemon's own
@@ -18,14 +18,14 @@ from pathlib import Path
 
 import numpy as np
 
-from acquire.deliver.calibration import load_calibration
-from acquire.deliver.options import GeorefError
-from acquire.deliver.sources import open_source, read_chunk
 from acquire.watch.lines import MIN_LINE_S, LineCutter
 from calib.io.bundle import ScanPoints
 from calib.watch.block import WatchOptions, site_error_model, site_sigmas
 from calib.watch.runner import WatchRun, run_watch
 from calib.watch.sequential import WatchDesign
+from office.deliver.calibration import load_calibration
+from office.deliver.options import GeorefError
+from office.deliver.sources import open_source, read_chunk
 
 NS_PER_S = 1_000_000_000
 MAX_POINTS_PER_S = 20_000.0
@@ -148,12 +148,14 @@ def run_watch_job(job: WatchJob, software: str, progress: Callable | None = None
         job.design,
         on_block,
     )
-    from calib.watch.report import write_report
+    from calib.watch.report import calibration_verdict, write_report
 
     meta = {
         "source": str(src.path),
         "source_kind": src.kind,
         "calibration": cal.provenance.get("calibration"),
+        "calibration_verdict": calibration_verdict(cal.provenance),
+        "calibration_warning": cal.untrusted,
         "calibrated_boresight_deg": cal.provenance.get("boresight_deg"),
         "software": software,
         "points_used_per_s": job.max_points_per_s,

@@ -15,20 +15,20 @@ and runs each step as a child process in **its own process group**, its output i
 2. ``daemon`` — ``mls acquire --config OUT/vessel.yaml``: the devices, the clock model, the
    session log and the line guidance. The demo follows the guidance on the status socket and
    prints a live line (pass, state, cross-track error, accepted passes, predicted σ) and a line
-   per finished pass (:mod:`acquire.jobs.demo_progress`).
+   per finished pass (:mod:`office.jobs.demo_progress`).
 3. When every pass is accepted, or the scenario has ended, the daemon is stopped (SIGTERM: the
    session is closed cleanly), then the devices.
 4. ``export`` — ``mls export SESSION --bundle OUT/bundle``;
 5. ``calibration`` — ``mls calib run OUT/bundle --out OUT/calib --no-history --accept-refused``
    (its verdict is shown beside the truth, whatever it is);
 6. the comparison of the recovered boresight with the truth the devices were fed
-   (``OUT/run/scenario_truth.json``): :mod:`acquire.jobs.demo_compare`.
+   (``OUT/run/scenario_truth.json``): :mod:`office.jobs.demo_compare`.
 
 No process outlives the demo: on success, on an error (:class:`DemoError` names the step and
 its log) and on Ctrl-C / SIGTERM (:class:`Interrupted`) every child still running gets SIGTERM
 (SIGKILL after a grace period) sent to its whole process group; a child is also asked by the
 kernel to stop (SIGTERM, ``PR_SET_PDEATHSIG``) should the demo itself be killed
-(:mod:`acquire.jobs.demo_children`).
+(:mod:`office.jobs.demo_children`).
 """
 
 from __future__ import annotations
@@ -43,10 +43,10 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from acquire.errors import AcquireError
-from acquire.jobs.demo_children import Child
-from acquire.jobs.demo_compare import AngleComparison, comparison_rows
-from acquire.jobs.demo_progress import pass_events, progress_line, sigma_covers_accepted, sigma_events
 from acquire.status.bus import StatusListener
+from office.jobs.demo_children import Child
+from office.jobs.demo_compare import AngleComparison, comparison_rows
+from office.jobs.demo_progress import pass_events, progress_line, sigma_covers_accepted, sigma_events
 
 NS_PER_S = 1_000_000_000
 MARKER = ".mls-demo"  # in OUT: the directory is a demo's, its contents may be removed

@@ -1,4 +1,4 @@
-"""The demo's child processes (:mod:`acquire.jobs.demo`): each in its own process group, its output
+"""The demo's child processes (:mod:`office.jobs.demo`): each in its own process group, its output
 in a log file, the whole group signalled when it is stopped (SIGKILL after a grace period), and
 asked by the kernel to stop (``PR_SET_PDEATHSIG``) should the demo itself be killed."""
 

@@ -1,4 +1,4 @@
-"""The end of ``mls demo`` (:mod:`acquire.jobs.demo`): the recovered boresight against the truth the
+"""The end of ``mls demo`` (:mod:`office.jobs.demo`): the recovered boresight against the truth the
 simulated devices were fed, canonical and in the thesis convention (:func:`comparison_rows`), and
 its table (:func:`comparison_table`)."""
 

@@ -1,4 +1,4 @@
-"""What ``mls demo`` prints while the survey runs (:mod:`acquire.jobs.demo`), pure functions of the
+"""What ``mls demo`` prints while the survey runs (:mod:`office.jobs.demo`), pure functions of the
 guidance messages: the live line (:func:`progress_line`), a line per pass verdict
 (:func:`pass_events`) and per new σ prediction (:func:`sigma_events`)."""
 

@@ -21,16 +21,16 @@ topic          schema                   content
 /latency       mls.LatencyPlot (JSON)   per device latency mean/σ/p99/max, drift, rate
 ============== ======================== =========================================================
 
-Frames: :mod:`acquire.jobs.foxglove_frames` (z-up ENU and FLU for Foxglove's 3-D panel).
+Frames: :mod:`office.jobs.foxglove_frames` (z-up ENU and FLU for Foxglove's 3-D panel).
 
 Times: every ``log_time`` and every message's ``timestamp`` (the same number) is **UTC as Unix
 ns** — what Foxglove reads, so its timeline shows the real date and time — converted from the
-session's GPS time (:func:`~acquire.jobs.foxglove_frames.gps_to_unix_ns`: GPS − UTC from the
+session's GPS time (:func:`~office.jobs.foxglove_frames.gps_to_unix_ns`: GPS − UTC from the
 project's leap-second table at each instant, 18 s since 2017-01-01). The GPS times are the INS
-epoch's (:func:`acquire.jobs.export._read_nav_and_events`) for the fix and the pose, the last
+epoch's (:func:`office.jobs.export._read_nav_and_events`) for the fix and the pose, the last
 return of its window for a cloud, the record's log time for the others — those logged while the
 clock model was UNLOCKED re-timed through the LOCKED ones around them
-(:class:`~acquire.jobs.foxglove_frames.HostToGps`). The ``mls.session`` metadata states the time
+(:class:`~office.jobs.foxglove_frames.HostToGps`). The ``mls.session`` metadata states the time
 base and the GPS − UTC used; :class:`FoxgloveResult` gives the span in both. Messages are
 written in time order; a channel without messages (a session without /clock records) is not in
 the file.
@@ -58,8 +58,9 @@ from pathlib import Path
 
 import numpy as np
 
-from acquire.jobs import foxglove_frames as ff
-from acquire.jobs.export import (
+from acquire.log.read import SessionReadError, iter_messages, session_summary
+from office.jobs import foxglove_frames as ff
+from office.jobs.export import (
     ExportError,
     ExportOptions,
     _read_nav_and_events,
@@ -67,8 +68,7 @@ from acquire.jobs.export import (
     _summary_mount,
     _trajectory,
 )
-from acquire.jobs.foxglove_cloud import LATE_NS, Clouds, decode_profiles
-from acquire.log.read import SessionReadError, iter_messages, session_summary
+from office.jobs.foxglove_cloud import LATE_NS, Clouds, decode_profiles
 
 NS_PER_S = 1_000_000_000
 CLOUD_RATE_HZ = 2.0
@@ -392,7 +392,7 @@ def export_foxglove(
 
     ``require_complete`` refuses a session with a segment that did not end normally (else it is
     exported with a warning naming the segment and the span lost); ``progress(stage, done,
-    total)`` as :func:`acquire.jobs.export.export_session`'s."""
+    total)`` as :func:`office.jobs.export.export_session`'s."""
     from acquire.log.read import channel_metadata, session_losses
     from calib.core.trajectory import TrajectoryError
     from calib.io.outputs import check_output_file

@@ -1,5 +1,5 @@
 """The Foxglove export's profiles: the /lidar/raw datagrams decoded again and georeferenced, and
-their returns gathered into decimated point clouds (:mod:`acquire.jobs.foxglove`)."""
+their returns gathered into decimated point clouds (:mod:`office.jobs.foxglove`)."""
 
 from __future__ import annotations
 
@@ -7,7 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
-from acquire.jobs import foxglove_frames as ff
+from office.jobs import foxglove_frames as ff
 
 #: a window's cloud is written once the returns have gone this far past its end (packets arrive
 #: a little out of order); a return for a window already written is left out and counted

@@ -1,4 +1,4 @@
-"""What the Foxglove export (:mod:`acquire.jobs.foxglove`) puts in its messages, without the SDK.
+"""What the Foxglove export (:mod:`office.jobs.foxglove`) puts in its messages, without the SDK.
 
 Frames. The project works in NED (the LGF) and FRD (the body, docs/architecture.md §3); Foxglove's
 3-D panel draws +z up, so the export hands it right-handed z-up frames:

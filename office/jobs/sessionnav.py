@@ -1,20 +1,20 @@
 """A session's navigation without a bundle: what ``mls georef`` and the Foxglove export need to
 georeference a session (the site with the session's mount, the /ins/nav trajectory, the passes
-marked in /events), read exactly as :func:`acquire.jobs.export.export_session` reads them."""
+marked in /events), read exactly as :func:`office.jobs.export.export_session` reads them."""
 
 from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
 
-from acquire.jobs.export import (
+from acquire.log.read import SessionReadError, session_summary
+from office.jobs.export import (
     ExportError,
     ExportOptions,
     PassWindow,
     _navigation,
     passes_from_events,
 )
-from acquire.log.read import SessionReadError, session_summary
 
 
 @dataclass(frozen=True)

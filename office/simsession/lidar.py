@@ -1,4 +1,4 @@
-"""The profiler of ``mls sim session`` (:mod:`cli.simsession`): the survey's returns cast by the
+"""The profiler of ``mls sim session`` (:mod:`office.simsession.record`): the survey's returns cast by the
 simulator chunk by chunk and sent as the ZFP1 datagrams the profiler emulator would send.
 
 One profile grid runs through the whole session (the scanner never stops, as on a survey): profile

@@ -7,7 +7,7 @@ lines) until the session's length, the profiler recording its full circle at ``r
 the full Z+F point rate (the simulator's rule: profile rate and points per 360° each × √F), and,
 unless left out, the quay's surroundings (:func:`quay_surroundings`) so that the scanner sees
 more than the calibration targets. :func:`calib.sim.simulate.simulate` sails it (true and
-observed trajectories, truth); the returns are cast chunk by chunk (:mod:`cli.simsession_lidar`).
+observed trajectories, truth); the returns are cast chunk by chunk (:mod:`office.simsession.lidar`).
 
 What goes into the session, on the truth clock (:class:`sim_devices.clock.TruthClock`: host
 ``CLOCK_MONOTONIC`` an hour after boot at the first line's start; every record's ``log_time`` is
@@ -48,9 +48,9 @@ from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
-from calib.core.errors import MlsError
-from cli.simsession_daemon import Recorder
-from cli.simsession_lidar import LidarStream
+from acquire.errors import AcquireError
+from office.simsession.lidar import LidarStream
+from office.simsession.recorder import Recorder
 
 NS_PER_S = 1_000_000_000
 HOST_ANCHOR_NS = 3600 * NS_PER_S  # the vessel PC's CLOCK_MONOTONIC at the first line's start
@@ -66,7 +66,7 @@ SESSION_FILE_RE = re.compile(
 )
 
 
-class SimSessionError(MlsError, ValueError):
+class SimSessionError(AcquireError, ValueError):
     """The session cannot be written as asked (the message says why)."""
 
 

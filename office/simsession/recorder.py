@@ -1,4 +1,4 @@
-"""The daemon's side of ``mls sim session`` (:mod:`cli.simsession`): the emulators' output put
+"""The daemon's side of ``mls sim session`` (:mod:`office.simsession.record`): the emulators' output put
 through the daemon's own devices, time keeper, monitors and session writer, in host-time order,
 on the caller's thread and the simulated host clock.
 

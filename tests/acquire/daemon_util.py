@@ -18,6 +18,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from acquire.status.bus import StatusListener
+from tests import waiting
 
 MLS = [sys.executable, "-m", "cli.app"]
 ROOT = Path(__file__).resolve().parents[2]
@@ -114,22 +115,80 @@ class Proc:
         return self.log.read_text(errors="replace")
 
 
-def wait_until(cond, timeout_s: float, what: str, proc: Proc | None = None, poll_s: float = 0.05) -> None:
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        if cond():
-            return
+def wait_until(cond, timeout_s: float, what: str, proc: Proc | None = None, poll_s: float = 0.05):
+    """:func:`tests.waiting.wait_until`, giving up at once when ``proc`` ends (its output in the
+    message)."""
+
+    def still_running() -> None:
         if proc is not None and not proc.alive():
             raise AssertionError(f"{what}: the process ended ({proc.p.returncode}):\n{proc.output()[-3000:]}")
-        time.sleep(poll_s)
-    raise AssertionError(
-        f"timed out after {timeout_s} s waiting for {what}"
-        + (f"\n{proc.output()[-3000:]}" if proc is not None else "")
+
+    return waiting.wait_until(
+        cond,
+        timeout_s,
+        what,
+        interval_s=poll_s,
+        between=still_running,
+        detail=None if proc is None else (lambda: proc.output()[-3000:]),
     )
 
 
 def sleep_until_host_ns(t_ns: int) -> None:
+    """Until host time ``t_ns``: a step of a fault timeline that runs in real time beside the
+    emulators (the broker killed at scenario second 20), not a wait for an outcome."""
     time.sleep(max(t_ns - time.monotonic_ns(), 0) / 1e9)
+
+
+def wait_handled(sock: SocketCollector, after_ns: int, timeout_s: float = 30.0, **minimum: dict) -> bool:
+    """Wait until the daemon has handled everything its devices sent before ``after_ns`` (the
+    emulators had ended by then): two successive ``metrics`` documents on the status socket, both
+    published after ``after_ns``, with the same device counters (nothing was left to handle in
+    between) and each device's counters at least ``minimum`` (``profiler={"chunks": n}``).
+    Returns False at the timeout: the caller goes on, and its checks say what is missing."""
+
+    def counters(doc: dict) -> dict:
+        return {n: (d.get("chunks"), d.get("records")) for n, d in doc["devices"].items()}
+
+    def handled() -> bool:
+        docs = [r.data for r in sock.topic("metrics") if r.host_ns > after_ns]
+        if len(docs) < 2 or counters(docs[-2]) != counters(docs[-1]):
+            return False
+        last = docs[-1]["devices"]
+        return all(last[dev].get(k, 0) >= v for dev, at_least in minimum.items() for k, v in at_least.items())
+
+    return waiting.wait_until(
+        handled, timeout_s, "the daemon to handle what was sent", interval_s=0.05, fail=False
+    )
+
+
+def logged_counts(sessions: Path, topics: set[str]) -> dict[str, int]:
+    """Messages per topic in the complete chunks of every segment of the sessions under
+    ``sessions`` (a live segment too: its torn tail, being written, is not counted)."""
+    from acquire.log.recover import scan_segment, segment_paths
+
+    counts = dict.fromkeys(topics, 0)
+    for session in sorted(p for p in sessions.iterdir() if p.is_dir()):
+        for path in segment_paths(session):
+            channels: dict[int, str] = {}
+            for rec in scan_segment(path):
+                kind = type(rec).__name__
+                if kind == "Channel":
+                    channels[rec.id] = rec.topic
+                elif kind == "Message" and channels.get(rec.channel_id) in counts:
+                    counts[channels[rec.channel_id]] += 1
+    return counts
+
+
+def wait_logged(sessions: Path, minimum: dict[str, int], timeout_s: float = 30.0) -> bool:
+    """Wait until the session files hold at least ``minimum`` messages per topic in complete
+    chunks (what a ``kill -9`` keeps). False at the timeout, as :func:`wait_handled`."""
+    return waiting.wait_until(
+        lambda: all(n >= minimum[t] for t, n in logged_counts(sessions, set(minimum)).items()),
+        timeout_s,
+        f"{minimum} in the session files",
+        interval_s=0.5,
+        fail=False,
+    )
 
 
 @dataclass

@@ -2,11 +2,11 @@
 
 from __future__ import annotations
 
-import time
 from pathlib import Path
 
 from acquire.log.recover import scan_segment, segment_paths
 from acquire.log.schema import Envelope, decode
+from tests.waiting import wait_until
 
 
 def read_session(session_dir: Path) -> list[Envelope]:
@@ -33,11 +33,37 @@ def payload(seq: int, n: int) -> bytes:
 
 def wait_for(cond, timeout_s: float = 10.0, what: str = "condition", poll=None) -> None:
     """Poll ``cond`` (calling ``poll`` between tries) until true; fail after ``timeout_s``."""
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        if cond():
-            return
-        if poll is not None:
-            poll()
-        time.sleep(0.01)
-    raise AssertionError(f"timed out after {timeout_s} s waiting for {what}")
+    wait_until(cond, timeout_s, what, between=poll)
+
+
+def wait_flushed(w, submitted: int, timeout_s: float = 10.0) -> None:
+    """Wait until the writer ``w`` has taken the ``submitted`` records (all it was given so far)
+    and written them in complete chunks: what a chunk boundary needs, without a sleep."""
+    wait_for(
+        lambda: w.stats().messages_written >= submitted and w._unflushed_since is None,
+        timeout_s,
+        f"{submitted} records written in complete chunks",
+    )
+
+
+class FakeMonotonic:
+    """A monotonic clock (ns) for the writer's ``monotonic_ns``: it moves only when told."""
+
+    def __init__(self, start_ns: int = 1_000 * 1_000_000_000):
+        self.ns = start_ns
+
+    def __call__(self) -> int:
+        return self.ns
+
+    def advance(self, seconds: float) -> int:
+        self.ns += round(seconds * 1e9)
+        return self.ns
+
+
+def writer_caught_up(w, clock: FakeMonotonic, timeout_s: float = 10.0) -> None:
+    """Wait until the writer thread of ``w`` (on ``clock``) has begun a round after this call:
+    whatever it was doing then is done. The clock moves 1 ns, so that the round's heartbeat
+    (``_heartbeat_ns``, the clock at the top of each round; a round is at most 0.1 s) tells."""
+    clock.ns += 1
+    t = clock.ns
+    wait_for(lambda: w._heartbeat_ns >= t, timeout_s, "the writer thread to begin a new round")

@@ -9,9 +9,13 @@ from __future__ import annotations
 
 import asyncio
 import sys
+from pathlib import Path
 
 from acquire.status.bus import StatusBus
 from acquire.status.mqtt import MqttPublisher, MqttSettings
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[2]))  # run as a script: the tests package
+from tests.waiting import wait_until_async  # noqa: E402
 
 
 async def main() -> None:
@@ -20,8 +24,7 @@ async def main() -> None:
     bus = StatusBus([pub])
     task = asyncio.create_task(pub.run())
     bus.publish("status", {"state": "running"})
-    while pub.published < 1:
-        await asyncio.sleep(0.01)
+    await wait_until_async(lambda: pub.published >= 1, 30, "the broker to have the status")
     print("READY", flush=True)
     await task
 

@@ -237,12 +237,12 @@ def test_bad_options_are_one_clear_line(bundle, args, code, pattern):
 
 
 def test_a_session_is_exported_then_calibrated(tmp_path, monkeypatch, bundle):
-    """A session directory goes through the export (acquire.jobs.export.export_session, replaced
+    """A session directory goes through the export (office.jobs.export.export_session, replaced
     here by a copy of a simulated bundle) into SESSION/calib/bundle, then is calibrated."""
     import shutil
 
-    import acquire.jobs.export
-    from acquire.jobs.export import ExportResult
+    import office.jobs.export
+    from office.jobs.export import ExportResult
 
     session = tmp_path / "20190709T140000Z_boat"
     session.mkdir()
@@ -269,7 +269,7 @@ def test_a_session_is_exported_then_calibrated(tmp_path, monkeypatch, bundle):
             passes=[],
         )
 
-    monkeypatch.setattr(acquire.jobs.export, "export_session", fake_export)
+    monkeypatch.setattr(office.jobs.export, "export_session", fake_export)
     res = calib_run(session, "--no-history", "--no-plots")
     assert res.exit_code == 0, res.output
     assert calls == [(session, session / "calib" / "bundle")]

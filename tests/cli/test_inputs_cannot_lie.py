@@ -204,7 +204,7 @@ def test_writers_refuse_a_directory_that_holds_data_unless_forced(tmp_path, sim,
 
 
 def _session(tmp_path, marks, site_text):
-    from tests.acquire.jobs.test_export import _write_session
+    from tests.office.jobs.test_export import _write_session
 
     session = _write_session(tmp_path, marks)[0]
     (tmp_path / "site.yaml").write_text(site_text)
@@ -212,7 +212,7 @@ def _session(tmp_path, marks, site_text):
 
 
 def test_export_keeps_survey_line_ids_and_warns_of_passes_the_plan_does_not_match(tmp_path):
-    from tests.acquire.jobs.test_export import SITE
+    from tests.office.jobs.test_export import SITE
 
     # passes from the plan: survey line ids, and one planned line never sailed
     site = (
@@ -241,7 +241,7 @@ def test_export_keeps_survey_line_ids_and_warns_of_passes_the_plan_does_not_matc
 
 
 def test_export_refuses_to_overwrite_unless_forced(tmp_path):
-    from tests.acquire.jobs.test_export import SITE
+    from tests.office.jobs.test_export import SITE
 
     session = _session(tmp_path, True, SITE)
     site = ("--site", tmp_path / "site.yaml")
@@ -308,9 +308,9 @@ def test_paths_of_the_wrong_kind_are_one_line(tmp_path, example_bundle):
 def test_a_billion_laughs_site_yaml_is_one_line_within_a_second(tmp_path, example_bundle):
     b = copy_bundle(example_bundle, tmp_path / "lol")
     (b / "site.yaml").write_text(billion_laughs())
-    t0 = time.perf_counter()
+    t0 = time.thread_time()  # CPU time of this thread: the loader's work, not the machine's load
     line = one_line_error(mls("calib", "run", b, "--no-history"))
-    assert time.perf_counter() - t0 < 1.0
+    assert time.thread_time() - t0 < 1.0
     assert line == (
         f"error: {b / 'site.yaml'}: more than 100,000 values once its aliases are expanded "
         f"(aliases nested in aliases, a 'billion laughs'?): refused"
@@ -339,7 +339,7 @@ def test_every_yaml_file_of_the_project_is_read_within_the_bounds(tmp_path):
     path = tmp_path / "laughs.yaml"
     path.write_text(billion_laughs())
     for load in (load_site, load_vessel_config, load_scenario, load_faults):
-        t0 = time.perf_counter()
+        t0 = time.thread_time()  # CPU time of this thread: the loader's work, not the machine's load
         with pytest.raises(ConfigError, match=r"laughs\.yaml: more than 100,000 values once its aliases"):
             load(path)
-        assert time.perf_counter() - t0 < 1.0, load
+        assert time.thread_time() - t0 < 1.0, load

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import json
-import time
 
 from typer.testing import CliRunner
 
@@ -12,6 +11,7 @@ from acquire.log.session import SessionOptions
 from acquire.log.sessionlog import SessionWriter
 from acquire.timing.clock import ClockState, GpsEstimate
 from cli.app import app
+from tests.acquire.logutil import FakeMonotonic, wait_flushed
 
 NS = 1_000_000_000
 GPS0 = 1_400_000_000 * NS
@@ -25,22 +25,31 @@ class Clock:
 def _session(tmp_path):
     """Two segments; INS at 100 Hz with a 3 s hole and 5 lost sequence numbers; the second
     segment is torn in its last chunk (as a crash leaves it)."""
-    w = SessionWriter(tmp_path, "survey-1", SessionOptions(flush_s=0.05, compression="none"), clock=Clock())
+    clock = FakeMonotonic()  # the writer's clock: a chunk ends when the test says
+    w = SessionWriter(
+        tmp_path,
+        "survey-1",
+        SessionOptions(flush_s=0.05, compression="none"),
+        clock=Clock(),
+        monotonic_ns=clock,
+    )
     sd = w.start()
-    t = 0
+    t = submitted = 0
     for i in range(300):
         t += NS // 100 if i != 150 else 3 * NS
         if 200 <= i < 205:
             w._seq["/ins/raw"] += 1  # numbers taken but records lost (as a full queue does)
             continue
         w.submit("/ins/raw", b"$PIXSE,TIME__,120000.000*1F\r\n", host_ns=t)
+        submitted += 1
+        if i in (100, 120, 299):  # a chunk boundary
+            clock.advance(0.05)
+            wait_flushed(w, submitted)
         if i == 100:
-            time.sleep(0.2)
             w.rotate()
-        if i in (120, 299):
-            time.sleep(0.2)  # a chunk boundary
     w.submit("/ins/raw", b"$PIXSE,TIME__,120001.000*1E\r\n", host_ns=t + NS)
-    time.sleep(0.2)
+    clock.advance(0.05)
+    wait_flushed(w, submitted + 1)
     w.close()
     last = segment_paths(sd)[-1]
     scan = SegmentScan(last, 0)

@@ -9,7 +9,7 @@ from pathlib import Path
 
 import pytest
 
-from tests.calib.io.test_dirlock import hold
+from tests.calib.io.test_dirlock import hold, release
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -43,8 +43,7 @@ def test_a_second_writer_is_refused_in_one_line(tmp_path, args, status):
     try:
         r = mls(*args, out)
     finally:
-        other.stdin.close()  # type: ignore[union-attr]
-        other.wait(30)
+        release(other)
     text = (r.stdout + r.stderr).strip()
     assert r.returncode == status, text
     assert "Traceback" not in text and f"another writer holds it: pid {other.pid}" in text, text

@@ -16,8 +16,10 @@ from pathlib import Path
 import pytest
 
 from acquire.daemon.config import load_vessel_config
+from calib.core.errors import MlsError
 from sim_devices.runner import free_udp_port
 from tests.sim_devices.harness import SHORT_PASSES
+from tests.waiting import wait_until
 
 pytestmark = [pytest.mark.integration, pytest.mark.xdist_group("sim_devices_live")]
 
@@ -54,18 +56,23 @@ def start_cli(run_dir: Path, *extra: str) -> subprocess.Popen:
 
 
 def wait_running(proc: subprocess.Popen, run_dir: Path, timeout_s: float = 60.0) -> dict:
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        if (run_dir / "devices.json").exists():
+    def emitting() -> dict | None:
+        try:
             info = json.loads((run_dir / "devices.json").read_text())
-            if time.monotonic_ns() > info["window"]["start_host_ns"] + 200_000_000:  # emitting
-                return info
+        except (OSError, ValueError):  # not written yet, or being written
+            return None
+        return info if time.monotonic_ns() > info["window"]["start_host_ns"] + 200_000_000 else None
+
+    def still_running() -> None:
         if proc.poll() is not None:
             out, err = proc.communicate()
             pytest.fail(f"mls sim devices ended early ({proc.returncode}):\n{out}\n{err}")
-        time.sleep(0.05)
-    proc.kill()
-    pytest.fail(f"mls sim devices wrote no devices.json within {timeout_s} s")
+
+    info = wait_until(emitting, timeout_s, "devices.json", interval_s=0.05, between=still_running, fail=False)
+    if not info:
+        proc.kill()
+        pytest.fail(f"mls sim devices wrote no devices.json within {timeout_s} s")
+    return info
 
 
 def alive(pid: int) -> bool:
@@ -77,9 +84,7 @@ def alive(pid: int) -> bool:
 
 
 def wait_gone(pids, timeout_s: float = 5.0) -> list[int]:
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline and any(alive(p) for p in pids):
-        time.sleep(0.05)
+    wait_until(lambda: not any(alive(p) for p in pids), timeout_s, "the processes to end", fail=False)
     return [p for p in pids if alive(p)]
 
 
@@ -90,10 +95,14 @@ def test_devices_say_where_they_are_write_a_valid_config_and_stop_on_ctrl_c(tmp_
     link = run_dir / "ins"
     pty = info["devices"]["ins"]["pty"]
     assert link.is_symlink() and os.readlink(link) == pty and pty.startswith("/dev/pts/")
-    while not (tmp_path / "vessel.yaml").exists():
-        time.sleep(0.05)
-    time.sleep(0.3)
-    cfg = load_vessel_config(tmp_path / "vessel.yaml")
+
+    def written():  # (written in place: it may be read while it is being written)
+        try:
+            return load_vessel_config(tmp_path / "vessel.yaml")
+        except (OSError, ValueError, MlsError):
+            return None
+
+    cfg = wait_until(written, 30, "a complete vessel.yaml", interval_s=0.05)
     assert cfg.vessel == "sim-montreal" and cfg.session_dir == run_dir.resolve() / "sessions"
     assert cfg.device("ins").transport.port == str(run_dir.resolve() / "ins")
     assert cfg.device("profiler").transport.port == info["devices"]["profiler"]["address"][1]

@@ -16,14 +16,14 @@ import numpy as np
 import pytest
 from typer.testing import CliRunner
 
-from acquire.jobs.export import ExportOptions, export_session
 from acquire.log.read import channel_metadata, iter_messages, session_losses
 from acquire.log.recover import segment_closed, segment_paths
 from acquire.log.schema import CHANNELS, JSON_ENCODING, RAW_ENCODING
 from cli.app import app
-from cli.simsession import SessionSpec, plan_session
-from cli.simsession_lidar import pack_profiles
 from drivers.zf.zfp1 import decode_packet
+from office.jobs.export import ExportOptions, export_session
+from office.simsession.lidar import pack_profiles
+from office.simsession.record import SessionSpec, plan_session
 
 ENV = {"COLUMNS": "250"}
 NS = 1_000_000_000

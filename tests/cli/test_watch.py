@@ -12,12 +12,12 @@ import numpy as np
 import pytest
 from typer.testing import CliRunner
 
-from acquire.deliver.watchjob import lines_from_heading
 from calib.boresight.result import write_result
 from calib.core.frames import LocalFrame
 from calib.core.trajectory import Trajectory
 from calib.sim.production import MountEvent, ProductionSpec, simulate_production
 from cli.app import app
+from office.deliver.watchjob import lines_from_heading
 
 ENV = {"COLUMNS": "250"}
 

@@ -5,7 +5,7 @@ valid input by one edit, so that each input fails for exactly one reason.
   written out plain from its ``points.csv.gz``, ``trajectory.csv``): for ``mls calib run`` and
   ``mls calib georef``;
 - vessel configs, from ``systemd/vessel.example.yaml``: for ``mls acquire --check``;
-- recorded sessions, from the tiny session of ``tests/acquire/jobs/test_export.py``: for ``mls
+- recorded sessions, from the tiny session of ``tests/office/jobs/test_export.py``: for ``mls
   export``.
 
 :data:`DEFECTS` maps a defect id to the function that writes its input into a directory of its
@@ -426,7 +426,7 @@ def _vessel_missing(case: Path) -> None:
 def valid_session(case: Path) -> Path:
     """``case/session``: the export tests' tiny recorded session (two passes marked, one
     segment), with the site file the daemon would have copied in."""
-    from tests.acquire.jobs.test_export import SITE, _write_session
+    from tests.office.jobs.test_export import SITE, _write_session
 
     written = _write_session(case, marks=True)[0]
     session = case / "session"

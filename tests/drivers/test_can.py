@@ -51,8 +51,8 @@ def _exchange(rx_config: dict, tx_config: dict):
         rx_bus = open_can_bus(rx_config)
         tx_bus = open_can_bus(tx_config)
         try:
+            # (the receiving bus exists before the first send: it keeps the frames until read)
             async with CanReader(rx_bus, {EVENT_MARKER_ID: decode_event_marker}) as reader:
-                await asyncio.sleep(0.05)
                 before = time.monotonic_ns()
                 tx_bus.send(event_marker_message("pass_start", 2, 1))
                 tx_bus.send(can.Message(arbitration_id=0x123, data=b"\x01\x02", is_extended_id=False))

@@ -216,32 +216,37 @@ def test_kernel_source_turns_fetches_into_monotonic_edges(tmp_path):
     dev = tmp_path / "pps0"
     dev.write_bytes(b"")
     calls = []
+    fetched = {}  # fetch number → host monotonic ns just before and after its pulse's stamp
 
     def fake_ioctl(fd, request, buf, mutate):
         assert request == PPS_FETCH and mutate and len(buf) == 64
         calls.append(struct.unpack_from("=qiI", buf, 48))
         n = len(calls)
-        if n > 3:
+        if n > 4:
+            # the kernel: no pulse, the fetch blocks until its timeout (shortened: the reader
+            # thread would spin otherwise)
             time.sleep(0.01)
             raise OSError(errno.ETIMEDOUT, "timeout")
+        t0 = time.monotonic_ns()
         real = time.clock_gettime_ns(time.CLOCK_REALTIME) - 5_000_000  # the pulse was 5 ms ago
-        struct.pack_into("=II", buf, 0, {1: 1, 2: 2, 3: 2}[n], 0)  # the 3rd fetch repeats sequence 2
+        fetched[n] = (t0, time.monotonic_ns())
+        # the 3rd fetch repeats sequence 2; the 4th is the next pulse
+        struct.pack_into("=II", buf, 0, {1: 1, 2: 2, 3: 2, 4: 3}[n], 0)
         struct.pack_into("=qiI", buf, 8, real // S, real % S, 0)
         return 0
 
     async def run():
         src = KernelPpsSource(str(dev), ioctl=fake_ioctl, timeout_s=0.05)
         async with src:
-            a = await asyncio.wait_for(src.get(), 2)
-            b = await asyncio.wait_for(src.get(), 2)
-            await asyncio.sleep(0.05)
-            return a, b, src._queue.qsize()
+            got = [await asyncio.wait_for(src.get(), 2) for _ in range(3)]
+            return got, src._queue.qsize()
 
-    a, b, left = asyncio.run(run())
-    assert (a.sequence, b.sequence, left) == (1, 2, 0)  # the repeated sequence is not a new pulse
+    (a, b, c), left = asyncio.run(run())
+    # the repeated sequence is not a new pulse: the pulse after it comes next
+    assert (a.sequence, b.sequence, c.sequence, left) == (1, 2, 3, 0)
     assert calls[0] == (0, 50_000_000, 0)
-    lag = time.monotonic_ns() - b.host_ns
-    assert 5_000_000 <= lag < 2 * S and b.realtime_ns is not None
+    lo, hi = fetched[2]  # the pulse's monotonic time, 5 ms before the fetch (1 ms: the offset's read)
+    assert lo - 6_000_000 <= b.host_ns <= hi - 4_000_000 and b.realtime_ns is not None
 
 
 def test_serial_line_source_on_a_pty_reports_that_tiocmiwait_is_unsupported():
@@ -272,7 +277,6 @@ def test_serial_line_source_counts_rising_dcd_edges():
         assert request == termios.TIOCMIWAIT and arg == termios.TIOCM_CD
         waits.append(1)
         if len(waits) > 3:
-            time.sleep(0.02)
             raise OSError(errno.EIO, "gone")
         return 0
 

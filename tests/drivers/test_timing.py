@@ -10,7 +10,7 @@ import pytest
 
 from drivers import timing
 from drivers.timing import DAY_NS, fit_clock, unwrap_time_of_day_ns
-from tests.drivers.helpers import fake_host_clock
+from tests.drivers.helpers import fake_host_clock, realtime_offset_bounds_ns, step_host_clock
 
 
 def test_fit_recovers_drift_offset_and_jitter_and_gates_outliers():
@@ -45,42 +45,49 @@ def test_fit_needs_three_samples():
 
 
 def test_a_step_of_the_realtime_clock_is_counted_by_any_read_of_the_offset(tmp_path):
-    now = time.monotonic_ns()
-    with fake_host_clock(tmp_path / "host_clock", [(now + 50_000_000, -3_600 * 10**9)]) as fake:
+    path = tmp_path / "host_clock"
+    with fake_host_clock(path, []) as fake:
         before = timing.realtime_minus_monotonic_ns()
         count = timing.HOST_CLOCK_STEPS.count
-        assert abs(before - time.clock_gettime_ns(time.CLOCK_REALTIME) + time.monotonic_ns()) < 1_000_000
-        time.sleep(0.06)
+        lo, hi = realtime_offset_bounds_ns()
+        assert lo - 1_000_000 < before < hi + 1_000_000  # no step yet: the real offset
+        at = time.monotonic_ns()  # the step, made now: every read from here on sees it
+        step_host_clock(path, at, -3_600 * 10**9)
         after = timing.realtime_minus_monotonic_ns()
         assert abs(after - before + 3_600 * 10**9) < 1_000_000
         assert timing.HOST_CLOCK_STEPS.count == count + 1
         t, step = timing.HOST_CLOCK_STEPS.last
-        assert step == pytest.approx(-3_600 * 10**9, abs=1_000_000) and t >= now + 50_000_000
+        assert step == pytest.approx(-3_600 * 10**9, abs=1_000_000) and t >= at
         timing.realtime_minus_monotonic_ns()  # no second step
         assert timing.HOST_CLOCK_STEPS.count == count + 1
         # kernel stamps taken after the step move with it, those before do not
         real_now = time.clock_gettime_ns(time.CLOCK_REALTIME)
         assert fake.kernel_stamp(real_now) == real_now - 3_600 * 10**9
-        assert fake.kernel_stamp(real_now - 10**9) == real_now - 10**9
+        real_before = at + before - 10**9  # a realtime stamp 1 s before the step
+        assert fake.kernel_stamp(real_before) == real_before
 
 
 @pytest.mark.parametrize("step_s", [-3600.0, 2.0])
 def test_realtime_stamps_taken_before_a_step_keep_their_offset(tmp_path, step_s):
     """Kernel stamps of datagrams that arrived before the step and are read after it: converted
     with the new offset they would move by the step; they keep the old one. (The raw stamps are
-    the real kernel's: ``convert`` moves those taken after the step, as the faked clock would.)"""
-    t0 = time.monotonic_ns()
-    with fake_host_clock(tmp_path / "host_clock", [(t0 + 30_000_000, round(step_s * 10**9))]):
+    the real kernel's: ``convert`` moves those taken after the step, as the faked clock would.)
+    The step is written when the first read is done, its instant 50 ms back: the arrivals lie
+    before it, and a stamp after it, whatever the machine's pace."""
+    path = tmp_path / "host_clock"
+    with fake_host_clock(path, []):
         stamps = timing.RealtimeStamps()
-        stamps.begin()
-        before = [t0 + k * 5_000_000 for k in range(1, 5)]  # monotonic arrivals before the step
-        real_off = time.clock_gettime_ns(time.CLOCK_REALTIME) - time.monotonic_ns()
-        time.sleep(0.04)
+        stamps.begin()  # the read before the step
+        at = time.monotonic_ns() - 50_000_000
+        before = [at - k * 10_000_000 for k in range(4, 0, -1)]  # monotonic arrivals before the step
+        step_host_clock(path, at, round(step_s * 10**9))
+        lo, hi = realtime_offset_bounds_ns()
+        real_off = (lo + hi) // 2
         stamps.begin()  # the read, after the step
         assert stamps.steps == 1 and not stamps.exact
         read = time.monotonic_ns()
         got = [stamps.convert(m + real_off, read) for m in before]
-        after = time.monotonic_ns() - 1_000_000
+        after = at + 25_000_000
         got.append(stamps.convert(after + real_off, read))  # a stamp after the step (faked by convert)
         assert max(abs(g - m) for g, m in zip(got, before + [after])) < 500_000
         assert (stamps.repaired, stamps.unknown) == (4, 0)

@@ -6,7 +6,10 @@ module)."""
 from __future__ import annotations
 
 import asyncio
+import fcntl
 import gc
+import struct
+import termios
 import time
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -22,6 +25,7 @@ from sim_devices.canbus import CanSettings
 from sim_devices.feed import make_feed
 from sim_devices.replay import ReplayRun, ReplaySpec
 from sim_devices.runner import DeviceRun, DevicesSpec
+from tests.waiting import wait_until_async
 
 #: receive-side slack for arrival instants: the test process decodes everything in Python on a
 #: shared 2-core machine (other tests, other workers), so a read can come this late
@@ -71,11 +75,32 @@ def _chunk_hook(decoder, capture: Capture):
     decoder.feed = fed
 
 
+def _drained(udp, ser, reader) -> bool:
+    """Nothing left to read once the emulators have ended: no datagram waiting in a UDP socket
+    (``FIONREAD``: the size of the next one) nor in a transport's queue, the INS pty read until
+    the emulator closed it, the CAN frames handed over."""
+    for t in udp:
+        if t is None:
+            continue
+        sock = t._transport.get_extra_info("socket") if t._transport is not None else None
+        waiting = (
+            0
+            if sock is None
+            else struct.unpack("i", fcntl.ioctl(sock.fileno(), termios.FIONREAD, b"\0" * 4))[0]
+        )
+        if waiting or t._chunks:
+            return False
+    if ser is not None and (ser.connected or ser._chunks):
+        return False
+    return reader is None or reader._queue.empty()
+
+
 async def _capture(
     cap: Capture, make_run, devices, ins_protocol: str, can_config: dict | None, end_host, grace_s: float
 ) -> None:
-    """Open the receivers, ``make_run(profiler_port, pps_port)``, start it, capture until
-    ``end_host(run)`` + ``grace_s``, stop it. The garbage collector is off meanwhile: in a test
+    """Open the receivers, ``make_run(profiler_port, pps_port)``, start it, capture until the
+    emulators have ended (at the latest :data:`FINISH_TIMEOUT_S` after ``end_host(run)`` +
+    ``grace_s``) and what they sent is read, stop it. The garbage collector is off meanwhile: in a test
     process a full collection holds the GIL for a few hundred ms, longer than the emulated
     UART buffers (the pty's 20 kB and the emulator's 50 ms)."""
     gc.collect()
@@ -161,15 +186,19 @@ async def _capture_with_gc_off(
                     cap.markers.append(await reader.get())
 
             loop_tasks.append(asyncio.create_task(can_pump()))
-        while time.monotonic_ns() < end:
-            await asyncio.sleep(0.05)
-        # on a loaded machine the emulators run late: read until they have ended (the INS keeps
-        # its pty open a while after its last write), then what is still in transit
-        finish = time.monotonic_ns() + round(FINISH_TIMEOUT_S * 1e9)
-        if run.running():
-            while run.running() and time.monotonic_ns() < finish:
-                await asyncio.sleep(0.05)
-            await asyncio.sleep(grace_s)
+        # read until the emulators have ended (after their window; on a loaded machine they run
+        # late; the INS keeps its pty open a while after its last write), then what is still in
+        # transit: every queue empty and handed over, the INS pty read to its end
+        await wait_until_async(
+            lambda: not run.running(),
+            max(end - time.monotonic_ns(), 0) / 1e9 + FINISH_TIMEOUT_S,
+            "the emulators to end",
+            interval_s=0.05,
+            fail=False,
+        )
+        await wait_until_async(
+            lambda: _drained((prof_t, pps_t), ser, reader), 10, "what is in transit", fail=False
+        )
         for t in loop_tasks:
             t.cancel()
         await asyncio.gather(*loop_tasks, return_exceptions=True)

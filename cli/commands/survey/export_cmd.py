@@ -4,8 +4,11 @@
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Annotated
 
 import typer
+
+from cli.options import SessionDir, force_option
 
 HELP = (
     "Export a recorded session as a calibration bundle for `mls calib run` (--bundle), and/or as one "
@@ -39,7 +42,7 @@ HELP = (
 
 
 def export(
-    session: Path = typer.Argument(..., help="Session directory (YYYYmmddTHHMMSSZ_<vessel>)."),
+    session: SessionDir = ...,
     bundle: Path | None = typer.Option(None, "--bundle", "-o", help="Bundle directory to write (created)."),
     foxglove: Path | None = typer.Option(
         None, "--foxglove", help="Write the session for Foxglove as this MCAP file (alone: only this file)."
@@ -50,11 +53,12 @@ def export(
     max_cloud_points: int = typer.Option(
         50_000, "--max-cloud-points", min=1, help="--foxglove: most points in one cloud (evenly decimated)."
     ),
-    force: bool = typer.Option(
-        False,
-        "--force",
-        help="Write into output directories (or over an --sbet or --foxglove file) that already hold data.",
-    ),
+    force: Annotated[
+        bool,
+        force_option(
+            "Write into output directories (or over an --sbet or --foxglove file) that already hold data."
+        ),
+    ] = False,
     laz: Path | None = typer.Option(
         None, "--laz", help="Also write one LAZ per pass here (UTM, a-priori mount)."
     ),
@@ -88,9 +92,9 @@ def export(
     from rich.markup import escape
     from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 
-    from acquire.jobs.export import ExportError, ExportOptions, export_session
     from calib.core.errors import MlsError
     from calib.io.outputs import check_output_file, hold_output_dir
+    from office.jobs.export import ExportError, ExportOptions, export_session
 
     console = Console()
     err = Console(stderr=True, emoji=False)  # ":100:" of file:line:column is no emoji
@@ -137,7 +141,7 @@ def export(
             if bundle is not None:
                 res = export_session(session, bundle, opts, progress)
             if foxglove is not None:
-                from acquire.jobs.foxglove import export_foxglove
+                from office.jobs.foxglove import export_foxglove
 
                 fox = export_foxglove(
                     session,
@@ -202,8 +206,8 @@ def _foxglove_summary(console, err, session: Path, fox, elapsed_s: float) -> Non
     from rich.markup import escape
     from rich.table import Table
 
-    from acquire.jobs.foxglove import SCHEMAS
     from calib.core import frames
+    from office.jobs.foxglove import SCHEMAS
 
     t = Table(title=f"{session.name} → {fox.path} (Foxglove)", title_justify="left")
     for col in ("channel", "schema", "messages"):

@@ -1,11 +1,14 @@
 """``mls georef SESSION|BUNDLE --out DIR``: a whole survey → LAZ tiles with per-point σ
-(:mod:`acquire.deliver`, docs/architecture.md §8)."""
+(:mod:`office.deliver`, docs/architecture.md §8)."""
 
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Annotated
 
 import typer
+
+from cli.options import Calibration, Las, SurveySource, crs_option, force_option, out_option
 
 HELP = (
     "Georeference a whole survey (a recorded session, or a calibration bundle) into LAS 1.4 "
@@ -32,19 +35,13 @@ HELP = (
 
 
 def georef(
-    source: Path = typer.Argument(..., help="A session directory (seg-*.mcap) or a calibration bundle."),
-    out: Path = typer.Option(..., "--out", "-o", help="Directory of the tiles (created)."),
-    calibration: str | None = typer.Option(
-        None,
-        "--calibration",
-        "-c",
-        metavar="RESULT|#ID",
-        help="result.json (file or directory) or history id.",
-    ),
+    source: SurveySource = ...,
+    out: Annotated[Path, out_option("Directory of the tiles (created).")] = ...,
+    calibration: Calibration = None,
     history: Path | None = typer.Option(None, "--history", help="Calibration history database (for #ID)."),
     sbet: Path | None = typer.Option(None, "--sbet", help="Post-processed trajectory (Applanix SBET)."),
     smrmsg: Path | None = typer.Option(None, "--smrmsg", help="The SBET's sigmas (SMRMSG)."),
-    crs: str = typer.Option("utm", "--crs", help="Output CRS: utm (the zone of the site), lgf, or EPSG:…"),
+    crs: Annotated[str, crs_option("Output CRS: utm (the zone of the site), lgf, or EPSG:…")] = "utm",
     tile_m: float | None = typer.Option(
         None, "--tile-m", min=1.0, help="Square tiles of this size (CRS units) instead of one per line."
     ),
@@ -73,7 +70,7 @@ def georef(
         "--vessel-box-m",
         help="The vessel in the body frame (x fwd, y stbd, z down; m): X0 X1 Y0 Y1 Z0 Z1; its returns are left out.",
     ),
-    las: bool = typer.Option(False, "--las", help="Write uncompressed .las instead of .laz."),
+    las: Las = False,
     workers: int | None = typer.Option(
         None, "--workers", min=1, help="Run on a local Dask cluster of this many worker processes."
     ),
@@ -81,16 +78,16 @@ def georef(
         None, "--scheduler", help="Run on a Dask cluster: 'local' (all cores) or tcp://HOST:8786."
     ),
     resume: bool = typer.Option(False, "--resume", help="Continue a job that stopped (same inputs)."),
-    force: bool = typer.Option(False, "--force", help="Start over in a non-empty OUT (files replaced)."),
+    force: Annotated[bool, force_option("Start over in a non-empty OUT (files replaced).")] = False,
 ) -> None:
     """``mls georef`` (its help text is :data:`HELP`)."""
     from rich.console import Console
     from rich.markup import escape
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
 
-    from acquire.deliver.engine import run_georef
-    from acquire.deliver.executors import DaskExecutor, InProcess
-    from acquire.deliver.options import Filters, GeorefError, GeorefOptions
+    from office.deliver.engine import run_georef
+    from office.deliver.executors import DaskExecutor, InProcess
+    from office.deliver.options import Filters, GeorefError, GeorefOptions
 
     def window(w):  # typer gives (None, None) for an unset tuple option
         return None if w is None or w[0] is None else w

@@ -1,12 +1,15 @@
 """``mls watch SESSION|BUNDLE --out DIR``: the mount watch over a finished survey
-(:mod:`acquire.deliver.watchjob`, docs/architecture.md §7.8)."""
+(:mod:`office.deliver.watchjob`, docs/architecture.md §7.8)."""
 
 from __future__ import annotations
 
 import math
 from pathlib import Path
+from typing import Annotated
 
 import typer
+
+from cli.options import Calibration, SurveySource, force_option, out_option
 
 HELP = (
     "Watch the scanner mount over a finished survey: did the boresight move during it?\n\n"
@@ -33,15 +36,9 @@ EXIT_SHIFT = 3
 
 
 def watch(
-    source: Path = typer.Argument(..., help="A session directory (seg-*.mcap) or a calibration bundle."),
-    out: Path = typer.Option(..., "--out", "-o", help="Directory of the report (created)."),
-    calibration: str | None = typer.Option(
-        None,
-        "--calibration",
-        "-c",
-        metavar="RESULT|#ID",
-        help="result.json (file or directory) or history id.",
-    ),
+    source: SurveySource = ...,
+    out: Annotated[Path, out_option("Directory of the report (created).")] = ...,
+    calibration: Calibration = None,
     shift_deg: float = typer.Option(
         0.1, "--shift-deg", min=0.001, help="The change the test is tuned to (deg)."
     ),
@@ -55,7 +52,7 @@ def watch(
         20.0, "--min-line-s", min=1.0, help="Shortest line (s) without pass marks."
     ),
     plot: bool = typer.Option(True, "--plot/--no-plot", help="Write watch.png."),
-    force: bool = typer.Option(False, "--force", help="Replace the report in a non-empty OUT."),
+    force: Annotated[bool, force_option("Replace the report in a non-empty OUT.")] = False,
 ) -> None:
     """``mls watch`` (its help text is :data:`HELP`)."""
     from rich.console import Console
@@ -63,9 +60,9 @@ def watch(
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TaskID, TextColumn, TimeElapsedColumn
 
     from acquire import __version__
-    from acquire.deliver.watchjob import WatchJob, run_watch_job
-    from calib.watch.report import add_calibration_verdict, calibration_verdict, run_verdict
+    from calib.watch.report import run_verdict
     from calib.watch.sequential import WatchDesign
+    from office.deliver.watchjob import WatchJob, run_watch_job
 
     console, err = Console(), Console(stderr=True, emoji=False)
     from calib.io.outputs import hold_output_dir  # the report's writer lock, held to the end
@@ -93,11 +90,6 @@ def watch(
         outcome = run_watch_job(job, f"marine-mls {__version__}", progress)
     for w in outcome.warnings:
         err.print(f"[yellow]warning:[/] {escape(w)}")
-    line, warning = calibration_verdict(_calibration_result(calibration))
-    if line is not None:
-        add_calibration_verdict(out, line, warning)
-    if warning is not None:
-        err.print(f"[yellow]warning:[/] {escape(warning)}")
     run = outcome.run
     console.print(
         f"{len(outcome.lines)} line(s), {len(run.blocks)} block(s), {outcome.n_points:,} returns used"
@@ -107,13 +99,3 @@ def watch(
         console.print(f"  {escape(str(p))}")
     if run.alarm is not None:
         raise typer.Exit(EXIT_SHIFT)
-
-
-def _calibration_result(ref: str | None) -> dict | None:
-    """The result.json ``--calibration`` names (the job has read it already; None without)."""
-    if ref is None:
-        return None
-    from calib.assess.history import resolve_result
-
-    found, _ = resolve_result(ref, which="--calibration")
-    return found if isinstance(found, dict) else found.result

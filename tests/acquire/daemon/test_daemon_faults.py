@@ -40,6 +40,8 @@ from tests.acquire.daemon_util import (
     run_once,
     sleep_until_host_ns,
     start_emulators,
+    wait_handled,
+    wait_logged,
     wait_until,
 )
 from tests.mosquitto import Mosquitto
@@ -163,7 +165,21 @@ def _fault_run(tmp: Path) -> dict:
         broker.start()
         back_ns = time.monotonic_ns()
         assert sim.wait(DURATION_S + 60) == 0, sim.output()[-3000:]
-        time.sleep(1.5)  # past the chunk flush period: everything received is in the file
+        sim_end_ns = time.monotonic_ns()
+        sent = {
+            n: json.loads((run / "stats" / f"{n}.json").read_text())["stats"] for n in ("profiler", "pps")
+        }
+        # everything received handled, and in complete chunks of the file (what the kill keeps)
+        wait_handled(
+            sock,
+            sim_end_ns,
+            profiler={"chunks": sent["profiler"]["datagrams_sent"]},
+            pps={"records": len(sent["pps"]["edges"])},
+        )
+        wait_logged(
+            tmp / "sessions",
+            {"/lidar/raw": sent["profiler"]["datagrams_sent"], "/pps": len(sent["pps"]["edges"])},
+        )
         assert daemon.alive(), daemon.output()[-3000:]
         kill_ns = time.monotonic_ns()
         daemon.signal(signal.SIGKILL)
@@ -176,7 +192,19 @@ def _fault_run(tmp: Path) -> dict:
         daemon2 = Proc([*MLS, "acquire", "--config", str(cfg)], tmp / "daemon2.log", env)
         procs.append(daemon2)
         wait_until(lambda: len(notify.with_line("READY=1")) >= 2, 30, "READY=1 after the restart", daemon2)
-        time.sleep(2.5)
+        ready2 = notify.with_line("READY=1")[1]
+        wait_until(  # the restarted daemon's status reached MQTT and the status socket's collector
+            lambda: (
+                any(
+                    r.host_ns > ready2 and isinstance(r.data, dict) and r.data.get("state") == "running"
+                    for r in mqtt.topic("status")
+                )
+                and any(r.host_ns > ready2 for r in sock.topic("status"))
+            ),
+            30,
+            "the restarted daemon's status",
+            daemon2,
+        )
         daemon2.signal(signal.SIGTERM)
         rc2 = daemon2.wait(30)
         wait_until(

@@ -44,11 +44,19 @@ import pytest
 
 from acquire.log.read import iter_messages
 from acquire.log.recover import SegmentScan, scan_segment, segment_paths, session_info, unfinished_segments
+from acquire.status.bus import read_snapshot
 from drivers.pps import decode_pps_datagram
 from tests.acquire.daemon_util import MLS, ROOT, NotifyCollector, Proc, free_port, wait_until
 from tests.acquire.fakedevices import FakeDevices, devices_yaml
 
-pytestmark = [pytest.mark.integration, pytest.mark.slow, pytest.mark.xdist_group("daemon-kill9")]
+# realtime: what a kill must leave in the session is what was older than the flush period (0.5 s)
+# when it landed (a deadline of the writer, held against the wall clock), at random instants
+pytestmark = [
+    pytest.mark.realtime,
+    pytest.mark.integration,
+    pytest.mark.slow,
+    pytest.mark.xdist_group("daemon-kill9"),
+]
 
 NS = 1_000_000_000
 FLUSH_S = 0.5
@@ -129,6 +137,19 @@ class RecordingDevices(FakeDevices):
         return self.ins_due(0, t_ns + 1)[1]
 
 
+def _data_flowing(sock: Path) -> bool:
+    """The daemon's status snapshot shows an INS epoch, a profile and a PPS pulse handled."""
+    try:
+        snap = read_snapshot(sock, 3.0)
+    except (OSError, ValueError):
+        return False
+    return (
+        snap.get("sensors/ins", {}).get("records", 0) > 0
+        and snap.get("sensors/profiler", {}).get("records", 0) > 0
+        and snap.get("clock", {}).get("pps", {}).get("pulses", 0) > 0
+    )
+
+
 @dataclass
 class Run:
     trial: int
@@ -197,13 +218,18 @@ def kill_runs(tmp_path_factory):
             run = Run(trial, d.pid, notify.with_line("READY=1")[trial], None)
             runs.append(run)
             if trial == TRIALS:  # the last one salvages the 5th session, then stops cleanly
-                time.sleep(1.0)
+                wait_until(  # data in its session: an INS epoch, a profile and a pulse
+                    lambda: _data_flowing(tmp / "status.sock"), 30, "data in the last session", d
+                )
                 fake.halted.set()
                 fake.join(5)
                 d.signal(signal.SIGTERM)
                 assert d.wait(30) == 0, d.output()[-3000:]
                 break
-            time.sleep(rng.uniform(0.8, 3.2))  # data flowing; the kill lands anywhere
+            # data flowing; the kill lands anywhere: a random instant of the streams (real time,
+            # paced) and of the writer's flush cycle; 0.8 s at least: 0.3 s of data past the
+            # flush period in every session, a pulse (1 Hz) labelled in most
+            time.sleep(rng.uniform(0.8, 3.2))
             run.kill_ns = time.monotonic_ns()
             d.signal(signal.SIGKILL)
             assert d.wait(10) == -signal.SIGKILL

@@ -23,6 +23,7 @@ from acquire.log.read import iter_messages
 from acquire.log.recover import session_dirs
 from acquire.status.bus import read_snapshot
 from tests.acquire.daemon_util import MLS, ROOT, Proc, free_port, wait_until
+from tests.waiting import wait_until_async
 
 pytestmark = [pytest.mark.integration]
 
@@ -104,10 +105,7 @@ def test_a_stale_lock_of_a_dead_daemon_is_taken_over_with_a_warning(tmp_path, ca
     async def scenario():
         sup = Supervisor(cfg)
         task = asyncio.create_task(sup.run())
-        for _ in range(200):
-            if sup.state == "running":
-                break
-            await asyncio.sleep(0.05)
+        await wait_until_async(lambda: sup.state == "running" or task.done(), 10, "the daemon to run")
         out["holder"] = read_holder(lock)
         out["stale"] = sup.stale_lock
         out["session"] = sup.writer.session_dir

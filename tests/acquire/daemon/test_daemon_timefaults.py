@@ -35,8 +35,10 @@ from tests.acquire.daemon_util import (
     free_port,
     run_once,
     sim_devices_cmd,
+    wait_handled,
     wait_until,
 )
+from tests.waiting import wait_until_async
 
 pytestmark = [pytest.mark.realtime, pytest.mark.integration, pytest.mark.xdist_group("daemon-timefaults")]
 
@@ -97,7 +99,16 @@ def _time_run(tmp: Path) -> dict:
         )
         procs.append(sim)
         assert sim.wait(DURATION_S + 90) == 0, sim.output()[-3000:]
-        time.sleep(1.5)  # past the chunk flush period: everything received is in the file
+        sim_end_ns = time.monotonic_ns()
+        sent = {
+            n: json.loads((run / "stats" / f"{n}.json").read_text())["stats"] for n in ("profiler", "pps")
+        }
+        wait_handled(  # everything received handled before the stop (which logs it all)
+            sock,
+            sim_end_ns,
+            profiler={"chunks": sent["profiler"]["datagrams_sent"]},
+            pps={"records": len(sent["pps"]["edges"])},
+        )
         assert daemon.alive(), daemon.output()[-3000:]
         daemon.signal(15)
         assert daemon.wait(30) == 0, daemon.output()[-3000:]
@@ -245,9 +256,8 @@ def test_a_2_s_stall_after_a_pulse_before_its_zda_labels_nothing_wrong_and_loses
     async def scenario():
         sup = Supervisor(load_vessel_config(tmp_path / "vessel.yaml"))
         task = asyncio.create_task(sup.run())
-        while sup.state != "running":
-            assert not task.done(), task
-            await asyncio.sleep(0.02)
+        await wait_until_async(lambda: sup.state == "running" or task.done(), 30, "the daemon to run")
+        assert not task.done(), task
         run.start()  # (forks the emulators; blocks the loop a moment)
         clock = run.clock
         second = -(-feed.start_gps_ns // NS) * NS + 6 * NS  # the 7th pulse: the labels are settled
@@ -262,7 +272,19 @@ def test_a_2_s_stall_after_a_pulse_before_its_zda_labels_nothing_wrong_and_loses
 
         loop.call_at(stall_at / NS, stall)
         await asyncio.to_thread(run.wait, 30)
-        await asyncio.sleep(1.0)
+        # the emulators have ended: what they sent, all handled before the stop (the INS pty
+        # read to its end, closed by the emulator; every pulse it sent)
+        ins, edges = sup.devices["ins"], len(run.stats()["pps"]["stats"]["edges"])
+        await wait_until_async(
+            lambda: (
+                not ins.transport.connected
+                and ins.chunks == ins.transport.stats.records
+                and sup.timekeeper.status()["pulses"] >= edges
+            ),
+            10,
+            "the daemon to handle the INS bytes and pulses sent",
+            interval_s=0.02,
+        )
         out.update(
             second=second, stalls=stalls, clock=clock, stats=run.stop(), status=sup.timekeeper.status()
         )

@@ -23,6 +23,7 @@ from acquire.status.bus import read_snapshot
 from drivers.can import parse_can_frame
 from tests.acquire.daemon_util import MLS, ROOT, NotifyCollector, free_port
 from tests.acquire.fakedevices import FakeDevices, devices_yaml
+from tests.waiting import wait_until_async
 
 pytestmark = [pytest.mark.realtime, pytest.mark.integration, pytest.mark.xdist_group("daemon-fake")]
 NS = 1_000_000_000
@@ -114,13 +115,25 @@ def fake_run(tmp_path_factory):
             env={"NOTIFY_SOCKET": str(tmp / "notify.sock"), "WATCHDOG_USEC": "1000000"},
         )
         task = asyncio.create_task(sup.run())
-        while not notify.with_line("READY=1"):
-            assert not task.done(), task
-            await asyncio.sleep(0.02)
+        await wait_until_async(lambda: notify.with_line("READY=1") or task.done(), 30, "READY=1")
+        assert not task.done(), task
         fake.start()
         await asyncio.to_thread(fake.join, 30)
-        await asyncio.sleep(1.2)
-        out["snapshot"] = await asyncio.to_thread(read_snapshot, cfg.status.socket)
+
+        async def everything_handled():
+            """A status snapshot published after the daemon handled all the fakes sent: every
+            profile and INS epoch, the CAN markers through the taps."""
+            kinds = [k for k, _, _ in rec.items]
+            if kinds.count("nav") < len(fake.epochs) or kinds.count("profile") < len(fake.datagrams) // 3:
+                return None
+            if sum(k == "event" and r["event"] == "pass_end" for k, r, _ in rec.items) < 1:
+                return None
+            snap = await asyncio.to_thread(read_snapshot, cfg.status.socket)
+            return snap if snap["sensors/profiler"]["records"] == len(fake.datagrams) // 3 else None
+
+        out["snapshot"] = await wait_until_async(
+            everything_handled, 30, "the daemon to handle what the fake devices sent", interval_s=0.05
+        )
         out["health"] = sup.drivers_health()
         sup.request_stop("test")
         out["rc"] = await task
@@ -324,17 +337,26 @@ def test_an_absent_device_alarms_and_a_driver_bug_withholds_the_watchdog(tmp_pat
 
         ins.run = buggy_run
         task = asyncio.create_task(sup.run())
-        await asyncio.sleep(1.0)
+        await wait_until_async(  # a few watchdog rounds (every 0.2 s) with the devices up
+            lambda: len(notify.with_line("WATCHDOG=1")) >= 3 or task.done(), 30, "3 watchdog pings"
+        )
+        assert not task.done(), task
+        rounds: list[bool] = []  # the watchdog's rounds from here on: healthy (pinged) or not
+        beat = sup.watchdog.beat
+        sup.watchdog.beat = lambda: rounds.append(beat()) or rounds[-1]
         out["before"] = (
             sup.drivers_health(),
             sup.status_doc()["devices"],
             len(notify.with_line("WATCHDOG=1")),
         )
         bug.set()
-        await asyncio.sleep(0.3)
+        await wait_until_async(lambda: not sup.drivers_health()[0], 10, "the driver failure")
         out["during"] = (sup.drivers_health(), sup.status_doc()["devices"]["ins"])
-        n = len(notify.with_line("WATCHDOG=1"))
-        await asyncio.sleep(0.35)  # the device is reopened after 0.5 s: no ping meanwhile
+        n, k = len(notify.with_line("WATCHDOG=1")), len(rounds)
+        # two watchdog rounds while it stays failed (re-opened after 0.5 s, it fails again
+        # at once: the driver is never healthy in between): no ping in them
+        await wait_until_async(lambda: len(rounds) >= k + 2, 10, "two watchdog rounds")
+        out["rounds_while_failed"] = rounds[k:]
         out["pings_while_failed"] = len(notify.with_line("WATCHDOG=1")) - n
         out["alarms"] = {(a.name, a.device) for a in sup.alarms.active()}
         sup.request_stop("test")
@@ -348,7 +370,9 @@ def test_an_absent_device_alarms_and_a_driver_bug_withholds_the_watchdog(tmp_pat
     assert ok and devices == {"ins": "connected", "pps": "unavailable"} and pings >= 3
     (ok, why), state = out["during"]
     assert not ok and "ZeroDivisionError: division by zero in a driver" in why and state == "failed"
-    assert out["pings_while_failed"] == 0
+    assert out["pings_while_failed"] == 0 and out["rounds_while_failed"] == [False] * len(
+        out["rounds_while_failed"]
+    )
     assert any("unhealthy: drivers: ins: ZeroDivisionError" in m for _, m in notify.messages)
     assert {("driver_failed", "ins"), ("device_unavailable", "pps")} <= out["alarms"]
     assert out["rc"] == 0
@@ -375,8 +399,11 @@ def test_mqtt_commands_mark_passes_in_events_and_rotate_the_segment(tmp_path, mo
         task = asyncio.create_task(sup.run())
         async with aiomqtt.Client(mosquitto.host, mosquitto.port) as c:
             await c.subscribe("cmdtest/cmd-1/#", qos=1)
-            while not (sup.mqtt and sup.mqtt.connected and sup.mqtt.subscribed):
-                await asyncio.sleep(0.02)
+            await wait_until_async(
+                lambda: sup.mqtt and sup.mqtt.connected and sup.mqtt.subscribed,
+                20,
+                "the daemon's MQTT commands",
+            )
             for name, args in (
                 ("pass_start", {"pass_id": 2, "id": 7}),
                 ("mark", {"text": "buoy 4"}),

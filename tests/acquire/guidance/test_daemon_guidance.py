@@ -25,6 +25,7 @@ from acquire.status.bus import read_snapshot
 from calib.sim.simulate import simulate
 from tests.acquire.daemon_util import MLS, MqttCollector, free_port
 from tests.acquire.fakedevices import FakeDevices
+from tests.waiting import wait_until, wait_until_async
 
 NS = 1_000_000_000
 
@@ -245,9 +246,10 @@ def test_the_daemon_publishes_the_guidance_on_the_socket_and_mqtt(site_file, tmp
         consumer = guidance_consumer(cfg, sup)
         sup.consumers.append(consumer)
         task = asyncio.create_task(sup.run())
-        while sup.state != "running":
-            assert not task.done(), task
-            await asyncio.sleep(0.02)
+        await wait_until_async(
+            lambda: sup.state == "running" or task.done(), 30, "the daemon to run", interval_s=0.02
+        )
+        assert not task.done(), task
         fake.start()
         await asyncio.to_thread(fake.join, 30)
         out["snapshot"] = await asyncio.to_thread(read_snapshot, cfg.status.socket)
@@ -257,7 +259,14 @@ def test_the_daemon_publishes_the_guidance_on_the_socket_and_mqtt(site_file, tmp
 
     try:
         asyncio.run(asyncio.wait_for(scenario(), 60))
-        time.sleep(0.5)
+        # the daemon's last message on MQTT, after every checklist it published
+        wait_until(
+            lambda: any(
+                isinstance(m.data, dict) and m.data.get("state") == "stopped" for m in mqtt.topic("status")
+            ),
+            10,
+            "the final status on MQTT",
+        )
     finally:
         fake.close()
         mqtt.stop()

@@ -21,6 +21,7 @@ from calib.survey.passplan import PlannedPass, plan_site
 from drivers.hydrins.nav import NavRecord, status_words
 from drivers.zf.codec import Profile
 from tests.acquire.guidance_sim import adjust_simulated, nav_records, profiles, run_survey
+from tests.waiting import wait_until_async
 
 # -- the state machine on constructed tracks ------------------------------------------------------
 
@@ -319,12 +320,19 @@ def test_guidance_consumer_publishes_the_guidance_section(survey):
         for i in range(0, len(items), 500):
             for gps_ns, kind, rec in items[i : i + 500]:
                 tap.offer(kind, rec, gps_ns)
-            await asyncio.sleep(0.02)
-        for _ in range(500):
-            if g.sigma is not None and g.sigma.current.pass_ids == (1,):
-                break
-            await asyncio.sleep(0.02)
-        await asyncio.sleep(0.05)
+            n = 1 + min(i + 500, len(items))
+            await wait_until_async(lambda n=n: consumer.records >= n, 30, f"the consumer to take {n} records")
+        await wait_until_async(
+            lambda: g.sigma is not None and g.sigma.current.pass_ids == (1,), 10, "pass 1 in the estimate"
+        )
+
+        def published_passes():
+            sigma = published[-1][1]["guidance"].get("sigma") or {} if published else {}
+            return (sigma.get("current") or {}).get("passes")
+
+        await wait_until_async(  # and published
+            lambda: published_passes() == [1], 10, "the guidance message with pass 1 in the estimate"
+        )
         task.cancel()
         await asyncio.gather(task, return_exceptions=True)
 

@@ -21,6 +21,7 @@ from calib.survey.planexport import FORMAT, plan_geojson
 from cli.app import app
 from drivers.hydrins.nmea_decode import NmeaDecoder
 from drivers.hydrins.nmea_sentences import Sentence
+from tests.waiting import wait_until_async
 
 runner = CliRunner()
 
@@ -251,6 +252,7 @@ def test_follow_emits_sentences_for_the_daemons_vessel_and_active_pass(site, tmp
         task = asyncio.create_task(
             follow_daemon(tmp_path / "status.sock", plan, frame, None, out, "GP", 20.0)
         )
+        await wait_until_async(lambda: server.clients == 1, 10, "the follower to connect")
         for i, p in enumerate(positions):
             lat, lon, _ = frame.to_geodetic(p[None])
             msg = {
@@ -260,7 +262,11 @@ def test_follow_emits_sentences_for_the_daemons_vessel_and_active_pass(site, tmp
             }
             # the daemon publishes sections (presurvey, guidance); a bare message works too
             bus.publish("checklist", {"presurvey": {}, "guidance": msg} if i == 0 else msg)
-            await asyncio.sleep(0.2)
+            await wait_until_async(  # the XTE and APB of this position written
+                lambda i=i: out_path.exists() and out_path.read_bytes().count(b"\n") >= 2 * (i + 1),
+                10,
+                f"the sentences of position {i + 1}",
+            )
         task.cancel()
         await asyncio.gather(task, return_exceptions=True)
         out.close()

@@ -41,7 +41,8 @@ def _start_writer(root: Path, ledger: Path, flush_s: float, rotate_bytes: int):
     line = proc.stdout.readline() if ready else ""
     if not line.startswith("READY "):
         proc.kill()
-        raise AssertionError(f"writer process did not start: {line!r} {proc.stderr.read()}")
+        _, err = proc.communicate()
+        raise AssertionError(f"writer process did not start: {line!r} {err}")
     return proc, Path(line.split(maxsplit=1)[1].strip())
 
 
@@ -58,6 +59,8 @@ def test_kill_9_at_random_times_keeps_every_record_older_than_the_flush_period(t
         kill_ns = time.monotonic_ns()
         os.kill(proc.pid, signal.SIGKILL)
         proc.wait(10)
+        proc.stdout.close()  # type: ignore[union-attr]
+        proc.stderr.close()  # type: ignore[union-attr]
         assert proc.returncode == -signal.SIGKILL
 
         segs_before = segment_paths(session)

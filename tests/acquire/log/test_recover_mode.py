@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import os
 import stat
-import time
 from pathlib import Path
 
 import pytest
@@ -13,7 +12,7 @@ import pytest
 from acquire.log.recover import recover_segment, salvage_root, salvage_session, segment_paths
 from acquire.log.session import SessionOptions
 from acquire.log.sessionlog import SessionWriter
-from tests.acquire.logutil import payload
+from tests.acquire.logutil import payload, wait_flushed
 
 
 def _torn_session(root: Path, name: str, mode: int) -> Path:
@@ -22,7 +21,7 @@ def _torn_session(root: Path, name: str, mode: int) -> Path:
     sd = w.start()
     for i in range(1, 101):
         w.submit("/ins/raw", payload(i, 64), host_ns=i)
-    time.sleep(0.1)
+    wait_flushed(w, 100)
     w.close()
     data = segment_paths(sd)[0].read_bytes()
     d = root / name

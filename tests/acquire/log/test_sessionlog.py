@@ -8,7 +8,6 @@ import os
 import re
 import shutil
 import threading
-import time
 from pathlib import Path
 
 import pytest
@@ -34,7 +33,14 @@ from acquire.log.segments import SegmentIO
 from acquire.log.session import LogError, SessionOptions
 from acquire.log.sessionlog import SessionWriter
 from acquire.timing.clock import ClockState, GpsEstimate
-from tests.acquire.logutil import payload, read_session, wait_for
+from tests.acquire.logutil import (
+    FakeMonotonic,
+    payload,
+    read_session,
+    wait_flushed,
+    wait_for,
+    writer_caught_up,
+)
 
 NS = 1_000_000_000
 GPS_OFFSET_NS = 1_400_000_000 * NS
@@ -110,15 +116,22 @@ def test_round_trip_keeps_exact_bytes_times_sequence_and_clock_flags(tmp_path):
 
 
 def test_rotation_by_size_and_time_keeps_sequences_contiguous(tmp_path):
+    clock = FakeMonotonic()  # the writer's clock: time passes when the test says
     w = SessionWriter(
-        tmp_path, "v", SessionOptions(rotate_bytes=60_000, rotate_s=0.4, flush_s=0.1, compression="none")
+        tmp_path,
+        "v",
+        SessionOptions(rotate_bytes=60_000, rotate_s=0.4, flush_s=0.1, compression="none"),
+        monotonic_ns=clock,
     )
     sd = w.start()
     for i in range(400):
         w.submit("/lidar/raw", payload(i, 500), host_ns=NS + i * 1_000_000)
         if i % 100 == 0:
-            time.sleep(0.25)
-    time.sleep(0.5)  # an idle stretch longer than rotate_s: rotation by time
+            clock.advance(0.25)
+            wait_flushed(w, i + 1)  # the writer saw the time pass (a flush is due)
+    segments = w.stats().segments
+    clock.advance(0.5)  # an idle stretch longer than rotate_s: rotation by time
+    wait_for(lambda: w.stats().segments > segments, what="the rotation by time")
     w.submit("/status", {"state": "running"}, host_ns=2 * NS)
     w.close()
     info = session_info(sd)
@@ -133,11 +146,15 @@ def test_rotation_by_size_and_time_keeps_sequences_contiguous(tmp_path):
 
 
 def test_records_reach_the_file_within_the_flush_period(tmp_path):
-    w = SessionWriter(tmp_path, "v", SessionOptions(flush_s=0.3, fsync_s=5.0))
+    clock = FakeMonotonic()  # the writer's clock: the flush period passes when the test says
+    w = SessionWriter(tmp_path, "v", SessionOptions(flush_s=0.3, fsync_s=5.0), monotonic_ns=clock)
     sd = w.start()
     w.submit("/ins/raw", b"$PIXSE,HEAVE_,0.0,0.0,0.0*2A\r\n", host_ns=5)
-    time.sleep(0.3 + 0.15)  # flush period plus scheduling slack
     seg = segment_paths(sd)[0]
+    writer_caught_up(w, clock)  # a round of the writer since: the flush is not due, nothing in the file
+    assert [r for r in scan_segment(seg, SegmentScan(seg, 0)) if type(r).__name__ == "Message"] == []
+    clock.advance(0.3)  # the flush period
+    wait_flushed(w, 1)
     assert not segment_closed(seg)  # still open ...
     scan = SegmentScan(seg, 0)
     msgs = [r for r in scan_segment(seg, scan) if type(r).__name__ == "Message"]
@@ -205,13 +222,15 @@ def test_bad_topics_and_payloads_are_refused():
 
 def _segment_with_chunks(tmp_path) -> tuple[Path, list[int]]:
     """A complete segment of 5 chunks of 40 messages; returns it and each chunk's end offset."""
-    w = SessionWriter(tmp_path, "v", SessionOptions(flush_s=0.05, compression="lz4"))
+    clock = FakeMonotonic()  # frozen while a group is submitted: no flush in the middle of one
+    w = SessionWriter(tmp_path, "v", SessionOptions(flush_s=0.05, compression="lz4"), monotonic_ns=clock)
     sd = w.start()
     for c in range(5):
         for i in range(40):
             seq = c * 40 + i + 1
             w.submit("/ins/raw", payload(seq, 64), host_ns=seq)
-        time.sleep(0.1)  # one flush (one chunk) per group
+        clock.advance(0.05)
+        wait_flushed(w, 40 * (c + 1))  # one flush (one chunk) per group
     w.close()
     seg = segment_paths(sd)[0]
     ends = []
@@ -334,15 +353,12 @@ def test_a_hung_fsync_makes_the_writer_unhealthy(tmp_path):
     w.start()
     try:
         w.submit("/ins/raw", payload(1, 3000), host_ns=1)
-        deadline = time.monotonic() + 10
-        while w.health()[0] and time.monotonic() < deadline:
-            time.sleep(0.05)
+        wait_for(lambda: not w.health()[0], what="the writer to be unhealthy")
         ok, why = w.health()
         assert not ok and why.startswith("log writer stalled for")
     finally:
         release.set()
-    time.sleep(0.3)
-    assert w.health() == (True, "log writer ok")
+    wait_for(lambda: w.health() == (True, "log writer ok"), what="the writer to be healthy again")
     w.close()
 
 
@@ -397,7 +413,7 @@ def test_a_write_failure_counts_as_lost_exactly_the_records_the_segment_does_not
         "summary": lambda d, h, prev: prev == b"\x0f",  # the write that follows Data End
         "magic": lambda d, h, prev: d == MCAP0_MAGIC,
     }
-    now = [1_000 * NS]
+    now = FakeMonotonic(1_000 * NS)
     alarms = AlarmBook()
     chunk_bytes = 8_000 if where == "index_of_a_full_chunk" else 1024 * 1024
     w = SessionWriter(
@@ -406,7 +422,7 @@ def test_a_write_failure_counts_as_lost_exactly_the_records_the_segment_does_not
         SessionOptions(flush_s=1.0, fsync_s=1e6, retry_s=1.0, compression="none", chunk_bytes=chunk_bytes),
         alarms=alarms,
         io_factory=_OneFailure,
-        monotonic_ns=lambda: now[0],
+        monotonic_ns=now,
     )
     sd = w.start()
     _OneFailure.where = preds.get(where) or (lambda d, h, prev: h == bytes([op]))
@@ -418,12 +434,12 @@ def test_a_write_failure_counts_as_lost_exactly_the_records_the_segment_does_not
     wait_for(lambda: alarms.is_active("disk_write_failed", "log"), what="the failure")
     assert _OneFailure.fired and _OneFailure.fired[0][0] == "seg-000001.mcap"
     wait_for(lambda: w.stats().queue_depth == 0 and w.stats().state == "failed", what="drained")
-    time.sleep(0.2)
+    writer_caught_up(w, now)  # the last records taken are handled (counted lost, if they are)
     at_failure = sum(w.stats().lost.values())
     for i in range(n + 1, n + 6):  # while paused: lost, counted
         w.submit("/lidar/raw", payload(i, 500), host_ns=i)
     wait_for(lambda: sum(w.stats().lost.values()) == at_failure + 5, what="the paused records")
-    now[0] += 2 * NS  # the retry: a new segment
+    now.advance(2)  # the retry: a new segment
     wait_for(lambda: not alarms.is_active("disk_write_failed", "log"), what="writing to resume")
     for i in range(n + 6, n + 11):
         w.submit("/lidar/raw", payload(i, 500), host_ns=i)

@@ -9,7 +9,6 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from acquire.jobs.export import PassWindow
 from acquire.log.schema import dumps
 from acquire.status.commands import (
     COMMANDS,
@@ -21,6 +20,7 @@ from acquire.status.commands import (
     command_id,
     parse_command,
 )
+from office.jobs.export import PassWindow
 
 
 def refused(name: str, payload: bytes | str) -> str:

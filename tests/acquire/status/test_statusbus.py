@@ -18,6 +18,7 @@ from acquire.status.bus import (
     topic_policy,
 )
 from cli.app import app
+from tests.waiting import wait_until, wait_until_async
 
 pytestmark = pytest.mark.integration  # real Unix sockets
 
@@ -70,10 +71,7 @@ def test_clients_get_the_snapshot_then_live_lines(tmp_path):
 
 
 async def until(cond, timeout_s=5.0):
-    deadline = asyncio.get_running_loop().time() + timeout_s
-    while not cond():
-        assert asyncio.get_running_loop().time() < deadline, "timed out"
-        await asyncio.sleep(0.01)
+    await wait_until_async(cond, timeout_s, "the server's clients")
 
 
 def test_a_client_that_does_not_read_is_dropped_and_never_blocks_the_others(tmp_path):
@@ -137,6 +135,7 @@ class _ServerThread:
         asyncio.run_coroutine_threadsafe(self.server.close(), self.loop).result(5)
         self.loop.call_soon_threadsafe(self.loop.stop)
         self.thread.join(5)
+        self.loop.close()
 
 
 def test_mls_status_prints_the_snapshot_and_sets_the_exit_code(tmp_path):
@@ -215,18 +214,10 @@ def test_the_listener_waits_for_the_daemon_skips_garbage_and_reconnects(tmp_path
     """What mls demo follows the survey with: the latest message per topic, across a daemon
     restart; a line that is not a status message is skipped."""
     import socket
-    import time
 
     path = tmp_path / "status.sock"
     listener = StatusListener(path, retry_s=0.02)
     listener.start()
-
-    def until(cond):
-        deadline = time.monotonic() + 5
-        while not cond():
-            assert time.monotonic() < deadline, "timed out"
-            time.sleep(0.01)
-
     try:
         for state in ("running", "restarted"):
             srv = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
@@ -240,11 +231,13 @@ def test_the_listener_waits_for_the_daemon_skips_garbage_and_reconnects(tmp_path
                 + b'"}}\n{"topic": "clock", "data": {"state": "LO'
             )
             conn.sendall(b'CKED"}}\n')
-            until(
+            wait_until(
                 lambda state=state: (
                     (listener.latest("clock") or {}).get("state") == "LOCKED"
                     and listener.latest("status") == {"state": state}
-                )
+                ),
+                5,
+                f"the listener to have the {state} status",
             )
             srv.close()  # no longer listening: the listener's next connection reaches the next one
             conn.close()

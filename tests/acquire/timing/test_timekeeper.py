@@ -16,7 +16,8 @@ from acquire.timing.timekeeper import ClockCache, TimeKeeper, coarse_gps_offset_
 from drivers.base import DriverError
 from drivers.can import can_frame_bytes, parse_can_frame
 from drivers.pps import PpsEdge
-from tests.drivers.helpers import fake_host_clock
+from tests.drivers.helpers import fake_host_clock, step_host_clock
+from tests.waiting import wait_until_async
 
 NS = 1_000_000_000
 H0 = 5_000 * NS  # host monotonic of the first pulse
@@ -89,7 +90,7 @@ def test_log_batcher_keeps_the_order_stamps_the_clock_and_hands_over_in_batches(
         for i in range(120):
             b.submit("/lidar/raw" if i % 2 else "/ins/raw", bytes([i]), host_ns=H0 + i, device_ns=i or None)
         assert [len(x) for x in batches] == [50, 50]  # two full batches handed over at once
-        await asyncio.sleep(0.05)  # the rest after the period
+        await wait_until_async(lambda: len(batches) == 3, 10, "the rest after the period")
 
     asyncio.run(run())
     assert [len(x) for x in batches] == [50, 50, 20]
@@ -187,13 +188,14 @@ def test_leap_table_stale_past_the_expiry_and_a_mismatching_announced_gps_minus_
 def test_a_step_of_the_host_clock_raises_host_clock_step_and_refreshes_the_seed(tmp_path):
     alarms = AlarmBook()
     now = time.monotonic_ns()
-    with fake_host_clock(tmp_path / "host_clock", [(now + 20_000_000, 5 * NS)]):
+    path = tmp_path / "host_clock"
+    with fake_host_clock(path, []):
         clock = ClockModel(coarse_offset_ns=coarse_gps_offset_ns())
         tk = TimeKeeper(clock, alarms=alarms)
         seed = clock.coarse_offset_ns
         tk.tick(now)
         assert not alarms.is_active("host_clock_step", "clock")
-        time.sleep(0.03)
+        step_host_clock(path, time.monotonic_ns(), 5 * NS)  # the step, made now
         tk.tick(now + 250_000_000)
         a = alarms.get("host_clock_step", "clock")
         assert a.active and "the host's realtime clock stepped by +5.000 s" in a.message
@@ -207,20 +209,19 @@ def test_a_few_milliseconds_step_is_counted_and_followed_without_an_alarm(tmp_pa
     the seed follows it, the metrics count it, nobody is alarmed; a 10-ms step alarms."""
     alarms = AlarmBook()
     now = time.monotonic_ns()
-    with fake_host_clock(
-        tmp_path / "host_clock", [(now + 20_000_000, 3_000_000), (now + 60_000_000, 12_000_000)]
-    ):
+    path = tmp_path / "host_clock"
+    with fake_host_clock(path, []):
         clock = ClockModel(coarse_offset_ns=coarse_gps_offset_ns())
         tk = TimeKeeper(clock, alarms=alarms)
         seed, before = clock.coarse_offset_ns, tk.status()
         tk.tick(now)
-        time.sleep(0.03)
+        step_host_clock(path, time.monotonic_ns(), 3_000_000)  # each step made when the test says
         tk.tick(now + 250_000_000)
         assert not alarms.is_active("host_clock_step", "clock")
         assert abs(clock.coarse_offset_ns - seed - 3_000_000) < 1_000_000
         assert tk.status()["host_clock_steps"] == before["host_clock_steps"] + 1
         assert tk.status()["host_clock_steps_alarmed"] == before["host_clock_steps_alarmed"]
-        time.sleep(0.04)
+        step_host_clock(path, time.monotonic_ns(), 12_000_000)
         tk.tick(now + 500_000_000)
         a = alarms.get("host_clock_step", "clock")
         after = tk.status()

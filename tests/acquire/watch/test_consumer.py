@@ -33,6 +33,7 @@ from tests.acquire.watch.records import (
     profile_stream,
     track,
 )
+from tests.waiting import wait_until_async
 
 FRAME = frames.LocalFrame(45.5, -73.55, 0.0)
 
@@ -105,8 +106,7 @@ def _play(consumer: MountWatchConsumer, items, checklist) -> None:
     async def tap():
         for item in items:
             yield item
-            while busy():
-                await asyncio.sleep(0.005)
+            await wait_until_async(lambda: not busy(), 120, "the block solve", interval_s=0.005)
 
     asyncio.run(asyncio.wait_for(consumer.run(tap(), checklist), 120))
 

@@ -8,6 +8,7 @@ import os
 import re
 import threading
 import time
+from pathlib import Path
 
 import numpy as np
 
@@ -17,6 +18,7 @@ from acquire.watch.solver import BlockSolver
 from calib.boresight.errormodel import ErrorModel
 from calib.core import frames
 from calib.core.georef import Mount
+from tests.waiting import wait_until
 
 MODEL = WatchModel(
     mount=Mount(np.zeros(3), np.zeros(3), np.zeros(3)),
@@ -59,27 +61,40 @@ def test_a_block_is_solved_in_another_process_and_a_dead_worker_fails_only_its_b
     assert solver._proc is None
 
 
+def _a_long_solve(flag: str) -> None:
+    """In the worker: says it has begun (``flag``), then keeps it busy for a minute; ``flag``.done
+    if it ever ends."""
+    Path(flag).write_text("busy")
+    time.sleep(60)  # the long solve itself
+    Path(flag + ".done").write_text("done")
+
+
 class _Sleeps:
     """Unpickled in the worker, it keeps it busy for a minute (a long solve)."""
 
+    def __init__(self, flag: Path):
+        self.flag = str(flag)
+
     def __reduce__(self):
-        return (time.sleep, (60,))
+        return (_a_long_solve, (self.flag,))
 
 
-def test_close_ends_the_worker_at_once_and_the_waiting_block_fails():
+def test_close_ends_the_worker_at_once_and_the_waiting_block_fails(tmp_path):
     solver = BlockSolver()
     solver.start()
     proc = solver._proc
     out: list = []
+    flag = tmp_path / "solving"
     waiting = threading.Thread(
-        target=lambda: out.append(solver.solve_blocking(BlockJob(LINES, [_Sleeps()], []), MODEL))
+        target=lambda: out.append(solver.solve_blocking(BlockJob(LINES, [_Sleeps(flag)], []), MODEL))
     )
     waiting.start()
-    time.sleep(0.5)
-    t0 = time.monotonic()
+    wait_until(flag.exists, 60, "the worker to begin the long solve")
     solver.close()
     waiting.join(10)
-    assert time.monotonic() - t0 < 5 and not proc.is_alive() and proc.exitcode == -9
+    assert not waiting.is_alive() and not proc.is_alive() and proc.exitcode == -9
+    # at once: killed in the middle of the solve, not waited for (that would take a minute)
+    assert not Path(f"{flag}.done").exists()
     assert out and out[0].status.startswith("failed (the solver process ended, exit code -9"), out
     # a later block starts a new worker (a consumer restarted by the supervisor)
     out = solver.solve_blocking(BlockJob(LINES, [], []), MODEL)

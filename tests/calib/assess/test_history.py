@@ -7,6 +7,7 @@ import copy
 import datetime as dt
 import json
 import sqlite3
+from contextlib import closing
 
 import numpy as np
 import pytest
@@ -172,7 +173,7 @@ def test_record_list_and_reruns(tmp_path, db):
     assert jul.boresight_deg == {"roll": 0.208, "pitch": 1.245, "yaw": 0.149}
     assert jul.result == r_jul and jul.n_points == 1300 and jul.sigma0_squared == 1.21
     assert jul.bundle_fingerprint == bundle_fingerprint(b_jul)
-    with sqlite3.connect(db) as con:  # plain columns for anyone reading the database directly
+    with closing(sqlite3.connect(db)) as con:  # plain columns for anyone reading the database directly
         row = con.execute(
             "SELECT pitch_deg, sigma_pitch_deg, sigma_scaled_pitch_deg, "
             "sigma_realistic_pitch_deg, correlation_json FROM calibrations "
@@ -221,7 +222,7 @@ def test_database_location_and_bad_databases(tmp_path, monkeypatch):
     (tmp_path / "junk.sqlite").write_bytes(b"this is not a database" * 100)
     with pytest.raises(HistoryError, match="junk.sqlite: not a usable history database"):
         list_results(db=tmp_path / "junk.sqlite")
-    with sqlite3.connect(tmp_path / "new.sqlite") as con:
+    with closing(sqlite3.connect(tmp_path / "new.sqlite")) as con:  # (a PRAGMA needs no commit)
         con.execute("PRAGMA user_version = 99")
     with pytest.raises(HistoryError, match="schema version 99 is newer"):
         list_results(db=tmp_path / "new.sqlite")

@@ -26,12 +26,12 @@ def test_a_billion_laughs_site_yaml_fails_within_a_second_while_a_few_aliases_wo
     assert root.plain() == {"a": [1, 2], "b": [[1, 2], [1, 2]]}
     path = tmp_path / "site.yaml"
     path.write_text(billion_laughs())
-    t0 = time.perf_counter()
+    t0 = time.thread_time()  # CPU time of this thread: the loader's work, not the machine's load
     with pytest.raises(
         ConfigError, match=r"site\.yaml: more than 100,000 values once its aliases are expanded"
     ):
         load_site(path)
-    assert time.perf_counter() - t0 < 1.0
+    assert time.thread_time() - t0 < 1.0
 
 
 @pytest.mark.parametrize(
@@ -52,10 +52,10 @@ def test_a_billion_laughs_site_yaml_fails_within_a_second_while_a_few_aliases_wo
     ],
 )
 def test_aliases_nesting_and_keys_are_bounded(text, message):
-    t0 = time.perf_counter()
+    t0 = time.thread_time()  # CPU time of this thread: the loader's work, not the machine's load
     with pytest.raises(ConfigError, match=message):
         load_yaml(text, source="cfg.yaml")
-    assert time.perf_counter() - t0 < 1.0
+    assert time.thread_time() - t0 < 1.0
 
 
 def test_size_directory_and_unreadable_files_are_one_line(tmp_path):

@@ -37,6 +37,15 @@ def hold(directory: Path) -> subprocess.Popen:
     return p
 
 
+def release(p: subprocess.Popen) -> int:
+    """End a :func:`hold`: close its stdin, wait for it to exit (its status), close its pipes."""
+    p.stdin.close()  # type: ignore[union-attr]
+    try:
+        return p.wait(30)
+    finally:
+        p.stdout.close()  # type: ignore[union-attr]
+
+
 def test_a_second_writer_is_refused_naming_the_holder_even_forced(tmp_path):
     out = tmp_path / "out"
     out.mkdir()
@@ -51,8 +60,7 @@ def test_a_second_writer_is_refused_naming_the_holder_even_forced(tmp_path):
         record = json.loads((out / LOCK_NAME).read_text())
         assert record["pid"] == other.pid and record["command"] == "mls design --out x"
     finally:
-        other.stdin.close()  # type: ignore[union-attr]
-        assert other.wait(30) == 0
+        assert release(other) == 0
     with lock_output_dir(out, "--out"):  # released with its holder; the lock is no content
         assert (out / LOCK_NAME).exists()
     assert not (out / LOCK_NAME).exists()
@@ -63,7 +71,7 @@ def test_a_killed_holder_leaves_a_lock_that_is_taken_over(tmp_path):
     out.mkdir()
     other = hold(out)
     other.kill()
-    other.wait()
+    release(other)
     assert json.loads((out / LOCK_NAME).read_text())["pid"] == other.pid  # left behind
     check_output_dir(out, "--out")  # not content: no --force needed
     lock = lock_output_dir(out, "--out")

@@ -1,46 +1,57 @@
 """``mls watch`` says when the calibration it tests against is not trusted (result.json's
-``verdict``; an older result has none)."""
+``verdict``; an older result has none): the verdict line from the calibration's provenance,
+written by the report itself under the watch's own verdict."""
 
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
-from calib.watch.report import OLDER_CALIBRATION, add_calibration_verdict, calibration_verdict
+import numpy as np
 
+from calib.io.site import load_site
+from calib.watch.report import OLDER_CALIBRATION, _calibration_lines, calibration_verdict
+from office.deliver.calibration import load_calibration
 
-def test_a_trusted_calibration_is_named_without_a_warning():
-    line, warning = calibration_verdict({"verdict": "trusted", "verdict_reasons": []})
-    assert line == "calibration verdict: trusted" and warning is None
-
-
-def test_a_questionable_or_refused_calibration_warns_with_its_reasons():
-    line, warning = calibration_verdict({"verdict": "refused", "verdict_reasons": ["χ² 3.1", "lost T2"]})
-    assert line == "calibration verdict: refused (χ² 3.1; lost T2)"
-    assert warning is not None and warning.startswith("the calibration is refused (χ² 3.1; lost T2)")
+SITE = Path(__file__).resolve().parents[3] / "examples" / "montreal-mini" / "site.yaml"
 
 
-def test_an_older_result_has_no_verdict_and_no_calibration_has_no_line():
-    line, warning = calibration_verdict({"boresight_deg": {}})
-    assert line == f"calibration verdict: {OLDER_CALIBRATION}" and "older calibration" in str(warning)
-    assert calibration_verdict(None) == (None, None)
+def provenance(tmp_path, **result) -> tuple[dict, str | None]:
+    """The provenance and untrusted warning of a result.json with these fields."""
+    sigma = {"roll": 0.01, "pitch": 0.01, "yaw": 0.02}
+    doc = {
+        "boresight_deg": {"roll": 0.1, "pitch": 0.2, "yaw": 0.3},
+        **{k: sigma for k in ("sigma_deg", "sigma_scaled_deg", "sigma_realistic_deg")},
+        "correlation": np.eye(3).tolist(),
+        "sigma0_squared": 1.0,
+        "n_points": 1000,
+        "software_version": "test",
+        **result,
+    }
+    (tmp_path / "result.json").write_text(json.dumps(doc))
+    cal = load_calibration(load_site(SITE), str(tmp_path / "result.json"), "test")
+    return cal.provenance, cal.untrusted
 
 
-def test_the_verdict_goes_under_the_watchs_own_in_watch_md_and_into_watch_json(tmp_path):
-    (tmp_path / "watch.md").write_text("# Mount watch\n\n**mount steady**\n\n- source: `x`\n")
-    (tmp_path / "watch.json").write_text(json.dumps({"verdict": "mount steady"}))
-    add_calibration_verdict(
-        tmp_path, "calibration verdict: questionable (x)", "the calibration is questionable"
-    )
-    md = (tmp_path / "watch.md").read_text().split("\n")
-    assert md[:7] == [
-        "# Mount watch",
-        "",
-        "**mount steady**",
-        "",
-        "> **Warning:** the calibration is questionable",
-        "",
-        "- calibration verdict: questionable (x)",
-    ]
-    doc = json.loads((tmp_path / "watch.json").read_text())
-    assert doc["calibration_verdict"] == "calibration verdict: questionable (x)"
-    assert doc["calibration_warning"] == "the calibration is questionable"
+def test_a_trusted_calibration_is_named_without_a_warning(tmp_path):
+    prov, warning = provenance(tmp_path, verdict="trusted", verdict_reasons=[])
+    assert calibration_verdict(prov) == "calibration verdict: trusted" and warning is None
+
+
+def test_a_questionable_or_refused_calibration_warns_with_its_reasons(tmp_path):
+    prov, warning = provenance(tmp_path, verdict="refused", verdict_reasons=["χ² 3.1", "lost T2"])
+    assert calibration_verdict(prov) == "calibration verdict: refused (χ² 3.1; lost T2)"
+    assert warning is not None and "REFUSED: χ² 3.1; lost T2" in warning
+
+
+def test_an_older_result_has_no_verdict_and_no_calibration_has_no_line(tmp_path):
+    prov, warning = provenance(tmp_path)
+    assert calibration_verdict(prov) == f"calibration verdict: {OLDER_CALIBRATION}"
+    assert "no verdict" in str(warning)
+    assert calibration_verdict({"calibration": None}) is None
+
+
+def test_the_verdict_goes_under_the_watchs_own_with_its_warning_first():
+    meta = {"calibration_verdict": "calibration verdict: questionable (x)", "calibration_warning": "w"}
+    assert _calibration_lines(meta) == ["> **Warning:** w", "", "- calibration verdict: questionable (x)"]
+    assert _calibration_lines({"calibration_verdict": None, "calibration_warning": None}) == []

@@ -14,6 +14,7 @@ from drivers.base import DriverError
 from drivers.transport.base import Chunk
 from drivers.transport.registry import TRANSPORTS, create_transport
 from drivers.transport.serial_port import SerialTransport
+from tests.waiting import wait_until_async
 
 pytestmark = pytest.mark.integration
 
@@ -61,16 +62,6 @@ def test_registry_has_the_three_kinds_and_names_bad_configs():
         create_transport({"kind": "udp", "prot": 1})
 
 
-async def until(condition, timeout_s: float = 10.0) -> bool:
-    """Poll ``condition`` until it holds or the deadline passes (generous: CI is loaded)."""
-    deadline = time.monotonic() + timeout_s
-    while not condition():
-        if time.monotonic() > deadline:
-            return False
-        await asyncio.sleep(0.01)
-    return True
-
-
 def test_serial_pty_bytes_are_stamped_and_survive_unplug_replug(tmp_path):
     pty = Pty(tmp_path / "ins")
     events = []
@@ -92,10 +83,12 @@ def test_serial_pty_bytes_are_stamped_and_survive_unplug_replug(tmp_path):
             pty.write(b"$HEHDT,1.0,T*00\r\n")
             first = await read_until(t, 17)
             pty.unplug()  # the emulator closes the pty: the slave reads EIO
-            assert await until(lambda: not t.connected), "unplug not noticed within 10 s"
-            await asyncio.sleep(0.15)  # a few reconnect attempts fail: the old pty is gone
+            await wait_until_async(lambda: not t.connected, 10, "the unplug to be noticed")
+            await wait_until_async(  # reconnect attempts fail: the old pty is gone
+                lambda: any(e.kind == "reconnect_failed" for e in events), 10, "a failed reconnect attempt"
+            )
             pty.plug()  # a new pty behind the same symlink
-            assert await until(lambda: t.connected), "no reconnect within 10 s"
+            await wait_until_async(lambda: t.connected, 10, "the reconnection")
             assert t.reconnects == 1
             pty.write(b"after replug\n")
             second = await read_until(t, 13)
@@ -120,7 +113,7 @@ def test_serial_port_missing_at_start_is_reported_then_opened(tmp_path):
         async with t:
             assert not t.connected
             pty = Pty(link)
-            assert await until(lambda: t.connected), "port not opened within 10 s"
+            await wait_until_async(lambda: t.connected, 10, "the port to be opened")
             pty.write(b"hello")
             (chunk,) = await read_until(t, 5)
             pty.unplug()
@@ -131,18 +124,25 @@ def test_serial_port_missing_at_start_is_reported_then_opened(tmp_path):
     assert events[-1].kind == "connected"
 
 
+@pytest.mark.realtime  # the bound: reconnect_max_s (0.5 s) of a serial port, plus 0.25 s of a loaded machine's slack
 def test_serial_port_that_appears_late_is_opened_within_half_a_second(tmp_path):
     """The default back-off of a serial port stops doubling at 0.5 s: an INS that shows up after
     a few seconds (the emulator starting, a USB adapter plugged in) is read at once."""
     link = tmp_path / "late"
+    events = []
 
     async def run():
-        t = SerialTransport(str(link))
+        t = SerialTransport(str(link), on_event=events.append)
         async with t:
-            await asyncio.sleep(4.0)  # 0.1 + 0.2 + 0.4 + 0.5 …: past where a 5 s cap would wait
+            # ten failed attempts (0.1 + 0.2 + 0.4 + 0.5 … s): past where a 5 s cap would wait
+            await wait_until_async(
+                lambda: any(e.kind == "reconnect_failed" and "attempt 10:" in e.detail for e in events),
+                60,
+                "the 10th failed attempt to open the missing port",
+            )
             pty = Pty(link)
             t0 = time.monotonic()
-            assert await until(lambda: t.connected), "port not opened within 10 s"
+            await wait_until_async(lambda: t.connected, 10, "the port to be opened")
             waited_s = time.monotonic() - t0
             pty.unplug()
             return waited_s
@@ -159,8 +159,13 @@ def test_serial_slow_consumer_pauses_reading_without_losing_bytes(tmp_path):
             payload = bytes(range(256)) * 64  # 16 KiB in many small writes
             for i in range(0, len(payload), 256):
                 pty.write(payload[i : i + 256])
-                await asyncio.sleep(0)
-            await asyncio.sleep(0.1)
+                await asyncio.sleep(0)  # (a turn of the loop: the reader's chunks reach the queue)
+            reader = t._reader
+            await wait_until_async(  # the reader stops at 4 chunks waiting (unless it has read it all)
+                lambda: not reader._room.is_set() or t.stats.bytes_in == len(payload),
+                10,
+                "the reader to pause",
+            )
             assert len(t._chunks) <= 5  # paused: the rest waits in the kernel
             chunks = await read_until(t, len(payload))
             return payload, b"".join(c.data for c in chunks)
@@ -170,6 +175,7 @@ def test_serial_slow_consumer_pauses_reading_without_losing_bytes(tmp_path):
     pty.unplug()
 
 
+@pytest.mark.realtime  # the reader thread must drain a pty of a few kB within milliseconds while the loop is held
 def test_serial_bytes_are_read_and_stamped_while_the_event_loop_is_busy(tmp_path):
     """The port's reader thread: an event loop held for 0.5 s (a long burst of profiler
     datagrams, the log writer holding the GIL) delays the decoding of serial bytes, not their
@@ -191,7 +197,7 @@ def test_serial_bytes_are_read_and_stamped_while_the_event_loop_is_busy(tmp_path
                 else:
                     writes.append(piece[:n])
                     refused += n < len(piece)
-                time.sleep(0.001)
+                time.sleep(0.001)  # the device's pace: 100 bytes a millisecond
             free_ns = time.monotonic_ns()
             chunks = await read_until(t, sum(map(len, writes)))
             return writes, refused, free_ns, chunks
@@ -235,7 +241,7 @@ def test_a_udp_port_in_use_is_the_last_error_until_it_is_freed():
         async with t:
             seen = (t.connected, t.last_error)
             other.close()
-            assert await until(lambda: t.connected), "the freed port was not bound within 10 s"
+            await wait_until_async(lambda: t.connected, 10, "the freed port to be bound")
             return seen, t.last_error
 
     try:
@@ -254,10 +260,10 @@ def test_a_missing_serial_path_is_the_last_error_until_it_appears(tmp_path):
         async with t:
             seen = t.last_error
             pty = Pty(link)
-            assert await until(lambda: t.connected), "port not opened within 10 s"
+            await wait_until_async(lambda: t.connected, 10, "the port to be opened")
             after = t.last_error
             pty.unplug()
-            assert await until(lambda: not t.connected), "the unplug was not seen within 10 s"
+            await wait_until_async(lambda: not t.connected, 10, "the unplug to be seen")
             return seen, after, t.last_error
 
     seen, after, unplugged = asyncio.run(run())
@@ -272,7 +278,9 @@ def test_udp_drops_and_counts_when_the_consumer_lags():
             tx = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
             for _ in range(30):
                 tx.sendto(b"x", ("127.0.0.1", t.port))
-            await asyncio.sleep(0.2)
+            await wait_until_async(  # every datagram handled: queued or dropped
+                lambda: t.stats.records + t.stats.events["dropped_datagrams"] == 30, 10, "the 30 datagrams"
+            )
             tx.close()
             return t.stats
 
@@ -301,6 +309,9 @@ def test_tcp_client_reconnects_after_the_server_drops_it():
             first = await read_until(t, 6)
             conns[0].close()
             second = await read_until(t, 6)
+        for w in conns:  # (the server's side of each connection: closed, not left to the collector)
+            w.close()
+            await w.wait_closed()
         server.close()
         await server.wait_closed()
         return first, second, t.reconnects

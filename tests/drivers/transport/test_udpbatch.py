@@ -11,7 +11,14 @@ import pytest
 
 from drivers.transport import recvmmsg
 from drivers.transport.registry import create_transport
-from tests.drivers.helpers import fake_host_clock
+from tests.drivers.helpers import (
+    fake_host_clock,
+    queued_bytes,
+    send_each_arrived,
+    step_host_clock,
+    wait_for_kernel_rx_stamps,
+)
+from tests.waiting import wait_until, wait_until_async
 
 pytestmark = pytest.mark.integration
 
@@ -44,11 +51,11 @@ def test_bursts_arrive_complete_in_order_with_kernel_stamps_and_a_lagging_reader
         await t.open()
         assert (t._mmsg is not None) == use_recvmmsg
         assert t.kernel_stamps and "kernel receive stamps" in t.describe()
-        await asyncio.sleep(0.1)  # the kernel turns receive stamping on asynchronously
+        wait_for_kernel_rx_stamps()  # the kernel turns receive stamping on asynchronously
         payloads = [i.to_bytes(4, "little") * 300 for i in range(3000)]  # 1.2 kB each
         t0, t1 = await _send(t.port, payloads)
-        await asyncio.sleep(0.2)  # the reader has paused at 64 waiting datagrams
-        assert len(t._chunks) == 64
+        await wait_until_async(lambda: t._paused, 10, "the reader to pause")
+        assert len(t._chunks) == 64  # paused at 64 waiting datagrams
         got = []
         while len(got) < len(payloads):
             got.append(await asyncio.wait_for(t.read(), 5))
@@ -78,13 +85,11 @@ def test_recvmmsg_counts_a_datagram_larger_than_its_slot_and_reads_on():
     m = recvmmsg.MmsgReceiver(rx, slots=4, max_datagram=1000)
     with pytest.raises(BlockingIOError):
         m.receive()
-    time.sleep(0.1)  # the kernel turns receive stamping on asynchronously
+    wait_for_kernel_rx_stamps()  # the kernel turns receive stamping on asynchronously
     tx = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
     t0 = time.time_ns()
-    for p in (b"a" * 10, b"b" * 1500, b"c" * 1000, b"d", b"e" * 7, b"f"):
-        tx.sendto(p, rx.getsockname())
+    send_each_arrived(tx, rx, (b"a" * 10, b"b" * 1500, b"c" * 1000, b"d", b"e" * 7, b"f"))
     t1 = time.time_ns()
-    time.sleep(0.05)
     first = m.receive()
     second = m.receive(limit=1)
     third = m.receive()
@@ -100,34 +105,52 @@ def test_recvmmsg_counts_a_datagram_larger_than_its_slot_and_reads_on():
 def test_a_realtime_step_while_datagrams_wait_moves_no_stamp(tmp_path, step_s):
     """The host's realtime clock steps (NTP) while the loop is blocked: the datagrams that
     arrived before the step are read after it. Their kernel stamps are still converted to their
-    arrival times (the fake host clock of the simulated devices stands in for the step)."""
+    arrival times (the fake host clock of the simulated devices stands in for the step).
 
-    async def run(t0: int):
+    The datagrams come one at a time, each known to have arrived (or to have been read) before
+    the next: 10 read before the step; then, the loop held, 10 arrived before the step, the step,
+    5 after it; 5 more once the loop reads again. Each stamp must lie between its send and its
+    arrival seen (or its read): never a step away."""
+    path = tmp_path / "host_clock"
+
+    async def run():
         t = create_transport({"kind": "udp-batch", "host": "127.0.0.1", "port": 0, "coalesce_s": 0.005})
         await t.open()
-        await asyncio.sleep(max(t0 - time.monotonic_ns(), 0) / 1e9)  # stamping on meanwhile
-        sent: list[int] = []
+        wait_for_kernel_rx_stamps()
+        tx = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        to = ("127.0.0.1", t.port)
+        bounds: list[tuple[int, int]] = []
+        got = []
 
-        def sender():
-            s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-            for k in range(30):
-                time.sleep(max(t0 + k * 10_000_000 - time.monotonic_ns(), 0) / 1e9)
-                sent.append(time.monotonic_ns())
-                s.sendto(k.to_bytes(4, "little"), ("127.0.0.1", t.port))
-            s.close()
+        async def one_read(k: int) -> None:  # the loop reads it: arrival before the read
+            t0 = time.monotonic_ns()
+            tx.sendto(k.to_bytes(4, "little"), to)
+            got.append(await asyncio.wait_for(t.read(), 5))
+            bounds.append((t0, time.monotonic_ns()))
 
-        loop = asyncio.get_running_loop()
-        loop.call_later(0.08, time.sleep, 0.12)  # the loop stalls across the step (at 0.15 s)
-        send = asyncio.create_task(asyncio.to_thread(sender))
-        got = [await asyncio.wait_for(t.read(), 5) for _ in range(30)]
-        await send
+        for k in range(10):
+            await one_read(k)
+        # the loop held (no await) from here to the reads below: the socket's queue fills
+        held = [k.to_bytes(4, "little") for k in range(10, 20)]
+        bounds += send_each_arrived(tx, t._sock, held, to)
+        at = time.monotonic_ns() + 2_000_000  # the step, 2 ms after the last arrival ...
+        step_host_clock(path, at, round(step_s * 1e9))
+        wait_until(lambda: time.monotonic_ns() > at + 2_000_000, 5, "2 ms past the step")
+        bounds += send_each_arrived(tx, t._sock, [k.to_bytes(4, "little") for k in range(20, 25)], to)
+        assert queued_bytes(t._sock) > 0  # ... and 2 ms before the next arrival; all still unread
+        got += [await asyncio.wait_for(t.read(), 5) for _ in range(15)]
+        for k in range(25, 30):
+            await one_read(k)
+        tx.close()
         await t.close()
-        return sent, got, t.stamps
+        return bounds, got, t.stamps
 
-    t0 = time.monotonic_ns() + 200_000_000
-    with fake_host_clock(tmp_path / "host_clock", [(t0 + 150_000_000, round(step_s * 1e9))]):
-        sent, got, stamps = asyncio.run(run(t0))
+    with fake_host_clock(path, []):
+        bounds, got, stamps = asyncio.run(run())
     assert [int.from_bytes(d, "little") for d, _ in got] == list(range(30))
-    errors = [h - s for s, (_, h) in zip(sent, got)]
-    assert max(abs(e) for e in errors) < 3_000_000, errors  # at arrival, none a step away
-    assert stamps.steps == 1 and stamps.repaired >= 3 and stamps.unknown == 0
+    # at arrival (1 ms: the offset's reads), none a step away
+    off = [
+        (h - lo, hi - h) for (lo, hi), (_, h) in zip(bounds, got) if not lo - 1_000_000 <= h <= hi + 1_000_000
+    ]
+    assert not off, off
+    assert stamps.steps == 1 and stamps.repaired == 10 and stamps.unknown == 0

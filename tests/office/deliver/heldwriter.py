@@ -1,6 +1,6 @@
 """A ``mls georef`` writer that holds its output directory until told to go on (not a test module).
 
-``python -m tests.acquire.deliver.heldwriter BUNDLE OUT STARTED_FD GO_FD`` runs :func:`run_georef`
+``python -m tests.office.deliver.heldwriter BUNDLE OUT STARTED_FD GO_FD`` runs :func:`run_georef`
 in this process; once the job is planned (its lock taken, its plan written) it writes a byte to
 the pipe ``STARTED_FD`` and blocks on the pipe ``GO_FD`` (60 s at most) before it runs its first
 task: the test and the writer wait on each other, never on the clock."""
@@ -11,9 +11,9 @@ import os
 import select
 import sys
 
-from acquire.deliver.engine import run_georef
-from acquire.deliver.executors import InProcess
-from acquire.deliver.options import GeorefOptions
+from office.deliver.engine import run_georef
+from office.deliver.executors import InProcess
+from office.deliver.options import GeorefOptions
 
 
 class HeldUntilGo(InProcess):

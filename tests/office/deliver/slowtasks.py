@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import time
 
-from acquire.deliver.chunkjob import ChunkDone, ChunkTask, process_chunk
+from office.deliver.chunkjob import ChunkDone, ChunkTask, process_chunk
 
 
 def slow_process_chunk(task: ChunkTask) -> ChunkDone:

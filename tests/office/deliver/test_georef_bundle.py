@@ -11,15 +11,15 @@ import numpy as np
 import pytest
 from typer.testing import CliRunner
 
-from acquire.deliver.engine import run_georef
-from acquire.deliver.executors import InProcess
-from acquire.deliver.options import Filters, GeorefError, GeorefOptions
 from calib.core import frames
 from calib.core.georef import georeference
 from calib.io.bundle import read_bundle
 from calib.io.lastile import read_provenance
 from calib.io.laz import output_crs
 from cli.app import app
+from office.deliver.engine import run_georef
+from office.deliver.executors import InProcess
+from office.deliver.options import Filters, GeorefError, GeorefOptions
 
 runner = CliRunner()
 
@@ -192,7 +192,7 @@ def test_a_killed_job_resumes_and_writes_the_same_bytes(bundle, tmp_path, stage)
 
 
 def test_a_tile_interrupted_while_written_leaves_no_file(bundle, tmp_path, monkeypatch):
-    import acquire.deliver.tiles as tiles_mod
+    import office.deliver.tiles as tiles_mod
 
     real = np.load
     calls = {"n": 0}

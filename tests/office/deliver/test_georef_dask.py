@@ -10,11 +10,11 @@ from pathlib import Path
 
 import pytest
 
-from acquire.deliver.chunkjob import process_chunk
-from acquire.deliver.engine import run_georef
-from acquire.deliver.executors import DaskExecutor
-from acquire.deliver.options import GeorefOptions
-from tests.acquire.deliver.slowtasks import slow_process_chunk
+from office.deliver.chunkjob import process_chunk
+from office.deliver.engine import run_georef
+from office.deliver.executors import DaskExecutor
+from office.deliver.options import GeorefOptions
+from tests.office.deliver.slowtasks import slow_process_chunk
 
 pytestmark = [pytest.mark.integration]
 
@@ -75,7 +75,7 @@ def test_mls_georef_on_a_running_cluster_named_by_its_address(bundle, tmp_path):
 
     opts = GeorefOptions(chunk_s=1.0)
     run_georef(bundle, tmp_path / "ref", opts)
-    with LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None) as cluster:
+    with LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=":0") as cluster:
         args = ["georef", str(bundle), "--out", str(tmp_path / "out"), "--chunk-s", "1"]
         r = CliRunner().invoke(app, [*args, "--scheduler", cluster.scheduler_address], env={"COLUMNS": "250"})
     assert r.exit_code == 0, r.output

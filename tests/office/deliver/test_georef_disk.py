@@ -17,16 +17,16 @@ from pathlib import Path
 import pytest
 from typer.testing import CliRunner
 
-import acquire.deliver.chunkjob as chunkjob
-import acquire.deliver.engine as engine
-import acquire.deliver.space as space
-import acquire.deliver.tiles as tiles
 import calib.io.lastile as lastile
-from acquire.deliver.engine import run_georef
-from acquire.deliver.options import GeorefError, GeorefOptions
+import office.deliver.chunkjob as chunkjob
+import office.deliver.engine as engine
+import office.deliver.space as space
+import office.deliver.tiles as tiles
 from calib.io.dirlock import LOCK_NAME
 from calib.io.lastile import read_provenance
 from cli.app import app
+from office.deliver.engine import run_georef
+from office.deliver.options import GeorefError, GeorefOptions
 
 ROOT = Path(__file__).resolve().parents[3]
 OPTS = GeorefOptions(chunk_s=1.0)
@@ -77,7 +77,7 @@ def test_a_second_writer_into_the_same_out_is_refused_naming_the_first(bundle, r
         [
             sys.executable,
             "-m",
-            "tests.acquire.deliver.heldwriter",
+            "tests.office.deliver.heldwriter",
             str(bundle),
             str(out),
             str(started_w),
@@ -104,6 +104,8 @@ def test_a_second_writer_into_the_same_out_is_refused_naming_the_first(bundle, r
         if first.poll() is None:
             first.kill()
             first.wait()
+        first.stdout.close()  # type: ignore[union-attr]
+        first.stderr.close()  # type: ignore[union-attr]
         for fd in (started_r, started_w, go_r, go_w):
             os.close(fd)
     assert tiles_of(out) == reference  # the first writer's tiles, with its provenance, untouched
@@ -147,7 +149,7 @@ def test_a_job_the_disk_cannot_hold_is_refused_up_front(bundle, tmp_path, monkey
 
 
 def test_the_estimate_covers_what_a_job_takes(bundle, tmp_path, monkeypatch):
-    from acquire.deliver.sources import open_source
+    from office.deliver.sources import open_source
 
     peak = {"bytes": 0}
     real = chunkjob.write_atomic

@@ -12,10 +12,10 @@ import numpy as np
 import pytest
 from typer.testing import CliRunner
 
-from acquire.deliver.engine import run_georef
-from acquire.deliver.options import GeorefOptions
-from acquire.jobs.export import ExportOptions, export_session
 from cli.app import app
+from office.deliver.engine import run_georef
+from office.deliver.options import GeorefOptions
+from office.jobs.export import ExportOptions, export_session
 
 ARGS = ["--minutes", str(1 / 3), "--rate-scale", "0.02", "--rotate-s", "10"]
 SETS = ["--set", "site.pass_length_m=16", "--set", "motion.pass_gap_s=2"]

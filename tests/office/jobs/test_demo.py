@@ -26,7 +26,8 @@ from pathlib import Path
 
 import pytest
 
-from acquire.jobs.demo_compare import comparison_rows
+from office.jobs.demo_compare import comparison_rows
+from tests import waiting
 from tests.acquire.daemon_util import MLS, ROOT
 
 SHOTS = Path(os.environ.get("MLS_SCREENSHOT_DIR") or Path(__file__).resolve().parents[2] / "screenshots")
@@ -55,12 +56,10 @@ def session_processes(sid: int) -> list[tuple[int, str]]:
 
 
 def left_behind(sid: int, grace_s: float = 5.0) -> list[tuple[int, str]]:
-    deadline = time.monotonic() + grace_s
-    while True:
-        left = session_processes(sid)
-        if not left or time.monotonic() > deadline:
-            return left
-        time.sleep(0.1)
+    waiting.wait_until(
+        lambda: not session_processes(sid), grace_s, "the processes to end", interval_s=0.1, fail=False
+    )
+    return session_processes(sid)
 
 
 @dataclass
@@ -98,16 +97,17 @@ def start_demo(base: Path, *args: str, log_name: str = "demo.log") -> DemoProces
 
 
 def wait_for(cond, timeout_s: float, what: str, demo: DemoProcess | None = None):
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        v = cond()
-        if v:
-            return v
+    def still_running() -> None:
         if demo is not None and demo.p.poll() is not None:
             raise AssertionError(f"{what}: mls demo ended ({demo.p.returncode}):\n{demo.output()[-3000:]}")
-        time.sleep(0.05)
-    raise AssertionError(
-        f"timed out after {timeout_s} s waiting for {what}" + (f"\n{demo.output()[-3000:]}" if demo else "")
+
+    return waiting.wait_until(
+        cond,
+        timeout_s,
+        what,
+        interval_s=0.05,
+        between=still_running,
+        detail=None if demo is None else (lambda: demo.output()[-3000:]),
     )
 
 
@@ -399,7 +399,7 @@ def test_the_demo_session_exports_for_foxglove_and_reads_back(demo, tmp_path):
     from acquire.log.read import iter_messages
     from calib.core.georef import georeference
     from calib.io.bundle import read_bundle
-    from tests.acquire.jobs.test_foxglove import check_foxglove_file
+    from tests.office.jobs.test_foxglove import check_foxglove_file
 
     try:
         rc = demo.p.wait(400)

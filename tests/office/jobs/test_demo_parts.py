@@ -7,9 +7,9 @@ import math
 
 import pytest
 
-from acquire.jobs.demo import DemoError, DemoSettings, prepare_out, scenario_overrides
-from acquire.jobs.demo_compare import AngleComparison, comparison_rows
-from acquire.jobs.demo_progress import pass_events, progress_line, sigma_covers_accepted, sigma_events
+from office.jobs.demo import DemoError, DemoSettings, prepare_out, scenario_overrides
+from office.jobs.demo_compare import AngleComparison, comparison_rows
+from office.jobs.demo_progress import pass_events, progress_line, sigma_covers_accepted, sigma_events
 
 RELATIVE_HEADINGS = [0, 180, 45, 225, 315, 135]
 

@@ -1,4 +1,4 @@
-"""``acquire.jobs.export`` on a synthetic session written with the session writer: passes from the
+"""``office.jobs.export`` on a synthetic session written with the session writer: passes from the
 event marks or from the site's pass plan, points decoded again (synced and unsynced packets,
 duplicated datagrams), the mount of the session's vessel config, and the refusals."""
 
@@ -11,7 +11,6 @@ import textwrap
 import numpy as np
 import pytest
 
-from acquire.jobs.export import ExportError, ExportOptions, _fill_sigmas, export_session, passes_from_events
 from acquire.log.session import SessionOptions
 from acquire.log.sessionlog import SessionWriter
 from calib.core import frames
@@ -20,6 +19,7 @@ from calib.io.sbet import read_sbet
 from calib.io.site import parse_site
 from calib.survey.passplan import plan_site
 from drivers.zf.zfp1 import encode_profile
+from office.jobs.export import ExportError, ExportOptions, _fill_sigmas, export_session, passes_from_events
 
 NS = 1_000_000_000
 G0 = 1_400_000_000 * NS  # GPS ns at the start of the session
@@ -200,8 +200,8 @@ def test_plan_passes_follow_the_heading_of_the_line():
     site = parse_site(SITE)
     p, heading, pass1, pass2 = _track(site)
     t = G0 + np.arange(len(p)) * 100_000_000
-    from acquire.jobs.export import passes_from_plan
     from calib.core.trajectory import Trajectory
+    from office.jobs.export import passes_from_plan
 
     traj = Trajectory(
         t / 1e9, p, np.column_stack([np.zeros((len(p), 2)), heading]), site.reference, max_gap_s=1.0

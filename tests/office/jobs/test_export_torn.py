@@ -5,12 +5,10 @@ is exported with a warning naming the segment and the time span lost, or refused
 from __future__ import annotations
 
 import struct
-import time
 
 import pytest
 from typer.testing import CliRunner
 
-from acquire.jobs.export import ExportError, ExportOptions, export_session
 from acquire.log.read import session_losses
 from acquire.log.recover import SegmentScan, salvage_session, scan_segment, segment_paths
 from acquire.log.session import SessionOptions
@@ -18,7 +16,9 @@ from acquire.log.sessionlog import SessionWriter
 from acquire.timing.clock import ClockState, GpsEstimate
 from calib.core import frames
 from cli.app import app
-from tests.acquire.jobs.test_export import SITE, _write_session
+from office.jobs.export import ExportError, ExportOptions, export_session
+from tests.acquire.logutil import FakeMonotonic, wait_flushed
+from tests.office.jobs.test_export import SITE, _write_session
 
 NS = 1_000_000_000
 
@@ -118,15 +118,20 @@ class _Clock:
 def test_a_segment_torn_before_the_next_one_loses_the_span_up_to_it(tmp_path):
     """An fsync failure abandons a segment and the writer goes on in a new one: the span lost
     runs from the torn segment's last complete message to the next segment's first."""
-    w = SessionWriter(tmp_path, "v", SessionOptions(flush_s=0.05, compression="none"), clock=_Clock())
+    clock = FakeMonotonic()  # the writer's clock: a chunk ends when the test says
+    w = SessionWriter(
+        tmp_path, "v", SessionOptions(flush_s=0.05, compression="none"), clock=_Clock(), monotonic_ns=clock
+    )
     sd = w.start()
     for i in range(30):
-        if i in (10, 20):
-            time.sleep(0.2)  # a chunk boundary
+        if i in (10, 20):  # a chunk boundary
+            clock.advance(0.05)
+            wait_flushed(w, i)
         if i == 20:
             w.rotate()
         w.submit("/ins/raw", b"$PIXSE,TIME__,120000.000*1F\r\n", host_ns=(i + 1) * NS // 10)
-    time.sleep(0.2)
+    clock.advance(0.05)
+    wait_flushed(w, 30)
     w.close()
     first, second = segment_paths(sd)
     scan = SegmentScan(first, 0)

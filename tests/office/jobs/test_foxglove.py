@@ -1,4 +1,4 @@
-"""``acquire.jobs.foxglove`` (``mls export SESSION --foxglove OUT.mcap``) on a synthetic session
+"""``office.jobs.foxglove`` (``mls export SESSION --foxglove OUT.mcap``) on a synthetic session
 written with the session writer, read back with ``mcap`` and decoded with the protobuf
 descriptors the file itself carries: every channel's schema and encoding, the message counts,
 log times in UTC as Unix ns (the session's GPS times less GPS − UTC) and in order, the fixes at
@@ -23,9 +23,6 @@ import numpy as np
 import pytest
 from typer.testing import CliRunner
 
-from acquire.jobs.export import ExportError
-from acquire.jobs.foxglove import SCHEMAS, TOPICS, FoxgloveResult, export_foxglove
-from acquire.jobs.foxglove_frames import gps_to_unix_ns
 from acquire.log.session import SessionOptions
 from acquire.log.sessionlog import SessionWriter
 from calib.core import frames
@@ -34,7 +31,10 @@ from calib.core.gpstime import GPS_EPOCH_UNIX_S
 from calib.core.trajectory import Trajectory
 from calib.io.outputs import OutputError
 from drivers.zf.zfp1 import encode_profile
-from tests.acquire.jobs.test_export import SITE
+from office.jobs.export import ExportError
+from office.jobs.foxglove import SCHEMAS, TOPICS, FoxgloveResult, export_foxglove
+from office.jobs.foxglove_frames import gps_to_unix_ns
+from tests.office.jobs.test_export import SITE
 
 NS = 1_000_000_000
 G0 = 1_400_000_000 * NS  # GPS ns of the first INS epoch: 2024-05-17T16:53:02Z
@@ -539,7 +539,7 @@ def test_gps_to_unix_ns_subtracts_the_leap_seconds_and_holds_an_inserted_second(
 
 
 def test_a_session_without_site_file_or_records_exports_in_the_trajectory_s_lgf(tmp_path):
-    from tests.acquire.jobs.test_export import _write_session
+    from tests.office.jobs.test_export import _write_session
 
     session, *_ = _write_session(tmp_path, marks=False)  # 601 epochs, 600 profiles, session.json's mount
     res = export_foxglove(session, tmp_path / "a.mcap", cloud_rate_hz=1.0)
@@ -561,7 +561,7 @@ def test_an_existing_file_bad_rates_and_errors_are_refused_and_leave_no_file(syn
     with pytest.raises(OutputError, match="names a file, but this is a directory"):
         export_foxglove(synth.session, tmp_path)
 
-    import acquire.jobs.foxglove as fox
+    import office.jobs.foxglove as fox
 
     def boom(*a, **k):
         raise KeyboardInterrupt  # Ctrl-C while the file is written
