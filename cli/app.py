@@ -28,6 +28,7 @@ from cli.commands import (
     decode_cmd,
     demo_cmd,
     design_cmd,
+    doctor_cmd,
     logs_cmd,
     operator_cmd,
     plan_cmd,
@@ -81,6 +82,7 @@ app.command("watch", help=watch_cmd.HELP)(watch_cmd.watch)
 app.command("plan", help=plan_cmd.HELP)(plan_cmd.plan)
 app.command("checklist", help=operator_cmd.CHECKLIST_HELP)(operator_cmd.checklist)
 app.command("design", help=design_cmd.HELP)(design_cmd.design)
+app.command("doctor", help=doctor_cmd.HELP)(doctor_cmd.doctor)
 
 
 @app.command("version")

@@ -3,7 +3,7 @@ targets in its scene.
 
 Design scenes hold only the targets (no quay wall or ground: they never enter the adjustment),
 record every scan angle (the operator sets the profiler's windows to include the targets) and
-carry no noise (the prediction assumes the sigmas). Inclination follows DESIGN: angle to the
+carry no noise (the prediction assumes the sigmas). Inclination as in docs/architecture.md §3: angle to the
 horizontal, 90° vertical; a negative inclination tilts the plane the other way (the thesis's
 terrestrial sweep, whose own angle is measured from the vertical:
 :func:`calib.design.criteria.thesis_tilt_deg`).
@@ -31,7 +31,7 @@ def internal_inclination(inclination_rad: float) -> float:
 
 
 def surface_inclination_deg(s: Surface) -> float:
-    """A surface's inclination as DESIGN gives it (degrees, negative when tilted the other way)."""
+    """A surface's inclination (docs/architecture.md §3; degrees, negative when tilted the other way)."""
     d = float(np.degrees(s.inclination_rad))
     return d - 180.0 if d > 90.0 + 1e-9 else d
 
