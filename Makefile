@@ -1,7 +1,7 @@
 # make demo  — create .venv, install, run the main job end to end on simulated devices
 # make test  — create .venv, install, run the whole test suite
 # make bench — run the benchmark scripts (figures and ratios to a peer measured in the same run)
-# make lint  — ruff (lint + format check) over the tree, mypy on calib/ and drivers/ (make test runs it first)
+# make lint  — ruff (lint + format check) over the tree, mypy over every package (make test runs it first)
 # make test-pythons — the non-realtime suite under each supported interpreter found (3.11, 3.12, 3.13),
 #                     one venv each (.venv-3.12, ...); PYTHONS="python3.12 /opt/py/bin/python3.13"
 #                     overrides the list, TESTS="tests/cli tests/calib/core" runs a part of the suite

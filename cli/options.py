@@ -6,10 +6,11 @@ Two kinds:
 - a type, where the commands mean one thing by the option: ``las: Las = False``;
 - a function of the command's own help, where the flag and its bounds are shared but what it
   names is the command's (``--out`` is a bundle, a directory of tiles, a GeoJSON file):
-  ``out: Annotated[Path, out_option("Directory of the tiles (created).")] = ...``.
+  ``out: Annotated[Path, out_option("Directory of the tiles (created).")]``.
 
-The default is the parameter's (``= ...``: required). A repeatable option (``--set``) defaults to
-``()``; typer passes the command a list.
+The default is the parameter's (none: required). A repeatable option (``--set``) is a
+``list[str] | None`` that defaults to None: typer passes the command None when it is not given,
+else the list.
 """
 
 from __future__ import annotations

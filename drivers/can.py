@@ -44,6 +44,7 @@ from typing import TYPE_CHECKING, Any, cast
 from drivers.base import DecoderStats, DriverError
 
 if TYPE_CHECKING:
+    from can import Notifier
     from can.interfaces.udp_multicast import UdpMulticastBus
 
 EVENT_MARKER_ID = 0x6E0
@@ -168,7 +169,7 @@ class CanReader:
         self.stats = DecoderStats()
         self.close_bus = close_bus
         self._queue: asyncio.Queue[CanFrame] = asyncio.Queue(queue_size)
-        self._notifier = None
+        self._notifier: Notifier | None = None
         self._loop: asyncio.AbstractEventLoop | None = None
 
     def register(self, arbitration_id: int, decoder: Callable[[CanFrame], Any]) -> None:
@@ -177,7 +178,7 @@ class CanReader:
     async def __aenter__(self):
         import can
 
-        self._loop = asyncio.get_running_loop()
+        loop = self._loop = asyncio.get_running_loop()
         reader = self
 
         class _Listener(can.Listener):
@@ -190,7 +191,7 @@ class CanReader:
                     msg.is_extended_id,
                     None if msg.channel is None else str(msg.channel),
                 )
-                reader._loop.call_soon_threadsafe(reader._deliver, frame)
+                loop.call_soon_threadsafe(reader._deliver, frame)  # the loop that entered the reader
 
         self._notifier = can.Notifier(self.bus, [_Listener()], timeout=0.1)
         return self

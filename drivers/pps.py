@@ -64,7 +64,8 @@ from collections.abc import AsyncIterator
 from dataclasses import dataclass, replace
 
 from drivers.base import DecoderStats, DriverError, Registry
-from drivers.timing import RealtimeStamps
+from drivers.ppsfetch import PPS_FETCH, pack_pps_fdata, unpack_pps_fdata
+from drivers.timing import HostClock, RealtimeStamps
 
 NS_PER_S = 1_000_000_000
 LABEL_WINDOW_NS = 1_100_000_000
@@ -308,47 +309,6 @@ def decode_pps_datagram(data: bytes, source: str = "udp") -> PpsEdge:
 
 
 # ---------------------------------------------------------------------------------------------
-# RFC 2783 kernel PPS (Linux ABI of <linux/pps.h>, 64-bit).
-# ---------------------------------------------------------------------------------------------
-
-# struct pps_ktime { __s64 sec; __s32 nsec; __u32 flags; }                       16 bytes
-# struct pps_kinfo { __u32 assert_sequence, clear_sequence; struct pps_ktime assert_tu,
-#                    clear_tu; int current_mode; }                   44 bytes + 4 padding = 48
-# struct pps_fdata { struct pps_kinfo info; struct pps_ktime timeout; }           64 bytes
-PPS_KTIME = struct.Struct("=qiI")
-PPS_FDATA = struct.Struct("=II16s16si4x16s")
-PPS_TIME_INVALID = 1 << 0
-# _IOWR('p', 0xa4, struct pps_fdata *): the size field is that of a pointer (8 on 64-bit).
-PPS_FETCH = (3 << 30) | (8 << 16) | (ord("p") << 8) | 0xA4  # 0xC00870A4
-
-
-@dataclass(frozen=True, slots=True)
-class PpsFetch:
-    assert_sequence: int
-    clear_sequence: int
-    assert_realtime_ns: int
-    clear_realtime_ns: int
-    current_mode: int
-
-
-def pack_pps_fdata(timeout_s: float | None) -> bytearray:
-    """The ``struct pps_fdata`` buffer for ``PPS_FETCH``; None waits forever."""
-    if timeout_s is None:
-        tmo = PPS_KTIME.pack(0, 0, PPS_TIME_INVALID)
-    else:
-        sec = int(timeout_s)
-        tmo = PPS_KTIME.pack(sec, int(round((timeout_s - sec) * 1e9)), 0)
-    return bytearray(PPS_FDATA.pack(0, 0, bytes(16), bytes(16), 0, tmo))
-
-
-def unpack_pps_fdata(buf: bytes | bytearray) -> PpsFetch:
-    a_seq, c_seq, a_tu, c_tu, mode, _tmo = PPS_FDATA.unpack(bytes(buf))
-    a_sec, a_nsec, _ = PPS_KTIME.unpack(a_tu)
-    c_sec, c_nsec, _ = PPS_KTIME.unpack(c_tu)
-    return PpsFetch(a_seq, c_seq, a_sec * NS_PER_S + a_nsec, c_sec * NS_PER_S + c_nsec, mode)
-
-
-# ---------------------------------------------------------------------------------------------
 # Sources.
 # ---------------------------------------------------------------------------------------------
 
@@ -437,12 +397,19 @@ class _ThreadedSource(PpsSource):
 
 @register_pps_source("kernel")
 class KernelPpsSource(_ThreadedSource):
-    """``/dev/ppsN`` via ``PPS_FETCH`` (assert edges). ``ioctl`` is injectable for tests."""
+    """``/dev/ppsN`` via ``PPS_FETCH`` (assert edges). ``ioctl`` is injectable for tests;
+    ``host_clock`` moves the realtime stamps (default: the real clock)."""
 
     def __init__(
-        self, device: str = "/dev/pps0", name: str | None = None, timeout_s: float = 1.5, ioctl=fcntl.ioctl
+        self,
+        device: str = "/dev/pps0",
+        name: str | None = None,
+        timeout_s: float = 1.5,
+        ioctl=fcntl.ioctl,
+        host_clock: HostClock | None = None,
     ):
         super().__init__(name or device)
+        self.host_clock = host_clock
         self.device = device
         self.timeout_s = timeout_s
         self._ioctl = ioctl
@@ -454,7 +421,7 @@ class KernelPpsSource(_ThreadedSource):
             self._put_threadsafe(DriverError(f"PPS device {self.device}: {exc.strerror}"))
             return
         last_seq = None
-        stamps = RealtimeStamps()
+        stamps = RealtimeStamps(clock=self.host_clock)
         try:
             while not self._stop.is_set():
                 buf = pack_pps_fdata(self.timeout_s)
@@ -564,10 +531,14 @@ class UdpPpsSource(PpsSource):
                     source.stats.rejected["bad_datagram"] += 1
 
         sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-        sock.bind((self.host, self.port))
-        self.port = sock.getsockname()[1]
-        loop = asyncio.get_running_loop()  # the loop super().open() kept
-        self._transport, _ = await loop.create_datagram_endpoint(_Proto, sock=sock)
+        try:
+            sock.bind((self.host, self.port))
+            self.port = sock.getsockname()[1]
+            loop = asyncio.get_running_loop()  # the loop super().open() kept
+            self._transport, _ = await loop.create_datagram_endpoint(_Proto, sock=sock)
+        except BaseException:
+            sock.close()  # a port taken (or a cancelled open) leaves no socket behind
+            raise
 
     async def close(self) -> None:
         if self._transport is not None:
@@ -592,8 +563,5 @@ __all__ = [
     "register_pps_source",
     "encode_pps_datagram",
     "decode_pps_datagram",
-    "pack_pps_fdata",
-    "unpack_pps_fdata",
-    "PPS_FETCH",
     "gps_second_of",
 ]

@@ -14,10 +14,13 @@ outlier gating. It reports:
 This is the estimator behind ``mls decode --timing`` and the reference for the clock model.
 
 Host clocks: every host stamp is ``CLOCK_MONOTONIC``; kernel ``CLOCK_REALTIME`` stamps are moved
-to it with :func:`realtime_minus_monotonic_ns`, whose reads also count the steps of the
-realtime clock (:data:`HOST_CLOCK_STEPS`: an NTP step, ``date -s``), and a transport converts
-its stamps through :class:`RealtimeStamps`, which keeps a step from shifting the stamps taken
-before it. :class:`FakeHostClock` stands in for a step in the simulated devices' tests.
+to it through a :class:`HostClock` (the real one unless told otherwise), whose
+:meth:`~HostClock.realtime_minus_monotonic_ns` reads also count the steps of the realtime clock
+(its own :class:`HostClockSteps`: an NTP step, ``date -s``), and a transport converts its stamps
+through :class:`RealtimeStamps`, which keeps a step from shifting the stamps taken before it.
+:class:`FakeHostClock` stands in for a step in the simulated devices' runs: it is chosen
+explicitly (``mls acquire --sim-host-clock FILE``, a test's constructor argument), never by the
+environment, and handed to whoever reads the clock.
 """
 
 from __future__ import annotations
@@ -39,8 +42,6 @@ STEP_THRESHOLD_NS = 1_000_000
 #: ones are a virtual machine's or PTP's clock discipline — handled and counted alike, no alarm
 STEP_ALARM_NS = 10_000_000
 _REALTIME = time.CLOCK_REALTIME
-#: the environment variable naming the simulated devices' fake host-clock file (tests only)
-FAKE_HOST_CLOCK_ENV = "MLS_SIM_HOST_CLOCK"
 
 
 def _kernel_offset_ns(tries: int) -> int:
@@ -54,23 +55,9 @@ def _kernel_offset_ns(tries: int) -> int:
     return best
 
 
-def realtime_minus_monotonic_ns(tries: int = 3) -> int:
-    """``CLOCK_REALTIME − CLOCK_MONOTONIC`` now, to move a kernel's realtime stamp (a socket's
-    ``SO_TIMESTAMPNS``, a PPS fetch) to monotonic time. Each try brackets the realtime read by
-    two monotonic reads; the narrowest bracket wins, so a preemption between the reads (a busy
-    machine) does not shift the offset — and with it the order of stamps taken moments apart.
-
-    Every read is also shown to :data:`HOST_CLOCK_STEPS`, which counts the steps of the
-    realtime clock. With ``$MLS_SIM_HOST_CLOCK`` set (the simulated devices' tests only) the
-    offset is the faked one of :class:`FakeHostClock`."""
-    offset = _kernel_offset_ns(tries) if FAKE_HOST_CLOCK is None else FAKE_HOST_CLOCK.offset_ns(tries)
-    HOST_CLOCK_STEPS.observe(offset)
-    return offset
-
-
 class HostClockSteps:
-    """The steps of ``CLOCK_REALTIME`` this process has seen (through any
-    :func:`realtime_minus_monotonic_ns` read): ``count`` (every step > :data:`STEP_THRESHOLD_NS`),
+    """The steps of ``CLOCK_REALTIME`` one :class:`HostClock` has seen (through its
+    :meth:`~HostClock.realtime_minus_monotonic_ns` reads): ``count`` (every step > :data:`STEP_THRESHOLD_NS`),
     ``large`` (those of at least :data:`STEP_ALARM_NS`), and the latest as
     ``(host monotonic ns, step ns)`` in ``last``. The daemon raises ``host_clock_step`` when
     ``large`` grows and refreshes its system-clock seed when ``count`` does; the host's own
@@ -93,7 +80,38 @@ class HostClockSteps:
                 self.last = (time.monotonic_ns(), offset_ns - last)
 
 
-HOST_CLOCK_STEPS = HostClockSteps()
+class HostClock:
+    """The host's clock as a process reads it: ``CLOCK_REALTIME − CLOCK_MONOTONIC``
+    (:meth:`realtime_minus_monotonic_ns`) and the steps of the realtime clock those reads have
+    seen (:attr:`steps_seen`, this clock's own counter: whoever needs the counts gets the clock). This
+    class is the real clock; :class:`FakeHostClock` the simulated devices' one, given explicitly
+    where it is wanted."""
+
+    #: kernel realtime stamps are moved by this clock's steps (:meth:`kernel_stamp`): a fake
+    fake = False
+
+    def __init__(self) -> None:
+        self.steps_seen = HostClockSteps()
+
+    def offset_ns(self, tries: int = 3) -> int:
+        """realtime − monotonic now, not shown to :attr:`steps_seen` (a transport's receive path)."""
+        return _kernel_offset_ns(tries)
+
+    def kernel_stamp(self, realtime_ns: int) -> int:
+        """A real kernel realtime stamp as this clock would have stamped it (the real clock: as is)."""
+        return realtime_ns
+
+    def realtime_minus_monotonic_ns(self, tries: int = 3) -> int:
+        """``CLOCK_REALTIME − CLOCK_MONOTONIC`` now, to move a kernel's realtime stamp (a socket's
+        ``SO_TIMESTAMPNS``, a PPS fetch) to monotonic time. Each try brackets the realtime read by
+        two monotonic reads; the narrowest bracket wins, so a preemption between the reads (a busy
+        machine) does not shift the offset — and with it the order of stamps taken moments apart.
+
+        Every read is also shown to :attr:`steps_seen`, which counts the steps of the realtime clock.
+        On a :class:`FakeHostClock` (the simulated devices' runs only) the offset is the faked one."""
+        offset = self.offset_ns(tries)
+        self.steps_seen.observe(offset)
+        return offset
 
 
 class RealtimeStamps:
@@ -107,9 +125,15 @@ class RealtimeStamps:
     keeps the later of those that put it no later than now and not before the previous stamp
     (a socket's stamps come in order) — the wrong one is a step away: in the future, or a step
     earlier. A stamp that fits neither is replaced by the read time and counted (``unknown``);
-    stamps kept on the old offset are counted (``repaired``)."""
+    stamps kept on the old offset are counted (``repaired``).
 
-    def __init__(self, hold_ns: int = 2_000_000_000, tolerance_ns: int = 1_000_000) -> None:
+    ``clock``: the host clock read (default: the real one, read inline); a
+    :class:`FakeHostClock` moves the offset and the stamps by its steps."""
+
+    def __init__(
+        self, hold_ns: int = 2_000_000_000, tolerance_ns: int = 1_000_000, clock: HostClock | None = None
+    ) -> None:
+        self._fake = clock if clock is not None and clock.fake else None
         self.hold_ns = hold_ns
         self.tolerance_ns = tolerance_ns
         self.offset: int | None = None
@@ -120,9 +144,9 @@ class RealtimeStamps:
         self.last_ns = -(2**62)  # the latest monotonic stamp given out (the caller's, when exact)
 
     def begin(self) -> int:
-        """The offset for this read (and :attr:`exact`). (The step counter :data:`HOST_CLOCK_STEPS`
-        is left to the daemon's periodic read: this is the receive path.)"""
-        fake = FAKE_HOST_CLOCK
+        """The offset for this read (and :attr:`exact`). (The host clock's step counter is left
+        to the daemon's periodic read: this is the receive path.)"""
+        fake = self._fake
         if fake is None:  # _kernel_offset_ns(3), inline: once per read of a busy socket
             mono, real, width, offset = time.monotonic_ns, time.clock_gettime_ns, None, 0
             for _ in range(3):
@@ -147,8 +171,8 @@ class RealtimeStamps:
 
     def convert(self, realtime_ns: int, read_ns: int) -> int:
         """One stamp when not :attr:`exact` (see the class docstring)."""
-        if FAKE_HOST_CLOCK is not None:
-            realtime_ns = FAKE_HOST_CLOCK.kernel_stamp(realtime_ns)
+        if self._fake is not None:
+            realtime_ns = self._fake.kernel_stamp(realtime_ns)
         assert self.offset is not None
         hi = time.monotonic_ns() + self.tolerance_ns
         lo = self.last_ns - self.tolerance_ns
@@ -168,17 +192,20 @@ class RealtimeStamps:
         return m
 
 
-class FakeHostClock:
+class FakeHostClock(HostClock):
     """The host clock as the simulated devices' ``host_clock_step`` fault makes it look: the
     emulators cannot step this machine's ``CLOCK_REALTIME``, so they write the steps they would
     make to a file (``<run dir>/host_clock``: lines ``<host monotonic ns> <step ns>``) and a
-    process started with ``$MLS_SIM_HOST_CLOCK`` naming that file reads realtime − monotonic
+    daemon given that file (``mls acquire --sim-host-clock FILE``) reads realtime − monotonic
     through this class: the real offset plus every step whose instant has passed, and kernel
     realtime stamps (:meth:`kernel_stamp`) moved alike when they were taken after a step — what
-    a real step does to both. Never set on a vessel. The file is looked at (``stat``) at most
+    a real step does to both. Never used on a vessel. The file is looked at (``stat``) at most
     every ``poll_ns``."""
 
+    fake = True
+
     def __init__(self, path: str, poll_ns: int = 100_000_000) -> None:
+        super().__init__()
         self.path = path
         self.poll_ns = poll_ns
         self.steps: list[tuple[int, int]] = []  # (host monotonic ns, step ns), sorted
@@ -206,6 +233,7 @@ class FakeHostClock:
         return sum(step for t, step in self.steps if t <= monotonic_ns)
 
     def offset_ns(self, tries: int = 3) -> int:
+        """The real realtime − monotonic plus the steps made by now (not shown to :attr:`steps_seen`)."""
         self._poll()
         return _kernel_offset_ns(tries) + self.step_at(time.monotonic_ns())
 
@@ -214,11 +242,6 @@ class FakeHostClock:
         if not self.steps:
             return realtime_ns
         return realtime_ns + self.step_at(realtime_ns - _kernel_offset_ns(1))
-
-
-FAKE_HOST_CLOCK: FakeHostClock | None = (
-    FakeHostClock(os.environ[FAKE_HOST_CLOCK_ENV]) if os.environ.get(FAKE_HOST_CLOCK_ENV) else None
-)
 
 
 @dataclass(frozen=True)

@@ -32,7 +32,6 @@ the archive it wrote. Exit status 0, or 1 with one line naming what failed.
 from __future__ import annotations
 
 import argparse
-import hashlib
 import json
 import os
 import re
@@ -45,6 +44,23 @@ import tempfile
 import tomllib
 from dataclasses import dataclass
 from pathlib import Path
+
+
+def _installer():
+    """The installer beside this file (stdlib only, copied into the wheelhouse): one name
+    normalization and one checksum for the wheelhouse and for the install that reads it."""
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location("mls_installer", Path(__file__).with_name("install.py"))
+    assert spec is not None and spec.loader is not None
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = module  # its dataclasses look the module up
+    spec.loader.exec_module(module)
+    return module
+
+
+_INSTALLER = _installer()
+normalize, sha256_of = _INSTALLER.normalize, _INSTALLER.sha256_of
 
 REPO = Path(__file__).resolve().parents[1]
 #: what the installer needs beside the wheels (from systemd/)
@@ -70,18 +86,6 @@ class Wheel:
     version: str
     sha256: str
     size_bytes: int
-
-
-def normalize(name: str) -> str:
-    return re.sub(r"[-_.]+", "-", name).lower()
-
-
-def sha256_of(path: Path) -> str:
-    h = hashlib.sha256()
-    with open(path, "rb") as f:
-        for block in iter(lambda: f.read(1 << 20), b""):
-            h.update(block)
-    return h.hexdigest()
 
 
 def wheel_of(path: Path) -> Wheel:

@@ -11,9 +11,13 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass
+from typing import TYPE_CHECKING, Protocol
 
 from drivers.can import event_marker_message, open_can_bus
 from sim_devices.feed import PassMark
+
+if TYPE_CHECKING:
+    import can
 
 #: python-can's defaults for udp_multicast over IPv4 (the vessel config has no port key)
 DEFAULT_GROUP = "239.74.163.2"
@@ -26,11 +30,20 @@ class CanSettings:
     channel: str = DEFAULT_GROUP
     port: int = DEFAULT_PORT
 
-    def bus_config(self) -> dict:
-        cfg = {"interface": self.interface, "channel": self.channel}
+    def bus_config(self) -> dict[str, str | int | bool]:
+        cfg: dict[str, str | int | bool] = {"interface": self.interface, "channel": self.channel}
         if self.interface == "udp_multicast":
             cfg.update(port=self.port, loopback_only=True)
         return cfg
+
+
+class MessageBus(Protocol):
+    """Where the emulator sends its frames: a python-can bus, or what stands for one (an
+    offline session collects them)."""
+
+    def send(self, msg: can.Message, /) -> None: ...
+
+    def shutdown(self) -> None: ...
 
 
 class CanEmulator:
@@ -40,7 +53,7 @@ class CanEmulator:
     def __init__(self, marks: tuple[PassMark, ...], settings: CanSettings) -> None:
         self.marks = marks
         self.s = settings
-        self.bus = None
+        self.bus: MessageBus | None = None
         self.sent: list[dict] = []
 
     def prepare(self) -> dict:
@@ -52,6 +65,7 @@ class CanEmulator:
             host = clock.host_ns(m.gps_ns)
             if not pacer.wait_until(host):
                 return False
+            assert self.bus is not None  # opened by prepare() (or set by the caller)
             self.bus.send(event_marker_message(m.kind, m.pass_id, seq))
             timing.record(host, time.monotonic_ns())
             self.sent.append({"sequence": seq, "kind": m.kind, "pass_id": m.pass_id, "gps_ns": m.gps_ns})

@@ -108,8 +108,8 @@ class TruthClock:
 def write_host_clock_steps(path: str | Path, steps: list[tuple[int, int]]) -> Path:
     """The steps the ``host_clock_step`` faults would make to the host's realtime clock —
     ``(host monotonic ns of the step, step ns)`` — for :class:`drivers.timing.FakeHostClock`
-    (the emulators cannot step this machine's clock; a daemon started with
-    ``$MLS_SIM_HOST_CLOCK`` naming this file sees the steps instead). Written atomically."""
+    (the emulators cannot step this machine's clock; a daemon given this file,
+    ``mls acquire --sim-host-clock FILE``, sees the steps instead). Written atomically."""
     path = Path(path)
     tmp = path.with_name(path.name + ".tmp")
     lines = ["# marine-mls simulated host clock steps: host_monotonic_ns step_ns"]

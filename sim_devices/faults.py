@@ -48,8 +48,8 @@ Kinds (:data:`KINDS`; ``device`` defaults to the only device a kind applies to):
   announcement: only its tags move.
 - ``host_clock_step`` (host, instantaneous): the host's ``CLOCK_REALTIME`` steps by ``step_s``
   (|step| ≥ 0.01 s) at ``at_s``. Simulated: the emulators cannot step this machine's clock, so
-  they write the step to ``<run dir>/host_clock`` and a daemon started with
-  ``$MLS_SIM_HOST_CLOCK`` naming that file sees it through the interface it reads
+  they write the step to ``<run dir>/host_clock`` and a daemon given that file
+  (``mls acquire --sim-host-clock FILE``) sees it through the interface it reads
   realtime − monotonic with (:class:`drivers.timing.FakeHostClock`: the offset and the kernel
   stamps taken after the step move; monotonic time does not).
 
@@ -65,7 +65,9 @@ kind on one device must not overlap. Errors name the file, line, column and key
 
 from __future__ import annotations
 
+import itertools
 import math
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -194,6 +196,87 @@ class Timeline:
 # -- loading ------------------------------------------------------------------------------------
 
 
+def _datagram_bytes(n: Node) -> int:
+    value = n.integer(minimum=1)
+    if value > 65536:
+        raise n.fail("an integer ≤ 65536")
+    return value
+
+
+def _drift_ppm(n: Node) -> float:
+    value = n.number(minimum=-1e5, maximum=1e5)
+    if value == 0:
+        raise n.fail("a non-zero drift in ppm")
+    return value
+
+
+def _step_s(n: Node) -> float:
+    value = n.number(minimum=-1e9, maximum=1e9)
+    if abs(value) < 0.01:
+        raise n.fail("a step of at least 0.01 s either way (smaller ones are slewed)")
+    return value
+
+
+def _position_drift_m_s(n: Node) -> float:
+    return n.number(minimum=0.0, maximum=100.0)
+
+
+#: option key → its reader (a key not here: ``position_drift_m_s``)
+_PARAM_READERS: dict[str, Callable[[Node], Any]] = {
+    "probability": lambda n: n.number(minimum=0.0, maximum=1.0, exclusive_minimum=True),
+    "bytes": _datagram_bytes,
+    "pps_locked": lambda n: n.boolean(),
+    "drift_ppm": _drift_ppm,
+    "latency_s": lambda n: n.number(minimum=0.0, maximum=10.0, exclusive_minimum=True),
+    "offset_s": lambda n: n.number(minimum=-1e6, maximum=1e6),
+    "delay_s": lambda n: n.number(minimum=0.0, maximum=10.0, exclusive_minimum=True),
+    "gps_minus_utc_s": lambda n: n.integer(minimum=0, maximum=255),
+    "step_s": _step_s,
+}
+
+
+def _check_fault_keys(m: dict[str, Node], kind: str, options: dict[str, Any]) -> None:
+    """Every key one of this kind's."""
+    allowed = {"at_s", "kind", "device", *options} | ({"duration_s"} if kind not in INSTANT else set())
+    for key in m:
+        if key not in allowed:
+            raise FaultError(
+                f"{m[key].where()}: not a key of a {kind} fault; allowed: {', '.join(sorted(allowed))}"
+            )
+
+
+def _fault_device(m: dict[str, Node], kind: str, devices: tuple[str, ...], where: str) -> str:
+    """The device named, or the kind's only one."""
+    if "device" in m:
+        return m["device"].string(choices=devices)
+    if len(devices) == 1:
+        return devices[0]
+    raise FaultError(f"{where}: a {kind} fault needs 'device' (one of {', '.join(devices)})")
+
+
+def _fault_duration(m: dict[str, Node], kind: str, where: str) -> float | None:
+    """``duration_s``; 0 for an instantaneous kind, None (to the run's end) when not given."""
+    duration = 0.0 if kind in INSTANT else None
+    if "duration_s" in m:
+        duration = m["duration_s"].number(minimum=0.0, exclusive_minimum=True)
+    elif kind in NEEDS_DURATION:
+        raise FaultError(f"{where}: a {kind} fault needs 'duration_s' (seconds, > 0)")
+    return duration
+
+
+def _fault_params(m: dict[str, Node], kind: str, options: dict[str, Any], where: str) -> dict[str, Any]:
+    """The kind's options, read or defaulted (one without a default is required)."""
+    params: dict[str, Any] = {}
+    for key, default in options.items():
+        if key in m:
+            params[key] = _PARAM_READERS.get(key, _position_drift_m_s)(m[key])
+        elif default is None:
+            raise FaultError(f"{where}: a {kind} fault needs {key!r}")
+        else:
+            params[key] = default
+    return params
+
+
 def _fault(node: Node) -> Fault:
     where = node.where()
     m = node.mapping(
@@ -202,58 +285,11 @@ def _fault(node: Node) -> Fault:
     )
     kind = m["kind"].string(choices=KINDS)
     devices, options = KINDS[kind]
-    allowed = {"at_s", "kind", "device", *options} | ({"duration_s"} if kind not in INSTANT else set())
-    for key in m:
-        if key not in allowed:
-            raise FaultError(
-                f"{m[key].where()}: not a key of a {kind} fault; allowed: {', '.join(sorted(allowed))}"
-            )
+    _check_fault_keys(m, kind, options)
     at_s = m["at_s"].number(minimum=0.0)
-    if "device" in m:
-        device = m["device"].string(choices=devices)
-    elif len(devices) == 1:
-        device = devices[0]
-    else:
-        raise FaultError(f"{where}: a {kind} fault needs 'device' (one of {', '.join(devices)})")
-    duration = 0.0 if kind in INSTANT else None
-    if "duration_s" in m:
-        duration = m["duration_s"].number(minimum=0.0, exclusive_minimum=True)
-    elif kind in NEEDS_DURATION:
-        raise FaultError(f"{where}: a {kind} fault needs 'duration_s' (seconds, > 0)")
-    params: dict[str, Any] = {}
-    for key, default in options.items():
-        if key not in m:
-            if default is None:
-                raise FaultError(f"{where}: a {kind} fault needs {key!r}")
-            params[key] = default
-            continue
-        n = m[key]
-        if key == "probability":
-            params[key] = n.number(minimum=0.0, maximum=1.0, exclusive_minimum=True)
-        elif key == "bytes":
-            params[key] = n.integer(minimum=1)
-            if params[key] > 65536:
-                raise n.fail("an integer ≤ 65536")
-        elif key == "pps_locked":
-            params[key] = n.boolean()
-        elif key == "drift_ppm":
-            params[key] = n.number(minimum=-1e5, maximum=1e5)
-            if params[key] == 0:
-                raise n.fail("a non-zero drift in ppm")
-        elif key == "latency_s":
-            params[key] = n.number(minimum=0.0, maximum=10.0, exclusive_minimum=True)
-        elif key == "offset_s":
-            params[key] = n.number(minimum=-1e6, maximum=1e6)
-        elif key == "delay_s":
-            params[key] = n.number(minimum=0.0, maximum=10.0, exclusive_minimum=True)
-        elif key == "gps_minus_utc_s":
-            params[key] = n.integer(minimum=0, maximum=255)
-        elif key == "step_s":
-            params[key] = n.number(minimum=-1e9, maximum=1e9)
-            if abs(params[key]) < 0.01:
-                raise n.fail("a step of at least 0.01 s either way (smaller ones are slewed)")
-        else:  # position_drift_m_s
-            params[key] = n.number(minimum=0.0, maximum=100.0)
+    device = _fault_device(m, kind, devices, where)
+    duration = _fault_duration(m, kind, where)
+    params = _fault_params(m, kind, options, where)
     return Fault(kind, device, at_s, duration, params, where)
 
 
@@ -266,7 +302,7 @@ def faults_from_node(root: Node) -> FaultPlan:
         by_key.setdefault((f.kind, f.device), []).append(f)
     for group in by_key.values():
         group.sort(key=lambda f: f.at_s)
-        for a, b in zip(group, group[1:]):
+        for a, b in itertools.pairwise(group):
             if b.at_s < a.end_s or (a.kind in INSTANT and b.at_s == a.at_s):
                 raise FaultError(
                     f"{b.where}: {b.kind} on {b.device} at {b.at_s:g} s overlaps "

@@ -38,6 +38,7 @@ from __future__ import annotations
 import datetime as _dt
 import math
 from dataclasses import dataclass, replace
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -45,6 +46,9 @@ from calib.core.frames import utc_to_gps_ns, wrap_2pi
 from calib.io.bundle import ScanPoints
 from drivers.hydrins.nav import NavRecord
 from sim_devices.errors import SimDevicesError
+
+if TYPE_CHECKING:
+    from calib.sim.result import SimResult
 
 NS_PER_S = 1_000_000_000
 RANGE_UNIT_M = 1e-4
@@ -201,7 +205,7 @@ class ProfileGrid:
 def _runs(mask: np.ndarray) -> tuple[tuple[int, int], ...]:
     padded = np.concatenate([[False], mask, [False]]).astype(np.int8)
     edges = np.flatnonzero(np.diff(padded))
-    return tuple((int(a), int(b)) for a, b in zip(edges[::2], edges[1::2]))
+    return tuple((int(a), int(b)) for a, b in zip(edges[::2], edges[1::2], strict=True))
 
 
 def _pass_grid(t_s: np.ndarray, angle_rad: np.ndarray, K: int, dt_s: float, pass_id: int):
@@ -315,7 +319,7 @@ class ScenarioFeed:
     """One run window of a simulation, on the devices' GPS time scale: device time = scenario
     time + ``time_shift_ns`` (whole seconds; 0 keeps the scenario's own date)."""
 
-    sim: object  # calib.sim.simulate.SimResult
+    sim: SimResult
     start_gps_ns: int
     end_gps_ns: int
     ins: InsTrack

@@ -139,8 +139,8 @@ class InsEmulator:
         """(host_ns, event kind, argument) of every emission, in emission order."""
         s, tr = self.s, self.track
         lat = np.full(len(tr), round(s.latency_s * NS_PER_S), dtype=np.int64)
-        for g0, g1, f in self.timeline.events("ins_latency_jump"):
-            lat[(tr.gps_ns >= g0) & (tr.gps_ns < g1)] += round(f.params["latency_s"] * NS_PER_S)
+        for j0, j1, jump in self.timeline.events("ins_latency_jump"):
+            lat[(tr.gps_ns >= j0) & (tr.gps_ns < j1)] += round(jump.params["latency_s"] * NS_PER_S)
         jitter = np.rint(self.rng.uniform(0.0, s.jitter_s, len(tr)) * NS_PER_S).astype(np.int64)
         nav_host = np.maximum.accumulate(clock.host_ns_array(tr.gps_ns) + lat + jitter)
         hosts, kinds, args = [nav_host], [np.full(len(tr), _EV_NAV)], [np.arange(len(tr))]
@@ -149,9 +149,9 @@ class InsEmulator:
                 -(-self.start_gps_ns // NS_PER_S), -(-self.end_gps_ns // NS_PER_S), dtype=np.int64
             )
             zda_host = clock.host_ns_array(sec * NS_PER_S) + round(s.zda_delay_s * NS_PER_S)
-            for g0, g1, f in self.timeline.events("zda_late"):
-                zda_host[(sec * NS_PER_S >= g0) & (sec * NS_PER_S < g1)] += round(
-                    f.params["delay_s"] * NS_PER_S
+            for z0, z1, late in self.timeline.events("zda_late"):
+                zda_host[(sec * NS_PER_S >= z0) & (sec * NS_PER_S < z1)] += round(
+                    late.params["delay_s"] * NS_PER_S
                 )
             hosts.append(zda_host)
             kinds.append(np.full(sec.size, _EV_ZDA))
@@ -181,7 +181,9 @@ class InsEmulator:
         aligning = gps < self.start_gps_ns + round(s.alignment_s * NS_PER_S)
         outage = tl.active("gnss_outage", gps)
         if outage is not None:
-            dt_s = (gps - tl.started_at("gnss_outage", gps)) / NS_PER_S
+            started = tl.started_at("gnss_outage", gps)
+            assert started is not None  # an active outage has started
+            dt_s = (gps - started) / NS_PER_S
             err_m = outage.params["position_drift_m_s"] * dt_s
             phi = math.radians(nav.lat_deg)
             meridian_m = _WGS84_A * (1 - _WGS84_E2) / (1 - _WGS84_E2 * math.sin(phi) ** 2) ** 1.5
@@ -258,7 +260,7 @@ class InsEmulator:
     def run(self, clock, pacer, timing) -> bool:
         hosts, kinds, args = self.schedule(clock)
         port, mono = self.port, time.monotonic_ns
-        for host, kind, arg in zip(hosts.tolist(), kinds.tolist(), args.tolist()):
+        for host, kind, arg in zip(hosts.tolist(), kinds.tolist(), args.tolist(), strict=True):
             if kind == _EV_NAV:  # build the bytes before the instant, write at it
                 data = self.nav_bytes(arg)
             elif kind == _EV_ZDA:

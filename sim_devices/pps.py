@@ -17,7 +17,7 @@ import numpy as np
 
 from drivers.pps import encode_pps_datagram
 from sim_devices.faults import Fault, Timeline
-from sim_devices.udp import UdpLink
+from sim_devices.udp import DatagramSender, UdpLink
 
 NS_PER_S = 1_000_000_000
 
@@ -45,7 +45,7 @@ class PpsEmulator:
         self.start_gps_ns, self.end_gps_ns = start_gps_ns, end_gps_ns
         self.seed = seed
         self.rng = np.random.default_rng([seed, 3])
-        self.link: UdpLink | None = None
+        self.link: DatagramSender | None = None
         self.counts = {"pulses": 0, "suppressed": 0}
         self.edges: list[tuple[int, int, int]] = []  # (sequence, GPS second, host stamp ns)
 
@@ -68,6 +68,7 @@ class PpsEmulator:
             stamp = clock.host_ns(g) + jitter
             if not pacer.wait_until(stamp):
                 return False
+            assert self.link is not None  # opened by prepare() (or set by the caller)
             self.link.send(encode_pps_datagram(seq, stamp), g)
             timing.record(stamp, time.monotonic_ns())
             self.edges.append((seq, sec, stamp))

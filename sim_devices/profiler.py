@@ -84,11 +84,9 @@ class ProfilerEmulator:
             locked &= f.params["pps_locked"]
         f = self.timeline.active("profiler_clock_drift", t_gps_ns)
         if f is not None:
-            err += round(
-                f.params["drift_ppm"]
-                * 1e-6
-                * (t_gps_ns - self.timeline.started_at("profiler_clock_drift", t_gps_ns))
-            )
+            started = self.timeline.started_at("profiler_clock_drift", t_gps_ns)
+            assert started is not None  # an active drift has started
+            err += round(f.params["drift_ppm"] * 1e-6 * (t_gps_ns - started))
             locked &= f.params["pps_locked"]
         return err, locked
 
@@ -150,6 +148,7 @@ class ProfilerEmulator:
         def send() -> bool:  # at the last one's instant
             if not wait(burst[-1][0]):
                 return False
+            assert link is not None  # opened by prepare()
             for host, emit_gps, payload in burst:
                 link.send(payload, emit_gps)
                 record(host, mono())

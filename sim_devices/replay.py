@@ -30,7 +30,7 @@ from drivers.base import DriverError
 from drivers.can import open_can_bus, parse_can_frame
 from drivers.pps import encode_pps_datagram
 from drivers.zf.zfp1 import parse_header
-from sim_devices.canbus import CanSettings
+from sim_devices.canbus import CanSettings, MessageBus
 from sim_devices.clock import TruthClock
 from sim_devices.ins import InsSettings
 from sim_devices.runner import EmulatorRun, free_udp_port
@@ -131,14 +131,16 @@ class UdpReplayer(_Replayer):
         return {"address": list(self.address), "protocol": "PPS1" if self.name == "pps" else "zfp1"}
 
     def emit(self, msg, host_ns) -> None:
+        link = self.link
+        assert link is not None  # opened by prepare()
         if self.name == "pps":  # re-stamp the pulse with its replay instant
             self.sequence += 1
             stamp = host_ns
             if isinstance(msg.payload, dict) and isinstance(msg.payload.get("host_ns"), int):
                 stamp = host_ns + round((msg.payload["host_ns"] - msg.host_ns) / self.speed)
-            self.link.send(encode_pps_datagram(self.sequence, stamp), 0)
+            link.send(encode_pps_datagram(self.sequence, stamp), 0)
         else:
-            self.link.send(msg.payload, 0)
+            link.send(msg.payload, 0)
 
     def close(self) -> None:
         if self.link is not None:
@@ -153,7 +155,7 @@ class CanReplayer(_Replayer):
         topics = {t for t in session.channels if t.startswith("/can/")}
         super().__init__("can", session, topics, speed)
         self.settings = settings
-        self.bus = None
+        self.bus: MessageBus | None = None
 
     def prepare(self) -> dict:
         self.bus = open_can_bus(self.settings.bus_config())
@@ -167,6 +169,7 @@ class CanReplayer(_Replayer):
         except DriverError:  # a damaged record in the log: counted, the replay goes on
             self.counts["bad_records"] = self.counts.get("bad_records", 0) + 1
             return
+        assert self.bus is not None  # opened by prepare()
         self.bus.send(
             can.Message(
                 arbitration_id=arbitration_id, data=data, is_extended_id=extended, is_fd=len(data) > 8
@@ -206,7 +209,7 @@ class ReplayRun(EmulatorRun):
 
     def emulators(self) -> list:
         s, sp, ch = self.session, self.spec, self.session.channels
-        out = []
+        out: list[_Replayer] = []
         if "/ins/raw" in ch:
             out.append(SerialReplayer(s, sp.speed, self.run_dir / "ins"))
         if "/lidar/raw" in ch:
@@ -228,6 +231,7 @@ class ReplayRun(EmulatorRun):
 
     def write_run_files(self) -> None:
         c, s = self.clock, self.session
+        assert c is not None  # the run has started: its clock is set
         window = {
             "session": s.name,
             "duration_s": s.duration_s / self.spec.speed,
@@ -250,6 +254,7 @@ class ReplayRun(EmulatorRun):
         per_profile = 1
         first = next(iter(s.messages({"/lidar/raw"})), None)
         if first is not None:
+            assert isinstance(first.payload, bytes)  # /lidar/raw is a raw channel
             try:
                 per_profile = parse_header(first.payload)[5]
             except DriverError:

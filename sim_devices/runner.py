@@ -18,8 +18,8 @@ The run directory (:data:`RUN_FILES`): ``truth_clock.json`` (the truth clock and
 window), ``faults.json`` (every fault's window in scenario seconds, GPS ns and host ns),
 ``devices.json`` (where each device is, the process ids), ``scenario_truth.json`` (the
 simulation's truth), ``ins`` (the link to the INS pty), ``host_clock`` (the simulated steps of
-the host's realtime clock, with ``host_clock_step`` faults: a daemon started with
-``$MLS_SIM_HOST_CLOCK`` naming it sees them) and, when each process ends,
+the host's realtime clock, with ``host_clock_step`` faults: a daemon given it,
+``mls acquire --sim-host-clock FILE``, sees them) and, when each process ends,
 ``stats/<device>.json`` (what it sent, the faults it applied, its timing error and CPU).
 """
 
@@ -34,6 +34,8 @@ import socket
 import time
 import traceback
 from dataclasses import dataclass, field, replace
+from multiprocessing.process import BaseProcess
+from multiprocessing.synchronize import Event as StopEvent
 from pathlib import Path
 
 from sim_devices.canbus import CanEmulator, CanSettings
@@ -46,6 +48,9 @@ from sim_devices.pacing import Pacer, TimingLog, tune_process
 from sim_devices.pps import PpsEmulator, PpsSettings
 from sim_devices.profiler import ProfilerEmulator, ProfilerSettings
 from sim_devices.vesselconfig import write_vessel_config
+
+#: one emulator process's work (what :meth:`DeviceRun.emulators` gives)
+Emulator = InsEmulator | ProfilerEmulator | PpsEmulator | CanEmulator
 
 DEVICES = ("ins", "profiler", "pps", "can")
 RUN_FILES = (
@@ -170,8 +175,8 @@ class EmulatorRun:
         self.ready_timeout_s = ready_timeout_s
         self.clock: TruthClock | None = None
         self.locations: dict[str, dict] = {}
-        self._procs: dict[str, mp.Process] = {}
-        self._stop = None
+        self._procs: dict[str, BaseProcess] = {}
+        self._stop: StopEvent | None = None
         self._stopped = False
 
     def emulators(self) -> list:
@@ -338,7 +343,7 @@ class DeviceRun(EmulatorRun):
 
     def emulators(self) -> list:
         s, f, fp = self.spec, self.feed, self.faults
-        out = []
+        out: list[Emulator] = []
         if "ins" in s.devices:
             out.append(
                 InsEmulator(
@@ -370,8 +375,13 @@ class DeviceRun(EmulatorRun):
             self.lead_s, self.feed.start_gps_ns, self.spec.drift_ppm, self.spec.speed
         )
 
+    def _truth_clock(self) -> TruthClock:
+        """The truth clock, anchored by :meth:`start` before the run files are written."""
+        assert self.clock is not None, "the truth clock is made when the emulators are ready"
+        return self.clock
+
     def window(self) -> dict:
-        f, c = self.feed, self.clock
+        f, c = self.feed, self._truth_clock()
         return {
             "scenario": f.name,
             "seed": int(f.sim.seed),
@@ -385,7 +395,7 @@ class DeviceRun(EmulatorRun):
         }
 
     def write_run_files(self) -> None:
-        f, c, window = self.feed, self.clock, self.window()
+        f, c, window = self.feed, self._truth_clock(), self.window()
         c.write(self.run_dir / "truth_clock.json", window=window)
         _write_json(
             self.run_dir / "faults.json",

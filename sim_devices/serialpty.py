@@ -51,6 +51,7 @@ class PtyPort:
     def plug(self) -> str:
         """Open a new pty and point the link at it; returns the slave's path."""
         if self.plugged:
+            assert self.slave_path is not None  # opened with the pty
             return self.slave_path
         master, slave = os.openpty()
         tty.setraw(slave)
@@ -80,10 +81,12 @@ class PtyPort:
 
     def _unread(self) -> int:
         """Bytes waiting in the pty that no reader took: taken here, as the close would drop them."""
+        slave = self.slave
+        assert slave is not None  # plugged
         n = 0
         while True:
             try:
-                data = os.read(self.slave, 65536)
+                data = os.read(slave, 65536)
             except OSError:  # BlockingIOError: nothing more
                 return n
             if not data:
@@ -102,6 +105,7 @@ class PtyPort:
         except OSError:
             pass
         for fd in (self.master, self.slave):
+            assert fd is not None  # plugged: both sides open
             try:
                 os.close(fd)
             except OSError:
@@ -135,11 +139,12 @@ class PtyPort:
 
     def _send(self) -> None:
         """Write the backlog, oldest first, as far as the pty takes it."""
-        backlog = self._backlog
+        backlog, master = self._backlog, self.master
+        assert master is not None  # plugged
         while backlog:
             deadline, chunk = backlog[0]
             try:
-                n = os.write(self.master, chunk)
+                n = os.write(master, chunk)
             except OSError:  # full (BlockingIOError), or the pty gone under us: kept, then overrun
                 n = 0
             self.stats["bytes_written"] += n

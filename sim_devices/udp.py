@@ -10,10 +10,22 @@ twice in a row — each with the fault's probability, drawn from a seeded genera
 from __future__ import annotations
 
 import socket
+from typing import Protocol
 
 import numpy as np
 
 from sim_devices.faults import Timeline
+
+
+class DatagramSender(Protocol):
+    """Where an emulator sends its datagrams: a :class:`UdpLink`, or what stands for one (an
+    offline session collects them)."""
+
+    stats: dict[str, int]
+
+    def send(self, payload: bytes, gps_ns: int, /) -> None: ...
+
+    def close(self) -> None: ...
 
 
 class UdpLink:
@@ -24,7 +36,7 @@ class UdpLink:
         self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
         self.sock.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, 4 * 1024 * 1024)
         self._held: bytes | None = None
-        self.stats = {
+        self.stats: dict[str, int] = {
             "datagrams_sent": 0,
             "bytes_sent": 0,
             "lost": 0,
@@ -37,6 +49,7 @@ class UdpLink:
         )
 
     def _draw(self, kind: str, gps_ns: int) -> bool:
+        assert self.timeline is not None  # only a link with udp_* faults draws
         f = self.timeline.active(kind, gps_ns)
         return f is not None and (
             f.params["probability"] >= 1.0 or self.rng.random() < f.params["probability"]

@@ -18,12 +18,16 @@ from __future__ import annotations
 
 import datetime as _dt
 from pathlib import Path
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import yaml
 
 from sim_devices.canbus import DEFAULT_PORT
 from sim_devices.ins import InsSettings
+
+if TYPE_CHECKING:
+    from calib.io.site import Site
 
 FULL_RATE_PTS_S = 200.0 * 5080  # the Z+F Profiler 9012 at its full rate
 MIN_TARGET_POINTS = 20  # the guidance's floor of hits per target and pass
@@ -39,56 +43,21 @@ def vessel_config(
     profiler_rate_hz: float = 200.0,
     profiler_latency_s: float = 0.0005,
     profiler_points_per_360: int | None = None,
-    site=None,
+    site: Site | None = None,
     site_file: str | None = None,
 ) -> dict:
+    """The vessel config of the emulators at ``locations`` (module docstring)."""
     run_dir = Path(run_dir)
     ins = ins or InsSettings(protocol=locations.get("ins", {}).get("protocol") or "nmea")
     devices = []
     if "ins" in locations:
-        devices.append(
-            {
-                "name": "ins",
-                "kind": "ins",
-                "protocol": ins.protocol,
-                "transport": {"type": "serial", "port": locations["ins"]["link"], "baud": 921600},
-                "latency": {
-                    "band_ms": [0.0, round(max(30.0, 1.5e3 * (ins.latency_s + ins.jitter_s) + 10.0), 1)],
-                    "jump_ms": 5.0,
-                    "rate_hz": float(ins.rate_hz * speed),
-                    "gap_s": 0.5,
-                    "expect_pps_flag": True,
-                },
-            }
-        )
+        devices.append(_ins_device(locations["ins"]["link"], ins, speed))
     if "profiler" in locations:
         host, port = locations["profiler"]["address"]
-        band = 1.5 * (1e3 / profiler_rate_hz + 1e3 * profiler_latency_s) + 10.0
-        devices.append(
-            {
-                "name": "profiler",
-                "kind": "profiler",
-                "protocol": "zfp1",
-                "transport": {"type": "udp", "host": host, "port": int(port)},
-                "latency": {
-                    "band_ms": [0.0, round(band, 1)],
-                    "jump_ms": 5.0,
-                    "rate_hz": float(profiler_rate_hz * speed),
-                    "gap_s": 0.5,
-                },
-            }
-        )
+        devices.append(_profiler_device(host, int(port), profiler_rate_hz, profiler_latency_s, speed))
     if "pps" in locations and "ins" in locations:
         host, port = locations["pps"]["address"]
-        devices.append(
-            {
-                "name": "pps",
-                "kind": "pps",
-                "source": {"type": "udp", "host": host, "port": int(port)},
-                "time_device": "ins",
-                "time_messages": ["ZDA"] if ins.protocol == "nmea" else ["validity_time"],
-            }
-        )
+        devices.append(_pps_device(host, int(port), ins))
     if "can" in locations:
         c = locations["can"]
         devices.append(
@@ -98,7 +67,7 @@ def vessel_config(
                 "transport": {"type": "can", "interface": c["interface"], "channel": c["channel"]},
             }
         )
-    cfg = {
+    cfg: dict = {
         "vessel": vessel,
         "devices": devices,
         "session": {"directory": str(run_dir / "sessions")},
@@ -114,16 +83,66 @@ def vessel_config(
     if site_file is not None:
         cfg["site_file"] = site_file
         if profiler_points_per_360 is not None:
-            pts_s = profiler_rate_hz * profiler_points_per_360
-            cfg["guidance"] = {
-                "min_points_per_target": max(MIN_TARGET_POINTS, round(100 * pts_s / FULL_RATE_PTS_S)),
-                "profile_rate_hz": round(float(profiler_rate_hz), 4),
-                "points_per_360": int(profiler_points_per_360),
-            }
+            cfg["guidance"] = _guidance(profiler_rate_hz, profiler_points_per_360)
     return cfg
 
 
-def write_vessel_config(path: str | Path, *, what: str, site=None, **kwargs) -> Path:
+def _ins_device(link: str, ins: InsSettings, speed: float) -> dict:
+    """The INS on the emulator's pty link; its latency band covers the emulated latency and jitter."""
+    return {
+        "name": "ins",
+        "kind": "ins",
+        "protocol": ins.protocol,
+        "transport": {"type": "serial", "port": link, "baud": 921600},
+        "latency": {
+            "band_ms": [0.0, round(max(30.0, 1.5e3 * (ins.latency_s + ins.jitter_s) + 10.0), 1)],
+            "jump_ms": 5.0,
+            "rate_hz": float(ins.rate_hz * speed),
+            "gap_s": 0.5,
+            "expect_pps_flag": True,
+        },
+    }
+
+
+def _profiler_device(host: str, port: int, rate_hz: float, latency_s: float, speed: float) -> dict:
+    """The profiler on UDP; its latency band covers a profile period and the emulated latency."""
+    band = 1.5 * (1e3 / rate_hz + 1e3 * latency_s) + 10.0
+    return {
+        "name": "profiler",
+        "kind": "profiler",
+        "protocol": "zfp1",
+        "transport": {"type": "udp", "host": host, "port": port},
+        "latency": {
+            "band_ms": [0.0, round(band, 1)],
+            "jump_ms": 5.0,
+            "rate_hz": float(rate_hz * speed),
+            "gap_s": 0.5,
+        },
+    }
+
+
+def _pps_device(host: str, port: int, ins: InsSettings) -> dict:
+    """The PPS on UDP, its pulses labelled by the INS's time messages."""
+    return {
+        "name": "pps",
+        "kind": "pps",
+        "source": {"type": "udp", "host": host, "port": port},
+        "time_device": "ins",
+        "time_messages": ["ZDA"] if ins.protocol == "nmea" else ["validity_time"],
+    }
+
+
+def _guidance(profiler_rate_hz: float, points_per_360: int) -> dict:
+    """The guidance section matched to the emulated profiler (module docstring)."""
+    pts_s = profiler_rate_hz * points_per_360
+    return {
+        "min_points_per_target": max(MIN_TARGET_POINTS, round(100 * pts_s / FULL_RATE_PTS_S)),
+        "profile_rate_hz": round(float(profiler_rate_hz), 4),
+        "points_per_360": int(points_per_360),
+    }
+
+
+def write_vessel_config(path: str | Path, *, what: str, site: Site | None = None, **kwargs: Any) -> Path:
     """Write :func:`vessel_config` (``kwargs``) to ``path``, with the site file beside it when
     ``site`` (a :class:`calib.io.site.Site`) is given; ``what`` names the run in the header."""
     path = Path(path)

@@ -37,6 +37,7 @@ UNIT_RANK = {
     "drivers": {
         "base": 0,
         "timing": 0,
+        "ppsfetch": 0,
         "hydrins": 1,
         "zf": 1,
         "pps": 1,
@@ -55,6 +56,7 @@ UNIT_RANK = {
         "ui": 5,
         "watch": 5,
         "doctor": 5,
+        "console": 5,
     },
     "office": {
         "simsession": 0,
@@ -206,3 +208,43 @@ def test_modules_stay_small_and_folders_walkable(pkg):
         if d.is_dir() and (n := len(list(d.glob("*.py")))) > MAX_MODULES_PER_FOLDER
     ]
     assert not crowded, f"folders over {MAX_MODULES_PER_FOLDER} modules:\n" + "\n".join(crowded)
+
+
+MAX_FUNCTION_BODY_LINES = 60
+
+
+def _body_lines(node: ast.FunctionDef | ast.AsyncFunctionDef) -> int:
+    """Lines from the first statement after the docstring to the function's end (the signature
+    and the docstring do not count: a typer command's options are declarations, not work)."""
+    body = node.body
+    first = body[0]
+    is_docstring = isinstance(first, ast.Expr) and isinstance(first.value, ast.Constant)
+    if is_docstring and isinstance(first.value.value, str) and len(body) > 1:
+        first = body[1]
+    assert node.end_lineno is not None
+    return node.end_lineno - first.lineno + 1
+
+
+def _long_functions(path: Path, root: Path = PROJECT_ROOT) -> list[str]:
+    tree = ast.parse(path.read_text())
+    return [
+        f"{path.relative_to(root)}:{node.lineno} {node.name}: {n} lines"
+        for node in ast.walk(tree)
+        if isinstance(node, ast.FunctionDef | ast.AsyncFunctionDef)
+        and (n := _body_lines(node)) > MAX_FUNCTION_BODY_LINES
+    ]
+
+
+def test_long_function_finder_finds_one(tmp_path):
+    body = "\n".join(f"    x{i} = {i}" for i in range(MAX_FUNCTION_BODY_LINES + 1))
+    (tmp_path / "m.py").write_text(f'def short():\n    """Doc."""\n    return 1\n\n\ndef long():\n{body}\n')
+    assert _long_functions(tmp_path / "m.py", tmp_path) == [
+        f"m.py:6 long: {MAX_FUNCTION_BODY_LINES + 1} lines"
+    ]
+
+
+@pytest.mark.parametrize("pkg", PACKAGES)
+def test_functions_stay_short(pkg):
+    """Functions of one idea: no library function's body is over 60 lines (docs/architecture.md §2)."""
+    long = [line for p in sorted((PROJECT_ROOT / pkg).rglob("*.py")) for line in _long_functions(p)]
+    assert not long, f"functions over {MAX_FUNCTION_BODY_LINES} lines:\n" + "\n".join(long)

@@ -10,5 +10,7 @@
 - ``pidlock``: one daemon per status socket: a lock file naming its holder's PID, host and start.
 - ``sessionfiles``: the start-up salvage report and the files written into a new session.
 - ``reports``: the status documents, the pre-survey checks and the watchdog's device check.
+- ``devicetasks``: each device kept open and running, its failures recorded and alarmed.
+- ``monitoring``: the monitor loop's alarms (time steps, packet loss, consumer overflow, clock).
 - ``supervisor``: :class:`Supervisor`, one vessel config run from start-up to shutdown.
 """

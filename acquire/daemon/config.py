@@ -37,7 +37,8 @@ default shown in the example):
   this file; its boresight and extras on the config's mount) — the sequential test's
   ``shift_deg`` and ``false_alarms_per_hour``, the returns kept per second
   ``max_points_per_s``, the shortest and longest line ``min_line_s``, ``max_line_s``, and
-  ``enabled``. The site file gives the LGF, the wall azimuth, the sigmas and τ.
+  ``enabled``. The site file gives the LGF, the wall azimuth, the sigmas and τ;
+- ``web`` (optional): the bridge console (:mod:`acquire.daemon.configweb`, docs/console.md).
 """
 
 from __future__ import annotations
@@ -46,6 +47,7 @@ import os
 import re
 import ssl
 import stat
+from functools import partial
 from pathlib import Path
 
 from acquire.daemon.configdevices import parse_devices
@@ -62,6 +64,7 @@ from acquire.daemon.confignodes import (
     vessel_name,
 )
 from acquire.daemon.configschema import GuidanceConfig, MountConfig, StatusSettings, VesselConfig, WatchConfig
+from acquire.daemon.configweb import parse_web
 from acquire.log.session import COMPRESSIONS, SessionOptions
 from acquire.status.mqtt import MqttSettings, MqttTls, command_policy, tls_context
 from acquire.timing.clock import ClockParams
@@ -283,9 +286,13 @@ def _tls_file(node: Node, base: Path, what: str, private: bool = False) -> Path:
     return path
 
 
+def _vector3(node: Node) -> tuple[float, ...]:
+    return tuple(float(x) for x in node.vector(3))
+
+
 def _mount(node: Node, errs: Errors) -> MountConfig | None:
     m = mapping_keys(node, errs, required={"lever_arm_m", "nominal_deg", "boresight_apriori_deg"})
-    vecs = {k: errs.get(lambda k=k: tuple(float(x) for x in m[k].vector(3))) for k in m}
+    vecs = {k: errs.get(partial(_vector3, m[k])) for k in m}
     if len(vecs) < 3 or any(v is None for v in vecs.values()):
         return None
     return MountConfig(**vecs)
@@ -403,6 +410,35 @@ def _watch(node: Node, errs: Errors, base: Path) -> WatchConfig:
     )
 
 
+def _site_file(node: Node, errs: Errors, base_dir: Path) -> Path | None:
+    """The ``site_file``: an existing file that loads as a site (else an error)."""
+    site_file = errs.get(lambda: resolved_path(node, base_dir))
+    if site_file is not None:
+        from calib.io.site import load_site
+
+        if not site_file.is_file():
+            why = "is a directory" if site_file.is_dir() else "not found"
+            errs.add(str(node.fail(f"an existing site file ({site_file} {why})")))
+        else:
+            errs.get(lambda: load_site(site_file))
+    return site_file
+
+
+def _check_watch_inputs(node: Node, has_site_file: bool, errs: Errors) -> None:
+    """An enabled mount watch needs the calibrated mount and the site file."""
+    m = node.value if isinstance(node.value, dict) else {}
+    if "calibration" not in m:
+        errs.add(
+            f"{node.where()}: the mount watch needs the calibrated mount: add "
+            f"watch.calibration (a calibration result.json; or set watch.enabled: false)"
+        )
+    if not has_site_file:
+        errs.add(
+            f"{node.where()}: the mount watch needs the site's frame, wall azimuth and "
+            f"sigmas: add site_file (or set watch.enabled: false)"
+        )
+
+
 def vessel_config_from_node(root: Node, base_dir: Path) -> VesselConfig:
     """Validate a loaded YAML tree; raise :class:`VesselConfigError` with every error."""
     errs = Errors()
@@ -410,7 +446,7 @@ def vessel_config_from_node(root: Node, base_dir: Path) -> VesselConfig:
         root,
         errs,
         required={"vessel", "devices", "session"},
-        optional={"clock", "status", "mqtt", "mount", "site_file", "guidance", "watch"},
+        optional={"clock", "status", "mqtt", "mount", "site_file", "guidance", "watch", "web"},
     )
     vessel = errs.get(lambda: vessel_name(top["vessel"])) if "vessel" in top else None
     devices = parse_devices(top["devices"], errs) if "devices" in top else []
@@ -421,17 +457,7 @@ def vessel_config_from_node(root: Node, base_dir: Path) -> VesselConfig:
     status = _status(top["status"], errs, base_dir) if "status" in top else StatusSettings()
     mqtt = _mqtt(top["mqtt"], errs, base_dir) if "mqtt" in top else None
     mount = _mount(top["mount"], errs) if "mount" in top else None
-    site_file = None
-    if "site_file" in top:
-        site_file = errs.get(lambda: resolved_path(top["site_file"], base_dir))
-        if site_file is not None:
-            from calib.io.site import load_site
-
-            if not site_file.is_file():
-                why = "is a directory" if site_file.is_dir() else "not found"
-                errs.add(str(top["site_file"].fail(f"an existing site file ({site_file} {why})")))
-            else:
-                errs.get(lambda: load_site(site_file))
+    site_file = _site_file(top["site_file"], errs, base_dir) if "site_file" in top else None
     guidance = _guidance(top["guidance"], errs) if "guidance" in top else GuidanceConfig()
     if "guidance" in top and "site_file" not in top and guidance.enabled:
         errs.add(
@@ -440,20 +466,12 @@ def vessel_config_from_node(root: Node, base_dir: Path) -> VesselConfig:
         )
     watch = _watch(top["watch"], errs, base_dir) if "watch" in top else WatchConfig()
     if "watch" in top and watch.enabled:
-        m = top["watch"].value if isinstance(top["watch"].value, dict) else {}
-        if "calibration" not in m:
-            errs.add(
-                f"{top['watch'].where()}: the mount watch needs the calibrated mount: add "
-                f"watch.calibration (a calibration result.json; or set watch.enabled: false)"
-            )
-        if "site_file" not in top:
-            errs.add(
-                f"{top['watch'].where()}: the mount watch needs the site's frame, wall azimuth and "
-                f"sigmas: add site_file (or set watch.enabled: false)"
-            )
+        _check_watch_inputs(top["watch"], "site_file" in top, errs)
+    web = parse_web(top["web"], errs, base_dir) if "web" in top else None
     if errs.items:
         raise VesselConfigError(root.source, sorted(errs.items, key=_position))
-    assert vessel is not None and session_dir is not None
+    assert vessel is not None, "a missing or invalid vessel name is an error"
+    assert session_dir is not None, "a missing or invalid session section is an error"
     return VesselConfig(
         Path(root.source),
         vessel,
@@ -467,6 +485,7 @@ def vessel_config_from_node(root: Node, base_dir: Path) -> VesselConfig:
         site_file,
         guidance,
         watch,
+        web,
     )
 
 

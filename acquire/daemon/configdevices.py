@@ -156,7 +156,7 @@ def _device(node: Node, errs: Errors) -> DeviceConfig | None:
             time_device = errs.get(lambda: valid_name(m["time_device"]))
         if "time_messages" in m:
             items = errs.get(lambda: m["time_messages"].sequence(min_len=1), [])
-            time_messages = tuple(errs.get(lambda n=n: n.string(), "") for n in items)
+            time_messages = tuple(errs.get(n.string, "") for n in items)
     latency = _latency(m["latency"], errs) if "latency" in m and kind != "pps" else LatencyLimits()
     if name is None:
         return None

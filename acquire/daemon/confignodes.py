@@ -6,7 +6,7 @@ checks (integers in a range, choices, names, paths, hosts) raise :class:`ConfigE
 from __future__ import annotations
 
 import re
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from pathlib import Path
 from typing import Any
 
@@ -110,7 +110,7 @@ def variant(
     errs: Errors,
     what: str,
     choices,
-    variants: dict[str, tuple[tuple[str, ...], tuple[str, ...]]],
+    variants: Mapping[str, tuple[tuple[str, ...], tuple[str, ...]]],
 ):
     """A mapping whose ``type`` says which keys it needs (and which it may have). Returns
     ``(type, children)``, or None after recording every unknown and every missing key."""

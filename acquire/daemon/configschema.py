@@ -105,6 +105,21 @@ class WatchConfig:
 
 
 @dataclass(frozen=True)
+class WebConfig:
+    """The ``web`` section: the bridge console the daemon serves (:mod:`acquire.console`). Off
+    loopback it needs TLS (``cert_file``/``key_file``); operator actions need the token of
+    ``credentials_file`` (read-only without it)."""
+
+    host: str = "127.0.0.1"
+    port: int = 8480
+    cert_file: Path | None = None
+    key_file: Path | None = None
+    credentials_file: Path | None = None
+    token: str | None = field(default=None, repr=False)  # the operator token, from credentials_file
+    foxglove_port: int | None = None
+
+
+@dataclass(frozen=True)
 class VesselConfig:
     source: Path
     vessel: str
@@ -118,6 +133,7 @@ class VesselConfig:
     site_file: Path | None
     guidance: GuidanceConfig = GuidanceConfig()
     watch: WatchConfig = WatchConfig()
+    web: WebConfig | None = None  # the bridge console, when the section is there
 
     def device(self, name: str) -> DeviceConfig:
         for d in self.devices:

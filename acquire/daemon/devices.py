@@ -41,7 +41,7 @@ import operator
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from acquire.daemon.configschema import CanTransport, DeviceConfig, NetTransport, SerialTransport
 from acquire.daemon.consumers import ConsumerHub
@@ -50,6 +50,14 @@ from acquire.timing.latency import LatencyMonitor
 from acquire.timing.timekeeper import TimeKeeper
 from drivers.base import Registry
 from drivers.can import can_frame_bytes
+
+if TYPE_CHECKING:  # the drivers are imported when a device of theirs is made
+    from drivers.can import CanReader
+    from drivers.hydrins.nmea_decode import NmeaNavAssembler
+    from drivers.hydrins.nmea_sentences import Zda
+    from drivers.hydrins.stdbin_decode import StdbinNavDecoder
+    from drivers.pps import PpsSource
+    from drivers.transport.base import Transport
 
 NS_PER_S = 1_000_000_000
 STATUS_HOLD_NS = NS_PER_S  # how long an INS status stands for epochs that lost theirs
@@ -194,16 +202,25 @@ class _StreamDevice(Device):
 
     def __init__(self, cfg: DeviceConfig, ctx: DaemonContext) -> None:
         super().__init__(cfg, ctx)
-        self.transport = None
+        self.transport: Transport | None = None
 
     async def open(self) -> None:
         from drivers.transport.registry import create_transport
 
-        self.transport = create_transport(
-            transport_config(self.cfg.transport, self.name, self.high_rate), on_event=self.on_transport_event
-        )
-        await self.transport.open()
+        t = self.cfg.transport
+        assert isinstance(t, (SerialTransport, NetTransport)), "the config gives it a byte transport"
+        config = transport_config(t, self.name, self.high_rate)
+        if config["kind"] == "udp-batch":  # kernel realtime stamps, through the daemon's host clock
+            config["host_clock"] = self.ctx.timekeeper.host_clock
+        transport = create_transport(config, on_event=self.on_transport_event)
+        self.transport = transport
+        await transport.open()
         self.opened = True
+
+    def _opened_transport(self) -> Transport:
+        """The transport :meth:`open` made (the supervisor runs a device only once it is open)."""
+        assert self.transport is not None, f"{self.name}: run before open"
+        return self.transport
 
     async def close(self) -> None:
         if self.transport is not None:
@@ -237,10 +254,12 @@ class InsDevice(_StreamDevice):
         from drivers.hydrins.stdbin_decode import StdbinNavDecoder
 
         self.time_messages = frozenset(time_messages)
+        self._nmea: NmeaNavAssembler | None = None  # the decoder when the INS speaks NMEA
+        self.decoder: StdbinNavDecoder | NmeaNavAssembler
         if cfg.protocol == "stdbin":
             self.decoder = StdbinNavDecoder()
         else:
-            self.decoder = NmeaNavAssembler()
+            self.decoder = self._nmea = NmeaNavAssembler()
         # sentence types that label PPS pulses (full date: ZDA, RMC; time of day: GGA)
         self._time_types = tuple(
             t for k, t in (("ZDA", Zda), ("RMC", Rmc), ("GGA", Gga)) if k in self.time_messages
@@ -267,7 +286,7 @@ class InsDevice(_StreamDevice):
         return out
 
     async def run(self) -> None:
-        t, submit = self.transport, self.ctx.submit
+        t, submit = self._opened_transport(), self.ctx.submit
         while True:
             chunks = await t.read_batch(256)
             self.chunks += len(chunks)
@@ -281,30 +300,38 @@ class InsDevice(_StreamDevice):
                 self.ctx.timekeeper.on_gps_minus_utc(announced)
 
     def _decode(self, data: bytes, host_ns: int) -> list:
-        dec = self.decoder
-        if not self._time_types or self.cfg.protocol == "stdbin":
-            return dec.feed(data, host_ns)
+        nmea = self._nmea
+        if not self._time_types or nmea is None:
+            return self.decoder.feed(data, host_ns)
         from drivers.hydrins.nmea_sentences import Zda
-        from drivers.hydrins.timeofday import device_date_ns
 
         out = []
-        for rec in dec.decoder.feed(data, host_ns):
-            if isinstance(rec, Zda) and None not in (rec.year, rec.month, rec.day, rec.time_of_day_ns):
-                try:
-                    midnight, _ = device_date_ns(rec.year, rec.month, rec.day, time.time_ns())
-                    self._zda_utc_ns = midnight + rec.time_of_day_ns
-                except ValueError:
-                    pass
+        for rec in nmea.decoder.feed(data, host_ns):
+            if isinstance(rec, Zda):
+                self._note_zda_date(rec)
             if isinstance(rec, self._time_types):
-                gps_s = self._sentence_gps_s(rec)
+                gps_s = self._sentence_gps_s(rec, nmea.gps_minus_utc_s)
                 if gps_s is not None and rec.host_ns is not None:
                     self.ctx.timekeeper.on_time(gps_s, rec.host_ns)
-            out.extend(dec.push(rec))
+            out.extend(nmea.push(rec))
         return out
 
-    def _sentence_gps_s(self, rec) -> int | None:
+    def _note_zda_date(self, rec: Zda) -> None:
+        """Keep the UTC instant of a complete ZDA (it dates the GGA time messages that follow)."""
+        from drivers.hydrins.timeofday import device_date_ns
+
+        year, month, day, tod = rec.year, rec.month, rec.day, rec.time_of_day_ns
+        if year is None or month is None or day is None or tod is None:
+            return
+        try:
+            midnight, _ = device_date_ns(year, month, day, time.time_ns())
+            self._zda_utc_ns = midnight + tod
+        except ValueError:
+            pass
+
+    def _sentence_gps_s(self, rec, leap: int | None) -> int | None:
         """The GPS second of a ZDA/RMC/GGA: the INS's UTC undone with the GPS − UTC it announces
-        (else the leap-second table's), its date unrolled from a GPS week rollover."""
+        (``leap``; None: the leap-second table's), its date unrolled from a GPS week rollover."""
         from drivers.hydrins.nmea_sentences import Gga, Rmc
         from drivers.hydrins.timeofday import device_fields_to_gps_ns, resolve_gps_ns
 
@@ -313,7 +340,6 @@ class InsDevice(_StreamDevice):
             return None
         if isinstance(rec, Rmc) and rec.valid is False:
             return None
-        leap = self.decoder.gps_minus_utc_s
         try:
             if isinstance(rec, Gga):
                 hint = self._zda_utc_ns if self._zda_utc_ns is not None else time.time_ns()
@@ -418,7 +444,7 @@ class ProfilerDevice(_StreamDevice):
         return out
 
     async def run(self) -> None:
-        t, asm, ctx = self.transport, self.assembler, self.ctx
+        t, asm, ctx = self._opened_transport(), self.assembler, self.ctx
         monitor, hub, name = ctx.monitor, ctx.hub, self.name
         submit_many = ctx.submit_many
         while True:
@@ -432,14 +458,15 @@ class ProfilerDevice(_StreamDevice):
             self.seen_many(host_ns)
             for prof in profiles:
                 self.records += 1
-                time_valid, pps, t0 = prof.time_valid, prof.pps_locked, prof.t0_ns
+                time_valid, pps, t0, prof_host_ns = prof.time_valid, prof.pps_locked, prof.t0_ns, prof.host_ns
+                assert prof_host_ns is not None, "feed_batch stamps every profile with its first packet's"
                 synced = pps and time_valid and t0 is not None
                 t0 = t0 if time_valid else None
                 if synced:
                     self.profiles_synced += 1
-                monitor.observe(name, prof.host_ns, t0, pps_flag=pps)
+                monitor.observe(name, prof_host_ns, t0, pps_flag=pps)
                 if hub.taps and hub.wants("profile"):
-                    hub.publish("profile", prof.build(), t0 if synced else ctx.gps_ns(prof.host_ns))
+                    hub.publish("profile", prof.build(), t0 if synced else ctx.gps_ns(prof_host_ns))
             await asyncio.sleep(0)
 
 
@@ -447,13 +474,19 @@ class ProfilerDevice(_StreamDevice):
 class PpsDevice(Device):
     def __init__(self, cfg: DeviceConfig, ctx: DaemonContext) -> None:
         super().__init__(cfg, ctx)
-        self.source = None
+        self.source: PpsSource | None = None
         self.gap_ns = ctx.clock.params.loss_timeout_ns + NS_PER_S  # pulses are 1 s apart
 
     def _source_config(self) -> dict:
         s = self.cfg.source
+        assert s is not None, "the config gives every pps device its source"
         if s.type == "kernel":
-            return {"kind": "kernel", "device": s.device, "name": self.name}
+            return {
+                "kind": "kernel",
+                "device": s.device,
+                "name": self.name,
+                "host_clock": self.ctx.timekeeper.host_clock,
+            }
         if s.type == "serial-line":
             return {"kind": "serial-line", "port": s.port, "line": s.line, "name": self.name}
         return {"kind": "udp", "host": s.host, "port": s.udp_port, "name": self.name}
@@ -461,8 +494,9 @@ class PpsDevice(Device):
     async def open(self) -> None:
         from drivers.pps import create_pps_source
 
-        self.source = create_pps_source(self._source_config())
-        await self.source.open()
+        source = create_pps_source(self._source_config())
+        self.source = source
+        await source.open()
         self.opened = self.connected = True
 
     async def close(self) -> None:
@@ -471,8 +505,9 @@ class PpsDevice(Device):
         self.connected = False
 
     async def run(self) -> None:
-        tk = self.ctx.timekeeper
-        async for edge in self.source:
+        tk, source = self.ctx.timekeeper, self.source
+        assert source is not None, f"{self.name}: run before open"
+        async for edge in source:
             self.records += 1
             self.seen(edge.host_ns)
             tk.on_edge(edge)
@@ -486,19 +521,24 @@ class CanDevice(Device):
     def __init__(self, cfg: DeviceConfig, ctx: DaemonContext) -> None:
         super().__init__(cfg, ctx)
         self.channel = f"/can/{self.name}"
-        self.reader = None
+        self.reader: CanReader | None = None
         self.markers = 0
         self.gap_ns = None  # event markers come when they come
 
-    def bus_config(self) -> dict:
+    def _can_transport(self) -> CanTransport:
         t = self.cfg.transport
-        cfg = {"interface": t.interface, "channel": t.channel}
+        assert isinstance(t, CanTransport), "the config gives every can device a CAN transport"
+        return t
+
+    def bus_config(self) -> dict:
+        t = self._can_transport()
+        cfg: dict[str, Any] = {"interface": t.interface, "channel": t.channel}
         if t.bitrate is not None and t.interface != "socketcan":  # SocketCAN: set by `ip link`
             cfg["bitrate"] = t.bitrate
         return cfg
 
     def channel_metadata(self) -> dict[str, dict[str, str]]:
-        t: CanTransport = self.cfg.transport
+        t = self._can_transport()
         return {
             self.channel: {
                 "format": "socketcan_can_frame_le",
@@ -513,8 +553,9 @@ class CanDevice(Device):
         from drivers.can import EVENT_MARKER_ID, CanReader, decode_event_marker, open_can_bus
 
         bus = open_can_bus(self.bus_config())
-        self.reader = CanReader(bus, {EVENT_MARKER_ID: decode_event_marker}, close_bus=True)
-        await self.reader.__aenter__()
+        reader = CanReader(bus, {EVENT_MARKER_ID: decode_event_marker}, close_bus=True)
+        self.reader = reader
+        await reader.__aenter__()
         self.opened = self.connected = True
 
     async def close(self) -> None:
@@ -526,8 +567,9 @@ class CanDevice(Device):
     async def run(self) -> None:
         from drivers.can import EventMarker
 
-        submit = self.ctx.submit
-        async for frame in self.reader:
+        submit, reader = self.ctx.submit, self.reader
+        assert reader is not None, f"{self.name}: run before open"
+        async for frame in reader:
             self.records += 1
             self.seen(frame.host_ns)
             submit(

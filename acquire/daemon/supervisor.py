@@ -53,14 +53,19 @@ import signal
 import time
 import traceback
 from collections.abc import Sequence
+from pathlib import Path
+from typing import TYPE_CHECKING
 
-from acquire.alarms import CRITICAL, WARNING, AlarmBook
+from acquire.alarms import WARNING, AlarmBook
 from acquire.daemon import sdnotify
 from acquire.daemon.configschema import VesselConfig
 from acquire.daemon.consumers import ChecklistPublisher, Consumer, ConsumerHub
 from acquire.daemon.devices import DEVICES, DaemonContext, Device
+from acquire.daemon.devicetasks import DRIVER_BACKOFF_S, DeviceRunner
+from acquire.daemon.monitoring import LOSS_CLEAR_S as LOSS_CLEAR_S  # re-exported: the fault campaign reads it
+from acquire.daemon.monitoring import MonitorAlarms
 from acquire.daemon.pidlock import LockHeld, PidLock, lock_path_for
-from acquire.daemon.reports import StatusReports
+from acquire.daemon.reports import DeviceHealth, Outlets, StatusReporter
 from acquire.daemon.sessionfiles import salvage_report, write_session_files
 from acquire.errors import AcquireError
 from acquire.log.batch import LogBatcher
@@ -68,58 +73,75 @@ from acquire.log.session import LogError
 from acquire.log.sessionlog import SessionWriter
 from acquire.status.bus import StatusBus, StatusServer
 from acquire.status.runfiles import check_session_root
-from acquire.timing.clock import ClockModel, ClockState
+from acquire.timing.clock import ClockModel
 from acquire.timing.latency import LatencyMonitor
 from acquire.timing.timekeeper import SYSTEM_LEAP_SECONDS_LIST, ClockCache, TimeKeeper, coarse_gps_offset_ns
-from drivers.base import DriverError
+from drivers.timing import HostClock
+
+if TYPE_CHECKING:
+    from acquire.status.mqtt import MqttPublisher
 
 log = logging.getLogger("mls.acquire")
 NS_PER_S = 1_000_000_000
 MONITOR_PERIOD_S = 0.25
-LOSS_CLEAR_S = 5.0  # packet_loss clears after this long without a new loss
-STEP_CLEAR_S = 10.0
-DRIVER_BACKOFF_S = (0.5, 30.0)
 
 
 class StartupError(AcquireError, RuntimeError):
     """The daemon cannot start (the message says what and why)."""
 
 
-class Supervisor(StatusReports):
+class Supervisor:
     """Runs one vessel config until stopped (see the module docstring)."""
 
     def __init__(
-        self, config: VesselConfig, consumers: Sequence[Consumer] = (), env: dict[str, str] | None = None
+        self,
+        config: VesselConfig,
+        consumers: Sequence[Consumer] = (),
+        env: dict[str, str] | None = None,
+        host_clock: HostClock | None = None,
     ) -> None:
+        """``host_clock``: the host's clock (default: the real one; ``mls acquire
+        --sim-host-clock`` gives the simulated devices' fake), read by the time keeper, the
+        clock model's seed and the transports' kernel stamps."""
         self.config = config
+        self.host_clock = host_clock if host_clock is not None else HostClock()
         self.consumers = list(consumers)
         self.env = env
         self.state = "starting"
         self.stop_reason: str | None = None
         self._stop: asyncio.Event | None = None
         self._tasks: set[asyncio.Task] = set()
-        self._device_tasks: dict[str, asyncio.Task] = {}
-        self.crashed: dict[str, str] = {}  # device → the error while it is down after a driver bug
-        self.unavailable: dict[str, str] = {}  # device → the error while it cannot be opened/read
         self.salvaged: dict = {}
         self.lock = PidLock(lock_path_for(config.status.socket), str(config.source))
         self.stale_lock: dict | None = None  # the holder of a stale daemon lock taken over
+        self._errors_seen: set[str] = set()
         self.started_mono_ns = time.monotonic_ns()
         self.started_utc = _dt.datetime.now(_dt.UTC)
-        self.loop_lag_ns = 0
         self._check_devices()
-        self.clock = ClockModel(config.clock, coarse_offset_ns=coarse_gps_offset_ns())
+        self.clock = ClockModel(config.clock, coarse_offset_ns=coarse_gps_offset_ns(self.host_clock))
         self.alarms = AlarmBook(to_gps=self.clock.gps_ns)
         self.monitor = LatencyMonitor(self.clock, self.alarms)
         self.hub = ConsumerHub()
+        self.bus = StatusBus()
+        self.checklist = ChecklistPublisher(self.bus.publish)
         self.clock_cache = ClockCache(self.clock)
+        self.devices: dict[str, Device] = {}  # filled below, once the devices' context exists
+        self.monitor_alarms = MonitorAlarms(
+            clock=self.clock,
+            alarms=self.alarms,
+            devices=self.devices,
+            hub=self.hub,
+            bus=self.bus,
+            log_event=self.log_event,
+        )
         self.timekeeper = TimeKeeper(
             self.clock,
             self._submit,
-            self._clock_state,
+            self.monitor_alarms.clock_state,
             self.clock_cache.invalidate,
             alarms=self.alarms,
             leap_list=SYSTEM_LEAP_SECONDS_LIST,
+            host_clock=self.host_clock,
         )
         self.ctx = DaemonContext(
             _no_writer,
@@ -131,29 +153,13 @@ class Supervisor(StatusReports):
             self.log_event,
             _no_writer,
         )
-        self.devices: dict[str, Device] = {}
-        for d in config.devices:
-            extra = {}
-            if d.kind == "ins":
-                pps = next((p for p in config.devices_of("pps") if p.time_device == d.name), None)
-                extra["time_messages"] = pps.time_messages if pps is not None else ()
-            self.devices[d.name] = DEVICES[d.kind](d, self.ctx, **extra)
-            if d.kind in ("ins", "profiler"):
-                self.monitor.add_device(d.name, d.latency)
-        # opened by start(): the session, the status socket, MQTT, the watchdog
-        self.writer: SessionWriter | None = None
-        self.batcher: LogBatcher | None = None
-        self.server: StatusServer | None = None
+        self._make_devices()
+        self.health = DeviceHealth(self.devices)
+        self.device_runner = DeviceRunner(health=self.health, alarms=self.alarms, log_event=self.log_event)
+        self.outlets = Outlets()  # opened by start(): the session, the status socket, MQTT
+        self.batcher: LogBatcher | None = None  # made with the session writer
         self.watchdog: sdnotify.HealthWatchdog | None = None
-        self.bus = StatusBus()
-        self.mqtt = None
-        self.checklist = ChecklistPublisher(self.bus.publish)
-        self._losses: dict[str, tuple[int, int]] = {}  # device → (count, host_ns of last increase)
-        self._tap_drops: dict[str, int] = {}
-        self._steps = 0
-        self._step_ns: int | None = None
-        self._was_locked = False
-        self._errors_seen: set[str] = set()
+        self.reports = self._make_reporter()
 
     def _check_devices(self) -> None:
         for kind, channel in (("ins", "/ins/raw"), ("profiler", "/lidar/raw")):
@@ -164,6 +170,62 @@ class Supervisor(StatusReports):
                     f"({', '.join(d.name for d in devs)}); the session has one "
                     f"{channel} channel: configure one {kind}"
                 )
+
+    def _make_devices(self) -> None:
+        """One device per configured device (an INS gets the time messages its PPS device names);
+        the INS and the profiler watched by the latency monitor."""
+        config = self.config
+        for d in config.devices:
+            extra = {}
+            if d.kind == "ins":
+                pps = next((p for p in config.devices_of("pps") if p.time_device == d.name), None)
+                extra["time_messages"] = pps.time_messages if pps is not None else ()
+            self.devices[d.name] = DEVICES[d.kind](d, self.ctx, **extra)
+            if d.kind in ("ins", "profiler"):
+                self.monitor.add_device(d.name, d.latency)
+
+    def _make_reporter(self) -> StatusReporter:
+        """The status documents' builder, reading this daemon's parts."""
+        return StatusReporter(
+            config=self.config,
+            health=self.health,
+            outlets=self.outlets,
+            clock=self.clock,
+            timekeeper=self.timekeeper,
+            monitor=self.monitor,
+            alarms=self.alarms,
+            hub=self.hub,
+            bus=self.bus,
+            checklist=self.checklist,
+            ctx=self.ctx,
+            started_utc=self.started_utc,
+            started_mono_ns=self.started_mono_ns,
+        )
+
+    @property
+    def writer(self) -> SessionWriter | None:
+        """The session writer (None until :meth:`start` opened the session)."""
+        return self.outlets.writer
+
+    @property
+    def mqtt(self) -> MqttPublisher | None:
+        """The MQTT publisher (None until :meth:`start`, and when the config has no ``mqtt``)."""
+        return self.outlets.mqtt
+
+    def drivers_health(self) -> tuple[bool, str]:
+        """The watchdog's check of the device tasks (:meth:`DeviceHealth.drivers_health`)."""
+        return self.health.drivers_health()
+
+    def device_error(self, dev: Device) -> str | None:
+        """Why ``dev`` is not connected, None when it is (:meth:`DeviceHealth.device_error`)."""
+        return self.health.device_error(dev)
+
+    def status_doc(self, state: str | None = None) -> dict:
+        """The retained ``status`` document (``state``: the daemon's own when None)."""
+        return self.reports.status_doc(state or self.state)
+
+    def _publish_status(self) -> None:
+        self.reports.publish_status(self.state)
 
     # -- record plumbing --------------------------------------------------------------------
 
@@ -230,87 +292,18 @@ class Supervisor(StatusReports):
         return 0
 
     async def start(self) -> None:
-        cfg = self.config
-        try:  # before the salvage opens what it finds there (made if missing: nothing else)
-            check_session_root(cfg.session_dir)
-        except OSError as e:
-            raise StartupError(f"session directory: {e}") from None
-        try:  # before anything is touched: a refused daemon leaves no trace
-            self.stale_lock = self.lock.take(log)
-        except (OSError, LockHeld) as e:
-            raise StartupError(f"daemon lock: {e}") from None
-        try:
-            self.salvaged = await asyncio.to_thread(salvage_report, cfg.session_dir)
-        except (OSError, LogError) as e:  # a damaged old session must not stop acquisition
-            self.salvaged = {"error": str(e)}
-        server = StatusServer(cfg.status.socket)
-        try:
-            await server.start()
-        except (OSError, RuntimeError) as e:
-            raise StartupError(f"status socket {cfg.status.socket}: {e}") from None
-        self.server = server
-        self.bus.add_sink(server)
-        metadata: dict[str, dict[str, str]] = {}
-        for d in self.devices.values():
-            metadata.update(d.channel_metadata())
-        self.writer = SessionWriter(
-            cfg.session_dir,
-            cfg.vessel,
-            cfg.session,
-            alarms=self.alarms,
-            clock=self.clock,
-            channel_metadata=metadata,
-        )
-        self.batcher = LogBatcher(self.writer.submit_batch, self.clock_cache)
-        self.ctx.submit = self.batcher.submit  # the devices' hot path
-        self.ctx.submit_many = self.batcher.submit_many
-        try:
-            session_dir = await asyncio.to_thread(self.writer.start)
-        except (OSError, LogError) as e:
-            raise StartupError(f"session directory {cfg.session_dir}: {e}") from None
-        write_session_files(cfg, session_dir, self.started_utc)
-        if cfg.mqtt is not None:
-            from acquire.status.mqtt import MqttPublisher
-
-            self.mqtt = MqttPublisher(
-                cfg.mqtt, cfg.vessel, on_command=self.command, alarms=self.alarms, on_event=self.log_event
-            )
-            self.bus.add_sink(self.mqtt)
-            self._spawn(self.mqtt.run(), "mqtt")
-        self.log_event(
-            {
-                "event": "session_start",
-                "session": session_dir.name,
-                "pid": os.getpid(),
-                "config": str(cfg.source),
-                "devices": list(self.devices),
-                "salvaged": self.salvaged,
-                "stale_lock": self.stale_lock,
-            }
-        )
+        """Check the session root, take the lock, salvage, serve the status socket, open the
+        session, MQTT and the devices, start the tasks; then ``READY=1`` (the module docstring)."""
+        self._claim_session_root()
+        self.salvaged = await self._salvage()
+        await self._serve_status()
+        session_dir = await self._open_session()
+        self._start_mqtt()
+        self._log_session_start(session_dir)
         self._publish_status()
-        for dev in self.devices.values():
-            try:
-                await dev.open()
-            except asyncio.CancelledError:
-                raise
-            except Exception as e:  # retried by the device task
-                self._device_failed(dev, e, "open")
-                with contextlib.suppress(Exception):
-                    await dev.close()
+        await self._open_devices()
         self._guarded("monitor", self.monitor_step, time.monotonic_ns())  # unopened devices: alarms now
-        for name, dev in self.devices.items():
-            self._device_tasks[name] = self._spawn(self._device_loop(dev), f"device:{name}")
-        for c in self.consumers:
-            self._spawn(self._consumer_loop(c), f"consumer:{c.name}")
-        self._spawn(self._monitor_loop(), "monitor")
-        self._spawn(self._status_loop(), "status")
-        self.watchdog = sdnotify.HealthWatchdog(
-            {"drivers": self.drivers_health, "log": self.writer.health},
-            env=self.env,
-            advisories={"devices": self.devices_availability},
-        )
-        self._spawn(self.watchdog.run(), "watchdog")
+        self._spawn_tasks()
         # what start-up built (modules, config, numpy/scipy) lives as long as the daemon: out of the
         # collector's sight, a full collection takes ~1 ms instead of ~100 ms holding the GIL
         gc.collect()
@@ -322,7 +315,118 @@ class Supervisor(StatusReports):
         )
         log.info("acquiring: session %s", session_dir)
 
+    def _claim_session_root(self) -> None:
+        """Check the session root, then take the daemon lock (a refused daemon leaves no trace)."""
+        cfg = self.config
+        try:  # before the salvage opens what it finds there (made if missing: nothing else)
+            check_session_root(cfg.session_dir)
+        except OSError as e:
+            raise StartupError(f"session directory: {e}") from None
+        try:  # before anything is touched: a refused daemon leaves no trace
+            self.stale_lock = self.lock.take(log)
+        except (OSError, LockHeld) as e:
+            raise StartupError(f"daemon lock: {e}") from None
+
+    async def _salvage(self) -> dict:
+        """The salvage report of the unfinished sessions under the session root."""
+        try:
+            return await asyncio.to_thread(salvage_report, self.config.session_dir)
+        except (OSError, LogError) as e:  # a damaged old session must not stop acquisition
+            return {"error": str(e)}
+
+    async def _serve_status(self) -> None:
+        """Serve the status socket, a sink of the status bus."""
+        socket = self.config.status.socket
+        server = StatusServer(socket)
+        try:
+            await server.start()
+        except (OSError, RuntimeError) as e:
+            raise StartupError(f"status socket {socket}: {e}") from None
+        self.outlets.server = server
+        self.bus.add_sink(server)
+
+    async def _open_session(self) -> Path:
+        """Open the session (the devices' records batched into its writer) and write the vessel
+        config, site file and summary into it: its directory."""
+        cfg = self.config
+        metadata: dict[str, dict[str, str]] = {}
+        for d in self.devices.values():
+            metadata.update(d.channel_metadata())
+        writer = self.outlets.writer = SessionWriter(
+            cfg.session_dir,
+            cfg.vessel,
+            cfg.session,
+            alarms=self.alarms,
+            clock=self.clock,
+            channel_metadata=metadata,
+        )
+        self.batcher = LogBatcher(writer.submit_batch, self.clock_cache)
+        self.ctx.submit = self.batcher.submit  # the devices' hot path
+        self.ctx.submit_many = self.batcher.submit_many
+        try:
+            session_dir = await asyncio.to_thread(writer.start)
+        except (OSError, LogError) as e:
+            raise StartupError(f"session directory {cfg.session_dir}: {e}") from None
+        write_session_files(cfg, session_dir, self.started_utc)
+        return session_dir
+
+    def _start_mqtt(self) -> None:
+        """The MQTT publisher, when configured: a sink of the status bus, run in its own task."""
+        cfg = self.config
+        if cfg.mqtt is None:
+            return
+        from acquire.status.mqtt import MqttPublisher
+
+        mqtt = self.outlets.mqtt = MqttPublisher(
+            cfg.mqtt, cfg.vessel, on_command=self.command, alarms=self.alarms, on_event=self.log_event
+        )
+        self.bus.add_sink(mqtt)
+        self._spawn(mqtt.run(), "mqtt")
+
+    def _log_session_start(self, session_dir: Path) -> None:
+        self.log_event(
+            {
+                "event": "session_start",
+                "session": session_dir.name,
+                "pid": os.getpid(),
+                "config": str(self.config.source),
+                "devices": list(self.devices),
+                "salvaged": self.salvaged,
+                "stale_lock": self.stale_lock,
+            }
+        )
+
+    async def _open_devices(self) -> None:
+        """A first open of every device (one that fails is retried by its task)."""
+        for dev in self.devices.values():
+            try:
+                await dev.open()
+            except asyncio.CancelledError:
+                raise
+            except Exception as e:  # retried by the device task
+                self.device_runner.failed(dev, e, "open")
+                with contextlib.suppress(Exception):
+                    await dev.close()
+
+    def _spawn_tasks(self) -> None:
+        """The device, consumer, monitor, status and watchdog tasks."""
+        writer = self.outlets.writer
+        assert writer is not None, "the session is open before the tasks start"
+        for name, dev in self.devices.items():
+            self.health.tasks[name] = self._spawn(self.device_runner.run(dev), f"device:{name}")
+        for c in self.consumers:
+            self._spawn(self._consumer_loop(c), f"consumer:{c.name}")
+        self._spawn(self._monitor_loop(), "monitor")
+        self._spawn(self._status_loop(), "status")
+        self.watchdog = sdnotify.HealthWatchdog(
+            {"drivers": self.health.drivers_health, "log": writer.health},
+            env=self.env,
+            advisories={"devices": self.health.devices_availability},
+        )
+        self._spawn(self.watchdog.run(), "watchdog")
+
     async def shutdown(self) -> None:
+        """Stop the tasks, close the devices, the session, MQTT and the socket, release the lock."""
         if self.state in ("stopped", "stopping") or not self.lock.held:  # (refused: nothing to undo)
             self.state = "stopped"
             return
@@ -341,29 +445,8 @@ class Supervisor(StatusReports):
         for t in helpers:
             t.cancel()
         await asyncio.gather(*helpers, return_exceptions=True)
-        if self.writer is not None:
-            now = time.monotonic_ns()
-            self.timekeeper.flush()  # log the pulses still waiting for a label
-            self._drain_alarms()
-            self.log_event(
-                {
-                    "event": "session_end",
-                    "reason": self.stop_reason or "error",
-                    "records": {n: d.records for n, d in self.devices.items()},
-                },
-                now,
-            )
-            self._log_status(now)
-            self.batcher.flush()
-            await asyncio.to_thread(self.writer.close)
-        final = self.status_doc(state="stopped")
-        if self.server is not None:
-            self.bus.publish("status", final)
-        if self.mqtt is not None:
-            with contextlib.suppress(Exception):
-                await self.mqtt.stop(final)
-        if self.server is not None:
-            await self.server.close()
+        await self._close_session()
+        await self._publish_final_status()
         rest = [t for t in self._tasks if not t.done()]
         for t in rest:
             t.cancel()
@@ -372,59 +455,40 @@ class Supervisor(StatusReports):
         self.state = "stopped"
         log.info("stopped (%s)", self.stop_reason)
 
-    # -- tasks ------------------------------------------------------------------------------
-
-    async def _device_loop(self, dev: Device) -> None:
-        """Open and run a device for ever; after a failure close it, wait (doubling back-off)
-        and open it again. A device error (:class:`~drivers.base.DriverError`, ``OSError``: the
-        device is absent or went away) makes it *unavailable* (alarm ``device_unavailable``);
-        anything else is a bug in a driver (alarm ``driver_failed``), which also withholds the
-        systemd watchdog until the device runs again."""
-        backoff = DRIVER_BACKOFF_S[0]
-        while True:
-            try:
-                if not dev.opened:
-                    await dev.open()
-                self.crashed.pop(dev.name, None)
-                self.unavailable.pop(dev.name, None)
-                now = time.monotonic_ns()
-                if self.alarms.is_active("driver_failed", dev.name):
-                    self.alarms.clear_now("driver_failed", dev.name, now, message=f"{dev.name} running again")
-                self.update_device_alarms(now)  # cleared once its transport is connected
-                await dev.run()
-                raise EOFError(f"{dev.name}: the device stream ended")
-            except asyncio.CancelledError:
-                raise
-            except Exception as e:
-                self._device_failed(dev, e, "open" if not dev.opened else "run")
-                with contextlib.suppress(Exception):
-                    await dev.close()
-                dev.opened = False
-                await asyncio.sleep(backoff)
-                backoff = min(backoff * 2, DRIVER_BACKOFF_S[1])
-
-    def _device_failed(self, dev: Device, e: BaseException, when: str) -> None:
-        text = f"{type(e).__name__}: {e}"
+    async def _close_session(self) -> None:
+        """``session_end`` and the last status, clock and alarms logged; the segment closed."""
+        writer, batcher = self.outlets.writer, self.batcher
+        if writer is None:
+            return
+        assert batcher is not None, "made with the writer"
         now = time.monotonic_ns()
-        if isinstance(e, (DriverError, OSError, EOFError)):
-            self.unavailable[dev.name] = text
-            name, what = "device_unavailable", "not connected"
-        else:
-            self.crashed[dev.name] = text
-            name, what = "driver_failed", "driver failed"
-        message = f"{dev.name} ({dev.kind}) {what}: {text}; retrying"
-        self.alarms.raise_now(name, dev.name, now, severity=CRITICAL, message=message)
+        self.timekeeper.flush()  # log the pulses still waiting for a label
+        self.monitor_alarms.drain()
         self.log_event(
             {
-                "event": name,
-                "device": dev.name,
-                "when": when,
-                "error": text,
-                "traceback": traceback.format_exception(e)[-3:],
+                "event": "session_end",
+                "reason": self.stop_reason or "error",
+                "records": {n: d.records for n, d in self.devices.items()},
             },
             now,
         )
-        log.error("device %s: %s (%s): %s", dev.name, what, when, text)
+        self.reports.log_status(now, self.state)
+        batcher.flush()
+        await asyncio.to_thread(writer.close)
+
+    async def _publish_final_status(self) -> None:
+        """The final retained ``status`` to the socket and MQTT; both closed."""
+        server, mqtt = self.outlets.server, self.outlets.mqtt
+        final = self.status_doc(state="stopped")
+        if server is not None:
+            self.bus.publish("status", final)
+        if mqtt is not None:
+            with contextlib.suppress(Exception):
+                await mqtt.stop(final)
+        if server is not None:
+            await server.close()
+
+    # -- tasks ------------------------------------------------------------------------------
 
     async def _consumer_loop(self, consumer: Consumer) -> None:
         kinds = getattr(consumer, "kinds", ("nav", "profile", "event"))
@@ -459,13 +523,13 @@ class Supervisor(StatusReports):
             backoff = min(backoff * 2, DRIVER_BACKOFF_S[1])
 
     async def _monitor_loop(self) -> None:
-        period_ns = int(MONITOR_PERIOD_S * NS_PER_S)
+        period_ns, reports = int(MONITOR_PERIOD_S * NS_PER_S), self.reports
         due = time.monotonic_ns()
         while True:
             due += period_ns
             await asyncio.sleep(max(due - time.monotonic_ns(), 0) / NS_PER_S)
             now = time.monotonic_ns()
-            self.loop_lag_ns = max(self.loop_lag_ns, now - due)
+            reports.loop_lag_ns = max(reports.loop_lag_ns, now - due)
             if now - due > 5 * period_ns:
                 due = now  # fell far behind (suspend): do not run a burst
             self._guarded("monitor", self.monitor_step, now)
@@ -474,106 +538,18 @@ class Supervisor(StatusReports):
         """One round of the monitors (what the 4 Hz loop runs)."""
         self.monitor.tick(now)
         self.timekeeper.tick(now)
-        self.update_device_alarms(now)
-        al = self.alarms
-        if self.clock.steps > self._steps:
-            self._steps, self._step_ns = self.clock.steps, now
-            al.raise_now(
-                "time_step",
-                "clock",
-                now,
-                severity=CRITICAL,
-                message=f"PPS labels stepped: the clock model restarted ({self.clock.steps} steps so far)",
-            )
-        elif self._step_ns is not None and now - self._step_ns > STEP_CLEAR_S * NS_PER_S:
-            self._step_ns = None
-            al.clear_now("time_step", "clock", now, message="clock model steady since the step")
-        for name, dev in self.devices.items():
-            lost = dev.losses()
-            count, since = self._losses.get(name, (0, 0))
-            if lost > count:
-                self._losses[name] = (lost, now)
-                al.raise_now(
-                    "packet_loss",
-                    name,
-                    now,
-                    severity=WARNING,
-                    message=f"{lost - count} packets lost (total {lost})",
-                )
-            elif al.is_active("packet_loss", name) and now - since > LOSS_CLEAR_S * NS_PER_S:
-                al.clear_now(
-                    "packet_loss", name, now, message=f"no loss for {LOSS_CLEAR_S:g} s (total {lost})"
-                )
-        for tap in self.hub.taps:
-            before = self._tap_drops.get(tap.name, 0)
-            self._tap_drops[tap.name] = tap.dropped
-            al.update(
-                "consumer_overflow",
-                tap.name,
-                tap.dropped > before,
-                now,
-                severity=WARNING,
-                message=f"{tap.name} does not keep up: {tap.dropped} records dropped",
-                clear_after_ns=int(LOSS_CLEAR_S * NS_PER_S),
-            )
-        if self._drain_alarms():
+        self.health.update_alarms(self.alarms, now)
+        if self.monitor_alarms.step(now):
             self._publish_status()
 
-    def _clock_state(self, old: ClockState, new: ClockState, now: int) -> None:
-        st = self.clock.status(now)
-        bound = st.as_dict()["error_bound_us"]
-        self.log_event(
-            {
-                "event": "clock_state",
-                "from": old.value,
-                "to": new.value,
-                "error_bound_us": bound,
-                "edges_in_window": st.edges_in_window,
-            },
-            now,
-        )
-        al = self.alarms
-        if new == ClockState.LOCKED:
-            self._was_locked = True
-            al.clear_now("clock_holdover", "clock", now, message="PPS back: LOCKED")
-            al.clear_now("clock_unlocked", "clock", now, message="PPS back: LOCKED")
-        elif new == ClockState.HOLDOVER:
-            al.raise_now(
-                "clock_holdover",
-                "clock",
-                now,
-                severity=WARNING,
-                message=f"no PPS for {st.as_dict()['last_edge_age_s']} s: holding over, "
-                f"error bound {bound} µs",
-            )
-        elif self._was_locked:
-            al.clear_now("clock_holdover", "clock", now)
-            al.raise_now(
-                "clock_unlocked",
-                "clock",
-                now,
-                severity=CRITICAL,
-                message="clock UNLOCKED: holdover bound exceeded or PPS labels lost; "
-                "GPS times come from the devices' tags or the system clock",
-            )
-
-    def _drain_alarms(self) -> bool:
-        events = self.alarms.drain()
-        for ev in events:
-            d = ev.as_dict()
-            self.bus.publish("alarms", d)
-            self.log_event({"event": "alarm", **d}, ev.alarm.last_host_ns)
-            log.warning("alarm %s %s/%s: %s", ev.action, ev.alarm.name, ev.alarm.device, ev.alarm.message)
-        return bool(events)
-
     async def _status_loop(self) -> None:
-        period = self.config.status.period_s
+        period, reports = self.config.status.period_s, self.reports
         while True:
             now = time.monotonic_ns()
             self._guarded("status", self._publish_status)
-            self._guarded("status details", self._publish_details, now)
-            self._guarded("status log", self._log_status, now)
-            self.loop_lag_ns = 0
+            self._guarded("status details", reports.publish_details, now)
+            self._guarded("status log", reports.log_status, now, self.state)
+            reports.loop_lag_ns = 0
             await asyncio.sleep(period)
 
     # -- operator commands (MQTT) -----------------------------------------------------------
@@ -581,9 +557,10 @@ class Supervisor(StatusReports):
     def command(self, name: str, args: dict) -> tuple[bool, str]:
         now = time.monotonic_ns()
         if name == "rotate":
-            if self.writer is None:
+            writer = self.outlets.writer
+            if writer is None:
                 return False, "rotate: no session open"
-            self.writer.rotate()
+            writer.rotate()
             self.log_event({"event": "rotate", "source": "mqtt"}, now)
             return True, "rotate: a new segment is being opened"
         data = {"event": name, "source": "mqtt", **args}

@@ -112,55 +112,88 @@ def evaluate_pass(
             f"{w.capture_m[1] - w.capture_m[0]:.1f} m"
         )
     if w.t_gps_s.size:
-        xte = float(np.max(np.abs(w.xte_m)))
-        herr = float(np.max(np.abs(w.heading_error_rad)))
-        v = w.speed_mps[np.isfinite(w.speed_mps)]
-        stats.update(
-            max_xte_m=round(xte, 3),
-            rms_xte_m=round(float(np.sqrt(np.mean(w.xte_m**2))), 3),
-            max_heading_error_deg=round(math.degrees(herr), 3),
-        )
-        if xte > tol.max_xte_m:
-            reasons.append(f"cross-track error up to {xte:.2f} m (tolerance {tol.max_xte_m:g} m)")
-        if herr > tol.max_heading_error_rad:
-            reasons.append(
-                f"heading error up to {math.degrees(herr):.1f}° (tolerance "
-                f"{math.degrees(tol.max_heading_error_rad):g}°)"
-            )
-        if v.size:
-            stats.update(
-                speed_min_mps=round(float(v.min()), 3),
-                speed_max_mps=round(float(v.max()), 3),
-                speed_mean_mps=round(float(v.mean()), 3),
-            )
-            dev = float(np.max(np.abs(v - w.planned_speed_mps)))
-            if dev > tol.max_speed_error_mps:
-                reasons.append(
-                    f"speed {v.min():.2f}–{v.max():.2f} m/s, planned "
-                    f"{w.planned_speed_mps:g} ± {tol.max_speed_error_mps:g} m/s"
-                )
-        else:
-            reasons.append("no speed over ground from the INS")
-        # INS health over the window
-        t = w.t_gps_s
-        for arr, item, what in (
-            (w.navigation, "navigation", "not navigating"),
-            (w.utc, "UTC time", "not on UTC time"),
-            (w.ins_pps, "PPS", "without PPS"),
-        ):
-            if np.isnan(arr).any():
-                reasons.append(f"INS status ({item}) not reported")
-            elif (arr == 0).any():
-                reasons.append(f"INS {what} for {_flag_seconds(t, arr == 0):.1f} s of the window")
-        dr = w.dead_reckoning == 1
-        if dr.any():
-            reasons.append(f"INS in dead reckoning for {_flag_seconds(t, dr):.1f} s")
-        nav_gap = _max_gap(t, w.t_enter_gps_s, w.t_exit_gps_s)
-        stats["max_nav_gap_s"] = round(nav_gap, 3)
-        if nav_gap > tol.max_gap_s:
-            reasons.append(f"INS data gap of {nav_gap:.2f} s (limit {tol.max_gap_s:g} s)")
+        reasons += _track_reasons(w, tol, stats)
+        reasons += _speed_reasons(w, tol, stats)
+        reasons += _ins_health_reasons(w, tol, stats)
     else:
         reasons.append("no INS records in the window")
+    reasons += _profiler_reasons(w, tol, stats)
+    reasons += _clock_reasons(w)
+    reasons += _target_reasons(w, tol)
+    return PassVerdict(
+        pass_id=w.pass_id, accepted=not reasons, reasons=tuple(reasons), stats=stats, attempt=attempt
+    )
+
+
+def _track_reasons(w: PassWindow, tol: AcceptanceTolerances, stats: dict) -> list[str]:
+    """The line kept: cross-track and heading error over the window's INS records (into
+    ``stats``: their maxima and the RMS cross-track error)."""
+    reasons = []
+    xte = float(np.max(np.abs(w.xte_m)))
+    herr = float(np.max(np.abs(w.heading_error_rad)))
+    stats.update(
+        max_xte_m=round(xte, 3),
+        rms_xte_m=round(float(np.sqrt(np.mean(w.xte_m**2))), 3),
+        max_heading_error_deg=round(math.degrees(herr), 3),
+    )
+    if xte > tol.max_xte_m:
+        reasons.append(f"cross-track error up to {xte:.2f} m (tolerance {tol.max_xte_m:g} m)")
+    if herr > tol.max_heading_error_rad:
+        reasons.append(
+            f"heading error up to {math.degrees(herr):.1f}° (tolerance "
+            f"{math.degrees(tol.max_heading_error_rad):g}°)"
+        )
+    return reasons
+
+
+def _speed_reasons(w: PassWindow, tol: AcceptanceTolerances, stats: dict) -> list[str]:
+    """The planned speed kept: speed over ground within tolerance of it (into ``stats``: its
+    minimum, maximum and mean)."""
+    v = w.speed_mps[np.isfinite(w.speed_mps)]
+    if not v.size:
+        return ["no speed over ground from the INS"]
+    stats.update(
+        speed_min_mps=round(float(v.min()), 3),
+        speed_max_mps=round(float(v.max()), 3),
+        speed_mean_mps=round(float(v.mean()), 3),
+    )
+    dev = float(np.max(np.abs(v - w.planned_speed_mps)))
+    if dev > tol.max_speed_error_mps:
+        return [
+            f"speed {v.min():.2f}–{v.max():.2f} m/s, planned "
+            f"{w.planned_speed_mps:g} ± {tol.max_speed_error_mps:g} m/s"
+        ]
+    return []
+
+
+def _ins_health_reasons(w: PassWindow, tol: AcceptanceTolerances, stats: dict) -> list[str]:
+    """The INS healthy over the window: navigating, on UTC time, with PPS, not dead
+    reckoning, no gap in its records (into ``stats``: the longest gap)."""
+    reasons = []
+    t = w.t_gps_s
+    for arr, item, what in (
+        (w.navigation, "navigation", "not navigating"),
+        (w.utc, "UTC time", "not on UTC time"),
+        (w.ins_pps, "PPS", "without PPS"),
+    ):
+        if np.isnan(arr).any():
+            reasons.append(f"INS status ({item}) not reported")
+        elif (arr == 0).any():
+            reasons.append(f"INS {what} for {_flag_seconds(t, arr == 0):.1f} s of the window")
+    dr = w.dead_reckoning == 1
+    if dr.any():
+        reasons.append(f"INS in dead reckoning for {_flag_seconds(t, dr):.1f} s")
+    nav_gap = _max_gap(t, w.t_enter_gps_s, w.t_exit_gps_s)
+    stats["max_nav_gap_s"] = round(nav_gap, 3)
+    if nav_gap > tol.max_gap_s:
+        reasons.append(f"INS data gap of {nav_gap:.2f} s (limit {tol.max_gap_s:g} s)")
+    return reasons
+
+
+def _profiler_reasons(w: PassWindow, tol: AcceptanceTolerances, stats: dict) -> list[str]:
+    """The profiler's data whole: no gap between profiles, none incomplete, all PPS-locked
+    (into ``stats``: the longest gap)."""
+    reasons = []
     prof_gap = _max_gap(w.profile_t_gps_s, w.t_enter_gps_s, w.t_exit_gps_s)
     stats["max_profile_gap_s"] = round(prof_gap, 3)
     if prof_gap > tol.max_gap_s:
@@ -169,18 +202,28 @@ def evaluate_pass(
         reasons.append(f"{w.profiles_incomplete} profile(s) incomplete (packets lost)")
     if w.profiles_pps_unlocked:
         reasons.append(f"profiler PPS not locked in {w.profiles_pps_unlocked} profile(s)")
+    return reasons
+
+
+def _clock_reasons(w: PassWindow) -> list[str]:
+    """The clock LOCKED throughout the window (and its state known)."""
     unlocked = sorted({s for s in w.clock_states if s != "LOCKED"})
     if unlocked or not w.clock_states:
-        reasons.append(
+        return [
             "clock "
             + (", ".join(unlocked) if unlocked else "state unknown")
             + " during the window (must stay LOCKED)"
-        )
+        ]
+    return []
+
+
+def _target_reasons(w: PassWindow, tol: AcceptanceTolerances) -> list[str]:
+    """Enough live hits on every target."""
     few = [
         f"{name}: {n} point{'s' if n != 1 else ''}"
         for name, n in w.hits.items()
         if n < tol.min_points_per_target
     ]
     if few:
-        reasons.append(f"too few target points ({', '.join(few)}; need {tol.min_points_per_target})")
-    return PassVerdict(w.pass_id, not reasons, tuple(reasons), stats, attempt)
+        return [f"too few target points ({', '.join(few)}; need {tol.min_points_per_target})"]
+    return []

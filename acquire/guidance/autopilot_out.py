@@ -12,6 +12,10 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from pathlib import Path
+from typing import TYPE_CHECKING, BinaryIO
+
+if TYPE_CHECKING:
+    import socket
 
 from acquire.errors import AcquireError
 
@@ -29,7 +33,8 @@ class NmeaOutput:
         import socket
         import sys
 
-        self.sock = self.fh = None
+        self.sock: socket.socket | None = None  # UDP
+        self.fh: BinaryIO | None = None  # stdout, a file or a serial device otherwise
         self._own = dest != "-"
         if dest == "-":
             self.fh = sys.stdout.buffer
@@ -48,6 +53,7 @@ class NmeaOutput:
         if self.sock is not None:
             self.sock.sendto(data, self.addr)
         else:
+            assert self.fh is not None  # without a socket, __init__ opened the file (or stdout)
             self.fh.write(data)
             self.fh.flush()
 

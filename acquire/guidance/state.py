@@ -19,8 +19,9 @@ from __future__ import annotations
 
 import math
 import threading
-from collections.abc import Iterable, Sequence
+from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, replace
+from typing import Any
 
 import numpy as np
 
@@ -50,6 +51,11 @@ from calib.sim.scenario import ScannerModel
 from calib.survey.passplan import PassPlan
 
 SCHEMA = "mls.checklist/1"  # of the message (the checklist topic's ``guidance`` section)
+
+# the defaults of :class:`Guidance` (immutable: one instance shared)
+_DEFAULT_TOLERANCES = AcceptanceTolerances()
+_DEFAULT_SETTINGS = GuidanceSettings()
+_DEFAULT_SCANNER = ScannerModel()
 
 
 @dataclass(frozen=True)
@@ -102,9 +108,9 @@ class Guidance(PassTracker):
         *,
         frame: frames.LocalFrame | None = None,
         mount: Mount | None = None,
-        tolerances: AcceptanceTolerances = AcceptanceTolerances(),
-        settings: GuidanceSettings = GuidanceSettings(),
-        scanner: ScannerModel = ScannerModel(),
+        tolerances: AcceptanceTolerances = _DEFAULT_TOLERANCES,
+        settings: GuidanceSettings = _DEFAULT_SETTINGS,
+        scanner: ScannerModel = _DEFAULT_SCANNER,
         thin_step: int | None = None,
         estimator: str = "gls",
     ):
@@ -262,37 +268,72 @@ class Guidance(PassTracker):
             ],
         }
 
-    def message(self, checks: Iterable[Check] | None = None) -> dict:
-        """The ``checklist`` status message (JSON-ready)."""
+    def message(self, checks: Iterable[Check | Mapping[str, Any]] | None = None) -> dict:
+        """The ``checklist`` status message (JSON-ready); ``checks``: the prechecks, as
+        :class:`Check` or their dicts."""
         latest = self._latest()
         vessel = None
         active = None
         aid = self.active_pass_id()
         if latest is not None:
             sog = float(speed_over_ground(latest[7], latest[8]))
-            vessel = {
-                "n_m": round(float(latest[1]), 3),
-                "e_m": round(float(latest[2]), 3),
-                "heading_deg": round(math.degrees(latest[6]), 3),
-                "speed_mps": round(sog, 3),
-                "t_gps_s": float(latest[0]),
-            }
-            if self.last_nav is not None:
-                vessel["lat_deg"] = self.last_nav.lat_deg
-                vessel["lon_deg"] = self.last_nav.lon_deg
+            vessel = self._vessel_dict(latest, sog)
             if aid is not None:
-                line = self.plan.by_id(aid)
-                st = line_state(latest[1:4], float(latest[6]), sog, line, self._centers)
-                active = st.as_dict()
-                active["state"] = "capture" if self._capture is not None else "approach"
-                active["planned_speed_mps"] = line.speed_mps
-                active["heading_deg"] = round(math.degrees(line.heading_rad), 3)
-                active["capture_m"] = [line.capture_start_m, line.capture_end_m]
-                active["length_m"] = round(line.length_m, 3)
-                if self._capture is not None:
-                    active["hits"] = self._hit_counts(self._capture)
+                active = self._active_dict(latest, sog, aid)
         elif aid is not None:
             active = {"pass_id": aid, "state": "approach"}
+        passes = self._passes_list()
+        sigma = self._sigma_dict()
+        check_dicts = [c.as_dict() if isinstance(c, Check) else dict(c) for c in (checks or [])]
+        n_acc = sum(r.status == "accepted" for r in self.passes.values())
+        return {
+            "schema": SCHEMA,
+            "vessel_name": self.site.vessel,
+            "prechecks": check_dicts,
+            "prechecks_ok": bool(check_dicts) and all(c["ok"] for c in check_dicts),
+            "plan": self._plan_msg,
+            "vessel": vessel,
+            "active": active,
+            "passes": passes,
+            "accepted": n_acc,
+            "sigma": sigma,
+            "calibration_ready": bool(self.sigma is not None and all(self.sigma.current.observable)),
+            "tolerances": self.tol.as_dict(),
+            "counters": dict(self.counters),
+        }
+
+    def _vessel_dict(self, latest: np.ndarray, sog_mps: float) -> dict:
+        """The vessel at the latest navigation sample (a row of the nav columns): position in
+        the local frame, heading, speed over ground, and latitude and longitude when known."""
+        vessel = {
+            "n_m": round(float(latest[1]), 3),
+            "e_m": round(float(latest[2]), 3),
+            "heading_deg": round(math.degrees(latest[6]), 3),
+            "speed_mps": round(sog_mps, 3),
+            "t_gps_s": float(latest[0]),
+        }
+        if self.last_nav is not None:
+            vessel["lat_deg"] = self.last_nav.lat_deg
+            vessel["lon_deg"] = self.last_nav.lon_deg
+        return vessel
+
+    def _active_dict(self, latest: np.ndarray, sog_mps: float, aid: int) -> dict:
+        """The active line ``aid`` as the vessel at ``latest`` sees it (offsets, state of the
+        capture, the live hits while capturing)."""
+        line = self.plan.by_id(aid)
+        st = line_state(latest[1:4], float(latest[6]), sog_mps, line, self._centers)
+        active = st.as_dict()
+        active["state"] = "capture" if self._capture is not None else "approach"
+        active["planned_speed_mps"] = line.speed_mps
+        active["heading_deg"] = round(math.degrees(line.heading_rad), 3)
+        active["capture_m"] = [line.capture_start_m, line.capture_end_m]
+        active["length_m"] = round(line.length_m, 3)
+        if self._capture is not None:
+            active["hits"] = self._hit_counts(self._capture)
+        return active
+
+    def _passes_list(self) -> list[dict]:
+        """Every planned pass, in the plan's order, with its status and its last verdict."""
         passes = []
         for p in self.plan.passes:
             rec = self.passes[p.id]
@@ -310,37 +351,25 @@ class Guidance(PassTracker):
                     "stats": {k: v for k, v in last.stats.items() if k != "hits"} if last else {},
                 }
             )
-        sigma = None
-        if self.sigma is not None:
-            rank = [
-                {
-                    "pass_id": pid,
-                    "undetermined": pred.rank_key()[0],
-                    "worst_deg": pred.as_dict()["worst_deg"],
-                    "realistic_deg": pred.as_dict()["realistic_deg"],
-                }
-                for pid, pred in self.sigma.ranking
-            ]
-            sigma = {
-                "current": self.sigma.current_dict(),
-                "next_best": rank[0] if rank else None,
-                "ranking": rank,
-                "history": list(self.sigma_history),
+        return passes
+
+    def _sigma_dict(self) -> dict | None:
+        """The σ prediction: the accepted passes', the ranking of the remaining ones and the
+        history; None before the first prediction."""
+        if self.sigma is None:
+            return None
+        rank = [
+            {
+                "pass_id": pid,
+                "undetermined": pred.rank_key()[0],
+                "worst_deg": pred.as_dict()["worst_deg"],
+                "realistic_deg": pred.as_dict()["realistic_deg"],
             }
-        checks = [c.as_dict() if isinstance(c, Check) else dict(c) for c in (checks or [])]
-        n_acc = sum(r.status == "accepted" for r in self.passes.values())
+            for pid, pred in self.sigma.ranking
+        ]
         return {
-            "schema": SCHEMA,
-            "vessel_name": self.site.vessel,
-            "prechecks": checks,
-            "prechecks_ok": bool(checks) and all(c["ok"] for c in checks),
-            "plan": self._plan_msg,
-            "vessel": vessel,
-            "active": active,
-            "passes": passes,
-            "accepted": n_acc,
-            "sigma": sigma,
-            "calibration_ready": bool(self.sigma is not None and all(self.sigma.current.observable)),
-            "tolerances": self.tol.as_dict(),
-            "counters": dict(self.counters),
+            "current": self.sigma.current_dict(),
+            "next_best": rank[0] if rank else None,
+            "ranking": rank,
+            "history": list(self.sigma_history),
         }

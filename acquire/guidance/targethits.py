@@ -14,6 +14,8 @@ from calib.core.georef import Mount, georeference
 from calib.core.trajectory import Trajectory
 from calib.sim.scene import Scene
 
+_DEFAULT_SETTINGS = GuidanceSettings()  # (immutable: one instance shared by the calls)
+
 
 @dataclass(frozen=True)
 class TargetHits:
@@ -46,7 +48,7 @@ def target_hits(
     mount: Mount,
     scene: Scene,
     *,
-    settings: GuidanceSettings = GuidanceSettings(),
+    settings: GuidanceSettings = _DEFAULT_SETTINGS,
     intensity=None,
 ) -> TargetHits:
     """Which returns of a batch of profiles lie on the targets (the scene's rectangles).

@@ -93,6 +93,42 @@ class _Columns:
         self.offset += k
 
 
+@dataclass(frozen=True)
+class _WindowExit:
+    """Where and how the vessel left a capture window."""
+
+    k: int  # index, in the rows examined, of the first sample past the window
+    completed: bool  # sailed through to the window's end
+    reason: str  # why it ended early ("" when completed)
+
+
+def _window_exit(line: PlannedPass, rows: np.ndarray, first: int, s: GuidanceSettings) -> _WindowExit | None:
+    """The first sample, at or after ``rows[first]``, that ends ``line``'s capture window: past
+    its end, off the line, turned away, or back before its start; None while still inside."""
+    along, xte = line_offsets(rows[:, 1:4], line)
+    herr = heading_error(rows[:, 6], line.heading_rad)
+    done = along >= line.capture_end_m
+    off = np.abs(xte) > s.abort_xte_m
+    turned = np.abs(herr) > s.abort_heading_rad
+    back = along < line.capture_start_m - 1.0
+    stop = done | off | turned | back
+    stop[:first] = False
+    hits = np.flatnonzero(stop)
+    if hits.size == 0:
+        return None
+    k = int(hits[0])
+    reason = (
+        ""
+        if done[k]
+        else f"left the line (XTE {xte[k]:+.1f} m)"
+        if off[k]
+        else f"turned away (heading error {math.degrees(herr[k]):+.0f}°)"
+        if turned[k]
+        else "went back before the window"
+    )
+    return _WindowExit(k=k, completed=bool(done[k]), reason=reason)
+
+
 @dataclass
 class _PassRecord:
     status: str = "pending"  # pending | capturing | accepted | rejected
@@ -143,7 +179,7 @@ class PassTracker:
         self.target_names = [r.name for r in rects]
         self.thin_step = thin_step
         self._nav = _Columns(len(_NAV_COLUMNS))
-        self._pending_nav: list[NavRecord] = []
+        self._pending_nav: list[tuple[int, NavRecord]] = []  # (GPS ns, record): timed ones only
         self.last_nav: NavRecord | None = None
         self._profiles: deque[Profile] = deque()
         self._last_profile_t = -math.inf
@@ -170,7 +206,7 @@ class PassTracker:
         if rec.gps_ns is None:
             self.counters["nav_without_time"] += 1
             return
-        self._pending_nav.append(rec)
+        self._pending_nav.append((rec.gps_ns, rec))
 
     def on_profile(self, profile: Profile) -> None:
         """One profile from the profiler (kept until the navigation covers it)."""
@@ -208,7 +244,7 @@ class PassTracker:
         rows = np.array(
             [
                 (
-                    r.gps_ns * 1e-9,
+                    gps_ns * 1e-9,
                     r.lat_deg,
                     r.lon_deg,
                     r.height_m,
@@ -228,15 +264,18 @@ class PassTracker:
                     _flag(r.pps_detected),
                     _flag(r.utc_detected),
                 )
-                for r in recs
+                for gps_ns, r in recs
             ],
-            float,
+            np.float64,
         )
         ok = np.all(np.isfinite(rows[:, :7]), axis=1)
         rows = rows[ok]
         rows = rows[np.argsort(rows[:, 0], kind="stable")]
         last = self._nav.rows()[-1, 0] if len(self._nav) else -math.inf
-        keep = np.concatenate([[rows[0, 0] > last], np.diff(rows[:, 0]) > 0]) if rows.size else []
+        if rows.size:
+            keep = np.concatenate([[rows[0, 0] > last], np.diff(rows[:, 0]) > 0])
+        else:
+            keep = np.zeros(0, bool)
         self.counters["nav_rejected"] += int(len(recs) - np.count_nonzero(keep))
         rows = rows[np.asarray(keep, bool)]
         if rows.size == 0:
@@ -262,59 +301,52 @@ class PassTracker:
         ctx = start - 1 if start - 1 >= self._nav.offset else start
         rows = self._nav.rows(ctx, None)
         first = start - ctx  # index in rows of the first new sample
-        p, hdg, t = rows[:, 1:4], rows[:, 6], rows[:, 0]
         if cap is None:
-            best = None
-            for pid in self._pending_ids():
-                line = self.plan.by_id(pid)
-                along, xte = line_offsets(p, line)
-                herr = heading_error(hdg, line.heading_rad)
-                cross = np.zeros(rows.shape[0], bool)
-                cross[1:] = (along[:-1] < line.capture_start_m) & (along[1:] >= line.capture_start_m)
-                cross &= np.abs(xte) <= self.settings.match_xte_m
-                cross &= np.abs(herr) <= self.settings.match_heading_rad
-                cross[:first] = False
-                k = np.flatnonzero(cross)
-                if k.size and (best is None or k[0] < best[0]):
-                    best = (int(k[0]), line)
-            if best is None:
+            entry = self._entry(rows, first)
+            if entry is None:
                 self._cursor = self._nav.end
                 return
-            k, line = best
-            cap = _Capture(line, ctx + k, float(t[k]))
-            if self._clock_state is not None:
-                cap.clock_states.add(self._clock_state)
-            self._capture = cap
-            self.passes[line.id].status = "capturing"
-            first = k + 1
-        line = cap.line
-        along, xte = line_offsets(p, line)
-        herr = heading_error(hdg, line.heading_rad)
-        s = self.settings
-        done = along >= line.capture_end_m
-        off = np.abs(xte) > s.abort_xte_m
-        turned = np.abs(herr) > s.abort_heading_rad
-        back = along < line.capture_start_m - 1.0
-        stop = done | off | turned | back
-        stop[:first] = False
-        k = np.flatnonzero(stop)
-        if k.size == 0:
+            k_enter, line = entry
+            cap = self._start_capture(line, ctx + k_enter, float(rows[k_enter, 0]))
+            first = k_enter + 1
+        end = _window_exit(cap.line, rows, first, self.settings)
+        if end is None:
             self._cursor = self._nav.end
             return
-        k = int(k[0])
-        cap.i_exit = ctx + k
-        cap.t_exit = float(t[k])
-        cap.completed = bool(done[k])
-        cap.exit_reason = (
-            ""
-            if done[k]
-            else f"left the line (XTE {xte[k]:+.1f} m)"
-            if off[k]
-            else f"turned away (heading error {math.degrees(herr[k]):+.0f}°)"
-            if turned[k]
-            else "went back before the window"
-        )
-        self._cursor = ctx + k + 1
+        cap.i_exit = ctx + end.k
+        cap.t_exit = float(rows[end.k, 0])
+        cap.completed = end.completed
+        cap.exit_reason = end.reason
+        self._cursor = ctx + end.k + 1
+
+    def _entry(self, rows: np.ndarray, first: int) -> tuple[int, PlannedPass] | None:
+        """The earliest entry, at or after ``rows[first]``, into the capture window of a line
+        not yet accepted: crossing its start within the match tolerances of cross-track and
+        heading error (index in ``rows``, the line); None when the vessel entered none."""
+        p, hdg = rows[:, 1:4], rows[:, 6]
+        best = None
+        for pid in self._pending_ids():
+            line = self.plan.by_id(pid)
+            along, xte = line_offsets(p, line)
+            herr = heading_error(hdg, line.heading_rad)
+            cross = np.zeros(rows.shape[0], bool)
+            cross[1:] = (along[:-1] < line.capture_start_m) & (along[1:] >= line.capture_start_m)
+            cross &= np.abs(xte) <= self.settings.match_xte_m
+            cross &= np.abs(herr) <= self.settings.match_heading_rad
+            cross[:first] = False
+            k = np.flatnonzero(cross)
+            if k.size and (best is None or k[0] < best[0]):
+                best = (int(k[0]), line)
+        return best
+
+    def _start_capture(self, line: PlannedPass, i_enter: int, t_enter: float) -> _Capture:
+        """Open the capture of ``line``'s window at nav index ``i_enter`` (time ``t_enter``)."""
+        cap = _Capture(line, i_enter, t_enter)
+        if self._clock_state is not None:
+            cap.clock_states.add(self._clock_state)
+        self._capture = cap
+        self.passes[line.id].status = "capturing"
+        return cap
 
     def _consume_profiles(self) -> None:
         """Profiles the navigation covers: into the capture window, or dropped."""
@@ -399,12 +431,20 @@ class PassTracker:
         r = rows[i0:i1]
         if r.shape[0] < 2:
             return None
-        kw = {}
+        sigma_p_m = sigma_rpy_rad = None  # (the INS's sigmas only when all are valid)
         if with_sigmas:
             sp, sa = r[:, [_C["sn"], _C["se"], _C["sd"]]], r[:, [_C["sr"], _C["sp"], _C["sh"]]]
             if np.all(np.isfinite(sp)) and np.all(sp > 0) and np.all(np.isfinite(sa)) and np.all(sa > 0):
-                kw = {"sigma_p_m": sp, "sigma_rpy_rad": sa}
-        return Trajectory(r[:, 0], r[:, 1:4], r[:, 4:7], self.frame, name="INS", **kw)
+                sigma_p_m, sigma_rpy_rad = sp, sa
+        return Trajectory(
+            r[:, 0],
+            r[:, 1:4],
+            r[:, 4:7],
+            self.frame,
+            sigma_p_m=sigma_p_m,
+            sigma_rpy_rad=sigma_rpy_rad,
+            name="INS",
+        )
 
     def _maybe_close(self) -> PassVerdict | None:
         cap = self._capture
@@ -458,7 +498,7 @@ class PassTracker:
     def _hit_counts(self, cap: _Capture) -> dict[str, int]:
         n = len(self.target_names)
         c = sum((h.counts(n) for h in cap.hits), np.zeros(n, np.int64))
-        return {name: int(k) for name, k in zip(self.target_names, c)}
+        return {name: int(k) for name, k in zip(self.target_names, c, strict=True)}
 
     def _geometry(self, cap: _Capture) -> PassGeometry:
         """The accepted pass as the σ prediction sees it (thinned)."""
@@ -466,14 +506,16 @@ class PassTracker:
         t = cat("t_gps_s")
         order = np.argsort(t, kind="stable")
         traj = self._trajectory(cap.t_enter - 1.0, cap.t_exit + 1.0, with_sigmas=True)
+        # accepted: INS records in the window (evaluate_pass), and the one before its entry
+        assert traj is not None, "an accepted pass has navigation across its window"
         g = PassGeometry(
-            cap.line.id,
-            cap.line.relative_heading_rad,
-            traj,
-            t[order],
-            cat("range_m")[order],
-            cat("scan_angle_rad")[order],
-            cat("target_index").astype(np.int64)[order],
+            pass_id=cap.line.id,
+            relative_heading_rad=cap.line.relative_heading_rad,
+            trajectory=traj,
+            t_gps_s=t[order],
+            range_m=cat("range_m")[order],
+            scan_angle_rad=cat("scan_angle_rad")[order],
+            target_index=cat("target_index").astype(np.int64)[order],
         )
         return g.thinned(self.thin_step)
 

@@ -51,7 +51,7 @@ class LogBatcher:
         """:meth:`submit` of each (payload, host stamp, device stamp), in order (a device's burst)."""
         estimate = self._clock.estimate
         items = self._items
-        for payload, h, d in zip(payloads, host_ns, device_ns):
+        for payload, h, d in zip(payloads, host_ns, device_ns, strict=False):
             gps_ns, state = estimate(h)
             items.append((topic, payload, h, d, gps_ns, state))
         if items:

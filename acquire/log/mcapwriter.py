@@ -20,10 +20,12 @@ chunking it falls back to the library's method.
 from __future__ import annotations
 
 import struct
+from collections.abc import Callable
 from itertools import chain
 
+from mcap._chunk_builder import ChunkBuilder
 from mcap.opcode import Opcode
-from mcap.records import MessageIndex
+from mcap.records import MessageIndex, Statistics
 from mcap.writer import Writer
 
 _MESSAGE_HEAD = struct.Struct(
@@ -47,6 +49,13 @@ class _MessageIndex(MessageIndex):
 
 
 class SegmentWriter(Writer):
+    # The ``Writer`` internals this class relies on (name-mangled private attributes of mcap
+    # 1.6.0, declared here for the type checker; annotations only, nothing set at runtime).
+    _Writer__chunk_builder: ChunkBuilder | None
+    _Writer__chunk_size: int
+    _Writer__statistics: Statistics
+    _Writer__finalize_chunk: Callable[[], None]
+
     def add_message(
         self,
         channel_id: int,
@@ -98,6 +107,7 @@ class SegmentWriter(Writer):
             index = chunk.message_indices[channel_id] = _MessageIndex(channel_id=channel_id, records=[])
         buf = chunk.record_writer._buffer
         pos = buf.tell()
+        parts: list[bytes]
         parts, entries, pack, message, fixed = (
             [],
             index.records,

@@ -40,8 +40,8 @@ def iter_packets(
     codec = packet_codec(protocol)
     seen: set[tuple[int, int, int]] = set()
     recent: deque[tuple[int, int, int]] = deque()
-    for key in ("packets", "bad", "unsynced"):
-        counts.setdefault(key, 0)
+    for counter in ("packets", "bad", "unsynced"):
+        counts.setdefault(counter, 0)
     for env in iter_messages(session, {"/lidar/raw"}, progress):
         try:
             pk = codec.decode_packet(env.payload)

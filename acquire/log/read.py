@@ -19,6 +19,8 @@ from collections.abc import Iterable, Iterator
 from dataclasses import dataclass, replace
 from pathlib import Path
 
+from mcap.records import Channel, Message
+
 from acquire.errors import AcquireError
 from acquire.log.indexed import indexed_messages
 from acquire.log.recover import SegmentScan, scan_segment, segment_closed, segment_paths
@@ -64,13 +66,12 @@ def iter_messages(
             if progress is not None:
                 progress(done, total)
             continue
-        channels = {}
+        channels: dict[int, Channel] = {}
         for rec in scan_segment(path):
-            kind = type(rec).__name__
-            if kind == "Channel":
+            if isinstance(rec, Channel):
                 if wanted is None or rec.topic in wanted:
                     channels[rec.id] = rec
-            elif kind == "Message":
+            elif isinstance(rec, Message):
                 ch = channels.get(rec.channel_id)
                 if ch is not None:
                     yield decode(ch.topic, ch.message_encoding, rec.log_time, rec.publish_time, rec.data)
@@ -84,7 +85,7 @@ def channel_metadata(session_dir: str | Path) -> dict[str, dict[str, str]]:
     out: dict[str, dict[str, str]] = {}
     for path in _segments(Path(session_dir)):
         for rec in scan_segment(path):  # the writer registers a channel at its first message,
-            if type(rec).__name__ == "Channel":  # anywhere in a segment: read it all
+            if isinstance(rec, Channel):  # anywhere in a segment: read it all
                 out.setdefault(rec.topic, dict(rec.metadata))
     return out
 
@@ -147,7 +148,8 @@ def raw_channels(session_dir: str | Path) -> RawChannels:
     channels = {t: m for t, m in metadata.items() if is_raw_topic(t)}
     counts: dict[str, int] = {}
     first = last = None
-    pairs_host, pairs_gps = [], []
+    pairs_host: list[int] = []
+    pairs_gps: list[int] = []
     for env in iter_messages(session_dir):
         counts[env.topic] = counts.get(env.topic, 0) + 1
         if not is_raw_topic(env.topic):
@@ -157,7 +159,7 @@ def raw_channels(session_dir: str | Path) -> RawChannels:
         if env.clock == "LOCKED" and len(pairs_host) < 100_000:
             pairs_host.append(env.host_ns)
             pairs_gps.append(env.log_time_ns)
-    if first is None:
+    if first is None or last is None:  # (set together, by the first raw message)
         raise LogError(f"{session_dir}: no /ins/raw, /lidar/raw, /pps or /can/<name> message to replay")
     gps_fit = None
     if len(pairs_host) >= 2:
@@ -165,7 +167,14 @@ def raw_channels(session_dir: str | Path) -> RawChannels:
         g = np.asarray(pairs_gps, np.int64)
         slope, intercept = np.polyfit((h - first) / 1e9, (g - g[0]) / 1e9, 1)
         gps_fit = (int(g[0]) + round(intercept * 1e9), float(slope))
-    return RawChannels(session_dir, channels, counts, first, last, gps_fit)
+    return RawChannels(
+        path=session_dir,
+        channels=channels,
+        counts=counts,
+        first_host_ns=first,
+        last_host_ns=last,
+        gps_fit=gps_fit,
+    )
 
 
 # -- what a session lost ------------------------------------------------------------------------
@@ -257,7 +266,7 @@ def _unfinished(path: Path) -> SegmentLoss:
     scan = SegmentScan(path, 0)
     last = None
     for rec in scan_segment(path, scan):
-        if type(rec).__name__ == "Message":
+        if isinstance(rec, Message):
             last = rec.log_time if last is None else max(last, rec.log_time)
     until = _torn_chunk_end(path, scan.good_bytes, last) if scan.torn_bytes else None
     return SegmentLoss(
@@ -319,6 +328,6 @@ def _torn_chunk_end(path: Path, offset: int, last_ns: int | None) -> int | None:
 def _first_log_ns(path: Path) -> int | None:
     """Log time of a segment's first message (reads its first chunk only)."""
     for rec in scan_segment(path):
-        if type(rec).__name__ == "Message":
+        if isinstance(rec, Message):
             return rec.log_time
     return None

@@ -31,6 +31,7 @@ from collections import Counter
 from collections.abc import Callable, Iterator
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
+from typing import BinaryIO, cast
 
 from mcap.data_stream import ReadDataStream
 from mcap.opcode import Opcode
@@ -65,9 +66,11 @@ class SegmentScan:
         return self.footer and self.problem is None
 
 
-def scan_segment(
-    path: Path, scan: SegmentScan | None = None
-) -> Iterator[Schema | Channel | Message | Metadata]:
+#: the records a scan yields (a segment's data section, less its indexes and chunk framing)
+ScanRecord = Schema | Channel | Message | Metadata
+
+
+def scan_segment(path: Path, scan: SegmentScan | None = None) -> Iterator[ScanRecord]:
     """Yield the schemas, channels, messages and metadata of a segment's data section, in file
     order, stopping at the first torn or corrupt record. Fills ``scan`` as it goes."""
     path = Path(path)
@@ -75,14 +78,9 @@ def scan_segment(
     with open(path, "rb") as f:
         size = os.fstat(f.fileno()).st_size
         scan.size = size
-        magic = f.read(8)
-        if magic != MCAP0_MAGIC:
-            if not magic:  # created, nothing written yet (a crash at once)
-                scan.problem = "empty file"
-            elif MCAP0_MAGIC.startswith(magic):
-                scan.problem = "torn MCAP magic at byte 0"
-            else:
-                scan.problem = "not an MCAP file (bad magic)"
+        problem = _magic_problem(f.read(8))
+        if problem is not None:
+            scan.problem = problem
             return
         pos = scan.good_bytes = 8
         in_summary = False
@@ -94,45 +92,85 @@ def scan_segment(
                 scan.problem = f"torn record header at byte {pos}"
                 return
             opcode, length = _HEAD.unpack(head)
-            if opcode not in _VALID_OPCODES:
-                scan.problem = f"invalid record (opcode 0x{opcode:02x}) at byte {pos}"
-                return
-            if length > size - pos - _HEAD.size:
-                scan.problem = (
-                    f"torn {Opcode(opcode).name.lower()} record at byte {pos} "
-                    f"({length} bytes announced, {size - pos - _HEAD.size} present)"
-                )
+            problem = _head_problem(opcode, length, pos, size)
+            if problem is not None:
+                scan.problem = problem
                 return
             body = f.read(length)
-            stream = ReadDataStream(_io.BytesIO(body))
             try:
-                if opcode == Opcode.CHUNK:
-                    records = breakup_chunk(Chunk.read(stream), validate_crc=True)
-                elif opcode == Opcode.MESSAGE:
-                    records = [Message.read(stream, length)]
-                elif opcode in (Opcode.SCHEMA, Opcode.CHANNEL) and not in_summary:
-                    records = [Schema.read(stream) if opcode == Opcode.SCHEMA else Channel.read(stream)]
-                elif opcode == Opcode.METADATA:
-                    records = [Metadata.read(stream)]
-                elif opcode == Opcode.FOOTER:
-                    footer = Footer.read(stream)
-                    if f.read(8) != MCAP0_MAGIC:
-                        scan.problem = f"torn or missing MCAP magic after the footer at byte {pos}"
-                        return
-                    scan.footer, scan.indexed = True, footer.summary_start != 0
-                    scan.good_bytes = end = pos + _HEAD.size + length + len(MCAP0_MAGIC)
-                    if end < size:  # never written so by a writer: reported, not ignored
-                        scan.problem = f"torn tail of {size - end} bytes after the footer at byte {pos}"
+                if opcode == Opcode.FOOTER:
+                    _end_at_footer(f, body, pos, length, scan)
                     return
-                else:  # header, indexes, statistics, data end, attachments: nothing to carry
-                    records = []
-                    in_summary = in_summary or opcode == Opcode.DATA_END
+                records = _body_records(opcode, body, length, in_summary)
             except Exception as e:  # bad CRC, undecompressable chunk, malformed body
                 scan.problem = f"corrupt {Opcode(opcode).name.lower()} record at byte {pos} ({e})"
                 return
+            in_summary = in_summary or opcode == Opcode.DATA_END
             pos += _HEAD.size + length
             scan.good_bytes = pos
             yield from records
+
+
+def _magic_problem(magic: bytes) -> str | None:
+    """Why a segment's first 8 bytes are not the MCAP magic; None when they are."""
+    if magic == MCAP0_MAGIC:
+        return None
+    if not magic:  # created, nothing written yet (a crash at once)
+        return "empty file"
+    if MCAP0_MAGIC.startswith(magic):
+        return "torn MCAP magic at byte 0"
+    return "not an MCAP file (bad magic)"
+
+
+def _head_problem(opcode: int, length: int, pos: int, size: int) -> str | None:
+    """Why the record announced at ``pos`` (``opcode``, ``length``) cannot be read in a file of
+    ``size`` bytes (an unknown opcode, a body past the end); None when it can."""
+    if opcode not in _VALID_OPCODES:
+        return f"invalid record (opcode 0x{opcode:02x}) at byte {pos}"
+    if length > size - pos - _HEAD.size:
+        return (
+            f"torn {Opcode(opcode).name.lower()} record at byte {pos} "
+            f"({length} bytes announced, {size - pos - _HEAD.size} present)"
+        )
+    return None
+
+
+def _body_records(opcode: int, body: bytes, length: int, in_summary: bool) -> list[ScanRecord]:
+    """The records a record body carries: a chunk's (CRC-checked), a message, a schema or
+    channel of the data section (their summary copies are skipped), a metadata record; none for
+    the header, indexes, statistics, data end and attachments."""
+    stream = ReadDataStream(_io.BytesIO(body))
+    if opcode == Opcode.CHUNK:
+        return _chunk_records(Chunk.read(stream))
+    if opcode == Opcode.MESSAGE:
+        return [Message.read(stream, length)]
+    if opcode == Opcode.SCHEMA and not in_summary:
+        return [Schema.read(stream)]
+    if opcode == Opcode.CHANNEL and not in_summary:
+        return [Channel.read(stream)]
+    if opcode == Opcode.METADATA:
+        return [Metadata.read(stream)]
+    return []
+
+
+def _chunk_records(chunk: Chunk) -> list[ScanRecord]:
+    """A chunk's records, its CRC checked. ``breakup_chunk`` is annotated as returning any
+    record, but it returns only the Schema, Channel and Message records of a chunk (mcap 1.6.0
+    ``stream_reader``: it skips every other opcode)."""
+    return cast(list[ScanRecord], breakup_chunk(chunk, validate_crc=True))
+
+
+def _end_at_footer(f: BinaryIO, body: bytes, pos: int, length: int, scan: SegmentScan) -> None:
+    """The Footer record at ``pos`` ends the segment: check the magic after it and fill
+    ``scan`` (footer, indexed, good bytes; a problem for a missing magic or bytes after it)."""
+    footer = Footer.read(ReadDataStream(_io.BytesIO(body)))
+    if f.read(8) != MCAP0_MAGIC:
+        scan.problem = f"torn or missing MCAP magic after the footer at byte {pos}"
+        return
+    scan.footer, scan.indexed = True, footer.summary_start != 0
+    scan.good_bytes = end = pos + _HEAD.size + length + len(MCAP0_MAGIC)
+    if end < scan.size:  # never written so by a writer: reported, not ignored
+        scan.problem = f"torn tail of {scan.size - end} bytes after the footer at byte {pos}"
 
 
 def segment_paths(session_dir: Path) -> list[Path]:
@@ -194,65 +232,81 @@ def recover_segment(path: Path, keep_original: bool = True) -> RecoveryReport:
         source = torn_copy
     tmp = path.with_name(path.name + ".recovering")
     scan = SegmentScan(source, 0)
-    counts: Counter = Counter()
     st = os.stat(source)
     with open(tmp, "wb") as out:
         _same_owner_and_mode(out.fileno(), st)
         w = Writer(out, compression=CompressionType.ZSTD)
         w.start(profile="", library="marine-mls recover")
-        schema_ids: dict[int, int] = {}
-        channel_ids: dict[int, int] = {}
-        topics: dict[int, str] = {}
-        for rec in scan_segment(source, scan):
-            if isinstance(rec, Schema):
-                schema_ids[rec.id] = w.register_schema(rec.name, rec.encoding, rec.data)
-            elif isinstance(rec, Channel):
-                channel_ids[rec.id] = w.register_channel(
-                    rec.topic, rec.message_encoding, schema_ids.get(rec.schema_id, 0), dict(rec.metadata)
-                )
-                topics[rec.id] = rec.topic
-            elif isinstance(rec, Metadata):
-                w.add_metadata(rec.name, dict(rec.metadata))
-            elif isinstance(rec, Message) and rec.channel_id in channel_ids:
-                w.add_message(
-                    channel_ids[rec.channel_id],
-                    log_time=rec.log_time,
-                    data=rec.data,
-                    publish_time=rec.publish_time,
-                    sequence=rec.sequence,
-                )
-                counts[topics[rec.channel_id]] += 1
-        w.add_metadata(
-            "mls.recovery",
-            {
-                "source": path.name,
-                "good_bytes": str(scan.good_bytes),
-                "torn_bytes": str(scan.torn_bytes),
-                "problem": scan.problem or "no footer",
-                "messages": str(sum(counts.values())),
-                "recovered_utc": _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds"),
-            },
-        )
+        counts = _copy_records(source, scan, w)
+        w.add_metadata("mls.recovery", _recovery_record(path, scan, counts))
         w.finish()
         out.flush()
         os.fsync(out.fileno())
-    if source == path:
+    _swap_in(path, tmp, torn_copy, source_is_path=source == path, keep_original=keep_original)
+    return RecoveryReport(
+        segment=path.name,
+        messages=sum(counts.values()),
+        channels=dict(counts),
+        good_bytes=scan.good_bytes,
+        torn_bytes=scan.torn_bytes,
+        problem=scan.problem,
+        output=str(path),
+        original=str(torn_copy) if keep_original else None,
+    )
+
+
+def _copy_records(source: Path, scan: SegmentScan, w: Writer) -> Counter[str]:
+    """Write every complete record of ``source`` (schemas, channels, metadata, messages with
+    their times, sequence numbers and bytes) to ``w``; messages copied, per topic."""
+    counts: Counter[str] = Counter()
+    schema_ids: dict[int, int] = {}
+    channel_ids: dict[int, int] = {}
+    topics: dict[int, str] = {}
+    for rec in scan_segment(source, scan):
+        if isinstance(rec, Schema):
+            schema_ids[rec.id] = w.register_schema(rec.name, rec.encoding, rec.data)
+        elif isinstance(rec, Channel):
+            channel_ids[rec.id] = w.register_channel(
+                rec.topic, rec.message_encoding, schema_ids.get(rec.schema_id, 0), dict(rec.metadata)
+            )
+            topics[rec.id] = rec.topic
+        elif isinstance(rec, Metadata):
+            w.add_metadata(rec.name, dict(rec.metadata))
+        elif isinstance(rec, Message) and rec.channel_id in channel_ids:
+            w.add_message(
+                channel_ids[rec.channel_id],
+                log_time=rec.log_time,
+                data=rec.data,
+                publish_time=rec.publish_time,
+                sequence=rec.sequence,
+            )
+            counts[topics[rec.channel_id]] += 1
+    return counts
+
+
+def _recovery_record(path: Path, scan: SegmentScan, counts: Counter[str]) -> dict[str, str]:
+    """The ``mls.recovery`` metadata of a salvaged segment: its torn tail and what was kept."""
+    return {
+        "source": path.name,
+        "good_bytes": str(scan.good_bytes),
+        "torn_bytes": str(scan.torn_bytes),
+        "problem": scan.problem or "no footer",
+        "messages": str(sum(counts.values())),
+        "recovered_utc": _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds"),
+    }
+
+
+def _swap_in(path: Path, tmp: Path, torn_copy: Path, *, source_is_path: bool, keep_original: bool) -> None:
+    """Put the salvaged ``tmp`` in place of ``path`` crash-safely: the original becomes
+    ``torn_copy`` first (unless a previous swap already moved it), then the directory is fsynced;
+    the original is deleted afterwards unless kept."""
+    if source_is_path:
         os.replace(path, torn_copy)
     os.replace(tmp, path)
     fsync_dir(path.parent)
     if not keep_original:
         torn_copy.unlink()
         fsync_dir(path.parent)
-    return RecoveryReport(
-        path.name,
-        sum(counts.values()),
-        dict(counts),
-        scan.good_bytes,
-        scan.torn_bytes,
-        scan.problem,
-        str(path),
-        str(torn_copy) if keep_original else None,
-    )
 
 
 def _same_owner_and_mode(fd: int, st: os.stat_result) -> None:
@@ -413,60 +467,66 @@ def session_info(
     segments: list[SegmentInfo] = []
     gap_ns = gap_s * NS_PER_S
     for path in paths:
-        scan = SegmentScan(path, 0)
-        topics: dict[int, ChannelInfo] = {}
-        n, first, last, host_time = 0, None, None, 0
-        recovery = end_reason = None
-        for rec in scan_segment(path, scan):
-            if isinstance(rec, Channel):
-                ci = channels.setdefault(rec.topic, ChannelInfo(rec.topic, rec.message_encoding))
-                topics[rec.id] = ci
-            elif isinstance(rec, Metadata):
-                if rec.name == "mls.recovery":
-                    recovery = dict(rec.metadata)
-                elif rec.name == "mls.segment_end":
-                    end_reason = rec.metadata.get("reason")
-            elif isinstance(rec, Message):
-                ci = topics.get(rec.channel_id)
-                if ci is None:
-                    continue
-                n += 1
-                _account_sequence(ci, rec.sequence)
-                if _unlocked(ci.encoding, rec.data):
-                    ci.unlocked += 1
-                if _host_time(ci.encoding, rec.data):
-                    ci.host_time += 1  # not GPS time: out of the span and the gaps
-                    host_time += 1
-                    continue
-                t = rec.log_time
-                first = t if first is None else min(first, t)
-                last = t if last is None else max(last, t)
-                _account_time(ci, t, gap_ns)
-        if scan.footer:
-            state = "complete" if scan.indexed else "closed-after-error"
-        elif scan.problem and scan.good_bytes <= 8:
-            state = "unreadable"
-        else:
-            state = "unfinished"
-        segments.append(
-            SegmentInfo(
-                path.name,
-                state,
-                scan.size,
-                n,
-                first,
-                last,
-                scan.torn_bytes,
-                scan.problem,
-                recovery,
-                end_reason,
-                host_time,
-            )
-        )
-        done += scan.size
+        segments.append(_segment_info(path, channels, gap_ns))
+        done += segments[-1].bytes
         if progress is not None:
             progress(done, total)
     return SessionInfo(session_dir.name, segments, channels)
+
+
+def _segment_info(path: Path, channels: dict[str, ChannelInfo], gap_ns: float) -> SegmentInfo:
+    """Scan one segment: its summary, and its messages accounted in ``channels`` (topic →
+    :class:`ChannelInfo`, shared by the segments of a session, new topics added)."""
+    scan = SegmentScan(path, 0)
+    topics: dict[int, ChannelInfo] = {}
+    n, first, last, host_time = 0, None, None, 0
+    recovery = end_reason = None
+    for rec in scan_segment(path, scan):
+        if isinstance(rec, Channel):
+            topics[rec.id] = channels.setdefault(rec.topic, ChannelInfo(rec.topic, rec.message_encoding))
+        elif isinstance(rec, Metadata):
+            if rec.name == "mls.recovery":
+                recovery = dict(rec.metadata)
+            elif rec.name == "mls.segment_end":
+                end_reason = rec.metadata.get("reason")
+        elif isinstance(rec, Message):
+            ci = topics.get(rec.channel_id)
+            if ci is None:
+                continue
+            n += 1
+            _account_sequence(ci, rec.sequence)
+            if _unlocked(ci.encoding, rec.data):
+                ci.unlocked += 1
+            if _host_time(ci.encoding, rec.data):
+                ci.host_time += 1  # not GPS time: out of the span and the gaps
+                host_time += 1
+                continue
+            t = rec.log_time
+            first = t if first is None else min(first, t)
+            last = t if last is None else max(last, t)
+            _account_time(ci, t, gap_ns)
+    return SegmentInfo(
+        name=path.name,
+        state=_segment_state(scan),
+        bytes=scan.size,
+        messages=n,
+        first_log_ns=first,
+        last_log_ns=last,
+        torn_bytes=scan.torn_bytes,
+        problem=scan.problem,
+        recovery=recovery,
+        end_reason=end_reason,
+        host_time=host_time,
+    )
+
+
+def _segment_state(scan: SegmentScan) -> str:
+    """complete | closed-after-error | unfinished | unreadable (:class:`SegmentInfo`)."""
+    if scan.footer:
+        return "complete" if scan.indexed else "closed-after-error"
+    if scan.problem and scan.good_bytes <= 8:
+        return "unreadable"
+    return "unfinished"
 
 
 def _host_time(encoding: str, data: bytes) -> bool:

@@ -12,6 +12,7 @@ from collections import Counter
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import IO, Any, cast
 
 from mcap.data_stream import RecordBuilder
 from mcap.opcode import Opcode
@@ -220,9 +221,13 @@ class SegmentLog:
         """Records ``i:j`` (one raw channel, already registered) as :meth:`_write` would write
         them, up to the record that completes the open chunk or makes the segment due for
         rotation; returns the index of the first record not written."""
-        mcap = self._mcap
-        room = mcap.chunk_room()  # segments are always chunked
-        rotate_room = self.options.rotate_bytes - self._io.pos - self._chunk_bytes
+        mcap, io = self._mcap, self._io
+        # _write_all makes runs only into an open segment
+        assert mcap is not None
+        assert io is not None
+        room = mcap.chunk_room()
+        assert room is not None  # segments are always chunked (_open_segment)
+        rotate_room = self.options.rotate_bytes - io.pos - self._chunk_bytes
         topic = records[i][0]
         messages, chunk_bytes, record_bytes = [], 0, 0
         for k in range(i, j):
@@ -360,8 +365,9 @@ class SegmentLog:
         try:
             self._ensure_reserve()
             io = self._io_factory(path)
+            # the Writer is annotated to take a file, but uses only write, tell and flush
             mcap = SegmentWriter(
-                _ChunkWatch(io, self._chunk_written),
+                cast(IO[Any], _ChunkWatch(io, self._chunk_written)),
                 chunk_size=self.options.chunk_bytes,
                 compression=COMPRESSIONS[self.options.compression],
             )

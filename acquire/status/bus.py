@@ -140,9 +140,9 @@ class StatusServer:
                 tasks.append(c.task)
             except asyncio.QueueFull:
                 self._drop(c, counted=False)
-        tasks = [t for t in tasks if t is not None and t is not asyncio.current_task()]
-        if tasks:
-            await asyncio.wait(tasks, timeout=flush_s)
+        pending = [t for t in tasks if t is not None and t is not asyncio.current_task()]
+        if pending:
+            await asyncio.wait(pending, timeout=flush_s)
         for c in list(self._clients):
             self._drop(c, counted=False)
         if self._server is not None:
@@ -196,8 +196,8 @@ class StatusServer:
     async def _handle(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
         c = _Client(writer, max(self.client_queue, len(self._retained) + 1))
         c.task = asyncio.current_task()
-        for line in self._retained.values():
-            c.queue.put_nowait(line)
+        for retained in self._retained.values():
+            c.queue.put_nowait(retained)
         c.queue.put_nowait(
             b'{"topic":"'
             + SNAPSHOT_END.encode()

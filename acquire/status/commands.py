@@ -59,7 +59,7 @@ def parse_command(name: str, payload: bytes) -> Command:
         raise CommandRefused(f"unknown command {name[:40]!r}; accepted: {', '.join(COMMANDS)}")
     if len(payload) > MAX_PAYLOAD_BYTES:
         raise CommandRefused(f"{name}: payload of {len(payload)} bytes; at most {MAX_PAYLOAD_BYTES}")
-    doc = _json_object(name, payload or b"{}")
+    doc = strict_json(name, payload or b"{}")
     reason = check_command(name, doc)
     if reason is not None:
         raise CommandRefused(reason)
@@ -93,14 +93,16 @@ def check_command(name: str, args: Any) -> str | None:
 def command_id(payload: bytes) -> str | int | None:
     """The valid ``"id"`` of a payload, best effort (to answer a refused command), else None."""
     try:
-        doc = _json_object("", payload) if len(payload) <= MAX_PAYLOAD_BYTES else None
+        doc = strict_json("", payload) if len(payload) <= MAX_PAYLOAD_BYTES else None
     except CommandRefused:
         return None
     value = doc.get("id") if isinstance(doc, dict) else None
     return value if value is not None and _check_id(value) is None else None
 
 
-def _json_object(name: str, payload: bytes) -> Any:
+def strict_json(name: str, payload: bytes) -> Any:
+    """``payload``'s JSON, or :class:`CommandRefused` naming the command ``name`` when it is not
+    JSON or has duplicate keys, NaN/Infinity or an integer beyond 64 bits."""
     try:
         return json.loads(
             payload,

@@ -41,6 +41,7 @@ budget are dropped and counted (``commands_dropped``).
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import inspect
 import ipaddress
 import logging
@@ -198,7 +199,8 @@ class MqttPublisher:
         self._wake = asyncio.Event()
         self._stop = asyncio.Event()
         self._final: bytes | None = None
-        self.connected = False
+        self._down = asyncio.Event()  # set while no broker session is up
+        self._down.set()
         self.connects = 0
         self.published = 0
         self.dropped = 0
@@ -352,8 +354,13 @@ class MqttPublisher:
         if self.alarms is not None:
             self.alarms.raise_now(*key, time.monotonic_ns(), message=message, severity=severity)
 
+    @property
+    def connected(self) -> bool:
+        """Whether a broker session is up."""
+        return not self._down.is_set()
+
     def _connected_now(self) -> None:
-        self.connected = True
+        self._down.clear()
         self.connects += 1
         self.last_error = None
         self._clear(REFUSED_ALARM)
@@ -379,9 +386,8 @@ class MqttPublisher:
         self._stop.set()
         self._wake.set()
         await asyncio.sleep(0)
-        deadline = asyncio.get_running_loop().time() + timeout_s
-        while self.connected and asyncio.get_running_loop().time() < deadline:
-            await asyncio.sleep(0.02)
+        with contextlib.suppress(TimeoutError):  # still connected after timeout_s: stop waiting
+            await asyncio.wait_for(self._down.wait(), timeout_s)
 
     async def _session(self) -> None:
         s = self.settings
@@ -420,7 +426,7 @@ class MqttPublisher:
                 for task in (listener, publisher, stable):
                     task.cancel()
                 await asyncio.gather(listener, publisher, stable, return_exceptions=True)
-                self.connected = False
+                self._down.set()
                 self._session_s = time.monotonic() - started
                 self._went_down()
 

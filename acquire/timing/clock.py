@@ -169,11 +169,11 @@ def _fit(edges: deque[tuple[int, int]], prior_jitter_ns: float) -> _Fit:
     ybar = sum(ys) / n
     sxx = sum((x - xbar) ** 2 for x in xs)
     if n >= 2 and sxx > 0.0:
-        d = sum((x - xbar) * (y - ybar) for x, y in zip(xs, ys)) / sxx
+        d = sum((x - xbar) * (y - ybar) for x, y in zip(xs, ys, strict=True)) / sxx
     else:
         d = 0.0
     c = ybar - d * xbar
-    res = [y - (c + d * x) for x, y in zip(xs, ys)]
+    res = [y - (c + d * x) for x, y in zip(xs, ys, strict=True)]
     rms = math.sqrt(sum(r * r for r in res) / n)
     max_abs = max(abs(r) for r in res)
     sigma = math.sqrt(sum(r * r for r in res) / (n - 2)) if n >= 3 else float(prior_jitter_ns)
@@ -218,6 +218,7 @@ class ClockModel:
             self._accept(host_ns, gps_ns, None)
             return EdgeResult(True, "stale_restart")
         residual = gps_ns - fit.predict(host_ns)
+        gate: float
         if len(self._edges) < p.min_edges:
             gate = p.bootstrap_gate_ns
         else:

@@ -131,6 +131,18 @@ def _fmt_ms(ns: float) -> str:
     return f"{ns / MS:+.3f} ms" if abs(ns) < 100 * MS else f"{ns / NS_PER_S:+.3f} s"
 
 
+def _step_message(is_step: bool, short_med: float, baseline: float | None, band_ns: tuple[int, int]) -> str:
+    """The ``time_step`` message: the stepped latency against baseline and band, or its return."""
+    if not is_step:
+        return f"latency back at {_fmt_ms(short_med)}"
+    lo, hi = band_ns
+    return (
+        f"time tags stepped: latency {_fmt_ms(short_med)}"
+        + (f", baseline {_fmt_ms(baseline)}" if baseline is not None else "")
+        + f", band [{lo / MS:g}, {hi / MS:g}] ms"
+    )
+
+
 @dataclass
 class _Device:
     name: str
@@ -159,6 +171,57 @@ class _Device:
     stats: LatencyStats | None = None
 
 
+@dataclass
+class _Evaluation:
+    """One evaluation of one device at stream time ``now``: its alarm updates, in order."""
+
+    alarms: AlarmBook
+    d: _Device
+    now: int
+    events: list[AlarmEvent] = field(default_factory=list)
+
+    def update(self, name: str, cond: bool, message: str, severity: str = WARNING) -> AlarmEvent | None:
+        """Feed alarm ``name`` of the device with its delays (:data:`ALARM_DELAYS_S`)."""
+        raise_s, clear_s = ALARM_DELAYS_S[name]
+        ev = self.alarms.update(
+            name,
+            self.d.name,
+            bool(cond),
+            self.now,
+            message=message,
+            severity=severity,
+            raise_after_ns=int(raise_s * NS_PER_S),
+            clear_after_ns=int(clear_s * NS_PER_S),
+        )
+        if ev is not None:
+            self.events.append(ev)
+        return ev
+
+    def active(self, name: str) -> bool:
+        return self.alarms.is_active(name, self.d.name)
+
+
+@dataclass(frozen=True)
+class _Window:
+    """The latency samples one evaluation judges."""
+
+    t: np.ndarray  # host ns of the window's samples
+    lat: np.ndarray  # their latencies (ns)
+    sync: str  # LatencyStats.sync before the count of samples is judged
+    st: np.ndarray  # the statistics window's latencies (since the last discontinuity)
+    short_med: float | None  # the short-term (lower) median; None without samples
+
+
+@dataclass(frozen=True)
+class _Spread:
+    """The statistics window's mean, σ, p99 and max (ns); None with fewer than 3 samples."""
+
+    mean_ns: float | None = None
+    sigma_ns: float | None = None
+    p99_ns: float | None = None
+    max_ns: float | None = None
+
+
 class LatencyMonitor:
     """Per-device latency statistics and sync alarms against a clock model."""
 
@@ -184,8 +247,9 @@ class LatencyMonitor:
         host_ns = int(host_ns)
         d.records += 1
         quiet_since = d.last_host if d.last_host is not None else d.since
-        resumed = quiet_since is not None and host_ns - quiet_since > d.limits.gap_ns
-        if resumed:
+        resumed = False
+        if quiet_since is not None and host_ns - quiet_since > d.limits.gap_ns:
+            resumed = True
             d.resumed, d.last_gap_ns = host_ns, host_ns - quiet_since
         if d.since is None:
             d.since = host_ns
@@ -242,10 +306,45 @@ class LatencyMonitor:
     # -- evaluation -------------------------------------------------------------------------
 
     def _evaluate(self, d: _Device, now: int) -> list[AlarmEvent]:
-        p, lim = self.params, d.limits
+        """Bring the device's window to ``now``, update its alarms (in this order: data flow,
+        level, spread, drift) and its statistics; returns the alarm transitions."""
         d.last_eval = now
         if d.since is None:
             d.since = now
+        self._take_pending(d, now)
+        ev = _Evaluation(self.alarms, d, now)
+        age, rate = self._flow_alarms(ev)
+        w = self._window(d, now)
+        step_on, jump_on = ev.active("time_step"), ev.active("latency_jump")
+        if not (step_on or jump_on):
+            self._learn_baseline(d, w, now)
+        if w.short_med is not None:
+            self._level_alarms(ev, w, w.short_med, jump_on)
+        spread = self._spread_alarms(ev, w.st)
+        self._close_bins(d, now)
+        drift, drift_sigma = self._drift_alarm(ev)
+        d.stats = LatencyStats(
+            device=d.name,
+            sync=w.sync if w.st.size >= 3 or w.sync != "ok" else "waiting",
+            n=int(w.st.size),
+            mean_ns=spread.mean_ns,
+            sigma_ns=spread.sigma_ns,
+            p99_ns=spread.p99_ns,
+            max_ns=spread.max_ns,
+            baseline_ns=d.baseline,
+            drift_ppm=drift,
+            drift_sigma_ppm=drift_sigma,
+            rate_hz=rate,
+            last_age_ns=age,
+            pps_flag=d.pps_flag,
+            records=d.records,
+        )
+        return ev.events
+
+    def _take_pending(self, d: _Device, now: int) -> None:
+        """The samples observed since the last evaluation into the window; the window and the
+        rate's stamps cut to their lengths before ``now``."""
+        p = self.params
         if d.pend_t:
             d.win_t = np.concatenate([d.win_t, np.asarray(d.pend_t, np.int64)])
             d.win_lat = np.concatenate([d.win_lat, np.asarray(d.pend_lat, np.float64)])
@@ -257,59 +356,46 @@ class LatencyMonitor:
         while d.recent and d.recent[0] <= now - p.rate_window_ns:
             d.recent.popleft()
 
-        events: list[AlarmEvent] = []
-
-        def update(name, cond, message, severity=WARNING):
-            raise_s, clear_s = ALARM_DELAYS_S[name]
-            ev = self.alarms.update(
-                name,
-                d.name,
-                bool(cond),
-                now,
-                message=message,
-                severity=severity,
-                raise_after_ns=int(raise_s * NS_PER_S),
-                clear_after_ns=int(clear_s * NS_PER_S),
-            )
-            if ev is not None:
-                events.append(ev)
-            return ev
-
-        def active(name):
-            return self.alarms.is_active(name, d.name)
-
-        # data flow: gap, rate, PPS flag
+    def _flow_alarms(self, ev: _Evaluation) -> tuple[int | None, float | None]:
+        """The data flow: ``data_gap``, ``rate_drop``, ``pps_flag_lost``; returns (stream time
+        since the last record, the record rate over the rate window), each None when unknown."""
+        d, p, lim, now = ev.d, self.params, ev.d.limits, ev.now
         age = None if d.last_host is None else now - d.last_host
-        silent = now - (d.last_host if d.last_host is not None else d.since)
+        quiet_from = d.last_host if d.last_host is not None else d.since
+        assert quiet_from is not None, "the evaluation sets since"
+        silent = now - quiet_from
         gap = silent > lim.gap_ns
         if gap:
             msg = f"no record for {silent / NS_PER_S:.2f} s" + (" (none since start)" if age is None else "")
         else:
             first = d.first_host is not None and d.first_host == d.resumed
             msg = f"{'first record' if first else 'records again'} after {d.last_gap_ns / NS_PER_S:.2f} s"
-        update("data_gap", gap, msg, CRITICAL)
+        ev.update("data_gap", gap, msg, CRITICAL)
         rate = None
         if d.first_host is not None and now - d.first_host >= p.rate_window_ns:
             rate = len(d.recent) * NS_PER_S / p.rate_window_ns
         if lim.rate_hz:
-            low = 0.8 if not active("rate_drop") else 0.9
+            low = 0.8 if not ev.active("rate_drop") else 0.9
             settled = d.resumed is None or now - d.resumed >= p.rate_window_ns  # not the gap again
             drop = rate is not None and rate < low * lim.rate_hz and not gap and settled
-            update(
+            ev.update(
                 "rate_drop",
                 drop,
                 f"{rate:.1f} records/s, nominal {lim.rate_hz:g}/s" if rate is not None else "",
                 WARNING,
             )
         if lim.expect_pps_flag and d.pps_flag is not None:
-            update(
+            ev.update(
                 "pps_flag_lost",
                 not d.pps_flag,
                 "device reports no PPS/UTC sync" if not d.pps_flag else "device PPS flag back",
                 CRITICAL,
             )
+        return age, rate
 
-        # sync check on the latency samples
+    def _window(self, d: _Device, now: int) -> _Window:
+        """The latency samples of the sync check (before this evaluation's level change)."""
+        p = self.params
         t, lat = d.win_t, d.win_lat
         sync = "ok"
         if t.size == 0:
@@ -317,108 +403,108 @@ class LatencyMonitor:
         stats_mask = t > now - p.stats_window_ns
         if d.discontinuity is not None:
             stats_mask &= t >= d.discontinuity
-        st = lat[stats_mask]
         i_short = int(np.searchsorted(t, now - p.short_ns, side="right"))
         short = lat[min(i_short, max(t.size - 3, 0)) :]
         # the lower median is always one of the samples: never a value between two levels
         short_med = (
             float(np.partition(short, (short.size - 1) // 2)[(short.size - 1) // 2]) if short.size else None
         )
+        return _Window(t=t, lat=lat, sync=sync, st=lat[stats_mask], short_med=short_med)
 
-        step_on, jump_on = active("time_step"), active("latency_jump")
-        if not (step_on or jump_on):
-            base_mask = t <= now - p.guard_ns
-            if d.discontinuity is not None:
-                base_mask &= t >= d.discontinuity
-            if np.count_nonzero(base_mask) >= 3:
-                d.baseline = float(np.median(lat[base_mask]))
+    def _learn_baseline(self, d: _Device, w: _Window, now: int) -> None:
+        """The baseline: the median since the last discontinuity, but for the newest samples
+        (the guard); kept while fewer than 3 samples give it."""
+        base_mask = w.t <= now - self.params.guard_ns
+        if d.discontinuity is not None:
+            base_mask &= w.t >= d.discontinuity
+        if np.count_nonzero(base_mask) >= 3:
+            d.baseline = float(np.median(w.lat[base_mask]))
+
+    def _level_alarms(self, ev: _Evaluation, w: _Window, short_med: float, jump_on: bool) -> None:
+        """``time_step`` and ``latency_jump`` from the short-term median against the baseline
+        and the band; a change of level restarts statistics, baseline and drift from ``now``."""
+        d, lim = ev.d, ev.d.limits
         lo, hi = lim.band_ns
-        if short_med is not None:
-            dev = short_med - d.baseline if d.baseline is not None else 0.0
-            outside = max(lo - short_med, short_med - hi, 0.0)
-            is_step = abs(dev) >= STEP_NS or outside >= STEP_NS
-            if is_step:
-                msg = (
-                    f"time tags stepped: latency {_fmt_ms(short_med)}"
-                    + (f", baseline {_fmt_ms(d.baseline)}" if d.baseline is not None else "")
-                    + f", band [{lo / MS:g}, {hi / MS:g}] ms"
-                )
-            else:
-                msg = f"latency back at {_fmt_ms(short_med)}"
-            update("time_step", is_step, msg, CRITICAL)
-            threshold = lim.jump_ns if not jump_on else lim.jump_ns / 2
-            is_jump = d.baseline is not None and threshold <= abs(dev) < STEP_NS
-            relearned = False
-            if jump_on and is_jump and d.level_since is not None and now - d.level_since >= p.relearn_ns:
-                recent = lat[t > now - p.stats_window_ns]
-                if recent.size >= 3 and abs(float(np.median(recent)) - short_med) < lim.jump_ns / 2:
-                    d.baseline, dev, is_jump, relearned = short_med, 0.0, False, True
-            if is_jump:
-                msg = (
-                    f"latency {_fmt_ms(short_med)}, baseline {_fmt_ms(d.baseline)} "
-                    f"({_fmt_ms(dev)}, threshold {lim.jump_ns / MS:g} ms)"
-                )
-            elif relearned:
-                msg = f"latency settled at {_fmt_ms(short_med)}: new baseline"
-            else:
-                msg = f"latency {_fmt_ms(short_med)}, within {lim.jump_ns / MS:g} ms of baseline"
-            ev = update("latency_jump", is_jump and not is_step, msg, WARNING)
-            if ev is not None:
-                d.level_since = now if ev.action == "raise" else None
-            if (is_step, is_jump) != d.level:  # the latency changed level: statistics,
-                d.level = (is_step, is_jump)  # baseline and drift restart from here
-                d.discontinuity = now  # (older samples may mix both levels)
+        dev = short_med - d.baseline if d.baseline is not None else 0.0
+        outside = max(lo - short_med, short_med - hi, 0.0)
+        is_step = abs(dev) >= STEP_NS or outside >= STEP_NS
+        ev.update("time_step", is_step, _step_message(is_step, short_med, d.baseline, lim.band_ns), CRITICAL)
+        is_jump = self._jump_alarm(ev, w, short_med, dev, jump_on, is_step)
+        if (is_step, is_jump) != d.level:  # the latency changed level: statistics,
+            d.level = (is_step, is_jump)  # baseline and drift restart from here
+            d.discontinuity = ev.now  # (older samples may mix both levels)
 
-        mean = sigma = p99 = mx = None
-        if st.size >= 3:
-            mean, sigma = float(st.mean()), float(st.std(ddof=1))
-            p99, mx = float(np.percentile(st, 99)), float(st.max())
-            step_now = active("time_step")
-            oob = not step_now and (mean < lo or mean > hi or p99 > hi)
-            update(
-                "latency_out_of_band",
-                oob,
-                f"mean {_fmt_ms(mean)}, p99 {_fmt_ms(p99)}, band [{lo / MS:g}, {hi / MS:g}] ms",
-                WARNING,
+    def _jump_alarm(
+        self, ev: _Evaluation, w: _Window, short_med: float, dev: float, jump_on: bool, is_step: bool
+    ) -> bool:
+        """``latency_jump`` (a hysteresis of half the jump; a jump to a level stable for
+        ``relearn`` becomes the baseline); returns whether the latency sits at a jumped level."""
+        d, p, lim, now = ev.d, self.params, ev.d.limits, ev.now
+        threshold = lim.jump_ns if not jump_on else lim.jump_ns / 2
+        is_jump = d.baseline is not None and threshold <= abs(dev) < STEP_NS
+        relearned = False
+        if jump_on and is_jump and d.level_since is not None and now - d.level_since >= p.relearn_ns:
+            recent = w.lat[w.t > now - p.stats_window_ns]
+            if recent.size >= 3 and abs(float(np.median(recent)) - short_med) < lim.jump_ns / 2:
+                d.baseline, dev, is_jump, relearned = short_med, 0.0, False, True
+        if is_jump:
+            assert d.baseline is not None, "a jump is judged against a baseline"
+            msg = (
+                f"latency {_fmt_ms(short_med)}, baseline {_fmt_ms(d.baseline)} "
+                f"({_fmt_ms(dev)}, threshold {lim.jump_ns / MS:g} ms)"
             )
-            jit_lim = lim.max_sigma_ns if not active("latency_jitter") else 0.8 * lim.max_sigma_ns
-            update(
-                "latency_jitter",
-                not step_now and sigma > jit_lim,
-                f"σ {sigma / MS:.3f} ms, limit {lim.max_sigma_ns / MS:g} ms",
-                WARNING,
-            )
+        elif relearned:
+            msg = f"latency settled at {_fmt_ms(short_med)}: new baseline"
+        else:
+            msg = f"latency {_fmt_ms(short_med)}, within {lim.jump_ns / MS:g} ms of baseline"
+        event = ev.update("latency_jump", is_jump and not is_step, msg, WARNING)
+        if event is not None:
+            d.level_since = now if event.action == "raise" else None
+        return is_jump
 
-        self._close_bins(d, now)
-        drift, drift_sigma = self._drift_ppm(d)
-        if drift is not None:
-            # only a drift that exceeds the limit by more than 2σ of its own estimate
-            drift_lim = lim.max_drift_ppm if not active("clock_drift") else 0.7 * lim.max_drift_ppm
-            update(
-                "clock_drift",
-                abs(drift) - 2.0 * drift_sigma > drift_lim,
-                f"device time tags drift {drift:+.2f} ± {drift_sigma:.2f} ppm against the PPS "
-                f"clock (limit {lim.max_drift_ppm:g} ppm)",
-                WARNING,
-            )
-
-        d.stats = LatencyStats(
-            device=d.name,
-            sync=sync if st.size >= 3 or sync != "ok" else "waiting",
-            n=int(st.size),
-            mean_ns=mean,
-            sigma_ns=sigma,
-            p99_ns=p99,
-            max_ns=mx,
-            baseline_ns=d.baseline,
-            drift_ppm=drift,
-            drift_sigma_ppm=drift_sigma,
-            rate_hz=rate,
-            last_age_ns=age,
-            pps_flag=d.pps_flag,
-            records=d.records,
+    def _spread_alarms(self, ev: _Evaluation, st: np.ndarray) -> _Spread:
+        """``latency_out_of_band`` and ``latency_jitter`` on the statistics window (3 samples at
+        least; not while a time step is active); returns its mean, σ, p99 and max."""
+        if st.size < 3:
+            return _Spread()
+        lim = ev.d.limits
+        lo, hi = lim.band_ns
+        mean, sigma = float(st.mean()), float(st.std(ddof=1))
+        p99, mx = float(np.percentile(st, 99)), float(st.max())
+        step_now = ev.active("time_step")
+        oob = not step_now and (mean < lo or mean > hi or p99 > hi)
+        ev.update(
+            "latency_out_of_band",
+            oob,
+            f"mean {_fmt_ms(mean)}, p99 {_fmt_ms(p99)}, band [{lo / MS:g}, {hi / MS:g}] ms",
+            WARNING,
         )
-        return events
+        jit_lim = lim.max_sigma_ns if not ev.active("latency_jitter") else 0.8 * lim.max_sigma_ns
+        ev.update(
+            "latency_jitter",
+            not step_now and sigma > jit_lim,
+            f"σ {sigma / MS:.3f} ms, limit {lim.max_sigma_ns / MS:g} ms",
+            WARNING,
+        )
+        return _Spread(mean_ns=mean, sigma_ns=sigma, p99_ns=p99, max_ns=mx)
+
+    def _drift_alarm(self, ev: _Evaluation) -> tuple[float | None, float | None]:
+        """``clock_drift``: only a drift that exceeds the limit by more than 2σ of its own
+        estimate; returns the drift and its σ (ppm), None while there is none."""
+        fit = self._drift_ppm(ev.d)
+        if fit is None:
+            return None, None
+        drift, drift_sigma = fit
+        lim = ev.d.limits
+        drift_lim = lim.max_drift_ppm if not ev.active("clock_drift") else 0.7 * lim.max_drift_ppm
+        ev.update(
+            "clock_drift",
+            abs(drift) - 2.0 * drift_sigma > drift_lim,
+            f"device time tags drift {drift:+.2f} ± {drift_sigma:.2f} ppm against the PPS "
+            f"clock (limit {lim.max_drift_ppm:g} ppm)",
+            WARNING,
+        )
+        return drift, drift_sigma
 
     def _close_bins(self, d: _Device, now: int) -> None:
         """Append the median of each completed second of latency samples to ``d.bins``."""
@@ -440,14 +526,15 @@ class LatencyMonitor:
         while d.bins and d.bins[0][0] < now - self.params.drift_window_ns:
             d.bins.popleft()
 
-    def _drift_ppm(self, d: _Device) -> tuple[float | None, float | None]:
+    def _drift_ppm(self, d: _Device) -> tuple[float, float] | None:
         """Slope of the latency and its σ (ppm): a line through the 1-s medians since the last
-        discontinuity. The σ is widened for correlated residuals (quantized or wandering tags)."""
+        discontinuity. The σ is widened for correlated residuals (quantized or wandering tags).
+        None while a step or jump is active, or the medians are too few or too short a span."""
         if self.alarms.is_active("time_step", d.name) or self.alarms.is_active("latency_jump", d.name):
-            return None, None
+            return None
         bins = [b for b in d.bins if d.discontinuity is None or b[0] >= d.discontinuity]
         if len(bins) < 5 or bins[-1][0] - bins[0][0] < self.params.drift_min_span_ns:
-            return None, None
+            return None
         tb = np.array([b[0] - bins[0][0] for b in bins], dtype=np.float64)
         lb = np.array([b[1] for b in bins])
         tb -= tb.mean()

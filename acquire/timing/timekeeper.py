@@ -34,7 +34,8 @@ Alarms on ``clock`` (with an :class:`~acquire.alarms.AlarmBook`, evaluated by :m
   offset and ``chronyc tracking``; cleared once back within the limit (records stamped before the
   first PPS fit carry the host's time: the session log marks them, :mod:`acquire.log.schema`);
 - ``host_clock_step`` (warning): ``CLOCK_REALTIME`` stepped by 10 ms or more (NTP, ``date -s``;
-  seen by :data:`drivers.timing.HOST_CLOCK_STEPS` at each tick's read of realtime − monotonic;
+  seen by the time keeper's :class:`~drivers.timing.HostClock` (its step counter) at each tick's
+  read of realtime − monotonic;
   smaller steps, a virtual machine's clock discipline, are handled alike and counted in the
   metrics' ``host_clock_steps``, without an alarm): the
   daemon's stamps are monotonic and do not move, the transports keep kernel stamps taken before
@@ -43,10 +44,15 @@ Alarms on ``clock`` (with an :class:`~acquire.alarms.AlarmBook`, evaluated by :m
 
 :func:`coarse_gps_offset_ns` seeds the clock model before the first pulse: GPS − host
 monotonic from the system clock (UTC + leap seconds).
+
+The host clock is an object handed in (``host_clock``: the real one by default; the simulated
+devices' :class:`~drivers.timing.FakeHostClock` when the daemon is told so), which owns the step
+counts the status reports (``host_clock_steps``, ``host_clock_steps_alarmed``).
 """
 
 from __future__ import annotations
 
+import functools
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -57,7 +63,7 @@ from acquire.timing.clock import ClockModel, ClockState
 from calib.core.frames import leap_seconds_at_gps_ns, leap_seconds_at_utc
 from calib.core.gpstime import GPS_EPOCH_UNIX_S, leap_table, parse_leap_seconds_list, use_leap_table
 from drivers.pps import PpsEdge, PpsLabeler
-from drivers.timing import HOST_CLOCK_STEPS, STEP_ALARM_NS, realtime_minus_monotonic_ns
+from drivers.timing import STEP_ALARM_NS, HostClock
 
 NS_PER_S = 1_000_000_000
 UNIX_TO_GPS_EPOCH_S = 315_964_800  # 1980-01-06T00:00:00Z in Unix seconds
@@ -67,11 +73,12 @@ SYSTEM_LEAP_SECONDS_LIST = "/usr/share/zoneinfo/leap-seconds.list"
 Submit = Callable[..., Any]  # SessionWriter.submit-like: (topic, payload, host_ns=, device_ns=)
 
 
-def coarse_gps_offset_ns() -> int:
-    """GPS ns − ``time.monotonic_ns()`` from the system clock (UTC + the leap seconds)."""
+def coarse_gps_offset_ns(host_clock: HostClock | None = None) -> int:
+    """GPS ns − ``time.monotonic_ns()`` from the system clock (UTC + the leap seconds), read
+    through ``host_clock`` (default: the real one; the read counts toward its steps)."""
     import datetime as _dt
 
-    offset = realtime_minus_monotonic_ns()
+    offset = (host_clock if host_clock is not None else HostClock()).realtime_minus_monotonic_ns()
     real = time.monotonic_ns() + offset
     leap = leap_seconds_at_utc(_dt.datetime.fromtimestamp(real / NS_PER_S, _dt.UTC))
     return offset - UNIX_TO_GPS_EPOCH_S * NS_PER_S + leap * NS_PER_S
@@ -101,11 +108,16 @@ class TimeKeeper:
         alarms: AlarmBook | None = None,
         leap_list: str | Path | None = None,
         host_gps_offset_ns: Callable[[], int] | None = None,
+        host_clock: HostClock | None = None,
     ) -> None:
-        """``host_gps_offset_ns``: GPS − host monotonic as the host's system clock says it
-        (default :func:`coarse_gps_offset_ns`; tests inject a host clock)."""
+        """``host_clock``: the host's clock, read each tick for its steps (default: the real one;
+        the simulated devices' :class:`~drivers.timing.FakeHostClock` when the daemon is given
+        one). ``host_gps_offset_ns``: GPS − host monotonic as the host's system clock says it
+        (default :func:`coarse_gps_offset_ns` through ``host_clock``; tests inject one)."""
         self.clock = clock
-        self.host_gps_offset_ns = host_gps_offset_ns or coarse_gps_offset_ns
+        self.host_clock = host_clock if host_clock is not None else HostClock()
+        seed = functools.partial(coarse_gps_offset_ns, self.host_clock)
+        self.host_gps_offset_ns = host_gps_offset_ns or seed
         self.host_clock_offset_ns: int | None = None  # system clock − GPS, once GPS time is known
         self.on_edge_added = on_edge_added
         self.labeler = PpsLabeler()
@@ -119,8 +131,11 @@ class TimeKeeper:
         self.leap_note = "built-in table" if leap_list is None else load_leap_list(leap_list)
         self.gps_minus_utc_s: int | None = None  # as the time device announces it
         self._ambiguous = (0, 0)  # (events seen, host ns of the latest)
-        # (steps seen, steps of >= STEP_ALARM_NS seen, host ns of the latest of those)
-        self._host_steps = (HOST_CLOCK_STEPS.count, HOST_CLOCK_STEPS.large, 0)
+        # a first read: a step from here on is counted (steps seen, steps of >= STEP_ALARM_NS
+        # seen, host ns of the latest of those)
+        self.host_clock.realtime_minus_monotonic_ns()
+        steps = self.host_clock.steps_seen
+        self._host_steps = (steps.count, steps.large, 0)
 
     # -- inputs -----------------------------------------------------------------------------
 
@@ -161,6 +176,7 @@ class TimeKeeper:
         for edge, reason in self.labeler.take_dropped():
             self._log(edge, None, reason)
         for edge in edges:
+            assert edge.gps_s is not None, "the labeller hands over labelled edges only"
             result = self.clock.add_edge(edge.host_ns, edge.gps_s)
             if self.on_edge_added is not None:
                 self.on_edge_added()
@@ -169,7 +185,14 @@ class TimeKeeper:
     def _alarms(self, now: int) -> None:
         al = self.alarms
         assert al is not None
-        # a time message that could belong to two pulses
+        self._ambiguous_alarm(al, now)
+        self._host_clock_step_alarm(al, now)
+        self._leap_alarms(al, now)
+        self._host_clock_offset_alarm(al, now)
+
+    def _ambiguous_alarm(self, al: AlarmBook, now: int) -> None:
+        """``time_ambiguous``: a time message that could belong to two pulses; cleared 10 s
+        after the last one."""
         count, since = self._ambiguous
         n = self.labeler.stats.events["time_ambiguous"]
         if n > count:
@@ -187,9 +210,13 @@ class TimeKeeper:
             )
         elif since and now - since > EVENT_CLEAR_NS and al.is_active("time_ambiguous", "clock"):
             al.clear_now("time_ambiguous", "clock", now, message="time messages on time again")
-        # a step of the host's realtime clock
-        realtime_minus_monotonic_ns()  # a read shows a step to HOST_CLOCK_STEPS
-        steps = HOST_CLOCK_STEPS
+
+    def _host_clock_step_alarm(self, al: AlarmBook, now: int) -> None:
+        """A step of the host's realtime clock: any step refreshes the system-clock seed, one of
+        at least :data:`~drivers.timing.STEP_ALARM_NS` raises ``host_clock_step`` (cleared 10 s
+        later)."""
+        self.host_clock.realtime_minus_monotonic_ns()  # a read shows a step to the clock's counter
+        steps = self.host_clock.steps_seen
         count, large, since = self._host_steps
         if steps.count > count:  # any step: the system-clock seed follows it
             self.clock.coarse_offset_ns = self.host_gps_offset_ns()
@@ -209,7 +236,10 @@ class TimeKeeper:
             )
         elif since and now - since > EVENT_CLEAR_NS and al.is_active("host_clock_step", "clock"):
             al.clear_now("host_clock_step", "clock", now, message="no host clock step for 10 s")
-        # the leap-second table: expired, or contradicted by the time device
+
+    def _leap_alarms(self, al: AlarmBook, now: int) -> None:
+        """The leap-second table: ``leap_table_stale`` (expired) and ``leap_second_mismatch``
+        (contradicted by the time device)."""
         table = leap_table()
         gps_ns = self.clock.gps_ns(now)
         leap = leap_seconds_at_gps_ns(gps_ns)
@@ -240,7 +270,6 @@ class TimeKeeper:
             if mismatch
             else f"GPS − UTC {leap} s as the table says",
         )
-        self._host_clock_offset_alarm(al, now)
 
     def _host_clock_offset_alarm(self, al: AlarmBook, now: int) -> None:
         """``host_clock_offset``: the system clock off GPS time by more than the clock params'
@@ -298,8 +327,8 @@ class TimeKeeper:
             "time_latency_ms": None if expected is None else round(expected[0] / 1e6, 3),
             "leap_table": {**leap_table().as_dict(), "note": self.leap_note},
             "gps_minus_utc_announced_s": self.gps_minus_utc_s,
-            "host_clock_steps": HOST_CLOCK_STEPS.count,
-            "host_clock_steps_alarmed": HOST_CLOCK_STEPS.large,
+            "host_clock_steps": self.host_clock.steps_seen.count,
+            "host_clock_steps_alarmed": self.host_clock.steps_seen.large,
             "host_clock_offset_s": None
             if self.host_clock_offset_ns is None
             else round(self.host_clock_offset_ns / NS_PER_S, 6),

@@ -24,7 +24,7 @@ from acquire.status.feed import LINK, SNAPSHOT_END, guidance_of
 from acquire.ui.fit import abbreviate, fit_parts, hanging, runs
 
 OK, FAIL, WAIT = "✔", "✘", "…"
-#: Labels of the daemon's pre-survey check names (acquire.daemon.reports.StatusReports.presurvey);
+#: Labels of the daemon's pre-survey check names (acquire.daemon.reports.StatusReporter.presurvey);
 #: a name not here shows as itself, its underscores as spaces.
 CHECK_LABELS = {
     "ins_navigating": "INS nav+fine",
@@ -162,7 +162,7 @@ def render_prechecks(st: ChecklistState, width: int = 38, rows: int = PRECHECK_R
     labels = [str(c.get("label", c.get("name", "?"))) for c in checks]
     lw = min(max(cell_len(x) for x in labels), max(LABEL_MIN, width // 3))
     groups: list[list[Text]] = []
-    for c, label in zip(checks, labels):
+    for c, label in zip(checks, labels, strict=True):
         mark, style = _mark(c)
         label = abbreviate(label, lw)
         head = Text(f"{mark} ", style)
@@ -346,67 +346,84 @@ def render_live(st: ChecklistState, width: int = 38, rows: int = LIVE_ROWS) -> T
     parts.append((state.upper() + " ", "bold yellow" if state == "capture" else "cyan"))
     lines: list[Text] = []
     if "along_m" in a:
-        c0, c1 = a.get("capture_m", (0, 0))
-        to_window = a.get("to_capture_m", 0.0)
-        if state == "capture":
-            parts.append((f"{max(a['along_m'] - c0, 0):.0f}/{c1 - c0:.0f} m", ""))
-        elif to_window >= 0:
-            parts.append((f"window in {to_window:.0f} m", ""))
-        else:
-            parts.append(("window passed", ""))
-        xte, he = a["xte_m"], a["heading_error_deg"]
-        sp, plan_sp = a.get("speed_mps"), a.get("planned_speed_mps")
-        bad_xte = abs(xte) > tol.get("max_xte_m", math.inf)
-        bad_he = abs(he) > tol.get("max_heading_error_deg", math.inf)
-        bad_sp = (
-            plan_sp is not None
-            and sp is not None
-            and abs(sp - plan_sp) > tol.get("max_speed_error_mps", math.inf)
-        )
-        lines.append(
-            runs(
-                [
-                    ("XTE ", ""),
-                    (f"{xte:+6.2f} m", "bold red" if bad_xte else "bold green"),
-                    (f" steer {'L' if xte > 0 else 'R'}" if abs(xte) >= 0.05 else " on line", ""),
-                ]
-            )
-        )
-        lines.append(
-            runs(
-                [
-                    ("HDG err ", ""),
-                    (f"{he:+5.1f}°", "bold red" if bad_he else "bold green"),
-                    ("  SOG ", ""),
-                    (_fmt(sp, ".2f", " m/s"), "bold red" if bad_sp else "bold green"),
-                ]
-            )
-        )
-        lines.append(Text(f"range to targets {a.get('range_to_targets_m', math.nan):.1f} m"))
+        parts.append(_window_progress(a, state))
+        lines += _steering_lines(a, tol)
         if hits := a.get("hits"):
-            need = tol.get("min_points_per_target", 0)
-            row: list[tuple[str, str]] = [("hits", "")]
-            for name, n in hits.items():  # whole "name count" items, wrapped under "hits"
-                item = [(f" {name}", ""), (f" {n}", "green" if n >= need else "yellow")]
-                if sum(cell_len(x) for x, _ in row + item) > width:
-                    lines.append(runs(row))
-                    row = [("   ", "")]
-                row += item
-            lines.append(runs(row))
+            lines += _hits_lines(hits, tol.get("min_points_per_target", 0), width)
     elif v is None:
         lines.append(Text("no navigation", "red"))
     first = fit_parts(parts, width)
     first.rstrip()
     lines.insert(0, first)
-    p = next((p for p in st.checklist.get("passes") or [] if p["id"] == a["pass_id"]), {})
-    if p.get("status") == "rejected" and p.get("reasons") and state != "capture":
-        reasons = p["reasons"]
-        why = reasons[0] + (f" (+{len(reasons) - 1} more: ⏎)" if len(reasons) > 1 else "")
-        more = hanging(Text(f"{FAIL} ", "red"), why, "red", width)
-        if len(lines) + len(more) > rows:  # taller than the panel: what fits, then Enter
-            more = [*more[: max(rows - len(lines) - 1, 0)], Text("  … ⏎ on the pass: all", "dim")]
-        lines += more
+    entry: dict = next((p for p in st.checklist.get("passes") or [] if p["id"] == a["pass_id"]), {})
+    if entry.get("status") == "rejected" and entry.get("reasons") and state != "capture":
+        lines += _rejection_lines(entry["reasons"], len(lines), width, rows)
     return _lines(lines)
+
+
+def _window_progress(a: dict, state: str) -> tuple[str, str]:
+    """Metres sailed in the capture window, to it, or that it is passed."""
+    c0, c1 = a.get("capture_m", (0, 0))
+    to_window = a.get("to_capture_m", 0.0)
+    if state == "capture":
+        return (f"{max(a['along_m'] - c0, 0):.0f}/{c1 - c0:.0f} m", "")
+    if to_window >= 0:
+        return (f"window in {to_window:.0f} m", "")
+    return ("window passed", "")
+
+
+def _steering_lines(a: dict, tol: dict) -> list[Text]:
+    """XTE with the side to steer, heading error and speed (red: out of tolerance), range."""
+    xte, he = a["xte_m"], a["heading_error_deg"]
+    sp, plan_sp = a.get("speed_mps"), a.get("planned_speed_mps")
+    bad_xte = abs(xte) > tol.get("max_xte_m", math.inf)
+    bad_he = abs(he) > tol.get("max_heading_error_deg", math.inf)
+    bad_sp = (
+        plan_sp is not None
+        and sp is not None
+        and abs(sp - plan_sp) > tol.get("max_speed_error_mps", math.inf)
+    )
+    return [
+        runs(
+            [
+                ("XTE ", ""),
+                (f"{xte:+6.2f} m", "bold red" if bad_xte else "bold green"),
+                (f" steer {'L' if xte > 0 else 'R'}" if abs(xte) >= 0.05 else " on line", ""),
+            ]
+        ),
+        runs(
+            [
+                ("HDG err ", ""),
+                (f"{he:+5.1f}°", "bold red" if bad_he else "bold green"),
+                ("  SOG ", ""),
+                (_fmt(sp, ".2f", " m/s"), "bold red" if bad_sp else "bold green"),
+            ]
+        ),
+        Text(f"range to targets {a.get('range_to_targets_m', math.nan):.1f} m"),
+    ]
+
+
+def _hits_lines(hits: dict, need: int, width: int) -> list[Text]:
+    """The hits per target, whole "name count" items wrapped under "hits" (yellow: too few)."""
+    lines: list[Text] = []
+    row: list[tuple[str, str]] = [("hits", "")]
+    for name, n in hits.items():
+        item = [(f" {name}", ""), (f" {n}", "green" if n >= need else "yellow")]
+        if sum(cell_len(x) for x, _ in row + item) > width:
+            lines.append(runs(row))
+            row = [("   ", "")]
+        row += item
+    lines.append(runs(row))
+    return lines
+
+
+def _rejection_lines(reasons: list, shown: int, width: int, rows: int) -> list[Text]:
+    """Why the pass was rejected (the first reason), cut to the ``rows - shown`` left."""
+    why = reasons[0] + (f" (+{len(reasons) - 1} more: ⏎)" if len(reasons) > 1 else "")
+    more = hanging(Text(f"{FAIL} ", "red"), why, "red", width)
+    if shown + len(more) > rows:  # taller than the panel: what fits, then Enter
+        more = [*more[: max(rows - shown - 1, 0)], Text("  … ⏎ on the pass: all", "dim")]
+    return more
 
 
 _VERDICT_STYLE = {"trusted": "bold green", "questionable": "bold yellow", "refused": "bold red"}

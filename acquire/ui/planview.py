@@ -35,9 +35,9 @@ class Canvas:
     e0: float  # east of the left edge
     m_per_dot: float
 
-    def __post_init__(self):
-        self._bits = [[0] * self.width for _ in range(self.height)]
-        self._style = [[None] * self.width for _ in range(self.height)]
+    def __post_init__(self) -> None:
+        self._bits: list[list[int]] = [[0] * self.width for _ in range(self.height)]
+        self._style: list[list[str | None]] = [[None] * self.width for _ in range(self.height)]  # layer
 
     def _dot(self, x: int, y: int, style: str) -> None:
         if 0 <= x < 2 * self.width and 0 <= y < 4 * self.height:
@@ -68,7 +68,7 @@ class Canvas:
         for i in range(len(pts)):
             self.line(pts[i], pts[(i + 1) % len(pts)], style)
         if fill and pts:  # small targets: paint the cells their extent covers
-            xs, ys = zip(*(self.to_dots(*p) for p in pts))
+            xs, ys = zip(*(self.to_dots(*p) for p in pts), strict=True)
             for x in range(min(xs), max(xs) + 1):
                 for y in range(min(ys), max(ys) + 1):
                     self._dot(x, y, style)
@@ -77,8 +77,8 @@ class Canvas:
         out = Text(no_wrap=True, overflow="crop")
         for row in range(self.height):
             for col in range(self.width):
-                b = self._bits[row][col]
-                out.append(chr(0x2800 + b) if b else " ", STYLES.get(self._style[row][col], ""))
+                b, layer = self._bits[row][col], self._style[row][col]
+                out.append(chr(0x2800 + b) if b else " ", STYLES.get(layer, "") if layer is not None else "")
             if row < self.height - 1:
                 out.append("\n")
         return out
@@ -102,6 +102,24 @@ def render_plan(
     passes = {p["id"]: p for p in plan.get("passes", [])}
     targets = plan.get("targets", [])
     act = passes.get(active_id)
+    cv = fit(_view_points(passes, targets, act, vessel), width, height)
+    for pid, p in passes.items():
+        if pid != active_id:
+            cv.line(tuple(p["start_ne_m"]), tuple(p["end_ne_m"]), "other")
+    if act is not None:
+        _draw_active_line(cv, act)
+    for t in targets:
+        cv.polygon([tuple(c) for c in t["corners_ne_m"]], "target")
+    if vessel is not None:
+        _draw_vessel(cv, vessel)
+    return cv.render(), cv.m_per_dot
+
+
+def _view_points(
+    passes: dict, targets: list, act: dict | None, vessel: dict | None
+) -> list[tuple[float, float]]:
+    """What the view shows whole: the active line (every line when none is active), the
+    targets' corners and the vessel."""
     pts: list[tuple[float, float]] = []
     if act is not None:
         pts += [tuple(act["start_ne_m"]), tuple(act["end_ne_m"])]
@@ -112,25 +130,25 @@ def render_plan(
     if act is None:
         for p in passes.values():
             pts += [tuple(p["start_ne_m"]), tuple(p["end_ne_m"])]
-    cv = fit(pts, width, height)
-    for pid, p in passes.items():
-        if pid != active_id:
-            cv.line(tuple(p["start_ne_m"]), tuple(p["end_ne_m"]), "other")
-    if act is not None:
-        a, b = act["start_ne_m"], act["end_ne_m"]
-        cv.line(tuple(a), tuple(b), "line")
-        length = math.hypot(b[0] - a[0], b[1] - a[1]) or 1.0
-        u = ((b[0] - a[0]) / length, (b[1] - a[1]) / length)
-        c0, c1 = act["capture_m"]
-        cv.line((a[0] + c0 * u[0], a[1] + c0 * u[1]), (a[0] + c1 * u[0], a[1] + c1 * u[1]), "capture")
-    for t in targets:
-        cv.polygon([tuple(c) for c in t["corners_ne_m"]], "target")
-    if vessel is not None:
-        n, e = vessel["n_m"], vessel["e_m"]
-        h = math.radians(vessel.get("heading_deg", 0.0))
-        tick = 4 * cv.m_per_dot
-        cv.line((n, e), (n + tick * math.cos(h), e + tick * math.sin(h)), "vessel")
-        for dn in (-1, 0, 1):
-            for de in (-1, 0, 1):
-                cv.point(n + dn * cv.m_per_dot, e + de * cv.m_per_dot, "vessel")
-    return cv.render(), cv.m_per_dot
+    return pts
+
+
+def _draw_active_line(cv: Canvas, act: dict) -> None:
+    """The active line and, over it, its capture window."""
+    a, b = act["start_ne_m"], act["end_ne_m"]
+    cv.line(tuple(a), tuple(b), "line")
+    length = math.hypot(b[0] - a[0], b[1] - a[1]) or 1.0
+    u = ((b[0] - a[0]) / length, (b[1] - a[1]) / length)
+    c0, c1 = act["capture_m"]
+    cv.line((a[0] + c0 * u[0], a[1] + c0 * u[1]), (a[0] + c1 * u[0], a[1] + c1 * u[1]), "capture")
+
+
+def _draw_vessel(cv: Canvas, vessel: dict) -> None:
+    """The vessel: a 3 × 3 dot with a heading tick 4 dots long."""
+    n, e = vessel["n_m"], vessel["e_m"]
+    h = math.radians(vessel.get("heading_deg", 0.0))
+    tick = 4 * cv.m_per_dot
+    cv.line((n, e), (n + tick * math.cos(h), e + tick * math.sin(h)), "vessel")
+    for dn in (-1, 0, 1):
+        for de in (-1, 0, 1):
+            cv.point(n + dn * cv.m_per_dot, e + de * cv.m_per_dot, "vessel")

@@ -141,12 +141,13 @@ class PointBuffer:
 
     def _consolidate(self) -> None:
         if self._parts:
-            self._chunks.append(tuple(np.concatenate(c) for c in zip(*self._parts)))  # type: ignore[arg-type]
+            t, r, a = zip(*self._parts, strict=True)
+            self._chunks.append((np.concatenate(t), np.concatenate(r), np.concatenate(a)))
             self._parts = []
 
     def _halve(self) -> None:
         self._consolidate()
-        self._chunks = [tuple(a[::2] for a in c) for c in self._chunks]  # type: ignore[misc]
+        self._chunks = [(t[::2], r[::2], a[::2]) for t, r, a in self._chunks]
         self._n = sum(c[0].shape[0] for c in self._chunks)
         self.scale *= 0.5
         self.halvings += 1
@@ -159,13 +160,13 @@ class PointBuffer:
 
     def trim_before(self, t: float) -> None:
         self._consolidate()
-        keep = []
+        keep: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
         for c in self._chunks:  # a chunk is in time order (profiles as they came): its ends decide
             if c[0][0] >= t:
                 keep.append(c)
             elif c[0][-1] >= t:
                 sel = c[0] >= t
-                keep.append(tuple(x[sel] for x in c))
+                keep.append((c[0][sel], c[1][sel], c[2][sel]))
         self._chunks = keep
         self._n = sum(c[0].shape[0] for c in keep)
         if self._n < self.max_points // 4 and self.scale < 1.0:  # room again: the full budget
@@ -185,7 +186,7 @@ def select_points(chunks: list[tuple], windows: list[tuple[int, float, float]]):
     """The returns of a :meth:`PointBuffer.snapshot` inside each ``(line id, t0, t1)`` window:
     (line ids, GPS s, range, angle) float64 arrays, time-ordered within each line."""
     if chunks:
-        t, r, a = (np.concatenate(x) for x in zip(*chunks))
+        t, r, a = (np.concatenate(x) for x in zip(*chunks, strict=True))
     else:
         t = r = a = np.empty(0)
     out: list[tuple] = []
@@ -195,5 +196,5 @@ def select_points(chunks: list[tuple], windows: list[tuple[int, float, float]]):
         out.append((np.full(sel.size, lid, np.int64), t[sel], r[sel].astype(float), a[sel].astype(float)))
     if not out:
         return np.empty(0, np.int64), np.empty(0), np.empty(0), np.empty(0)
-    ids, tt, rr, aa = (np.concatenate(x) for x in zip(*out))
+    ids, tt, rr, aa = (np.concatenate(x) for x in zip(*out, strict=True))
     return ids, tt, rr, aa

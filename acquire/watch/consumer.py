@@ -61,7 +61,7 @@ class MountWatchConsumer:
     def __init__(
         self,
         model: WatchModel,
-        design: WatchDesign = WatchDesign(),
+        design: WatchDesign | None = None,
         *,
         max_points_per_s: float = 20_000,
         min_line_s: float = 20.0,
@@ -73,7 +73,7 @@ class MountWatchConsumer:
         info: dict | None = None,
     ) -> None:
         self.model = model
-        self.design = design
+        self.design = design = design if design is not None else WatchDesign()
         self.test = MountTest(design)
         self.cutter = LineCutter(min_line_s, max_line_s)
         self.blocks = BlockCutter(model.options)

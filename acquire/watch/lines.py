@@ -163,43 +163,68 @@ class LineCutter:
             return []
         if self.t_last is not None and t_s <= self.t_last:
             return []
-        out: list[Line] = []
         gap = self.t_last is not None and t_s - self.t_last > MAX_NAV_GAP_S
         t_prev, self.t_last = self.t_last, t_s
         run = self.run
         if gap and run is not None:
-            pid = run.pass_id
-            out += self._close(run.t_last, "gap")
-            if self.marks and pid is not None:  # the marked line goes on after the gap
-                self.run = _Run(t_s, heading_rad, pid)
-            return out
+            return self._after_gap(run, t_s, heading_rad)
         if self.marks:
-            if run is not None:
-                run.add(t_s, heading_rad, lat_deg, lon_deg)
-                if t_s - run.t_start >= self.max_line_s:
-                    out += self._close(t_s, "max_line")
-                    self.run = _Run(t_s, heading_rad, run.pass_id)
-            return out
+            return [] if run is None else self._marked_epoch(run, t_s, heading_rad, lat_deg, lon_deg)
         moving = not (speed_mps < MIN_SPEED_MPS)  # NaN: unknown, taken as moving
         if run is None:
             if moving:
                 self.run = _Run(t_s, heading_rad, settle_s=self.min_line_s)
+            return []
+        return self._heading_epoch(run, t_s, t_prev, heading_rad, moving, (lat_deg, lon_deg))
+
+    def _after_gap(self, run: _Run, t_s: float, heading_rad: float) -> list[Line]:
+        """The first epoch after a gap in the navigation: the open line closed at its last epoch
+        (a marked line goes on from this epoch)."""
+        pid = run.pass_id
+        out = self._close(run.t_last, "gap")
+        if self.marks and pid is not None:  # the marked line goes on after the gap
+            self.run = _Run(t_s, heading_rad, pid)
+        return out
+
+    def _marked_epoch(
+        self, run: _Run, t_s: float, heading_rad: float, lat_deg: float, lon_deg: float
+    ) -> list[Line]:
+        """An epoch of a line between pass marks: added; the line cut at ``max_line_s``."""
+        run.add(t_s, heading_rad, lat_deg, lon_deg)
+        if t_s - run.t_start >= self.max_line_s:
+            out = self._close(t_s, "max_line")
+            self.run = _Run(t_s, heading_rad, run.pass_id)
             return out
+        return []
+
+    def _heading_epoch(
+        self,
+        run: _Run,
+        t_s: float,
+        t_prev: float | None,
+        heading_rad: float,
+        moving: bool,
+        lat_lon_deg: tuple[float, float],
+    ) -> list[Line]:
+        """An epoch of a line cut by heading: added while on the line's heading and moving; the
+        line closed after ``TURN_S`` off it or at a stop (a new one starts when moving), and cut
+        at ``max_line_s``."""
         if moving and _off(heading_rad, run.reference) <= HEADING_TOLERANCE_RAD:
             run.off_since = None
-            run.add(t_s, heading_rad, lat_deg, lon_deg)
+            run.add(t_s, heading_rad, *lat_lon_deg)
         else:
             if run.off_since is None:
                 run.off_since = t_prev if t_prev is not None else t_s
             if t_s - run.off_since >= TURN_S or not moving:
-                out += self._close(run.t_last, "turn" if moving else "stop")
+                out = self._close(run.t_last, "turn" if moving else "stop")
                 if moving:
                     self.run = _Run(t_s, heading_rad, settle_s=self.min_line_s)
                 return out
         if run.t_last - run.t_start >= self.max_line_s:
-            out += self._close(run.t_last, "max_line")
+            out = self._close(run.t_last, "max_line")
             self.run = _Run(t_s, heading_rad, settle_s=self.min_line_s)
-        return out
+            return out
+        return []
 
     def on_mark(self, event: str, pass_id) -> list[Line]:
         """A ``pass_start`` / ``pass_end`` event (timed by the latest epoch); the lines it

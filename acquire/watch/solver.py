@@ -22,9 +22,14 @@ import contextlib
 import multiprocessing
 import os
 import threading
+from typing import TYPE_CHECKING
 
 from acquire.watch.blockjob import BlockJob, WatchModel, block_identity, run_block
 from calib.watch.block import BlockEstimate
+
+if TYPE_CHECKING:
+    from multiprocessing.connection import Connection
+    from multiprocessing.context import SpawnProcess
 
 WORKER_NICE = 10  # the block solves run this much nicer than the acquisition
 
@@ -47,8 +52,8 @@ class BlockSolver:
     def __init__(self, nice: int = WORKER_NICE) -> None:
         self.nice = nice
         self.started = 0  # worker processes started (more than one: a worker died)
-        self._proc = None
-        self._conn = None
+        self._proc: SpawnProcess | None = None
+        self._conn: Connection | None = None  # the parent's end of the pipe to the worker
         self._lock = threading.Lock()  # one block at a time on the pipe
 
     def start(self) -> None:
@@ -73,7 +78,8 @@ class BlockSolver:
         with self._lock:
             self._ensure()
             proc, conn = self._proc, self._conn
-            assert proc is not None and conn is not None
+            assert proc is not None, "_ensure started the worker"
+            assert conn is not None, "_ensure opened its pipe"
             try:
                 conn.send((job, model))
                 return conn.recv()

@@ -298,6 +298,75 @@ def _orientation_vector(orient_direction, orient_toward_m):
     return v
 
 
+def _checked_k(k, max_distance_m, collinear_tol) -> int:
+    """``k`` as an int, once the arguments are checked (:class:`C2CError` with what to give)."""
+    if int(k) != k or k < MIN_MODEL_POINTS:
+        raise C2CError(f"k = {k!r}: a least-squares plane needs k ≥ {MIN_MODEL_POINTS} neighbours")
+    if max_distance_m is not None and not (np.isfinite(max_distance_m) and max_distance_m > 0):
+        raise C2CError(f"max_distance_m = {max_distance_m!r}: expected a positive distance")
+    if not (0 <= collinear_tol < 1):
+        raise C2CError(f"collinear_tol = {collinear_tol!r}: expected 0 ≤ tol < 1")
+    return int(k)
+
+
+def _leaf_order(p: np.ndarray) -> np.ndarray:
+    """The points' order in a KD-tree's leaves: neighbouring queries then touch neighbouring
+    memory."""
+    from scipy.spatial import cKDTree
+
+    return cKDTree(p, leafsize=64, balanced_tree=False, compact_nodes=False).indices
+
+
+class _Reference:
+    """The reference cloud in the order of a KD-tree's leaves (copied in that order, the tree
+    built on the copy), with the scratch arrays of the local planes."""
+
+    def __init__(self, ref: np.ndarray):
+        from scipy.spatial import cKDTree
+
+        self.order = _leaf_order(ref)
+        self.points = ref[self.order]
+        self.tree = cKDTree(self.points, balanced_tree=False, compact_nodes=False)
+        self.cols = [np.ascontiguousarray(self.points[:, j]) for j in range(3)]
+        self.used = np.zeros(len(ref), dtype=bool)
+        self.slot = np.empty(len(ref), dtype=np.intp)
+
+    def local_models(self, q, d_nn, i_nn, fi, dist, nrm, side, model, k_eff, collinear_tol, workers) -> None:
+        """The distance to the local plane of the nearest reference point of each found query
+        ``fi``, one model per distinct nearest point (a mask, not a sort); writes ``dist``,
+        ``nrm``, ``side`` (n·(q − centroid)) and ``model`` where a plane was fitted."""
+        used, slot = self.used, self.slot
+        used[i_nn[fi]] = True
+        anchors = np.flatnonzero(used)
+        used[anchors] = False
+        slot[anchors] = np.arange(anchors.size)
+        inv = slot[i_nn[fi]]
+        _, nb = self.tree.query(self.points[anchors], k=k_eff, workers=workers)
+        cent_rel, nrm_u, ok_u = _local_planes(self.cols, anchors, nb, collinear_tol)
+        ok = ok_u[inv]
+        mi = fi[ok]
+        rel = q[mi] - self.points[i_nn[mi]] - cent_rel[inv[ok]]
+        nrm[mi] = nrm_u[inv[ok]]
+        side[mi] = np.einsum("ij,ij->i", rel, nrm[mi])
+        dist[mi] = np.minimum(d_nn[mi], np.abs(side[mi]))
+        model[mi] = True
+
+
+def _signs(q, v, toward_point: bool, ref_pts, i_nn, found, dist, nrm, side, model):
+    """The signed distances of a block of queries along the orientation ``v`` (the normals
+    ``nrm`` flipped to it, in place) and how many of its model points have an ambiguous sign."""
+    vv = (v - q) if toward_point else np.broadcast_to(v, q.shape)
+    dots = np.einsum("ij,ij->i", np.nan_to_num(nrm), vv)
+    flip = np.where(dots < 0, -1.0, 1.0)
+    nrm *= flip[:, None]
+    vnorm = np.linalg.norm(vv, axis=1)
+    n_ambiguous = int(np.count_nonzero(model & (np.abs(dots) < AMBIGUOUS_SIGN_COS * vnorm)))
+    # without a model: the side of the nearest point along the orientation
+    fb_side = np.einsum("ij,ij->i", q - ref_pts[np.maximum(i_nn, 0)], vv)
+    s = np.where(model, side * flip, fb_side)
+    return np.where(found, np.where(s >= 0, 1.0, -1.0) * dist, np.nan), n_ambiguous
+
+
 def c2c(
     compared_m,
     reference_m,
@@ -318,35 +387,16 @@ def c2c(
     or ``orient_toward_m`` (a point) turn on signed distances. ``workers``: threads for the
     KD-tree queries (1 = one core). ``progress(done, total)`` is called after each block.
     """
-    from scipy.spatial import cKDTree
-
     q_all = _as_cloud(compared_m, "compared")
-    ref = _as_cloud(reference_m, "reference")
-    if int(k) != k or k < MIN_MODEL_POINTS:
-        raise C2CError(f"k = {k!r}: a least-squares plane needs k ≥ {MIN_MODEL_POINTS} neighbours")
-    k = int(k)
-    if max_distance_m is not None and not (np.isfinite(max_distance_m) and max_distance_m > 0):
-        raise C2CError(f"max_distance_m = {max_distance_m!r}: expected a positive distance")
-    if not (0 <= collinear_tol < 1):
-        raise C2CError(f"collinear_tol = {collinear_tol!r}: expected 0 ≤ tol < 1")
+    ref_cloud = _as_cloud(reference_m, "reference")
+    k = _checked_k(k, max_distance_m, collinear_tol)
     v = _orientation_vector(orient_direction, orient_toward_m)
     toward_point = orient_toward_m is not None
 
-    n, n_ref = q_all.shape[0], ref.shape[0]
-
-    # both clouds are taken in the order of a KD-tree's leaves: neighbouring queries then touch
-    # neighbouring memory (the reference is copied in that order, the tree built on the copy)
-    def leaf_order(p):
-        return cKDTree(p, leafsize=64, balanced_tree=False, compact_nodes=False).indices
-
-    ref_order = leaf_order(ref)
-    ref = ref[ref_order]
-    tree = cKDTree(ref, balanced_tree=False, compact_nodes=False)
-    ref_cols = [np.ascontiguousarray(ref[:, j]) for j in range(3)]
+    n, n_ref = q_all.shape[0], ref_cloud.shape[0]
+    ref = _Reference(ref_cloud)
     k_eff = min(k, n_ref)
-    order = leaf_order(q_all)
-    used = np.zeros(n_ref, dtype=bool)
-    slot = np.empty(n_ref, dtype=np.intp)
+    order = _leaf_order(q_all)
 
     distance = np.empty(n)
     nn_dist = np.empty(n)
@@ -360,43 +410,21 @@ def c2c(
     for lo in range(0, n, chunk_size):
         idx = order[lo : lo + chunk_size]
         q = q_all[idx]
-        d_nn, i_nn = tree.query(q, k=1, distance_upper_bound=ub, workers=workers)
+        d_nn, i_nn = ref.tree.query(q, k=1, distance_upper_bound=ub, workers=workers)
         found = i_nn < n_ref
         i_nn = np.where(found, i_nn, -1)
         nn_dist[idx] = d_nn
-        nearest[idx] = np.where(found, ref_order[np.maximum(i_nn, 0)], -1)
+        nearest[idx] = np.where(found, ref.order[np.maximum(i_nn, 0)], -1)
         dist = d_nn.copy()
         model = np.zeros(idx.size, dtype=bool)
         nrm = np.full((idx.size, 3), np.nan)
         side = np.zeros(idx.size)  # n·(q − centroid), signed, for the model points
         fi = np.flatnonzero(found)
         if k_eff >= MIN_MODEL_POINTS and fi.size:
-            # one model per distinct nearest reference point (a mask, not a sort)
-            used[i_nn[fi]] = True
-            anchors = np.flatnonzero(used)
-            used[anchors] = False
-            slot[anchors] = np.arange(anchors.size)
-            inv = slot[i_nn[fi]]
-            _, nb = tree.query(ref[anchors], k=k_eff, workers=workers)
-            cent_rel, nrm_u, ok_u = _local_planes(ref_cols, anchors, nb, collinear_tol)
-            ok = ok_u[inv]
-            mi = fi[ok]
-            rel = q[mi] - ref[i_nn[mi]] - cent_rel[inv[ok]]
-            nrm[mi] = nrm_u[inv[ok]]
-            side[mi] = np.einsum("ij,ij->i", rel, nrm[mi])
-            dist[mi] = np.minimum(d_nn[mi], np.abs(side[mi]))
-            model[mi] = True
+            ref.local_models(q, d_nn, i_nn, fi, dist, nrm, side, model, k_eff, collinear_tol, workers)
         if v is not None and signed is not None:  # signed exists exactly when v does
-            vv = (v - q) if toward_point else np.broadcast_to(v, q.shape)
-            dots = np.einsum("ij,ij->i", np.nan_to_num(nrm), vv)
-            flip = np.where(dots < 0, -1.0, 1.0)
-            nrm *= flip[:, None]
-            vnorm = np.linalg.norm(vv, axis=1)
-            n_ambiguous += int(np.count_nonzero(model & (np.abs(dots) < AMBIGUOUS_SIGN_COS * vnorm)))
-            # without a model: the side of the nearest point along the orientation
-            fb_side = np.einsum("ij,ij->i", q - ref[np.maximum(i_nn, 0)], vv)
-            s = np.where(model, side * flip, fb_side)
-            signed[idx] = np.where(found, np.where(s >= 0, 1.0, -1.0) * dist, np.nan)
+            signed[idx], n_amb = _signs(q, v, toward_point, ref.points, i_nn, found, dist, nrm, side, model)
+            n_ambiguous += n_amb
         if max_distance_m is not None:
             dist[~found] = max_distance_m
         distance[idx] = dist

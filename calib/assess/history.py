@@ -55,7 +55,7 @@ class ResultFormatError(CalibError, ValueError):
 def _angles(d: dict, key: str, source: str, positive: bool) -> dict[str, float]:
     v = d[key]
     if isinstance(v, (list, tuple)) and len(v) == 3:  # roll, pitch, yaw order
-        v = dict(zip(ANGLES, v))
+        v = dict(zip(ANGLES, v, strict=False))
     if not isinstance(v, dict):
         raise ResultFormatError(
             f"{source}: {key} is {v!r}, expected an object {{roll, pitch, yaw}} in degrees"
@@ -534,7 +534,7 @@ def compare(
     if "scaled" in kinds:
         message += (
             "; note: scaled σ (no realistic σ in "
-            + " and ".join(lbl for lbl, k in zip((la, lb), kinds) if k == "scaled")
+            + " and ".join(lbl for lbl, k in zip((la, lb), kinds, strict=False) if k == "scaled")
             + ") is optimistic when POS errors are correlated in time"
         )
     same = None if fa is None or fb is None else fa == fb

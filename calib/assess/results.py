@@ -58,6 +58,10 @@ class AssessOptions:
             raise AssessError(f"min_points = {self.min_points!r}: expected an integer ≥ 3")
 
 
+#: the assessment's options when the caller gives none (frozen, shared)
+DEFAULT_ASSESS_OPTIONS = AssessOptions()
+
+
 @dataclass(frozen=True)
 class Comparison:
     """C2C of one surface (or the whole overlap) between the two passes of a pair."""

@@ -130,7 +130,7 @@ def plot_heights(a: Assessment, out_dir: Path, max_points: int = 20000) -> list[
         fig = Figure(figsize=(9.0, 5.0))
         axes = fig.subplots(1, 2, sharey=True)
         sub = rng.choice(h.size, min(h.size, max_points), replace=False)
-        for ax, state, color in zip(axes, STATES, ("tab:blue", "tab:brown")):
+        for ax, state, color in zip(axes, STATES, ("tab:blue", "tab:brown"), strict=False):
             d = np.concatenate([getattr(c, f"d_{state}_m") for c in planes]) * 1e3
             fit = a.height_fit(pair, state)
             ax.scatter(d[sub], h[sub], s=2, alpha=0.25, color=color, lw=0)
@@ -219,12 +219,12 @@ def _stats_cells(s: DistanceStats) -> list[str]:
     return [fmt_length(s.mean_m), fmt_length(s.median_m), fmt_length(s.rms_m), fmt_length(s.p95_m)]
 
 
-def assessment_markdown(a: Assessment, figures: Sequence[Path] = ()) -> str:
-    """``assessment.md``: the summary in words, the tables and the figures."""
-    name = a.bundle_path.name
+def _intro(a: Assessment) -> list[str]:
+    """The title, the boresight before and after, and the method."""
     b0, b1 = a.boresight_before_deg, a.boresight_after_deg
-    out = [f"# Relative accuracy assessment — {name}", ""]
-    out += [
+    return [
+        f"# Relative accuracy assessment — {a.bundle_path.name}",
+        "",
         f"Boresight before (site.yaml a priori): roll {b0['roll']:.4f}°, pitch {b0['pitch']:.4f}°, "
         f"yaw {b0['yaw']:.4f}°; after (calibration result): roll {b1['roll']:.4f}°, pitch "
         f"{b1['pitch']:.4f}°, yaw {b1['yaw']:.4f}° (canonical convention).",
@@ -242,9 +242,83 @@ def assessment_markdown(a: Assessment, figures: Sequence[Path] = ()) -> str:
         + f", and the whole overlap of the passes. Heights are above the water line "
         f"(the scanner's mean height + {a.options.scanner_height_m:g} m).",
         "",
-        "## Summary",
-        "",
     ]
+
+
+#: the columns of a pair's table (a "true mount median" column follows on a simulated bundle)
+_PAIR_COLUMNS = (
+    "surface",
+    "height",
+    "returns",
+    "before mean",
+    "before median",
+    "before RMS",
+    "before p95",
+    "after mean",
+    "after median",
+    "after RMS",
+    "after p95",
+    "×",
+    "expected",
+    "floor",
+    "calib. σ",
+)
+
+
+def _pair_table(rows) -> list[str]:
+    """A pair's comparisons, one row per surface (the highest first, the whole overlap last)."""
+    head = list(_PAIR_COLUMNS)
+    truth_col = any(c.true_mount is not None for c in rows)
+    if truth_col:
+        head.append("true mount median")
+    out = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    for c in sorted(rows, key=lambda c: (c.source == "overlap", -c.height_m)):
+        cells = [
+            c.name if c.source != "overlap" else "whole overlap",
+            f"{c.height_m:.1f} m",
+            f"{c.after.count:,}",
+            *_stats_cells(c.before),
+            *_stats_cells(c.after),
+            fmt_ratio(c.improvement),
+            fmt_length(c.expected_median_m),
+            fmt_length(c.floor_median_m),
+            fmt_length(c.boresight_offset_sigma_m),
+        ]
+        if truth_col:
+            cells.append(fmt_length(c.true_mount.median_m if c.true_mount else None))
+        out.append("| " + " | ".join(cells) + " |")
+    out.append("")
+    return out
+
+
+def _truth_table(rows) -> list[str]:
+    """A pair's surfaces against the true planes (a simulated bundle; none without)."""
+    truth_rows = [(c, c.truth) for c in rows if c.truth]
+    if not truth_rows:
+        return []
+    out = [
+        "Against the true planes (simulated bundle): signed distance of each pass's "
+        "returns, mean ± standard deviation.",
+        "",
+        "| surface | true plane | pass | before | after | true mount |",
+        "|---|---|---|---|---|---|",
+    ]
+    for c, truth in sorted(truth_rows, key=lambda ct: -ct[0].height_m):
+        for pid in c.pair:
+            cells = [
+                f"{fmt_length(truth[s][pid].mean_m)} ± {fmt_length(truth[s][pid].std_m)}"
+                if s in truth
+                else "—"
+                for s in ("before", "after", "true")
+            ]
+            out.append(f"| {c.name} | {c.truth_plane} | {pid} | " + " | ".join(cells) + " |")
+    out.append("")
+    return out
+
+
+def assessment_markdown(a: Assessment, figures: Sequence[Path] = ()) -> str:
+    """``assessment.md``: the summary in words, the tables and the figures."""
+    out = _intro(a) + ["## Summary", ""]
     out += [f"- {line}" for line in summary_lines(a)]
     out += [
         "",
@@ -257,65 +331,9 @@ def assessment_markdown(a: Assessment, figures: Sequence[Path] = ()) -> str:
     ]
     for pair in a.pairs:
         rows = [c for c in a.comparisons if c.pair == pair]
-        if not rows:
-            continue
-        out += [f"## Passes {_pair_label(a, pair)}", ""]
-        head = [
-            "surface",
-            "height",
-            "returns",
-            "before mean",
-            "before median",
-            "before RMS",
-            "before p95",
-            "after mean",
-            "after median",
-            "after RMS",
-            "after p95",
-            "×",
-            "expected",
-            "floor",
-            "calib. σ",
-        ]
-        truth_col = any(c.true_mount is not None for c in rows)
-        if truth_col:
-            head.append("true mount median")
-        out += ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
-        for c in sorted(rows, key=lambda c: (c.source == "overlap", -c.height_m)):
-            cells = [
-                c.name if c.source != "overlap" else "whole overlap",
-                f"{c.height_m:.1f} m",
-                f"{c.after.count:,}",
-                *_stats_cells(c.before),
-                *_stats_cells(c.after),
-                fmt_ratio(c.improvement),
-                fmt_length(c.expected_median_m),
-                fmt_length(c.floor_median_m),
-                fmt_length(c.boresight_offset_sigma_m),
-            ]
-            if truth_col:
-                cells.append(fmt_length(c.true_mount.median_m if c.true_mount else None))
-            out.append("| " + " | ".join(cells) + " |")
-        out.append("")
-        truth_rows = [(c, c.truth) for c in rows if c.truth]
-        if truth_rows:
-            out += [
-                "Against the true planes (simulated bundle): signed distance of each pass's "
-                "returns, mean ± standard deviation.",
-                "",
-                "| surface | true plane | pass | before | after | true mount |",
-                "|---|---|---|---|---|---|",
-            ]
-            for c, truth in sorted(truth_rows, key=lambda ct: -ct[0].height_m):
-                for pid in c.pair:
-                    cells = [
-                        f"{fmt_length(truth[s][pid].mean_m)} ± {fmt_length(truth[s][pid].std_m)}"
-                        if s in truth
-                        else "—"
-                        for s in ("before", "after", "true")
-                    ]
-                    out.append(f"| {c.name} | {c.truth_plane} | {pid} | " + " | ".join(cells) + " |")
-            out.append("")
+        if rows:
+            out += [f"## Passes {_pair_label(a, pair)}", ""]
+            out += _pair_table(rows) + _truth_table(rows)
     if a.notes:
         out += ["## Notes", ""] + [f"- {n}" for n in a.notes] + [""]
     if figures:

@@ -6,11 +6,11 @@ two clouds both see (when the site lists no validation planes).
 
 from __future__ import annotations
 
-from dataclasses import replace
+from dataclasses import dataclass, replace
 
 import numpy as np
 
-from calib.assess.results import AssessOptions
+from calib.assess.results import DEFAULT_ASSESS_OPTIONS, AssessOptions
 from calib.core.geometry import Rectangle, fit_plane
 
 
@@ -101,49 +101,73 @@ def _rectangle_of(points: np.ndarray, normal: np.ndarray, name: str) -> Rectangl
     return Rectangle(name, center, n, u, v, float(np.ptp(cu)), float(np.ptp(cv)))
 
 
-def extract_common_patches(
-    p_a: np.ndarray, p_b: np.ndarray, toward_m: np.ndarray, options: AssessOptions = AssessOptions()
-) -> list[Rectangle]:
-    """Planar patches seen by both clouds: cells of ``auto_cell_m`` whose points of both clouds
-    lie on one plane (RMS ≤ ``auto_max_rms_m``, not a line), grown into regions of neighbouring
-    cells that agree with the region's plane (normal within ``auto_max_angle_deg``, centroid
-    within 3 × ``auto_max_rms_m``). Returns the regions' bounding rectangles (normals toward
-    ``toward_m``), the largest first, named P1, P2, …"""
-    cell = options.auto_cell_m
-    pts = np.concatenate([p_a, p_b])
-    which = np.concatenate([np.zeros(len(p_a), np.int8), np.ones(len(p_b), np.int8)])
+@dataclass(frozen=True, kw_only=True)
+class _Cells:
+    """Both clouds binned in cubic cells: per cell its points of each cloud and the sums of
+    their coordinates (relative to the clouds' lowest corner) and of their products."""
+
+    key: np.ndarray  # (m, 3) the cells' integer coordinates
+    inv: np.ndarray  # (n,) each point's cell
+    cnt_a: np.ndarray  # (m,) points of the first cloud
+    cnt_b: np.ndarray  # (m,) … of the second
+    s1: np.ndarray  # (m, 3) Σ x
+    s2: np.ndarray  # (m, 3, 3) Σ x xᵀ
+
+    @property
+    def cnt(self) -> np.ndarray:
+        return self.cnt_a + self.cnt_b
+
+
+def _cells(pts: np.ndarray, which: np.ndarray, cell_m: float) -> _Cells:
     origin = pts.min(axis=0)
-    key = np.floor((pts - origin) / cell).astype(np.int64)
+    key = np.floor((pts - origin) / cell_m).astype(np.int64)
     cells, inv, _ = np.unique(key, axis=0, return_inverse=True, return_counts=True)
     inv = inv.ravel()
     m = len(cells)
-    min_cell = max(options.k, 8)
-    cnt_a = np.bincount(inv[which == 0], minlength=m)
-    cnt_b = np.bincount(inv[which == 1], minlength=m)
-    cnt = cnt_a + cnt_b
     rel = pts - origin
     s1 = np.stack([np.bincount(inv, rel[:, j], m) for j in range(3)], axis=1)
     s2 = np.empty((m, 3, 3))
     for i in range(3):
         for j in range(i, 3):
             s2[:, i, j] = s2[:, j, i] = np.bincount(inv, rel[:, i] * rel[:, j], m)
-    ok_cells = np.flatnonzero((cnt_a >= min_cell) & (cnt_b >= min_cell))
-    if ok_cells.size == 0:
-        return []
+    return _Cells(
+        key=cells,
+        inv=inv,
+        cnt_a=np.bincount(inv[which == 0], minlength=m),
+        cnt_b=np.bincount(inv[which == 1], minlength=m),
+        s1=s1,
+        s2=s2,
+    )
 
-    def plane_of(s1_, s2_, n_):
-        c = s1_ / n_
-        cov = s2_ / n_ - np.outer(c, c)
-        w, v = np.linalg.eigh(cov)
-        return c, v[:, 0], w
 
+def _plane_of(s1_, s2_, n_):
+    """Centroid, normal and eigenvalues (ascending) of points from their sums."""
+    c = s1_ / n_
+    cov = s2_ / n_ - np.outer(c, c)
+    w, v = np.linalg.eigh(cov)
+    return c, v[:, 0], w
+
+
+def _flat_cells(cs: _Cells, ok_cells: np.ndarray, options: AssessOptions):
+    """The cells planar (thin) and not a line (spread in two directions): their centroids,
+    normals and smallest eigenvalues, by cell."""
+    cnt = cs.cnt
     cent, normal, flat = {}, {}, {}
     for ci in ok_cells:
-        c, nv, w = plane_of(s1[ci], s2[ci], cnt[ci])
-        # planar (thin) and not a line (spread in two directions)
-        if np.sqrt(max(w[0], 0.0)) <= options.auto_max_rms_m and np.sqrt(max(w[1], 0.0)) > cell / 20:
+        c, nv, w = _plane_of(cs.s1[ci], cs.s2[ci], cnt[ci])
+        if (
+            np.sqrt(max(w[0], 0.0)) <= options.auto_max_rms_m
+            and np.sqrt(max(w[1], 0.0)) > options.auto_cell_m / 20
+        ):
             cent[ci], normal[ci], flat[ci] = c, nv, float(w[0])
-    index = {tuple(cells[ci]): ci for ci in cent}
+    return cent, normal, flat
+
+
+def _grown_regions(cs: _Cells, cent: dict, normal: dict, flat: dict, options: AssessOptions) -> list[list]:
+    """Regions of neighbouring flat cells that agree with the region's plane, grown from the
+    flattest cells first; each a list of cell indices."""
+    cnt = cs.cnt
+    index = {tuple(cs.key[ci]): ci for ci in cent}
     offsets = [np.array(o) for o in np.ndindex(3, 3, 3) if o != (1, 1, 1)]
     cos_max = np.cos(np.radians(options.auto_max_angle_deg))
     tol = 3.0 * options.auto_max_rms_m
@@ -154,13 +178,13 @@ def extract_common_patches(
             continue
         members = [seed]
         region[seed] = len(regions)
-        S1, S2, N = s1[seed].copy(), s2[seed].copy(), int(cnt[seed])
-        c, nv, _ = plane_of(S1, S2, N)
+        S1, S2, N = cs.s1[seed].copy(), cs.s2[seed].copy(), int(cnt[seed])
+        c, nv, _ = _plane_of(S1, S2, N)
         queue = [seed]
         while queue:
             ci = queue.pop()
             for o in offsets:
-                nb = index.get(tuple(cells[ci] + o - 1))
+                nb = index.get(tuple(cs.key[ci] + o - 1))
                 if nb is None or nb in region:
                     continue
                 if abs(normal[nb] @ nv) < cos_max or abs((cent[nb] - c) @ nv) > tol:
@@ -168,15 +192,35 @@ def extract_common_patches(
                 region[nb] = len(regions)
                 members.append(nb)
                 queue.append(nb)
-                S1 += s1[nb]
-                S2 += s2[nb]
+                S1 += cs.s1[nb]
+                S2 += cs.s2[nb]
                 N += int(cnt[nb])
-                c, nv, _ = plane_of(S1, S2, N)
+                c, nv, _ = _plane_of(S1, S2, N)
         regions.append(members)
-    cell_region = np.full(m, -1)
+    return regions
+
+
+def extract_common_patches(
+    p_a: np.ndarray, p_b: np.ndarray, toward_m: np.ndarray, options: AssessOptions = DEFAULT_ASSESS_OPTIONS
+) -> list[Rectangle]:
+    """Planar patches seen by both clouds: cells of ``auto_cell_m`` whose points of both clouds
+    lie on one plane (RMS ≤ ``auto_max_rms_m``, not a line), grown into regions of neighbouring
+    cells that agree with the region's plane (normal within ``auto_max_angle_deg``, centroid
+    within 3 × ``auto_max_rms_m``). Returns the regions' bounding rectangles (normals toward
+    ``toward_m``), the largest first, named P1, P2, …"""
+    pts = np.concatenate([p_a, p_b])
+    which = np.concatenate([np.zeros(len(p_a), np.int8), np.ones(len(p_b), np.int8)])
+    cs = _cells(pts, which, options.auto_cell_m)
+    min_cell = max(options.k, 8)
+    ok_cells = np.flatnonzero((cs.cnt_a >= min_cell) & (cs.cnt_b >= min_cell))
+    if ok_cells.size == 0:
+        return []
+    cent, normal, flat = _flat_cells(cs, ok_cells, options)
+    regions = _grown_regions(cs, cent, normal, flat, options)
+    cell_region = np.full(len(cs.key), -1)
     for r, members in enumerate(regions):
         cell_region[members] = r
-    point_region = cell_region[inv]
+    point_region = cell_region[cs.inv]
     out = []
     for r in range(len(regions)):
         sel = point_region == r

@@ -136,58 +136,32 @@ def _snooping_threshold(n: int, alpha: float) -> float:
     return max(float(stats.norm.isf(per_test / 2.0)), 3.29)
 
 
-def adjust(
-    obs: Observations, mount, planes_init, options: AdjustOptions = AdjustOptions()
-) -> AdjustmentResult:
-    """Estimate the boresight (and the requested extras) from plane observations.
+def _check_observable_apriori(obs: Observations, state0, r_nom, options: AdjustOptions) -> None:
+    """Raise :class:`ObservabilityError` when an unknown is not observed. Judged on the geometry
+    at the a-priori values: an unobservable angle would otherwise wander during the iterations
+    and make the verdict arbitrary (a boresight prior makes every angle determined: a weak one
+    stays near its prior, so the caller skips this then)."""
+    prior_info = information(obs, state0, r_nom, options.estimate)
+    if np.linalg.matrix_rank(prior_info.N) < prior_info.N.shape[0]:
+        raise ObservabilityError(singular_message(prior_info.N, obs, prior_info.layout))
+    check_observability(prior_info.Ninv[0:3, 0:3], obs, options.max_sigma_rad, options.estimate)
 
-    ``mount`` is the a-priori :class:`calib.core.georef.Mount`; ``planes_init`` a list of
-    (normal, d) per plane in ``obs.plane_names`` order (from the extraction's plane fits).
-    """
-    t_start = time.perf_counter()
-    validate_input(obs)
-    r_nom = frames.rotation_zyx(*mount.nominal_rad)
-    state0 = initial_state(mount, planes_init, len(obs.pass_ids), plane_centers(obs, mount, r_nom))
-    active = np.ones(len(obs), bool)
-    # observability is judged on the geometry at the a-priori values: an unobservable angle
-    # would otherwise wander during the iterations and make the verdict arbitrary
-    # (a boresight prior makes every angle determined: a weak one stays near its prior)
-    if options.boresight_prior_rad is None:
-        prior_info = information(obs, state0, r_nom, options.estimate)
-        if np.linalg.matrix_rank(prior_info.N) < prior_info.N.shape[0]:
-            raise ObservabilityError(singular_message(prior_info.N, obs, prior_info.layout))
-        check_observability(prior_info.Ninv[0:3, 0:3], obs, options.max_sigma_rad, options.estimate)
-    gls = options.estimator == "gls"
-    sol = _solve(obs, state0, r_nom, options)
-    if not np.all(np.isfinite(sol.state.boresight_rad)):
-        raise AdjustmentError("the adjustment diverged (non-finite estimates)")
-    used, sol = _snoop_points(obs, sol, active, r_nom, options)
-    removed: list[dict] = []
-    if gls and options.outliers == "snooping":
-        used, sol = _remove_gross_groups(obs, sol, active, r_nom, options, removed)
-    # signed distances of the points georeferenced from the raw observations
-    lin_raw = linearize(
-        sol.state,
-        r_nom,
-        used.plane_index,
-        used.pass_index,
-        observations_at(used, sol.state, "latency" in sol.layout.extras),
-    )
-    residual = lin_raw.F
-    cov_formal_all = sol.Ninv
-    # the realistic covariance of the boresight and of every extra unknown (not the planes):
-    # an extra's formal σ is as optimistic as the boresight's under time-correlated POS errors
+
+def _realistic_covariance(sol: Solution, used: Observations, options: AdjustOptions) -> np.ndarray:
+    """The realistic covariance of the boresight and of every extra unknown (not the planes;
+    rows of :func:`reported_rows`): an extra's formal σ is as optimistic as the boresight's
+    under time-correlated POS errors. GLS: the model is the POS error process itself, so its
+    formal covariance is realistic."""
     rows = reported_rows(sol.layout)
-    # GLS: the model is the POS error process itself, so its formal covariance is realistic
-    cov_real_rows = (
-        propagated_covariance(sol, used, options.error_model, rows)
-        if options.error_model.kind != "white" and not gls
-        else sol.Ninv[np.ix_(rows, rows)]
-    )
-    cov_real = cov_real_rows[0:3, 0:3].copy()
-    sd_real = np.sqrt(np.diag(cov_real_rows))  # in the order of ``rows``
-    cov_jack = _jackknife(used, sol, r_nom, options) if options.jackknife else None
-    names = sol.layout.names(used.plane_names, used.pass_ids)
+    if options.error_model.kind != "white" and options.estimator != "gls":
+        return propagated_covariance(sol, used, options.error_model, rows)
+    return sol.Ninv[np.ix_(rows, rows)]
+
+
+def _extras(sol: Solution, pass_ids, sd_real: np.ndarray) -> dict:
+    """Each extra unknown and pass offset: value, formal and realistic σ (``sd_real``: in the
+    order of :func:`reported_rows`), correlation with the boresight."""
+    cov_formal_all = sol.Ninv
     extras = {}
     sd = np.sqrt(np.diag(cov_formal_all))
 
@@ -211,7 +185,7 @@ def adjust(
         }
     if sol.layout.offsets:
         r0 = 3 + len(sol.layout.extras)  # first pass offset in ``rows``
-        for k, pid in enumerate(used.pass_ids):
+        for k, pid in enumerate(pass_ids):
             j = sol.layout.i_offset + 3 * k
             extras[f"pass{pid}_offset_m"] = {
                 "value": [float(x) for x in sol.state.pass_offsets_m[k]],
@@ -220,6 +194,51 @@ def adjust(
                 # rows north, east, down; columns roll, pitch, yaw
                 "correlation_with_boresight": [corr_with_boresight(j + c) for c in range(3)],
             }
+    return extras
+
+
+#: the adjustment's options when the caller gives none (frozen, shared)
+_DEFAULT_OPTIONS = AdjustOptions()
+
+
+def adjust(
+    obs: Observations, mount, planes_init, options: AdjustOptions = _DEFAULT_OPTIONS
+) -> AdjustmentResult:
+    """Estimate the boresight (and the requested extras) from plane observations.
+
+    ``mount`` is the a-priori :class:`calib.core.georef.Mount`; ``planes_init`` a list of
+    (normal, d) per plane in ``obs.plane_names`` order (from the extraction's plane fits).
+    """
+    t_start = time.perf_counter()
+    validate_input(obs)
+    r_nom = frames.rotation_zyx(*mount.nominal_rad)
+    state0 = initial_state(mount, planes_init, len(obs.pass_ids), plane_centers(obs, mount, r_nom))
+    active = np.ones(len(obs), bool)
+    if options.boresight_prior_rad is None:
+        _check_observable_apriori(obs, state0, r_nom, options)
+    gls = options.estimator == "gls"
+    sol = _solve(obs, state0, r_nom, options)
+    if not np.all(np.isfinite(sol.state.boresight_rad)):
+        raise AdjustmentError("the adjustment diverged (non-finite estimates)")
+    used, sol = _snoop_points(obs, sol, active, r_nom, options)
+    removed: list[dict] = []
+    if gls and options.outliers == "snooping":
+        used, sol = _remove_gross_groups(obs, sol, active, r_nom, options, removed)
+    # signed distances of the points georeferenced from the raw observations
+    lin_raw = linearize(
+        sol.state,
+        r_nom,
+        used.plane_index,
+        used.pass_index,
+        observations_at(used, sol.state, "latency" in sol.layout.extras),
+    )
+    residual = lin_raw.F
+    cov_formal_all = sol.Ninv
+    cov_real_rows = _realistic_covariance(sol, used, options)
+    cov_real = cov_real_rows[0:3, 0:3].copy()
+    cov_jack = _jackknife(used, sol, r_nom, options) if options.jackknife else None
+    names = sol.layout.names(used.plane_names, used.pass_ids)
+    extras = _extras(sol, used.pass_ids, np.sqrt(np.diag(cov_real_rows)))
     planes, passes = _plane_pass_stats(used, residual, sol.state, getattr(sol, "plane_var_m2", None))
     return AdjustmentResult(
         boresight_rad=sol.state.boresight_rad.copy(),

@@ -117,12 +117,16 @@ def default_estimator(model: ErrorModel) -> str:
     return "gls" if model.kind == "gauss_markov" else "thesis"
 
 
+#: independent POS errors, the default of the predicted covariance
+_WHITE = ErrorModel("white")
+
+
 def predict_covariance(
     obs: Observations,
     mount,
     planes,
     estimate: tuple[str, ...] = (),
-    model: ErrorModel = ErrorModel("white"),
+    model: ErrorModel = _WHITE,
     estimator: str | None = None,
 ) -> dict:
     """Boresight covariance the geometry in ``obs`` would give, without adjusting.

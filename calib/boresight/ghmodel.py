@@ -102,21 +102,9 @@ def _cross_rows(a, v):
     return (a[1] * v[2] - a[2] * v[1], a[2] * v[0] - a[0] * v[2], a[0] * v[1] - a[1] * v[0])
 
 
-def _linearize_block(
-    state: State,
-    r_nom: np.ndarray,
-    plane_index: np.ndarray,
-    pass_index: np.ndarray,
-    l: np.ndarray,
-    rates: tuple[np.ndarray, np.ndarray] | None,
-    bases: np.ndarray,
-    out: Linearization,
-) -> None:
-    """Evaluate the condition and its Jacobians at observations ``l`` (n, 8) into ``out``
-    (views of the caller's arrays). Vectors are kept as three contiguous component arrays."""
-    n = l.shape[0]
-    lt = np.ascontiguousarray(l.T)
-    nrm = np.ascontiguousarray(state.normals[plane_index].T)  # (3, n)
+def _scanner_vectors(state: State, r_nom: np.ndarray, lt: np.ndarray):
+    """The lever arm plus the scanner's vector in the body frame ``v_b`` (component rows), its
+    derivatives by the range and the scan angle, and by the boresight roll, pitch and yaw."""
     rho_t = lt[6] + state.range_offset_m
     a = lt[7] + state.scan_angle_offset_rad
     ca, sa = np.cos(a), np.sin(a)
@@ -137,62 +125,94 @@ def _linearize_block(
     dv_br = _mat_rows(R_bs, _cross_rows(_EX, q))
     dv_bp = _mat_rows(Rz @ Ry, _cross_rows(_EY, _mat_rows(Rx, q)))
     dv_by = _cross_rows(_EZ, _mat_rows(R_bs, q))
+    return v_b, drho, dalpha, (dv_br, dv_bp, dv_by)
 
-    # attitude: R = Rz(ψ) Ry(θ) Rx(φ) per point, as rotations of component rows
-    cr, sr = np.cos(lt[3]), np.sin(lt[3])
-    cp, sp = np.cos(lt[4]), np.sin(lt[4])
-    ch, sh = np.cos(lt[5]), np.sin(lt[5])
 
-    def rx(v):
-        return (v[0], cr * v[1] - sr * v[2], sr * v[1] + cr * v[2])
+class _Attitude:
+    """Each point's attitude R = Rz(ψ) Ry(θ) Rx(φ), applied to component rows, and the plane
+    normals' dot product with them."""
 
-    def ry(v):
-        return (cp * v[0] + sp * v[2], v[1], cp * v[2] - sp * v[0])
+    def __init__(self, lt: np.ndarray, nrm: np.ndarray):
+        self.cr, self.sr = np.cos(lt[3]), np.sin(lt[3])
+        self.cp, self.sp = np.cos(lt[4]), np.sin(lt[4])
+        self.ch, self.sh = np.cos(lt[5]), np.sin(lt[5])
+        self.nrm = nrm  # (3, n)
 
-    def rz(v):
-        return (ch * v[0] - sh * v[1], sh * v[0] + ch * v[1], v[2])
+    def rx(self, v):
+        return (v[0], self.cr * v[1] - self.sr * v[2], self.sr * v[1] + self.cr * v[2])
 
-    def n_dot(v):
-        return nrm[0] * v[0] + nrm[1] * v[1] + nrm[2] * v[2]
+    def ry(self, v):
+        return (self.cp * v[0] + self.sp * v[2], v[1], self.cp * v[2] - self.sp * v[0])
 
-    def n_dot_R(v):
-        return n_dot(rz(ry(rx(v))))
+    def rz(self, v):
+        return (self.ch * v[0] - self.sh * v[1], self.sh * v[0] + self.ch * v[1], v[2])
+
+    def n_dot(self, v):
+        return self.nrm[0] * v[0] + self.nrm[1] * v[1] + self.nrm[2] * v[2]
+
+    def n_dot_R(self, v):
+        return self.n_dot(self.rz(self.ry(self.rx(v))))
+
+
+def _fill_extra_columns(out: Linearization, att: _Attitude, v_b, rates, n: int) -> None:
+    """The Jacobian columns of the extra unknowns (range and scan-angle offsets: the range's
+    and the scan angle's own; the lever arm; the latency with the trajectory's rates)."""
+    ones, zeros = np.ones(n), np.zeros(n)
+    extra = out.A_extra
+    extra["range_offset"][:] = out.B[:, 6]
+    extra["scan_angle_offset"][:] = out.B[:, 7]
+    extra["lever_arm_x"][:] = att.n_dot_R((ones, zeros, zeros))
+    extra["lever_arm_y"][:] = att.n_dot_R((zeros, ones, zeros))
+    if rates is not None:
+        vel, omega_b = rates
+        w_x_v = _cross(omega_b, np.stack(v_b, axis=1))
+        extra["latency"][:] = att.n_dot(tuple(vel[:, i] for i in range(3))) + att.n_dot_R(
+            tuple(w_x_v[:, i] for i in range(3))
+        )
+
+
+def _linearize_block(
+    state: State,
+    r_nom: np.ndarray,
+    plane_index: np.ndarray,
+    pass_index: np.ndarray,
+    l: np.ndarray,
+    rates: tuple[np.ndarray, np.ndarray] | None,
+    bases: np.ndarray,
+    out: Linearization,
+) -> None:
+    """Evaluate the condition and its Jacobians at observations ``l`` (n, 8) into ``out``
+    (views of the caller's arrays). Vectors are kept as three contiguous component arrays."""
+    n = l.shape[0]
+    lt = np.ascontiguousarray(l.T)
+    nrm = np.ascontiguousarray(state.normals[plane_index].T)  # (3, n)
+    v_b, drho, dalpha, dv_boresight = _scanner_vectors(state, r_nom, lt)
+    att = _Attitude(lt, nrm)
 
     # nᵀR for the constant-direction derivatives: uᵀ = nᵀ R = (Rᵀ n)ᵀ
-    rx_v = rx(v_b)
-    ryx_v = ry(rx_v)
-    Rv = rz(ryx_v)
+    rx_v = att.rx(v_b)
+    ryx_v = att.ry(rx_v)
+    Rv = att.rz(ryx_v)
     off = state.pass_offsets_m[pass_index]
     ctr = state.centers_m[plane_index]
     x_rel = np.empty((n, 3))
     for i in range(3):
         x_rel[:, i] = lt[i] + off[:, i] + Rv[i] - ctr[:, i]
-    out.F[:] = n_dot((x_rel[:, 0], x_rel[:, 1], x_rel[:, 2])) + state.d_m[plane_index]
+    out.F[:] = att.n_dot((x_rel[:, 0], x_rel[:, 1], x_rel[:, 2])) + state.d_m[plane_index]
     out.x_lgf_m[:] = x_rel + ctr
     out.A_offset[:] = nrm.T
 
     B = out.B
     B[:, 0:3] = nrm.T
-    B[:, 3] = n_dot_R(_cross_rows(_EX, v_b))
-    B[:, 4] = n_dot(rz(ry(_cross_rows(_EY, rx_v))))
-    B[:, 5] = n_dot(_cross_rows(_EZ, Rv))
-    B[:, 6] = n_dot_R(drho)
-    B[:, 7] = n_dot_R(dalpha)
+    B[:, 3] = att.n_dot_R(_cross_rows(_EX, v_b))
+    B[:, 4] = att.n_dot(att.rz(att.ry(_cross_rows(_EY, rx_v))))
+    B[:, 5] = att.n_dot(_cross_rows(_EZ, Rv))
+    B[:, 6] = att.n_dot_R(drho)
+    B[:, 7] = att.n_dot_R(dalpha)
 
-    for c, dv in enumerate((dv_br, dv_bp, dv_by)):
-        out.A_boresight[:, c] = n_dot_R(dv)
-    ones, zeros = np.ones(n), np.zeros(n)
-    extra = out.A_extra
-    extra["range_offset"][:] = B[:, 6]
-    extra["scan_angle_offset"][:] = B[:, 7]
-    extra["lever_arm_x"][:] = n_dot_R((ones, zeros, zeros))
-    extra["lever_arm_y"][:] = n_dot_R((zeros, ones, zeros))
-    if rates is not None:
-        vel, omega_b = rates
-        w_x_v = _cross(omega_b, np.stack(v_b, axis=1))
-        extra["latency"][:] = n_dot(tuple(vel[:, i] for i in range(3))) + n_dot_R(
-            tuple(w_x_v[:, i] for i in range(3))
-        )
+    for c, dv in enumerate(dv_boresight):
+        out.A_boresight[:, c] = att.n_dot_R(dv)
+    _fill_extra_columns(out, att, v_b, rates, n)
     E = bases[plane_index]  # (n, 3, 2)
     out.A_plane[:, 0:2] = np.einsum("ni,nij->nj", x_rel, E)
     out.A_plane[:, 2] = 1.0

@@ -130,7 +130,7 @@ def knot_grid(
             break
         h *= count / MAX_KNOTS * 1.05
     starts, ends = _spans(ts, h)
-    pieces = [a + h * np.arange(int(np.ceil((b - a) / h)) + 1) for a, b in zip(starts, ends)]
+    pieces = [a + h * np.arange(int(np.ceil((b - a) / h)) + 1) for a, b in zip(starts, ends, strict=False)]
     knots = np.concatenate(pieces)
     if knots.size < 2:  # every point at one instant
         knots = np.array([ts[0], ts[0] + h])

@@ -90,10 +90,16 @@ def build_observations(
     pass_headings_rad: dict[int, float] | None = None,
     sigma_range_per_m: float = 0.0,
     beam_divergence_rad: float = 0.0,
+    *,
+    carry_trajectory: bool = True,
 ) -> Observations:
     """Interpolate the trajectory at the point times and attach the sigmas.
 
     The trajectory's per-epoch sigmas are used when present, else the site's constant ones.
+    ``carry_trajectory=False`` builds observations that do not carry the trajectory: the GLS
+    then puts its knots on a uniform grid of min(τ)/``knots_per_tau`` instead of at every INS
+    epoch (:func:`calib.boresight.gls.frame_for`; the same model to the bridge's approximation,
+    far fewer unknowns), and no latency can be estimated from them.
     """
     t = np.asarray(t_gps_s, float)
     n = t.size
@@ -138,7 +144,7 @@ def build_observations(
         list(plane_names),
         pass_ids,
         np.arange(n) if point_ids is None else np.asarray(point_ids),
-        trajectory,
+        trajectory if carry_trajectory else None,
         dict(pass_headings_rad or {}),
         (),
         0.5 * beam_divergence_rad,
@@ -147,7 +153,11 @@ def build_observations(
 
 def validate_input(obs: Observations) -> None:
     counts = np.bincount(obs.plane_index, minlength=len(obs.plane_names))
-    few = [f"{name} ({c} points)" for name, c in zip(obs.plane_names, counts) if c < MIN_POINTS_PER_PLANE]
+    few = [
+        f"{name} ({c} points)"
+        for name, c in zip(obs.plane_names, counts, strict=False)
+        if c < MIN_POINTS_PER_PLANE
+    ]
     if few:
         raise AdjustmentError(
             f"target(s) with fewer than {MIN_POINTS_PER_PLANE} points: "

@@ -48,7 +48,7 @@ from calib.boresight.checks.inputs import (
     check_within_reach,
     drop_uncovered,
 )
-from calib.boresight.checks.verdict import Verdict, as_doc, evidence, judge
+from calib.boresight.checks.verdict import Verdict, evidence, judge
 from calib.boresight.errormodel import ErrorModel
 from calib.boresight.observations import (
     MIN_POINTS_PER_PLANE,
@@ -57,8 +57,8 @@ from calib.boresight.observations import (
     build_observations,
     validate_input,
 )
-from calib.boresight.result import estimator_doc, result_to_dict, write_result
-from calib.boresight.scene_ties import patches_agree, targets_without_exposed_groups, tie_patches_from_points
+from calib.boresight.result import GlsDiagnostics, calibration_doc, write_result
+from calib.boresight.scene_ties import TieSearch, with_tie_patches
 from calib.boresight.tau import (
     TauChoice,
     choose_tau,
@@ -68,7 +68,6 @@ from calib.boresight.tau import (
 from calib.core import frames
 from calib.core.georef import Mount
 from calib.core.trajectory import Poses, Trajectory
-from calib.core.version import software_version as _software_version
 from calib.extraction.extract import (
     Extraction,
     ExtractOptions,
@@ -176,9 +175,8 @@ class CalibrationRun:
     timings_s: dict[str, float]
     #: the thesis estimator on the same targets (beside the default GLS in the report)
     comparison: AdjustmentResult | None = None
-    #: GLS: "estimate" (τ from the data), "sensitivity" (τ/3, τ, 3τ), "targets_only" (the
-    #: solution before tie patches), "ties" (:class:`calib.boresight.scene_ties.TiePatches`)
-    gls: dict = field(default_factory=dict)
+    #: GLS: τ from the data, the boresight at τ/3, τ and 3τ, the tie patches and their check
+    diagnostics: GlsDiagnostics = field(default_factory=GlsDiagnostics)
     #: trusted, questionable or refused, with the reasons (:mod:`calib.boresight.checks.verdict`)
     verdict: Verdict = field(default_factory=lambda: Verdict("trusted", [], []))
 
@@ -279,7 +277,7 @@ def _without_unseen_targets(ext: Extraction, rects, warnings: list[str]):
 
 def _planes(ext: Extraction, p, rects) -> list[tuple[np.ndarray, float]]:
     planes_or_none = initial_planes(ext, p, rects)
-    unplaced = [name for name, plane in zip(ext.target_names, planes_or_none) if plane is None]
+    unplaced = [name for name, plane in zip(ext.target_names, planes_or_none, strict=False) if plane is None]
     if unplaced:  # enough points over all passes, but fewer than 3 in every pass
         raise CalibrationError(
             f"target(s) {', '.join(unplaced)}: no pass holds 3 of its points, so it has no "
@@ -288,7 +286,7 @@ def _planes(ext: Extraction, p, rects) -> list[tuple[np.ndarray, float]]:
     return [plane for plane in planes_or_none if plane is not None]
 
 
-@dataclass
+@dataclass(kw_only=True)
 class _Adjusted:
     obs: Observations
     planes: list[tuple[np.ndarray, float]]
@@ -296,82 +294,39 @@ class _Adjusted:
     comparison: AdjustmentResult | None
 
 
-@dataclass(frozen=True)
-class _Inputs:
-    """What the adjustment stage needs beyond the observations (the tie patches' source)."""
-
-    options: CalibrationOptions
-    mount: Mount
-    site: Site
-    trajectory: Trajectory
-    points: ScanPoints
-    poses: Poses | None
-    target_rows: np.ndarray  # the extracted targets' point indices
-    point_rows: np.ndarray | None
-
-
 def _adjust_with_ties(
-    run_in: _Inputs, obs, planes, tau: TauChoice, warnings: list[str], notes: list[str], progress
+    options: CalibrationOptions,
+    search: TieSearch,
+    obs: Observations,
+    planes: list[tuple[np.ndarray, float]],
+    tau: TauChoice,
+    gls: GlsDiagnostics,
+    warnings: list[str],
+    notes: list[str],
+    progress: Progress | None,
 ) -> _Adjusted:
     """The default estimator, the thesis comparison and (GLS, ``tie_patches='auto'``) the
-    scene's tie patches, kept when they agree with the targets. When they do not, the result is
-    the targets alone with its σ widened to cover the other solution (the verdict says so)."""
-    options, mount = run_in.options, run_in.mount
+    scene's tie patches (:func:`calib.boresight.scene_ties.with_tie_patches`); with τ
+    estimated, the boresight at τ/3, τ and 3τ (into ``gls``)."""
+    mount = search.mount
     adjust_opts = options.adjust_options(tau.model)
-    gls = options.estimator == "gls"
-    ties_next = gls and options.tie_patches == "auto"
+    is_gls = options.estimator == "gls"
+    ties_next = is_gls and options.tie_patches == "auto"
     res = adjust(obs, mount, planes, replace(adjust_opts, jackknife=adjust_opts.jackknife and not ties_next))
-    if not gls:
-        return _Adjusted(obs, planes, res, None)
+    if not is_gls:
+        return _Adjusted(obs=obs, planes=planes, result=res, comparison=None)
     comparison = adjust(obs, mount, planes, replace(adjust_opts, estimator="thesis", jackknife=False))
     if ties_next:
         if progress is not None:
             progress("choosing tie patches", 0, None)
-        ties = tie_patches_from_points(
-            obs,
-            planes,
-            res,
-            run_in.site,
-            mount,
-            run_in.trajectory,
-            run_in.points,
-            run_in.poses,
-            run_in.target_rows,
-        )
-        if ties is None:
-            notes.append("tie patches: no planar patch of the scene seen from two headings; targets only")
-        else:
-            point_rows = run_in.point_rows
-            if point_rows is not None:  # outlier ids name rows of the file
-                n_t = len(obs)
-                ties.observations.point_ids[n_t:] = np.asarray(point_rows)[ties.observations.point_ids[n_t:]]
-            with_ties = adjust(
-                ties.observations, mount.with_boresight(res.boresight_rad), ties.planes, adjust_opts
-            )
-            check = patches_agree(res, with_ties)
-            if not check["agree"]:  # a target group the patches exposed: judge the targets without it
-                res, check = targets_without_exposed_groups(
-                    obs, mount, planes, adjust_opts, res, with_ties, check
-                )
-            tau.doc["patch_check"] = check
-            if check["agree"]:
-                tau.doc["targets_only"] = res
-                tau.doc["ties"] = ties
-                obs, planes, res = ties.observations, ties.planes, with_ties
-            else:
-                d = with_ties.boresight_rad - res.boresight_rad
-                res = replace(res, cov_realistic=res.cov_realistic + np.diag(d**2))
-                warnings.append(
-                    f"tie patches disagree with the targets (χ² = {check['chi2']:.1f} on 3 degrees of "
-                    f"freedom, p = {check['p_value']:.2g}): the result uses the targets alone, its σ "
-                    f"widened by the difference (roll/pitch/yaw "
-                    f"{', '.join(f'{x:+.3f}' for x in np.degrees(d))}°)"
-                )
+        tied = with_tie_patches(search, obs, planes, res, adjust_opts, warnings, notes)
+        obs, planes, res = tied.obs, tied.planes, tied.result
+        gls.patch_check, gls.targets_only, gls.ties = tied.check, tied.targets_only, tied.ties
     if tau.estimated:
-        tau.doc["sensitivity"] = tau_sensitivity(
+        gls.sensitivity = tau_sensitivity(
             obs, mount.with_boresight(res.boresight_rad), planes, adjust_opts, float(tau.model.tau_s(0))
         )
-    return _Adjusted(obs, planes, res, comparison)
+    return _Adjusted(obs=obs, planes=planes, result=res, comparison=comparison)
 
 
 def _scaled_by_variance_factor(res: AdjustmentResult) -> AdjustmentResult:
@@ -379,6 +334,85 @@ def _scaled_by_variance_factor(res: AdjustmentResult) -> AdjustmentResult:
     not explain widens σ instead of being ignored."""
     f = max(1.0, float(res.sigma0_squared))
     return replace(res, cov_realistic=res.cov_realistic * f)
+
+
+class _Laps:
+    """How long each stage of a calibration took (s), each from the end of the one before."""
+
+    def __init__(self) -> None:
+        self.timings_s: dict[str, float] = {}
+        self._since = time.perf_counter()
+
+    def lap(self, name: str) -> None:
+        now = time.perf_counter()
+        self.timings_s[name] = now - self._since
+        self._since = now
+
+    def with_total(self) -> dict[str, float]:
+        return {**self.timings_s, "total_s": sum(self.timings_s.values())}
+
+
+@dataclass(frozen=True, kw_only=True)
+class _Georeferenced:
+    """The checked input's points georeferenced with the a-priori mount."""
+
+    mount: Mount  # the a-priori mount (site.yaml's, or the options' boresight)
+    rects: list  # the site's targets (calib.core.geometry.Rectangle) in the trajectory's frame
+    p_lgf_m: np.ndarray  # (n, 3) every point, local frame
+    origin: np.ndarray
+
+
+def _checked_and_georeferenced(
+    site: Site, trajectory: Trajectory, points: ScanPoints, options: CalibrationOptions, poses, progress
+) -> _Georeferenced:
+    """Check the input (points, their times, the targets within reach of the trajectory) and
+    georeference every pass with the a-priori mount."""
+    check_input(site, points, poses)
+    mount = (
+        site.mount
+        if options.apriori_rad is None
+        else site.mount.with_boresight(np.asarray(options.apriori_rad, float))
+    )
+    check_points(points, trajectory, mount.time_offset_s)
+    rects = site.target_rectangles(trajectory.frame)
+    check_within_reach(trajectory, rects)
+    p, origin = georeference_passes(points, trajectory, mount, poses, progress)
+    return _Georeferenced(mount=mount, rects=rects, p_lgf_m=p, origin=origin)
+
+
+def _adjusted(
+    options: CalibrationOptions,
+    search: TieSearch,
+    obs: Observations,
+    planes: list[tuple[np.ndarray, float]],
+    tau: TauChoice,
+    gls: GlsDiagnostics,
+    warnings: list[str],
+    notes: list[str],
+    progress: Progress | None,
+) -> _Adjusted:
+    """The adjustment stage (:func:`_adjust_with_ties`); the GLS result's σ widened by σ̂0² > 1."""
+    if progress is not None:
+        progress("adjusting", 0, 1)
+    adj = _adjust_with_ties(options, search, obs, planes, tau, gls, warnings, notes, progress)
+    if options.estimator == "gls":
+        adj = replace(adj, result=_scaled_by_variance_factor(adj.result))
+    if progress is not None:
+        progress("adjusting", 1, 1)
+    if not adj.result.converged:
+        warnings.append(
+            f"the adjustment did not converge in {adj.result.iterations} iterations: do "
+            f"not use the result; check the a-priori boresight and the "
+            f"extraction"
+        )
+    return adj
+
+
+def _pos_sigma_note(trajectory: Trajectory) -> str:
+    """Where the POS σ of each point came from (a note of the report)."""
+    if trajectory.has_sigmas:
+        return "POS σ per point from the trajectory's per-epoch sigmas"
+    return "POS σ from site.yaml pos_sigmas (the trajectory carries none)"
 
 
 def calibrate(
@@ -408,123 +442,64 @@ def calibrate(
     observe them) with a message that says what to do. The run's verdict
     (:mod:`calib.boresight.checks.verdict`) is in ``doc["verdict"]``.
     """
-    timings: dict[str, float] = {}
-    clock = time.perf_counter()
+    laps = _Laps()
     notes = list(notes)
-    check_input(site, points, poses)
-    mount = (
-        site.mount
-        if options.apriori_rad is None
-        else site.mount.with_boresight(np.asarray(options.apriori_rad, float))
-    )
-    check_points(points, trajectory, mount.time_offset_s)
-    rects = site.target_rectangles(trajectory.frame)
-    check_within_reach(trajectory, rects)
-    p, origin = georeference_passes(points, trajectory, mount, poses, progress)
-    timings["georeference_s"] = time.perf_counter() - clock
-
-    clock = time.perf_counter()
-    ext = _extract_targets(p, origin, points, rects, options, labels, progress)
-    timings["extract_s"] = time.perf_counter() - clock
+    geo = _checked_and_georeferenced(site, trajectory, points, options, poses, progress)
+    laps.lap("georeference_s")
+    ext = _extract_targets(geo.p_lgf_m, geo.origin, points, geo.rects, options, labels, progress)
+    laps.lap("extract_s")
     run_warnings = list(warnings) + list(ext.warnings)
-
-    clock = time.perf_counter()
-    used, used_rects = _without_unseen_targets(ext, rects, run_warnings)
-    obs = _target_observations(site, trajectory, points, mount, used, poses, point_rows)
-    notes.append(
-        "POS σ per point from the trajectory's per-epoch sigmas"
-        if trajectory.has_sigmas
-        else "POS σ from site.yaml pos_sigmas (the trajectory carries none)"
-    )
-    planes = _planes(used, p, used_rects)
-    tau = choose_tau(options, site, obs, mount, planes, notes, progress)
-    timings["observations_s"] = time.perf_counter() - clock
-
-    clock = time.perf_counter()
-    if progress is not None:
-        progress("adjusting", 0, 1)
-    run_in = _Inputs(
-        options=options,
-        mount=mount,
+    used, used_rects = _without_unseen_targets(ext, geo.rects, run_warnings)
+    obs = _target_observations(site, trajectory, points, geo.mount, used, poses, point_rows)
+    notes.append(_pos_sigma_note(trajectory))
+    planes = _planes(used, geo.p_lgf_m, used_rects)
+    tau = choose_tau(options, site, obs, geo.mount, planes, notes, progress)
+    gls = GlsDiagnostics(estimate=tau.estimate)
+    laps.lap("observations_s")
+    search = TieSearch(
         site=site,
+        mount=geo.mount,
         trajectory=trajectory,
         points=points,
         poses=poses,
         target_rows=ext.indices()[0],
         point_rows=point_rows,
     )
-    adj = _adjust_with_ties(run_in, obs, planes, tau, run_warnings, notes, progress)
-    res = _scaled_by_variance_factor(adj.result) if options.estimator == "gls" else adj.result
-    if progress is not None:
-        progress("adjusting", 1, 1)
-    timings["adjust_s"] = time.perf_counter() - clock
-    if not res.converged:
-        run_warnings.append(
-            f"the adjustment did not converge in {res.iterations} iterations: do "
-            f"not use the result; check the a-priori boresight and the "
-            f"extraction"
-        )
-    verdict = judge(evidence(res, ext.lost_passes(), tau.doc.get("patch_check"), tau.doc.get("sensitivity")))
-    doc = _result_doc(
-        res, mount, options, ext, labels, tau, adj.comparison, verdict, source, software_version
+    adj = _adjusted(options, search, obs, planes, tau, gls, run_warnings, notes, progress)
+    laps.lap("adjust_s")
+    verdict = judge(evidence(adj.result, ext.lost_passes(), gls.patch_check, gls.sensitivity))
+    doc = calibration_doc(
+        adj.result,
+        geo.mount,
+        options,
+        ext,
+        labels,
+        tau,
+        gls,
+        adj.comparison,
+        verdict,
+        source,
+        software_version,
     )
     doc["warnings"], doc["notes"] = run_warnings, notes
-    timings["total_s"] = sum(timings.values())
     return CalibrationRun(
         source=source,
         site=site,
         frame=trajectory.frame,
-        mount_apriori=mount,
+        mount_apriori=geo.mount,
         options=options,
         extraction=ext,
         observations=adj.obs,
         planes_init=adj.planes,
-        result=res,
+        result=adj.result,
         doc=doc,
         warnings=run_warnings,
         notes=notes,
-        timings_s=timings,
+        timings_s=laps.with_total(),
         comparison=adj.comparison,
-        gls=tau.doc,
+        diagnostics=gls,
         verdict=verdict,
     )
-
-
-def _result_doc(
-    res,
-    mount,
-    options,
-    ext: Extraction,
-    labels,
-    tau: TauChoice,
-    comparison,
-    verdict: Verdict,
-    source,
-    version,
-) -> dict:
-    """result.json (warnings and notes are added by the caller)."""
-    ratio = res.sigma_realistic_rad / res.sigma_formal_rad
-    extra = {
-        "source": source,
-        **as_doc(verdict),
-        "removed_groups": list(res.removed_groups),
-        "extraction": {
-            "mode": options.extraction.mode if labels is None else "labels",
-            "subsample_m": options.subsample_m,
-            "points_per_pass": {str(k): v for k, v in ext.counts().items()},
-            "points_per_target": ext.totals(),
-            "lost": [
-                {"target": f.target, "pass_id": int(f.pass_id), "status": f.status, "reason": f.note}
-                for f in ext.found
-                if f.n_points == 0
-            ],
-        },
-        "realistic_correlation_time_source": tau.source,
-        "sigma_realistic_over_formal": {a: float(r) for a, r in zip(("roll", "pitch", "yaw"), ratio)},
-        "outlier_point_ids_refer_to": "0-based data rows of points.csv (after the header)",
-    }
-    extra.update(estimator_doc(options.estimator, options.tie_patches, tau.doc, comparison))
-    return result_to_dict(res, mount.boresight_rad, version or _software_version(), extra)
 
 
 def calibrate_bundle(

@@ -23,7 +23,7 @@ from pathlib import Path
 import numpy as np
 
 from calib.boresight.observability import ANGLE_NAMES, OBSERVING_PAIRS, sailed_headings
-from calib.boresight.report_gls import estimator_section, tie_patch_plot
+from calib.boresight.report_gls import estimator_section, realistic_sigma_lines, tie_patch_plot
 from calib.boresight.result import OFFSET_COMPONENTS
 from calib.core import frames
 from calib.core.georef import Mount, georeference_poses
@@ -141,7 +141,7 @@ def _figure(n_panels: int, width_in: float = 4.2, height_in: float = 3.0):
 
 def _histograms(values_mm: list[np.ndarray], titles: list[str], path: Path, suptitle: str):
     fig, axes = _figure(len(values_mm))
-    for ax, v, title in zip(axes, values_mm, titles):
+    for ax, v, title in zip(axes, values_mm, titles, strict=False):
         if v.size:
             mean, std = float(v.mean()), float(v.std())
             dens, edges = np.histogram(v, bins=min(60, max(10, v.size // 20)), density=True)
@@ -170,12 +170,87 @@ def _pass_colours(n: int):
     return [cmap(k % 10) for k in range(n)]
 
 
+def _residuals_along_time(run, used: np.ndarray, path: Path) -> Path:
+    """Residuals along time, one panel per pass (passes last seconds, the gaps between them
+    minutes), one colour per target: a drift within a pass is the POS error the formal σ
+    ignores."""
+    obs, r_mm = run.observations, run.result.residual_m * 1e3
+    plane_index, pass_index = obs.plane_index[used], obs.pass_index[used]
+    t = obs.t_gps_s[used]
+    colours = _pass_colours(max(len(obs.pass_ids), len(obs.plane_names)))
+    fig, axes = _figure(len(obs.pass_ids), 4.2, 2.8)
+    for ax, k, pid in zip(axes, range(len(obs.pass_ids)), obs.pass_ids, strict=False):
+        m = pass_index == k
+        t0 = float(t[m].min()) if m.any() else 0.0
+        for j, name in enumerate(obs.plane_names):
+            mj = m & (plane_index == j)
+            ax.plot(t[mj] - t0, r_mm[mj], ".", ms=2, color=colours[j], label=name)
+        ax.axhline(0.0, color="k", lw=0.5)
+        ax.set_title(f"pass {pid}", fontsize=10)
+        ax.set_xlabel("time in the pass (s)")
+        ax.set_ylabel("residual (mm)")
+    axes[0].legend(fontsize=7, markerscale=4)
+    fig.suptitle("Residuals along time")
+    fig.savefig(path, dpi=PLOT_DPI)
+    return path
+
+
+def _edge_on_panel(ax, e: dict, key: str, pass_ids, colours, removed: list[dict]) -> None:
+    """One target's points edge-on (``key``: "before" or "after" the adjustment), by pass; the
+    points of its groups ``removed`` as gross errors marked apart."""
+    for k, pid in enumerate(pass_ids):
+        m = (e["pass_index"] == k) & ~e["removed"]
+        if not m.any():
+            continue
+        ax.plot(
+            e[f"along_{key}_m"][m], e[f"{key}_m"][m] * 1e3, ".", ms=2, color=colours[k], label=f"pass {pid}"
+        )
+    for g in removed:
+        m = e["removed"] & (e["pass_index"] == pass_ids.index(g["pass_id"]))
+        ax.plot(
+            e[f"along_{key}_m"][m],
+            e[f"{key}_m"][m] * 1e3,
+            "x",
+            ms=3,
+            color=REMOVED_COLOUR,
+            label=f"removed: pass {g['pass_id']} (group test T = {g['statistic']:.0f}, {100 * g['offset_m']:+.1f} cm)",
+        )
+
+
+def _edge_on_plots(run, out_dir: Path) -> list[Path]:
+    """Each target seen edge-on before (a-priori boresight) and after (estimated) the adjustment."""
+    obs = run.observations
+    colours = _pass_colours(len(obs.pass_ids))
+    removed_by_target: dict[str, list[dict]] = {}
+    for g in run.result.removed_groups:
+        if g.get("removed"):
+            removed_by_target.setdefault(g["plane"], []).append(g)
+    paths = []
+    for name, e in edge_on(run).items():
+        fig, axes = _figure(2, 5.0, 3.4)
+        for ax, key, title in (
+            (axes[0], "before", "before: a-priori boresight"),
+            (axes[1], "after", "after: estimated boresight"),
+        ):
+            _edge_on_panel(ax, e, key, obs.pass_ids, colours, removed_by_target.get(name, []))
+            ax.set_title(title, fontsize=10)
+            ax.set_xlabel("along the target (m)")
+            ax.set_ylabel("distance to the plane (mm)")
+        axes[1].legend(fontsize=7, markerscale=4)
+        fig.suptitle(f"Target {name} seen edge-on")
+        path = out_dir / f"target_{_safe(name)}.png"
+        fig.savefig(path, dpi=PLOT_DPI)
+        paths.append(path)
+    return paths
+
+
 def write_plots(run, out_dir: Path) -> list[Path]:
+    """The PNG plots of ``run`` into ``out_dir``: residuals per target, per pass and along
+    time, the tie patches (when any) and each target edge-on; returns their paths."""
     obs, res = run.observations, run.result
     used = _used(run)
     r_mm = res.residual_m * 1e3
     plane_index, pass_index = obs.plane_index[used], obs.pass_index[used]
-    t = obs.t_gps_s[used]
     paths = [
         _histograms(
             [r_mm[plane_index == j] for j in range(len(obs.plane_names))],
@@ -189,70 +264,12 @@ def write_plots(run, out_dir: Path) -> list[Path]:
             out_dir / "residuals_by_pass.png",
             "Residuals per pass",
         ),
+        _residuals_along_time(run, used, out_dir / "residuals_time.png"),
     ]
-    # along time, one panel per pass (passes last seconds, the gaps between them minutes),
-    # one colour per target: a drift within a pass is the POS error the formal σ ignores
-    colours = _pass_colours(max(len(obs.pass_ids), len(obs.plane_names)))
-    fig, axes = _figure(len(obs.pass_ids), 4.2, 2.8)
-    for ax, k, pid in zip(axes, range(len(obs.pass_ids)), obs.pass_ids):
-        m = pass_index == k
-        t0 = float(t[m].min()) if m.any() else 0.0
-        for j, name in enumerate(obs.plane_names):
-            mj = m & (plane_index == j)
-            ax.plot(t[mj] - t0, r_mm[mj], ".", ms=2, color=colours[j], label=name)
-        ax.axhline(0.0, color="k", lw=0.5)
-        ax.set_title(f"pass {pid}", fontsize=10)
-        ax.set_xlabel("time in the pass (s)")
-        ax.set_ylabel("residual (mm)")
-    axes[0].legend(fontsize=7, markerscale=4)
-    fig.suptitle("Residuals along time")
-    fig.savefig(out_dir / "residuals_time.png", dpi=PLOT_DPI)
-    paths.append(out_dir / "residuals_time.png")
     patches_png = tie_patch_plot(run, out_dir)
     if patches_png is not None:
         paths.append(patches_png)
-    colours = _pass_colours(len(obs.pass_ids))
-    removed_by_target: dict[str, list[dict]] = {}
-    for g in res.removed_groups:
-        if g.get("removed"):
-            removed_by_target.setdefault(g["plane"], []).append(g)
-    for name, e in edge_on(run).items():
-        fig, axes = _figure(2, 5.0, 3.4)
-        for ax, key, title in (
-            (axes[0], "before", "before: a-priori boresight"),
-            (axes[1], "after", "after: estimated boresight"),
-        ):
-            for k, pid in enumerate(obs.pass_ids):
-                m = (e["pass_index"] == k) & ~e["removed"]
-                if not m.any():
-                    continue
-                ax.plot(
-                    e[f"along_{key}_m"][m],
-                    e[f"{key}_m"][m] * 1e3,
-                    ".",
-                    ms=2,
-                    color=colours[k],
-                    label=f"pass {pid}",
-                )
-            for g in removed_by_target.get(name, []):
-                m = e["removed"] & (e["pass_index"] == obs.pass_ids.index(g["pass_id"]))
-                ax.plot(
-                    e[f"along_{key}_m"][m],
-                    e[f"{key}_m"][m] * 1e3,
-                    "x",
-                    ms=3,
-                    color=REMOVED_COLOUR,
-                    label=f"removed: pass {g['pass_id']} (group test T = {g['statistic']:.0f}, {100 * g['offset_m']:+.1f} cm)",
-                )
-            ax.set_title(title, fontsize=10)
-            ax.set_xlabel("along the target (m)")
-            ax.set_ylabel("distance to the plane (mm)")
-        axes[1].legend(fontsize=7, markerscale=4)
-        fig.suptitle(f"Target {name} seen edge-on")
-        path = out_dir / f"target_{_safe(name)}.png"
-        fig.savefig(path, dpi=PLOT_DPI)
-        paths.append(path)
-    return paths
+    return paths + _edge_on_plots(run, out_dir)
 
 
 # -- the narrative ------------------------------------------------------------------------------
@@ -398,45 +415,44 @@ def _lost_and_removed(run) -> list[str]:
     return L
 
 
-def report_markdown(run, plot_names: list[str] | None = None) -> str:
+def _header(run) -> list[str]:
+    """The title and what was calibrated: bundle, survey, software, a-priori boresight."""
     res, doc, obs = run.result, run.doc, run.observations
-    site = run.site
+    survey = frames.gps_ns_to_utc(frames.seconds_to_gps_ns(float(obs.t_gps_s.min())))
+    when = survey.strftime("%Y-%m-%d %H:%M UTC")
+    ap = np.degrees(run.mount_apriori.boresight_rad)
+    return [
+        f"# Boresight calibration — {run.site.vessel}",
+        "",
+        f"- Bundle: `{run.source}`",
+        f"- Survey: {when}; {len(obs.pass_ids)} passes, {len(obs.plane_names)} targets "
+        f"({', '.join(obs.plane_names)})",
+        f"- Software: {doc['software_version']}; adjustment {res.runtime_s:.2f} s, whole "
+        f"run {run.timings_s.get('total_s', float('nan')):.2f} s",
+        f"- A-priori boresight (canonical): roll {ap[0]:.4f}°, pitch {ap[1]:.4f}°, yaw {ap[2]:.4f}°",
+        "",
+    ]
+
+
+def _boresight_section(run) -> list[str]:
+    """The estimate with its σ (formal, scaled, realistic, jackknife), which σ to use, the χ²
+    test and the convergence."""
+    res, obs = run.result, run.observations
     formal, scaled = res.sigma_formal_rad, res.sigma_scaled_rad
     real = res.sigma_realistic_rad
     jack = None if res.cov_jackknife is None else np.sqrt(np.diag(res.cov_jackknife))
     thesis = frames.boresight_to_thesis(*res.boresight_rad)
     ratio = real / formal
-    em = res.error_model
-    survey = frames.gps_ns_to_utc(frames.seconds_to_gps_ns(float(obs.t_gps_s.min())))
-    when = survey.strftime("%Y-%m-%d %H:%M UTC")
-    L = []
-    L.append(f"# Boresight calibration — {site.vessel}")
-    L.append("")
-    L.append(f"- Bundle: `{run.source}`")
-    L.append(
-        f"- Survey: {when}; {len(obs.pass_ids)} passes, {len(obs.plane_names)} targets "
-        f"({', '.join(obs.plane_names)})"
-    )
-    L.append(
-        f"- Software: {doc['software_version']}; adjustment {res.runtime_s:.2f} s, whole "
-        f"run {run.timings_s.get('total_s', float('nan')):.2f} s"
-    )
-    ap = np.degrees(run.mount_apriori.boresight_rad)
-    L.append(f"- A-priori boresight (canonical): roll {ap[0]:.4f}°, pitch {ap[1]:.4f}°, yaw {ap[2]:.4f}°")
-    L.append("")
-    L.extend(_verdict_section(run))
-    L.append("## Boresight")
-    L.append("")
-    L.append(
+    L = [
+        "## Boresight",
+        "",
         "Canonical convention (docs/architecture.md §3: rotations about the body's forward, starboard "
-        "and down axes); the thesis convention negates pitch."
-    )
-    L.append("")
-    L.append(
+        "and down axes); the thesis convention negates pitch.",
+        "",
         "| angle | estimate (°) | thesis conv. (°) | σ formal (°) | σ scaled (°) | "
-        "σ realistic (°) | σ jackknife (°) | realistic / formal |"
-    )
-    L.append("|---|---:|---:|---:|---:|---:|---:|---:|")
+        "σ realistic (°) | σ jackknife (°) | realistic / formal |",
+        "|---|---:|---:|---:|---:|---:|---:|---:|",
+    ]
     for i, a in enumerate(ANGLE_NAMES):
         L.append(
             f"| {a} | {_fmt(_deg(res.boresight_rad[i]))} | {_fmt(_deg(thesis[i]))} | "
@@ -445,47 +461,7 @@ def report_markdown(run, plot_names: list[str] | None = None) -> str:
             f"{_sig(_deg(jack[i])) if jack is not None else '—'} | {ratio[i]:.1f} |"
         )
     L.append("")
-    if em.kind == "gauss_markov":
-        tau = em.correlation_time_s
-        tau_s = (
-            f"{tau:g} s"
-            if isinstance(tau, float)
-            else "/".join(f"{x:g}" for x in tau) + " s (N/E/D/roll/pitch/heading)"
-        )
-        model = (
-            f"first-order Gauss–Markov POS errors with correlation time {tau_s} "
-            f"(from {doc.get('realistic_correlation_time_source', 'the caller')})"
-        )
-    elif em.kind == "pass_bias":
-        model = "POS errors constant within each pass and independent between passes"
-    else:
-        model = "independent POS errors per point (the formal model itself)"
-    if doc.get("estimator") == "gls":
-        L.append(
-            f"**Use the realistic σ** — for the GLS estimator it is its formal σ: the model "
-            f"holds {model}, so the correlation of the POS errors is estimated, not ignored."
-        )
-    elif em.kind == "white":
-        L.append(
-            "**Use the realistic σ** — here it equals the formal σ, because the white "
-            "error model was chosen: POS errors correlated in time would make it "
-            "optimistic."
-        )
-    else:
-        L.append(
-            f"**Use the realistic σ.** The formal σ (σ0 = 1) assumes every point's POS "
-            f"error is independent; it is optimistic by a factor of {ratio[0]:.1f} for "
-            f"roll, {ratio[1]:.1f} for pitch and {ratio[2]:.1f} for yaw (realistic / "
-            f"formal). The realistic σ propagates {model} through the estimator: within "
-            f"a pass such errors act almost as a bias, which more points do not average "
-            f"out."
-        )
-    if jack is not None:
-        L.append("")
-        L.append(
-            "The delete-one-pass jackknife σ is an empirical check from the spread of the "
-            "estimates without each pass (few passes: itself uncertain by ±30–50 %)."
-        )
+    L.extend(realistic_sigma_lines(res, run.doc))
     L.append("")
     L.append(_chi2_sentence(res))
     L.append("")
@@ -498,44 +474,51 @@ def report_markdown(run, plot_names: list[str] | None = None) -> str:
         f"{res.n_points} kept)."
     )
     L.append("")
-    L.extend(estimator_section(run))
-    L.append("")
-    L.append("## Correlations")
-    L.append("")
-    L.append("| | roll | pitch | yaw |")
-    L.append("|---|---:|---:|---:|")
+    return L
+
+
+def _correlations_section(run) -> list[str]:
+    """The boresight angles' correlations, and the extra unknowns when estimated."""
+    res = run.result
+    L = ["## Correlations", "", "| | roll | pitch | yaw |", "|---|---:|---:|---:|"]
     for i, a in enumerate(ANGLE_NAMES):
         L.append(f"| {a} | " + " | ".join(f"{res.correlation[i, j]:+.3f}" for j in range(3)) + " |")
     if res.extras:
-        L.append("")
-        L.append("## Extra unknowns")
-        L.append("")
-        L.extend(extras_table(doc["extras"]))
-    L.append("")
-    L.append("## Observability")
-    L.append("")
-    L.extend(_observability(run))
-    L.append("")
-    L.append("## Targets")
-    L.append("")
-    L.append("| target | points | RMS (mm) | normal (N, E, D) | d (m) |")
-    L.append("|---|---:|---:|---|---:|")
+        L.extend(["", "## Extra unknowns", ""])
+        L.extend(extras_table(run.doc["extras"]))
+    return L
+
+
+def _targets_section(res) -> list[str]:
+    """Each target's points, RMS and adjusted plane (the tie patches have their own section)."""
+    L = [
+        "## Targets",
+        "",
+        "| target | points | RMS (mm) | normal (N, E, D) | d (m) |",
+        "|---|---:|---:|---|---:|",
+    ]
     for p in res.plane_stats:
         if p.get("kind") == "tie patch":
             continue
         n = ", ".join(f"{x:+.4f}" for x in p["normal"])
         L.append(f"| {p['name']} | {p['n_points']} | {p['rms_m'] * 1e3:.2f} | {n} | {p['d']:.4f} |")
     L.append("")
-    L.append("## Passes")
-    L.append("")
+    return L
+
+
+def _passes_section(run) -> list[str]:
+    """Each pass: its heading, the points extracted per target, kept, RMS; the extraction mode."""
+    res = run.result
     counts = run.extraction.counts()
     names = run.extraction.target_names
-    L.append(
+    L = [
+        "## Passes",
+        "",
         "| pass | heading vs wall (°) | "
         + " | ".join(f"{n} extracted" for n in names)
-        + " | kept | RMS (mm) |"
-    )
-    L.append("|---:|---:|" + "---:|" * len(names) + "---:|---:|")
+        + " | kept | RMS (mm) |",
+        "|---:|---:|" + "---:|" * len(names) + "---:|---:|",
+    ]
     for p in res.pass_stats:
         h = "—" if p["heading_deg"] is None else f"{p['heading_deg']:.1f}"
         row = counts.get(p["id"], {})
@@ -544,7 +527,7 @@ def report_markdown(run, plot_names: list[str] | None = None) -> str:
             + " | ".join(str(row.get(n, 0)) for n in names)
             + f" | {p['n_points']} | {p['rms_m'] * 1e3:.2f} |"
         )
-    ex = doc.get("extraction", {})
+    ex = run.doc.get("extraction", {})
     L.append("")
     L.append(
         f"Extraction: {ex.get('mode', '?')}; "
@@ -555,9 +538,12 @@ def report_markdown(run, plot_names: list[str] | None = None) -> str:
         )
     )
     L.append("")
-    L.extend(_lost_and_removed(run))
-    L.append("## Outliers")
-    L.append("")
+    return L
+
+
+def _outliers_section(res) -> list[str]:
+    """The points the data snooping removed (their rows in points.csv)."""
+    L = ["## Outliers", ""]
     n_out = res.outlier_point_ids.size
     if n_out:
         ids = ", ".join(str(int(i)) for i in res.outlier_point_ids[:50])
@@ -568,18 +554,38 @@ def report_markdown(run, plot_names: list[str] | None = None) -> str:
         )
     else:
         L.append("No point failed the data-snooping test on normalized residuals.")
+    return L
+
+
+def _closing(run, plot_names: list[str] | None) -> list[str]:
+    """The warnings and assumptions, then the plots."""
+    L = []
     if run.warnings or run.notes:
-        L.append("")
-        L.append("## Warnings and assumptions")
-        L.append("")
+        L.extend(["", "## Warnings and assumptions", ""])
         L.extend(f"- ⚠ {w}" for w in run.warnings)
         L.extend(f"- {n}" for n in run.notes)
     if plot_names:
-        L.append("")
-        L.append("## Plots")
-        L.append("")
+        L.extend(["", "## Plots", ""])
         L.extend(f"![{Path(p).stem}]({Path(p).name})" for p in plot_names)
     L.append("")
+    return L
+
+
+def report_markdown(run, plot_names: list[str] | None = None) -> str:
+    """report.md: the calibration ``run`` section by section (``plot_names``: the plots beside it)."""
+    L = _header(run)
+    L.extend(_verdict_section(run))
+    L.extend(_boresight_section(run))
+    L.extend(estimator_section(run))
+    L.append("")
+    L.extend(_correlations_section(run))
+    L.extend(["", "## Observability", ""])
+    L.extend(_observability(run))
+    L.extend(["", *_targets_section(run.result)])
+    L.extend(_passes_section(run))
+    L.extend(_lost_and_removed(run))
+    L.extend(_outliers_section(run.result))
+    L.extend(_closing(run, plot_names))
     return "\n".join(L)
 
 

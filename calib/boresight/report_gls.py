@@ -1,6 +1,7 @@
-"""The parts of ``report.md`` about the estimator: the default beside the thesis estimator, the
-POS correlation time (estimated, and the boresight at τ/3, τ and 3τ) and the tie patches
-(a table and a plan view, ``tie_patches.png``)."""
+"""The parts of ``report.md`` about the estimator: which σ to use under which POS error model,
+the default beside the thesis estimator, the POS correlation time (estimated, and the
+boresight at τ/3, τ and 3τ) and the tie patches (a table and a plan view,
+``tie_patches.png``)."""
 
 from __future__ import annotations
 
@@ -14,8 +15,61 @@ PLOT_DPI = 110
 
 
 def _row(label: str, b_deg, s_deg) -> str:
-    cells = " | ".join(f"{b:.4f} ± {s:.4f}" for b, s in zip(b_deg, s_deg))
+    cells = " | ".join(f"{b:.4f} ± {s:.4f}" for b, s in zip(b_deg, s_deg, strict=False))
     return f"| {label} | {cells} |"
+
+
+def _pos_model_phrase(res, doc: dict) -> str:
+    """The POS error model the realistic σ assumes, in words (τ and where it came from)."""
+    em = res.error_model
+    if em.kind == "gauss_markov":
+        tau = em.correlation_time_s
+        tau_s = (
+            f"{tau:g} s"
+            if isinstance(tau, float)
+            else "/".join(f"{x:g}" for x in tau) + " s (N/E/D/roll/pitch/heading)"
+        )
+        return (
+            f"first-order Gauss–Markov POS errors with correlation time {tau_s} "
+            f"(from {doc.get('realistic_correlation_time_source', 'the caller')})"
+        )
+    if em.kind == "pass_bias":
+        return "POS errors constant within each pass and independent between passes"
+    return "independent POS errors per point (the formal model itself)"
+
+
+def realistic_sigma_lines(res, doc: dict) -> list[str]:
+    """Markdown lines: which σ to use and why (the estimator and the POS error model), and what
+    the jackknife σ is."""
+    model = _pos_model_phrase(res, doc)
+    ratio = res.sigma_realistic_rad / res.sigma_formal_rad
+    if doc.get("estimator") == "gls":
+        L = [
+            f"**Use the realistic σ** — for the GLS estimator it is its formal σ: the model "
+            f"holds {model}, so the correlation of the POS errors is estimated, not ignored."
+        ]
+    elif res.error_model.kind == "white":
+        L = [
+            "**Use the realistic σ** — here it equals the formal σ, because the white "
+            "error model was chosen: POS errors correlated in time would make it "
+            "optimistic."
+        ]
+    else:
+        L = [
+            f"**Use the realistic σ.** The formal σ (σ0 = 1) assumes every point's POS "
+            f"error is independent; it is optimistic by a factor of {ratio[0]:.1f} for "
+            f"roll, {ratio[1]:.1f} for pitch and {ratio[2]:.1f} for yaw (realistic / "
+            f"formal). The realistic σ propagates {model} through the estimator: within "
+            f"a pass such errors act almost as a bias, which more points do not average "
+            f"out."
+        ]
+    if res.cov_jackknife is not None:
+        L.append("")
+        L.append(
+            "The delete-one-pass jackknife σ is an empirical check from the spread of the "
+            "estimates without each pass (few passes: itself uncertain by ±30–50 %)."
+        )
+    return L
 
 
 def estimator_section(run) -> list[str]:

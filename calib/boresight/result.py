@@ -22,13 +22,23 @@ thesis convention beside them for comparison with published figures.
 from __future__ import annotations
 
 import json
+from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from calib.boresight.adjust import AdjustmentResult
+from calib.boresight.checks.verdict import Verdict, as_doc
 from calib.boresight.observability import ANGLE_NAMES
 from calib.core.frames import boresight_to_thesis
+from calib.core.version import software_version
+
+if TYPE_CHECKING:  # (annotations only)
+    from calib.boresight.scene_ties import TiePatches
+    from calib.boresight.tau import TauChoice, TauEstimate
+    from calib.core.georef import Mount
+    from calib.extraction.extract import Extraction
 
 _EXTRA_UNITS = {
     "range_offset": ("range_offset_m", 1.0),
@@ -40,7 +50,7 @@ _EXTRA_UNITS = {
 
 
 def _angles_deg(v_rad) -> dict:
-    return {name: float(np.degrees(x)) for name, x in zip(ANGLE_NAMES, v_rad)}
+    return {name: float(np.degrees(x)) for name, x in zip(ANGLE_NAMES, v_rad, strict=False)}
 
 
 def result_to_dict(
@@ -99,14 +109,16 @@ def _extras(res: AdjustmentResult) -> dict:
                 "value": e["value"] * scale,
                 "sigma": e["sigma"] * scale,
                 "sigma_realistic": e["sigma_realistic"] * scale,
-                "correlation_with_boresight": dict(zip(ANGLE_NAMES, e["correlation_with_boresight"])),
+                "correlation_with_boresight": dict(
+                    zip(ANGLE_NAMES, e["correlation_with_boresight"], strict=False)
+                ),
             }
         else:  # pass<id>_offset_m: metres already, one correlation row per component
             out[name] = {
                 **e,
                 "correlation_with_boresight": {
-                    c: dict(zip(ANGLE_NAMES, row))
-                    for c, row in zip(OFFSET_COMPONENTS, e["correlation_with_boresight"])
+                    c: dict(zip(ANGLE_NAMES, row, strict=False))
+                    for c, row in zip(OFFSET_COMPONENTS, e["correlation_with_boresight"], strict=False)
                 },
             }
     return out
@@ -118,25 +130,31 @@ def write_result(path: str | Path, doc: dict) -> Path:
     return p
 
 
-def estimator_doc(estimator: str, tie_patches: str, gls: dict, comparison: AdjustmentResult | None) -> dict:
-    """What result.json says about the estimator, τ, the thesis comparison and the tie patches
-    (``gls``: :attr:`calib.boresight.pipeline.CalibrationRun.gls`)."""
+@dataclass(kw_only=True)
+class GlsDiagnostics:
+    """What the GLS calibration found beside its result, filled in stage by stage: τ from the
+    data, the boresight at τ/3, τ and 3τ, the tie patches and whether they agree with the
+    targets (:attr:`calib.boresight.pipeline.CalibrationRun.diagnostics`)."""
 
-    def brief(r: AdjustmentResult) -> dict:
-        return {
-            "boresight_deg": [float(x) for x in np.degrees(r.boresight_rad)],
-            "sigma_realistic_deg": [float(x) for x in np.degrees(r.sigma_realistic_rad)],
-        }
+    estimate: TauEstimate | None = None  # τ estimated from the data (none configured)
+    sensitivity: list[dict] | None = None  # rows of calib.boresight.tau.tau_sensitivity
+    patch_check: dict | None = None  # calib.boresight.scene_ties.patches_agree
+    targets_only: AdjustmentResult | None = None  # the solution before the (accepted) patches
+    ties: TiePatches | None = None  # the accepted tie patches
 
-    out: dict = {"estimator": estimator, "tie_patches_mode": tie_patches}
-    if comparison is not None:
-        out["thesis_estimator"] = brief(comparison)
-    if "targets_only" in gls:
-        out["targets_only"] = brief(gls["targets_only"])
-    if "ties" in gls:
-        t = gls["ties"]
-        c = t.candidates
-        out["tie_patches"] = [
+
+def _brief(r: AdjustmentResult) -> dict:
+    return {
+        "boresight_deg": [float(x) for x in np.degrees(r.boresight_rad)],
+        "sigma_realistic_deg": [float(x) for x in np.degrees(r.sigma_realistic_rad)],
+    }
+
+
+def _tie_patch_docs(t: TiePatches) -> dict:
+    """The chosen tie patches and what the search found."""
+    c = t.candidates
+    return {
+        "tie_patches": [
             {
                 "name": c.names[j],
                 "n_points": int(c.n_points[j]),
@@ -146,17 +164,73 @@ def estimator_doc(estimator: str, tie_patches: str, gls: dict, comparison: Adjus
                 "rms_m": float(c.rms_m[j]),
                 "info_gain": g,
             }
-            for j, g in zip(t.chosen, t.gain)
-        ]
-        out["tie_patch_candidates"] = {
+            for j, g in zip(t.chosen, t.gain, strict=False)
+        ],
+        "tie_patch_candidates": {
             "found": len(c.names),
             "size_m": float(c.size_m),
             "rejected_cells": dict(c.rejected),
-        }
-    if "patch_check" in gls:
-        out["tie_patch_check"] = gls["patch_check"]
-    if "estimate" in gls:
-        out["tau_estimate"] = gls["estimate"]
-    if "sensitivity" in gls:
-        out["tau_sensitivity"] = gls["sensitivity"]
+        },
+    }
+
+
+def estimator_doc(
+    estimator: str, tie_patches: str, gls: GlsDiagnostics, comparison: AdjustmentResult | None
+) -> dict:
+    """What result.json says about the estimator, τ, the thesis comparison and the tie patches."""
+    out: dict = {"estimator": estimator, "tie_patches_mode": tie_patches}
+    if comparison is not None:
+        out["thesis_estimator"] = _brief(comparison)
+    if gls.targets_only is not None:
+        out["targets_only"] = _brief(gls.targets_only)
+    if gls.ties is not None:
+        out.update(_tie_patch_docs(gls.ties))
+    if gls.patch_check is not None:
+        out["tie_patch_check"] = gls.patch_check
+    if gls.estimate is not None:
+        out["tau_estimate"] = gls.estimate.as_dict()
+    if gls.sensitivity is not None:
+        out["tau_sensitivity"] = gls.sensitivity
     return out
+
+
+def calibration_doc(
+    res: AdjustmentResult,
+    mount: Mount,
+    options,  # calib.boresight.pipeline.CalibrationOptions
+    ext: Extraction,
+    labels,
+    tau: TauChoice,
+    gls: GlsDiagnostics,
+    comparison: AdjustmentResult | None,
+    verdict: Verdict,
+    source: str,
+    version: str | None,
+) -> dict:
+    """result.json of a calibration (:func:`calib.boresight.pipeline.calibrate`; its warnings and
+    notes are added by the caller): the adjustment's result, the verdict, the extraction, where
+    τ came from and the estimator's diagnostics."""
+    ratio = res.sigma_realistic_rad / res.sigma_formal_rad
+    extra = {
+        "source": source,
+        **as_doc(verdict),
+        "removed_groups": list(res.removed_groups),
+        "extraction": {
+            "mode": options.extraction.mode if labels is None else "labels",
+            "subsample_m": options.subsample_m,
+            "points_per_pass": {str(k): v for k, v in ext.counts().items()},
+            "points_per_target": ext.totals(),
+            "lost": [
+                {"target": f.target, "pass_id": int(f.pass_id), "status": f.status, "reason": f.note}
+                for f in ext.found
+                if f.n_points == 0
+            ],
+        },
+        "realistic_correlation_time_source": tau.source.text,
+        "sigma_realistic_over_formal": {
+            a: float(r) for a, r in zip(("roll", "pitch", "yaw"), ratio, strict=False)
+        },
+        "outlier_point_ids_refer_to": "0-based data rows of points.csv (after the header)",
+    }
+    extra.update(estimator_doc(options.estimator, options.tie_patches, gls, comparison))
+    return result_to_dict(res, mount.boresight_rad, version or software_version(), extra)

@@ -21,13 +21,17 @@ import numpy as np
 from scipy import stats
 from scipy.spatial import cKDTree
 
-from calib.boresight.adjust import adjust
+from calib.boresight.adjust import AdjustmentResult, adjust
 from calib.boresight.gausshelmert import initial_state, plane_centers
 from calib.boresight.ghmodel import linearize
-from calib.boresight.observations import Observations, build_observations
+from calib.boresight.observations import AdjustOptions, Observations, build_observations
 from calib.core import frames
+from calib.core.georef import Mount
+from calib.core.trajectory import Poses, Trajectory
 from calib.extraction.patches import PatchCandidates, PatchOptions, extract_candidates, gather_members
 from calib.extraction.points import georeference_passes, pass_headings
+from calib.io.bundle import ScanPoints
+from calib.io.site import Site
 
 MAX_PATCHES = 30
 #: patches farther than this from every target point are not used: the scene *around* the
@@ -135,6 +139,10 @@ def choose(
     return chosen, gains
 
 
+#: the patch search's options when the caller gives none (frozen, shared)
+_DEFAULT_PATCH_OPTIONS = PatchOptions()
+
+
 def add_tie_patches(
     targets: Observations,
     target_planes,
@@ -150,7 +158,7 @@ def add_tie_patches(
     trajectory,
     sigmas: dict,
     poses=None,
-    options: PatchOptions = PatchOptions(),
+    options: PatchOptions = _DEFAULT_PATCH_OPTIONS,
     pass_heading_rad: dict[int, float] | None = None,
     max_distance_m: float = MAX_DISTANCE_M,
 ) -> TiePatches | None:
@@ -185,7 +193,7 @@ def add_tie_patches(
     )
     if poses is not None:
         obs.l[:, 0:6] = np.column_stack([poses.p_lgf_m[idx], poses.rpy_rad[idx]])
-    planes = [(n, d) for n, d in zip(cands.normals, cands.d_m)]
+    planes = [(n, d) for n, d in zip(cands.normals, cands.d_m, strict=False)]
     info = boresight_information(obs, mount_est, planes)
     chosen, gains = choose(info, np.linalg.inv(cov_boresight))
     if not chosen:
@@ -291,3 +299,83 @@ def targets_without_exposed_groups(obs, mount, planes, adjust_opts, targets_only
         + again.removed_groups,
     )
     return again, patches_agree(again, with_ties)
+
+
+@dataclass(frozen=True, kw_only=True)
+class TieSearch:
+    """Where a calibration looks for tie patches: every point of the survey, not only the
+    targets'."""
+
+    site: Site
+    mount: Mount  # the a-priori mount
+    trajectory: Trajectory
+    points: ScanPoints
+    poses: Poses | None
+    target_rows: np.ndarray  # the extracted targets' point indices
+    point_rows: np.ndarray | None  # per point its row in the source file (None: its index)
+
+
+@dataclass(frozen=True, kw_only=True)
+class TiedSolution:
+    """The solution to use after trying the tie patches, and what the try found."""
+
+    obs: Observations
+    planes: list[tuple[np.ndarray, float]]
+    result: AdjustmentResult
+    check: dict | None = None  # :func:`patches_agree` (None: no patch found)
+    ties: TiePatches | None = None  # the patches, when accepted
+    targets_only: AdjustmentResult | None = None  # the targets' solution, when they were accepted
+
+
+def with_tie_patches(
+    search: TieSearch,
+    obs: Observations,
+    planes,
+    res: AdjustmentResult,
+    adjust_opts: AdjustOptions,
+    warnings: list[str],
+    notes: list[str],
+) -> TiedSolution:
+    """The targets' solution ``res`` with the scene's tie patches added, kept when they agree
+    with the targets. When they do not, the result is the targets alone with its σ widened to
+    cover the other solution (a warning; the verdict says so)."""
+    mount = search.mount
+    ties = tie_patches_from_points(
+        obs,
+        planes,
+        res,
+        search.site,
+        mount,
+        search.trajectory,
+        search.points,
+        search.poses,
+        search.target_rows,
+    )
+    if ties is None:
+        notes.append("tie patches: no planar patch of the scene seen from two headings; targets only")
+        return TiedSolution(obs=obs, planes=planes, result=res)
+    if search.point_rows is not None:  # outlier ids name rows of the file
+        n_t = len(obs)
+        ties.observations.point_ids[n_t:] = np.asarray(search.point_rows)[ties.observations.point_ids[n_t:]]
+    with_ties = adjust(ties.observations, mount.with_boresight(res.boresight_rad), ties.planes, adjust_opts)
+    check = patches_agree(res, with_ties)
+    if not check["agree"]:  # a target group the patches exposed: judge the targets without it
+        res, check = targets_without_exposed_groups(obs, mount, planes, adjust_opts, res, with_ties, check)
+    if check["agree"]:
+        return TiedSolution(
+            obs=ties.observations,
+            planes=ties.planes,
+            result=with_ties,
+            check=check,
+            ties=ties,
+            targets_only=res,
+        )
+    d = with_ties.boresight_rad - res.boresight_rad
+    warnings.append(
+        f"tie patches disagree with the targets (χ² = {check['chi2']:.1f} on 3 degrees of "
+        f"freedom, p = {check['p_value']:.2g}): the result uses the targets alone, its σ "
+        f"widened by the difference (roll/pitch/yaw "
+        f"{', '.join(f'{x:+.3f}' for x in np.degrees(d))}°)"
+    )
+    widened = replace(res, cov_realistic=res.cov_realistic + np.diag(d**2))
+    return TiedSolution(obs=obs, planes=planes, result=widened, check=check)

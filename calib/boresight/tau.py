@@ -6,12 +6,14 @@ six channels) that maximizes the restricted likelihood of the GLS model
 pass tells a drift of 5 s from one of 100 s. :func:`tau_sensitivity` solves again at τ/3, τ and
 3τ, for the report: a boresight that moves by more than its σ between them says that τ matters
 and should be configured. :func:`choose_tau` is the calibration's choice: τ from the command
-line, else site.yaml, else (GLS) estimated from the data, else the default, and where it came from.
+line, else site.yaml, else (GLS) estimated from the data, else the default, and where it came from
+(a :class:`TauSource`, stated in words only where it is written: :attr:`TauSource.text`).
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
+from enum import Enum
 
 import numpy as np
 
@@ -35,6 +37,10 @@ class TauEstimate:
     @property
     def at_edge(self) -> bool:
         return self.tau_s in (self.grid_s[0], self.grid_s[-1])
+
+    def as_dict(self) -> dict:
+        """result.json's ``tau_estimate``."""
+        return {"tau_s": self.tau_s, "grid_s": list(self.grid_s), "neg2_log_lik": list(self.neg2_log_lik)}
 
 
 def _solve_at(obs: Observations, mount, planes, options: AdjustOptions, tau_s: float, plane_var_m2=None):
@@ -91,57 +97,78 @@ def tau_sensitivity(
 # -- the POS error model a calibration uses ------------------------------------------------
 
 
-def error_model(options, site: Site) -> tuple[ErrorModel, str]:
+class TauSource(Enum):
+    """Where the POS correlation time of the realistic σ came from."""
+
+    NOT_USED = "not_used"  # the error model has no correlation time (pass_bias, white)
+    COMMAND_LINE = "command_line"
+    SITE_YAML = "site_yaml"
+    DEFAULT = "default"  # none configured: DEFAULT_POS_CORRELATION_S assumed
+    ESTIMATED = "estimated"  # none configured: estimated from the data (GLS)
+
+    @property
+    def text(self) -> str:
+        """How result.json (``realistic_correlation_time_source``) and the report state it."""
+        return _TAU_SOURCE_TEXT[self]
+
+
+_TAU_SOURCE_TEXT = {
+    TauSource.NOT_USED: "not used",
+    TauSource.COMMAND_LINE: "command line",
+    TauSource.SITE_YAML: "site.yaml pos_sigmas.correlation_time_s",
+    TauSource.DEFAULT: "default (not configured)",
+    TauSource.ESTIMATED: "estimated from the data",
+}
+
+
+def error_model(options, site: Site) -> tuple[ErrorModel, TauSource]:
     """The POS error model for ``sigma_realistic`` and where its correlation time came from."""
     if options.error_model != "gauss_markov":
-        return ErrorModel(options.error_model), "not used"
+        return ErrorModel(options.error_model), TauSource.NOT_USED
     if options.correlation_time_s is not None:
         tau = np.atleast_1d(np.asarray(options.correlation_time_s, float))
-        source = "command line"
+        source = TauSource.COMMAND_LINE
     elif site.pos_correlation_time_s is not None:
         tau = np.asarray(site.pos_correlation_time_s, float)
-        source = "site.yaml pos_sigmas.correlation_time_s"
+        source = TauSource.SITE_YAML
     else:
         tau = np.array([DEFAULT_POS_CORRELATION_S])
-        source = "default (not configured)"
+        source = TauSource.DEFAULT
     value = float(tau[0]) if np.all(tau == tau[0]) else tuple(float(x) for x in tau)
     return ErrorModel("gauss_markov", value), source
 
 
-def _tau_configured(options, site: Site) -> bool:
-    """Whether the POS correlation time was given (command line or site.yaml)."""
-    return options.correlation_time_s is not None or site.pos_correlation_time_s is not None
-
-
-@dataclass
+@dataclass(frozen=True, kw_only=True)
 class TauChoice:
+    """The POS error model a calibration uses and where its correlation time came from."""
+
     model: ErrorModel
-    source: str  # for result.json and the report
-    estimated: bool  # from the data (none configured, GLS)
-    doc: dict  # the GLS dict of CalibrationRun: "estimate", later "sensitivity", the ties'
+    source: TauSource
+    estimate: TauEstimate | None = None  # the likelihood search, when estimated from the data
+
+    @property
+    def estimated(self) -> bool:
+        """Whether τ was estimated from the data (none configured, GLS)."""
+        return self.source is TauSource.ESTIMATED
+
+
+_NOT_CONFIGURED = "no POS correlation time configured (site.yaml pos_sigmas.correlation_time_s)"
 
 
 def choose_tau(options, site, obs, mount, planes, notes: list[str], progress) -> TauChoice:
     """The POS error model; with none configured the GLS estimates τ from the data."""
     model, source = error_model(options, site)
-    if _tau_configured(options, site) or options.error_model != "gauss_markov":
-        return TauChoice(model, source, False, {})
+    if source is not TauSource.DEFAULT:  # configured, or a model without a correlation time
+        return TauChoice(model=model, source=source)
     if options.estimator != "gls":
-        notes.append(
-            f"no POS correlation time configured (site.yaml pos_sigmas.correlation_time_s): "
-            f"sigma_realistic assumes {DEFAULT_POS_CORRELATION_S:g} s"
-        )
-        return TauChoice(model, source, False, {})
+        notes.append(f"{_NOT_CONFIGURED}: sigma_realistic assumes {DEFAULT_POS_CORRELATION_S:g} s")
+        return TauChoice(model=model, source=source)
     if progress is not None:
         progress("estimating the POS correlation time", 0, None)
     est = estimate_tau(obs, mount, planes, options.adjust_options(model))
     notes.append(
-        f"no POS correlation time configured (site.yaml pos_sigmas.correlation_time_s): "
-        f"estimated {est.tau_s:.1f} s from the data (restricted likelihood"
+        f"{_NOT_CONFIGURED}: estimated {est.tau_s:.1f} s from the data (restricted likelihood"
         f"{', at the edge of the searched range' if est.at_edge else ''}); the report shows "
         f"the boresight at τ/3, τ and 3τ"
     )
-    doc = {
-        "estimate": {"tau_s": est.tau_s, "grid_s": list(est.grid_s), "neg2_log_lik": list(est.neg2_log_lik)}
-    }
-    return TauChoice(ErrorModel("gauss_markov", est.tau_s), "estimated from the data", True, doc)
+    return TauChoice(model=ErrorModel("gauss_markov", est.tau_s), source=TauSource.ESTIMATED, estimate=est)

@@ -9,7 +9,9 @@ table is only known to be complete up to its expiry ("File expires on 28 Decembe
 :data:`BUILTIN` is that file as updated by IERS on 2026-01-06 (expires 2026-12-28; from
 tzdata 2026b). :func:`parse_leap_seconds_list` reads a newer file (its ``#h`` SHA-1 line is
 checked) and :func:`use_leap_table` installs it for the process when it extends the table in
-use without rewriting its past; :mod:`calib.core.frames` converts with the installed table.
+use without rewriting its past; :mod:`calib.core.frames` converts with the installed table. A
+cache of values derived from the table keys on :func:`table_generation` (nothing is called back);
+:func:`leap_table_scope` bounds a table to a block (a test's).
 Past the expiry the last count is still used — nothing better is known — and
 :meth:`LeapTable.expired_at_unix_ns` says so (the daemon raises ``leap_table_stale``).
 
@@ -25,8 +27,10 @@ be more than 9.8 years from the reference. Without a reference nothing is moved.
 
 from __future__ import annotations
 
+import contextlib
 import datetime as _dt
 import hashlib
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 
 NS_PER_S = 1_000_000_000
@@ -66,7 +70,10 @@ class LeapTable:
         object.__setattr__(
             self,
             "_gps_ns",
-            tuple(u - GPS_EPOCH_UNIX_S * NS_PER_S + n * NS_PER_S for u, (_, n) in zip(unix, self.steps)),
+            tuple(
+                u - GPS_EPOCH_UNIX_S * NS_PER_S + n * NS_PER_S
+                for u, (_, n) in zip(unix, self.steps, strict=True)
+            ),
         )
 
     @property
@@ -127,7 +134,6 @@ BUILTIN = LeapTable(
 
 _table = BUILTIN
 _generation = 0
-_listeners: list = []  # called when another table is installed (caches keyed on the table)
 
 
 def leap_table() -> LeapTable:
@@ -136,20 +142,14 @@ def leap_table() -> LeapTable:
 
 
 def table_generation() -> int:
-    """Changes each time another table is installed (for caches keyed on the table)."""
+    """Changes each time another table is installed: a cache of values derived from the table
+    takes it as part of its key (nothing is called back, nothing to reset)."""
     return _generation
-
-
-def on_table_change(callback) -> None:
-    """Call ``callback()`` whenever another table is installed (a cache to clear)."""
-    _listeners.append(callback)
 
 
 def _installed(table: LeapTable) -> None:
     global _table, _generation
     _table, _generation = table, _generation + 1
-    for callback in _listeners:
-        callback()
 
 
 def use_leap_table(table: LeapTable) -> bool:
@@ -169,18 +169,34 @@ def use_leap_table(table: LeapTable) -> bool:
     return True
 
 
-def reset_leap_table() -> None:
-    """Back to :data:`BUILTIN` (tests)."""
-    if _table is not BUILTIN:
-        _installed(BUILTIN)
+@contextlib.contextmanager
+def leap_table_scope(table: LeapTable = BUILTIN) -> Iterator[LeapTable]:
+    """The conversions use ``table`` (default: :data:`BUILTIN`) inside the block, whatever was
+    installed before it, and the table in use before it again after it, whatever the block
+    installed (:func:`use_leap_table`): a test's table neither comes from nor outlives another
+    test."""
+    previous = _table
+    if table is not previous:
+        _installed(table)
+    try:
+        yield table
+    finally:
+        if _table is not previous:
+            _installed(previous)
 
 
-def parse_leap_seconds_list(text: str, source: str = "leap-seconds.list") -> LeapTable:
-    """IERS's ``leap-seconds.list`` → a :class:`LeapTable` (GPS − UTC = TAI − UTC − 19).
+@dataclass(frozen=True)
+class _LeapListLines:
+    """What a ``leap-seconds.list`` says, before it is checked."""
 
-    Lines: ``#$ <NTP s>`` last update, ``#@ <NTP s>`` expiry, ``#h <SHA-1>`` the hash of the
-    update and expiry numbers and the data's first two columns, data ``<NTP s> <TAI−UTC> # …``.
-    Raises ValueError naming the line (or the missing part, or a wrong hash)."""
+    updated: int | None  # NTP s of the last update ('#$')
+    expires: int | None  # NTP s of the expiry ('#@')
+    digest: str | None  # the '#h' SHA-1, lower case, without blanks
+    data: list[tuple[int, int]]  # (NTP s, TAI − UTC s)
+
+
+def _read_leap_lines(text: str, source: str) -> _LeapListLines:
+    """The update, expiry, hash and data lines; ValueError naming a line that does not read."""
     updated = expires = digest = None
     data: list[tuple[int, int]] = []
     for lineno, raw in enumerate(text.splitlines(), 1):
@@ -197,20 +213,32 @@ def parse_leap_seconds_list(text: str, source: str = "leap-seconds.list") -> Lea
                 data.append((int(ntp), int(dtai)))
         except (ValueError, IndexError):
             raise ValueError(f"{source}:{lineno}: {raw!r}: expected '<NTP seconds> <TAI−UTC>'") from None
+    return _LeapListLines(updated=updated, expires=expires, digest=digest, data=data)
+
+
+def parse_leap_seconds_list(text: str, source: str = "leap-seconds.list") -> LeapTable:
+    """IERS's ``leap-seconds.list`` → a :class:`LeapTable` (GPS − UTC = TAI − UTC − 19).
+
+    Lines: ``#$ <NTP s>`` last update, ``#@ <NTP s>`` expiry, ``#h <SHA-1>`` the hash of the
+    update and expiry numbers and the data's first two columns, data ``<NTP s> <TAI−UTC> # …``.
+    Raises ValueError naming the line (or the missing part, or a wrong hash)."""
+    lines = _read_leap_lines(text, source)
+    updated, expires, data = lines.updated, lines.expires, lines.data
     for what, value in (("'#$' (last update)", updated), ("'#@' (expiry)", expires)):
         if value is None:
             raise ValueError(f"{source}: no {what} line")
     if not data:
         raise ValueError(f"{source}: no leap-second lines")
-    if digest is not None:
+    if lines.digest is not None:
         payload = f"{updated}{expires}" + "".join(f"{a}{b}" for a, b in data)
-        if hashlib.sha1(payload.encode("ascii")).hexdigest() != digest:
+        if hashlib.sha1(payload.encode("ascii")).hexdigest() != lines.digest:
             raise ValueError(f"{source}: the '#h' SHA-1 does not match the data (a damaged file)")
 
     def ntp_date(s: int) -> _dt.date:
         return NTP_EPOCH_DATE + _dt.timedelta(seconds=s)
 
-    assert updated is not None and expires is not None
+    assert updated is not None, "checked above"
+    assert expires is not None, "checked above"
     steps = tuple((ntp_date(s), d - TAI_MINUS_GPS_S) for s, d in data if d > TAI_MINUS_GPS_S)
     return LeapTable(steps, ntp_date(expires), ntp_date(updated), source)
 

@@ -173,7 +173,7 @@ def _check_observations(t_gps_s, range_m, scan_angle_rad) -> tuple[np.ndarray, n
         except (TypeError, ValueError):
             raise TpuError(f"{name} must be an array of numbers") from None
     n = arrays[0].shape[0] if arrays[0].ndim == 1 else -1
-    for name, a in zip(("t_gps_s", "range_m", "scan_angle_rad"), arrays):
+    for name, a in zip(("t_gps_s", "range_m", "scan_angle_rad"), arrays, strict=False):
         if a.ndim != 1 or a.shape[0] != n:
             shapes = ", ".join(str(x.shape) for x in arrays)
             raise TpuError(

@@ -84,11 +84,11 @@ def _check(error: str) -> None:
         )
 
 
-def injected(error: str, magnitude: float, apriori_boresight_rad=np.zeros(3)) -> InjectedErrors:
+def injected(error: str, magnitude: float, apriori_boresight_rad=None) -> InjectedErrors:
     """The simulator's truth with only ``error`` set to ``magnitude`` (rad or m): the true
-    boresight is the a-priori one plus the error."""
+    boresight is the a-priori one (default zero) plus the error."""
     _check(error)
-    bs = np.asarray(apriori_boresight_rad, float).copy()
+    bs = np.zeros(3) if apriori_boresight_rad is None else np.asarray(apriori_boresight_rad, float).copy()
     lever = np.zeros(3)
     kw = {}
     axis = {"x": 0, "y": 1, "z": 2, "roll": 0, "pitch": 1, "yaw": 2}
@@ -254,7 +254,7 @@ def summarize(rows: list[dict]) -> list[dict]:
     for error in dict.fromkeys(r["error"] for r in rows):
         sel = [r for r in rows if r["error"] == error]
         t1 = type1([r["planarity"] for r in sel], [r["centroidal_distance_m"] for r in sel])
-        for r, v in zip(sel, t1):
+        for r, v in zip(sel, t1, strict=False):
             r["type1"] = float(v)
         for inc in dict.fromkeys(r["inclination_deg"] for r in sel):
             here = [r for r in sel if r["inclination_deg"] == inc]

@@ -149,6 +149,32 @@ def _row_positions(n: int, spacing: float) -> list[float]:
     return [(j - (n - 1) / 2) * spacing for j in range(n)]
 
 
+def _plane_combinations(base: Scenario, spec: StudySpec, every) -> list[Layout]:
+    """The "planes" group: two and three planes of different inclinations in a row along the
+    wall."""
+    size = spec.plane_size_m
+    incs = sorted(set(spec.combo_inclinations_deg), reverse=True)
+    out = []
+    for k in (2, 3):
+        for combo in itertools.combinations(incs, k):
+            tg = tuple(
+                square_target(base, f"P{j + 1}", inc, size, x)
+                for j, (inc, x) in enumerate(zip(combo, _row_positions(k, spec.spacing_m), strict=False))
+            )
+            out.append(Layout("planes", "/".join(f"{c:g}" for c in combo), tg, base.standoff_m, every))
+    return out
+
+
+def _height_shifts(own: tuple[Surface, ...], standoff_m: float, spec: StudySpec, every) -> list[Layout]:
+    """The "height" group: the scenario's own targets raised or lowered together."""
+    h0 = float(np.mean([t.up_m for t in own]))
+    out = []
+    for dh in spec.height_shifts_m:
+        tg = tuple(replace(t, up_m=t.up_m + dh) for t in own)
+        out.append(Layout("height", f"{h0 + dh:.2f} m", tg, standoff_m, every, {"height_m": h0 + dh}))
+    return out
+
+
 def layouts(base: Scenario, spec: StudySpec) -> list[Layout]:
     """All configurations of the study, group by group."""
     all_passes = tuple(p.id for p in base.passes)
@@ -172,21 +198,11 @@ def layouts(base: Scenario, spec: StudySpec) -> list[Layout]:
                 Layout(g, f"{s:g} m", (square_target(base, "P", 90.0, s),), S, every) for s in spec.sizes_m
             ]
         elif g == "planes":
-            incs = sorted(set(spec.combo_inclinations_deg), reverse=True)
-            for k in (2, 3):
-                for combo in itertools.combinations(incs, k):
-                    tg = tuple(
-                        square_target(base, f"P{j + 1}", inc, size, x)
-                        for j, (inc, x) in enumerate(zip(combo, _row_positions(k, spec.spacing_m)))
-                    )
-                    out.append(Layout(g, "/".join(f"{c:g}" for c in combo), tg, S, every))
+            out += _plane_combinations(base, spec, every)
         elif g == "standoff":
             out += [Layout(g, f"{s:g} m", own, s, every) for s in spec.standoffs_m]
         elif g == "height":
-            h0 = float(np.mean([t.up_m for t in own]))
-            for dh in spec.height_shifts_m:
-                tg = tuple(replace(t, up_m=t.up_m + dh) for t in own)
-                out.append(Layout(g, f"{h0 + dh:.2f} m", tg, S, every, {"height_m": h0 + dh}))
+            out += _height_shifts(own, S, spec, every)
         elif g == "layout":
             out += _layout_candidates(base, spec)
     return out
@@ -223,7 +239,7 @@ def _layout_candidates(base: Scenario, spec: StudySpec) -> list[Layout]:
             spec.layout_setbacks_m if n > 1 else (0.0,),
         ):
             tg = []
-            for j, (inc, x) in enumerate(zip(combo, _row_positions(n, spread / max(n - 1, 1)))):
+            for j, (inc, x) in enumerate(zip(combo, _row_positions(n, spread / max(n - 1, 1)), strict=False)):
                 high = j % 2 == 1
                 lift = (stagger if high else 0.0) if ground else (stagger / 2 if high else -stagger / 2)
                 tg.append(square_target(base, f"T{j + 1}", inc, size, x, lift, setback if high else 0.0))

@@ -194,14 +194,14 @@ class SigmaPrediction:
         ok = self.observable
 
         def deg(v):
-            return {a: (float(np.degrees(x)) if o else None) for a, x, o in zip(ANGLES, v, ok)}
+            return {a: (float(np.degrees(x)) if o else None) for a, x, o in zip(ANGLES, v, ok, strict=False)}
 
         worst = self.worst_rad
         return {
             "passes": [int(p) for p in self.pass_ids],
             "realistic_deg": deg(self.realistic_rad),  # null: not determined
             "formal_deg": deg(self.formal_rad),
-            "observable": {a: bool(o) for a, o in zip(ANGLES, ok)},
+            "observable": {a: bool(o) for a, o in zip(ANGLES, ok, strict=False)},
             "worst_deg": None if not np.isfinite(worst) else float(np.degrees(worst)),
             "limit_deg": float(np.degrees(self.limit_rad)),
             "n_points": int(self.n_points),
@@ -329,7 +329,7 @@ def joint_trajectory(trajectories: Sequence[Trajectory]) -> Trajectory | None:
     trs = sorted(trajectories, key=lambda tr: float(tr.t_gps_s[0]))
     if len(trs) == 1:
         return trs[0]
-    if any(float(a.t_gps_s[-1]) >= float(b.t_gps_s[0]) for a, b in zip(trs, trs[1:])):
+    if any(float(a.t_gps_s[-1]) >= float(b.t_gps_s[0]) for a, b in zip(trs, trs[1:], strict=False)):
         return None
     cat = lambda name: np.concatenate([getattr(tr, name) for tr in trs])  # noqa: E731
     sig = {

@@ -113,7 +113,7 @@ def sigma_row(
     }
     for m in MODELS:
         s = np.full(3, np.inf) if pred is None or not pred.observable else pred.sigma_deg(m)
-        for a, v in zip(ANGLES, s):
+        for a, v in zip(ANGLES, s, strict=False):
             row[f"sigma_{m}_{a}_deg"] = float(v)
         row[f"sigma_{m}_total_deg"] = float(np.sqrt(np.sum(s**2)))
     usable = pred if pred is not None and pred.observable else None  # a prediction with σ
@@ -124,7 +124,7 @@ def sigma_row(
     for name, m in (("white", "white"), ("realistic", real)):
         c = usable.correlation(m) if usable is not None else np.full((3, 3), np.nan)
         for (a, b), v in zip(
-            (("roll", "pitch"), ("roll", "yaw"), ("pitch", "yaw")), (c[0, 1], c[0, 2], c[1, 2])
+            (("roll", "pitch"), ("roll", "yaw"), ("pitch", "yaw")), (c[0, 1], c[0, 2], c[1, 2]), strict=False
         ):
             row[f"corr_{name}_{a}_{b}"] = float(v)
     return row
@@ -230,7 +230,9 @@ def recommend(
 ) -> Recommendation:
     """The ``layout`` row with the smallest realistic σ (the GLS estimator's; ties: the smaller
     white σ)."""
-    cands = [(r, lay) for r, lay in zip(rows, layouts_) if r["group"] == "layout" and r["observable"]]
+    cands = [
+        (r, lay) for r, lay in zip(rows, layouts_, strict=False) if r["group"] == "layout" and r["observable"]
+    ]
     if not cands:
         raise DesignError(
             "no observable layout satisfies the constraint "

@@ -29,24 +29,9 @@ from calib.sim.scenario import Scenario, Surface
 from calib.sim.scenariofile import load_scenario
 
 
-def site_as_scenario(
-    site: Site, template: Scenario | str = "montreal", scanner_height_m: float | None = None
-) -> Scenario:
-    """A site config as a design scenario: its targets, wall azimuth, standoff, passes, mount
-    and sigmas; the profiler, the motion and the noise models' kinds from ``template``. The
-    vessel's scanner sails at ``scanner_height_m`` (ellipsoidal; default: the reference
-    height)."""
-    tpl = template if isinstance(template, Scenario) else load_scenario(template)
-    if site.reference is None:
-        raise DesignError(
-            "the site config has no 'reference': the what-if needs the LGF origin "
-            "(and, by default, the scanner's height) from it"
-        )
-    if not site.targets:
-        raise DesignError("the site config has no targets")
-    ref = site.reference
-    h = ref.height_m if scanner_height_m is None else float(scanner_height_m)
-    frame = frames.LocalFrame(ref.lat_deg, ref.lon_deg, h)
+def _target_surfaces(site: Site, frame: frames.LocalFrame) -> tuple[Surface, ...]:
+    """The site's targets as scenario surfaces: along the wall, out from it (toward the water),
+    up, their sizes, inclinations and facings relative to the water."""
     wall = site.wall_azimuth_rad
     water = wall - np.pi / 2
     surfaces = []
@@ -66,14 +51,40 @@ def site_as_scenario(
                 t.reflectivity,
             )
         )
+    return tuple(surfaces)
+
+
+def _site_pos_noise(site: Site) -> PosNoise:
+    """Gauss–Markov POS errors with the site's sigmas and correlation times."""
     tau = Sigmas.of_site(site).correlation_time_s
-    pos = PosNoise(
+    return PosNoise(
         "gauss_markov",
         site.sigma_position_m,
         site.sigma_attitude_rad,
         np.asarray(tau[0:3]),
         np.asarray(tau[3:6]),
     )
+
+
+def site_as_scenario(
+    site: Site, template: Scenario | str = "montreal", scanner_height_m: float | None = None
+) -> Scenario:
+    """A site config as a design scenario: its targets, wall azimuth, standoff, passes, mount
+    and sigmas; the profiler, the motion and the noise models' kinds from ``template``. The
+    vessel's scanner sails at ``scanner_height_m`` (ellipsoidal; default: the reference
+    height)."""
+    tpl = template if isinstance(template, Scenario) else load_scenario(template)
+    if site.reference is None:
+        raise DesignError(
+            "the site config has no 'reference': the what-if needs the LGF origin "
+            "(and, by default, the scanner's height) from it"
+        )
+    if not site.targets:
+        raise DesignError("the site config has no targets")
+    ref = site.reference
+    h = ref.height_m if scanner_height_m is None else float(scanner_height_m)
+    frame = frames.LocalFrame(ref.lat_deg, ref.lon_deg, h)
+    wall = site.wall_azimuth_rad
     return replace(
         tpl,
         name="site",
@@ -82,7 +93,7 @@ def site_as_scenario(
         wall_azimuth_rad=float(wall),
         standoff_m=float(site.standoff_m),
         passes=site.passes,
-        surfaces=tuple(surfaces),
+        surfaces=_target_surfaces(site, frame),
         mount=site.mount,
         truth=replace(
             tpl.truth,
@@ -98,7 +109,7 @@ def site_as_scenario(
             beam_divergence_rad=site.beam_divergence_rad,
             sigma_scan_angle_rad=site.sigma_scan_angle_rad,
         ),
-        pos_noise=pos,
+        pos_noise=_site_pos_noise(site),
     )
 
 

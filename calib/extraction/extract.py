@@ -135,7 +135,7 @@ def auto_seeds(
                 # keeps distance a tie-breaker only)
                 cost[i, j] = size_err.sum() + incl_err + 1e-4 * np.linalg.norm(ctr - r.center_m)
     rows, cols = linear_sum_assignment(cost)
-    return {rects[i].name: found[j][0] for i, j in zip(rows, cols) if cost[i, j] < 1e6}
+    return {rects[i].name: found[j][0] for i, j in zip(rows, cols, strict=False) if cost[i, j] < 1e6}
 
 
 # -- all targets in all passes -------------------------------------------------------------
@@ -187,12 +187,16 @@ class Extraction:
         return out
 
 
+#: the extraction's options when the caller gives none (frozen, shared)
+_DEFAULT_OPTIONS = ExtractOptions()
+
+
 def extract(
     p_lgf_m,
     intensity,
     pass_id,
     rects: list[Rectangle],
-    options: ExtractOptions = ExtractOptions(),
+    options: ExtractOptions = _DEFAULT_OPTIONS,
     origin_lgf_m=None,
     progress=None,
 ) -> Extraction:

@@ -263,7 +263,7 @@ def _extract_at(p, origin, pass_index, excluded, pair_ok, size_m: float, opt: Pa
     return _Found(
         size_m,
         np.concatenate([pt.member for pt in parts]),
-        np.concatenate([pt.member_patch + o for pt, o in zip(parts, offsets)]),
+        np.concatenate([pt.member_patch + o for pt, o in zip(parts, offsets, strict=False)]),
         np.concatenate([pt.normal for pt in parts]),
         np.concatenate([pt.center_m for pt in parts]),
         np.concatenate([pt.evecs for pt in parts]),
@@ -275,12 +275,23 @@ def _extract_at(p, origin, pass_index, excluded, pair_ok, size_m: float, opt: Pa
     )
 
 
-def _grid(
-    p, origin, pass_index, excluded, pair_ok, size_m, shift, opt: PatchOptions
-) -> tuple[_Found, np.ndarray]:
-    """One grid of edge ``size_m`` shifted by ``shift`` cells: cells, rules, fits; and which
-    points lie in the cells of its patches (outliers included: no other grid gets them)."""
-    rejected = dict.fromkeys(REASONS, 0)
+@dataclass(frozen=True, kw_only=True)
+class _GridCells:
+    """One grid's cells that pass the pass rule with the targets' points left out."""
+
+    cell_of: np.ndarray  # (n,) each point's cell
+    n_cells: int
+    cand: np.ndarray  # the cells with enough points in all (cell ids)
+    go: np.ndarray  # the candidates that pass the rule (indices into ``cand``)
+    pts: np.ndarray  # the points (not excluded) of those cells
+    grp: np.ndarray  # each one's cell, as an index into ``go``
+
+
+def _passing_cells(
+    p, pass_index, excluded, pair_ok, size_m, shift, opt: PatchOptions, rejected
+) -> _GridCells:
+    """The cells of the grid whose points (the excluded ones, near the targets, left out) pass
+    the pass rule; the others counted in ``rejected`` by reason."""
     cell_of, n_cells = _cells(p, size_m, shift)
     min_total = opt.min_passes * opt.min_points_per_pass
     n_all = np.bincount(cell_of, minlength=n_cells)
@@ -297,20 +308,47 @@ def _grid(
     near = ok_all & ~ok_kept
     rejected["near a target"] += int(np.count_nonzero(near))
     _count(rejected, why[~ok_kept & ~near])
-    # the cells that pass: fit, drop the points beyond 3 × RMS once, refit
     go = np.flatnonzero(ok_kept)
     local2 = np.full(cand.size, -1, np.int64)
     local2[go] = np.arange(go.size)
     sel = kept & (local2[c_of] >= 0)
-    pts = pt[sel]
-    grp = local2[c_of[sel]]
-    q = p[pts]
-    center, _, evecs = _pca(q, grp, go.size)
+    return _GridCells(cell_of=cell_of, n_cells=n_cells, cand=cand, go=go, pts=pt[sel], grp=local2[c_of[sel]])
+
+
+def _inliers(q: np.ndarray, grp: np.ndarray, n_groups: int) -> np.ndarray:
+    """The points within 3 × the robust RMS of their cell's first plane fit."""
+    center, _, evecs = _pca(q, grp, n_groups)
     dist = np.einsum("ij,ij->i", q - center[grp], np.ascontiguousarray(evecs[:, :, 0])[grp])
-    dist -= _group_median(dist, grp, go.size)[grp]
-    rms0 = ROBUST_SCALE * _group_median(np.abs(dist), grp, go.size)
-    inl = np.abs(dist) <= np.maximum(OUTLIER_FACTOR * rms0[grp], _MIN_THRESHOLD_M)
-    pts, grp = pts[inl], grp[inl]
+    dist -= _group_median(dist, grp, n_groups)[grp]
+    rms0 = ROBUST_SCALE * _group_median(np.abs(dist), grp, n_groups)
+    return np.abs(dist) <= np.maximum(OUTLIER_FACTOR * rms0[grp], _MIN_THRESHOLD_M)
+
+
+def _rms_within_passes(p, pts, grp, pass_index, center, evecs, n_groups: int) -> np.ndarray:
+    """Each cell's RMS about its plane, within each pass: a pass's POS error shifts its points
+    as a whole (the adjustment estimates that), so the spread is measured about each pass's own
+    offset."""
+    d = np.einsum("ij,ij->i", p[pts] - center[grp], np.ascontiguousarray(evecs[:, :, 0])[grp])
+    n_pass = int(pass_index.max()) + 1 if pass_index.size else 1
+    key = grp * n_pass + pass_index[pts]
+    n_key = np.maximum(np.bincount(key, minlength=n_groups * n_pass), 1)
+    d -= (np.bincount(key, d, minlength=n_groups * n_pass) / n_key)[key]
+    return np.sqrt(
+        np.bincount(grp, d * d, minlength=n_groups) / np.maximum(np.bincount(grp, minlength=n_groups), 1)
+    )
+
+
+def _grid(
+    p, origin, pass_index, excluded, pair_ok, size_m, shift, opt: PatchOptions
+) -> tuple[_Found, np.ndarray]:
+    """One grid of edge ``size_m`` shifted by ``shift`` cells: cells, rules, fits; and which
+    points lie in the cells of its patches (outliers included: no other grid gets them)."""
+    rejected = dict.fromkeys(REASONS, 0)
+    cells = _passing_cells(p, pass_index, excluded, pair_ok, size_m, shift, opt, rejected)
+    go = cells.go
+    # the cells that pass: fit, drop the points beyond 3 × RMS once, refit
+    inl = _inliers(p[cells.pts], cells.grp, go.size)
+    pts, grp = cells.pts[inl], cells.grp[inl]
     ok2, why2, counted = _pass_rule(grp, pass_index[pts], go.size, pair_ok, opt)
     # a patch holds the inliers of the passes that count: the refit is on exactly those
     in_counted = counted[grp, pass_index[pts]]
@@ -318,16 +356,7 @@ def _grid(
     center, evals, evecs = _pca(p[pts], grp, go.size)
     n_in = np.bincount(grp, minlength=go.size)
     line = evals[:, 1] < opt.min_extent_ratio * np.maximum(evals[:, 2], np.finfo(float).tiny)
-    # planarity within each pass: a pass's POS error shifts its points as a whole (the
-    # adjustment estimates that), so the spread is measured about each pass's own offset
-    d = np.einsum("ij,ij->i", p[pts] - center[grp], np.ascontiguousarray(evecs[:, :, 0])[grp])
-    n_pass = int(pass_index.max()) + 1 if pass_index.size else 1
-    key = grp * n_pass + pass_index[pts]
-    n_key = np.maximum(np.bincount(key, minlength=go.size * n_pass), 1)
-    d -= (np.bincount(key, d, minlength=go.size * n_pass) / n_key)[key]
-    rms = np.sqrt(
-        np.bincount(grp, d * d, minlength=go.size) / np.maximum(np.bincount(grp, minlength=go.size), 1)
-    )
+    rms = _rms_within_passes(p, pts, grp, pass_index, center, evecs, go.size)
     flat = rms <= opt.max_rms_m
     _count(rejected, why2[~ok2])
     rejected["line-like"] += int(np.count_nonzero(ok2 & line))
@@ -340,8 +369,8 @@ def _grid(
     normal = evecs[acc, :, 0].copy()
     toward = _group_mean(origin[pts], patch, acc.size) - center[acc]
     normal[np.einsum("ij,ij->i", normal, toward) < 0] *= -1.0
-    taken_cell = np.zeros(n_cells, bool)
-    taken_cell[cand[go[acc]]] = True
+    taken_cell = np.zeros(cells.n_cells, bool)
+    taken_cell[cells.cand[go[acc]]] = True
     found = _Found(
         size_m,
         pts,
@@ -353,9 +382,9 @@ def _grid(
         n_in[acc],
         counted[acc],
         rejected,
-        n_cells,
+        cells.n_cells,
     )
-    return found, taken_cell[cell_of]
+    return found, taken_cell[cells.cell_of]
 
 
 def _cells(p: np.ndarray, size_m: float, shift: float) -> tuple[np.ndarray, int]:
@@ -525,7 +554,7 @@ def gather_members(
     order = np.random.default_rng(0).permutation(p.shape[0])
     rank_key = np.empty(p.shape[0], np.int64)
     rank_key[order] = np.arange(p.shape[0])
-    for j, (c, n) in enumerate(zip(cands.centers_m, cands.normals)):
+    for j, (c, n) in enumerate(zip(cands.centers_m, cands.normals, strict=False)):
         near = idx_free[tree.query_ball_point(c, float(np.hypot(r, band_m)))]
         near = near[labels[near] < 0]
         rel = p[near] - c

@@ -226,7 +226,14 @@ def _parse_csv(
     values = _fast_floats(body, n_lines, k)
     if values is not None:
         return columns, values
-    # slow path: locate the first problem
+    _raise_first_bad_line(path, body, n_lines, columns)
+    raise BundleError(f"{path}: could not parse as CSV with columns {','.join(columns)}")
+
+
+def _raise_first_bad_line(path: Path, body: str, n_lines: int, columns: list[str]) -> None:
+    """The slow path of :func:`_parse_csv`: a :class:`BundleError` naming the first bad line
+    and column (returns when it finds none)."""
+    k = len(columns)
     for i, line in enumerate(body.split("\n")):
         if not line and i == n_lines:
             break
@@ -246,14 +253,13 @@ def _parse_csv(
                 raise BundleError(
                     f"{path}:{i + 2}:{j + 1}: column {columns[j]!r} is {f!r}, expected a finite number"
                 )
-    raise BundleError(f"{path}: could not parse as CSV with columns {','.join(columns)}")
 
 
 def _write_csv(path: Path, header: tuple[str, ...], fmt: str, cols: list[np.ndarray]) -> None:
     line = ",".join(fmt.split(",")) + "\n"
     buf = io.StringIO()
     buf.write(",".join(header) + "\n")
-    rows = zip(*[c.tolist() for c in cols])
+    rows = zip(*[c.tolist() for c in cols], strict=False)
     buf.write("".join(line % r for r in rows))
     data = buf.getvalue().encode("utf-8")
     if path.suffix == ".gz":
@@ -438,7 +444,7 @@ def pass_warnings(
     """Warnings (naming both files) for the passes ``site`` plans that have no points and for
     points of passes it does not plan."""
     ids, counts = np.unique(np.asarray(pass_id, dtype=np.int64), return_counts=True)
-    have = {int(k): int(n) for k, n in zip(ids, counts)}
+    have = {int(k): int(n) for k, n in zip(ids, counts, strict=False)}
     planned = [p.id for p in site.passes]
     plan = "" if site.passes_listed else " (it lists no passes: the default six-fold plan, ids 1–6)"
     out = []

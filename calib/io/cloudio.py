@@ -145,16 +145,10 @@ def _is_number(token: str) -> bool:
     return True
 
 
-def _read_ascii(p: Path) -> PointCloud:
-    try:
-        text = p.read_text(encoding="utf-8")
-    except UnicodeDecodeError as e:
-        raise CloudError(
-            f"{p}: not a text file (byte {e.start} is not UTF-8); LAS/LAZ files must end in .las or .laz"
-        ) from None
-    lines = text.splitlines()
+def _ascii_header(lines: list[str]) -> tuple[list[str] | None, int | None]:
+    """The column names of an ASCII cloud's header (a ``//`` line, or a first line that does not
+    start with a number; None: none) and the index of its first data line (None: no data)."""
     names: list[str] | None = None
-    first = None  # index of the first data line
     for i, raw in enumerate(lines):
         s = raw.strip()
         if not s or s.startswith("#"):
@@ -166,8 +160,19 @@ def _read_ascii(p: Path) -> PointCloud:
         if names is None and not _is_number(re.split(r"[\s,;]+", s)[0]):
             names = re.split(r"[\s,;]+", s)
             continue
-        first = i
-        break
+        return names, i
+    return names, None
+
+
+def _read_ascii(p: Path) -> PointCloud:
+    try:
+        text = p.read_text(encoding="utf-8")
+    except UnicodeDecodeError as e:
+        raise CloudError(
+            f"{p}: not a text file (byte {e.start} is not UTF-8); LAS/LAZ files must end in .las or .laz"
+        ) from None
+    lines = text.splitlines()
+    names, first = _ascii_header(lines)
     if first is None:
         raise CloudError(f"{p}: no points")
     sample = lines[first]

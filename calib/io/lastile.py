@@ -127,6 +127,66 @@ def _header(crs: OutputCrs, source_id: int, software: str, provenance: dict, dat
     return header
 
 
+class _Tally:
+    """What a tile holds, counted part by part as it is written."""
+
+    def __init__(self) -> None:
+        self.pass_ids: set[int] = set()
+        self.n = 0
+        self.t_lo, self.t_hi = np.inf, -np.inf
+        self.lo, self.hi = np.full(3, np.inf), np.full(3, -np.inf)
+        self.sh: list[np.ndarray] = []
+        self.sv: list[np.ndarray] = []
+
+    def add(self, part: np.ndarray) -> None:
+        self.n += part.size
+        self.t_lo = min(self.t_lo, float(part["t_gps_s"].min()))
+        self.t_hi = max(self.t_hi, float(part["t_gps_s"].max()))
+        xyz = np.stack([part["x"], part["y"], part["z"]])
+        self.lo, self.hi = np.minimum(self.lo, xyz.min(axis=1)), np.maximum(self.hi, xyz.max(axis=1))
+        # the σ summary from a thinned copy (every 16th point: a tile may hold 10⁸)
+        self.sh.append(part["sigma_h_m"][::16].copy())
+        self.sv.append(part["sigma_v_m"][::16].copy())
+
+    def summary(self, path: Path) -> TileSummary:
+        return TileSummary(
+            name=path.stem,
+            path=path.name,
+            n_points=int(self.n),
+            t_first_gps_s=float(self.t_lo),
+            t_last_gps_s=float(self.t_hi),
+            bbox=(*(round(float(v), 4) for v in self.lo), *(round(float(v), 4) for v in self.hi)),  # type: ignore[arg-type]
+            sigma_h_m=_quantiles(np.concatenate(self.sh)),
+            sigma_v_m=_quantiles(np.concatenate(self.sv)),
+            passes=sorted(self.pass_ids),
+        )
+
+
+def _point_record(laspy, header, part: np.ndarray, ids: np.ndarray, crs: OutputCrs, path: Path):
+    """The LAS points of ``part`` (its pass ids ``ids``, sorted)."""
+    rec = laspy.ScaleAwarePointRecord.zeros(part.size, header=header)
+    try:
+        rec.x, rec.y, rec.z = part["x"], part["y"], part["z"]
+    except OverflowError:
+        raise LasOutputError(
+            f"{path}: coordinates do not fit the LAS integer range around offsets "
+            f"{crs.offsets} at scales {crs.scales}"
+        ) from None
+    rec.gps_time = frames.gps_seconds_to_las(part["t_gps_s"])
+    rec.intensity = part["intensity"]
+    rec.return_number = np.ones(part.size, np.uint8)
+    rec.number_of_returns = np.ones(part.size, np.uint8)
+    rec.point_source_id = np.array([las_source_id(int(i)) for i in ids], np.uint16)[
+        np.searchsorted(ids, part["pass_id"])
+    ]
+    rec[PASS_ID_DIMENSION] = part["pass_id"]
+    rec["sigma_h_m"] = part["sigma_h_m"]
+    rec["sigma_v_m"] = part["sigma_v_m"]
+    nadir_deg = np.degrees(frames.wrap_pi(np.pi / 2 - part["scan_angle_rad"].astype(float)))
+    rec.scan_angle = np.round(nadir_deg / SCAN_ANGLE_UNIT_DEG).astype(np.int16)
+    return rec
+
+
 def write_tile(
     path: str | Path,
     parts: Iterable[np.ndarray],
@@ -143,12 +203,7 @@ def write_tile(
 
     path = Path(path)
     partial = path.with_name(path.name + ".partial")
-    pass_ids: set[int] = set()
-    n = 0
-    t_lo, t_hi = np.inf, -np.inf
-    lo, hi = np.full(3, np.inf), np.full(3, -np.inf)
-    sh, sv = [], []
-    source_id: int | None = None
+    tally = _Tally()
     writer = None
     try:
         for part in parts:
@@ -157,7 +212,7 @@ def write_tile(
             if part.size == 0:
                 continue
             ids = np.unique(part["pass_id"])
-            pass_ids.update(int(i) for i in ids)
+            tally.pass_ids.update(int(i) for i in ids)
             if writer is None:
                 # one source id per file: the line's (LAS's u16, else 0); square tiles mix lines
                 source_id = las_source_id(int(ids[0])) if ids.size == 1 else 0
@@ -169,34 +224,8 @@ def write_tile(
                     do_compress=path.suffix == ".laz",
                     laz_backend=laspy.LazBackend.Lazrs,  # one thread: one task is one core
                 )
-            rec = laspy.ScaleAwarePointRecord.zeros(part.size, header=writer.header)
-            try:
-                rec.x, rec.y, rec.z = part["x"], part["y"], part["z"]
-            except OverflowError:
-                raise LasOutputError(
-                    f"{path}: coordinates do not fit the LAS integer range around offsets "
-                    f"{crs.offsets} at scales {crs.scales}"
-                ) from None
-            rec.gps_time = frames.gps_seconds_to_las(part["t_gps_s"])
-            rec.intensity = part["intensity"]
-            rec.return_number = np.ones(part.size, np.uint8)
-            rec.number_of_returns = np.ones(part.size, np.uint8)
-            rec.point_source_id = np.array([las_source_id(int(i)) for i in ids], np.uint16)[
-                np.searchsorted(ids, part["pass_id"])
-            ]
-            rec[PASS_ID_DIMENSION] = part["pass_id"]
-            rec["sigma_h_m"] = part["sigma_h_m"]
-            rec["sigma_v_m"] = part["sigma_v_m"]
-            nadir_deg = np.degrees(frames.wrap_pi(np.pi / 2 - part["scan_angle_rad"].astype(float)))
-            rec.scan_angle = np.round(nadir_deg / SCAN_ANGLE_UNIT_DEG).astype(np.int16)
-            writer.write_points(rec)
-            n += part.size
-            t_lo, t_hi = min(t_lo, float(part["t_gps_s"].min())), max(t_hi, float(part["t_gps_s"].max()))
-            xyz = np.stack([part["x"], part["y"], part["z"]])
-            lo, hi = np.minimum(lo, xyz.min(axis=1)), np.maximum(hi, xyz.max(axis=1))
-            # the σ summary from a thinned copy (every 16th point: a tile may hold 10⁸)
-            sh.append(part["sigma_h_m"][::16].copy())
-            sv.append(part["sigma_v_m"][::16].copy())
+            writer.write_points(_point_record(laspy, writer.header, part, ids, crs, path))
+            tally.add(part)
         if writer is None:
             raise LasOutputError(f"{path}: a tile without points (nothing to write)")
         writer.close()
@@ -209,17 +238,7 @@ def write_tile(
             writer.close()
         if partial.exists():
             partial.unlink()
-    return TileSummary(
-        name=path.stem,
-        path=path.name,
-        n_points=int(n),
-        t_first_gps_s=float(t_lo),
-        t_last_gps_s=float(t_hi),
-        bbox=(*(round(float(v), 4) for v in lo), *(round(float(v), 4) for v in hi)),  # type: ignore[arg-type]
-        sigma_h_m=_quantiles(np.concatenate(sh)),
-        sigma_v_m=_quantiles(np.concatenate(sv)),
-        passes=sorted(pass_ids),
-    )
+    return tally.summary(path)
 
 
 def read_provenance(path: str | Path) -> dict:

@@ -60,7 +60,8 @@ SMRMSG_FIELDS = (
 #: One record each; ``np.zeros(n, SBET_DTYPE)`` makes n records to fill.
 SBET_DTYPE = np.dtype([(name, "<f8") for name in SBET_FIELDS])
 SMRMSG_DTYPE = np.dtype([(name, "<f8") for name in SMRMSG_FIELDS])
-assert SBET_DTYPE.itemsize == 136 and SMRMSG_DTYPE.itemsize == 80
+assert SBET_DTYPE.itemsize == 136
+assert SMRMSG_DTYPE.itemsize == 80
 
 _WEEK_S = frames.SECONDS_PER_WEEK
 _ARCMIN_RAD = np.pi / (180.0 * 60.0)

@@ -223,6 +223,81 @@ def _targets(node: Node, what: str) -> tuple[Target, ...]:
     return out
 
 
+def _mount(node: Node) -> Mount:
+    """site.yaml's ``mount``: lever arm, nominal mounting angles and a-priori boresight (each
+    zero when absent)."""
+    mm = node.mapping(optional={"lever_arm_m", "nominal_deg", "boresight_apriori_deg"})
+
+    def vec(key, conv=float):
+        return np.array([conv(x) for x in mm[key].vector(3)]) if key in mm else np.zeros(3)
+
+    return Mount(
+        lever_arm_m=vec("lever_arm_m"),
+        nominal_rad=np.radians(vec("nominal_deg")),
+        boresight_rad=np.radians(vec("boresight_apriori_deg")),
+    )
+
+
+def _scanner_sigmas(node: Node) -> dict:
+    """site.yaml's ``scanner``: the Site fields it sets."""
+    sm = node.mapping(
+        optional={"sigma_range_m", "sigma_scan_angle_deg", "sigma_range_per_m", "beam_divergence_mrad"}
+    )
+    kw: dict = {}
+    if "sigma_range_m" in sm:
+        kw["sigma_range_m"] = sm["sigma_range_m"].number(0.0, exclusive_minimum=True)
+    if "sigma_range_per_m" in sm:
+        kw["sigma_range_per_m"] = sm["sigma_range_per_m"].number(0.0, 0.01)
+    if "beam_divergence_mrad" in sm:
+        kw["beam_divergence_rad"] = sm["beam_divergence_mrad"].number(0.0, 20.0) * 1e-3
+    if "sigma_scan_angle_deg" in sm:
+        kw["sigma_scan_angle_rad"] = float(
+            np.radians(sm["sigma_scan_angle_deg"].number(0.0, exclusive_minimum=True))
+        )
+    return kw
+
+
+def _pos_sigmas(node: Node) -> dict:
+    """site.yaml's ``pos_sigmas``: the Site fields it sets."""
+    pm = node.mapping(optional={"position_m", "attitude_deg", "correlation_time_s"})
+    kw: dict = {}
+    if "correlation_time_s" in pm:
+        kw["pos_correlation_time_s"] = _correlation_times(pm["correlation_time_s"])
+    for key, attr, conv in (
+        ("position_m", "sigma_position_m", lambda v: v),
+        ("attitude_deg", "sigma_attitude_rad", np.radians),
+    ):
+        if key in pm:
+            v = pm[key].vector(3)
+            if np.any(v <= 0):
+                raise pm[key].fail("3 positive numbers")
+            kw[attr] = conv(v)
+    return kw
+
+
+def _pass(node: Node) -> PassSpec:
+    pm = node.mapping(required={"id", "relative_heading_deg"}, optional={"length_m", "speed_mps"})
+    return PassSpec(
+        id=pm["id"].integer(minimum=0, maximum=2**63 - 1),  # int64, as points.csv
+        relative_heading_rad=float(np.radians(pm["relative_heading_deg"].number())),
+        length_m=pm["length_m"].number(0.0, exclusive_minimum=True)
+        if "length_m" in pm
+        else DEFAULT_PASS_LENGTH_M,
+        speed_mps=pm["speed_mps"].number(0.0, exclusive_minimum=True)
+        if "speed_mps" in pm
+        else DEFAULT_PASS_SPEED_MPS,
+    )
+
+
+def _passes(node: Node) -> tuple[PassSpec, ...]:
+    """site.yaml's ``passes`` (at least one, unique ids)."""
+    passes = tuple(_pass(pn) for pn in node.sequence(min_len=1))
+    ids = [p.id for p in passes]
+    if len(set(ids)) != len(ids):
+        raise node.fail("unique pass ids")
+    return passes
+
+
 def site_from_node(root: Node) -> Site:
     top = root.mapping(
         required={"mount", "targets"},
@@ -237,72 +312,22 @@ def site_from_node(root: Node) -> Site:
             "validation_planes",
         },
     )
-    mm = top["mount"].mapping(optional={"lever_arm_m", "nominal_deg", "boresight_apriori_deg"})
-
-    def vec(key, conv=float):
-        return np.array([conv(x) for x in mm[key].vector(3)]) if key in mm else np.zeros(3)
-
-    mount = Mount(
-        lever_arm_m=vec("lever_arm_m"),
-        nominal_rad=np.radians(vec("nominal_deg")),
-        boresight_rad=np.radians(vec("boresight_apriori_deg")),
-    )
+    mount = _mount(top["mount"])
     kw: dict = {}
     if "vessel" in top:
         kw["vessel"] = top["vessel"].string()
     if "reference" in top:
         kw["reference"] = frames.LocalFrame(*_geodetic(top["reference"]))
     if "scanner" in top:
-        sm = top["scanner"].mapping(
-            optional={"sigma_range_m", "sigma_scan_angle_deg", "sigma_range_per_m", "beam_divergence_mrad"}
-        )
-        if "sigma_range_m" in sm:
-            kw["sigma_range_m"] = sm["sigma_range_m"].number(0.0, exclusive_minimum=True)
-        if "sigma_range_per_m" in sm:
-            kw["sigma_range_per_m"] = sm["sigma_range_per_m"].number(0.0, 0.01)
-        if "beam_divergence_mrad" in sm:
-            kw["beam_divergence_rad"] = sm["beam_divergence_mrad"].number(0.0, 20.0) * 1e-3
-        if "sigma_scan_angle_deg" in sm:
-            kw["sigma_scan_angle_rad"] = float(
-                np.radians(sm["sigma_scan_angle_deg"].number(0.0, exclusive_minimum=True))
-            )
+        kw.update(_scanner_sigmas(top["scanner"]))
     if "pos_sigmas" in top:
-        pm = top["pos_sigmas"].mapping(optional={"position_m", "attitude_deg", "correlation_time_s"})
-        if "correlation_time_s" in pm:
-            kw["pos_correlation_time_s"] = _correlation_times(pm["correlation_time_s"])
-        for key, attr, conv in (
-            ("position_m", "sigma_position_m", lambda v: v),
-            ("attitude_deg", "sigma_attitude_rad", np.radians),
-        ):
-            if key in pm:
-                v = pm[key].vector(3)
-                if np.any(v <= 0):
-                    raise pm[key].fail("3 positive numbers")
-                kw[attr] = conv(v)
+        kw.update(_pos_sigmas(top["pos_sigmas"]))
     if "wall_azimuth_deg" in top:
         kw["wall_azimuth_rad"] = float(np.radians(top["wall_azimuth_deg"].number(-360.0, 360.0)))
     if "standoff_m" in top:
         kw["standoff_m"] = top["standoff_m"].number(0.0, exclusive_minimum=True)
     if "passes" in top and top["passes"].value is not None:
-        passes = []
-        for pn in top["passes"].sequence(min_len=1):
-            pm = pn.mapping(required={"id", "relative_heading_deg"}, optional={"length_m", "speed_mps"})
-            passes.append(
-                PassSpec(
-                    id=pm["id"].integer(minimum=0, maximum=2**63 - 1),  # int64, as points.csv
-                    relative_heading_rad=float(np.radians(pm["relative_heading_deg"].number())),
-                    length_m=pm["length_m"].number(0.0, exclusive_minimum=True)
-                    if "length_m" in pm
-                    else DEFAULT_PASS_LENGTH_M,
-                    speed_mps=pm["speed_mps"].number(0.0, exclusive_minimum=True)
-                    if "speed_mps" in pm
-                    else DEFAULT_PASS_SPEED_MPS,
-                )
-            )
-        ids = [p.id for p in passes]
-        if len(set(ids)) != len(ids):
-            raise top["passes"].fail("unique pass ids")
-        kw["passes"] = tuple(passes)
+        kw["passes"] = _passes(top["passes"])
     else:
         kw["passes_listed"] = False
     if "validation_planes" in top:

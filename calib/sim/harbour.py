@@ -123,7 +123,7 @@ class Hull:
     def surfaces(self) -> list[Surface]:
         out: list[Surface] = []
         s = self.side
-        for k, ((x0, b0), (x1, b1)) in enumerate(zip(self.stations[:-1], self.stations[1:])):
+        for k, ((x0, b0), (x1, b1)) in enumerate(zip(self.stations[:-1], self.stations[1:], strict=False)):
             length = float(np.hypot(x1 - x0, b1 - b0))
             # the outward normal's horizontal part in (along, out), away from the centreline
             n_along, n_out = -(b1 - b0) / length, s * (x1 - x0) / length
@@ -217,7 +217,7 @@ def harbour_surfaces(
     ]  # fmt: skip
     # warehouse fronts: three buildings with 15 m between them
     edges = np.linspace(-E + 10.0, E - 10.0, 4)
-    for k, (a0, a1) in enumerate(zip(edges[:-1], edges[1:])):
+    for k, (a0, a1) in enumerate(zip(edges[:-1], edges[1:], strict=False)):
         a0, a1 = (a0 + 7.5 if k else a0), (a1 - 7.5 if k < 2 else a1)
         s.append(
             _vertical(f"warehouse_{k}", "wall", 0.5 * (a0 + a1), -WAREHOUSE_SETBACK_M, d, d + WAREHOUSE_HEIGHT_M,

@@ -53,7 +53,7 @@ def gauss_markov(t_s, sigma, tau_s, rng: np.random.Generator) -> np.ndarray:
     # runs of (nearly) equal steps: [a, b) in step indices, step i leads to epoch i + 1
     change = np.flatnonzero(np.abs(np.diff(dt)) > 1e-3 * dt[1:]) + 1
     bounds = np.concatenate([[0], change, [dt.size]])
-    for a, b in zip(bounds[:-1], bounds[1:]):
+    for a, b in zip(bounds[:-1], bounds[1:], strict=False):
         phi = np.exp(-np.mean(dt[a:b]) / tau)
         drive = w[a + 1 : b + 1] * (sigma * np.sqrt(1.0 - phi**2))
         if b - a <= k:  # short run, many channels: step through it across the channels

@@ -27,7 +27,7 @@ from __future__ import annotations
 import functools
 import math
 from collections.abc import Callable, Iterator, Mapping, Sequence
-from dataclasses import replace
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -341,6 +341,106 @@ def _scene_at(
 # -- the survey -----------------------------------------------------------------------------------
 
 
+def _production_scenario(scenario: Scenario, spec: ProductionSpec, rng_lines) -> tuple[Scenario, list[dict]]:
+    """The harbour scenario of ``spec`` with its survey lines (drawn with ``rng_lines``) as
+    its passes."""
+    sc = harbour_scenario(scenario, spec)
+    lines = line_layout(spec, sc.motion.turn_radius_m, rng_lines)
+    sc = replace(
+        sc,
+        passes=tuple(
+            PassSpec(
+                ln["id"], 0.0 if ln["direction"] > 0 else float(np.pi), spec.line_length_m, ln["speed_mps"]
+            )
+            for ln in lines
+        ),
+    )
+    return sc, lines
+
+
+@dataclass(frozen=True, kw_only=True)
+class _Hulls:
+    """The moored hulls that move in the swell: their groups, their surfaces alone, the swell,
+    each group's phases and each line's drift of each group."""
+
+    groups: tuple
+    scene: Scene | None  # the hulls' surfaces (None: no hull moves)
+    swell: HullSwell
+    phases_rad: np.ndarray  # (groups, 3)
+    drift: np.ndarray  # (lines, groups, 3)
+
+
+def _moving_hulls(sc: Scenario, scene: Scene, spec: ProductionSpec, n_lines: int, rng_hulls) -> _Hulls:
+    groups = hull_groups(sc, scene) if spec.moving_hulls else ()
+    idx = [j for g in groups for j in g.indices]
+    swell = HullSwell()
+    return _Hulls(
+        groups=groups,
+        scene=Scene(tuple(scene.rectangles[j] for j in idx), tuple(scene.kinds[j] for j in idx))
+        if idx
+        else None,
+        swell=swell,
+        phases_rad=rng_hulls.uniform(0.0, 2.0 * np.pi, (len(groups), 3)),
+        drift=rng_hulls.standard_normal((n_lines, len(groups), 3)) * np.asarray(swell.drift_sigma),
+    )
+
+
+def _scan_lines(sc, spec, run, lines, mount, scene, hulls: _Hulls, progress):
+    """Every line scanned: the returns and each return's line id."""
+    parts, pass_ids = [], []
+    for k, ln in enumerate(lines):
+        scene_at = _scene_at(scene, hulls.groups, hulls.swell, hulls.phases_rad, hulls.drift[k])
+        for part in _scan_line(sc, spec, run, ln["id"], mount, scene_at, hulls.scene):
+            parts.append(part)
+            pass_ids.append(np.full(part.t_gps_s.size, ln["id"], np.int64))
+        if progress is not None:
+            progress(k + 1, len(lines))
+    if not parts:
+        raise SimulationError(f"scenario {sc.name!r}: the production survey has no return")
+    return ScanReturns.concatenate(parts), np.concatenate(pass_ids)
+
+
+def _event_truth(sc: Scenario, spec: ProductionSpec, run, mount: Mount) -> dict | None:
+    """truth.json's ``mount_event`` (None: the mount does not move)."""
+    ev = spec.mount_event
+    if ev is None:
+        return None
+    t_ev = sc.start_gps_s + ev.t_s
+    return {
+        "t_gps_s": t_ev,
+        "t_s": ev.t_s,
+        "step_deg": [float(x) for x in np.degrees(ev.step_rad)],
+        "creep_s": ev.creep_s,
+        "effective_t_gps_s": float(_effective_event_time(sc, run, mount, t_ev) if ev.creep_s == 0 else t_ev),
+    }
+
+
+def _hulls_truth(scene: Scene, hulls: _Hulls, lines: list[dict]) -> dict:
+    """truth.json's ``hulls``: which surfaces move together, the swell, phases and drifts."""
+    groups, drift = hulls.groups, hulls.drift
+    return {
+        "surfaces": {g.name: [scene.names[j] for j in g.indices] for g in groups},
+        "swell": hulls.swell.to_dict(),
+        "phases_deg": {
+            g.name: [float(x) for x in np.degrees(hulls.phases_rad[h])] for h, g in enumerate(groups)
+        },
+        "drift": [
+            {
+                "line": ln["id"],
+                **{
+                    g.name: {
+                        "along_m": float(drift[k, h, 0]),
+                        "out_m": float(drift[k, h, 1]),
+                        "yaw_deg": float(np.degrees(drift[k, h, 2])),
+                    }
+                    for h, g in enumerate(groups)
+                },
+            }
+            for k, ln in enumerate(lines)
+        ],
+    }
+
+
 def sail_production(
     scenario: Scenario,
     spec: ProductionSpec,
@@ -354,72 +454,21 @@ def sail_production(
     rng_motion, rng_pos, rng_scan, rng_point, rng_lines, rng_hulls = (
         np.random.default_rng(s) for s in np.random.SeedSequence(seed).spawn(6)
     )
-    sc = harbour_scenario(scenario, spec)
-    lines = line_layout(spec, sc.motion.turn_radius_m, rng_lines)
-    sc = replace(
-        sc,
-        passes=tuple(
-            PassSpec(
-                ln["id"], 0.0 if ln["direction"] > 0 else float(np.pi), spec.line_length_m, ln["speed_mps"]
-            )
-            for ln in lines
-        ),
-    )
+    sc, lines = _production_scenario(scenario, spec, rng_lines)
     plan = _plan(sc, lines)
     run = sail(plan, sc.motion, sc.start_gps_s, sc.reference, rng_motion)
     _check_inside(sc, spec, run, lines)
     scene = sc.scene()
     mount = sc.truth.true_mount(sc.mount)  # the calibrated mount: the truth before the event
-
-    ev = spec.mount_event
-    groups = hull_groups(sc, scene) if spec.moving_hulls else ()
-    idx = [j for g in groups for j in g.indices]
-    hulls = (
-        Scene(tuple(scene.rectangles[j] for j in idx), tuple(scene.kinds[j] for j in idx)) if idx else None
-    )
-    swell = HullSwell()
-    phases = rng_hulls.uniform(0.0, 2.0 * np.pi, (len(groups), 3))
-    drift = rng_hulls.standard_normal((len(lines), len(groups), 3)) * np.asarray(swell.drift_sigma)
-
-    parts, pass_ids = [], []
-    for k, ln in enumerate(lines):
-        scene_at = _scene_at(scene, groups, swell, phases, drift[k])
-        for part in _scan_line(sc, spec, run, ln["id"], mount, scene_at, hulls):
-            parts.append(part)
-            pass_ids.append(np.full(part.t_gps_s.size, ln["id"], np.int64))
-        if progress is not None:
-            progress(k + 1, len(lines))
-    if not parts:
-        raise SimulationError(f"scenario {sc.name!r}: the production survey has no return")
-    ret = ScanReturns.concatenate(parts)
-    del parts
+    hulls = _moving_hulls(sc, scene, spec, len(lines), rng_hulls)
+    ret, pass_ids = _scan_lines(sc, spec, run, lines, mount, scene, hulls, progress)
     result = observe(
-        sc,
-        seed,
-        list(overrides),
-        scene,
-        plan,
-        run,
-        mount,
-        ret,
-        np.concatenate(pass_ids),
-        (rng_pos, rng_scan, rng_point),
+        sc, seed, list(overrides), scene, plan, run, mount, ret, pass_ids, (rng_pos, rng_scan, rng_point)
     )
     truth = dict(result.truth)
     truth["production"] = spec.to_dict()
     truth["mount_calibrated"] = [float(x) for x in np.degrees(mount.boresight_rad)]
-    truth["mount_event"] = None
-    if ev is not None:
-        t_ev = sc.start_gps_s + ev.t_s
-        truth["mount_event"] = {
-            "t_gps_s": t_ev,
-            "t_s": ev.t_s,
-            "step_deg": [float(x) for x in np.degrees(ev.step_rad)],
-            "creep_s": ev.creep_s,
-            "effective_t_gps_s": float(
-                _effective_event_time(sc, run, mount, t_ev) if ev.creep_s == 0 else t_ev
-            ),
-        }
+    truth["mount_event"] = _event_truth(sc, spec, run, mount)
     truth["lines"] = [
         {
             "id": ln["id"],
@@ -431,26 +480,8 @@ def sail_production(
         }
         for k, ln in enumerate(lines)
     ]
-    if groups:
-        truth["hulls"] = {
-            "surfaces": {g.name: [scene.names[j] for j in g.indices] for g in groups},
-            "swell": swell.to_dict(),
-            "phases_deg": {g.name: [float(x) for x in np.degrees(phases[h])] for h, g in enumerate(groups)},
-            "drift": [
-                {
-                    "line": ln["id"],
-                    **{
-                        g.name: {
-                            "along_m": float(drift[k, h, 0]),
-                            "out_m": float(drift[k, h, 1]),
-                            "yaw_deg": float(np.degrees(drift[k, h, 2])),
-                        }
-                        for h, g in enumerate(groups)
-                    },
-                }
-                for k, ln in enumerate(lines)
-            ],
-        }
+    if hulls.groups:
+        truth["hulls"] = _hulls_truth(scene, hulls, lines)
     return replace(result, truth=truth)
 
 

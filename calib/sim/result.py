@@ -75,7 +75,7 @@ class SimResult:
         surface is counted as ``background``."""
         names = [
             "background" if k in BACKGROUND_KINDS else r.name
-            for r, k in zip(self.scene.rectangles, self.scene.kinds)
+            for r, k in zip(self.scene.rectangles, self.scene.kinds, strict=False)
         ]
         keys = list(dict.fromkeys(names + ["background"]))
         out = {}
@@ -83,7 +83,7 @@ class SimResult:
             sel = self.surface_index[self.points.pass_id == p.id]
             counts = np.bincount(sel, minlength=len(names))
             row = dict.fromkeys(keys, 0)
-            for name, c in zip(names, counts):
+            for name, c in zip(names, counts, strict=False):
                 row[name] += int(c)
             out[p.id] = row
         return out
@@ -145,7 +145,9 @@ def _truth(
 
     def planes(*kinds: str) -> list[dict]:
         return [
-            _plane(r, k, sh) for r, k, sh in zip(scene.rectangles, scene.kinds, scene.shapes) if k in kinds
+            _plane(r, k, sh)
+            for r, k, sh in zip(scene.rectangles, scene.kinds, scene.shapes, strict=False)
+            if k in kinds
         ]
 
     return {

@@ -84,6 +84,80 @@ def scan(
     return ScanReturns.concatenate(parts)
 
 
+@dataclass(frozen=True, kw_only=True)
+class _ProfileGrid:
+    """The profiler's firing grid and how much a scene sector is widened for the motion within
+    a profile."""
+
+    rate_hz: float  # profiles per second
+    K: int  # points per 360°
+    d_alpha_rad: float  # between two points of a profile
+    dt_s: float  # between two points
+    window: np.ndarray  # (K,) the angles the profiler measures
+    grow_m: float  # sectors grown by this (the motion within half a profile)
+    pad_rad: float  # … and widened by this
+    batch: int  # profiles per batch
+
+
+def _profile_grid(scanner: ScannerModel, traj: Trajectory, mount: Mount) -> _ProfileGrid:
+    rate = scanner.effective_profile_rate_hz
+    K = scanner.effective_points_per_360
+    d_alpha = 2.0 * np.pi / K
+    v_max, w_max = motion_bounds(traj)
+    half = 0.5 / rate  # half a profile's duration
+    reach = min(scanner.max_range_m, 200.0) + float(np.linalg.norm(mount.lever_arm_m))
+    return _ProfileGrid(
+        rate_hz=rate,
+        K=K,
+        d_alpha_rad=d_alpha,
+        dt_s=1.0 / (rate * K),
+        window=scanner.window_mask(),
+        grow_m=0.02 + 2.0 * half * (v_max + w_max * reach),
+        pad_rad=2.0 * w_max * half + 2.0 * d_alpha,
+        batch=max(1, _BATCH_SLOTS // K),
+    )
+
+
+def _sector_slots(sec, b_idx, r_idx, n_profiles: int, g: _ProfileGrid, mount: Mount):
+    """Each hit sector as measured-angle slot ranges [lo, end) of its profile's row (a range
+    that passes K wraps to [0, end − K)): the ranges' ends and owners (surfaces), and the
+    slots some sector covers within the window."""
+    K = g.K
+    start = sec.start_rad[b_idx, r_idx] - mount.scan_angle_offset_rad - g.pad_rad
+    lo = np.mod(np.floor(start / g.d_alpha_rad).astype(np.int64), K)
+    end = lo + np.minimum(
+        np.ceil((sec.width_rad[b_idx, r_idx] + 2 * g.pad_rad) / g.d_alpha_rad).astype(np.int64) + 2, K
+    )
+    wrap = end > K
+    row = b_idx * K
+    keys_lo = np.concatenate([row + lo, row[wrap]])
+    keys_hi = np.concatenate([row + np.minimum(end, K), row[wrap] + end[wrap] - K])
+    owner = np.concatenate([r_idx, r_idx[wrap]])
+    diff = np.zeros(n_profiles * K + 1, np.int16)
+    np.add.at(diff, keys_lo, 1)
+    np.add.at(diff, keys_hi, -1)
+    cover = np.cumsum(diff[:-1], dtype=np.int16).reshape(n_profiles, K) > 0
+    return keys_lo, keys_hi, owner, np.flatnonzero(cover & g.window)
+
+
+def _nearest_hits(scanner: ScannerModel, scene: Scene, cand, keys_lo, keys_hi, owner, comps):
+    """For each candidate slot the nearest surface hit within the range limits among the
+    sectors covering it: range (inf) and surface (−1: none)."""
+    best = np.full(cand.size, np.inf)
+    surf = np.full(cand.size, -1, np.int64)
+    pos_lo, pos_hi = np.searchsorted(cand, keys_lo), np.searchsorted(cand, keys_hi)
+    for j in np.unique(owner):
+        sel = owner == j
+        idx = _expand_ranges(pos_lo[sel], pos_hi[sel])
+        if idx.size == 0:
+            continue
+        rho, inside = scene.hit_range(j, *(c[idx] for c in comps))
+        ok = inside & (rho > scanner.min_range_m) & (rho <= scanner.max_range_m) & (rho < best[idx])
+        best[idx[ok]] = rho[ok]
+        surf[idx[ok]] = j
+    return best, surf
+
+
 def scan_batches(
     scanner: ScannerModel, scene: Scene, traj: Trajectory, mount: Mount, t_start_s: float, t_end_s: float
 ) -> Iterator[ScanReturns]:
@@ -91,67 +165,30 @@ def scan_batches(
     fires at ``t_start_s + k / effective_profile_rate_hz``, ``k < floor((t_end_s − t_start_s) ·
     rate)``: scanning [t0, t1) and then [t1, t2) with t1 − t0 a whole number of profile periods
     continues one profile grid."""
-    rate = scanner.effective_profile_rate_hz
-    K = scanner.effective_points_per_360
-    d_alpha = 2.0 * np.pi / K
-    dt = 1.0 / (rate * K)
-    window = scanner.window_mask()
-    n_prof = int(np.floor((t_end_s - t_start_s) * rate))
+    g = _profile_grid(scanner, traj, mount)
+    K, dt = g.K, g.dt_s
+    n_prof = int(np.floor((t_end_s - t_start_s) * g.rate_hz))
     geom = replace(mount, range_offset_m=0.0)
-    v_max, w_max = motion_bounds(traj)
-    half = 0.5 / rate  # half a profile's duration
-    reach = min(scanner.max_range_m, 200.0) + float(np.linalg.norm(mount.lever_arm_m))
-    grow_m = 0.02 + 2.0 * half * (v_max + w_max * reach)
-    pad_rad = 2.0 * w_max * half + 2.0 * d_alpha
-    batch = max(1, _BATCH_SLOTS // K)
-    for p0 in range(0, n_prof, batch):
-        prof = np.arange(p0, min(p0 + batch, n_prof))
-        B = prof.size
+    for p0 in range(0, n_prof, g.batch):
+        prof = np.arange(p0, min(p0 + g.batch, n_prof))
         # sectors from the pose at each profile's middle
         poses = traj.interpolate(t_start_s + (prof * K + K / 2) * dt + mount.time_offset_s)
         M = poses.r_b_n @ mount.r_s_b
         origin = poses.p_lgf_m + poses.r_b_n @ mount.lever_arm_m
-        sec = scene.scan_sectors(origin, M[:, :, 0], M[:, :, 1], M[:, :, 2], grow_m)
+        sec = scene.scan_sectors(origin, M[:, :, 0], M[:, :, 1], M[:, :, 2], g.grow_m)
         b_idx, r_idx = np.nonzero(sec.hit)
         if b_idx.size == 0:
             continue
-        # each sector as measured-angle index ranges [lo, end) of its profile's row; a range
-        # that passes K wraps to [0, end − K)
-        start = sec.start_rad[b_idx, r_idx] - mount.scan_angle_offset_rad - pad_rad
-        lo = np.mod(np.floor(start / d_alpha).astype(np.int64), K)
-        end = lo + np.minimum(
-            np.ceil((sec.width_rad[b_idx, r_idx] + 2 * pad_rad) / d_alpha).astype(np.int64) + 2, K
-        )
-        wrap = end > K
-        row = b_idx * K
-        keys_lo = np.concatenate([row + lo, row[wrap]])
-        keys_hi = np.concatenate([row + np.minimum(end, K), row[wrap] + end[wrap] - K])
-        owner = np.concatenate([r_idx, r_idx[wrap]])
-        diff = np.zeros(B * K + 1, np.int16)
-        np.add.at(diff, keys_lo, 1)
-        np.add.at(diff, keys_hi, -1)
-        cover = np.cumsum(diff[:-1], dtype=np.int16).reshape(B, K) > 0
-        cand = np.flatnonzero(cover & window)
+        keys_lo, keys_hi, owner, cand = _sector_slots(sec, b_idx, r_idx, prof.size, g, mount)
         if cand.size == 0:
             continue
         t_rep = t_start_s + (p0 * K + cand) * dt
-        alpha = (cand % K) * d_alpha
+        alpha = (cand % K) * g.d_alpha_rad
         sub = covering(traj, t_rep[0] + mount.time_offset_s, t_rep[-1] + mount.time_offset_s)
         o = georeference(t_rep, np.zeros(cand.size), alpha, sub, geom)
         d = georeference(t_rep, np.ones(cand.size), alpha, sub, geom) - o
         comps = (o[:, 0], o[:, 1], o[:, 2], d[:, 0], d[:, 1], d[:, 2])
-        best = np.full(cand.size, np.inf)
-        surf = np.full(cand.size, -1, np.int64)
-        pos_lo, pos_hi = np.searchsorted(cand, keys_lo), np.searchsorted(cand, keys_hi)
-        for j in np.unique(owner):
-            sel = owner == j
-            idx = _expand_ranges(pos_lo[sel], pos_hi[sel])
-            if idx.size == 0:
-                continue
-            rho, inside = scene.hit_range(j, *(c[idx] for c in comps))
-            ok = inside & (rho > scanner.min_range_m) & (rho <= scanner.max_range_m) & (rho < best[idx])
-            best[idx[ok]] = rho[ok]
-            surf[idx[ok]] = j
+        best, surf = _nearest_hits(scanner, scene, cand, keys_lo, keys_hi, owner, comps)
         keep = np.flatnonzero(surf >= 0)
         if keep.size == 0:
             continue

@@ -74,7 +74,7 @@ class Scene:
             raise ValueError(f"Scene: {len(self.rectangles)} rectangles but {len(self.kinds)} kinds")
         if len(self.shapes) != len(self.rectangles):
             raise ValueError(f"Scene: {len(self.rectangles)} rectangles but {len(self.shapes)} shapes")
-        for r, k in zip(self.rectangles, self.kinds):
+        for r, k in zip(self.rectangles, self.kinds, strict=False):
             if k not in SURFACE_KINDS:
                 raise ValueError(
                     f"Scene: surface {r.name!r} has kind {k!r}, expected one of {', '.join(SURFACE_KINDS)}"
@@ -113,7 +113,7 @@ class Scene:
         """Each surface's displacement field (None: flat)."""
         return tuple(
             None if s is None else s.field(r.name, r.width_m, r.height_m)
-            for r, s in zip(self.rectangles, self.shapes)
+            for r, s in zip(self.rectangles, self.shapes, strict=False)
         )
 
     # -- packed geometry ----------------------------------------------------------------------

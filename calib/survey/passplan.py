@@ -113,6 +113,97 @@ def water_azimuth(targets: Sequence[Rectangle], wall_azimuth_rad: float) -> floa
     return float(frames.wrap_2pi(left))
 
 
+@dataclass(frozen=True, kw_only=True)
+class _Layout:
+    """What every line of a plan is laid out from."""
+
+    corners: np.ndarray  # (k, 3) the targets' corners (LGF)
+    aim: np.ndarray  # the targets' mean centre at the track's depth
+    water: np.ndarray  # unit vector toward the water
+    wall_offset_m: float  # the wall face along ``water`` from the aim (the targets' back)
+    extra: np.ndarray | None  # the corners of the further rectangles to capture
+    wall_azimuth_rad: float
+    standoff_m: float
+    safe_wall_distance_m: float
+    capture_margin_m: float
+
+
+def _line_extent(spec: PassSpec, d0: float, approach: float, safe_m: float) -> tuple[float, float]:
+    """The line's ends (m along it from the closest approach): centred on it, shifted so that
+    the end toward the wall keeps ``safe_m`` from it."""
+    L = spec.length_m
+    s_a, s_b = -L / 2, L / 2
+    if approach < -_PARALLEL_TOL:  # heading toward the wall: limit the far end
+        s_b = min(s_b, (d0 - safe_m) / -approach)
+        s_a = s_b - L
+    elif approach > _PARALLEL_TOL:  # heading away: limit the near (start) end
+        s_a = max(s_a, -(d0 - safe_m) / approach)
+        s_b = s_a + L
+    return s_a, s_b
+
+
+def _capture_window(spec: PassSpec, lay: _Layout, cpa, h, s_a: float, s_b: float) -> tuple[float, float]:
+    """Where the line must record (m along it): the targets with a margin (refused when it does
+    not fit the line), widened to the further rectangles within the line."""
+    s_t = (lay.corners - cpa) @ h
+    cap_a, cap_b = float(s_t.min() - lay.capture_margin_m), float(s_t.max() + lay.capture_margin_m)
+    if cap_a < s_a or cap_b > s_b:
+        raise PassPlanError(
+            f"pass {spec.id} (relative heading {np.degrees(spec.relative_heading_rad):g}°): "
+            f"the capture window [{cap_a:.1f}, {cap_b:.1f}] m around the closest approach "
+            f"does not fit the {spec.length_m:g} m line [{s_a:.1f}, {s_b:.1f}] m that keeps "
+            f"{lay.safe_wall_distance_m:g} m from the wall; increase standoff_m or length_m"
+        )
+    if lay.extra is not None:
+        s_e = (lay.extra - cpa) @ h
+        cap_a = max(s_a, min(cap_a, float(s_e.min() - lay.capture_margin_m)))
+        cap_b = min(s_b, max(cap_b, float(s_e.max() + lay.capture_margin_m)))
+    return cap_a, cap_b
+
+
+def _planned_pass(order: int, spec: PassSpec, lay: _Layout) -> PlannedPass:
+    """One line: at its heading, its closest approach ``standoff_m`` from the aim on the water
+    side, as long as asked and clear of the wall."""
+    heading = float(frames.wrap_2pi(lay.wall_azimuth_rad + spec.relative_heading_rad))
+    h = _unit(heading)
+    perp = np.array([-h[1], h[0], 0.0])
+    toward_water = float(perp @ lay.water)
+    if abs(toward_water) < 1e-6:
+        raise PassPlanError(
+            f"pass {spec.id}: relative heading {np.degrees(spec.relative_heading_rad):g}° "
+            f"points straight at the wall; no line at that heading keeps a standoff"
+        )
+    if toward_water < 0:
+        perp = -perp
+    cpa = lay.aim + lay.standoff_m * perp
+    approach = float(h @ lay.water)  # change of the wall distance per metre along the line
+    d0 = float((cpa - lay.aim) @ lay.water) - lay.wall_offset_m  # wall distance at the CPA
+    if d0 < lay.safe_wall_distance_m:
+        raise PassPlanError(
+            f"pass {spec.id}: its closest approach is only {d0:.2f} m from the wall, less "
+            f"than the safe distance {lay.safe_wall_distance_m:g} m; increase standoff_m"
+        )
+    s_a, s_b = _line_extent(spec, d0, approach, lay.safe_wall_distance_m)
+    cap_a, cap_b = _capture_window(spec, lay, cpa, h, s_a, s_b)
+    starboard = np.array([-np.sin(heading), np.cos(heading), 0.0])
+    side = "starboard" if float(-perp @ starboard) > 0 else "port"
+    end_wall = min(d0 + s_a * approach, d0 + s_b * approach)
+    return PlannedPass(
+        id=spec.id,
+        order=order,
+        relative_heading_rad=float(spec.relative_heading_rad),
+        heading_rad=heading,
+        start_lgf_m=cpa + s_a * h,
+        end_lgf_m=cpa + s_b * h,
+        closest_approach_lgf_m=cpa,
+        speed_mps=float(spec.speed_mps),
+        capture_start_m=cap_a - s_a,
+        capture_end_m=cap_b - s_a,
+        targets_side=side,
+        end_wall_distance_m=float(end_wall),
+    )
+
+
 def plan_passes(
     targets: Sequence[Rectangle],
     wall_azimuth_rad: float,
@@ -140,71 +231,19 @@ def plan_passes(
     aim = np.array([aim[0], aim[1], track_down_m])
     water = water_azimuth(targets, wall_azimuth_rad)
     w = _unit(water)
-    # the wall face: the back of the target group
-    wall_offset = float(np.min((corners - aim) @ w))
-    extra = np.concatenate([r.corners() for r in also_capture]) if also_capture else None
-
-    out = []
-    for order, spec in enumerate(passes, start=1):
-        heading = float(frames.wrap_2pi(wall_azimuth_rad + spec.relative_heading_rad))
-        h = _unit(heading)
-        perp = np.array([-h[1], h[0], 0.0])
-        toward_water = float(perp @ w)
-        if abs(toward_water) < 1e-6:
-            raise PassPlanError(
-                f"pass {spec.id}: relative heading {np.degrees(spec.relative_heading_rad):g}° "
-                f"points straight at the wall; no line at that heading keeps a standoff"
-            )
-        if toward_water < 0:
-            perp = -perp
-        cpa = aim + standoff_m * perp
-        approach = float(h @ w)  # change of the wall distance per metre along the line
-        d0 = float((cpa - aim) @ w) - wall_offset  # wall distance at the CPA
-        if d0 < safe_wall_distance_m:
-            raise PassPlanError(
-                f"pass {spec.id}: its closest approach is only {d0:.2f} m from the wall, less "
-                f"than the safe distance {safe_wall_distance_m:g} m; increase standoff_m"
-            )
-        L = spec.length_m
-        s_a, s_b = -L / 2, L / 2
-        if approach < -_PARALLEL_TOL:  # heading toward the wall: limit the far end
-            s_b = min(s_b, (d0 - safe_wall_distance_m) / -approach)
-            s_a = s_b - L
-        elif approach > _PARALLEL_TOL:  # heading away: limit the near (start) end
-            s_a = max(s_a, -(d0 - safe_wall_distance_m) / approach)
-            s_b = s_a + L
-        s_t = (corners - cpa) @ h
-        cap_a, cap_b = float(s_t.min() - capture_margin_m), float(s_t.max() + capture_margin_m)
-        if cap_a < s_a or cap_b > s_b:
-            raise PassPlanError(
-                f"pass {spec.id} (relative heading {np.degrees(spec.relative_heading_rad):g}°): "
-                f"the capture window [{cap_a:.1f}, {cap_b:.1f}] m around the closest approach "
-                f"does not fit the {L:g} m line [{s_a:.1f}, {s_b:.1f}] m that keeps "
-                f"{safe_wall_distance_m:g} m from the wall; increase standoff_m or length_m"
-            )
-        if extra is not None:
-            s_e = (extra - cpa) @ h
-            cap_a = max(s_a, min(cap_a, float(s_e.min() - capture_margin_m)))
-            cap_b = min(s_b, max(cap_b, float(s_e.max() + capture_margin_m)))
-        starboard = np.array([-np.sin(heading), np.cos(heading), 0.0])
-        side = "starboard" if float(-perp @ starboard) > 0 else "port"
-        end_wall = min(d0 + s_a * approach, d0 + s_b * approach)
-        out.append(
-            PlannedPass(
-                id=spec.id,
-                order=order,
-                relative_heading_rad=float(spec.relative_heading_rad),
-                heading_rad=heading,
-                start_lgf_m=cpa + s_a * h,
-                end_lgf_m=cpa + s_b * h,
-                closest_approach_lgf_m=cpa,
-                speed_mps=float(spec.speed_mps),
-                capture_start_m=cap_a - s_a,
-                capture_end_m=cap_b - s_a,
-                targets_side=side,
-                end_wall_distance_m=float(end_wall),
-            )
-        )
+    lay = _Layout(
+        corners=corners,
+        aim=aim,
+        water=w,
+        # the wall face: the back of the target group
+        wall_offset_m=float(np.min((corners - aim) @ w)),
+        extra=np.concatenate([r.corners() for r in also_capture]) if also_capture else None,
+        wall_azimuth_rad=wall_azimuth_rad,
+        standoff_m=standoff_m,
+        safe_wall_distance_m=safe_wall_distance_m,
+        capture_margin_m=capture_margin_m,
+    )
+    out = [_planned_pass(order, spec, lay) for order, spec in enumerate(passes, start=1)]
     return PassPlan(
         tuple(out),
         aim,
@@ -212,7 +251,7 @@ def plan_passes(
         float(wall_azimuth_rad),
         float(standoff_m),
         float(safe_wall_distance_m),
-        wall_offset,
+        lay.wall_offset_m,
     )
 
 

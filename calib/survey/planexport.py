@@ -33,7 +33,10 @@ FORMAT = "marine-mls pass plan v1"
 
 def _coords(frame: frames.LocalFrame, p_lgf_m) -> list[list[float]]:
     lat, lon, h = frame.to_geodetic(np.atleast_2d(np.asarray(p_lgf_m, float)))
-    return [[round(float(x), 10), round(float(y), 10), round(float(z), 4)] for x, y, z in zip(lon, lat, h)]
+    return [
+        [round(float(x), 10), round(float(y), 10), round(float(z), 4)]
+        for x, y, z in zip(lon, lat, h, strict=False)
+    ]
 
 
 def _pass_properties(p: PlannedPass) -> dict:

@@ -64,7 +64,7 @@ def as_document(run: WatchRun, meta: dict) -> dict:
         "verdict": run_verdict(run),
         "alarm": None if run.alarm is None else run.alarm.as_dict(),
         "lines": run.line_order,
-        "blocks": [b.as_dict() | {"family": f} for b, f in zip(run.blocks, run.families)],
+        "blocks": [b.as_dict() | {"family": f} for b, f in zip(run.blocks, run.families, strict=False)],
         "states": run.states,
     }
 
@@ -113,9 +113,11 @@ def markdown(run: WatchRun, meta: dict) -> str:
         "| block | family | lines | headings ° | start (UTC) | patches | roll ° | pitch ° | yaw ° | statistic |",
         "|---|---|---|---|---|---|---|---|---|---|",
     ]
-    for k, (b, s, f) in enumerate(zip(run.blocks, run.states, run.families)):
+    for k, (b, s, f) in enumerate(zip(run.blocks, run.states, run.families, strict=False)):
         if b.delta_rad is not None:
-            cells = [_angle_cell(x, sd, d.max_sigma_rad) for x, sd in zip(b.delta_rad, b.sigma_rad)]
+            cells = [
+                _angle_cell(x, sd, d.max_sigma_rad) for x, sd in zip(b.delta_rad, b.sigma_rad, strict=False)
+            ]
         else:
             cells = [b.status, "", ""]
         stat = " / ".join(f"{x:.2f}" for x in s["statistic"])

@@ -113,6 +113,11 @@ class WatchRun:
     line_order: list[int]
 
 
+#: the watch's options and test design when the caller gives none (frozen, shared)
+_DEFAULT_OPTIONS = WatchOptions()
+_DEFAULT_DESIGN = WatchDesign()
+
+
 def run_watch(
     points: ScanPoints,
     trajectory: Trajectory,
@@ -120,8 +125,8 @@ def run_watch(
     sigmas: dict,
     model: ErrorModel,
     wall_azimuth_rad: float,
-    options: WatchOptions = WatchOptions(),
-    design: WatchDesign = WatchDesign(),
+    options: WatchOptions = _DEFAULT_OPTIONS,
+    design: WatchDesign = _DEFAULT_DESIGN,
     progress: Callable[[int, int, BlockEstimate], None] | None = None,
 ) -> WatchRun:
     """The watch over every line of ``points`` (``pass_id`` = line id), lines in the order they

@@ -222,7 +222,7 @@ class MountTest:
         family = self.families[first]
         run = [
             blk
-            for blk, f in zip(self.blocks[first : b + 1], self.families[first : b + 1])
+            for blk, f in zip(self.blocks[first : b + 1], self.families[first : b + 1], strict=False)
             if blk.ok and f == family
         ]
         used = run[1:] if len(run) > 1 else run

@@ -6,16 +6,22 @@ The commands are added to the ``mls calib`` group of :mod:`cli.commands.calib_cm
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Annotated
+from typing import TYPE_CHECKING, Annotated, NoReturn
 
 import typer
 
 from cli.commands.calib_cmd import app
 from cli.options import HistoryDb, knn_option
 
+if TYPE_CHECKING:
+    from rich.table import Table
 
-def _fail(message: str) -> None:
+    from calib.assess.c2c import C2CResult
+
+
+def _fail(message: str) -> NoReturn:
     """One line ``error: <message>`` on stderr and exit status 2 (these commands' own status for
     bad input; an uncaught MlsError would give :data:`cli.app.EXIT_ERROR`)."""
     typer.secho(f"error: {message}", err=True, fg=typer.colors.RED)
@@ -36,89 +42,45 @@ def _mm(x: float) -> str:
     return f"{x * 1000.0:.2f}"
 
 
-@app.command("c2c")
-def c2c_cmd(
-    compared: Path = typer.Argument(
-        ..., help="Compared cloud (LAS/LAZ, or ASCII 'x y z' per line): every point of it gets a distance."
-    ),
-    reference: Path = typer.Argument(..., help="Reference cloud the local planes are fitted to."),
-    knn: Annotated[
-        int,
-        knn_option(
-            "Neighbours of the nearest reference point "
-            "in each local least-squares plane (CloudCompare's '-MODEL LS KNN k')."
-        ),
-    ] = 6,
-    out: Path | None = typer.Option(
-        None,
-        "--out",
-        help="Write the compared cloud with its "
-        "distances: .las/.laz get the extra dimension "
-        "'c2c_distance_m' (and 'c2c_signed_distance_m' with "
-        "--signed); any other suffix is ASCII with the distance "
-        "columns appended.",
-    ),
-    signed: bool = typer.Option(
-        False,
-        "--signed",
-        help="Also compute signed distances, the "
-        "local normals oriented along --toward-direction (default 0,0,1: "
-        "up in a z-up cloud) or toward --toward-point.",
-    ),
-    toward_direction: str | None = typer.Option(
-        None, "--toward-direction", metavar="DX,DY,DZ", help="Orientation of the normals for --signed."
-    ),
-    toward_point: str | None = typer.Option(
-        None,
-        "--toward-point",
-        metavar="X,Y,Z",
-        help="Orient the normals for --signed toward this "
-        "point (e.g. the scanner's position: positive = in "
-        "front of the reference surface).",
-    ),
-    max_dist: float | None = typer.Option(
-        None,
-        "--max-dist",
-        min=0.0,
-        help="Maximum search "
-        "distance (m; CloudCompare's -MAX_DIST): farther "
-        "points get this value and are left out of the "
-        "statistics.",
-    ),
-    collinear_tol: float = typer.Option(
-        1e-5,
-        "--collinear-tol",
-        min=0.0,
-        max=0.99,
-        help="A "
-        "neighbourhood narrower than this fraction of its length "
-        "is a line: no plane, the nearest-neighbour distance is "
-        "used. Raise it (e.g. 0.05) for single scan lines.",
-    ),
-    workers: int = typer.Option(1, "--workers", help="Threads for the KD-tree queries (-1: all cores)."),
-) -> None:
-    """Cloud-to-cloud distances to local least-squares planes (CloudCompare's C2C).
+@dataclass(frozen=True)
+class _Orientation:
+    """How ``--signed`` orients the local normals: along a direction or toward a point (or
+    neither when the distances are unsigned)."""
 
-    Same semantics as CloudCompare's '-C2C_DIST -MODEL LS KNN k'.
-    """
-    from rich.console import Console
-    from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
-    from rich.table import Table
+    direction: list[float] | None = None
+    toward_m: list[float] | None = None
 
-    from calib.assess.c2c import c2c
-    from calib.core.errors import MlsError
-    from calib.io.cloudio import read_cloud, write_cloud
 
+def _orientation(signed: bool, toward_direction: str | None, toward_point: str | None) -> _Orientation:
+    """The orientation of the normals that the options ask for; exit 2 on a contradiction."""
     if (toward_direction or toward_point) and not signed:
         _fail("--toward-direction/--toward-point only apply with --signed")
     if toward_direction and toward_point:
         _fail("give --toward-direction or --toward-point, not both")
-    orient = {}
-    if signed:
-        if toward_point:
-            orient["orient_toward_m"] = _vector(toward_point, "--toward-point")
-        else:
-            orient["orient_direction"] = _vector(toward_direction or "0,0,1", "--toward-direction")
+    if not signed:
+        return _Orientation()
+    if toward_point:
+        return _Orientation(toward_m=_vector(toward_point, "--toward-point"))
+    return _Orientation(direction=_vector(toward_direction or "0,0,1", "--toward-direction"))
+
+
+def _run_c2c(
+    compared: Path,
+    reference: Path,
+    knn: int,
+    orient: _Orientation,
+    out: Path | None,
+    max_dist: float | None,
+    collinear_tol: float,
+    workers: int,
+) -> C2CResult:
+    """Read both clouds, compute the distances (a progress bar on stderr), write ``--out``."""
+    from rich.console import Console
+    from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
+
+    from calib.assess.c2c import c2c
+    from calib.core.errors import MlsError
+    from calib.io.cloudio import read_cloud, write_cloud
 
     err = Console(stderr=True, emoji=False)  # ":100:" of file:line:column is no emoji
     try:
@@ -146,13 +108,20 @@ def c2c_cmd(
                 collinear_tol=collinear_tol,
                 workers=workers,
                 progress=lambda done, total: progress.update(t, completed=done),
-                **orient,
+                orient_direction=orient.direction,
+                orient_toward_m=orient.toward_m,
             )
             if out is not None:
                 progress.add_task(f"writing {out}", total=None)
                 write_cloud(out, cmp_cloud, result.extra_dimensions())
     except MlsError as e:
         _fail(str(e))
+    return result
+
+
+def _c2c_table(result: C2CResult, compared: Path, reference: Path, knn: int, signed: bool) -> Table:
+    """The statistics of the distances (mm): local plane, signed, nearest neighbour."""
+    from rich.table import Table
 
     table = Table(title=f"C2C distances of {compared.name} to {reference.name} (mm)")
     for col in ("", "count", "mean", "median", "RMS", "std", "p95 |d|", "max |d|"):
@@ -172,8 +141,11 @@ def c2c_cmd(
             _mm(s.p95_m),
             _mm(s.max_m),
         )
-    console = Console()
-    console.print(table)
+    return table
+
+
+def _c2c_notes(result: C2CResult, max_dist: float | None, out: Path | None) -> list[str]:
+    """The lines under the table: fallbacks, points beyond --max-dist, ambiguous signs, output."""
     notes = []
     if result.n_fallback:
         notes.append(
@@ -182,6 +154,7 @@ def c2c_cmd(
         )
     beyond = len(result) - int(result.within_max.sum())
     if beyond:
+        assert max_dist is not None  # points are beyond only a given --max-dist
         notes.append(f"{beyond:,} points beyond --max-dist {max_dist:g} m: not in the statistics")
     if result.n_ambiguous_sign:
         notes.append(
@@ -190,7 +163,99 @@ def c2c_cmd(
         )
     if out is not None:
         notes.append(f"distances written to {out}")
-    for n in notes:
+    return notes
+
+
+@app.command("c2c")
+def c2c_cmd(
+    compared: Annotated[
+        Path,
+        typer.Argument(
+            help="Compared cloud (LAS/LAZ, or ASCII 'x y z' per line): every point of it gets a distance."
+        ),
+    ],
+    reference: Annotated[Path, typer.Argument(help="Reference cloud the local planes are fitted to.")],
+    knn: Annotated[
+        int,
+        knn_option(
+            "Neighbours of the nearest reference point "
+            "in each local least-squares plane (CloudCompare's '-MODEL LS KNN k')."
+        ),
+    ] = 6,
+    out: Annotated[
+        Path | None,
+        typer.Option(
+            "--out",
+            help="Write the compared cloud with its "
+            "distances: .las/.laz get the extra dimension "
+            "'c2c_distance_m' (and 'c2c_signed_distance_m' with "
+            "--signed); any other suffix is ASCII with the distance "
+            "columns appended.",
+        ),
+    ] = None,
+    signed: Annotated[
+        bool,
+        typer.Option(
+            "--signed",
+            help="Also compute signed distances, the "
+            "local normals oriented along --toward-direction (default 0,0,1: "
+            "up in a z-up cloud) or toward --toward-point.",
+        ),
+    ] = False,
+    toward_direction: Annotated[
+        str | None,
+        typer.Option(
+            "--toward-direction", metavar="DX,DY,DZ", help="Orientation of the normals for --signed."
+        ),
+    ] = None,
+    toward_point: Annotated[
+        str | None,
+        typer.Option(
+            "--toward-point",
+            metavar="X,Y,Z",
+            help="Orient the normals for --signed toward this "
+            "point (e.g. the scanner's position: positive = in "
+            "front of the reference surface).",
+        ),
+    ] = None,
+    max_dist: Annotated[
+        float | None,
+        typer.Option(
+            "--max-dist",
+            min=0.0,
+            help="Maximum search "
+            "distance (m; CloudCompare's -MAX_DIST): farther "
+            "points get this value and are left out of the "
+            "statistics.",
+        ),
+    ] = None,
+    collinear_tol: Annotated[
+        float,
+        typer.Option(
+            "--collinear-tol",
+            min=0.0,
+            max=0.99,
+            help="A "
+            "neighbourhood narrower than this fraction of its length "
+            "is a line: no plane, the nearest-neighbour distance is "
+            "used. Raise it (e.g. 0.05) for single scan lines.",
+        ),
+    ] = 1e-5,
+    workers: Annotated[
+        int, typer.Option("--workers", help="Threads for the KD-tree queries (-1: all cores).")
+    ] = 1,
+) -> None:
+    """Cloud-to-cloud distances to local least-squares planes (CloudCompare's C2C).
+
+    Same semantics as CloudCompare's '-C2C_DIST -MODEL LS KNN k'.
+    """
+    from rich.console import Console
+
+    orient = _orientation(signed, toward_direction, toward_point)
+    result = _run_c2c(compared, reference, knn, orient, out, max_dist, collinear_tol, workers)
+    console = Console()
+    console.print(_c2c_table(result, compared, reference, knn, signed))
+    for n in _c2c_notes(result, max_dist, out):
         console.print(n)
 
 

@@ -31,7 +31,8 @@ def parse_triple_deg(text: str, option: str) -> tuple[float, float, float]:
             f"got {text!r}, expected three numbers 'roll,pitch,yaw' in degrees, e.g. 0.208,1.245,0.149",
             param_hint=option,
         )
-    return values  # type: ignore[return-value]
+    roll, pitch, yaw = values
+    return roll, pitch, yaw
 
 
 def summary_table(outputs: list[PassOutput], facts: dict, out_dir: Path):
@@ -133,8 +134,8 @@ def georef(
             "Calibration bundle directory: site.yaml, trajectory.csv (or trajectory.sbet "
             "[+ trajectory.smrmsg]) and points.csv[.gz]."
         ),
-    ] = ...,
-    out: Annotated[Path, out_option("Output directory (created); one file pass-<id>.laz per pass.")] = ...,
+    ],
+    out: Annotated[Path, out_option("Output directory (created); one file pass-<id>.laz per pass.")],
     force: Force = False,
     crs: Annotated[
         str,
@@ -144,18 +145,20 @@ def georef(
             "pyproj CRS such as EPSG:2950 (a 2D CRS keeps ellipsoidal heights)."
         ),
     ] = "utm",
-    boresight_deg: str = typer.Option(
-        None,
-        "--boresight-deg",
-        metavar="R,P,Y",
-        help="Boresight roll,pitch,yaw in degrees, "
-        "canonical convention (docs/architecture.md §3; thesis pitch is negated); default: site.yaml's "
-        "mount.boresight_apriori_deg.",
-    ),
+    boresight_deg: Annotated[
+        str | None,
+        typer.Option(
+            "--boresight-deg",
+            metavar="R,P,Y",
+            help="Boresight roll,pitch,yaw in degrees, "
+            "canonical convention (docs/architecture.md §3; thesis pitch is negated); default: site.yaml's "
+            "mount.boresight_apriori_deg.",
+        ),
+    ] = None,
     las: Las = False,
-    max_gap_s: float = typer.Option(
-        1.0, "--max-gap-s", min=0.0, help="Longest trajectory gap to interpolate across (s)."
-    ),
+    max_gap_s: Annotated[
+        float, typer.Option("--max-gap-s", min=0.0, help="Longest trajectory gap to interpolate across (s).")
+    ] = 1.0,
     skip_uncovered: Annotated[
         bool,
         skip_uncovered_option(
@@ -163,12 +166,14 @@ def georef(
             "(counted in the table) instead of stopping with an error."
         ),
     ] = False,
-    chunk_points: int = typer.Option(
-        DEFAULT_CHUNK_POINTS,
-        "--chunk-points",
-        min=1,
-        help="Points georeferenced and written per step; bounds the memory one pass needs.",
-    ),
+    chunk_points: Annotated[
+        int,
+        typer.Option(
+            "--chunk-points",
+            min=1,
+            help="Points georeferenced and written per step; bounds the memory one pass needs.",
+        ),
+    ] = DEFAULT_CHUNK_POINTS,
 ) -> None:
     """``mls calib georef`` (its help text is :data:`GEOREF_HELP`)."""
     bs = parse_triple_deg(boresight_deg, "--boresight-deg") if boresight_deg else None

@@ -5,13 +5,20 @@ from __future__ import annotations
 import json
 import sys
 from array import array
+from dataclasses import dataclass, field
 from enum import Enum
 from pathlib import Path
-from typing import Annotated
+from typing import TYPE_CHECKING, Annotated
 
 import typer
 
 from cli.options import json_option
+
+if TYPE_CHECKING:
+    from rich.console import Console
+    from rich.table import Table
+
+    from drivers.capture.files import FileDecoder
 
 
 class Format(str, Enum):
@@ -29,30 +36,38 @@ class Payload(str, Enum):
 
 
 def decode(
-    file: Path = typer.Argument(
-        ..., help="The recorded file: a raw stream, a stamped log or a packet capture."
-    ),
-    fmt: Format = typer.Option(
-        ..., "--format", "-f", help="What the file holds: nmea, stdbin, zfp or pcapng."
-    ),
-    payload: Payload = typer.Option(
-        Payload.stdbin, "--payload", help="pcapng only: the protocol carried in the UDP payloads."
-    ),
-    port: int | None = typer.Option(
-        None, "--port", help="pcapng only: keep UDP datagrams to or from this port."
-    ),
+    file: Annotated[
+        Path, typer.Argument(help="The recorded file: a raw stream, a stamped log or a packet capture.")
+    ],
+    fmt: Annotated[
+        Format, typer.Option("--format", "-f", help="What the file holds: nmea, stdbin, zfp or pcapng.")
+    ],
+    payload: Annotated[
+        Payload, typer.Option("--payload", help="pcapng only: the protocol carried in the UDP payloads.")
+    ] = Payload.stdbin,
+    port: Annotated[
+        int | None, typer.Option("--port", help="pcapng only: keep UDP datagrams to or from this port.")
+    ] = None,
     as_json: Annotated[bool, json_option("Print one JSON object per record (summary on stderr).")] = False,
-    nav: bool = typer.Option(
-        False, "--nav", help="INS formats: print canonical navigation records (radians → degrees, NED, FRD)."
-    ),
-    timing: bool = typer.Option(
-        False, "--timing", help="Fit the device time tags against the receive stamps: drift, offset, jitter."
-    ),
-    date: str | None = typer.Option(
-        None,
-        "--date",
-        help="UTC date YYYY-MM-DD for time tags when the file carries none (no ZDA/system date).",
-    ),
+    nav: Annotated[
+        bool,
+        typer.Option(
+            "--nav", help="INS formats: print canonical navigation records (radians → degrees, NED, FRD)."
+        ),
+    ] = False,
+    timing: Annotated[
+        bool,
+        typer.Option(
+            "--timing", help="Fit the device time tags against the receive stamps: drift, offset, jitter."
+        ),
+    ] = False,
+    date: Annotated[
+        str | None,
+        typer.Option(
+            "--date",
+            help="UTC date YYYY-MM-DD for time tags when the file carries none (no ZDA/system date).",
+        ),
+    ] = None,
 ) -> None:
     """Decode a recorded device file; end with a summary: records, bytes, rejected frames and why.
 
@@ -60,12 +75,9 @@ def decode(
     read or when it gives no valid record (the message says what was skipped instead)."""
     from rich.console import Console
     from rich.markup import escape
-    from rich.progress import BarColumn, Progress, TextColumn
-    from rich.table import Table
 
-    from calib.core.errors import MlsError
     from drivers.base import DriverError
-    from drivers.capture.files import FileDecoder, json_default, record_to_dict, record_type, time_sample
+    from drivers.capture.files import FileDecoder
 
     err = Console(stderr=True, emoji=False)  # ":100:" of file:line:column is no emoji
     out = Console()
@@ -75,8 +87,38 @@ def decode(
         err.print(f"[red]error:[/red] {exc}")
         raise typer.Exit(2) from exc
 
-    counts: dict[str, int] = {}
-    host_ns, device_ns = array("q"), array("q")  # --timing: 16 bytes per time-tagged record
+    decoded = _decode_records(fd, as_json, timing, err)
+    if not as_json:
+        out.print(_counts_table(decoded.counts, file, fmt, payload))
+    if timing:
+        _print_timing(decoded.host_ns, decoded.device_ns, out if not as_json else err)
+    (err if as_json else out).print(_summary(fd), highlight=False, soft_wrap=True)
+    if not decoded.counts:
+        err.print(f"[red]error:[/red] {escape(fd.no_record_message())}", highlight=False, soft_wrap=True)
+        raise typer.Exit(2)
+
+
+@dataclass
+class _Decoded:
+    """What the pass over the file gathered: records per type, and the time-tag samples of
+    ``--timing`` (16 bytes per time-tagged record)."""
+
+    counts: dict[str, int] = field(default_factory=dict)
+    host_ns: array = field(default_factory=lambda: array("q"))
+    device_ns: array = field(default_factory=lambda: array("q"))
+
+
+def _decode_records(fd: FileDecoder, as_json: bool, timing: bool, err: Console) -> _Decoded:
+    """Stream the file once: count the records by type, keep the time samples of ``--timing``,
+    print each record with ``--json``; a progress bar on a terminal's stderr. Exit status 2
+    when the file cannot be read, 0 when stdout's reader leaves (``| head``)."""
+    from rich.progress import BarColumn, Progress, TextColumn
+
+    from calib.core.errors import MlsError
+    from drivers.capture.files import json_default, record_to_dict, record_type, time_sample
+
+    decoded = _Decoded()
+    counts = decoded.counts
     try:
         with Progress(
             TextColumn("decoding"),
@@ -94,43 +136,53 @@ def decode(
                 if timing:
                     sample = time_sample(rec)
                     if sample is not None:
-                        host_ns.append(sample[0])
-                        device_ns.append(sample[1])
+                        decoded.host_ns.append(sample[0])
+                        decoded.device_ns.append(sample[1])
                 if as_json:
-                    try:
-                        sys.stdout.write(json.dumps(d, default=json_default) + "\n")
-                    except BrokenPipeError:  # `mls decode ... --json | head`
-                        sys.stdout = None
-                        raise typer.Exit(0) from None
+                    _write_json_line(json.dumps(d, default=json_default))
                 progress.update(task, completed=fd.bytes_done)
     except (MlsError, OSError) as exc:
         err.print(f"[red]error:[/red] {exc}")
         raise typer.Exit(2) from exc
+    return decoded
 
+
+def _write_json_line(line: str) -> None:
+    """One ``--json`` record on stdout; exit 0 when its reader has gone (``mls decode ... --json | head``)."""
+    try:
+        sys.stdout.write(line + "\n")
+    except BrokenPipeError:
+        sys.stdout = None  # nothing more goes to the closed pipe (not even at exit)
+        raise typer.Exit(0) from None
+
+
+def _summary(fd: FileDecoder) -> str:
+    """The summary line: the decoder's statistics, and for a capture what it held and skipped."""
     summary = f"summary: {fd.stats.summary()}"
     if fd.capture_stats is not None:
+        assert fd.udp_stats is not None  # a capture has both its packet and its UDP statistics
         summary += (
             f"; capture: {fd.capture_stats.records} packets, {fd.udp_stats.records} UDP datagrams decoded"
         )
         skipped = {**fd.capture_stats.rejected, **fd.udp_stats.events}
         if skipped:
             summary += " (skipped " + ", ".join(f"{k}: {v}" for k, v in sorted(skipped.items())) + ")"
-    if not as_json:
-        table = Table(title=f"{file.name} ({fmt.value}{'/' + payload.value if fmt is Format.pcapng else ''})")
-        table.add_column("record type")
-        table.add_column("count", justify="right")
-        for kind, n in sorted(counts.items()):
-            table.add_row(kind, str(n))
-        out.print(table)
-    if timing:
-        _print_timing(host_ns, device_ns, out if not as_json else err)
-    (err if as_json else out).print(summary, highlight=False, soft_wrap=True)
-    if not counts:
-        err.print(f"[red]error:[/red] {escape(fd.no_record_message())}", highlight=False, soft_wrap=True)
-        raise typer.Exit(2)
+    return summary
 
 
-def _print_timing(host_ns: array, device_ns: array, console) -> None:
+def _counts_table(counts: dict[str, int], file: Path, fmt: Format, payload: Payload) -> Table:
+    """Records per type, by type name."""
+    from rich.table import Table
+
+    table = Table(title=f"{file.name} ({fmt.value}{'/' + payload.value if fmt is Format.pcapng else ''})")
+    table.add_column("record type")
+    table.add_column("count", justify="right")
+    for kind, n in sorted(counts.items()):
+        table.add_row(kind, str(n))
+    return table
+
+
+def _print_timing(host_ns: array, device_ns: array, console: Console) -> None:
     from rich.table import Table
 
     from drivers.timing import fit_clock, signed_time_of_day_offset_s, unwrap_time_of_day_ns

@@ -43,12 +43,14 @@ def design(
         str | None,
         scenario_option("Study a shipped scenario (montreal, terrestrial, tower) or a scenario YAML file."),
     ] = None,
-    site: Path | None = typer.Option(
-        None,
-        "--site",
-        metavar="SITE.YAML",
-        help="Predict σ for the planned site and pattern of a site config (what-if).",
-    ),
+    site: Annotated[
+        Path | None,
+        typer.Option(
+            "--site",
+            metavar="SITE.YAML",
+            help="Predict σ for the planned site and pattern of a site config (what-if).",
+        ),
+    ] = None,
     out: Annotated[
         Path | None,
         out_option(
@@ -57,66 +59,83 @@ def design(
         ),
     ] = None,
     force: Force = False,
-    jobs: int = typer.Option(
-        1, "--jobs", "-j", min=1, help="Worker processes (results do not depend on it)."
-    ),
-    targets: int | None = typer.Option(
-        None,
-        "--targets",
-        min=1,
-        help="Constraint of the recommendation: number of targets (default: the scenario's).",
-    ),
-    max_size: float | None = typer.Option(
-        None,
-        "--max-size",
-        min=0.05,
-        help="Constraint: largest target dimension in metres (default: the scenario's largest).",
-    ),
-    passes: str | None = typer.Option(
-        None,
-        "--passes",
-        metavar="IDS",
-        help="Constraint: pass ids the survey may sail, e.g. 1,2,3,4 (default: all).",
-    ),
-    group: list[str] = typer.Option(
-        [],
-        "--group",
-        metavar="GROUP",
-        help="Only these σ sweeps (repeatable): passes, site_passes, inclination, size, planes, "
-        "standoff, height, layout (the recommendation's search).",
-    ),
-    error: list[str] = typer.Option(
-        [],
-        "--error",
-        metavar="ERROR",
-        help="Only these systematic errors in the visibility criteria (repeatable): "
-        "boresight_roll, boresight_pitch, boresight_yaw, lever_arm_x, lever_arm_y, "
-        "lever_arm_z, range_offset, scan_angle_offset; 'none' skips the criteria.",
-    ),
-    seeds: int = typer.Option(
-        0,
-        "--seeds",
-        min=0,
-        help="Monte Carlo check: simulate the recommended site and the scenario's own site with "
-        "the scenario's noise this many times, adjust, and report the errors side by side.",
-    ),
-    template: str = typer.Option(
-        "montreal",
-        "--template",
-        metavar="NAME|PATH",
-        help="With --site: the scenario that supplies the profiler, its rates and the vessel motion.",
-    ),
-    scanner_height_m: float | None = typer.Option(
-        None,
-        "--scanner-height-m",
-        help="With --site: ellipsoidal height of the scanner on the water (default: the site's "
-        "reference height).",
-    ),
+    jobs: Annotated[
+        int, typer.Option("--jobs", "-j", min=1, help="Worker processes (results do not depend on it).")
+    ] = 1,
+    targets: Annotated[
+        int | None,
+        typer.Option(
+            "--targets",
+            min=1,
+            help="Constraint of the recommendation: number of targets (default: the scenario's).",
+        ),
+    ] = None,
+    max_size: Annotated[
+        float | None,
+        typer.Option(
+            "--max-size",
+            min=0.05,
+            help="Constraint: largest target dimension in metres (default: the scenario's largest).",
+        ),
+    ] = None,
+    passes: Annotated[
+        str | None,
+        typer.Option(
+            "--passes",
+            metavar="IDS",
+            help="Constraint: pass ids the survey may sail, e.g. 1,2,3,4 (default: all).",
+        ),
+    ] = None,
+    group: Annotated[
+        list[str] | None,
+        typer.Option(
+            "--group",
+            metavar="GROUP",
+            help="Only these σ sweeps (repeatable): passes, site_passes, inclination, size, planes, "
+            "standoff, height, layout (the recommendation's search).",
+        ),
+    ] = None,
+    error: Annotated[
+        list[str] | None,
+        typer.Option(
+            "--error",
+            metavar="ERROR",
+            help="Only these systematic errors in the visibility criteria (repeatable): "
+            "boresight_roll, boresight_pitch, boresight_yaw, lever_arm_x, lever_arm_y, "
+            "lever_arm_z, range_offset, scan_angle_offset; 'none' skips the criteria.",
+        ),
+    ] = None,
+    seeds: Annotated[
+        int,
+        typer.Option(
+            "--seeds",
+            min=0,
+            help="Monte Carlo check: simulate the recommended site and the scenario's own site with "
+            "the scenario's noise this many times, adjust, and report the errors side by side.",
+        ),
+    ] = 0,
+    template: Annotated[
+        str,
+        typer.Option(
+            "--template",
+            metavar="NAME|PATH",
+            help="With --site: the scenario that supplies the profiler, its rates and the vessel motion.",
+        ),
+    ] = "montreal",
+    scanner_height_m: Annotated[
+        float | None,
+        typer.Option(
+            "--scanner-height-m",
+            help="With --site: ellipsoidal height of the scanner on the water (default: the site's "
+            "reference height).",
+        ),
+    ] = None,
     seed: Annotated[int, seed_option("Simulation seed (vessel motion phases).")] = 0,
     set_: Annotated[
-        list[str], set_option("Override a scenario value by dotted key, as for mls sim dataset (repeatable).")
-    ] = (),
-    figures: bool = typer.Option(True, "--figures/--no-figures", help="Write the PNG figures."),
+        list[str] | None,
+        set_option("Override a scenario value by dotted key, as for mls sim dataset (repeatable)."),
+    ] = None,
+    figures: Annotated[bool, typer.Option("--figures/--no-figures", help="Write the PNG figures.")] = True,
 ) -> None:
     """``mls design`` (its help text is :data:`HELP`)."""
     from rich.console import Console
@@ -144,11 +163,11 @@ def design(
                 targets,
                 max_size,
                 _passes(passes),
-                group,
-                error,
+                group or [],
+                error or [],
                 seeds,
                 seed,
-                set_,
+                set_ or [],
                 figures,
             )
     except (MlsError, OSError) as e:

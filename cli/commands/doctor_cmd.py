@@ -93,10 +93,12 @@ def _print_live(con, live: dict) -> None:
 def doctor(
     config: Annotated[Path, vessel_config_option("Vessel config (YAML).")] = DEFAULT_CONFIG,
     as_json: Annotated[bool, json_option("Print the report as JSON (docs/doctor.md).")] = False,
-    hours: float = typer.Option(8.0, "--hours", min=0.0, help="Hours of survey planned (disk check)."),
-    pps_wait_s: float = typer.Option(
-        2.5, "--pps-wait", min=0.1, max=30.0, help="Seconds to wait for PPS pulses."
-    ),
+    hours: Annotated[
+        float, typer.Option("--hours", min=0.0, help="Hours of survey planned (disk check).")
+    ] = 8.0,
+    pps_wait_s: Annotated[
+        float, typer.Option("--pps-wait", min=0.1, max=30.0, help="Seconds to wait for PPS pulses.")
+    ] = 2.5,
 ) -> None:
     """``mls doctor`` (its help text is :data:`HELP`)."""
     import json

@@ -3,11 +3,16 @@
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Annotated
+from typing import TYPE_CHECKING, Annotated
 
 import typer
 
 from cli.options import SessionDir, json_option, session_argument
+
+if TYPE_CHECKING:
+    from rich.table import Table
+
+    from acquire.log.recover import SegmentInfo, SessionInfo
 
 app = typer.Typer(
     help="Session logs: summary (info) and salvage of torn segments (recover).", no_args_is_help=True
@@ -31,10 +36,13 @@ def _session_arg(session: Path) -> Path:
 
 @app.command("info")
 def info(
-    session: SessionDir = ...,
-    gap_s: float = typer.Option(
-        1.0, "--gap", help="Report pauses longer than this (s) and than 5 × the channel's typical period."
-    ),
+    session: SessionDir,
+    gap_s: Annotated[
+        float,
+        typer.Option(
+            "--gap", help="Report pauses longer than this (s) and than 5 × the channel's typical period."
+        ),
+    ] = 1.0,
     as_json: Annotated[bool, json_option("Print the summary as JSON.")] = False,
 ) -> None:
     """Segments, channels, message counts, time span, gaps and sequence continuity of a session.
@@ -48,7 +56,6 @@ def info(
 
     from rich.console import Console
     from rich.progress import Progress
-    from rich.table import Table
 
     from acquire.log.recover import session_info
 
@@ -64,21 +71,37 @@ def info(
         typer.echo(json.dumps(info_.as_dict(), indent=2))
         raise typer.Exit(1 if bad_segments or discontinuous else 0)
     con = Console()
+    con.print(_segments_table(session, info_))
+    con.print(_channels_table(info_))
+    for line in _info_summary(session, info_, bad_segments):
+        con.print(line)
+    raise typer.Exit(1 if bad_segments or discontinuous else 0)
+
+
+def _segment_note(s: SegmentInfo) -> str:
+    """What is to know about a segment beyond its state: torn tail, problem, recovery, end."""
+    note = []
+    if s.torn_bytes:
+        note.append(f"torn tail {s.torn_bytes} B")
+    if s.problem:
+        note.append(s.problem)
+    if s.recovery:
+        note.append(f"recovered (torn {s.recovery.get('torn_bytes')} B)")
+    if s.end_reason:
+        note.append(s.end_reason)
+    if s.host_time:
+        note.append(f"{s.host_time} before the PPS lock (host time)")
+    return "; ".join(note)
+
+
+def _segments_table(session: Path, info_: SessionInfo) -> Table:
+    """One row per segment: state, size, messages, first and last log time, note."""
+    from rich.table import Table
+
     st = Table(title=f"{session.name}: segments")
     for col in ("segment", "state", "MiB", "messages", "first (UTC, GPS log time)", "last", "note"):
         st.add_column(col, justify="right" if col in ("MiB", "messages") else "left")
     for s in info_.segments:
-        note = []
-        if s.torn_bytes:
-            note.append(f"torn tail {s.torn_bytes} B")
-        if s.problem:
-            note.append(s.problem)
-        if s.recovery:
-            note.append(f"recovered (torn {s.recovery.get('torn_bytes')} B)")
-        if s.end_reason:
-            note.append(s.end_reason)
-        if s.host_time:
-            note.append(f"{s.host_time} before the PPS lock (host time)")
         st.add_row(
             s.name,
             s.state,
@@ -86,9 +109,15 @@ def info(
             str(s.messages),
             _utc(s.first_log_ns),
             _utc(s.last_log_ns),
-            "; ".join(note),
+            _segment_note(s),
         )
-    con.print(st)
+    return st
+
+
+def _channels_table(info_: SessionInfo) -> Table:
+    """One row per channel: messages, sequence range and its holes, gaps, unlocked stamps."""
+    from rich.table import Table
+
     ct = Table(title="channels")
     for col in (
         "channel",
@@ -115,33 +144,42 @@ def info(
             str(c.unlocked),
             str(c.host_time),
         )
-    con.print(ct)
+    return ct
+
+
+def _info_summary(session: Path, info_: SessionInfo, bad_segments: list[SegmentInfo]) -> list[str]:
+    """The lines under the tables: totals and span, host-time messages, missing sequence
+    numbers (five ranges per channel), the advice to recover."""
+    lines = []
     first, last = info_.span_ns
     span = (last - first) / 1e9 if first is not None and last is not None else 0.0
-    con.print(
+    lines.append(
         f"{len(info_.segments)} segments, {info_.messages} messages, {_utc(first)} → "
         f"{_utc(last)} UTC ({span:.1f} s of GPS time); {len(bad_segments)} segment(s) not complete, "
         f"{sum(c.missing for c in info_.channels.values())} sequence number(s) missing"
     )
     if info_.host_time_messages:
-        con.print(
+        lines.append(
             f"{info_.host_time_messages} message(s) stamped before the PPS lock carry the host's "
             "clock, not GPS time: counted, left out of the span and the gaps"
         )
     for c in info_.channels.values():
         for a, b in c.missing_ranges[:5]:
-            con.print(f"  {c.topic}: sequence {a}–{b} missing")
+            lines.append(f"  {c.topic}: sequence {a}–{b} missing")
     if bad_segments and any(s.state == "unfinished" for s in bad_segments):
-        con.print(f"run `mls logs recover {session}` to salvage the unfinished segment(s)")
-    raise typer.Exit(1 if bad_segments or discontinuous else 0)
+        lines.append(f"run `mls logs recover {session}` to salvage the unfinished segment(s)")
+    return lines
 
 
 @app.command("recover")
 def recover(
-    session: Annotated[Path, session_argument("Session directory to salvage.")] = ...,
-    keep_torn: bool = typer.Option(
-        True, "--keep-torn/--delete-torn", help="Keep each original torn segment as seg-NNNNNN.mcap.torn."
-    ),
+    session: Annotated[Path, session_argument("Session directory to salvage.")],
+    keep_torn: Annotated[
+        bool,
+        typer.Option(
+            "--keep-torn/--delete-torn", help="Keep each original torn segment as seg-NNNNNN.mcap.torn."
+        ),
+    ] = True,
 ) -> None:
     """Rewrite every unfinished segment as a valid MCAP with all its complete messages.
 

@@ -4,11 +4,14 @@ status socket) and ``mls checklist`` (the Textual screen for the calibration sur
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Annotated, Any
+from typing import TYPE_CHECKING, Annotated, Any
 
 import typer
 
 from cli.options import json_option, socket_option, vessel_config_option
+
+if TYPE_CHECKING:
+    from rich.table import Table
 
 DEFAULT_SOCKET = Path("/run/mls/status.sock")
 
@@ -27,14 +30,16 @@ def _fmt(value: Any) -> str:
 
 def status(
     socket: Annotated[
-        Path,
+        Path | None,
         socket_option(
             f"Status socket of the daemon [default: the config's status.socket, else {DEFAULT_SOCKET}]."
         ),
     ] = None,
-    config: Annotated[Path, vessel_config_option("Vessel config: take the socket path from it.")] = None,
+    config: Annotated[
+        Path | None, vessel_config_option("Vessel config: take the socket path from it.")
+    ] = None,
     as_json: Annotated[bool, json_option("Print the raw snapshot as JSON.")] = False,
-    timeout_s: float = typer.Option(3.0, "--timeout", help="Seconds to wait for the daemon."),
+    timeout_s: Annotated[float, typer.Option("--timeout", help="Seconds to wait for the daemon.")] = 3.0,
 ) -> None:
     """Show the running daemon's status once: state, clock, devices, log, active alarms (and the
     mount watch's verdict when it runs).
@@ -42,9 +47,6 @@ def status(
     Exit status: 0 ok, 1 daemon unreachable, 2 critical alarms active or daemon state lost.
     """
     import json
-
-    from rich.console import Console
-    from rich.table import Table
 
     from acquire.status.bus import read_snapshot
 
@@ -61,44 +63,59 @@ def status(
     if as_json:
         typer.echo(json.dumps(snap, indent=2, sort_keys=True))
     else:
-        con = Console()
-        st = dict(snap.get("status", {}))
-        alarms = st.pop("alarms", []) or []
-        t = Table(title=f"mls status — {path}", show_header=False)
-        t.add_column("item", style="bold")
-        t.add_column("value")
-        for k, v in st.items():
-            t.add_row(k, _fmt(v))
-        for k, v in snap.get("clock", {}).items():
-            t.add_row(f"clock.{k}", _fmt(v))
-        con.print(t)
-        sensors = {k.split("/", 1)[1]: v for k, v in snap.items() if k.startswith("sensors/")}
-        if sensors:
-            cols = list(dict.fromkeys(c for v in sensors.values() for c in v))
-            dt = Table(title="devices")
-            dt.add_column("device", style="bold")
-            for c in cols:
-                dt.add_column(c)
-            for name, v in sorted(sensors.items()):
-                dt.add_row(name, *(_fmt(v.get(c)) for c in cols))
-            con.print(dt)
-        if snap.get("checklist"):
-            ct = Table(title="checklist", show_header=False)
-            for k, v in snap["checklist"].items():
-                ct.add_row(k, _fmt(v))
-            con.print(ct)
-        if mount := snap.get("mount"):  # the mount watch's verdict, on a line of its own
-            con.print(f"mount watch: {mount.get('verdict', '?')}", highlight=False)
-        at = Table(title=f"active alarms: {len(alarms)}")
-        for c in ("severity", "name", "device", "message"):
-            at.add_column(c)
-        for a in alarms:
-            at.add_row(*(_fmt(a.get(c)) for c in ("severity", "name", "device", "message")))
-        con.print(at)
+        _print_status(snap, path)
     state = snap.get("status", {}).get("state")
     alarms = snap.get("status", {}).get("alarms") or []
     if state == "lost" or any(a.get("severity") == "critical" for a in alarms):
         raise typer.Exit(EXIT_CRITICAL)
+
+
+def _print_status(snap: dict[str, Any], path: Path) -> None:
+    """The snapshot as tables: status and clock, devices, checklist, mount watch, alarms."""
+    from rich.console import Console
+    from rich.table import Table
+
+    con = Console()
+    st = dict(snap.get("status", {}))
+    alarms = st.pop("alarms", []) or []
+    t = Table(title=f"mls status — {path}", show_header=False)
+    t.add_column("item", style="bold")
+    t.add_column("value")
+    for k, v in st.items():
+        t.add_row(k, _fmt(v))
+    for k, v in snap.get("clock", {}).items():
+        t.add_row(f"clock.{k}", _fmt(v))
+    con.print(t)
+    sensors = {k.split("/", 1)[1]: v for k, v in snap.items() if k.startswith("sensors/")}
+    if sensors:
+        con.print(_devices_table(sensors))
+    if snap.get("checklist"):
+        ct = Table(title="checklist", show_header=False)
+        for k, v in snap["checklist"].items():
+            ct.add_row(k, _fmt(v))
+        con.print(ct)
+    if mount := snap.get("mount"):  # the mount watch's verdict, on a line of its own
+        con.print(f"mount watch: {mount.get('verdict', '?')}", highlight=False)
+    at = Table(title=f"active alarms: {len(alarms)}")
+    for c in ("severity", "name", "device", "message"):
+        at.add_column(c)
+    for a in alarms:
+        at.add_row(*(_fmt(a.get(c)) for c in ("severity", "name", "device", "message")))
+    con.print(at)
+
+
+def _devices_table(sensors: dict[str, dict[str, Any]]) -> Table:
+    """One row per device, one column per field any device reports."""
+    from rich.table import Table
+
+    cols = list(dict.fromkeys(c for v in sensors.values() for c in v))
+    dt = Table(title="devices")
+    dt.add_column("device", style="bold")
+    for c in cols:
+        dt.add_column(c)
+    for name, v in sorted(sensors.items()):
+        dt.add_row(name, *(_fmt(v.get(c)) for c in cols))
+    return dt
 
 
 CHECKLIST_HELP = (
@@ -116,31 +133,36 @@ CHECKLIST_HELP = (
 
 def checklist(
     socket: Annotated[
-        Path,
+        Path | None,
         socket_option(
             "Status socket of the daemon (default: the config's status.socket, else /run/mls/status.sock)."
         ),
     ] = None,
-    mqtt: str = typer.Option(
-        None, "--mqtt", metavar="HOST:PORT", help="Read the status from an MQTT broker instead of the socket."
-    ),
-    vessel: str = typer.Option(
-        "+", "--vessel", help="Vessel name in the MQTT topics (<prefix>/<vessel>/…); + for any."
-    ),
-    prefix: str = typer.Option("mls", "--prefix", help="MQTT topic prefix."),
+    mqtt: Annotated[
+        str | None,
+        typer.Option(
+            "--mqtt", metavar="HOST:PORT", help="Read the status from an MQTT broker instead of the socket."
+        ),
+    ] = None,
+    vessel: Annotated[
+        str, typer.Option("--vessel", help="Vessel name in the MQTT topics (<prefix>/<vessel>/…); + for any.")
+    ] = "+",
+    prefix: Annotated[str, typer.Option("--prefix", help="MQTT topic prefix.")] = "mls",
     config: Annotated[
-        Path,
+        Path | None,
         vessel_config_option(
             "Vessel config: the socket path, the MQTT credentials, prefix and vessel, the session directory."
         ),
     ] = None,
-    session: Path = typer.Option(
-        None,
-        "--session",
-        help='Session directory that "calibrate '
-        'now" runs on (default: the one the daemon reports, under '
-        "the config's session directory).",
-    ),
+    session: Annotated[
+        Path | None,
+        typer.Option(
+            "--session",
+            help='Session directory that "calibrate '
+            'now" runs on (default: the one the daemon reports, under '
+            "the config's session directory).",
+        ),
+    ] = None,
 ) -> None:
     """``mls checklist`` (its help text is :data:`HELP`)."""
     from acquire.status.feed import MqttFeed, SocketFeed, parse_host_port
@@ -168,7 +190,7 @@ def checklist(
             host, port = parse_host_port(mqtt)
         except ValueError as e:
             raise typer.BadParameter(str(e), param_hint="--mqtt") from None
-        feed = MqttFeed(host, port, prefix, vessel, username, password)
+        feed: MqttFeed | SocketFeed = MqttFeed(host, port, prefix, vessel, username, password)
     else:
         feed = SocketFeed(socket or Path("/run/mls/status.sock"))
     ChecklistApp(feed, session=str(session) if session else None, session_root=session_root).run()

@@ -4,11 +4,18 @@ from __future__ import annotations
 
 import re
 from pathlib import Path
-from typing import Annotated
+from typing import TYPE_CHECKING, Annotated, NoReturn
 
 import typer
 
 from cli.options import out_option, socket_option
+
+if TYPE_CHECKING:
+    from rich.table import Table
+
+    from calib.core.frames import LocalFrame
+    from calib.io.site import Site
+    from calib.survey.passplan import PassPlan
 
 HELP = (
     "Plan the calibration lines of a site (the six-fold pattern of its pass plan) and write them "
@@ -44,67 +51,95 @@ def _say_link(data: dict) -> None:
 
 
 def plan(
-    site_file: Path = typer.Argument(
-        ...,
-        metavar="SITE",
-        help="Site config (site.yaml) with reference, targets, wall azimuth, standoff and passes.",
-    ),
+    site_file: Annotated[
+        Path,
+        typer.Argument(
+            metavar="SITE",
+            help="Site config (site.yaml) with reference, targets, wall azimuth, standoff and passes.",
+        ),
+    ],
     out: Annotated[
-        Path, out_option("GeoJSON file to write (the lines, capture windows and targets).")
+        Path | None, out_option("GeoJSON file to write (the lines, capture windows and targets).")
     ] = None,
-    capture_margin_m: float = typer.Option(
-        3.0,
-        "--capture-margin-m",
-        min=0.0,
-        help="Along-track margin of the capture window around the targets.",
-    ),
-    safe_wall_distance_m: float = typer.Option(
-        5.0, "--safe-wall-distance-m", min=0.0, help="Closest a line may come to the wall."
-    ),
-    nmea: bool = typer.Option(
-        False, "--nmea", help="Emit NMEA $--XTE and $--APB for the active line (with --position or --follow)."
-    ),
-    active_pass: int = typer.Option(
-        None,
-        "--active-pass",
-        "-p",
-        help="Pass id the autopilot "
-        "follows (default: the daemon's active pass with --follow, "
-        "else the first pass).",
-    ),
-    position: str = typer.Option(
-        None, "--position", metavar="LAT,LON", help="Vessel position (degrees) for a one-shot XTE/APB."
-    ),
-    follow: bool = typer.Option(
-        False,
-        "--follow",
-        help="Follow the vessel from the daemon's status socket and emit at every update until Ctrl-C.",
-    ),
+    capture_margin_m: Annotated[
+        float,
+        typer.Option(
+            "--capture-margin-m", min=0.0, help="Along-track margin of the capture window around the targets."
+        ),
+    ] = 3.0,
+    safe_wall_distance_m: Annotated[
+        float, typer.Option("--safe-wall-distance-m", min=0.0, help="Closest a line may come to the wall.")
+    ] = 5.0,
+    nmea: Annotated[
+        bool,
+        typer.Option(
+            "--nmea", help="Emit NMEA $--XTE and $--APB for the active line (with --position or --follow)."
+        ),
+    ] = False,
+    active_pass: Annotated[
+        int | None,
+        typer.Option(
+            "--active-pass",
+            "-p",
+            help="Pass id the autopilot "
+            "follows (default: the daemon's active pass with --follow, "
+            "else the first pass).",
+        ),
+    ] = None,
+    position: Annotated[
+        str | None,
+        typer.Option(
+            "--position", metavar="LAT,LON", help="Vessel position (degrees) for a one-shot XTE/APB."
+        ),
+    ] = None,
+    follow: Annotated[
+        bool,
+        typer.Option(
+            "--follow",
+            help="Follow the vessel from the daemon's status socket and emit at every update until Ctrl-C.",
+        ),
+    ] = False,
     socket: Annotated[Path, socket_option("Status socket of the daemon (with --follow).")] = Path(
         "/run/mls/status.sock"
     ),
-    nmea_out: str = typer.Option(
-        "-",
-        "--nmea-out",
-        help="Where the sentences go: - (stdout), a file or serial device path, or udp://HOST:PORT.",
-    ),
-    talker: str = typer.Option("GP", "--talker", help="NMEA talker id of the sentences."),
-    lookahead_m: float = typer.Option(
-        20.0, "--lookahead-m", min=1.0, help="Look-ahead distance of the heading-to-steer law."
-    ),
+    nmea_out: Annotated[
+        str,
+        typer.Option(
+            "--nmea-out",
+            help="Where the sentences go: - (stdout), a file or serial device path, or udp://HOST:PORT.",
+        ),
+    ] = "-",
+    talker: Annotated[str, typer.Option("--talker", help="NMEA talker id of the sentences.")] = "GP",
+    lookahead_m: Annotated[
+        float, typer.Option("--lookahead-m", min=1.0, help="Look-ahead distance of the heading-to-steer law.")
+    ] = 20.0,
 ) -> None:
     """``mls plan`` (its help text is :data:`HELP`)."""
-    import numpy as np
+    from rich.console import Console
+
+    _check_nmea_options(talker, nmea, position, follow)
+    site, frame, pp = _plan(site_file, capture_margin_m, safe_wall_distance_m, active_pass)
+    if out is not None:
+        _write_geojson(out, pp, frame, site)
+    if nmea:
+        _emit_nmea(pp, frame, nmea_out, position, active_pass, socket, talker, lookahead_m)
+        if out is None:
+            return
+    Console().print(_lines_table(pp, site_file, out))
+
+
+def _fail(message: str) -> NoReturn:
+    """One line ``error: <message>`` on stderr and exit status 1."""
     from rich.console import Console
     from rich.markup import escape
-    from rich.table import Table
-
-    from calib.core.errors import ConfigError, MlsError
-    from calib.io.site import load_site
-    from calib.survey.passplan import plan_site
-    from calib.survey.planexport import write_plan_geojson
 
     err = Console(stderr=True, emoji=False)  # ":100:" of file:line:column is no emoji
+    err.print(f"[red]error:[/red] {escape(message)}", highlight=False, soft_wrap=True)
+    raise typer.Exit(1)
+
+
+def _check_nmea_options(talker: str, nmea: bool, position: str | None, follow: bool) -> None:
+    """Usage errors: a talker id of two capitals; --nmea with one of --position and --follow."""
     if not re.fullmatch(r"[A-Z]{2}", talker):
         raise typer.BadParameter(
             f"got {talker!r}, expected two capital letters such as GP, II or IN", param_hint="--talker"
@@ -115,6 +150,17 @@ def plan(
         )
     if (position or follow) and not nmea:
         raise typer.BadParameter("--position and --follow go with --nmea", param_hint="--nmea")
+
+
+def _plan(
+    site_file: Path, capture_margin_m: float, safe_wall_distance_m: float, active_pass: int | None
+) -> tuple[Site, LocalFrame, PassPlan]:
+    """The site, its LGF and the plan of its lines (the active pass checked to be one of them);
+    exit status 1 when the site cannot be planned."""
+    from calib.core.errors import ConfigError, MlsError
+    from calib.io.site import load_site
+    from calib.survey.passplan import plan_site
+
     try:
         site = load_site(site_file)
         frame = site.frame()
@@ -125,49 +171,67 @@ def plan(
         msg = e.args[0] if isinstance(e, KeyError) else str(e)
         if isinstance(e, ConfigError) and "reference" in msg:
             msg += " (mls plan needs the site's reference point to place the lines)"
-        err.print(f"[red]error:[/red] {escape(msg)}", highlight=False, soft_wrap=True)
-        raise typer.Exit(1) from None
+        _fail(msg)
+    return site, frame, pp
 
-    if out is not None:
-        try:
-            if out.is_dir():
-                raise IsADirectoryError(f"{out}: --out names a file, but this is a directory")
-            write_plan_geojson(out, pp, frame, site.targets, name=f"{site.vessel} calibration lines")
-        except OSError as e:
-            err.print(f"[red]error:[/red] {escape(str(e))}", highlight=False, soft_wrap=True)
-            raise typer.Exit(1) from None
 
-    if nmea:
-        from acquire.guidance.autopilot_out import NmeaOutput, NmeaOutputError, follow_daemon, sentences_at
+def _write_geojson(out: Path, pp: PassPlan, frame: LocalFrame, site: Site) -> None:
+    """The lines, capture windows and targets as GeoJSON; exit status 1 when it cannot be written."""
+    from calib.survey.planexport import write_plan_geojson
 
-        lat_lon = _latlon(position) if position else None
-        try:
-            dest = NmeaOutput(nmea_out)
-        except NmeaOutputError as e:
-            raise typer.BadParameter(str(e), param_hint="--nmea-out") from None
-        try:
-            if lat_lon:
-                lat, lon = lat_lon
-                line = pp.by_id(active_pass if active_pass is not None else pp.passes[0].id)
-                for s in sentences_at(frame, line, lat, lon, talker=talker, lookahead_m=lookahead_m):
-                    dest.write(s)
-            else:
-                import asyncio
+    try:
+        if out.is_dir():
+            raise IsADirectoryError(f"{out}: --out names a file, but this is a directory")
+        write_plan_geojson(out, pp, frame, site.targets, name=f"{site.vessel} calibration lines")
+    except OSError as e:
+        _fail(str(e))
 
-                try:
-                    asyncio.run(
-                        follow_daemon(
-                            socket, pp, frame, active_pass, dest, talker, lookahead_m, on_link=_say_link
-                        )
+
+def _emit_nmea(
+    pp: PassPlan,
+    frame: LocalFrame,
+    nmea_out: str,
+    position: str | None,
+    active_pass: int | None,
+    socket: Path,
+    talker: str,
+    lookahead_m: float,
+) -> None:
+    """$--XTE and $--APB to ``nmea_out``: once for ``position``, else at every update of the
+    daemon's status until Ctrl-C."""
+    from acquire.guidance.autopilot_out import NmeaOutput, NmeaOutputError, follow_daemon, sentences_at
+
+    lat_lon = _latlon(position) if position else None
+    try:
+        dest = NmeaOutput(nmea_out)
+    except NmeaOutputError as e:
+        raise typer.BadParameter(str(e), param_hint="--nmea-out") from None
+    try:
+        if lat_lon:
+            lat, lon = lat_lon
+            line = pp.by_id(active_pass if active_pass is not None else pp.passes[0].id)
+            for s in sentences_at(frame, line, lat, lon, talker=talker, lookahead_m=lookahead_m):
+                dest.write(s)
+        else:
+            import asyncio
+
+            try:
+                asyncio.run(
+                    follow_daemon(
+                        socket, pp, frame, active_pass, dest, talker, lookahead_m, on_link=_say_link
                     )
-                except KeyboardInterrupt:
-                    pass
-        finally:
-            dest.close()
-        if out is None:
-            return
+                )
+            except KeyboardInterrupt:
+                pass
+    finally:
+        dest.close()
 
+
+def _lines_table(pp: PassPlan, site_file: Path, out: Path | None) -> Table:
+    """The planned lines: heading, length, speed, capture window, targets' side."""
+    import numpy as np
     from rich import box
+    from rich.table import Table
 
     table = Table(
         title=f"calibration lines of {site_file}" + (f" → {out}" if out else ""),
@@ -190,4 +254,4 @@ def plan(
             f"{cw[0]:.1f}–{cw[1]:.1f}",
             p.targets_side,
         )
-    Console().print(table)
+    return table

@@ -4,12 +4,18 @@ group of :mod:`cli.commands.calib_cmd`; the work is :func:`calib.boresight.pipel
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Annotated
+from typing import TYPE_CHECKING, Annotated, NoReturn
 
 import typer
 
 from cli.commands.calib_cmd import app, parse_triple_deg
 from cli.options import HistoryDb, bundle_argument, force_option, out_option, skip_uncovered_option
+
+if TYPE_CHECKING:
+    from rich.console import Console
+    from rich.progress import ProgressColumn
+
+    from calib.boresight.pipeline import CalibrationOptions, CalibrationRun
 
 RUN_HELP = (
     "Calibrate the boresight from a calibration bundle (or a recorded session).\n\n"
@@ -34,7 +40,8 @@ RUN_HELP = (
 )
 
 
-def _fail(message: str, code: int = 1) -> None:
+def _fail(message: str, code: int = 1) -> NoReturn:
+    """One line ``error: <message>`` on stderr and exit status ``code``."""
     from rich.console import Console
     from rich.markup import escape
 
@@ -91,6 +98,7 @@ def _table(run, out_dir: Path):
         np.degrees(res.boresight_rad),
         np.degrees(res.sigma_formal_rad),
         np.degrees(res.sigma_realistic_rad),
+        strict=True,
     ):
         table.add_row(name, f"{b:.4f}", f"{sf:.4f}", f"{sr:.4f}")
     return table
@@ -151,7 +159,7 @@ def run(
             "points.csv[.gz]), or a recorded session directory.",
             metavar="BUNDLE|SESSION",
         ),
-    ] = ...,
+    ],
     out: Annotated[Path | None, out_option("Output directory (created); default BUNDLE/calib/.")] = None,
     force: Annotated[
         bool,
@@ -166,110 +174,126 @@ def run(
             "warnings and the report) instead of stopping with an error."
         ),
     ] = False,
-    subsample: float | None = typer.Option(
-        None,
-        "--subsample",
-        metavar="M",
-        help="Voxel subsampling of each target per pass (m), "
-        "e.g. 0.05: one point per voxel, the nearest its centre (thesis §4.4.4). Default: "
-        "every extracted point.",
-    ),
-    estimate: str = typer.Option(
-        "",
-        "--estimate",
-        metavar="LIST",
-        help="Extra unknowns, comma-separated: range_offset, "
-        "lever_arm_x, lever_arm_y, latency, pass_offsets (each reported with its correlation "
-        "to the boresight; refused with an explanation when not observable).",
-    ),
-    estimator: str = typer.Option(
-        "gls",
-        "--estimator",
-        metavar="NAME",
-        help="gls (default): the POS errors as Gauss–Markov processes estimated with the "
-        "boresight (its σ is realistic); thesis: white weights as in the thesis, realistic σ by "
-        "propagation; pass_offsets: thesis weights plus a translation per pass. The report shows "
-        "the default beside the thesis estimator.",
-    ),
-    tie_patches: str = typer.Option(
-        "auto",
-        "--tie-patches",
-        metavar="MODE",
-        help="auto (default, with gls): add planar patches of the wall and other surfaces seen "
-        "from two or more headings, each with its own plane and roughness; off: targets only.",
-    ),
-    apriori_deg: str | None = typer.Option(
-        None,
-        "--apriori-deg",
-        metavar="R,P,Y",
-        help="A-priori boresight roll,pitch,yaw in "
-        "degrees (canonical convention); default site.yaml's mount.boresight_apriori_deg.",
-    ),
-    correlation_time_s: float | None = typer.Option(
-        None,
-        "--correlation-time-s",
-        metavar="S",
-        help="Correlation time of the POS errors "
-        "(first-order Gauss–Markov); default site.yaml's pos_sigmas.correlation_time_s, else "
-        "estimated from the data with gls (the report shows τ/3, τ, 3τ) or 60 s with thesis.",
-    ),
-    error_model: str = typer.Option(
-        "gauss_markov",
-        "--error-model",
-        metavar="MODEL",
-        help="POS error model of the "
-        "realistic σ: gauss_markov (correlated in time), pass_bias (constant within each "
-        "pass) or white (independent: realistic = formal).",
-    ),
-    extraction: str = typer.Option(
-        "seeded",
-        "--extraction",
-        metavar="MODE",
-        help="seeded: search around each target's "
-        "centre in site.yaml; auto: find bright planar rectangles of the configured sizes.",
-    ),
-    search_radius_m: float = typer.Option(
-        2.0,
-        "--search-radius-m",
-        help="Seeded search radius beyond each target's half-diagonal "
-        "(m): covers a wrong a-priori boresight and approximate centres.",
-    ),
-    mount: str = typer.Option(
-        "default",
-        "--mount",
-        metavar="ID",
-        help="Mount id the result "
-        "is recorded under in the history (a new id after every "
-        "re-installation of the scanner).",
-    ),
-    vessel: str | None = typer.Option(
-        None, "--vessel", help="Vessel name for the history; default site.yaml's vessel."
-    ),
+    subsample: Annotated[
+        float | None,
+        typer.Option(
+            "--subsample",
+            metavar="M",
+            help="Voxel subsampling of each target per pass (m), "
+            "e.g. 0.05: one point per voxel, the nearest its centre (thesis §4.4.4). Default: "
+            "every extracted point.",
+        ),
+    ] = None,
+    estimate: Annotated[
+        str,
+        typer.Option(
+            "--estimate",
+            metavar="LIST",
+            help="Extra unknowns, comma-separated: range_offset, "
+            "lever_arm_x, lever_arm_y, latency, pass_offsets (each reported with its correlation "
+            "to the boresight; refused with an explanation when not observable).",
+        ),
+    ] = "",
+    estimator: Annotated[
+        str,
+        typer.Option(
+            "--estimator",
+            metavar="NAME",
+            help="gls (default): the POS errors as Gauss–Markov processes estimated with the "
+            "boresight (its σ is realistic); thesis: white weights as in the thesis, realistic σ by "
+            "propagation; pass_offsets: thesis weights plus a translation per pass. The report shows "
+            "the default beside the thesis estimator.",
+        ),
+    ] = "gls",
+    tie_patches: Annotated[
+        str,
+        typer.Option(
+            "--tie-patches",
+            metavar="MODE",
+            help="auto (default, with gls): add planar patches of the wall and other surfaces seen "
+            "from two or more headings, each with its own plane and roughness; off: targets only.",
+        ),
+    ] = "auto",
+    apriori_deg: Annotated[
+        str | None,
+        typer.Option(
+            "--apriori-deg",
+            metavar="R,P,Y",
+            help="A-priori boresight roll,pitch,yaw in "
+            "degrees (canonical convention); default site.yaml's mount.boresight_apriori_deg.",
+        ),
+    ] = None,
+    correlation_time_s: Annotated[
+        float | None,
+        typer.Option(
+            "--correlation-time-s",
+            metavar="S",
+            help="Correlation time of the POS errors "
+            "(first-order Gauss–Markov); default site.yaml's pos_sigmas.correlation_time_s, else "
+            "estimated from the data with gls (the report shows τ/3, τ, 3τ) or 60 s with thesis.",
+        ),
+    ] = None,
+    error_model: Annotated[
+        str,
+        typer.Option(
+            "--error-model",
+            metavar="MODEL",
+            help="POS error model of the "
+            "realistic σ: gauss_markov (correlated in time), pass_bias (constant within each "
+            "pass) or white (independent: realistic = formal).",
+        ),
+    ] = "gauss_markov",
+    extraction: Annotated[
+        str,
+        typer.Option(
+            "--extraction",
+            metavar="MODE",
+            help="seeded: search around each target's "
+            "centre in site.yaml; auto: find bright planar rectangles of the configured sizes.",
+        ),
+    ] = "seeded",
+    search_radius_m: Annotated[
+        float,
+        typer.Option(
+            "--search-radius-m",
+            help="Seeded search radius beyond each target's half-diagonal "
+            "(m): covers a wrong a-priori boresight and approximate centres.",
+        ),
+    ] = 2.0,
+    mount: Annotated[
+        str,
+        typer.Option(
+            "--mount",
+            metavar="ID",
+            help="Mount id the result "
+            "is recorded under in the history (a new id after every "
+            "re-installation of the scanner).",
+        ),
+    ] = "default",
+    vessel: Annotated[
+        str | None, typer.Option("--vessel", help="Vessel name for the history; default site.yaml's vessel.")
+    ] = None,
     db: HistoryDb = None,
-    no_history: bool = typer.Option(
-        False, "--no-history", help="Do not record the result in the calibration history."
-    ),
-    no_plots: bool = typer.Option(False, "--no-plots", help="Write result.json and report.md only (faster)."),
-    accept_refused: bool = typer.Option(
-        False,
-        "--accept-refused",
-        help="Exit 0 and record the result in the history even when its verdict is 'refused' (it stays "
-        "marked refused in result.json, the report and the history).",
-    ),
+    no_history: Annotated[
+        bool, typer.Option("--no-history", help="Do not record the result in the calibration history.")
+    ] = False,
+    no_plots: Annotated[
+        bool, typer.Option("--no-plots", help="Write result.json and report.md only (faster).")
+    ] = False,
+    accept_refused: Annotated[
+        bool,
+        typer.Option(
+            "--accept-refused",
+            help="Exit 0 and record the result in the history even when its verdict is 'refused' (it stays "
+            "marked refused in result.json, the report and the history).",
+        ),
+    ] = False,
 ) -> None:
     """``mls calib run`` (its help text is :data:`RUN_HELP`)."""
-    import math
-    import sqlite3
-
-    import numpy as np
     from rich.console import Console
-    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+    from rich.progress import BarColumn, MofNCompleteColumn, TextColumn, TimeElapsedColumn
 
-    from calib.assess.history import record_result
-    from calib.boresight.checks.verdict import REFUSED_EXIT_STATUS
-    from calib.boresight.pipeline import CalibrationOptions, run_bundle
     from calib.core.errors import MlsError
-    from calib.extraction.extract import ExtractOptions
     from calib.io.outputs import hold_output_dir
 
     if not bundle.is_dir():
@@ -277,6 +301,55 @@ def run(
             f"{bundle}: not a directory (a calibration bundle is a directory with site.yaml, "
             f"trajectory.csv and points.csv)"
         )
+    options = _calibration_options(
+        apriori_deg,
+        subsample,
+        correlation_time_s,
+        estimate,
+        estimator,
+        tie_patches,
+        error_model,
+        extraction,
+        search_radius_m,
+    )
+    out_dir = out if out is not None else bundle / "calib"
+    try:  # before anything is computed or exported; held until the command ends
+        hold_output_dir(out_dir, "--out" if out is not None else "the output directory (--out)", force)
+    except MlsError as e:
+        _fail(str(e), 2)
+
+    console = Console()
+    columns = (TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn())
+    if _is_session(bundle):
+        bundle = _export(bundle, out_dir / "bundle", console, columns)
+    cal = _calibrate(
+        bundle, out_dir, options, console, columns, plots=not no_plots, skip_uncovered=skip_uncovered
+    )
+    _judge(cal, out_dir, console, accept_refused)
+    if not no_history:
+        _record(cal, bundle, out_dir, console, vessel, mount, db)
+
+
+def _calibration_options(
+    apriori_deg: str | None,
+    subsample: float | None,
+    correlation_time_s: float | None,
+    estimate: str,
+    estimator: str,
+    tie_patches: str,
+    error_model: str,
+    extraction: str,
+    search_radius_m: float,
+) -> CalibrationOptions:
+    """The pipeline's options from the command's; exit status 2 for a value it refuses."""
+    import math
+
+    import numpy as np
+
+    from calib.boresight.pipeline import CalibrationOptions
+    from calib.core.errors import MlsError
+    from calib.extraction.extract import ExtractOptions
+
     try:
         apriori = parse_triple_deg(apriori_deg, "--apriori-deg") if apriori_deg else None
     except typer.BadParameter as e:
@@ -287,7 +360,7 @@ def run(
         _fail(f"--correlation-time-s {correlation_time_s!r}: expected a positive number of seconds", 2)
     extras = tuple(e.strip() for e in estimate.split(",") if e.strip())
     try:
-        options = CalibrationOptions(
+        return CalibrationOptions(
             subsample_m=subsample,
             estimate=extras,
             estimator=estimator,
@@ -299,16 +372,25 @@ def run(
         )
     except MlsError as e:  # an option the pipeline refuses
         _fail(str(e), 2)
-    out_dir = out if out is not None else bundle / "calib"
-    try:  # before anything is computed or exported; held until the command ends
-        hold_output_dir(out_dir, "--out" if out is not None else "the output directory (--out)", force)
-    except MlsError as e:
-        _fail(str(e), 2)
 
-    console = Console()
-    columns = (TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn())
-    if _is_session(bundle):
-        bundle = _export(bundle, out_dir / "bundle", console, columns)
+
+def _calibrate(
+    bundle: Path,
+    out_dir: Path,
+    options: CalibrationOptions,
+    console: Console,
+    columns: tuple[ProgressColumn, ...],
+    *,
+    plots: bool,
+    skip_uncovered: bool,
+) -> CalibrationRun:
+    """Calibrate the bundle into ``out_dir`` (a progress bar per stage); print the result table,
+    its warnings and what was written."""
+    from rich.progress import Progress
+
+    from calib.boresight.pipeline import run_bundle
+    from calib.core.errors import MlsError
+
     try:
         with Progress(*columns, console=console, transient=True) as progress:
             cal, paths = run_bundle(
@@ -316,7 +398,7 @@ def run(
                 out_dir,
                 options,
                 _progress_callback(progress),
-                plots=not no_plots,
+                plots=plots,
                 skip_uncovered=skip_uncovered,
             )
     except (MlsError, OSError) as e:  # OSError: reading the bundle or writing into out_dir
@@ -327,6 +409,14 @@ def run(
     console.print(
         f"wrote result.json, report.md{f' and {pngs} plots' if pngs else ''} to {out_dir}", highlight=False
     )
+    return cal
+
+
+def _judge(cal: CalibrationRun, out_dir: Path, console: Console, accept_refused: bool) -> None:
+    """Say the verdict; a refused result ends the command (its own exit status) unless
+    ``--accept-refused``."""
+    from calib.boresight.checks.verdict import REFUSED_EXIT_STATUS
+
     verdict = cal.verdict
     _say_verdict(console, verdict)
     if verdict.status == "refused" and not accept_refused:
@@ -335,9 +425,25 @@ def run(
             f"in the history. --accept-refused records it anyway, marked",
             REFUSED_EXIT_STATUS,
         )
-    if not no_history:
-        try:
-            row = record_result(cal.doc, bundle, vessel, mount, db=db)
-        except (MlsError, OSError, sqlite3.Error) as e:
-            _fail(f"the result is in {out_dir} but was not recorded in the history: {e}")
-        console.print(f"recorded in the calibration history as #{row} (mount {mount})", highlight=False)
+
+
+def _record(
+    cal: CalibrationRun,
+    bundle: Path,
+    out_dir: Path,
+    console: Console,
+    vessel: str | None,
+    mount: str,
+    db: Path | None,
+) -> None:
+    """Record the result in the calibration history; exit status 1 when it cannot be."""
+    import sqlite3
+
+    from calib.assess.history import record_result
+    from calib.core.errors import MlsError
+
+    try:
+        row = record_result(cal.doc, bundle, vessel, mount, db=db)
+    except (MlsError, OSError, sqlite3.Error) as e:
+        _fail(f"the result is in {out_dir} but was not recorded in the history: {e}")
+    console.print(f"recorded in the calibration history as #{row} (mount {mount})", highlight=False)

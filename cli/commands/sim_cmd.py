@@ -47,21 +47,23 @@ def dataset(
             "A shipped scenario (montreal, terrestrial, tower), random (a geometry "
             "drawn from --seed; the draw lands in truth.json) or a scenario YAML file."
         ),
-    ] = ...,
-    out: Annotated[Path, out_option("Bundle directory to write (created).")] = ...,
+    ],
+    out: Annotated[Path, out_option("Bundle directory to write (created).")],
     force: Annotated[
         bool, force_option("Write into an --out directory that already holds files (bundle files replaced).")
     ] = False,
     seed: Annotated[int, seed_option("Random seed: the same seed gives the same bytes.")] = 0,
     point_rate_scale: PointRateScale = None,
     set_: Annotated[
-        list[str],
+        list[str] | None,
         set_option(
             "Override a scenario value by dotted key, e.g. --set noise.pos.model=white "
             "--set truth.boresight_deg=[0.2,1.2,0.15] (repeatable; values are YAML)."
         ),
-    ] = (),
-    compress: bool = typer.Option(False, "--gzip", help="Write points.csv.gz instead of points.csv."),
+    ] = None,
+    compress: Annotated[
+        bool, typer.Option("--gzip", help="Write points.csv.gz instead of points.csv.")
+    ] = False,
 ) -> None:
     """Simulate a calibration bundle with its truth.json.
 
@@ -81,7 +83,7 @@ def dataset(
     from calib.sim.simulate import simulate
 
     console = Console(emoji=False)  # ":100:" of file:line:column is no emoji
-    overrides = list(set_)
+    overrides = list(set_ or ())
     if point_rate_scale is not None:
         overrides.append(f"scanner.point_rate_scale={point_rate_scale!r}")
     t0 = time.perf_counter()
@@ -133,44 +135,52 @@ def dataset(
 def session(
     out: Annotated[
         Path, out_option("Directory the session directory is created in (the daemon's session directory).")
-    ] = ...,
+    ],
     scenario: Annotated[
         str, scenario_option("A shipped scenario (montreal, terrestrial, tower) or a scenario YAML file.")
     ] = "montreal",
-    minutes: float = typer.Option(1.0, "--minutes", "-m", min=0.01, help="Length of the session (minutes)."),
-    rate_scale: float = typer.Option(
-        1.0,
-        "--rate-scale",
-        min=1e-4,
-        max=1.0,
-        help="Fraction of the full Z+F point rate (1 M points/s): profile rate and points per 360° "
-        "each × √F, as the simulator scales them.",
-    ),
+    minutes: Annotated[
+        float, typer.Option("--minutes", "-m", min=0.01, help="Length of the session (minutes).")
+    ] = 1.0,
+    rate_scale: Annotated[
+        float,
+        typer.Option(
+            "--rate-scale",
+            min=1e-4,
+            max=1.0,
+            help="Fraction of the full Z+F point rate (1 M points/s): profile rate and points per 360° "
+            "each × √F, as the simulator scales them.",
+        ),
+    ] = 1.0,
     seed: Annotated[int, seed_option("Random seed: the same seed gives the same records.")] = 0,
     force: Annotated[
         bool, force_option("Replace a session of the same name (the scenario's vessel and start) in --out.")
     ] = False,
     ins_protocol: InsProtocol = "nmea",
     ins_rate: InsRate = 100.0,
-    surroundings: bool = typer.Option(
-        True,
-        "--surroundings/--no-surroundings",
-        help="Add the quay around the scenario's scene (a long quay wall, a warehouse, the water near "
-        "the vessel) so that the survey sees more than the calibration targets.",
-    ),
-    rotate_s: float | None = typer.Option(
-        None,
-        "--rotate-s",
-        min=10.0,
-        help="Segment rotation period in session seconds (default: the daemon's, 600).",
-    ),
+    surroundings: Annotated[
+        bool,
+        typer.Option(
+            "--surroundings/--no-surroundings",
+            help="Add the quay around the scenario's scene (a long quay wall, a warehouse, the water near "
+            "the vessel) so that the survey sees more than the calibration targets.",
+        ),
+    ] = True,
+    rotate_s: Annotated[
+        float | None,
+        typer.Option(
+            "--rotate-s",
+            min=10.0,
+            help="Segment rotation period in session seconds (default: the daemon's, 600).",
+        ),
+    ] = None,
     set_: Annotated[
-        list[str],
+        list[str] | None,
         set_option(
             "Override a scenario value by dotted key, e.g. --set site.pass_length_m=120 "
             "--set motion.pass_gap_s=20 (repeatable; values are YAML)."
         ),
-    ] = (),
+    ] = None,
 ) -> None:
     """Write a recorded session offline, faster than real time, from a simulator scenario.
 
@@ -197,7 +207,7 @@ def session(
         rate_scale=rate_scale,
         seed=seed,
         force=force,
-        overrides=tuple(set_),
+        overrides=tuple(set_ or ()),
         ins_protocol=ins_protocol,
         ins_rate_hz=ins_rate,
         surroundings=surroundings,

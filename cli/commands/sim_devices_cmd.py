@@ -12,7 +12,7 @@ from __future__ import annotations
 import signal
 import threading
 from pathlib import Path
-from typing import Annotated
+from typing import TYPE_CHECKING, Annotated
 
 import typer
 
@@ -35,6 +35,12 @@ from cli.options import (
     speed_option,
     write_config_option,
 )
+
+if TYPE_CHECKING:
+    from rich.console import Console
+
+    from sim_devices.faults import FaultPlan
+    from sim_devices.feed import ScenarioFeed
 
 
 def _parse_devices(text: str) -> tuple[str, ...]:
@@ -183,7 +189,7 @@ def _check_config(path: Path, console) -> None:
 def devices(
     scenario: Annotated[
         str, scenario_option("A shipped scenario (montreal, terrestrial, tower) or a scenario YAML file.")
-    ] = ...,
+    ],
     seed: Annotated[int, seed_option("Random seed of the simulation, the jitters and the faults.")] = 0,
     speed: Annotated[
         float,
@@ -193,64 +199,85 @@ def devices(
             "accept, so a daemon's clock model will not lock)."
         ),
     ] = 1.0,
-    faults: Path | None = typer.Option(
-        None,
-        "--faults",
-        metavar="FILE",
-        help="Fault timeline (YAML): unplug, garbage, bad checksums, UDP "
-        "loss/reorder/duplication, PPS loss, profiler clock offset/drift, "
-        "INS latency jump, GNSS outage, late ZDA, INS leap second, host clock step "
-        "(for a daemon started with MLS_SIM_HOST_CLOCK=RUN_DIR/host_clock).",
-    ),
+    faults: Annotated[
+        Path | None,
+        typer.Option(
+            "--faults",
+            metavar="FILE",
+            help="Fault timeline (YAML): unplug, garbage, bad checksums, UDP "
+            "loss/reorder/duplication, PPS loss, profiler clock offset/drift, "
+            "INS latency jump, GNSS outage, late ZDA, INS leap second, host clock step "
+            "(for a daemon started with mls acquire --sim-host-clock RUN_DIR/host_clock).",
+        ),
+    ] = None,
     write_config: Annotated[
         Path | None, write_config_option("Write a vessel config for `mls acquire` that uses these devices.")
     ] = None,
     run_dir: Annotated[
         Path, run_dir_option("Run directory: the INS link 'ins', truth_clock.json, faults.json, stats/.")
     ] = Path("mls-sim"),
-    start: str | None = typer.Option(
-        None,
-        "--start",
-        metavar="SECONDS|pass:N",
-        help="Start the run this many scenario seconds after the scenario's start, "
-        "or at the line start of pass N (default: the beginning).",
-    ),
-    duration: float | None = typer.Option(
-        None, "--duration", min=0.001, help="Scenario seconds to run (default: to the scenario's end)."
-    ),
+    start: Annotated[
+        str | None,
+        typer.Option(
+            "--start",
+            metavar="SECONDS|pass:N",
+            help="Start the run this many scenario seconds after the scenario's start, "
+            "or at the line start of pass N (default: the beginning).",
+        ),
+    ] = None,
+    duration: Annotated[
+        float | None,
+        typer.Option(
+            "--duration", min=0.001, help="Scenario seconds to run (default: to the scenario's end)."
+        ),
+    ] = None,
     point_rate_scale: PointRateScale = None,
     set_: Annotated[
-        list[str], set_option("Override a scenario value by dotted key (repeatable; values are YAML).")
-    ] = (),
-    only: str = typer.Option(
-        "ins,profiler,pps,can",
-        "--devices",
-        metavar="LIST",
-        help="The emulators to run (comma-separated subset of ins,profiler,pps,can).",
-    ),
+        list[str] | None, set_option("Override a scenario value by dotted key (repeatable; values are YAML).")
+    ] = None,
+    only: Annotated[
+        str,
+        typer.Option(
+            "--devices",
+            metavar="LIST",
+            help="The emulators to run (comma-separated subset of ins,profiler,pps,can).",
+        ),
+    ] = "ins,profiler,pps,can",
     ins_protocol: InsProtocol = "nmea",
     ins_rate: InsRate = 100.0,
-    ins_latency_ms: float = typer.Option(3.0, "--ins-latency-ms", min=0.0, help="INS output latency (ms)."),
-    ins_jitter_ms: float = typer.Option(
-        0.5, "--ins-jitter-ms", min=0.0, help="INS output jitter, uniform (ms)."
-    ),
-    ins_alignment_s: float = typer.Option(
-        0.0, "--ins-alignment-s", min=0.0, help="Seconds of INS alignment at the start (status: aligning)."
-    ),
-    stdbin_version: int = typer.Option(3, "--stdbin-version", min=2, max=5, help="STDBIN protocol version."),
+    ins_latency_ms: Annotated[
+        float, typer.Option("--ins-latency-ms", min=0.0, help="INS output latency (ms).")
+    ] = 3.0,
+    ins_jitter_ms: Annotated[
+        float, typer.Option("--ins-jitter-ms", min=0.0, help="INS output jitter, uniform (ms).")
+    ] = 0.5,
+    ins_alignment_s: Annotated[
+        float,
+        typer.Option(
+            "--ins-alignment-s", min=0.0, help="Seconds of INS alignment at the start (status: aligning)."
+        ),
+    ] = 0.0,
+    stdbin_version: Annotated[
+        int, typer.Option("--stdbin-version", min=2, max=5, help="STDBIN protocol version.")
+    ] = 3,
     profiler_host: Annotated[
         str, profiler_host_option("Where the profiler sends its datagrams.")
     ] = "127.0.0.1",
     profiler_port: ProfilerPort = 0,
     pps_port: PpsPort = 0,
-    pps_jitter_us: float = typer.Option(20.0, "--pps-jitter-us", min=0.0, help="PPS stamp jitter σ (µs)."),
+    pps_jitter_us: Annotated[
+        float, typer.Option("--pps-jitter-us", min=0.0, help="PPS stamp jitter σ (µs).")
+    ] = 20.0,
     can_channel: CanChannel = "239.74.163.2",
     can_port: Annotated[
         int, can_port_option("CAN udp_multicast port (a vessel config can only use 43113).")
     ] = 43113,
-    clock_drift_ppm: float = typer.Option(
-        0.0, "--clock-drift-ppm", help="Truth clock: GPS time runs this much faster than the host clock."
-    ),
+    clock_drift_ppm: Annotated[
+        float,
+        typer.Option(
+            "--clock-drift-ppm", help="Truth clock: GPS time runs this much faster than the host clock."
+        ),
+    ] = 0.0,
     realtime: Annotated[
         bool,
         realtime_option(
@@ -258,21 +285,25 @@ def devices(
             "sub-millisecond timing on a busy machine."
         ),
     ] = False,
-    lead_s: float = typer.Option(
-        0.25,
-        "--lead-s",
-        min=0.05,
-        max=60.0,
-        help="Seconds between the emulators being ready (and the vessel config written) "
-        "and the first byte of the run: time for a daemon to start.",
-    ),
-    time_base: str = typer.Option(
-        "now",
-        "--time",
-        metavar="now|scenario",
-        help="Devices send today's date and time (now: the scenario moved by whole "
-        "seconds, recorded in truth_clock.json) or the scenario's own.",
-    ),
+    lead_s: Annotated[
+        float,
+        typer.Option(
+            "--lead-s",
+            min=0.05,
+            max=60.0,
+            help="Seconds between the emulators being ready (and the vessel config written) "
+            "and the first byte of the run: time for a daemon to start.",
+        ),
+    ] = 0.25,
+    time_base: Annotated[
+        str,
+        typer.Option(
+            "--time",
+            metavar="now|scenario",
+            help="Devices send today's date and time (now: the scenario moved by whole "
+            "seconds, recorded in truth_clock.json) or the scenario's own.",
+        ),
+    ] = "now",
 ) -> None:
     """Run the simulated INS, profiler, PPS and CAN devices in real time.
 
@@ -283,10 +314,8 @@ def devices(
     from rich.console import Console
 
     from calib.core.errors import MlsError
-    from calib.sim.simulate import simulate
     from sim_devices.canbus import CanSettings
     from sim_devices.faults import FaultPlan, load_faults
-    from sim_devices.feed import make_feed
     from sim_devices.ins import InsSettings
     from sim_devices.pps import PpsSettings
     from sim_devices.profiler import ProfilerSettings
@@ -297,9 +326,7 @@ def devices(
     names = _parse_devices(only)
     if time_base not in ("now", "scenario"):
         raise typer.BadParameter(f"{time_base!r}: expected now or scenario", param_hint="--time")
-    overrides = list(set_)
-    if point_rate_scale is not None:
-        overrides.append(f"scanner.point_rate_scale={point_rate_scale!r}")
+    overrides = _overrides(set_, point_rate_scale)
     with _SigtermAsInterrupt():
         try:
             spec = DevicesSpec(
@@ -323,9 +350,7 @@ def devices(
                 lead_s=lead_s,
             )
             plan = load_faults(faults) if faults is not None else FaultPlan()
-            with simulation_bar(console, f"simulating {scenario}") as (bar, task, progress):
-                sim = simulate(scenario, seed, overrides=overrides, progress=progress)
-                feed = make_feed(sim, start, duration, ins_rate, "now" if time_base == "now" else 0)
+            feed = _simulate_feed(console, scenario, seed, overrides, start, duration, ins_rate, time_base)
             run = DeviceRun(feed, spec, plan)
         except (MlsError, ValueError, OSError) as e:  # ValueError: the emulators' settings
             console.print(f"[red]error:[/red] {e}", highlight=False)
@@ -333,24 +358,53 @@ def devices(
         except KeyboardInterrupt:
             raise typer.Exit(130) from None
         title = f"{feed.name} (seed {seed}): {feed.duration_s:g} scenario s at ×{speed:g}"
-        notes = (
-            [
-                f"{len(plan.faults)} faults scheduled (faults.json): "
-                + ", ".join(f"{f.kind} at {f.at_s:g} s" for f in plan.faults)
-            ]
-            if plan.faults
-            else []
-        )
         _serve(
             run,
             console,
             lambda loc: _locations_table(loc, run.run_dir, title),
-            notes,
+            _fault_notes(plan),
             write_config,
             feed.duration_s,
             f"{feed.name} scenario time",
             "emulators",
         )
+
+
+def _overrides(set_: list[str] | None, point_rate_scale: float | None) -> list[str]:
+    """The scenario overrides: those of ``--set``, then ``--point-rate-scale``."""
+    overrides = list(set_ or ())
+    if point_rate_scale is not None:
+        overrides.append(f"scanner.point_rate_scale={point_rate_scale!r}")
+    return overrides
+
+
+def _simulate_feed(
+    console: Console,
+    scenario: str,
+    seed: int,
+    overrides: list[str],
+    start: str | None,
+    duration: float | None,
+    ins_rate: float,
+    time_base: str,
+) -> ScenarioFeed:
+    """Simulate the scenario (a progress bar) and cut the devices' feed from it."""
+    from calib.sim.simulate import simulate
+    from sim_devices.feed import make_feed
+
+    with simulation_bar(console, f"simulating {scenario}") as (bar, task, progress):
+        sim = simulate(scenario, seed, overrides=overrides, progress=progress)
+        return make_feed(sim, start, duration, ins_rate, "now" if time_base == "now" else 0)
+
+
+def _fault_notes(plan: FaultPlan) -> list[str]:
+    """The faults scheduled, in one note (none without faults)."""
+    if not plan.faults:
+        return []
+    return [
+        f"{len(plan.faults)} faults scheduled (faults.json): "
+        + ", ".join(f"{f.kind} at {f.at_s:g} s" for f in plan.faults)
+    ]
 
 
 def _check_paths(console, run_dir: Path, write_config: Path | None) -> None:
@@ -425,7 +479,7 @@ def read_session(session_dir: Path):
 def replay(
     session: Annotated[
         Path, session_argument("A session directory (YYYYmmddTHHMMSSZ_<vessel>/ with seg-*.mcap).")
-    ] = ...,
+    ],
     speed: Annotated[float, speed_option("Replay speed (2 = twice as fast).")] = 1.0,
     run_dir: Annotated[Path, run_dir_option("Run directory: the INS link 'ins', devices.json.")] = Path(
         "mls-replay"

@@ -54,6 +54,10 @@ READ_BUFFER = 1 << 20
 MAX_TIMESTAMP_NS, MIN_TIMESTAMP_NS = 2**63 - 1, -(2**63)
 _PCAP_MAGICS = (b"\xd4\xc3\xb2\xa1", b"\xa1\xb2\xc3\xd4", b"\x4d\x3c\xb2\xa1", b"\xa1\xb2\x3c\x4d")
 _U32X2 = {"<": struct.Struct("<II"), ">": struct.Struct(">II")}
+#: a packet block's interface id, timestamp (high, low) and captured length, by byte order and
+#: block type (EPB: interface id u32; PB: interface id u16, then the drops count, not kept)
+_PACKET_HEADS = {e: {EPB: struct.Struct(e + "IIII"), PB: struct.Struct(e + "HxxIII")} for e in ("<", ">")}
+_IP_VERSIONS = {0x0800: 4, 0x86DD: 6}  # by EtherType
 _ntop, _AF_INET = socket.inet_ntop, socket.AF_INET
 
 
@@ -127,42 +131,29 @@ class CaptureReader:
             if len(head) < 8:  # the file shrank under us
                 break
             if head[:4] == SHB_MAGIC:
-                bom = f.read(4)
-                if bom == BYTE_ORDER_LE:
-                    e = "<"
-                elif bom == BYTE_ORDER_BE:
-                    e = ">"
-                else:
-                    raise PcapError(f"{self.name}: offset {pos}: bad byte-order magic {bom.hex()}")
+                e = self._byte_order(f.read(4), pos)
                 interfaces = []  # interface ids restart in each section
             btype, blen = _U32X2[e].unpack(head)
-            if blen < 12 or blen % 4:
-                raise PcapError(
-                    f"{self.name}: offset {pos}: block length {blen} (expected a multiple of 4, >= 12)"
-                )
-            if pos + blen > size:
-                self.stats.rejected["truncated"] += 1
-                self.stats.skipped_bytes += size - pos
-                self._skip_to(f, size)
-                return
             n = blen - 12  # the body, without the two length words
             min_body = _MIN_BODY.get(btype)
-            if min_body is None or n < min_body or n > MAX_BLOCK:
-                if min_body is not None:  # a damaged length: skip the block, count it
-                    self.stats.rejected["short_block" if n < min_body else "oversized_block"] += 1
-                pos += blen
-                self._skip_to(f, pos)
+            if (
+                blen < 12
+                or blen % 4
+                or pos + blen > size
+                or min_body is None
+                or n < min_body
+                or n > MAX_BLOCK
+            ):
+                pos = self._unread_block(f, pos, blen, min_body)
                 continue
             body = f.read(blen - 8)  # the body and the trailing length word
             if len(body) < blen - 8:
                 break
             pos += blen
             self.offset = pos
-            if btype == EPB or btype == PB:
-                if btype == EPB:
-                    iface, hi, lo, caplen = struct.unpack_from(e + "IIII", body, 0)
-                else:
-                    iface, _drops, hi, lo, caplen = struct.unpack_from(e + "HHIII", body, 0)
+            packet_head = _PACKET_HEADS[e].get(btype)
+            if packet_head is not None:  # EPB, PB (per packet: kept inline, the replay's loop)
+                iface, hi, lo, caplen = packet_head.unpack_from(body, 0)
                 if iface >= len(interfaces):
                     self.stats.rejected["unknown_interface"] += 1
                     continue
@@ -176,26 +167,47 @@ class CaptureReader:
                 self.stats.records += 1
                 yield CapturedPacket(ts_ns, iface, linktype, body[20 : min(20 + caplen, n)])
             elif btype == IDB:
-                linktype = struct.unpack_from(e + "H", body, 0)[0]
-                units, offset = 1_000_000, 0
-                for code, value in _options(body[8:n], e):
-                    if code == 9 and value:
-                        v = value[0]
-                        units = 2 ** (v & 0x7F) if v & 0x80 else 10**v
-                    elif code == 14 and len(value) == 8:
-                        offset = struct.unpack(e + "q", value)[0]
-                interfaces.append((linktype, units, offset))
-            else:  # SPB
-                if not interfaces:
-                    self.stats.rejected["unknown_interface"] += 1
-                    continue
+                interfaces.append(_interface(body, n, e))
+            elif not interfaces:  # SPB
+                self.stats.rejected["unknown_interface"] += 1
+            else:
                 self.stats.events["no_timestamp"] += 1
                 self.stats.records += 1
                 yield CapturedPacket(0, 0, interfaces[0][0], body[4:n])
         if pos != size:
-            self.stats.rejected["truncated"] += 1
-            self.stats.skipped_bytes += size - pos
-            self._skip_to(f, size)
+            self._truncated_tail(f, pos)
+
+    def _byte_order(self, bom: bytes, pos: int) -> str:
+        """The struct byte order (``<`` or ``>``) of the section whose header is at ``pos``."""
+        if bom == BYTE_ORDER_LE:
+            return "<"
+        if bom == BYTE_ORDER_BE:
+            return ">"
+        raise PcapError(f"{self.name}: offset {pos}: bad byte-order magic {bom.hex()}")
+
+    def _unread_block(self, f: BinaryIO, pos: int, blen: int, min_body: int | None) -> int:
+        """A block at ``pos`` not read: a malformed length (:class:`PcapError`), one past the end
+        of the file (the capture was cut short: counted, skipped to the end), a type the reader
+        has no use for, or a damaged length (counted); returns where the next block starts (the
+        end of the file after a cut)."""
+        if blen < 12 or blen % 4:
+            raise PcapError(
+                f"{self.name}: offset {pos}: block length {blen} (expected a multiple of 4, >= 12)"
+            )
+        if pos + blen > self.size:
+            self._truncated_tail(f, pos)
+            return self.size
+        n = blen - 12
+        if min_body is not None:  # a damaged length: skip the block, count it
+            self.stats.rejected["short_block" if n < min_body else "oversized_block"] += 1
+        self._skip_to(f, pos + blen)
+        return pos + blen
+
+    def _truncated_tail(self, f: BinaryIO, pos: int) -> None:
+        """The capture ends with an incomplete block or record at ``pos``: counted, skipped."""
+        self.stats.rejected["truncated"] += 1
+        self.stats.skipped_bytes += self.size - pos
+        self._skip_to(f, self.size)
 
     # -- classic pcap --------------------------------------------------------------------------
     def _pcap(self, f: BinaryIO, magic: bytes) -> Iterator[CapturedPacket]:
@@ -228,9 +240,21 @@ class CaptureReader:
             self.stats.records += 1
             yield CapturedPacket(ts, 0, linktype, data)
         if pos != size:
-            self.stats.rejected["truncated"] += 1
-            self.stats.skipped_bytes += size - pos
-            self._skip_to(f, size)
+            self._truncated_tail(f, pos)
+
+
+def _interface(body: bytes, n: int, e: str) -> tuple[int, int, int]:
+    """An interface description block's (link type, timestamp units per second, offset in s):
+    ``if_tsresol`` (a power of 10, or of 2 with the high bit) and ``if_tsoffset`` options."""
+    linktype = struct.unpack_from(e + "H", body, 0)[0]
+    units, offset = 1_000_000, 0
+    for code, value in _options(body[8:n], e):
+        if code == 9 and value:
+            v = value[0]
+            units = 2 ** (v & 0x7F) if v & 0x80 else 10**v
+        elif code == 14 and len(value) == 8:
+            offset = struct.unpack(e + "q", value)[0]
+    return linktype, units, offset
 
 
 def _overflow(name: str, packet: int, offset: int, ticks: int, units: int, offset_s: int) -> str:
@@ -279,11 +303,8 @@ def _ip_payload(pkt: CapturedPacket) -> tuple[int, bytes] | str:
         etype, pos = (0x0800 if d[:1] and d[0] >> 4 == 4 else 0x86DD), 0
     else:
         return f"linktype_{lt}"
-    if etype == 0x0800:
-        return 4, d[pos:]
-    if etype == 0x86DD:
-        return 6, d[pos:]
-    return "not_ip"
+    version = _IP_VERSIONS.get(etype)
+    return "not_ip" if version is None else (version, d[pos:])
 
 
 def udp_datagrams(

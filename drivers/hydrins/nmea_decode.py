@@ -257,64 +257,23 @@ class NmeaNavAssembler:
         own = [r for k, r in epoch.items() if k is not Zda] or list(epoch.values())
         hosts = [r.host_ns for r in own if r.host_ns is not None]
         nav.host_ns = min(hosts) if hosts else None
-        tod = None
-        for r in epoch.values():
-            if isinstance(r, Hdt):
-                nav.heading_rad = wrap_heading_rad(math.radians(r.heading_deg))
-            elif isinstance(r, PixseAtitud):
-                roll, pitch, _ = attitude_from_ixblue(
-                    math.radians(r.roll_deg), math.radians(r.pitch_deg), 0.0
-                )
-                nav.roll_rad, nav.pitch_rad = float(roll), float(pitch)
-            elif isinstance(r, PixsePositi):
-                nav.lat_deg, nav.lon_deg, nav.height_m = r.lat_deg, wrap_lon_deg(r.lon_deg), r.altitude_m
-            elif isinstance(r, PixseSpeed):
-                nav.v_north_m_s, nav.v_east_m_s, nav.v_down_m_s = r.north_m_s, r.east_m_s, -r.up_m_s
-            elif isinstance(r, PixseHeave):
-                nav.surge_m, nav.sway_m, nav.heave_m = r.surge_m, -r.sway_m, -r.heave_m
-            elif isinstance(r, PixseTime):
-                tod = r.time_of_day_ns
-            elif isinstance(r, PixseStdhrp):
-                nav.sigma_heading_rad = math.radians(r.heading_deg)
-                nav.sigma_roll_rad = math.radians(r.roll_deg)
-                nav.sigma_pitch_rad = math.radians(r.pitch_deg)
-            elif isinstance(r, PixseStdpos):
-                nav.sigma_north_m, nav.sigma_east_m, nav.sigma_down_m = r.north_m, r.east_m, r.altitude_m
-            elif isinstance(r, PixseStdspd):
-                nav.sigma_v_north_m_s, nav.sigma_v_east_m_s, nav.sigma_v_down_m_s = (
-                    r.north_m_s,
-                    r.east_m_s,
-                    r.up_m_s,
-                )
-            elif isinstance(r, PixseAlgsts):
-                if r.status1 is not None and r.status2 is not None:
-                    nav.algorithm_status = (r.status1, r.status2)
-            elif isinstance(r, PixseStatus):
-                if r.status1 is not None and r.status2 is not None:
-                    nav.system_status = (r.status1, r.status2)
-            elif isinstance(r, PixseHtSts):
-                nav.user_status = r.status
-            elif isinstance(r, Gga):
-                if math.isnan(nav.lat_deg):
-                    nav.lat_deg, nav.lon_deg = r.lat_deg, r.lon_deg
-                    if not math.isnan(r.geoid_separation_m):
-                        nav.height_m, nav.height_ref = r.altitude_msl_m + r.geoid_separation_m, "ellipsoid"
-                    elif not math.isnan(r.altitude_msl_m):
-                        nav.height_m, nav.height_ref = r.altitude_msl_m, "geoid"
+        for kind, r in epoch.items():  # in arrival order (a GGA position only without POSITI)
+            put = _EPOCH_FIELDS.get(kind)
+            if put is not None:
+                put(nav, r)
+        time_rec = epoch.get(PixseTime)
+        tod = None if time_rec is None else time_rec.time_of_day_ns
         if (
             tod is None
             and self._time_sentences
-            and any(isinstance(r, (Hdt, PixseAtitud, PixsePositi)) for r in epoch.values())
+            and (Hdt in epoch or PixseAtitud in epoch or PixsePositi in epoch)
         ):
             # the stream has TIME__ but this epoch lost its own (bytes lost on the line): a ZDA
             # or GGA next to it belongs to another instant, so its time is unknown
             self.decoder.stats.rejected["epoch_without_time"] += 1
             return []
         if tod is None:
-            for cls in (Gga, Zda, Rmc):
-                tod = next((r.time_of_day_ns for r in epoch.values() if isinstance(r, cls)), None)
-                if tod is not None:
-                    break
+            tod = _fix_time_of_day(epoch)
         nav.time_of_day_ns = tod
         if tod is not None and nav.utc_detected is not False:
             self._resolve(nav, tod)
@@ -336,3 +295,91 @@ class NmeaNavAssembler:
     def _reference(self) -> int | None:
         """The host's UTC ns: the feed's hint, else the clock, else None."""
         return self._hint if self._hint is not None else (self.utc_clock() if self.utc_clock else None)
+
+
+# -- the fields of a NavRecord each sentence of an epoch gives (records keyed by their exact type:
+#    the epoch holds one record per sentence type)
+
+
+def _put_hdt(nav: NavRecord, r: Hdt) -> None:
+    nav.heading_rad = wrap_heading_rad(math.radians(r.heading_deg))
+
+
+def _put_atitud(nav: NavRecord, r: PixseAtitud) -> None:
+    roll, pitch, _ = attitude_from_ixblue(math.radians(r.roll_deg), math.radians(r.pitch_deg), 0.0)
+    nav.roll_rad, nav.pitch_rad = float(roll), float(pitch)
+
+
+def _put_positi(nav: NavRecord, r: PixsePositi) -> None:
+    nav.lat_deg, nav.lon_deg, nav.height_m = r.lat_deg, wrap_lon_deg(r.lon_deg), r.altitude_m
+
+
+def _put_speed(nav: NavRecord, r: PixseSpeed) -> None:
+    nav.v_north_m_s, nav.v_east_m_s, nav.v_down_m_s = r.north_m_s, r.east_m_s, -r.up_m_s
+
+
+def _put_heave(nav: NavRecord, r: PixseHeave) -> None:
+    nav.surge_m, nav.sway_m, nav.heave_m = r.surge_m, -r.sway_m, -r.heave_m
+
+
+def _put_stdhrp(nav: NavRecord, r: PixseStdhrp) -> None:
+    nav.sigma_heading_rad = math.radians(r.heading_deg)
+    nav.sigma_roll_rad = math.radians(r.roll_deg)
+    nav.sigma_pitch_rad = math.radians(r.pitch_deg)
+
+
+def _put_stdpos(nav: NavRecord, r: PixseStdpos) -> None:
+    nav.sigma_north_m, nav.sigma_east_m, nav.sigma_down_m = r.north_m, r.east_m, r.altitude_m
+
+
+def _put_stdspd(nav: NavRecord, r: PixseStdspd) -> None:
+    nav.sigma_v_north_m_s, nav.sigma_v_east_m_s, nav.sigma_v_down_m_s = r.north_m_s, r.east_m_s, r.up_m_s
+
+
+def _put_algsts(nav: NavRecord, r: PixseAlgsts) -> None:
+    if r.status1 is not None and r.status2 is not None:
+        nav.algorithm_status = (r.status1, r.status2)
+
+
+def _put_status(nav: NavRecord, r: PixseStatus) -> None:
+    if r.status1 is not None and r.status2 is not None:
+        nav.system_status = (r.status1, r.status2)
+
+
+def _put_htsts(nav: NavRecord, r: PixseHtSts) -> None:
+    nav.user_status = r.status
+
+
+def _put_gga(nav: NavRecord, r: Gga) -> None:
+    """GGA's position, only when the epoch has none yet (POSITI, when before it, wins)."""
+    if math.isnan(nav.lat_deg):
+        nav.lat_deg, nav.lon_deg = r.lat_deg, r.lon_deg
+        if not math.isnan(r.geoid_separation_m):
+            nav.height_m, nav.height_ref = r.altitude_msl_m + r.geoid_separation_m, "ellipsoid"
+        elif not math.isnan(r.altitude_msl_m):
+            nav.height_m, nav.height_ref = r.altitude_msl_m, "geoid"
+
+
+_EPOCH_FIELDS: dict[type, Callable[[NavRecord, Any], None]] = {
+    Hdt: _put_hdt,
+    PixseAtitud: _put_atitud,
+    PixsePositi: _put_positi,
+    PixseSpeed: _put_speed,
+    PixseHeave: _put_heave,
+    PixseStdhrp: _put_stdhrp,
+    PixseStdpos: _put_stdpos,
+    PixseStdspd: _put_stdspd,
+    PixseAlgsts: _put_algsts,
+    PixseStatus: _put_status,
+    PixseHtSts: _put_htsts,
+    Gga: _put_gga,
+}
+
+
+def _fix_time_of_day(epoch: dict[type, Any]) -> int | None:
+    """An epoch's time of day without TIME__: its GGA's, else its ZDA's, else its RMC's."""
+    for cls in (Gga, Zda, Rmc):
+        r = epoch.get(cls)
+        if r is not None and r.time_of_day_ns is not None:
+            return r.time_of_day_ns
+    return None

@@ -75,7 +75,7 @@ class _Blocks(Mapping):
         blk = self._cache.get(name)
         if blk is None:
             seg, k, names = self._index[name]
-            blk = self._cache[name] = dict(zip(names, self._values[seg][k : k + len(names)]))
+            blk = self._cache[name] = dict(zip(names, self._values[seg][k : k + len(names)], strict=False))
         return blk
 
     def __contains__(self, name: object) -> bool:

@@ -43,31 +43,8 @@ def encode_frame(frame: StdbinFrame) -> bytes:
     version = frame.protocol_version
     if version not in HEADER_SIZES:
         raise DriverError(f"STDBIN version {version!r}: expected 2, 3, 4 or 5")
-    masks = [0, 0, 0]
-    for name in frame.blocks:
-        spec = BLOCKS_BY_NAME.get(name)
-        if spec is None:
-            raise DriverError(f"STDBIN block {name!r} is unknown; known: {sorted(BLOCKS_BY_NAME)}")
-        if spec[0] == 1 and version < 3:
-            raise DriverError(
-                f"STDBIN block {name!r} (extended navigation) needs version >= 3, got {version}"
-            )
-        masks[spec[0]] |= 1 << spec[1]
-    parts: list[bytes] = []
-    sizes = [0, 0, 0]
-    for index, table in enumerate(BLOCK_TABLES):
-        for bit in range(32):
-            if masks[index] >> bit & 1:
-                name, fmt, names = table[bit]
-                blk = frame.blocks[name]
-                missing = [n for n in names if n not in blk]
-                if missing:
-                    raise DriverError(f"STDBIN block {name!r}: missing field(s) {missing}")
-                try:
-                    parts.append(struct.pack(">" + fmt, *(blk[n] for n in names)))
-                except struct.error as exc:
-                    raise DriverError(f"STDBIN block {name!r}: {exc}") from exc
-                sizes[index] += BLOCK_SIZES[name]
+    masks = _block_masks(frame, version)
+    parts, sizes = _packed_blocks(frame, masks)
     header_size = HEADER_SIZES[version]
     size = header_size + sum(sizes) + CHECKSUM_SIZE
     if size > MAX_TELEGRAM:
@@ -83,6 +60,43 @@ def encode_frame(frame: StdbinFrame) -> bytes:
         )
     body = header + b"".join(parts)
     return body + U32.pack(sum32(body))
+
+
+def _block_masks(frame: StdbinFrame, version: int) -> list[int]:
+    """The navigation, extended navigation and external data masks of the frame's blocks
+    (:class:`DriverError` for an unknown block or one ``version`` cannot carry)."""
+    masks = [0, 0, 0]
+    for name in frame.blocks:
+        spec = BLOCKS_BY_NAME.get(name)
+        if spec is None:
+            raise DriverError(f"STDBIN block {name!r} is unknown; known: {sorted(BLOCKS_BY_NAME)}")
+        if spec[0] == 1 and version < 3:
+            raise DriverError(
+                f"STDBIN block {name!r} (extended navigation) needs version >= 3, got {version}"
+            )
+        masks[spec[0]] |= 1 << spec[1]
+    return masks
+
+
+def _packed_blocks(frame: StdbinFrame, masks: list[int]) -> tuple[list[bytes], list[int]]:
+    """The blocks the masks name, packed in wire order, and the bytes of each mask's blocks
+    (:class:`DriverError` naming the block for a missing or unpackable field)."""
+    parts: list[bytes] = []
+    sizes = [0, 0, 0]
+    for index, table in enumerate(BLOCK_TABLES):
+        for bit in range(32):
+            if masks[index] >> bit & 1:
+                name, fmt, names = table[bit]
+                blk = frame.blocks[name]
+                missing = [n for n in names if n not in blk]
+                if missing:
+                    raise DriverError(f"STDBIN block {name!r}: missing field(s) {missing}")
+                try:
+                    parts.append(struct.pack(">" + fmt, *(blk[n] for n in names)))
+                except struct.error as exc:
+                    raise DriverError(f"STDBIN block {name!r}: {exc}") from exc
+                sizes[index] += BLOCK_SIZES[name]
+    return parts, sizes
 
 
 def encode_answer(payload: bytes, version: int = 5) -> bytes:
@@ -149,16 +163,18 @@ def frame_from_nav(
         tod = nav.time_of_day_ns or 0
     if nav.algorithm_status is not None:
         words = (tuple(nav.algorithm_status) + (0, 0, 0, 0))[:4]
-        blocks["ins_algorithm_status"] = dict(zip(("status1", "status2", "status3", "status4"), words))
+        blocks["ins_algorithm_status"] = dict(
+            zip(("status1", "status2", "status3", "status4"), words, strict=True)
+        )
     if nav.system_status is not None:
         words = (tuple(nav.system_status) + (0, 0, 0))[:3]
-        blocks["ins_system_status"] = dict(zip(("status1", "status2", "status3"), words))
+        blocks["ins_system_status"] = dict(zip(("status1", "status2", "status3"), words, strict=True))
     if nav.user_status is not None:
         blocks["ins_user_status"] = {"status": nav.user_status}
     validity = tod // NS_PER_100US
     if nav.gps_ns is not None:
         blocks["utc"] = {"validity_time_100us": validity, "source": 0}
-    return StdbinFrame(version, counter, validity, blocks)
+    return StdbinFrame(protocol_version=version, counter=counter, validity_time_100us=validity, blocks=blocks)
 
 
 def encode_nav(

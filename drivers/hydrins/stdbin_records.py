@@ -86,49 +86,9 @@ class StdbinFrame:
         """
         nav = NavRecord("stdbin", host_ns=self.host_ns)
         b = self.blocks
-        if "attitude_heading" in b:
-            a = b["attitude_heading"]
-            roll, pitch, heading = attitude_from_ixblue(
-                math.radians(a["roll_deg"]), math.radians(a["pitch_deg"]), math.radians(a["heading_deg"])
-            )
-            nav.roll_rad, nav.pitch_rad, nav.heading_rad = (
-                float(roll),
-                float(pitch),
-                wrap_heading_rad(float(heading)),
-            )
-        if "attitude_heading_deviation" in b:
-            a = b["attitude_heading_deviation"]
-            nav.sigma_heading_rad = math.radians(a["heading_sd_deg"])
-            nav.sigma_roll_rad = math.radians(a["roll_sd_deg"])
-            nav.sigma_pitch_rad = math.radians(a["pitch_sd_deg"])
-        if "position" in b:
-            p = b["position"]
-            nav.lat_deg, nav.lon_deg, nav.height_m = (
-                p["latitude_deg"],
-                wrap_lon_deg(p["longitude_deg"]),
-                p["altitude_m"],
-            )
-            nav.height_ref = {0: "geoid", 1: "ellipsoid"}.get(p["altitude_ref"])
-        if "position_deviation" in b:
-            p = b["position_deviation"]
-            nav.sigma_north_m, nav.sigma_east_m, nav.sigma_down_m = (
-                p["north_sd_m"],
-                p["east_sd_m"],
-                p["altitude_sd_m"],
-            )
-        if "speed_geographic_frame" in b:
-            v = b["speed_geographic_frame"]
-            nav.v_north_m_s, nav.v_east_m_s, nav.v_down_m_s = v["north_m_s"], v["east_m_s"], -v["up_m_s"]
-        if "speed_geographic_frame_deviation" in b:
-            v = b["speed_geographic_frame_deviation"]
-            nav.sigma_v_north_m_s, nav.sigma_v_east_m_s, nav.sigma_v_down_m_s = (
-                v["north_sd_m_s"],
-                v["east_sd_m_s"],
-                v["up_sd_m_s"],
-            )
-        if "realtime_heave_surge_sway" in b:
-            h = b["realtime_heave_surge_sway"]
-            nav.surge_m, nav.sway_m, nav.heave_m = h["surge_m"], -h["sway_m"], -h["heave_m"]
+        _put_attitude(nav, b)
+        _put_position(nav, b)
+        _put_speed_and_heave(nav, b)
         nav.algorithm_status = self._words("ins_algorithm_status")
         nav.system_status = self._words("ins_system_status")
         if "ins_user_status" in b:
@@ -138,18 +98,23 @@ class StdbinFrame:
             tod %= DAY_NS
         nav.time_of_day_ns = tod
         if nav.utc_detected is not False:
-            date = self.system_date
-            if date is not None:
-                try:
-                    nav.gps_ns, _ = device_fields_to_gps_ns(
-                        date["year"], date["month"], date["day"], tod, utc_hint_ns
-                    )
-                    nav.date_source = "system_date"
-                except ValueError:  # an impossible date in a checksum-valid frame: leave unresolved
-                    pass
-            elif utc_hint_ns is not None:
-                nav.gps_ns, nav.date_source = resolve_gps_ns(tod, utc_hint_ns), "host"
+            self._put_date(nav, tod, utc_hint_ns)
         return nav
+
+    def _put_date(self, nav: NavRecord, tod: int, utc_hint_ns: int | None) -> None:
+        """``nav.gps_ns`` and its ``date_source`` for the time of day ``tod``: dated by the
+        system-date block, else by ``utc_hint_ns``; left unresolved for an impossible date."""
+        date = self.system_date
+        if date is not None:
+            try:
+                nav.gps_ns, _ = device_fields_to_gps_ns(
+                    date["year"], date["month"], date["day"], tod, utc_hint_ns
+                )
+                nav.date_source = "system_date"
+            except ValueError:  # an impossible date in a checksum-valid frame: leave unresolved
+                pass
+        elif utc_hint_ns is not None:
+            nav.gps_ns, nav.date_source = resolve_gps_ns(tod, utc_hint_ns), "host"
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-ready: header, the shortcut fields, status words and flags, and every block."""
@@ -187,6 +152,63 @@ class StdbinFrame:
             out[name] = getattr(nav_flags, name)
         out["blocks"] = {name: {k: _json(v) for k, v in blk.items()} for name, blk in self.blocks.items()}
         return out
+
+
+def _put_attitude(nav: NavRecord, b: Mapping[str, dict[str, Any]]) -> None:
+    """Roll, pitch, heading (canonical) and their standard deviations, from their blocks."""
+    if "attitude_heading" in b:
+        a = b["attitude_heading"]
+        roll, pitch, heading = attitude_from_ixblue(
+            math.radians(a["roll_deg"]), math.radians(a["pitch_deg"]), math.radians(a["heading_deg"])
+        )
+        nav.roll_rad, nav.pitch_rad, nav.heading_rad = (
+            float(roll),
+            float(pitch),
+            wrap_heading_rad(float(heading)),
+        )
+    if "attitude_heading_deviation" in b:
+        a = b["attitude_heading_deviation"]
+        nav.sigma_heading_rad = math.radians(a["heading_sd_deg"])
+        nav.sigma_roll_rad = math.radians(a["roll_sd_deg"])
+        nav.sigma_pitch_rad = math.radians(a["pitch_sd_deg"])
+
+
+def _put_position(nav: NavRecord, b: Mapping[str, dict[str, Any]]) -> None:
+    """Latitude, longitude (wrapped to ±180°), height and its reference, and their standard
+    deviations (NED), from their blocks."""
+    if "position" in b:
+        p = b["position"]
+        nav.lat_deg, nav.lon_deg, nav.height_m = (
+            p["latitude_deg"],
+            wrap_lon_deg(p["longitude_deg"]),
+            p["altitude_m"],
+        )
+        nav.height_ref = {0: "geoid", 1: "ellipsoid"}.get(p["altitude_ref"])
+    if "position_deviation" in b:
+        p = b["position_deviation"]
+        nav.sigma_north_m, nav.sigma_east_m, nav.sigma_down_m = (
+            p["north_sd_m"],
+            p["east_sd_m"],
+            p["altitude_sd_m"],
+        )
+
+
+def _put_speed_and_heave(nav: NavRecord, b: Mapping[str, dict[str, Any]]) -> None:
+    """Velocity (NED) and its standard deviations, and the real-time heave, surge and sway
+    (FRD), from their blocks."""
+    if "speed_geographic_frame" in b:
+        v = b["speed_geographic_frame"]
+        nav.v_north_m_s, nav.v_east_m_s, nav.v_down_m_s = v["north_m_s"], v["east_m_s"], -v["up_m_s"]
+    if "speed_geographic_frame_deviation" in b:
+        v = b["speed_geographic_frame_deviation"]
+        nav.sigma_v_north_m_s, nav.sigma_v_east_m_s, nav.sigma_v_down_m_s = (
+            v["north_sd_m_s"],
+            v["east_sd_m_s"],
+            v["up_sd_m_s"],
+        )
+    if "realtime_heave_surge_sway" in b:
+        h = b["realtime_heave_surge_sway"]
+        nav.surge_m, nav.sway_m, nav.heave_m = h["surge_m"], -h["sway_m"], -h["heave_m"]
 
 
 def _json(v):

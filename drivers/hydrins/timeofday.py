@@ -21,7 +21,7 @@ import datetime as _dt
 from functools import lru_cache
 
 from calib.core.frames import gps_ns_to_utc_fields, utc_fields_to_gps_ns
-from calib.core.gpstime import GPS_EPOCH_DATE, on_table_change, unroll_week_rollover
+from calib.core.gpstime import GPS_EPOCH_DATE, table_generation, unroll_week_rollover
 
 NS_PER_S = 1_000_000_000
 DAY_NS = 86_400 * NS_PER_S
@@ -91,7 +91,7 @@ def device_fields_to_gps_ns(
         days, eras = unroll_week_rollover(days, int(reference_utc_ns) // DAY_NS)
     if gps_minus_utc_s is not None:
         return (days - _GPS_EPOCH_DAY) * DAY_NS + gps_minus_utc_s * NS_PER_S + time_of_day_ns, eras
-    return _gps_midnight_ns(days) + time_of_day_ns, eras
+    return _gps_midnight_ns(days, table_generation()) + time_of_day_ns, eras
 
 
 def resolve_gps_ns(time_of_day_ns: int, hint_utc_ns: int, gps_minus_utc_s: int | None = None) -> int:
@@ -106,22 +106,19 @@ def resolve_gps_ns(time_of_day_ns: int, hint_utc_ns: int, gps_minus_utc_s: int |
         best = day + 1
     if gps_minus_utc_s is not None:
         return (best - _GPS_EPOCH_DAY) * DAY_NS + gps_minus_utc_s * NS_PER_S + time_of_day_ns
-    return _gps_midnight_ns(best) + time_of_day_ns
+    return _gps_midnight_ns(best, table_generation()) + time_of_day_ns
 
 
 _GPS_EPOCH_DAY = (GPS_EPOCH_DATE - _UNIX_EPOCH).days
 
 
 @lru_cache(maxsize=16)
-def _gps_midnight_ns(day: int) -> int:
+def _gps_midnight_ns(day: int, generation: int) -> int:
     """GPS ns of UTC midnight ``day`` days after the Unix epoch (the day's leap-second count is
-    that of its midnight, as for :func:`calib.core.frames.utc_fields_to_gps_ns`); cleared when
-    another leap-second table is installed."""
+    that of its midnight, as for :func:`calib.core.frames.utc_fields_to_gps_ns`); cached per
+    leap-second table (``generation``: :func:`calib.core.gpstime.table_generation`)."""
     date = _UNIX_EPOCH + _dt.timedelta(days=day)
     return utc_fields_to_gps_ns(date.year, date.month, date.day, 0)
-
-
-on_table_change(_gps_midnight_ns.cache_clear)
 
 
 def utc_time_of_day_ns(gps_ns: int, gps_minus_utc_s: int | None = None) -> int:

@@ -32,7 +32,7 @@ import select
 import threading
 import time
 from collections import deque
-from collections.abc import Callable
+from collections.abc import Awaitable, Callable
 
 from drivers.base import DriverError
 from drivers.transport.base import Chunk, Transport
@@ -158,11 +158,15 @@ class SerialTransport(Transport):
         parity: str = "N",
         stopbits: float = 1,
         name: str | None = None,
+        *,
+        path_watch: Callable[[str, float], Awaitable[bool]] = wait_for_path,
         **kwargs,
     ) -> None:
         kwargs.setdefault("reconnect_max_s", 0.5)
         super().__init__(name or port, **kwargs)
         self.port = port
+        # how a missing path is awaited: (path, timeout s) → it exists (a test watches the wait)
+        self.path_watch = path_watch
         self.settings = {"baudrate": baudrate, "bytesize": bytesize, "parity": parity, "stopbits": stopbits}
         self._serial = None
         self._reader: _PortReader | None = None
@@ -175,12 +179,12 @@ class SerialTransport(Transport):
     async def _wait_retry(self, delay_s: float) -> bool:
         """A missing path: wait for it to appear (at most ``reconnect_max_s`` between looks) and
         say so; a path that is there but failed to open: back off ``delay_s``."""
-        if os.path.exists(self.port):
+        if os.path.exists(self.port):  # noqa: ASYNC240 (a stat of a device path: no disk, no wait)
             await asyncio.sleep(delay_s)
             return False
         deadline = self._loop.time() + self.reconnect_max_s
         while not self._closing and (left := deadline - self._loop.time()) > 0:
-            if await wait_for_path(self.port, left):
+            if await self.path_watch(self.port, left):
                 return True
         return False
 

@@ -33,10 +33,14 @@ import asyncio
 import socket
 import struct
 import time
+from typing import TYPE_CHECKING
 
 from drivers.timing import RealtimeStamps
 from drivers.transport import recvmmsg
 from drivers.transport.base import Transport
+
+if TYPE_CHECKING:
+    from drivers.timing import HostClock
 
 _TIMESPEC = struct.Struct("@qq")
 _SO_TIMESTAMPNS = getattr(socket, "SO_TIMESTAMPNS", 35)  # Linux values where Python lacks the name
@@ -58,6 +62,7 @@ class BatchUdpTransport(Transport):
         burst: int = 4096,
         name: str | None = None,
         use_recvmmsg: bool = True,
+        host_clock: HostClock | None = None,
         **kwargs,
     ) -> None:
         kwargs.setdefault("max_chunks", 16384)
@@ -74,7 +79,9 @@ class BatchUdpTransport(Transport):
         self._timer: asyncio.TimerHandle | None = None
         self._paused = False
         self._watching = False  # the socket is registered with the loop's selector
-        self.stamps = RealtimeStamps()
+        # the kernel's realtime stamps moved to monotonic time through ``host_clock`` (the real
+        # clock by default; the simulated devices' fake one where it is handed over)
+        self.stamps = RealtimeStamps() if host_clock is None else RealtimeStamps(clock=host_clock)
 
     def describe(self) -> str:
         return (
@@ -165,12 +172,12 @@ class BatchUdpTransport(Transport):
             if truncated:
                 stats.rejected["truncated"] += truncated
             if conv.exact:
-                for data, t in zip(datagrams, stamps):
+                for data, t in zip(datagrams, stamps, strict=True):  # (one stamp per datagram)
                     push(data, mono if t is None else t - offset)
                 if stamps and stamps[-1] is not None:
                     conv.last_ns = stamps[-1] - offset
             else:  # the realtime clock stepped: stamps on either side of the step
-                for data, t in zip(datagrams, stamps):
+                for data, t in zip(datagrams, stamps, strict=True):  # (one stamp per datagram)
                     push(data, mono if t is None else conv.convert(t, mono))
             k = len(datagrams) + truncated
             got += k

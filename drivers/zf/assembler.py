@@ -319,7 +319,7 @@ class ProfileAssembler:
             return done
         profiles: list[AssembledProfile] = []
         tags: list[int | None] = []
-        for data, t in zip(datagrams, host_ns):
+        for data, t in zip(datagrams, host_ns, strict=False):
             profiles += self.feed_assembled(data, t)
             p = self.last_packet
             tags.append(p.t0_ns if p is not None and p.flags & _SYNCED == _SYNCED else None)
@@ -393,7 +393,7 @@ class ProfileAssembler:
             a = b
         self._run = run
         self.last_packet = self._decode(datagrams[-1])
-        tags = [t if f & _SYNCED == _SYNCED else None for f, t in zip(flags_l, t0_l)]
+        tags = [t if f & _SYNCED == _SYNCED else None for f, t in zip(flags_l, t0_l, strict=True)]
         return out, tags
 
     def _take_back_run(self, r: _Run) -> None:

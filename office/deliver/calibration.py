@@ -95,15 +95,15 @@ def load_calibration(site, ref: str | None, software: str, db=None) -> Calibrati
     lever = mount.lever_arm_m.copy()
     lever_var = np.zeros(3)
     applied = []
-    for key, e in extras.items():
+    for key, extra in extras.items():
         if key in _EXTRAS:
             attr, scale = _EXTRAS[key]
-            mount = replace(mount, **{attr: float(e["value"]) * scale})
+            mount = replace(mount, **{attr: float(extra["value"]) * scale})
             applied.append(key)
         elif key in ("lever_arm_x_m", "lever_arm_y_m"):
             i = 0 if key == "lever_arm_x_m" else 1
-            lever[i] = float(e["value"])
-            lever_var[i] = float(e.get("sigma_realistic", e["sigma"])) ** 2
+            lever[i] = float(extra["value"])
+            lever_var[i] = float(extra.get("sigma_realistic", extra["sigma"])) ** 2
             applied.append(key)
     mount = replace(mount, lever_arm_m=lever)
     cov = MountCovariance(_covariance(result), np.diag(lever_var))

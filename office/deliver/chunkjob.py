@@ -19,11 +19,18 @@ import os
 import resource
 from dataclasses import dataclass, replace
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from office.deliver.options import Filters
 from office.deliver.sources import ChunkSpec, Returns, read_chunk
+
+if TYPE_CHECKING:
+    from calib.core.frames import LocalFrame
+    from calib.core.georef import Mount
+    from calib.core.tpu import MountCovariance, ScannerSigmas
+    from calib.core.trajectory import Trajectory
 
 NS_PER_S = 1_000_000_000
 STATE_DIR = ".georef"
@@ -40,10 +47,10 @@ class ChunkContext:
 
     out_dir: str
     crs: str
-    frame: object  # calib.core.frames.LocalFrame
-    mount: object  # calib.core.georef.Mount
-    covariance: object  # calib.core.tpu.MountCovariance
-    scanner: object  # calib.core.tpu.ScannerSigmas
+    frame: LocalFrame
+    mount: Mount
+    covariance: MountCovariance
+    scanner: ScannerSigmas
     filters: Filters
     tiling: str
     tile_m: float | None
@@ -55,7 +62,7 @@ class ChunkContext:
 class ChunkTask:
     context: ChunkContext
     spec: ChunkSpec
-    trajectory: object  # the chunk's slice of the survey's trajectory
+    trajectory: Trajectory  # the chunk's slice of the survey's trajectory
 
 
 @dataclass(frozen=True)
@@ -184,7 +191,8 @@ def tile_names(
     if ctx.tiling == "line":
         keys, inv = np.unique(pass_id, return_inverse=True)
         return inv, [TRANSIT if k < 0 else f"line-{int(k)}" for k in keys]
-    s = float(ctx.tile_m)  # type: ignore[arg-type]
+    assert ctx.tile_m is not None  # square tiling has its size (GeorefOptions checks it)
+    s = float(ctx.tile_m)
     ix, iy = np.floor(x / s).astype(np.int64), np.floor(y / s).astype(np.int64)
     keys, inv = np.unique(np.stack([ix, iy]), axis=1, return_inverse=True)
     digits = 0 if s == math.floor(s) else 3
@@ -192,17 +200,21 @@ def tile_names(
     return inv.reshape(-1), names
 
 
-def process_chunk(task: ChunkTask) -> ChunkDone:
-    """Run one chunk (module docstring) and return what it wrote."""
-    from calib.core import frames
-    from calib.core.georef import georeference
-    from calib.core.tpu import point_sigmas
-    from calib.io.lastile import TILE_POINT_DTYPE
+@dataclass(frozen=True)
+class _Selection:
+    """The returns of a chunk that go into the deliverable: their indices in the chunk (time
+    order), their GPS times (s) and every return's pass id (-1: none)."""
 
-    ctx, spec, traj = task.context, task.spec, task.trajectory
-    r = read_chunk(spec)
-    counters: dict[str, int] = dict(r.counters)
-    counters["returns"] = r.size
+    idx: np.ndarray
+    t_s: np.ndarray
+    pass_id: np.ndarray
+
+
+def _select(r: Returns, ctx: ChunkContext, traj: Trajectory, counters: dict[str, int]) -> _Selection:
+    """Apply the filters, the lines (without transits), the vessel box and the trajectory's
+    coverage, counting what each drops into ``counters``."""
+    from calib.core import frames
+
     keep = _filter(r, ctx.filters, counters)
     pid = _pass_ids(r, ctx.lines)
     if ctx.tiling == "line" and not ctx.keep_transits:
@@ -217,36 +229,63 @@ def process_chunk(task: ChunkTask) -> ChunkDone:
     t_s = frames.gps_ns_to_seconds(r.t_gps_ns[keep])
     uncovered = traj.uncovered(t_s + mount.time_offset_s)
     counters["outside_trajectory"] = int(uncovered.sum())
-    idx = np.flatnonzero(keep)[~uncovered]
-    t_s = t_s[~uncovered]
+    return _Selection(idx=np.flatnonzero(keep)[~uncovered], t_s=t_s[~uncovered], pass_id=pid)
+
+
+def _georeference_points(ctx: ChunkContext, traj: Trajectory, r: Returns, sel: _Selection) -> np.ndarray:
+    """The selected returns as tile points (:data:`~calib.io.lastile.TILE_POINT_DTYPE`):
+    georeferenced on the output CRS's LAS grid, with their σ_h and σ_v, in blocks that stay
+    in the CPU's caches."""
+    from calib.core.georef import georeference
+    from calib.core.tpu import point_sigmas
+    from calib.io.lastile import TILE_POINT_DTYPE
+
+    idx, t_s, mount = sel.idx, sel.t_s, ctx.mount
     rng, ang = r.range_m[idx], r.scan_angle_rad[idx]
+    crs = crs_for(ctx.crs, ctx.frame)
+    scale, offset = np.asarray(crs.scales), np.asarray(crs.offsets)
+    pts = np.empty(idx.size, TILE_POINT_DTYPE)
+    for lo in range(0, idx.size, BLOCK):  # blocks that stay in cache, one output array
+        b = slice(lo, lo + BLOCK)
+        p = georeference(t_s[b], rng[b], ang[b], traj, mount)
+        # on the LAS grid already, so that a square tile holds its points as stored
+        xyz = np.round((crs.from_lgf(p) - offset) / scale) * scale + offset
+        out = pts[b]
+        out["x"], out["y"], out["z"] = xyz[:, 0], xyz[:, 1], xyz[:, 2]
+        out["sigma_h_m"], out["sigma_v_m"] = point_sigmas(
+            t_s[b], rng[b], ang[b], traj, mount, ctx.scanner, ctx.covariance
+        )
+    pts["t_gps_s"] = t_s
+    pts["intensity"] = r.intensity[idx]
+    pts["scan_angle_rad"] = ang
+    pts["pass_id"] = sel.pass_id[idx]
+    return pts
+
+
+def _write_parts(ctx: ChunkContext, index: int, pts: np.ndarray) -> dict[str, dict]:
+    """Write one part per tile the points touch (time order within each); what each holds."""
     tiles: dict[str, dict] = {}
-    if idx.size:
-        crs = crs_for(ctx.crs, ctx.frame)
-        scale, offset = np.asarray(crs.scales), np.asarray(crs.offsets)
-        pts = np.empty(idx.size, TILE_POINT_DTYPE)
-        for lo in range(0, idx.size, BLOCK):  # blocks that stay in cache, one output array
-            b = slice(lo, lo + BLOCK)
-            p = georeference(t_s[b], rng[b], ang[b], traj, mount)
-            # on the LAS grid already, so that a square tile holds its points as stored
-            xyz = np.round((crs.from_lgf(p) - offset) / scale) * scale + offset
-            out = pts[b]
-            out["x"], out["y"], out["z"] = xyz[:, 0], xyz[:, 1], xyz[:, 2]
-            out["sigma_h_m"], out["sigma_v_m"] = point_sigmas(
-                t_s[b], rng[b], ang[b], traj, mount, ctx.scanner, ctx.covariance
-            )
-        pts["t_gps_s"] = t_s
-        pts["intensity"] = r.intensity[idx]
-        pts["scan_angle_rad"] = ang
-        pts["pass_id"] = pid[idx]
-        inv, names = tile_names(ctx, pts["x"], pts["y"], pts["pass_id"])
-        order = np.argsort(inv, kind="stable")  # time order within each tile
-        bounds = np.searchsorted(inv[order], np.arange(len(names) + 1))
-        for j, name in enumerate(names):
-            part = pts[order[bounds[j] : bounds[j + 1]]]
-            _save_part(part_path(ctx.out_dir, name, spec.index), part)
-            tiles[name] = {"n": int(part.size), "t_first_gps_s": float(part["t_gps_s"][0])}
-    counters["written"] = int(idx.size)
+    inv, names = tile_names(ctx, pts["x"], pts["y"], pts["pass_id"])
+    order = np.argsort(inv, kind="stable")  # time order within each tile
+    bounds = np.searchsorted(inv[order], np.arange(len(names) + 1))
+    for j, name in enumerate(names):
+        part = pts[order[bounds[j] : bounds[j + 1]]]
+        _save_part(part_path(ctx.out_dir, name, index), part)
+        tiles[name] = {"n": int(part.size), "t_first_gps_s": float(part["t_gps_s"][0])}
+    return tiles
+
+
+def process_chunk(task: ChunkTask) -> ChunkDone:
+    """Run one chunk (module docstring) and return what it wrote."""
+    ctx, spec, traj = task.context, task.spec, task.trajectory
+    r = read_chunk(spec)
+    counters: dict[str, int] = dict(r.counters)
+    counters["returns"] = r.size
+    sel = _select(r, ctx, traj, counters)
+    tiles: dict[str, dict] = {}
+    if sel.idx.size:
+        tiles = _write_parts(ctx, spec.index, _georeference_points(ctx, traj, r, sel))
+    counters["written"] = int(sel.idx.size)
     record = {
         "index": spec.index,
         "t0_ns": spec.t0_ns,

@@ -22,6 +22,7 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -36,10 +37,11 @@ from office.deliver.chunkjob import (
     with_site_sigmas,
     write_atomic,
 )
-from office.deliver.executors import InProcess
+from office.deliver.executors import Executor, InProcess
 from office.deliver.options import GeorefError, GeorefOptions
 from office.deliver.space import check_space, is_out_of_space, out_of_space, source_returns, space_needed
 from office.deliver.tiles import (
+    FileDone,
     FileTask,
     file_done,
     file_record_path,
@@ -48,8 +50,15 @@ from office.deliver.tiles import (
     write_file,
 )
 
+if TYPE_CHECKING:
+    from calib.core.trajectory import Trajectory
+    from office.deliver.calibration import Calibration
+    from office.deliver.sources import Source
+
 NS_PER_S = 1_000_000_000
 Progress = Callable[[str, int, int, int], None]  # stage, done, total, points so far
+#: the options of a job that gives none
+DEFAULT_OPTIONS = GeorefOptions()
 
 
 @dataclass(kw_only=True)
@@ -93,15 +102,15 @@ def _prepare_out(out: Path, resume: bool, fingerprint: str) -> None:
 def run_georef(
     source_path: str | Path,
     out_dir: str | Path,
-    options: GeorefOptions = GeorefOptions(),
+    options: GeorefOptions = DEFAULT_OPTIONS,
     calibration: str | None = None,
     *,
-    executor=None,
+    executor: Executor | None = None,
     resume: bool = False,
     force: bool = False,
     sbet: str | Path | None = None,
     smrmsg: str | Path | None = None,
-    db=None,
+    db: str | Path | None = None,
     max_gap_s: float = 1.0,
     progress: Progress | None = None,
 ) -> GeorefResult:
@@ -158,36 +167,86 @@ def _georef(
     options: GeorefOptions,
     calibration: str | None,
     *,
-    executor,
+    executor: Executor | None,
     resume: bool,
     sbet: str | Path | None,
     smrmsg: str | Path | None,
-    db,
+    db: str | Path | None,
     max_gap_s: float,
     progress: Progress | None,
     space: _Space,
 ) -> GeorefResult:
     """:func:`run_georef` with ``out`` held."""
+    t_start = time.monotonic()
+    executor = executor or InProcess()
+    job = _plan_job(source_path, options, calibration, sbet=sbet, smrmsg=smrmsg, db=db, max_gap_s=max_gap_s)
+    _start_job(out, job, options, resume, space)
+    t_plan = time.monotonic()
+    run = _JobRun(out, job, options, executor, progress)
+    run.submit_chunks()
+    t_chunks = run.run_tasks()
+    planned = plan_files(run.records, options.max_tile_points, None)
+    if not planned:
+        raise GeorefError(f"{source_path}: no return passed the filters: nothing to write")
+    run.remove_stale(planned)
+    t_files = time.monotonic()
+    files = [
+        json.loads((state_dir(out) / "tiles" / f"{name}.json").read_text())["summary"] for name, *_ in planned
+    ]
+    result = GeorefResult(
+        out_dir=out,
+        files=files,
+        counters=_sum_counters(run.records),
+        chunks=len(job.source.chunks),
+        chunks_run=len(run.todo),
+        files_run=run.stats["files_run"],
+        executor=executor.name,
+        provenance=job.provenance,
+        warnings=job.warnings,
+        peak_rss_mb=run.rss,
+        wall_s=time.monotonic() - t_start,
+        stage_s={"plan": t_plan - t_start, "tasks": t_chunks - t_plan, "last tiles": t_files - t_chunks},
+    )
+    _write_summary(result, options)
+    shutil.rmtree(state_dir(out) / "parts", ignore_errors=True)
+    return result
+
+
+@dataclass(frozen=True, kw_only=True)
+class _JobPlan:
+    """What the job is made of, planned in this process before any chunk runs."""
+
+    source: Source
+    trajectory: Trajectory  # with σ for every epoch (the site's when it has none of its own)
+    warnings: list[str]
+    calibration: Calibration
+    software: str
+    provenance: dict
+    #: provenance, options and chunks: what a resumed job must find the same (its fingerprint)
+    plan: dict
+    fingerprint: str
+
+
+def _plan_job(
+    source_path: str | Path,
+    options: GeorefOptions,
+    calibration: str | None,
+    *,
+    sbet: str | Path | None,
+    smrmsg: str | Path | None,
+    db: str | Path | None,
+    max_gap_s: float,
+) -> _JobPlan:
+    """Open the source, take its trajectory (or the SBET's), load the calibration, name the
+    output CRS, and fingerprint the plan."""
     from calib.core.version import software_version
     from calib.io.laz import LasOutputError, output_crs
     from office.deliver.calibration import load_calibration
     from office.deliver.sources import open_source
 
-    t_start = time.monotonic()
-    executor = executor or InProcess()
     source = open_source(source_path, options.chunk_s, max_gap_s)
     warnings = list(source.warnings)
-    traj, traj_name = source.trajectory, "/ins/nav" if source.kind == "session" else "trajectory.csv"
-    if sbet is not None:
-        from calib.io.sbet import SbetError, read_sbet_trajectory
-
-        try:
-            traj = read_sbet_trajectory(
-                sbet, traj.frame, max_gap_s, near_gps_s=source.chunks[0].t0_ns / NS_PER_S, smrmsg_path=smrmsg
-            )
-        except SbetError as e:
-            raise GeorefError(str(e)) from None
-        traj_name = str(sbet)
+    traj, traj_name = _trajectory(source, sbet, smrmsg, max_gap_s)
     if not traj.has_sigmas:
         warnings.append(f"{traj_name} carries no sigmas: σ uses the site's pos_sigmas for every epoch")
     traj = with_site_sigmas(traj, source.site)
@@ -209,146 +268,214 @@ def _georef(
         ],
     }
     fingerprint = hashlib.sha256(json.dumps(plan, sort_keys=True, default=str).encode()).hexdigest()
-    _prepare_out(out, resume, fingerprint)
-    share = sum(not chunk_record_path(out, c.index).exists() for c in source.chunks) / len(source.chunks)
-    space.need = space_needed(source_returns(source), options.compress, share)
+    return _JobPlan(
+        source=source,
+        trajectory=traj,
+        warnings=warnings,
+        calibration=cal,
+        software=software,
+        provenance=provenance,
+        plan=plan,
+        fingerprint=fingerprint,
+    )
+
+
+def _trajectory(
+    source: Source, sbet: str | Path | None, smrmsg: str | Path | None, max_gap_s: float
+) -> tuple[Trajectory, str]:
+    """The trajectory the points are georeferenced on, and its name: the source's own, or the
+    post-processed SBET's (with its SMRMSG sigmas)."""
+    traj, traj_name = source.trajectory, "/ins/nav" if source.kind == "session" else "trajectory.csv"
+    if sbet is None:
+        return traj, traj_name
+    from calib.io.sbet import SbetError, read_sbet_trajectory
+
+    try:
+        traj = read_sbet_trajectory(
+            sbet, traj.frame, max_gap_s, near_gps_s=source.chunks[0].t0_ns / NS_PER_S, smrmsg_path=smrmsg
+        )
+    except SbetError as e:
+        raise GeorefError(str(e)) from None
+    return traj, str(sbet)
+
+
+def _start_job(out: Path, job: _JobPlan, options: GeorefOptions, resume: bool, space: _Space) -> None:
+    """Make ``out`` ready for the job (:func:`_prepare_out`), check the disk holds what the
+    chunks still to run will write, and record a new job's plan."""
+    chunks = job.source.chunks
+    _prepare_out(out, resume, job.fingerprint)
+    share = sum(not chunk_record_path(out, c.index).exists() for c in chunks) / len(chunks)
+    space.need = space_needed(source_returns(job.source), options.compress, share)
     check_space(out, space.need)
     if not resume:
         write_atomic(
-            state_dir(out) / "plan.json", json.dumps(dict(plan, fingerprint=fingerprint), indent=1).encode()
+            state_dir(out) / "plan.json",
+            json.dumps(dict(job.plan, fingerprint=job.fingerprint), indent=1).encode(),
         )
 
-    t_plan = time.monotonic()
-    lines = np.array(source.lines, np.int64).reshape(-1, 3)
-    ctx = ChunkContext(
-        str(out),
-        options.crs,
-        traj.frame,
-        cal.mount,
-        cal.covariance,
-        cal.scanner,
-        options.filters,
-        options.tiling,
-        options.tile_m,
-        options.keep_transits,
-        lines,
-    )
-    suffix = ".laz" if options.compress else ".las"
-    first_t = float(traj.t_gps_s[0])  # dates every header: the same in any run of this plan
 
-    def file_task(name: str, tile: str, chunks: tuple[int, ...], n: int) -> FileTask:
-        return FileTask(
-            str(out), name, tile, chunks, n, options.crs, traj.frame, software, provenance, first_t, suffix
-        )
-
-    # a line's tile needs only the chunks around the line: written as soon as they are done,
-    # while later chunks still run (a part that turns up in another chunk after all, from a
-    # record received > 1 s late, is caught by the final plan: that file is written again)
+def _line_chunks(source: Source, options: GeorefOptions) -> dict[str, set[int]]:
+    """The chunks each line's tile needs (those around the line, with a second's margin); none
+    with square tiles."""
+    if options.tiling != "line":
+        return {}
     margin_ns = NS_PER_S
-    line_chunks = (
-        {
-            f"line-{pid}": {
-                c.index for c in source.chunks if c.t0_ns <= end + margin_ns and c.t1_ns > start - margin_ns
-            }
-            for pid, start, end in source.lines
+    return {
+        f"line-{pid}": {
+            c.index for c in source.chunks if c.t0_ns <= end + margin_ns and c.t1_ns > start - margin_ns
         }
-        if options.tiling == "line"
-        else {}
-    )
-    todo = [c for c in source.chunks if not chunk_record_path(out, c.index).exists()]
-    records = read_chunk_records(out)
-    submitted: dict[str, tuple[int, ...]] = {}  # file → its chunks, as submitted (or found done)
-    rss: dict[int, float] = {}
-    stats = {"chunks": len(source.chunks) - len(todo), "points": 0, "files": 0, "written": 0, "files_run": 0}
+        for pid, start, end in source.lines
+    }
 
-    def submit_files(tiles) -> None:
-        for name, tile, chunks, n in plan_files(records, options.max_tile_points, tiles):
-            if submitted.get(name) == chunks:
+
+class _JobRun:
+    """The tasks of one job on the executor: every chunk still to run, and every tile file as
+    soon as the chunks it needs are done.
+
+    A line's tile needs only the chunks around the line: written as soon as they are done,
+    while later chunks still run (a part that turns up in another chunk after all, from a
+    record received > 1 s late, is caught by the final plan: that file is written again)."""
+
+    def __init__(
+        self, out: Path, job: _JobPlan, options: GeorefOptions, executor: Executor, progress: Progress | None
+    ) -> None:
+        self.out, self.job, self.options, self.executor, self.progress = out, job, options, executor, progress
+        traj, cal, source = job.trajectory, job.calibration, job.source
+        self.suffix = ".laz" if options.compress else ".las"
+        self.first_t = float(traj.t_gps_s[0])  # dates every header: the same in any run of this plan
+        self.ctx = ChunkContext(
+            str(out),
+            options.crs,
+            traj.frame,
+            cal.mount,
+            cal.covariance,
+            cal.scanner,
+            options.filters,
+            options.tiling,
+            options.tile_m,
+            options.keep_transits,
+            np.array(source.lines, np.int64).reshape(-1, 3),
+        )
+        self.line_chunks = _line_chunks(source, options)
+        self.todo = [c for c in source.chunks if not chunk_record_path(out, c.index).exists()]
+        self.records = read_chunk_records(out)
+        self.submitted: dict[str, tuple[int, ...]] = {}  # file → its chunks, as submitted (or found done)
+        self.rss: dict[int, float] = {}
+        self.stats = {
+            "chunks": len(source.chunks) - len(self.todo),
+            "points": 0,
+            "files": 0,
+            "written": 0,
+            "files_run": 0,
+        }
+        self.early: set[str] = set()  # line tiles already submitted before the last chunk
+
+    def _file_task(self, name: str, tile: str, chunks: tuple[int, ...], n: int) -> FileTask:
+        job = self.job
+        return FileTask(
+            str(self.out),
+            name,
+            tile,
+            chunks,
+            n,
+            self.options.crs,
+            job.trajectory.frame,
+            job.software,
+            job.provenance,
+            self.first_t,
+            self.suffix,
+        )
+
+    def submit_files(self, tiles: list[str] | None) -> None:
+        """Submit the files of ``tiles`` (all when None) not submitted with these chunks yet;
+        a file already written from them only counts."""
+        for name, tile, chunks, n in plan_files(self.records, self.options.max_tile_points, tiles):
+            if self.submitted.get(name) == chunks:
                 continue
-            submitted[name] = chunks
-            if file_done(out, name, suffix, chunks):
-                stats["files"] += 1
+            self.submitted[name] = chunks
+            if file_done(self.out, name, self.suffix, chunks):
+                self.stats["files"] += 1
                 continue
-            stats["files_run"] += 1
-            executor.submit(write_file, file_task(name, tile, chunks, n))
+            self.stats["files_run"] += 1
+            self.executor.submit(write_file, self._file_task(name, tile, chunks, n))
 
-    early: set[str] = set()  # line tiles already submitted before the last chunk
-
-    def ready_lines() -> list[str]:
-        done = set(records)
-        ready = [t for t, need in line_chunks.items() if t not in early and need <= done]
-        early.update(ready)
+    def ready_lines(self) -> list[str]:
+        """The line tiles whose chunks are all done, not submitted early yet."""
+        done = set(self.records)
+        ready = [t for t, need in self.line_chunks.items() if t not in self.early and need <= done]
+        self.early.update(ready)
         return ready
 
-    for c in todo:
-        executor.submit(
-            process_chunk,
-            ChunkTask(ctx, c, slice_trajectory(traj, c.t0_ns / NS_PER_S, c.t1_ns / NS_PER_S)),
-        )
-    submit_files(ready_lines())
-    if progress:
-        progress("georeferencing", stats["chunks"], len(source.chunks), stats["points"])
-    t_chunks = None
-    while True:
-        for res in executor.results():
-            rss[res.pid] = max(rss.get(res.pid, 0.0), res.peak_rss_mb)
-            if isinstance(res, ChunkDone):
-                records[res.index] = {"index": res.index, "tiles": res.tiles, "counters": res.counters}
-                stats["chunks"] += 1
-                stats["points"] += res.counters.get("written", 0)
-                if progress:
-                    progress("georeferencing", stats["chunks"], len(source.chunks), stats["points"])
-                submit_files(ready_lines())
-            else:
-                stats["files"] += 1
-                stats["written"] += int(res.summary["n_points"])
-                if progress:
-                    progress("writing tiles", stats["files"], len(submitted), stats["written"])
-        if t_chunks is None:
-            t_chunks = time.monotonic()
-        missing = sorted({c.index for c in source.chunks} - set(records))
-        if missing:
-            raise GeorefError(
-                f"{out}: chunks {missing[:5]} have no record after the run (see the errors above)"
+    def submit_chunks(self) -> None:
+        """Submit every chunk still to run (on its slice of the trajectory), and the line tiles
+        that the done chunks already complete."""
+        traj = self.job.trajectory
+        for c in self.todo:
+            self.executor.submit(
+                process_chunk,
+                ChunkTask(self.ctx, c, slice_trajectory(traj, c.t0_ns / NS_PER_S, c.t1_ns / NS_PER_S)),
             )
-        before = len(submitted), stats["files_run"]
-        submit_files(None)  # every tile, on every record: square tiles, transits, late parts
-        if (len(submitted), stats["files_run"]) == before:
-            break
-    planned = plan_files(records, options.max_tile_points, None)
-    if not planned:
-        raise GeorefError(f"{source_path}: no return passed the filters: nothing to write")
-    for name, *_ in planned:
-        submitted.pop(name, None)
-    for stale in submitted:  # files of an early plan that the final plan replaced by others
-        (out / f"{stale}{suffix}").unlink(missing_ok=True)
-        file_record_path(out, stale).unlink(missing_ok=True)
+        self.submit_files(self.ready_lines())
+        self._report_chunks()
 
-    t_files = time.monotonic()
-    files = [
-        json.loads((state_dir(out) / "tiles" / f"{name}.json").read_text())["summary"] for name, *_ in planned
-    ]
+    def _report_chunks(self) -> None:
+        if self.progress:
+            self.progress(
+                "georeferencing", self.stats["chunks"], len(self.job.source.chunks), self.stats["points"]
+            )
+
+    def _take(self, res: ChunkDone | FileDone) -> None:
+        """One task's result: a chunk's record (then the line tiles it completes), or a file."""
+        stats = self.stats
+        self.rss[res.pid] = max(self.rss.get(res.pid, 0.0), res.peak_rss_mb)
+        if isinstance(res, ChunkDone):
+            self.records[res.index] = {"index": res.index, "tiles": res.tiles, "counters": res.counters}
+            stats["chunks"] += 1
+            stats["points"] += res.counters.get("written", 0)
+            self._report_chunks()
+            self.submit_files(self.ready_lines())
+        else:
+            stats["files"] += 1
+            stats["written"] += int(res.summary["n_points"])
+            if self.progress:
+                self.progress("writing tiles", stats["files"], len(self.submitted), stats["written"])
+
+    def run_tasks(self) -> float:
+        """Take every result until no file is left to write; the monotonic time the chunks
+        (and the tiles ready meanwhile) were done."""
+        t_chunks = None
+        while True:
+            for res in self.executor.results():
+                self._take(res)
+            if t_chunks is None:
+                t_chunks = time.monotonic()
+            missing = sorted({c.index for c in self.job.source.chunks} - set(self.records))
+            if missing:
+                raise GeorefError(
+                    f"{self.out}: chunks {missing[:5]} have no record after the run (see the errors above)"
+                )
+            before = len(self.submitted), self.stats["files_run"]
+            self.submit_files(None)  # every tile, on every record: square tiles, transits, late parts
+            if (len(self.submitted), self.stats["files_run"]) == before:
+                return t_chunks
+
+    def remove_stale(self, planned: list[tuple[str, str, tuple[int, ...], int]]) -> None:
+        """Remove the files of an early plan that the final plan replaced by others."""
+        submitted = dict(self.submitted)
+        for name, *_ in planned:
+            submitted.pop(name, None)
+        for stale in submitted:
+            (self.out / f"{stale}{self.suffix}").unlink(missing_ok=True)
+            file_record_path(self.out, stale).unlink(missing_ok=True)
+
+
+def _sum_counters(records: dict[int, dict]) -> dict[str, int]:
+    """The chunks' counters, summed."""
     counters: dict[str, int] = {}
     for r in records.values():
         for k, v in r["counters"].items():
             counters[k] = counters.get(k, 0) + int(v)
-    result = GeorefResult(
-        out_dir=out,
-        files=files,
-        counters=counters,
-        chunks=len(source.chunks),
-        chunks_run=len(todo),
-        files_run=stats["files_run"],
-        executor=executor.name,
-        provenance=provenance,
-        warnings=warnings,
-        peak_rss_mb=rss,
-        wall_s=time.monotonic() - t_start,
-        stage_s={"plan": t_plan - t_start, "tasks": t_chunks - t_plan, "last tiles": t_files - t_chunks},
-    )
-    _write_summary(result, options)
-    shutil.rmtree(state_dir(out) / "parts", ignore_errors=True)
-    return result
+    return counters
 
 
 def _write_summary(r: GeorefResult, options: GeorefOptions) -> None:

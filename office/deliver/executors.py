@@ -18,10 +18,23 @@ from __future__ import annotations
 import os
 from collections import deque
 from collections.abc import Callable, Iterator
+from typing import Any, Protocol
 
 from office.deliver.options import GeorefError
 
 ALLOWED_FAILURES = 3
+
+
+class Executor(Protocol):
+    """What the engine asks of an executor (module docstring)."""
+
+    name: str
+
+    def submit(self, fn: Callable[[Any], Any], item: Any) -> None: ...
+
+    def results(self) -> Iterator[Any]: ...
+
+    def close(self) -> None: ...
 
 
 class InProcess:

@@ -14,12 +14,18 @@ kept once within a chunk. A bundle's chunks carry their returns (a bundle is cal
 
 from __future__ import annotations
 
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from office.deliver.options import GeorefError
+
+if TYPE_CHECKING:
+    from calib.core.trajectory import Trajectory
+    from calib.io.site import Site
 
 NS_PER_S = 1_000_000_000
 LIDAR_TOPIC = "/lidar/raw"
@@ -54,8 +60,8 @@ class Returns:
 class Source:
     kind: str  # "session" or "bundle"
     path: Path
-    site: object  # calib.io.site.Site
-    trajectory: object  # calib.core.trajectory.Trajectory
+    site: Site
+    trajectory: Trajectory
     lines: list[tuple[int, int, int]]  # (pass id, start GPS ns, end GPS ns), sorted by start
     chunks: list[ChunkSpec]
     warnings: list[str] = field(default_factory=list)
@@ -81,23 +87,25 @@ def _segment_span(path: Path) -> tuple[int, int] | None:
             return int(summary.statistics.message_start_time), int(summary.statistics.message_end_time)
     except Exception:  # noqa: BLE001 - a torn segment has no summary: scan it
         pass
-    lo = hi = None
+    lo: int | None = None
+    hi: int | None = None
     for t, _ in _scan_lidar(path, None, None):
         lo = t if lo is None else min(lo, t)
         hi = t if hi is None else max(hi, t)
-    return None if lo is None else (lo, hi)
+    return None if lo is None or hi is None else (lo, hi)
 
 
-def _scan_lidar(path: Path, t0_ns: int | None, t1_ns: int | None):
+def _scan_lidar(path: Path, t0_ns: int | None, t1_ns: int | None) -> Iterator[tuple[int, bytes]]:
     """(log time, raw record) of the /lidar/raw messages of a segment, by a scan (torn ones too)."""
+    from mcap.records import Channel, Message
+
     from acquire.log.recover import scan_segment
 
     topic_of: dict[int, str] = {}
     for rec in scan_segment(path):
-        kind = type(rec).__name__
-        if kind == "Channel":
+        if isinstance(rec, Channel):
             topic_of[rec.id] = rec.topic
-        elif kind == "Message" and topic_of.get(rec.channel_id) == LIDAR_TOPIC:
+        elif isinstance(rec, Message) and topic_of.get(rec.channel_id) == LIDAR_TOPIC:
             if (t0_ns is None or rec.log_time >= t0_ns) and (t1_ns is None or rec.log_time < t1_ns):
                 yield rec.log_time, rec.data
 
@@ -135,10 +143,10 @@ def read_session_chunk(spec: ChunkSpec) -> Returns:
     head = scan_packets(grams)
     if head is None:  # one at least is not a valid packet: keep the good ones, count the rest
         good = []
-        for i, g in enumerate(grams):
+        for j, g in enumerate(grams):
             try:
                 decode_packet(g)
-                good.append(i)
+                good.append(j)
             except DriverError:
                 counters["bad_datagrams"] += 1
         grams = [grams[i] for i in good]
@@ -157,7 +165,8 @@ def read_session_chunk(spec: ChunkSpec) -> Returns:
     n = head["n_points"].astype(np.int64)
     n[~keep] = 0
     pts = np.frombuffer(
-        b"".join(g[HEADER_SIZE : len(g) - CRC_SIZE] for g, k in zip(grams, keep) if k), POINT_DTYPE
+        b"".join(g[HEADER_SIZE : len(g) - CRC_SIZE] for g, k in zip(grams, keep, strict=True) if k),
+        POINT_DTYPE,
     )
     pk = np.repeat(np.arange(len(grams)), n)
     i = np.arange(pts.size, dtype=np.int64) - np.repeat(np.cumsum(n) - n, n)
@@ -227,7 +236,7 @@ def _bundle_source(path: Path, chunk_s: float, max_gap_s: float) -> Source:
     t_ns = t_ns[order]
     inten = np.round(pts.intensity[order] * scale.factor).astype(np.uint16)
     chunk_ns = round(chunk_s * NS_PER_S)
-    chunks = []
+    chunks: list[ChunkSpec] = []
     for a, b in _windows(int(t_ns[0]), int(t_ns[-1]), chunk_ns):
         lo, hi = np.searchsorted(t_ns, [a, b])
         if hi > lo:

@@ -64,7 +64,7 @@ def lines_from_heading(trajectory, min_line_s: float) -> list[tuple[int, int, in
     )
     cutter = LineCutter(min_line_s)
     out = []
-    for ti, h, v in zip(t.tolist(), trajectory.rpy_rad[:, 2].tolist(), speed.tolist()):
+    for ti, h, v in zip(t.tolist(), trajectory.rpy_rad[:, 2].tolist(), speed.tolist(), strict=True):
         out += cutter.on_nav(ti, h, v)
     out += cutter.finish()
     return [(ln.id, round(ln.t_start_s * NS_PER_S), round(ln.t_end_s * NS_PER_S)) for ln in out]

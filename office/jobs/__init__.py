@@ -5,6 +5,8 @@
 - ``demo_progress``: what the demo prints while the survey runs (live line, pass verdicts, σ).
 - ``demo_compare``: the recovered boresight against the truth, and its table.
 - ``export``: a session → a calibration bundle (``mls export``).
+- ``exportbase``: what an export is asked and gives (options, error, pass windows, result).
+- ``sessionread``: a session's navigation as every job reads it (site, INS epochs, events, trajectory).
 - ``sessionnav``: a session's site, trajectory and passes without a bundle (``mls georef``).
 - ``foxglove``: a session → an MCAP Foxglove opens as it is (``mls export --foxglove``).
 - ``foxglove_cloud``: its profiles, decoded again, georeferenced and gathered into clouds.

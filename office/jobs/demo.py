@@ -41,6 +41,7 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from acquire.errors import AcquireError
 from acquire.status.bus import StatusListener
@@ -51,8 +52,12 @@ from office.jobs.demo_progress import pass_events, progress_line, sigma_covers_a
 NS_PER_S = 1_000_000_000
 MARKER = ".mls-demo"  # in OUT: the directory is a demo's, its contents may be removed
 #: What a demo writes in OUT (``laz`` was the output of the earlier ``mls demo``).
+CONSOLE_PORT = 8480  # the web console's port when free (the default of the web section)
 DEMO_ENTRIES = frozenset({MARKER, "run", "bundle", "calib", "logs", "vessel.yaml", "vessel.site.yaml", "laz"})
 SIX_FOLD_DEG = (0.0, 180.0, 45.0, 225.0, 315.0, 135.0)
+if TYPE_CHECKING:
+    from acquire.daemon.config import VesselConfig
+
 MLS = (sys.executable, "-m", "cli.app")
 
 
@@ -176,6 +181,21 @@ def _wait_for_config(path: Path, devices: Child, deadline: float, interrupted) -
         time.sleep(0.1)
 
 
+@dataclass
+class _Processes:
+    """The demo's child processes (in start order) and its status listener: all stopped when
+    the demo returns or raises."""
+
+    children: list[Child] = field(default_factory=list)
+    watcher: StatusListener | None = None
+
+    def stop(self) -> None:
+        if self.watcher is not None:
+            self.watcher.stop()
+        for c in reversed(self.children):  # the daemon before the devices
+            c.stop(signal.SIGTERM, 10.0)
+
+
 def run_demo(settings: DemoSettings, console, interrupted: Callable[[], None] = lambda: None) -> DemoResult:
     """Run the demo (module docstring). ``interrupted()`` raises :class:`Interrupted` when the
     user asked to stop; every child is stopped when this returns or raises."""
@@ -185,8 +205,7 @@ def run_demo(settings: DemoSettings, console, interrupted: Callable[[], None] = 
     out = out.resolve()
     logs, run_dir = out / "logs", out / "run"
     config = out / "vessel.yaml"
-    children: list[Child] = []
-    watcher: StatusListener | None = None
+    procs = _Processes()
     say = lambda text: console.print(text, highlight=False)  # noqa: E731
     try:
         # 1. the simulated devices (they write the vessel config once they run)
@@ -194,121 +213,189 @@ def run_demo(settings: DemoSettings, console, interrupted: Callable[[], None] = 
             f"[bold]mls demo[/bold]: the {settings.scenario} scenario on simulated devices, "
             f"acquired, exported and calibrated in {out}"
         )
-        devices = Child(
-            "simulated devices (mls sim devices)",
-            [
-                *MLS,
-                "sim",
-                "devices",
-                "--scenario",
-                settings.scenario,
-                "--seed",
-                str(settings.seed),
-                "--speed",
-                "1",
-                "--devices",
-                "ins,profiler,pps",
-                "--run-dir",
-                str(run_dir),
-                "--write-config",
-                str(config),
-                "--lead-s",
-                f"{settings.lead_s:g}",
-                *[a for o in scenario_overrides(settings) for a in ("--set", o)],
-            ],
-            logs / "devices.log",
-        )
-        children.append(devices)
-        deadline = time.monotonic() + settings.start_timeout_s
-        _wait_for_config(config, devices, deadline, interrupted)
+        devices, deadline = _start_devices(settings, run_dir, config, logs, procs, interrupted)
         window = json.loads((run_dir / "truth_clock.json").read_text())["window"]
         say(
             f"devices: INS on {run_dir / 'ins'}, profiler and PPS over UDP; "
             f"{window['duration_s']:.0f} s of survey in real time (log {devices.log})"
         )
         # 2. the daemon
-        daemon = Child(
-            "acquisition daemon (mls acquire)",
-            [*MLS, "acquire", "--config", str(config)],
-            logs / "acquire.log",
-        )
-        children.append(daemon)
-        from acquire.daemon.config import load_vessel_config
-
-        cfg = load_vessel_config(config)
-        watcher = StatusListener(cfg.status.socket)
-        watcher.start()
-        while (watcher.latest("status") or {}).get("state") != "running":
-            interrupted()
-            code = daemon.poll()
-            if code is not None:
-                raise DemoError(
-                    daemon.step, f"exited with code {code} while starting: {daemon.tail()}", daemon.log
-                )
-            if time.monotonic() > deadline:
-                raise DemoError(daemon.step, "not running after the start timeout", daemon.log)
-            time.sleep(0.05)
+        daemon, cfg, watcher = _start_daemon(config, logs, procs, deadline, interrupted)
         say(
             f"daemon: acquiring into {cfg.session_dir}, status on {cfg.status.socket} "
             f"(log {daemon.log}); watch it with: mls checklist --socket {cfg.status.socket}"
         )
+        if cfg.web is not None:
+            say(f"console: http://{cfg.web.host}:{cfg.web.port}/ (the survey live in a browser)")
         g = _follow(devices, daemon, watcher, console, window["duration_s"] + 60.0, t_start, interrupted)
         # 3. stop the daemon (orderly: the session is closed), then the devices
-        session_name = (watcher.latest("status") or {}).get("session")
-        code = daemon.stop(signal.SIGTERM, 30.0)
-        if code != 0:
-            raise DemoError(
-                daemon.step, f"did not stop cleanly (exit code {code}): {daemon.tail()}", daemon.log
-            )
-        devices.stop(signal.SIGTERM, 10.0)
-        watcher.stop()
-        watcher = None
-        session = cfg.session_dir / session_name if session_name else None
-        if session is None or not session.is_dir():
-            found = sorted(p for p in cfg.session_dir.iterdir() if p.is_dir())
-            if len(found) != 1:
-                raise DemoError(
-                    "finding the session", f"{len(found)} sessions in {cfg.session_dir}", daemon.log
-                )
-            session = found[0]
+        session = _close_session(devices, daemon, procs, cfg.session_dir)
         n_passes = len(g.get("passes") or [])
         accepted = int(g.get("accepted", 0))
         say(f"session {session} closed: {accepted}/{n_passes} passes accepted by the guidance")
         # 4. export, 5. calibration
         bundle, calib = out / "bundle", out / "calib"
-        _step(
-            children,
-            "export (mls export)",
-            [*MLS, "export", str(session), "--bundle", str(bundle)],
-            logs / "export.log",
-            settings.step_timeout_s,
-            interrupted,
-            say,
-        )
-        _step(
-            children,
-            "calibration (mls calib run)",
-            # --accept-refused: the demo shows every verdict, refused included, beside the truth
-            [*MLS, "calib", "run", str(bundle), "--out", str(calib), "--no-history", "--accept-refused"],
-            logs / "calib.log",
-            settings.step_timeout_s,
-            interrupted,
-            say,
-        )
-        try:
-            result = json.loads((calib / "result.json").read_text())
-            truth = json.loads((run_dir / "scenario_truth.json").read_text())
-            rows = comparison_rows(result, truth)
-        except (OSError, ValueError, KeyError, TypeError) as e:
-            raise DemoError("reading the results", f"{type(e).__name__}: {e}", logs / "calib.log") from None
+        _export_and_calibrate(procs.children, session, bundle, calib, logs, settings, interrupted, say)
+        result, truth, rows = _read_results(calib, run_dir, logs)
         return DemoResult(
             out, session, bundle, calib, result, truth, rows, accepted, n_passes, sorted(calib.glob("*.png"))
         )
     finally:
-        if watcher is not None:
-            watcher.stop()
-        for c in reversed(children):  # the daemon before the devices
-            c.stop(signal.SIGTERM, 10.0)
+        procs.stop()
+
+
+def _start_devices(
+    settings: DemoSettings,
+    run_dir: Path,
+    config: Path,
+    logs: Path,
+    procs: _Processes,
+    interrupted: Callable[[], None],
+) -> tuple[Child, float]:
+    """Start the simulated devices and wait for the vessel config they write; the child, and
+    the deadline of the start (the daemon's too)."""
+    devices = Child(
+        "simulated devices (mls sim devices)",
+        [
+            *MLS,
+            "sim",
+            "devices",
+            "--scenario",
+            settings.scenario,
+            "--seed",
+            str(settings.seed),
+            "--speed",
+            "1",
+            "--devices",
+            "ins,profiler,pps",
+            "--run-dir",
+            str(run_dir),
+            "--write-config",
+            str(config),
+            "--lead-s",
+            f"{settings.lead_s:g}",
+            *[a for o in scenario_overrides(settings) for a in ("--set", o)],
+        ],
+        logs / "devices.log",
+    )
+    procs.children.append(devices)
+    deadline = time.monotonic() + settings.start_timeout_s
+    _wait_for_config(config, devices, deadline, interrupted)
+    return devices, deadline
+
+
+def _console_port(preferred: int = CONSOLE_PORT) -> int:
+    """``preferred`` when nothing listens there on loopback, else a free port."""
+    import socket
+
+    with socket.socket() as s:
+        try:
+            s.bind(("127.0.0.1", preferred))
+        except OSError:
+            s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def _add_console(config: Path) -> None:
+    """The web console on loopback in the devices' vessel config (docs/console.md), read-only:
+    the demo has no operator token."""
+    text = config.read_text()
+    if "\nweb:" not in text:
+        config.write_text(f"{text.rstrip()}\n\nweb:\n  host: 127.0.0.1\n  port: {_console_port()}\n")
+
+
+def _start_daemon(
+    config: Path, logs: Path, procs: _Processes, deadline: float, interrupted: Callable[[], None]
+) -> tuple[Child, VesselConfig, StatusListener]:
+    """Start the acquisition daemon on the devices' config and wait until its status says
+    it runs; the child, its config and the listener of its status."""
+    from acquire.daemon.config import load_vessel_config
+
+    daemon = Child(
+        "acquisition daemon (mls acquire)",
+        [*MLS, "acquire", "--config", str(config)],
+        logs / "acquire.log",
+    )
+    _add_console(config)
+    procs.children.append(daemon)
+    cfg = load_vessel_config(config)
+    watcher = procs.watcher = StatusListener(cfg.status.socket)
+    watcher.start()
+    while (watcher.latest("status") or {}).get("state") != "running":
+        interrupted()
+        code = daemon.poll()
+        if code is not None:
+            raise DemoError(
+                daemon.step, f"exited with code {code} while starting: {daemon.tail()}", daemon.log
+            )
+        if time.monotonic() > deadline:
+            raise DemoError(daemon.step, "not running after the start timeout", daemon.log)
+        time.sleep(0.05)
+    return daemon, cfg, watcher
+
+
+def _close_session(devices: Child, daemon: Child, procs: _Processes, session_dir: Path) -> Path:
+    """Stop the daemon (orderly: the session is closed), then the devices and the listener;
+    the session directory (the one the daemon reported, else the only one there)."""
+    watcher = procs.watcher
+    assert watcher is not None  # the daemon was started
+    session_name = (watcher.latest("status") or {}).get("session")
+    code = daemon.stop(signal.SIGTERM, 30.0)
+    if code != 0:
+        raise DemoError(daemon.step, f"did not stop cleanly (exit code {code}): {daemon.tail()}", daemon.log)
+    devices.stop(signal.SIGTERM, 10.0)
+    watcher.stop()
+    procs.watcher = None
+    session = session_dir / session_name if session_name else None
+    if session is None or not session.is_dir():
+        found = sorted(p for p in session_dir.iterdir() if p.is_dir())
+        if len(found) != 1:
+            raise DemoError("finding the session", f"{len(found)} sessions in {session_dir}", daemon.log)
+        session = found[0]
+    return session
+
+
+def _export_and_calibrate(
+    children: list[Child],
+    session: Path,
+    bundle: Path,
+    calib: Path,
+    logs: Path,
+    settings: DemoSettings,
+    interrupted: Callable[[], None],
+    say: Callable[[str], None],
+) -> None:
+    """``mls export`` of the session into ``bundle``, then ``mls calib run`` into ``calib``."""
+    _step(
+        children,
+        "export (mls export)",
+        [*MLS, "export", str(session), "--bundle", str(bundle)],
+        logs / "export.log",
+        settings.step_timeout_s,
+        interrupted,
+        say,
+    )
+    _step(
+        children,
+        "calibration (mls calib run)",
+        # --accept-refused: the demo shows every verdict, refused included, beside the truth
+        [*MLS, "calib", "run", str(bundle), "--out", str(calib), "--no-history", "--accept-refused"],
+        logs / "calib.log",
+        settings.step_timeout_s,
+        interrupted,
+        say,
+    )
+
+
+def _read_results(calib: Path, run_dir: Path, logs: Path) -> tuple[dict, dict, list[AngleComparison]]:
+    """The calibration's result, the scenario's truth, and the angles compared."""
+    try:
+        result = json.loads((calib / "result.json").read_text())
+        truth = json.loads((run_dir / "scenario_truth.json").read_text())
+        rows = comparison_rows(result, truth)
+    except (OSError, ValueError, KeyError, TypeError) as e:
+        raise DemoError("reading the results", f"{type(e).__name__}: {e}", logs / "calib.log") from None
+    return result, truth, rows
 
 
 def _step(
@@ -322,6 +409,22 @@ def _step(
         raise DemoError(step, f"no result after {timeout_s:g} s", log)
     if code != 0:
         raise DemoError(step, f"exit code {code}: {c.tail()}", log)
+
+
+def _check_children(devices: Child, daemon: Child, ended_at: float | None) -> float | None:
+    """During the survey: the daemon must run; the devices end with the scenario (status 0).
+    When the scenario ended (now or before): the monotonic time it ended, else None."""
+    code = daemon.poll()
+    if code is not None:
+        raise DemoError(
+            daemon.step, f"ended during the survey (exit code {code}): {daemon.tail()}", daemon.log
+        )
+    code = devices.poll()
+    if code is not None and ended_at is None:
+        if code != 0:
+            raise DemoError(devices.step, f"ended with exit code {code}: {devices.tail()}", devices.log)
+        ended_at = time.monotonic()  # the scenario is over: the last verdict follows
+    return ended_at
 
 
 def _follow(
@@ -355,29 +458,18 @@ def _follow(
             for line in pass_events(last, g) + sigma_events(last, g):
                 console.print(line, highlight=False)  # above the live line, when there is one
             last = g or last
-            clock = (watcher.latest("clock") or {}).get("state")
             if live is not None:
-                line = Text(
+                clock = (watcher.latest("clock") or {}).get("state")
+                status = Text(
                     progress_line(last, clock, time.monotonic() - t_start), no_wrap=True, overflow="ellipsis"
                 )
-                live.update(line, refresh=True)
+                live.update(status, refresh=True)
             passes = last.get("passes") or []
             if passes and all(p.get("status") == "accepted" for p in passes):
                 done_at = done_at or time.monotonic()
                 if sigma_covers_accepted(last) or time.monotonic() - done_at > 15.0:
                     return last  # with the σ prediction of all the passes
-            code = daemon.poll()
-            if code is not None:
-                raise DemoError(
-                    daemon.step, f"ended during the survey (exit code {code}): {daemon.tail()}", daemon.log
-                )
-            code = devices.poll()
-            if code is not None and ended_at is None:
-                if code != 0:
-                    raise DemoError(
-                        devices.step, f"ended with exit code {code}: {devices.tail()}", devices.log
-                    )
-                ended_at = time.monotonic()  # the scenario is over: the last verdict follows
+            ended_at = _check_children(devices, daemon, ended_at)
             if ended_at is not None and time.monotonic() - ended_at > 3.0:
                 return last
             if time.monotonic() > deadline:

@@ -27,7 +27,7 @@ Times: every ``log_time`` and every message's ``timestamp`` (the same number) is
 ns** — what Foxglove reads, so its timeline shows the real date and time — converted from the
 session's GPS time (:func:`~office.jobs.foxglove_frames.gps_to_unix_ns`: GPS − UTC from the
 project's leap-second table at each instant, 18 s since 2017-01-01). The GPS times are the INS
-epoch's (:func:`office.jobs.export._read_nav_and_events`) for the fix and the pose, the last
+epoch's (:func:`office.jobs.sessionread.read_nav_and_events`) for the fix and the pose, the last
 return of its window for a cloud, the record's log time for the others — those logged while the
 clock model was UNLOCKED re-timed through the LOCKED ones around them
 (:class:`~office.jobs.foxglove_frames.HostToGps`). The ``mls.session`` metadata states the time
@@ -55,20 +55,26 @@ import os
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from acquire.log.read import SessionReadError, iter_messages, session_summary
 from office.jobs import foxglove_frames as ff
-from office.jobs.export import (
-    ExportError,
-    ExportOptions,
-    _read_nav_and_events,
-    _site,
-    _summary_mount,
-    _trajectory,
-)
+from office.jobs.export import ExportError, ExportOptions
 from office.jobs.foxglove_cloud import LATE_NS, Clouds, decode_profiles
+from office.jobs.sessionread import (
+    InsEpochs,
+    ReadProgress,
+    nav_trajectory,
+    read_nav_and_events,
+    session_site,
+    summary_mount,
+)
+
+if TYPE_CHECKING:
+    from calib.core.georef import Mount
+    from calib.core.trajectory import Trajectory
 
 NS_PER_S = 1_000_000_000
 CLOUD_RATE_HZ = 2.0
@@ -126,12 +132,12 @@ def _mount_and_frame(session: Path, summary: dict, nav, warnings: list[str]):
     from calib.core.georef import Mount
 
     if (session / "site.yaml").exists():
-        site, _ = _site(session, ExportOptions(), summary)  # with the vessel config's mount
+        site, _ = session_site(session, ExportOptions(), summary)  # with the vessel config's mount
         mount, frame = site.mount, site.reference
     else:
         frame, m = None, summary.get("mount")
         if m is not None:
-            v = _summary_mount(session / "session.json", m)
+            v = summary_mount(session / "session.json", m)
             mount = Mount(
                 v["lever_arm_m"], np.radians(v["nominal_deg"]), np.radians(v["boresight_apriori_deg"])
             )
@@ -144,7 +150,9 @@ def _mount_and_frame(session: Path, summary: dict, nav, warnings: list[str]):
     return mount, frame or LocalFrame.at_mean(nav.lat, nav.lon, nav.h)
 
 
-def _records(session: Path, progress) -> tuple[ff.HostToGps, list[tuple]]:
+def _records(
+    session: Path, progress: ReadProgress | None
+) -> tuple[ff.HostToGps, list[tuple[int, str, dict]]]:
     """The host → GPS map, and the /clock, /latency and /events records as ``(gps_ns, topic,
     data)`` sorted by time (those logged UNLOCKED re-timed by the map)."""
     raw, pairs_host, pairs_gps = [], [], []
@@ -252,10 +260,10 @@ class _Writer:
         )
 
         f32 = PackedElementFieldNumericType.Float32
-        fields = [
-            PackedElementField(name=name, offset=ff.POINT_DTYPE.fields[name][1], type=f32)
-            for name in ff.POINT_DTYPE.names
-        ]
+        dtype_fields, names = ff.POINT_DTYPE.fields, ff.POINT_DTYPE.names
+        assert dtype_fields is not None  # a structured dtype: its fields
+        assert names is not None  # and their order
+        fields = [PackedElementField(name=name, offset=dtype_fields[name][1], type=f32) for name in names]
         u = self._count(TOPIC_POINTS, t_ns)
         msg = PointCloud(
             timestamp=self._stamp(u),
@@ -324,9 +332,11 @@ def _write_all(w: _Writer, session: Path, nav, traj, mount, to_gps, records, opt
                 w.fix_msg(ti, nav.lat[i], nav.lon[i], nav.h[i], nav.sig[i, :3])
                 i += 1
             else:
+                assert tj is not None  # the epochs are done or the record comes first
                 if tj > limit_ns:
                     return
-                w.record(*records[j], locked_offset)
+                t_rec, topic, data = records[j]
+                w.record(t_rec, topic, data, locked_offset)
                 j += 1
 
     period_ns = round(NS_PER_S / options["cloud_rate_hz"])
@@ -393,8 +403,6 @@ def export_foxglove(
     ``require_complete`` refuses a session with a segment that did not end normally (else it is
     exported with a warning naming the segment and the span lost); ``progress(stage, done,
     total)`` as :func:`office.jobs.export.export_session`'s."""
-    from acquire.log.read import channel_metadata, session_losses
-    from calib.core.trajectory import TrajectoryError
     from calib.io.outputs import check_output_file
 
     session, out = Path(session), Path(out)
@@ -404,8 +412,57 @@ def export_foxglove(
         raise ExportError(f"max points per cloud {max_points_per_cloud}: expected at least 1")
     check_output_file(out, "--foxglove", force)
 
-    def step(stage: str):
+    def step(stage: str) -> Callable[[float, float | None], None] | None:
         return None if progress is None else (lambda done, total: progress(stage, done, total))
+
+    s = _read_session(session, require_complete, step)
+    options = {
+        "cloud_rate_hz": cloud_rate_hz,
+        "max_points_per_cloud": int(max_points_per_cloud),
+        "protocol": s.protocol,
+        # the first LOCKED clock record's offset: the zero of offset_drift_us
+        "locked_offset_ns": _first_locked_offset_ns(s.records),
+    }
+    devices = sorted({str(k) for _, topic, d in s.records if topic == "/latency" for k in d})
+    w, clouds, counts = _write_file(session, out, devices, s, options, step, progress)
+    warnings = s.warnings + _left_out_warnings(counts, clouds, s.protocol)
+    return FoxgloveResult(
+        out,
+        dict(w.counts),
+        w.first_ns or 0,
+        w.last_ns or 0,
+        int(s.nav.t_ns.size),
+        counts.get("packets", 0),
+        clouds.returns,
+        clouds.points,
+        cloud_rate_hz,
+        warnings,
+    )
+
+
+@dataclass(frozen=True, kw_only=True)
+class _Session:
+    """What the export reads of a session before it writes anything."""
+
+    summary: dict
+    protocol: str  # of /lidar/raw
+    nav: InsEpochs
+    mount: Mount
+    trajectory: Trajectory
+    to_gps: ff.HostToGps
+    records: list[tuple[int, str, dict]]  # /clock, /latency, /events: (GPS ns, topic, data)
+    warnings: list[str]  # the segments lost, the mount assumed
+
+
+def _read_session(
+    session: Path,
+    require_complete: bool,
+    step: Callable[[str], Callable[[float, float | None], None] | None],
+) -> _Session:
+    """The session's summary, navigation, mount and records (``require_complete``: refuse a
+    session with a segment that did not end normally)."""
+    from acquire.log.read import channel_metadata, session_losses
+    from calib.core.trajectory import TrajectoryError
 
     warnings: list[str] = []
     try:
@@ -416,31 +473,50 @@ def export_foxglove(
             raise ExportError(f"{session}: incomplete session, not exported (--require-complete): {lost}")
         warnings += [loss.describe() for loss in losses]
         protocol = channel_metadata(session).get("/lidar/raw", {}).get("protocol", "zfp1")
-        nav, _ = _read_nav_and_events(session, step("reading navigation"))
+        nav, _ = read_nav_and_events(session, step("reading navigation"))
         mount, frame = _mount_and_frame(session, summary, nav, warnings)
         to_gps, records = _records(session, step("reading clock, latency and events"))
     except SessionReadError as e:
         raise ExportError(str(e)) from None
     try:
-        traj = _trajectory(nav, None, frame, ExportOptions().max_gap_s)
+        traj = nav_trajectory(nav, None, frame, ExportOptions().max_gap_s)
     except TrajectoryError as e:
         raise ExportError(f"{session}: /ins/nav: {e}") from None
-    options = {
-        "cloud_rate_hz": cloud_rate_hz,
-        "max_points_per_cloud": int(max_points_per_cloud),
-        "protocol": protocol,
-        # the first LOCKED clock record's offset: the zero of offset_drift_us
-        "locked_offset_ns": next(
-            (
-                d["offset_ns"]
-                for _, topic, d in records
-                if topic == "/clock" and d.get("state") == "LOCKED" and isinstance(d.get("offset_ns"), int)
-            ),
-            None,
-        ),
-    }
-    devices = sorted({str(k) for _, topic, d in records if topic == "/latency" for k in d})
+    return _Session(
+        summary=summary,
+        protocol=protocol,
+        nav=nav,
+        mount=mount,
+        trajectory=traj,
+        to_gps=to_gps,
+        records=records,
+        warnings=warnings,
+    )
 
+
+def _first_locked_offset_ns(records: list[tuple[int, str, dict]]) -> int | None:
+    """The offset of the first LOCKED ``/clock`` record (None when the clock never locked)."""
+    return next(
+        (
+            d["offset_ns"]
+            for _, topic, d in records
+            if topic == "/clock" and d.get("state") == "LOCKED" and isinstance(d.get("offset_ns"), int)
+        ),
+        None,
+    )
+
+
+def _write_file(
+    session: Path,
+    out: Path,
+    devices: list[str],
+    s: _Session,
+    options: dict,
+    step: Callable[[str], Callable[[float, float | None], None] | None],
+    progress: Callable[[str, float, float | None], None] | None,
+) -> tuple[_Writer, Clouds, dict[str, int]]:
+    """Write every message and the session's metadata under a temporary name, then rename it to
+    ``out`` (the temporary file removed on any failure)."""
     tmp = out.with_name(f".{out.name}.{os.getpid()}.part")
     try:
         out.parent.mkdir(parents=True, exist_ok=True)
@@ -451,11 +527,14 @@ def export_foxglove(
         raise ExportError(f"{out}: --foxglove: cannot write the file there ({why})") from None
     try:
         try:
-            clouds, counts = _write_all(w, session, nav, traj, mount, to_gps, records, options, step)
+            clouds, counts = _write_all(
+                w, session, s.nav, s.trajectory, s.mount, s.to_gps, s.records, options, step
+            )
             if progress is not None:
                 progress("writing the MCAP file", 0, None)
             w.mcap.write_metadata(
-                "mls.session", _metadata(session, summary, traj, mount, cloud_rate_hz, w.leaps)
+                "mls.session",
+                _metadata(session, s.summary, s.trajectory, s.mount, options["cloud_rate_hz"], w.leaps),
             )
         finally:
             w.close()
@@ -463,6 +542,12 @@ def export_foxglove(
     except BaseException:
         _remove(tmp)
         raise
+    return w, clouds, counts
+
+
+def _left_out_warnings(counts: dict[str, int], clouds: Clouds, protocol: str) -> list[str]:
+    """What the clouds left out, and why (none when nothing was)."""
+    warnings = []
     for n, what in (
         (counts.get("bad", 0), f"/lidar/raw datagrams did not decode ({protocol})"),
         (counts.get("out_of_range", 0), "returns outside the scanner's range window 0.3…119 m left out"),
@@ -477,15 +562,4 @@ def export_foxglove(
     ):
         if n:
             warnings.append(f"{n:,} {what}")
-    return FoxgloveResult(
-        out,
-        dict(w.counts),
-        w.first_ns or 0,
-        w.last_ns or 0,
-        int(nav.t_ns.size),
-        counts.get("packets", 0),
-        clouds.returns,
-        clouds.points,
-        cloud_rate_hz,
-        warnings,
-    )
+    return warnings

@@ -204,7 +204,8 @@ def clock_values(data: dict, locked_offset_ns: int | None) -> dict:
     drift = None
     if state != "UNLOCKED" and off is not None and locked_offset_ns is not None:
         drift = (off - locked_offset_ns) / 1e3
-    pps = data.get("pps") if isinstance(data.get("pps"), dict) else {}
+    pps_doc = data.get("pps")
+    pps = pps_doc if isinstance(pps_doc, dict) else {}
     return {
         "state": state if state in CLOCK_STATE_CODE else "UNLOCKED",
         "state_code": CLOCK_STATE_CODE.get(state, 0),

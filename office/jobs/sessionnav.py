@@ -6,15 +6,15 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from acquire.log.read import SessionReadError, session_summary
-from office.jobs.export import (
-    ExportError,
-    ExportOptions,
-    PassWindow,
-    _navigation,
-    passes_from_events,
-)
+from office.jobs.export import ExportError, ExportOptions, PassWindow, passes_from_events
+from office.jobs.sessionread import read_navigation
+
+if TYPE_CHECKING:
+    from calib.core.trajectory import Trajectory
+    from calib.io.site import Site
 
 
 @dataclass(frozen=True)
@@ -22,15 +22,19 @@ class SessionNavigation:
     """What a session says of where the vessel was: for the jobs that georeference a session
     without writing a bundle (``mls georef``, the Foxglove export)."""
 
-    site: object  # calib.io.site.Site, with the mount of the session's vessel config
+    site: Site  # with the mount of the session's vessel config
     site_path: Path
-    trajectory: object  # calib.core.trajectory.Trajectory of /ins/nav (LGF of the site)
+    trajectory: Trajectory  # of /ins/nav (LGF of the site)
     passes: list[PassWindow]  # from the /events marks (empty when the session has none)
     warnings: list[str]
 
 
+#: the export options of a caller that gives none
+DEFAULT_OPTIONS = ExportOptions()
+
+
 def session_navigation(
-    session_dir: str | Path, options: ExportOptions = ExportOptions()
+    session_dir: str | Path, options: ExportOptions = DEFAULT_OPTIONS
 ) -> SessionNavigation:
     """The site, the /ins/nav trajectory (with its sigmas when at least half the epochs carry
     them) and the passes marked in /events of a session, read as :func:`export_session` does."""
@@ -42,8 +46,8 @@ def session_navigation(
         warnings = [loss.describe() for loss in session_losses(session)]
     except SessionReadError as e:
         raise ExportError(str(e)) from None
-    site, site_path, nav, events, _, filled, traj = _navigation(session, options, summary, None)
-    if filled:
-        warnings.append(f"{filled} of {nav.t_ns.size} INS epochs had no sigmas: interpolated")
-    windows, w = passes_from_events(events, int(nav.t_ns[-1]))
-    return SessionNavigation(site, site_path, traj, windows, warnings + w)
+    nv = read_navigation(session, options, summary, None)
+    if nv.filled:
+        warnings.append(f"{nv.filled} of {nv.nav.t_ns.size} INS epochs had no sigmas: interpolated")
+    windows, w = passes_from_events(nv.events, int(nv.nav.t_ns[-1]))
+    return SessionNavigation(nv.site, nv.site_path, nv.trajectory, windows, warnings + w)

@@ -19,7 +19,7 @@ from __future__ import annotations
 
 import math
 import zlib
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -108,7 +108,7 @@ def pack_profiles(
         arr["pts"]["range_01mm"] = range_01mm[:, slots]
         arr["pts"]["intensity"] = intensity[:, slots]
         size = arr.itemsize
-        mv = memoryview(arr.reshape(-1).view(np.uint8))
+        mv = arr.reshape(-1).view(np.uint8).data  # the packets' bytes, as a memoryview
         body = size - CRC_SIZE
         arr["crc"] = np.fromiter(
             (zlib.crc32(mv[i : i + body]) for i in range(0, P * len(ks) * size, size)), np.uint32, P * len(ks)
@@ -135,7 +135,7 @@ class LidarCounts:
     returns: int = 0  # slots with a range
     per_pass: dict[int, int] = field(default_factory=dict)  # returns inside each pass window
     per_pass_surface: dict[int, np.ndarray] = field(default_factory=dict)  # by scene surface
-    per_surface: np.ndarray | None = None  # (R,) returns by scene surface
+    per_surface: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))  # (R,) by scene surface
 
 
 class LidarStream:
@@ -155,7 +155,7 @@ class LidarStream:
         end_ns: int,
         clock,
         seed: int,
-        passes: list[tuple[int, int, int]] = (),
+        passes: Sequence[tuple[int, int, int]] = (),
         latency_s: float = 0.0005,
         max_payload: int = DEFAULT_MAX_PAYLOAD,
     ) -> None:
@@ -174,7 +174,7 @@ class LidarStream:
         mask = sc.window_mask()
         padded = np.concatenate([[False], mask, [False]]).astype(np.int8)
         edges = np.flatnonzero(np.diff(padded))
-        self.runs = tuple((int(a), int(b)) for a, b in zip(edges[::2], edges[1::2]))
+        self.runs = tuple((int(a), int(b)) for a, b in zip(edges[::2], edges[1::2], strict=True))
         self.layout = packet_layout(self.runs, max_payload)
         self.first_slot = np.zeros(self.K, np.int64)  # the first slot of the packet of each slot
         for s0, n in self.layout:

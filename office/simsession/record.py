@@ -47,10 +47,18 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from acquire.errors import AcquireError
 from office.simsession.lidar import LidarStream
 from office.simsession.recorder import Recorder
+
+if TYPE_CHECKING:
+    from calib.io.site import Site
+    from calib.sim.result import SimResult
+    from calib.sim.scenario import Scenario
+    from sim_devices.clock import TruthClock
+    from sim_devices.feed import PassMark
 
 NS_PER_S = 1_000_000_000
 HOST_ANCHOR_NS = 3600 * NS_PER_S  # the vessel PC's CLOCK_MONOTONIC at the first line's start
@@ -210,7 +218,7 @@ def _vessel_config(tmp: Path, out: Path, sim, site, spec: SessionSpec, lidar: Li
     from sim_devices.ins import InsSettings
     from sim_devices.vesselconfig import vessel_config
 
-    locations = {
+    locations: dict[str, dict] = {
         "ins": {"link": str(out / "ins"), "protocol": spec.ins_protocol},
         "profiler": {"address": ["127.0.0.1", PROFILER_PORT]},
         "pps": {"address": ["127.0.0.1", PPS_PORT]},
@@ -245,14 +253,14 @@ class SessionPlan:
     """A survey sailed, ready to be recorded (:func:`plan_session`)."""
 
     spec: SessionSpec
-    survey: object  # calib.sim.scenario.Scenario
-    sim: object  # calib.sim.simulate.SimResult (its own scan tiny: the stream casts the returns)
+    survey: Scenario
+    sim: SimResult  # (its own scan tiny: the stream casts the returns)
     t0_ns: int
     t_end_ns: int
     windows: dict[int, tuple[int, int]]  # pass id → GPS ns of its marks
-    marks: tuple  # sim_devices.feed.PassMark of those passes
-    site: object  # calib.io.site.Site of those passes
-    clock: object  # sim_devices.clock.TruthClock
+    marks: tuple[PassMark, ...]  # of those passes
+    site: Site  # of those passes
+    clock: TruthClock
     lidar: LidarStream
     t_wall: float = field(default_factory=time.perf_counter)
 
@@ -277,27 +285,13 @@ def plan_session(spec: SessionSpec, sim_progress: Callable[[int, int], None] | N
     are its passes) and set up the profiler stream."""
     from acquire.log.session import session_name
     from calib.core.frames import gps_ns_to_utc
-    from calib.sim.scenariofile import load_scenario
     from calib.sim.simulate import simulate
     from sim_devices.clock import TruthClock
-    from sim_devices.feed import pass_marks, seconds_to_ns
+    from sim_devices.feed import seconds_to_ns
 
     t_wall = time.perf_counter()
-    if not spec.minutes > 0 or not 0 < spec.rate_scale <= 1:
-        raise SimSessionError(
-            f"--minutes {spec.minutes:g}, --rate-scale {spec.rate_scale:g}: expected minutes > 0 "
-            f"and 0 < scale ≤ 1"
-        )
-    if spec.ins_protocol not in ("nmea", "stdbin"):
-        raise SimSessionError(f"INS protocol {spec.ins_protocol!r}: expected nmea or stdbin")
+    base = _calibration_scenario(spec)
     duration_ns = round(spec.minutes * 60 * NS_PER_S)
-    base = load_scenario(spec.scenario, list(spec.overrides))
-    if base.production is not None:
-        raise SimSessionError(
-            f"scenario {base.name!r} is a production survey (its 'production' section): mls sim session "
-            f"sails the calibration scene's lines; play a production survey with mls sim devices and the "
-            f"daemon, or write it as a bundle with mls sim dataset"
-        )
     t0 = int(seconds_to_ns(base.start_gps_s))  # the first line starts at the scenario's start
     _check_out(Path(spec.out), session_name(base.vessel, gps_ns_to_utc(t0)), spec.force)
     survey = survey_scenario(base, duration_ns / NS_PER_S, spec.rate_scale, spec.surroundings)
@@ -306,20 +300,7 @@ def plan_session(spec: SessionSpec, sim_progress: Callable[[int, int], None] | N
     t_end = t0 + duration_ns
     if int(seconds_to_ns(sim.trajectory_true.t_gps_s[-1])) < t_end:
         raise SimSessionError(f"the survey's trajectory ends before {spec.minutes:g} min (a bug)")
-    marks = pass_marks(sim, t0, t_end)
-    starts = {m.pass_id: m.gps_ns for m in marks if m.kind == "pass_start"}
-    windows = {
-        m.pass_id: (starts[m.pass_id], m.gps_ns)
-        for m in marks
-        if m.kind == "pass_end" and m.pass_id in starts
-    }
-    if not windows:
-        first = survey.passes[0]
-        raise SimSessionError(
-            f"a session of {spec.minutes:g} min holds no complete line (lines of "
-            f"{first.length_m / first.speed_mps:g} s from its start): make it longer or the lines "
-            f"shorter (--set site.pass_length_m=...)"
-        )
+    marks, windows = _session_passes(spec, survey, sim, t0, t_end)
     clock = TruthClock(HOST_ANCHOR_NS, t0)
     lidar = LidarStream(
         survey,
@@ -347,6 +328,52 @@ def plan_session(spec: SessionSpec, sim_progress: Callable[[int, int], None] | N
     )
 
 
+def _calibration_scenario(spec: SessionSpec) -> Scenario:
+    """The spec's scenario with its overrides, the spec's numbers checked: a calibration scene
+    (a production survey is refused)."""
+    from calib.sim.scenariofile import load_scenario
+
+    if not spec.minutes > 0 or not 0 < spec.rate_scale <= 1:
+        raise SimSessionError(
+            f"--minutes {spec.minutes:g}, --rate-scale {spec.rate_scale:g}: expected minutes > 0 "
+            f"and 0 < scale ≤ 1"
+        )
+    if spec.ins_protocol not in ("nmea", "stdbin"):
+        raise SimSessionError(f"INS protocol {spec.ins_protocol!r}: expected nmea or stdbin")
+    base = load_scenario(spec.scenario, list(spec.overrides))
+    if base.production is not None:
+        raise SimSessionError(
+            f"scenario {base.name!r} is a production survey (its 'production' section): mls sim session "
+            f"sails the calibration scene's lines; play a production survey with mls sim devices and the "
+            f"daemon, or write it as a bundle with mls sim dataset"
+        )
+    return base
+
+
+def _session_passes(
+    spec: SessionSpec, survey: Scenario, sim: SimResult, t0: int, t_end: int
+) -> tuple[tuple[PassMark, ...], dict[int, tuple[int, int]]]:
+    """The pass marks of the session window, and the passes wholly inside it (pass id → GPS ns
+    of its start and end marks); a window without one is refused."""
+    from sim_devices.feed import pass_marks
+
+    marks = pass_marks(sim, t0, t_end)
+    starts = {m.pass_id: m.gps_ns for m in marks if m.kind == "pass_start"}
+    windows = {
+        m.pass_id: (starts[m.pass_id], m.gps_ns)
+        for m in marks
+        if m.kind == "pass_end" and m.pass_id in starts
+    }
+    if not windows:
+        first = survey.passes[0]
+        raise SimSessionError(
+            f"a session of {spec.minutes:g} min holds no complete line (lines of "
+            f"{first.length_m / first.speed_mps:g} s from its start): make it longer or the lines "
+            f"shorter (--set site.pass_length_m=...)"
+        )
+    return marks, windows
+
+
 def record_session(
     plan: SessionPlan, progress: Callable[[float, float, int], None] | None = None
 ) -> SessionResult:
@@ -367,6 +394,8 @@ def record_session(
             run.close("end of simulation" if run.done else "interrupted")
     truth = _truth(plan)
     (session_dir / "truth.json").write_text(json.dumps(truth, indent=1) + "\n", encoding="utf-8")
+    assert run is not None  # the recorder ran (or the exception went on)
+    assert run.writer is not None  # its session was opened
     st = run.writer.stats()
     c = lidar.counts
     result = SessionResult(
@@ -437,7 +466,7 @@ def _truth(plan: SessionPlan) -> dict:
     truth = dict(sim.truth)
     names = [
         "background" if k in BACKGROUND_KINDS else r.name
-        for r, k in zip(sim.scene.rectangles, sim.scene.kinds)
+        for r, k in zip(sim.scene.rectangles, sim.scene.kinds, strict=True)
     ]
     keys = list(dict.fromkeys(names + ["background"]))
     passes = []
@@ -445,7 +474,7 @@ def _truth(plan: SessionPlan) -> dict:
         if p["id"] not in windows:
             continue
         row = dict.fromkeys(keys, 0)
-        for name, n in zip(names, lidar.counts.per_pass_surface[p["id"]].tolist()):
+        for name, n in zip(names, lidar.counts.per_pass_surface[p["id"]].tolist(), strict=True):
             row[name] += int(n)
         passes.append({**p, "points": row})
     truth["passes"] = passes
@@ -456,7 +485,8 @@ def _truth(plan: SessionPlan) -> dict:
         "lines": "back and forth along the quay (relative headings 0° and 180°)",
         "surroundings": [s.name for s in survey.surfaces if s.name.startswith("survey_")],
         "returns_by_surface": {
-            r.name: int(n) for r, n in zip(sim.scene.rectangles, lidar.counts.per_surface.tolist())
+            r.name: int(n)
+            for r, n in zip(sim.scene.rectangles, lidar.counts.per_surface.tolist(), strict=True)
         },
     }
     return truth

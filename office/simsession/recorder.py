@@ -21,10 +21,11 @@ import os
 import queue
 from itertools import repeat
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
-from acquire.daemon.reports import StatusReports
+from acquire.daemon.reports import clock_doc
 from acquire.log.sessionlog import SessionWriter
 
 NS_PER_S = 1_000_000_000
@@ -72,22 +73,22 @@ class _Collect:
 
     def __init__(self) -> None:
         self.sent: list = []
+        self.stats: dict[str, int] = {}
 
-    def send(self, item, *_) -> None:
+    def send(self, item: Any, *_: Any) -> None:
         self.sent.append(item)
+
+    def close(self) -> None:
+        pass
+
+    def shutdown(self) -> None:
+        pass
 
     def wait_until(self, _host_ns: int) -> bool:
         return True
 
     def record(self, *_) -> None:
         pass
-
-
-class _ClockReport(StatusReports):
-    """The supervisor's ``/clock`` document (:meth:`StatusReports.clock_doc`) of these pieces."""
-
-    def __init__(self, clock, timekeeper) -> None:
-        self.clock, self.timekeeper = clock, timekeeper
 
 
 class Recorder:
@@ -203,7 +204,7 @@ class Recorder:
         return True
 
     def _submit_many(self, topic, payloads, host_ns, device_ns) -> None:
-        for p, h, d in zip(payloads, host_ns, device_ns):
+        for p, h, d in zip(payloads, host_ns, device_ns, strict=True):
             self._submit(topic, p, host_ns=h, device_ns=d)
 
     def _log_event(self, data: dict, host_ns: int | None = None) -> None:
@@ -212,13 +213,15 @@ class Recorder:
     def _flush(self) -> None:
         if not self.pending:
             return
+        writer = self.writer
+        assert writer is not None  # records flow once the session is open
         batch, self.pending = self.pending, []
         self.now = max(self.now, int(batch[-1][2]))
-        if self.writer.submit_batch(batch) != len(batch):  # pumped after each batch: never full
+        if writer.submit_batch(batch) != len(batch):  # pumped after each batch: never full
             raise RuntimeError("the session writer's queue overflowed")
         # what comes at or after the session's end is the shutdown's: no rotation into an
         # empty last segment when the session lasts a whole number of rotation periods
-        self.writer.pump(maintain=self.now < self.h_end)
+        writer.pump(maintain=self.now < self.h_end)
 
     # -- the session ------------------------------------------------------------------------
 
@@ -266,6 +269,7 @@ class Recorder:
 
     def update_summary(self, extra: dict) -> None:
         """``session.json`` with ``extra`` keys (written atomically, as the daemon writes it)."""
+        assert self.session_dir is not None  # the session was opened
         path = self.session_dir / "session.json"
         doc = {**json.loads(path.read_text(encoding="utf-8")), **extra}
         tmp = path.with_name(path.name + ".tmp")
@@ -318,7 +322,7 @@ class Recorder:
         dev.seen_many(h)
         a, b = np.searchsorted(dg.first_packet, [i, j])
         observe, name = self.monitor.observe, dev.name
-        for ph, pt in zip(dg.profile_host_ns[a:b].tolist(), dg.profile_t0_ns[a:b].tolist()):
+        for ph, pt in zip(dg.profile_host_ns[a:b].tolist(), dg.profile_t0_ns[a:b].tolist(), strict=True):
             observe(name, ph, pt, pps_flag=True)
         dev.records += int(b - a)
         if len(self.pending) >= CHANNEL_FLUSH:
@@ -381,7 +385,7 @@ class Recorder:
             self._log_event({"event": "alarm", **ev.as_dict()}, ev.alarm.last_host_ns)
 
     def _status(self, host: int) -> None:
-        self._submit("/clock", _ClockReport(self.clock_model, self.timekeeper).clock_doc(host), host_ns=host)
+        self._submit("/clock", clock_doc(self.clock_model, self.timekeeper, host), host_ns=host)
         self._submit("/latency", self.monitor.snapshot(), host_ns=host)
 
     def close(self, reason: str) -> None:

@@ -95,7 +95,7 @@ def test_c2c_reports_fallbacks_and_points_beyond_the_maximum(tmp_path):
 
 
 @pytest.mark.parametrize(
-    "extra,message",
+    ("extra", "message"),
     [
         (["--toward-point", "0,0,1"], "only apply with --signed"),
         (["--signed", "--toward-direction", "0,1"], "expected three comma-separated numbers"),

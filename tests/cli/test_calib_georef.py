@@ -149,7 +149,7 @@ def test_uncovered_points_stop_unless_skipped(tmp_path, example_bundle):
 
 
 @pytest.mark.parametrize(
-    "args, code, message",
+    ("args", "code", "message"),
     [
         (["--boresight-deg", "0.2,1.2"], 2, "expected three numbers 'roll,pitch,yaw'"),
         (["--boresight-deg", "a,b,c"], 2, "expected three numbers"),

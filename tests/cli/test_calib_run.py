@@ -161,7 +161,7 @@ def test_a_target_missing_from_one_pass_warns_and_the_run_continues(tmp_path):
 
 
 @pytest.mark.parametrize(
-    "sets,pattern",
+    ("sets", "pattern"),
     [
         (
             ("site.passes=[{id: 1, relative_heading_deg: 0}, {id: 2, relative_heading_deg: 180}]",),
@@ -212,7 +212,7 @@ def test_bad_times_and_an_uncovering_trajectory_are_one_clear_line(tmp_path, bun
 
 
 @pytest.mark.parametrize(
-    "args,code,pattern",
+    ("args", "code", "pattern"),
     [
         (["--apriori-deg", "1,2"], 2, r"--apriori-deg: got '1,2', expected three numbers"),
         (["--estimate", "scan_angle_offset"], 2, r"scan_angle_offset cannot be estimated"),

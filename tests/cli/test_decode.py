@@ -137,7 +137,7 @@ def test_timing_offset_is_signed_not_wrapped_mod_one_day():
 
 
 @pytest.mark.parametrize(
-    "fmt, content",
+    ("fmt", "content"),
     [
         ("stdbin", "random"),
         ("zfp", "random"),

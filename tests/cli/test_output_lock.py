@@ -25,7 +25,7 @@ def mls(*args) -> subprocess.CompletedProcess:
 
 
 @pytest.mark.parametrize(
-    "args, status",
+    ("args", "status"),
     [
         (("sim", "dataset", "--scenario", "montreal", "--force", "--out"), 2),
         (("calib", "georef", "examples/montreal-mini", "--force", "--out"), 1),

@@ -150,7 +150,7 @@ def test_kill_9_of_the_command_takes_the_emulators_with_it(tmp_path):
 
 
 @pytest.mark.parametrize(
-    "faults, args, message",
+    ("faults", "args", "message"),
     [
         (
             "faults:\n  - {at_s: 1, kind: udp_loss, duration_s: 1}\n",

@@ -240,7 +240,7 @@ CASES: list[Case] = [
         "vessel-site-file-is-a-directory",
         CHECK,
         CONFIG_INVALID,
-        "{case}/vessel.yaml:87:12: site_file: got 'site.yaml', expected an existing site file "
+        "{case}/vessel.yaml:88:12: site_file: got 'site.yaml', expected an existing site file "
         "({case}/site.yaml is a directory)",
     ),
     Case(

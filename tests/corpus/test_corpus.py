@@ -75,7 +75,7 @@ def test_every_defect_has_a_case_and_every_case_a_defect():
 
 
 @pytest.mark.parametrize(
-    "make, argv",
+    ("make", "argv"),
     [
         (make_corpus.valid_bundle, ("calib", "georef", "{case}/bundle", "--out", "{case}/laz")),
         (make_corpus.valid_vessel, ("acquire", "--check", "--config", "{case}/vessel.yaml")),

@@ -1,9 +1,8 @@
 """Shared helpers for the driver tests: the real captures in ``tests/data/real`` (see its README),
-and the fake host clock of the simulated devices in place of the real one."""
+and the fake host clock of the simulated devices, handed to what reads the host clock."""
 
 from __future__ import annotations
 
-import contextlib
 import os
 import select
 import socket
@@ -14,6 +13,7 @@ from pathlib import Path
 import pytest
 from hypothesis import HealthCheck, settings
 
+from drivers.timing import FakeHostClock
 from tests.waiting import wait_until
 
 #: real device captures shipped with the tests (licences and provenance beside them)
@@ -37,22 +37,12 @@ def real_dir(*parts: str) -> Path:
     return path
 
 
-@contextlib.contextmanager
-def fake_host_clock(path: Path, steps: list[tuple[int, int]]):
-    """``drivers.timing`` reads realtime − monotonic through a :class:`~drivers.timing.FakeHostClock`
-    with these ``(host monotonic ns, step ns)`` steps meanwhile; the real clock again after (and
-    the step counter's offset re-read, so a later reader sees no step)."""
-    from drivers import timing
-
+def fake_host_clock(path: Path, steps: list[tuple[int, int]]) -> FakeHostClock:
+    """A :class:`~drivers.timing.FakeHostClock` on ``path`` with these ``(host monotonic ns,
+    step ns)`` steps, its file looked at on every read, to hand to what reads the host clock
+    (nothing else sees it)."""
     path.write_text("# host_monotonic_ns step_ns\n" + "".join(f"{t} {s}\n" for t, s in steps))
-    saved = timing.FAKE_HOST_CLOCK
-    timing.realtime_minus_monotonic_ns()
-    timing.FAKE_HOST_CLOCK = timing.FakeHostClock(str(path), poll_ns=0)
-    try:
-        yield timing.FAKE_HOST_CLOCK
-    finally:
-        timing.FAKE_HOST_CLOCK = saved
-        timing.realtime_minus_monotonic_ns()
+    return FakeHostClock(str(path), poll_ns=0)
 
 
 def step_host_clock(path: Path, at_ns: int, step_ns: int) -> None:

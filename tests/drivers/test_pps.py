@@ -16,18 +16,17 @@ import pytest
 
 from drivers.base import DriverError
 from drivers.pps import (
-    PPS_FETCH,
     KernelPpsSource,
     PpsEdge,
     PpsLabeler,
     SerialLinePpsSource,
+    UdpPpsSource,
     create_pps_source,
     decode_pps_datagram,
     encode_pps_datagram,
     gps_second_of,
-    pack_pps_fdata,
-    unpack_pps_fdata,
 )
+from drivers.ppsfetch import PPS_FETCH, pack_pps_fdata, unpack_pps_fdata
 
 S = 1_000_000_000
 
@@ -317,3 +316,18 @@ def test_registry_errors_name_the_kind():
         create_pps_source({"kind": "gps"})
     with pytest.raises(DriverError, match="serial-line"):
         create_pps_source({"kind": "serial-line", "port": "/dev/null", "baud": 9600})
+
+
+def test_a_udp_pps_source_on_a_taken_port_fails_and_keeps_no_socket():
+    def open_fds() -> int:
+        return len(os.listdir("/proc/self/fd"))
+
+    async def open_on(port: int) -> None:
+        await UdpPpsSource("127.0.0.1", port, "emu").open()
+
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as holder:
+        holder.bind(("127.0.0.1", 0))
+        before = open_fds()
+        with pytest.raises(OSError, match="Address already in use"):
+            asyncio.run(open_on(holder.getsockname()[1]))
+        assert open_fds() == before

@@ -66,7 +66,7 @@ def _decode_all(make, chunks):
 
 
 @pytest.mark.parametrize(
-    "name, make, frame", stream_decoders(), ids=lambda v: v if isinstance(v, str) else ""
+    ("name", "make", "frame"), stream_decoders(), ids=lambda v: v if isinstance(v, str) else ""
 )
 @PROPERTY
 @given(data=st.binary(max_size=2000), cuts=st.lists(st.integers(0, 2000), max_size=6))
@@ -81,7 +81,7 @@ def test_random_bytes_never_raise(name, make, frame, data, cuts):
 
 
 @pytest.mark.parametrize(
-    "name, make, frame", stream_decoders(), ids=lambda v: v if isinstance(v, str) else ""
+    ("name", "make", "frame"), stream_decoders(), ids=lambda v: v if isinstance(v, str) else ""
 )
 def test_truncation_at_every_offset_then_a_valid_frame(name, make, frame):
     complete = len(frame) - 2 if name.startswith("nmea") else len(frame)  # NMEA: CR already ends it
@@ -96,7 +96,7 @@ def test_truncation_at_every_offset_then_a_valid_frame(name, make, frame):
 
 
 @pytest.mark.parametrize(
-    "name, make, frame", stream_decoders(), ids=lambda v: v if isinstance(v, str) else ""
+    ("name", "make", "frame"), stream_decoders(), ids=lambda v: v if isinstance(v, str) else ""
 )
 @PROPERTY
 @given(bit=st.integers(0, 10**6))
@@ -117,7 +117,7 @@ def test_single_bit_flip_is_rejected_and_the_next_frame_decodes(name, make, fram
 
 
 @pytest.mark.parametrize(
-    "name, make, frame", stream_decoders(), ids=lambda v: v if isinstance(v, str) else ""
+    ("name", "make", "frame"), stream_decoders(), ids=lambda v: v if isinstance(v, str) else ""
 )
 @PROPERTY
 @given(garbage=st.binary(max_size=600))
@@ -367,7 +367,7 @@ CAN_RECORDS = [
 ]
 
 
-@pytest.mark.parametrize("arb, data, ext", CAN_RECORDS)
+@pytest.mark.parametrize(("arb", "data", "ext"), CAN_RECORDS)
 def test_can_frame_record_truncated_at_every_offset_is_rejected(arb, data, ext):
     raw = can_frame_bytes(arb, data, ext)
     for cut in range(len(raw)):
@@ -376,7 +376,7 @@ def test_can_frame_record_truncated_at_every_offset_is_rejected(arb, data, ext):
     assert parse_can_frame(raw) == (arb, data, ext)
 
 
-@pytest.mark.parametrize("arb, data, ext", CAN_RECORDS)
+@pytest.mark.parametrize(("arb", "data", "ext"), CAN_RECORDS)
 def test_can_frame_record_every_single_bit_flip(arb, data, ext):
     """The record has no checksum: a flip changes the id, the flags, the length or the data (or
     falls in padding); a length beyond the data or a standard id beyond 11 bits is rejected."""

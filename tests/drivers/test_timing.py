@@ -46,25 +46,53 @@ def test_fit_needs_three_samples():
 
 def test_a_step_of_the_realtime_clock_is_counted_by_any_read_of_the_offset(tmp_path):
     path = tmp_path / "host_clock"
-    with fake_host_clock(path, []) as fake:
-        before = timing.realtime_minus_monotonic_ns()
-        count = timing.HOST_CLOCK_STEPS.count
-        lo, hi = realtime_offset_bounds_ns()
-        assert lo - 1_000_000 < before < hi + 1_000_000  # no step yet: the real offset
-        at = time.monotonic_ns()  # the step, made now: every read from here on sees it
-        step_host_clock(path, at, -3_600 * 10**9)
-        after = timing.realtime_minus_monotonic_ns()
-        assert abs(after - before + 3_600 * 10**9) < 1_000_000
-        assert timing.HOST_CLOCK_STEPS.count == count + 1
-        t, step = timing.HOST_CLOCK_STEPS.last
-        assert step == pytest.approx(-3_600 * 10**9, abs=1_000_000) and t >= at
-        timing.realtime_minus_monotonic_ns()  # no second step
-        assert timing.HOST_CLOCK_STEPS.count == count + 1
-        # kernel stamps taken after the step move with it, those before do not
-        real_now = time.clock_gettime_ns(time.CLOCK_REALTIME)
-        assert fake.kernel_stamp(real_now) == real_now - 3_600 * 10**9
-        real_before = at + before - 10**9  # a realtime stamp 1 s before the step
-        assert fake.kernel_stamp(real_before) == real_before
+    fake = fake_host_clock(path, [])
+    before = fake.realtime_minus_monotonic_ns()
+    count = fake.steps_seen.count
+    lo, hi = realtime_offset_bounds_ns()
+    assert lo - 1_000_000 < before < hi + 1_000_000  # no step yet: the real offset
+    at = time.monotonic_ns()  # the step, made now: every read from here on sees it
+    step_host_clock(path, at, -3_600 * 10**9)
+    after = fake.realtime_minus_monotonic_ns()
+    assert abs(after - before + 3_600 * 10**9) < 1_000_000
+    assert fake.steps_seen.count == count + 1
+    assert fake.steps_seen.last is not None
+    t, step = fake.steps_seen.last
+    assert step == pytest.approx(-3_600 * 10**9, abs=1_000_000)
+    assert t >= at
+    fake.realtime_minus_monotonic_ns()  # no second step
+    assert fake.steps_seen.count == count + 1
+    # kernel stamps taken after the step move with it, those before do not
+    real_now = time.clock_gettime_ns(time.CLOCK_REALTIME)
+    assert fake.kernel_stamp(real_now) == real_now - 3_600 * 10**9
+    real_before = at + before - 10**9  # a realtime stamp 1 s before the step
+    assert fake.kernel_stamp(real_before) == real_before
+
+
+def test_each_host_clock_counts_its_own_steps_and_the_real_one_reads_the_kernel(tmp_path):
+    """No process-wide counter: a fake's steps are its own, a real clock (the default of
+    whoever reads one) sees none of them, and a transport's stamps on the real clock stay exact."""
+    path = tmp_path / "host_clock"
+    fake, real = fake_host_clock(path, []), timing.HostClock()
+    assert not real.fake
+    assert fake.fake
+    fake.realtime_minus_monotonic_ns()
+    real.realtime_minus_monotonic_ns()
+    step_host_clock(path, time.monotonic_ns(), 5 * 10**9)
+    fake.realtime_minus_monotonic_ns()
+    offset = real.realtime_minus_monotonic_ns()
+    assert (fake.steps_seen.count, fake.steps_seen.large) == (1, 1)
+    assert (real.steps_seen.count, real.steps_seen.large) == (0, 0)
+    lo, hi = realtime_offset_bounds_ns()
+    assert lo - 1_000_000 < offset < hi + 1_000_000
+    assert real.kernel_stamp(12345) == 12345
+    stamps = timing.RealtimeStamps()
+    stamps.begin()
+    assert stamps.exact
+    assert stamps.steps == 0
+    on_fake = timing.RealtimeStamps(clock=fake)
+    on_fake.begin()
+    assert not on_fake.exact
 
 
 @pytest.mark.parametrize("step_s", [-3600.0, 2.0])
@@ -75,19 +103,18 @@ def test_realtime_stamps_taken_before_a_step_keep_their_offset(tmp_path, step_s)
     The step is written when the first read is done, its instant 50 ms back: the arrivals lie
     before it, and a stamp after it, whatever the machine's pace."""
     path = tmp_path / "host_clock"
-    with fake_host_clock(path, []):
-        stamps = timing.RealtimeStamps()
-        stamps.begin()  # the read before the step
-        at = time.monotonic_ns() - 50_000_000
-        before = [at - k * 10_000_000 for k in range(4, 0, -1)]  # monotonic arrivals before the step
-        step_host_clock(path, at, round(step_s * 10**9))
-        lo, hi = realtime_offset_bounds_ns()
-        real_off = (lo + hi) // 2
-        stamps.begin()  # the read, after the step
-        assert stamps.steps == 1 and not stamps.exact
-        read = time.monotonic_ns()
-        got = [stamps.convert(m + real_off, read) for m in before]
-        after = at + 25_000_000
-        got.append(stamps.convert(after + real_off, read))  # a stamp after the step (faked by convert)
-        assert max(abs(g - m) for g, m in zip(got, before + [after])) < 500_000
-        assert (stamps.repaired, stamps.unknown) == (4, 0)
+    stamps = timing.RealtimeStamps(clock=fake_host_clock(path, []))
+    stamps.begin()  # the read before the step
+    at = time.monotonic_ns() - 50_000_000
+    before = [at - k * 10_000_000 for k in range(4, 0, -1)]  # monotonic arrivals before the step
+    step_host_clock(path, at, round(step_s * 10**9))
+    lo, hi = realtime_offset_bounds_ns()
+    real_off = (lo + hi) // 2
+    stamps.begin()  # the read, after the step
+    assert stamps.steps == 1 and not stamps.exact
+    read = time.monotonic_ns()
+    got = [stamps.convert(m + real_off, read) for m in before]
+    after = at + 25_000_000
+    got.append(stamps.convert(after + real_off, read))  # a stamp after the step (faked by convert)
+    assert max(abs(g - m) for g, m in zip(got, before + [after])) < 500_000
+    assert (stamps.repaired, stamps.unknown) == (4, 0)

@@ -86,7 +86,7 @@ def test_a_timeline_with_every_kind_loads_with_defaults():
 
 
 @pytest.mark.parametrize(
-    "text, message",
+    ("text", "message"),
     [
         (
             "faults:\n  - {at_s: 1, kind: unplug}\n",

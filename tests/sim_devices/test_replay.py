@@ -84,6 +84,9 @@ def test_read_session_gives_channels_counts_and_the_recorded_clock(session):
     assert got == records["/lidar/raw"]
 
 
+# each record must reach the capture within RX_SLACK_NS of its replay instant on the truth clock:
+# beside another worker's Monte Carlo on 2 cores it was once 208 ms late (the machine, not the replay)
+@pytest.mark.realtime
 def test_replay_re_emits_every_channel_with_its_timing(session, tmp_path):
     session_dir, records, feed = session
     speed = 2.0

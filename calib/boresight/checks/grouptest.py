@@ -131,7 +131,7 @@ def group_tests(sol: GlsSolution, obs: Observations) -> list[GroupTest]:
     raw = [_score(sol, rows) for _, _, rows in groups]
     factor = variance_factor * group_factor([(t / variance_factor, df) for t, df, _ in raw])
     out = []
-    for (j, k, rows), (t, df, offset) in zip(groups, raw):
+    for (j, k, rows), (t, df, offset) in zip(groups, raw, strict=False):
         stat = t / factor
         p = float(stats.chi2.sf(stat, df)) if df else 1.0
         out.append(GroupTest(obs.plane_names[j], obs.pass_ids[k], rows.size, stat, df, p, offset))

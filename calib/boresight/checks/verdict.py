@@ -95,7 +95,7 @@ def judge(ev: Evidence) -> Verdict:
         )
     refuse += [
         f"{name} is not calibrated: known to ±{np.degrees(s):.2f}° only (> {np.degrees(REFUSE_SIGMA_RAD):g}°)"
-        for name, s in zip(ANGLE_NAMES, ev.sigma_realistic_rad)
+        for name, s in zip(ANGLE_NAMES, ev.sigma_realistic_rad, strict=False)
         if s > REFUSE_SIGMA_RAD
     ]
     question += _tau_reasons(ev.tau_rows)

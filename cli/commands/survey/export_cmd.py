@@ -3,12 +3,20 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from pathlib import Path
-from typing import Annotated
+from typing import TYPE_CHECKING, Annotated
 
 import typer
 
 from cli.options import SessionDir, force_option
+
+if TYPE_CHECKING:
+    from rich.console import Console
+
+    from office.jobs.export import ExportOptions, ExportResult
+    from office.jobs.foxglove import FoxgloveResult
 
 HELP = (
     "Export a recorded session as a calibration bundle for `mls calib run` (--bundle), and/or as one "
@@ -42,81 +50,87 @@ HELP = (
 
 
 def export(
-    session: SessionDir = ...,
-    bundle: Path | None = typer.Option(None, "--bundle", "-o", help="Bundle directory to write (created)."),
-    foxglove: Path | None = typer.Option(
-        None, "--foxglove", help="Write the session for Foxglove as this MCAP file (alone: only this file)."
-    ),
-    cloud_rate_hz: float = typer.Option(
-        2.0, "--cloud-rate-hz", min=0.01, max=1000.0, help="--foxglove: point clouds per second."
-    ),
-    max_cloud_points: int = typer.Option(
-        50_000, "--max-cloud-points", min=1, help="--foxglove: most points in one cloud (evenly decimated)."
-    ),
+    session: SessionDir,
+    bundle: Annotated[
+        Path | None, typer.Option("--bundle", "-o", help="Bundle directory to write (created).")
+    ] = None,
+    foxglove: Annotated[
+        Path | None,
+        typer.Option(
+            "--foxglove", help="Write the session for Foxglove as this MCAP file (alone: only this file)."
+        ),
+    ] = None,
+    cloud_rate_hz: Annotated[
+        float,
+        typer.Option("--cloud-rate-hz", min=0.01, max=1000.0, help="--foxglove: point clouds per second."),
+    ] = 2.0,
+    max_cloud_points: Annotated[
+        int,
+        typer.Option(
+            "--max-cloud-points", min=1, help="--foxglove: most points in one cloud (evenly decimated)."
+        ),
+    ] = 50_000,
     force: Annotated[
         bool,
         force_option(
             "Write into output directories (or over an --sbet or --foxglove file) that already hold data."
         ),
     ] = False,
-    laz: Path | None = typer.Option(
-        None, "--laz", help="Also write one LAZ per pass here (UTM, a-priori mount)."
-    ),
-    sbet: Path | None = typer.Option(
-        None, "--sbet", help="Also write the trajectory as an Applanix SBET (and .smrmsg with the sigmas)."
-    ),
-    site: Path | None = typer.Option(
-        None, "--site", help="Site file (targets, pass plan) instead of the one stored in the session."
-    ),
-    passes: str = typer.Option(
-        "auto",
-        "--passes",
-        help="Where the passes come from: auto (event marks, else the plan), events, plan.",
-    ),
-    cross_track_m: float = typer.Option(
-        5.0, "--max-cross-track", min=0.1, help="Plan passes: largest distance from the planned line (m)."
-    ),
-    heading_deg: float = typer.Option(
-        20.0, "--max-heading-error", min=0.1, max=90.0, help="Plan passes: largest heading error (deg)."
-    ),
-    require_complete: bool = typer.Option(
-        False,
-        "--require-complete",
-        help="Refuse a session with a segment that did not end normally (torn tail) instead of warning.",
-    ),
+    laz: Annotated[
+        Path | None, typer.Option("--laz", help="Also write one LAZ per pass here (UTM, a-priori mount).")
+    ] = None,
+    sbet: Annotated[
+        Path | None,
+        typer.Option(
+            "--sbet", help="Also write the trajectory as an Applanix SBET (and .smrmsg with the sigmas)."
+        ),
+    ] = None,
+    site: Annotated[
+        Path | None,
+        typer.Option(
+            "--site", help="Site file (targets, pass plan) instead of the one stored in the session."
+        ),
+    ] = None,
+    passes: Annotated[
+        str,
+        typer.Option(
+            "--passes", help="Where the passes come from: auto (event marks, else the plan), events, plan."
+        ),
+    ] = "auto",
+    cross_track_m: Annotated[
+        float,
+        typer.Option(
+            "--max-cross-track", min=0.1, help="Plan passes: largest distance from the planned line (m)."
+        ),
+    ] = 5.0,
+    heading_deg: Annotated[
+        float,
+        typer.Option(
+            "--max-heading-error", min=0.1, max=90.0, help="Plan passes: largest heading error (deg)."
+        ),
+    ] = 20.0,
+    require_complete: Annotated[
+        bool,
+        typer.Option(
+            "--require-complete",
+            help="Refuse a session with a segment that did not end normally (torn tail) instead of warning.",
+        ),
+    ] = False,
 ) -> None:
     """``mls export`` (its help text is :data:`HELP`)."""
     import time
 
     from rich.console import Console
     from rich.markup import escape
-    from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 
     from calib.core.errors import MlsError
-    from calib.io.outputs import check_output_file, hold_output_dir
-    from office.jobs.export import ExportError, ExportOptions, export_session
+    from office.jobs.export import ExportOptions
 
     console = Console()
     err = Console(stderr=True, emoji=False)  # ":100:" of file:line:column is no emoji
     t0 = time.perf_counter()
-    res = fox = None
     try:
-        if not session.is_dir():
-            raise ExportError(f"{session}: not a directory (a session is the directory the daemon recorded)")
-        if bundle is None and foxglove is None:
-            raise ExportError(
-                "nothing to write: give --bundle DIR (calibration bundle) and/or --foxglove OUT.mcap"
-            )
-        if bundle is None and (laz is not None or sbet is not None):
-            raise ExportError("--laz and --sbet come with --bundle DIR (they are written from the bundle)")
-        if bundle is not None:  # every output, before reading the session
-            hold_output_dir(bundle, "--bundle", force)
-        if laz is not None:
-            hold_output_dir(laz, "--laz", force)
-        if sbet is not None:
-            check_output_file(sbet, "--sbet", force)
-        if foxglove is not None:
-            check_output_file(foxglove, "--foxglove", force)
+        _check_outputs(session, bundle, foxglove, laz, sbet, force)
         opts = ExportOptions(
             passes=passes,
             site_file=site,
@@ -126,32 +140,11 @@ def export(
             sbet_path=sbet,
             require_complete=require_complete,
         )
-        with Progress(
-            TextColumn("[bold]{task.description}"),
-            BarColumn(),
-            TimeElapsedColumn(),
-            console=console,
-            transient=True,
-        ) as bar:
-            task = bar.add_task("reading the session", total=None)
-
-            def progress(stage: str, done: float, total: float | None) -> None:
-                bar.update(task, description=stage, completed=done, total=total)
-
-            if bundle is not None:
-                res = export_session(session, bundle, opts, progress)
-            if foxglove is not None:
-                from office.jobs.foxglove import export_foxglove
-
-                fox = export_foxglove(
-                    session,
-                    foxglove,
-                    cloud_rate_hz=cloud_rate_hz,
-                    max_points_per_cloud=max_cloud_points,
-                    force=force,
-                    require_complete=require_complete,
-                    progress=progress,
-                )
+        with _progress_bar(console) as progress:
+            res = _export_bundle(session, bundle, opts, progress)
+            fox = _export_foxglove(
+                session, foxglove, cloud_rate_hz, max_cloud_points, force, require_complete, progress
+            )
     except (MlsError, OSError) as e:
         err.print(f"[red]error:[/red] {escape(str(e))}", highlight=False, soft_wrap=True)
         raise typer.Exit(1) from None
@@ -161,7 +154,99 @@ def export(
         _foxglove_summary(console, err, session, fox, time.perf_counter() - t0)
 
 
-def _bundle_summary(console, err, session: Path, res, laz: Path | None, elapsed_s: float) -> None:
+def _check_outputs(
+    session: Path,
+    bundle: Path | None,
+    foxglove: Path | None,
+    laz: Path | None,
+    sbet: Path | None,
+    force: bool,
+) -> None:
+    """The session is a directory, something is to be written, and every output may be
+    written (held or checked before the session is read)."""
+    from calib.io.outputs import check_output_file, hold_output_dir
+    from office.jobs.export import ExportError
+
+    if not session.is_dir():
+        raise ExportError(f"{session}: not a directory (a session is the directory the daemon recorded)")
+    if bundle is None and foxglove is None:
+        raise ExportError(
+            "nothing to write: give --bundle DIR (calibration bundle) and/or --foxglove OUT.mcap"
+        )
+    if bundle is None and (laz is not None or sbet is not None):
+        raise ExportError("--laz and --sbet come with --bundle DIR (they are written from the bundle)")
+    if bundle is not None:  # every output, before reading the session
+        hold_output_dir(bundle, "--bundle", force)
+    if laz is not None:
+        hold_output_dir(laz, "--laz", force)
+    if sbet is not None:
+        check_output_file(sbet, "--sbet", force)
+    if foxglove is not None:
+        check_output_file(foxglove, "--foxglove", force)
+
+
+@contextmanager
+def _progress_bar(console: Console) -> Iterator[Callable[[str, float, float | None], None]]:
+    """One progress bar that each stage of the exports takes over; the block gets its callback."""
+    from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
+
+    with Progress(
+        TextColumn("[bold]{task.description}"),
+        BarColumn(),
+        TimeElapsedColumn(),
+        console=console,
+        transient=True,
+    ) as bar:
+        task = bar.add_task("reading the session", total=None)
+
+        def progress(stage: str, done: float, total: float | None) -> None:
+            bar.update(task, description=stage, completed=done, total=total)
+
+        yield progress
+
+
+def _export_bundle(
+    session: Path,
+    bundle: Path | None,
+    opts: ExportOptions,
+    progress: Callable[[str, float, float | None], None],
+) -> ExportResult | None:
+    """The calibration bundle of ``--bundle`` (None when not asked for)."""
+    from office.jobs.export import export_session
+
+    if bundle is None:
+        return None
+    return export_session(session, bundle, opts, progress)
+
+
+def _export_foxglove(
+    session: Path,
+    foxglove: Path | None,
+    cloud_rate_hz: float,
+    max_cloud_points: int,
+    force: bool,
+    require_complete: bool,
+    progress: Callable[[str, float, float | None], None],
+) -> FoxgloveResult | None:
+    """The Foxglove MCAP file of ``--foxglove`` (None when not asked for)."""
+    if foxglove is None:
+        return None
+    from office.jobs.foxglove import export_foxglove
+
+    return export_foxglove(
+        session,
+        foxglove,
+        cloud_rate_hz=cloud_rate_hz,
+        max_points_per_cloud=max_cloud_points,
+        force=force,
+        require_complete=require_complete,
+        progress=progress,
+    )
+
+
+def _bundle_summary(
+    console: Console, err: Console, session: Path, res: ExportResult, laz: Path | None, elapsed_s: float
+) -> None:
     """The passes table, the warnings (stderr) and the closing line of a bundle export."""
     from rich.markup import escape
     from rich.table import Table
@@ -171,14 +256,14 @@ def _bundle_summary(console, err, session: Path, res, laz: Path | None, elapsed_
     t = Table(title=f"{session.name} → {res.bundle} ({res.pass_source} passes)", title_justify="left")
     for col in ("pass", "source", "start UTC", "span s", "points"):
         t.add_column(col, justify="right" if col in ("pass", "span s", "points") else "left")
-    for w in res.passes:
-        start = frames.gps_ns_to_utc(w.start_gps_ns).strftime("%H:%M:%S.%f")[:-3]
+    for pw in res.passes:
+        start = frames.gps_ns_to_utc(pw.start_gps_ns).strftime("%H:%M:%S.%f")[:-3]
         t.add_row(
-            str(w.pass_id),
-            w.source,
+            str(pw.pass_id),
+            pw.source,
             start,
-            f"{(w.end_gps_ns - w.start_gps_ns) / 1e9:.1f}",
-            f"{res.points_per_pass.get(w.pass_id, 0):,}",
+            f"{(pw.end_gps_ns - pw.start_gps_ns) / 1e9:.1f}",
+            f"{res.points_per_pass.get(pw.pass_id, 0):,}",
         )
     console.print(t)
     for w in res.warnings:
@@ -201,7 +286,9 @@ def _bundle_summary(console, err, session: Path, res, laz: Path | None, elapsed_
     )
 
 
-def _foxglove_summary(console, err, session: Path, fox, elapsed_s: float) -> None:
+def _foxglove_summary(
+    console: Console, err: Console, session: Path, fox: FoxgloveResult, elapsed_s: float
+) -> None:
     """The channels table, the warnings (stderr) and the closing line of a Foxglove export."""
     from rich.markup import escape
     from rich.table import Table

@@ -3,12 +3,20 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from pathlib import Path
-from typing import Annotated
+from typing import TYPE_CHECKING, Annotated, TypeVar
 
 import typer
 
 from cli.options import Calibration, Las, SurveySource, crs_option, force_option, out_option
+
+if TYPE_CHECKING:
+    from office.deliver.engine import GeorefResult
+
+#: a window option: (min, max) or a box
+_WindowT = TypeVar("_WindowT", bound=tuple[float, ...])
 
 HELP = (
     "Georeference a whole survey (a recorded session, or a calibration bundle) into LAS 1.4 "
@@ -35,64 +43,79 @@ HELP = (
 
 
 def georef(
-    source: SurveySource = ...,
-    out: Annotated[Path, out_option("Directory of the tiles (created).")] = ...,
+    source: SurveySource,
+    out: Annotated[Path, out_option("Directory of the tiles (created).")],
     calibration: Calibration = None,
-    history: Path | None = typer.Option(None, "--history", help="Calibration history database (for #ID)."),
-    sbet: Path | None = typer.Option(None, "--sbet", help="Post-processed trajectory (Applanix SBET)."),
-    smrmsg: Path | None = typer.Option(None, "--smrmsg", help="The SBET's sigmas (SMRMSG)."),
+    history: Annotated[
+        Path | None, typer.Option("--history", help="Calibration history database (for #ID).")
+    ] = None,
+    sbet: Annotated[
+        Path | None, typer.Option("--sbet", help="Post-processed trajectory (Applanix SBET).")
+    ] = None,
+    smrmsg: Annotated[Path | None, typer.Option("--smrmsg", help="The SBET's sigmas (SMRMSG).")] = None,
     crs: Annotated[str, crs_option("Output CRS: utm (the zone of the site), lgf, or EPSG:…")] = "utm",
-    tile_m: float | None = typer.Option(
-        None, "--tile-m", min=1.0, help="Square tiles of this size (CRS units) instead of one per line."
+    tile_m: Annotated[
+        float | None,
+        typer.Option(
+            "--tile-m", min=1.0, help="Square tiles of this size (CRS units) instead of one per line."
+        ),
+    ] = None,
+    keep_transits: Annotated[
+        bool,
+        typer.Option(
+            "--keep-transits", help="Line tiles: put the returns outside every line into tile 'transit'."
+        ),
+    ] = False,
+    max_tile_points: Annotated[
+        int,
+        typer.Option(
+            "--max-tile-points", min=1000, help="Split a larger tile into files -p01, -p02… (time order)."
+        ),
+    ] = 20_000_000,
+    chunk_s: Annotated[
+        float, typer.Option("--chunk-s", min=0.5, max=600.0, help="Seconds of survey per task.")
+    ] = 2.0,
+    range_m: Annotated[tuple[float, float], typer.Option("--range-m", help="Range window MIN MAX (m).")] = (
+        1.0,
+        119.0,
     ),
-    keep_transits: bool = typer.Option(
-        False, "--keep-transits", help="Line tiles: put the returns outside every line into tile 'transit'."
-    ),
-    max_tile_points: int = typer.Option(
-        20_000_000,
-        "--max-tile-points",
-        min=1000,
-        help="Split a larger tile into files -p01, -p02… (time order).",
-    ),
-    chunk_s: float = typer.Option(2.0, "--chunk-s", min=0.5, max=600.0, help="Seconds of survey per task."),
-    range_m: tuple[float, float] = typer.Option((1.0, 119.0), "--range-m", help="Range window MIN MAX (m)."),
-    scan_angle_deg: tuple[float, float] | None = typer.Option(
-        None, "--scan-angle-deg", help="Window of the scanner's own angle MIN MAX (deg, 0…360)."
-    ),
-    intensity_min: int = typer.Option(
-        0, "--intensity-min", min=0, max=65535, help="Intensity floor (count)."
-    ),
-    time_gps_s: tuple[float, float] | None = typer.Option(
-        None, "--time-gps-s", help="GPS-time window START END (s since the GPS epoch)."
-    ),
-    vessel_box_m: tuple[float, float, float, float, float, float] | None = typer.Option(
-        None,
-        "--vessel-box-m",
-        help="The vessel in the body frame (x fwd, y stbd, z down; m): X0 X1 Y0 Y1 Z0 Z1; its returns are left out.",
-    ),
+    scan_angle_deg: Annotated[
+        tuple[float, float] | None,
+        typer.Option("--scan-angle-deg", help="Window of the scanner's own angle MIN MAX (deg, 0…360)."),
+    ] = None,
+    intensity_min: Annotated[
+        int, typer.Option("--intensity-min", min=0, max=65535, help="Intensity floor (count).")
+    ] = 0,
+    time_gps_s: Annotated[
+        tuple[float, float] | None,
+        typer.Option("--time-gps-s", help="GPS-time window START END (s since the GPS epoch)."),
+    ] = None,
+    vessel_box_m: Annotated[
+        tuple[float, float, float, float, float, float] | None,
+        typer.Option(
+            "--vessel-box-m",
+            help="The vessel in the body frame (x fwd, y stbd, z down; m): X0 X1 Y0 Y1 Z0 Z1; its returns are left out.",
+        ),
+    ] = None,
     las: Las = False,
-    workers: int | None = typer.Option(
-        None, "--workers", min=1, help="Run on a local Dask cluster of this many worker processes."
-    ),
-    scheduler: str | None = typer.Option(
-        None, "--scheduler", help="Run on a Dask cluster: 'local' (all cores) or tcp://HOST:8786."
-    ),
-    resume: bool = typer.Option(False, "--resume", help="Continue a job that stopped (same inputs)."),
+    workers: Annotated[
+        int | None,
+        typer.Option("--workers", min=1, help="Run on a local Dask cluster of this many worker processes."),
+    ] = None,
+    scheduler: Annotated[
+        str | None,
+        typer.Option("--scheduler", help="Run on a Dask cluster: 'local' (all cores) or tcp://HOST:8786."),
+    ] = None,
+    resume: Annotated[
+        bool, typer.Option("--resume", help="Continue a job that stopped (same inputs).")
+    ] = False,
     force: Annotated[bool, force_option("Start over in a non-empty OUT (files replaced).")] = False,
 ) -> None:
     """``mls georef`` (its help text is :data:`HELP`)."""
-    from rich.console import Console
-    from rich.markup import escape
-    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
-
     from office.deliver.engine import run_georef
     from office.deliver.executors import DaskExecutor, InProcess
     from office.deliver.options import Filters, GeorefError, GeorefOptions
 
-    def window(w):  # typer gives (None, None) for an unset tuple option
-        return None if w is None or w[0] is None else w
-
-    console, err = Console(), Console(stderr=True, emoji=False)
     if resume and force:
         raise GeorefError("--resume and --force: choose one (continue the job, or start over)")
     options = GeorefOptions(
@@ -105,35 +128,15 @@ def georef(
         compress=not las,
         filters=Filters(
             range_m=range_m,
-            scan_angle_deg=window(scan_angle_deg),
+            scan_angle_deg=_window(scan_angle_deg),
             intensity_min=intensity_min,
-            time_gps_s=window(time_gps_s),
-            vessel_box_m=window(vessel_box_m),
+            time_gps_s=_window(time_gps_s),
+            vessel_box_m=_window(vessel_box_m),
         ),
     )
     executor = DaskExecutor(scheduler, workers) if (workers or scheduler) else InProcess()
-    columns = (
-        TextColumn("[bold]{task.description}"),
-        BarColumn(),
-        MofNCompleteColumn(),
-        TextColumn("{task.fields[points]:>13,} points  {task.fields[rate]:>9,.0f} points/s"),
-        TimeRemainingColumn(),
-    )
     try:
-        with Progress(*columns, console=console, transient=True) as bar:
-            tasks: dict[str, tuple] = {}
-
-            def progress(stage: str, done: int, total: int, points: int) -> None:
-                import time
-
-                if stage not in tasks:
-                    tasks[stage] = (bar.add_task(stage, total=total, points=0, rate=0.0), time.monotonic())
-                task, t0 = tasks[stage]
-                dt = time.monotonic() - t0
-                bar.update(
-                    task, completed=done, total=total, points=points, rate=points / dt if dt > 0 else 0.0
-                )
-
+        with _progress_bar() as progress:
             res = run_georef(
                 source,
                 out,
@@ -149,6 +152,49 @@ def georef(
             )
     finally:
         executor.close()
+    _print_outcome(res, out, resume)
+
+
+def _window(w: _WindowT | None) -> _WindowT | None:
+    """A window option, None when unset (typer gives (None, None) for an unset tuple option)."""
+    return None if w is None or w[0] is None else w
+
+
+@contextmanager
+def _progress_bar() -> Iterator[Callable[[str, int, int, int], None]]:
+    """A progress bar per stage of the job on stdout, with the points done and their rate; the
+    block gets the engine's progress callback ``(stage, done, total, points)``."""
+    import time
+
+    from rich.console import Console
+    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TaskID, TextColumn, TimeRemainingColumn
+
+    columns = (
+        TextColumn("[bold]{task.description}"),
+        BarColumn(),
+        MofNCompleteColumn(),
+        TextColumn("{task.fields[points]:>13,} points  {task.fields[rate]:>9,.0f} points/s"),
+        TimeRemainingColumn(),
+    )
+    with Progress(*columns, console=Console(), transient=True) as bar:
+        tasks: dict[str, tuple[TaskID, float]] = {}
+
+        def progress(stage: str, done: int, total: int, points: int) -> None:
+            if stage not in tasks:
+                tasks[stage] = (bar.add_task(stage, total=total, points=0, rate=0.0), time.monotonic())
+            task, t0 = tasks[stage]
+            dt = time.monotonic() - t0
+            bar.update(task, completed=done, total=total, points=points, rate=points / dt if dt > 0 else 0.0)
+
+        yield progress
+
+
+def _print_outcome(res: GeorefResult, out: Path, resume: bool) -> None:
+    """The warnings on stderr, then one line: points, files, executor, throughput."""
+    from rich.console import Console
+    from rich.markup import escape
+
+    console, err = Console(), Console(stderr=True, emoji=False)
     for w in res.warnings:
         err.print(f"[yellow]warning:[/yellow] {escape(w)}", highlight=False, soft_wrap=True)
     skipped = f"; resumed: {res.chunks - res.chunks_run} chunks already done" if resume else ""

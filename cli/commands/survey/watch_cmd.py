@@ -36,22 +36,25 @@ EXIT_SHIFT = 3
 
 
 def watch(
-    source: SurveySource = ...,
-    out: Annotated[Path, out_option("Directory of the report (created).")] = ...,
+    source: SurveySource,
+    out: Annotated[Path, out_option("Directory of the report (created).")],
     calibration: Calibration = None,
-    shift_deg: float = typer.Option(
-        0.1, "--shift-deg", min=0.001, help="The change the test is tuned to (deg)."
-    ),
-    false_alarms_per_hour: float = typer.Option(
-        0.01, "--false-alarms-per-hour", min=1e-6, help="The test's false-alarm rate bound."
-    ),
-    max_points_per_s: float = typer.Option(
-        20_000.0, "--max-points-per-s", min=100.0, help="Returns used per second of survey (evenly thinned)."
-    ),
-    min_line_s: float = typer.Option(
-        20.0, "--min-line-s", min=1.0, help="Shortest line (s) without pass marks."
-    ),
-    plot: bool = typer.Option(True, "--plot/--no-plot", help="Write watch.png."),
+    shift_deg: Annotated[
+        float, typer.Option("--shift-deg", min=0.001, help="The change the test is tuned to (deg).")
+    ] = 0.1,
+    false_alarms_per_hour: Annotated[
+        float, typer.Option("--false-alarms-per-hour", min=1e-6, help="The test's false-alarm rate bound.")
+    ] = 0.01,
+    max_points_per_s: Annotated[
+        float,
+        typer.Option(
+            "--max-points-per-s", min=100.0, help="Returns used per second of survey (evenly thinned)."
+        ),
+    ] = 20_000.0,
+    min_line_s: Annotated[
+        float, typer.Option("--min-line-s", min=1.0, help="Shortest line (s) without pass marks.")
+    ] = 20.0,
+    plot: Annotated[bool, typer.Option("--plot/--no-plot", help="Write watch.png.")] = True,
     force: Annotated[bool, force_option("Replace the report in a non-empty OUT.")] = False,
 ) -> None:
     """``mls watch`` (its help text is :data:`HELP`)."""

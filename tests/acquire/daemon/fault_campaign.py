@@ -310,7 +310,6 @@ def run_campaign(tmp: Path) -> dict:
     notify.start()
     env = {
         "NOTIFY_SOCKET": str(tmp / "notify.sock"),
-        "MLS_SIM_HOST_CLOCK": str(run / "host_clock"),
         "MLS_TEST_STALL_S": str(STALL_S),
         "MLS_TEST_STALL_LOG": str(tmp / "stalls.txt"),
         **disk.env(),
@@ -321,7 +320,10 @@ def run_campaign(tmp: Path) -> dict:
     try:
         start_ns = time.monotonic_ns()
         daemon = Proc(
-            [sys.executable, "-m", "tests.acquire.daemon_proc", "acquire", "--config", str(cfg)],
+            [
+                *(sys.executable, "-m", "tests.acquire.daemon_proc", "acquire", "--config", str(cfg)),
+                *("--sim-host-clock", str(run / "host_clock")),
+            ],
             tmp / "daemon.log",
             env,
         )

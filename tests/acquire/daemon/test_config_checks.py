@@ -92,3 +92,16 @@ def test_check_fails_naming_the_device_whose_port_another_process_holds(tmp_path
     assert r.exit_code == 1, r.output
     assert f"device 'pps': cannot bind udp 127.0.0.1:{port}" in r.output
     assert "1 port(s) cannot be bound" in r.output
+
+
+def test_check_refuses_a_session_root_others_can_write_and_makes_none(tmp_path):
+    port = _free_udp_port()
+    path = _write(tmp_path, _config(INS + _pps("127.0.0.1", port)))
+    r = CliRunner().invoke(app, ["acquire", "--config", str(path), "--check"], env={"COLUMNS": "200"})
+    assert r.exit_code == 0, r.output
+    assert not (tmp_path / "logs").exists()  # a check makes nothing; the daemon makes the root
+    (tmp_path / "logs").mkdir()
+    (tmp_path / "logs").chmod(0o777)
+    r = CliRunner().invoke(app, ["acquire", "--config", str(path), "--check"], env={"COLUMNS": "200"})
+    assert r.exit_code == 1, r.output
+    assert f"{path}: " in r.output and "session root" in r.output and str(tmp_path / "logs") in r.output

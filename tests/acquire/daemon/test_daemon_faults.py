@@ -297,7 +297,7 @@ def test_pps_loss_gives_holdover_with_a_growing_bound_then_locked_again(fault_ru
 
 
 @pytest.mark.parametrize(
-    "kind, alarm, device",
+    ("kind", "alarm", "device"),
     [
         ("ins_latency_jump", "latency_jump", "ins"),
         ("profiler_clock_offset", "time_step", "profiler"),

@@ -31,6 +31,7 @@ import json
 import os
 import random
 import signal
+import socket
 import struct
 import subprocess
 import textwrap
@@ -39,11 +40,13 @@ import time
 from bisect import bisect_right
 from dataclasses import dataclass
 from pathlib import Path
+from typing import cast
 
 import pytest
 
 from acquire.log.read import iter_messages
 from acquire.log.recover import SegmentScan, scan_segment, segment_paths, session_info, unfinished_segments
+from acquire.log.schema import Envelope
 from acquire.status.bus import read_snapshot
 from drivers.pps import decode_pps_datagram
 from tests.acquire.daemon_util import MLS, ROOT, NotifyCollector, Proc, free_port, wait_until
@@ -103,7 +106,7 @@ class RecordingDevices(FakeDevices):
         self.sent: list[tuple[tuple[int, int], tuple, bytes]] = []  # ((ns before, after), addr, datagram)
         self.ins_ends: list[tuple[int, int, int]] = []  # (ns before os.write, after it returned, end offset)
         self.zda_ns: list[int] = []  # when each ZDA sentence was written whole
-        self.sock = _SendLog(self.sock, self)
+        self.sock = cast(socket.socket, _SendLog(self.sock, self))  # (sendto and close, recorded)
 
     def run(self) -> None:
         try:
@@ -190,8 +193,20 @@ def _power_cut_tail(rng: random.Random) -> bytes:
     return struct.pack("<BQ", 0x06, 80_000) + bytes(rng.randrange(256) for _ in range(777))
 
 
+def _record(m: Envelope) -> dict:
+    """A decoded record's payload (``/events``, ``/pps``)."""
+    assert isinstance(m.payload, dict), m.topic
+    return m.payload
+
+
+def _raw(m: Envelope) -> bytes:
+    """A raw channel's payload (``/ins/raw``, ``/lidar/raw``)."""
+    assert isinstance(m.payload, bytes), m.topic
+    return m.payload
+
+
 def _events(session: Path) -> list[dict]:
-    return [m.payload for m in iter_messages(session, {"/events"})]
+    return [_record(m) for m in iter_messages(session, {"/events"})]
 
 
 @pytest.fixture(scope="module")
@@ -226,10 +241,19 @@ def kill_runs(tmp_path_factory):
                 d.signal(signal.SIGTERM)
                 assert d.wait(30) == 0, d.output()[-3000:]
                 break
-            # data flowing; the kill lands anywhere: a random instant of the streams (real time,
-            # paced) and of the writer's flush cycle; 0.8 s at least: 0.3 s of data past the
-            # flush period in every session, a pulse (1 Hz) labelled in most
-            time.sleep(rng.uniform(0.8, 3.2))
+            # data flowing; the kill lands anywhere: at a random point of the INS stream (and so
+            # of the writer's flush cycle), once the fake has sent the epoch that many seconds
+            # of device time past READY (it paces its epochs by the host clock: as many real
+            # seconds at least); 0.8 s at least: 0.3 s of data past the flush period in every
+            # session, a pulse (1 Hz) labelled in most
+            kill_gps_ns = fake.gps(run.ready_ns) + round(rng.uniform(0.8, 3.2) * NS)
+            wait_until(
+                lambda g=kill_gps_ns: bool(fake.epochs) and fake.epochs[-1] >= g,
+                30,
+                f"the fake to send the INS epoch of the kill ({trial})",
+                d,
+                poll_s=0.005,
+            )
             run.kill_ns = time.monotonic_ns()
             d.signal(signal.SIGKILL)
             assert d.wait(10) == -signal.SIGKILL
@@ -272,18 +296,20 @@ def kill_runs(tmp_path_factory):
         assert r.session is None or by_pid[r.pid] == r.session
         r.session = by_pid[r.pid]
     logs = [p.output() for p in procs]
-    yield {"runs": runs, "fake": fake, "sessions": sessions, "logs": logs, "wall_s": wall_s}
+    return {"runs": runs, "fake": fake, "sessions": sessions, "logs": logs, "wall_s": wall_s}
 
 
 def _window(run: Run, device: str) -> tuple[int, int]:
     """[up and connected, kill − flush period) of one daemon run for one device."""
+    assert run.session is not None  # (every run's, found after the runs)
+    assert run.kill_ns is not None  # (a killed run)
     ev = [e for e in _events(run.session) if e.get("device") == device]
     kinds = [e["event"] for e in ev]
     assert "disconnected" not in kinds, (run.trial, device, ev)
     connected = [
         m.host_ns
         for m in iter_messages(run.session, {"/events"})
-        if m.payload.get("device") == device and m.payload["event"] == "connected"
+        if _record(m).get("device") == device and _record(m)["event"] == "connected"
     ]
     start = max([run.ready_ns, *connected[:1]])
     return start, run.kill_ns - int(FLUSH_S * NS)
@@ -301,7 +327,7 @@ def test_every_session_is_complete_after_salvage_with_contiguous_counters(kill_r
             assert t in info.channels, (r.trial, t)
         for c in info.channels.values():
             assert (c.seq_first, c.missing, c.duplicates, c.backwards) == (1, 0, 0, 0), (r.trial, c)
-            assert c.seq_last - c.seq_first + 1 == c.messages
+            assert c.seq_last == c.messages  # (from 1, none missing)
     print(
         f"\n{TRIALS} kill -9 trials of `mls acquire` in {kill_runs['wall_s']:.1f} s; kill after "
         + ", ".join(f"{(r.kill_ns - r.ready_ns) / NS:.2f}" for r in runs if r.kill_ns)
@@ -314,7 +340,7 @@ def test_every_ins_byte_emitted_before_the_flush_period_is_logged_exactly_once(k
     sent = bytes(fake.ins_bytes)
     prev_end = 0
     for r in runs:
-        logged = b"".join(m.payload for m in iter_messages(r.session, {"/ins/raw"}))
+        logged = b"".join(_raw(m) for m in iter_messages(r.session, {"/ins/raw"}))
         a = sent.find(logged, prev_end) if logged else -1
         assert a >= prev_end, (
             r.trial,
@@ -323,7 +349,8 @@ def test_every_ins_byte_emitted_before_the_flush_period_is_logged_exactly_once(k
         b = a + len(logged)
         if r.kill_ns is not None:
             first_due, last_due = fake.ins_due(*_window(r, "ins"))
-            assert a <= first_due and b >= last_due, (r.trial, a, first_due, last_due, b)
+            assert a <= first_due, (r.trial, a, first_due, last_due, b)
+            assert b >= last_due, (r.trial, a, first_due, last_due, b)
             print(
                 f"trial {r.trial}: INS bytes {a}–{b} logged, {first_due}–{last_due} due; "
                 f"{fake.ins_offset_at(r.kill_ns) - b} B sent before the kill not logged"
@@ -338,13 +365,16 @@ def test_every_profiler_datagram_emitted_before_the_flush_period_is_logged_exact
     assert len(index) == len(sent)  # every datagram is unique (counter, time tag, points)
     prev = -1
     for r in runs:
-        got = [index.get(m.payload) for m in iter_messages(r.session, {"/lidar/raw"})]
-        assert None not in got, (r.trial, "a logged datagram that was never sent")
-        assert got == sorted(set(got)) and (not got or got[0] > prev), (r.trial, "twice or out of order")
+        known = [index.get(_raw(m)) for m in iter_messages(r.session, {"/lidar/raw"})]
+        assert None not in known, (r.trial, "a logged datagram that was never sent")
+        got = [i for i in known if i is not None]
+        assert got == sorted(set(got)), (r.trial, "twice or out of order")
+        assert not got or got[0] > prev, (r.trial, "twice or out of order")
         if r.kill_ns is not None:
             lo, hi = _window(r, "profiler")
             due = {i for i, ((t0, t1), _) in enumerate(sent) if lo <= t0 and t1 < hi}
-            assert len(due) > 10 and due <= set(got), (r.trial, sorted(due - set(got))[:5])
+            assert len(due) > 10, (r.trial, len(due))
+            assert due <= set(got), (r.trial, sorted(due - set(got))[:5])
         prev = got[-1] if got else prev
 
 
@@ -357,9 +387,10 @@ def test_every_pps_edge_labelled_before_the_flush_period_is_logged_exactly_once(
     seen: set[int] = set()
     due_total = 0
     for r in runs:
-        logged = [m.payload for m in iter_messages(r.session, {"/pps"})]
+        logged = [_record(m) for m in iter_messages(r.session, {"/pps"})]
         seqs = [p["sequence"] for p in logged]
-        assert len(seqs) == len(set(seqs)) and not set(seqs) & seen, (r.trial, "an edge logged twice")
+        assert len(seqs) == len(set(seqs)), (r.trial, "an edge logged twice")
+        assert not set(seqs) & seen, (r.trial, "an edge logged twice")
         seen |= set(seqs)
         for p in logged:
             assert p["gps_s"] in (None, second[p["sequence"]]), p
@@ -378,7 +409,7 @@ def test_every_pps_edge_labelled_before_the_flush_period_is_logged_exactly_once(
 def test_torn_tails_are_detected_and_reported_not_dropped(kill_runs):
     runs = kill_runs["runs"]
     total_torn, appended = 0, 0
-    for r, nxt in zip(runs, runs[1:]):
+    for r, nxt in zip(runs, runs[1:], strict=False):
         start = next(e for e in _events(nxt.session) if e["event"] == "session_start")
         salvaged = start["salvaged"]
         info = session_info(r.session)
@@ -387,23 +418,28 @@ def test_torn_tails_are_detected_and_reported_not_dropped(kill_runs):
             assert r.session.name not in salvaged
             rc, out = r.cli["before"]
             before = json.loads(out)
-            assert rc == 1 and [s["state"] for s in before["segments"]][-1] == "unfinished"
+            assert rc == 1
+            assert [s["state"] for s in before["segments"]][-1] == "unfinished"
             rc, out = r.cli["recover"]
-            assert rc == 0 and all(name in out for name in recovered), out
+            assert rc == 0, out
+            assert all(name in out for name in recovered), out
             reports = [
                 {"segment": s["name"], "torn_bytes": s["torn_bytes"], "problem": s["problem"]}
                 for s in before["segments"]
                 if s["state"] == "unfinished"
             ]
             rc, out = r.cli["after"]
-            assert rc == 0 and all(s["state"] == "complete" for s in json.loads(out)["segments"])
-            assert r.cli["again"][0] == 0 and "nothing to recover" in r.cli["again"][1]
+            assert rc == 0
+            assert all(s["state"] == "complete" for s in json.loads(out)["segments"])
+            assert r.cli["again"][0] == 0
+            assert "nothing to recover" in r.cli["again"][1]
         else:
             reports = salvaged[r.session.name]
         assert {x["segment"] for x in reports} == set(recovered), (r.trial, reports, list(recovered))
         assert len(recovered) == 1, (r.trial, list(recovered))  # the segment being written
         for rep in reports:
             seg = recovered[rep["segment"]]
+            assert seg.recovery is not None  # (a recovered segment)
             original = r.session / (rep["segment"] + ".torn")
             scan = SegmentScan(original, 0)
             held = sum(1 for rec in scan_segment(original, scan) if type(rec).__name__ == "Message")
@@ -414,7 +450,8 @@ def test_torn_tails_are_detected_and_reported_not_dropped(kill_runs):
                 assert rep["messages"] == held
             if r.torn_appended:
                 assert original.read_bytes().endswith(r.torn_appended)
-                assert rep["torn_bytes"] >= len(r.torn_appended) and "torn" in rep["problem"], rep
+                assert rep["torn_bytes"] >= len(r.torn_appended), rep
+                assert "torn" in rep["problem"], rep
                 appended += 1
             total_torn += rep["torn_bytes"]
         assert segment_paths(r.session)[-1].name in recovered or not r.kill_ns

@@ -3,7 +3,7 @@ event loop.
 
 One 16-s real-time run (scenario montreal from pass 1, INS NMEA 100 Hz on a pty, profiler ZFP1
 and PPS over UDP, ×1) of ``mls sim devices`` feeding ``mls acquire`` (its own process, started
-with ``$MLS_SIM_HOST_CLOCK`` naming the run's fake host clock). The faults, in scenario seconds:
+with ``--sim-host-clock`` naming the run's fake host clock). The faults, in scenario seconds:
 every ZDA of 6–8 s 800 ms late (``zda_late``), the host's realtime clock stepped back an hour at
 10 s (``host_clock_step``), the INS believing GPS − UTC is 19 s from 12 s (``leap_second``).
 
@@ -85,11 +85,15 @@ def _time_run(tmp: Path) -> dict:
     cfg.write_text(_vessel_yaml(tmp, run, prof, pps))
     notify = NotifyCollector(tmp / "notify.sock")
     notify.start()
-    env = {"NOTIFY_SOCKET": str(tmp / "notify.sock"), "MLS_SIM_HOST_CLOCK": str(run / "host_clock")}
+    env = {"NOTIFY_SOCKET": str(tmp / "notify.sock")}
     sock = SocketCollector(tmp / "status.sock")
     procs: list[Proc] = []
     try:
-        daemon = Proc([*MLS, "acquire", "--config", str(cfg)], tmp / "daemon.log", env)
+        daemon = Proc(
+            [*MLS, "acquire", "--config", str(cfg), "--sim-host-clock", str(run / "host_clock")],
+            tmp / "daemon.log",
+            env,
+        )
         procs.append(daemon)
         wait_until(lambda: notify.with_line("READY=1"), 30, "READY=1 from the daemon", daemon)
         sock.start()

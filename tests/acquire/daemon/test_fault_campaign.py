@@ -2,7 +2,7 @@
 times, 60 s of real time.
 
 ``mls acquire`` (its own process, started through :mod:`tests.acquire.daemon_proc` for the loop
-stall, with ``$MLS_SIM_HOST_CLOCK``) reads ``mls sim devices`` (scenario montreal from pass 1, INS
+stall, with ``--sim-host-clock``) reads ``mls sim devices`` (scenario montreal from pass 1, INS
 NMEA 100 Hz on a pty, profiler ZFP1 and PPS over UDP, truth clock drifting 35 ppm, ×1). The fault
 timeline is drawn from a seeded RNG (:func:`draw_plan`): each fault gets its own stretch of the
 run, in a random order, at random times, with random parameters —

@@ -86,8 +86,8 @@ def test_the_session_roots_a_daemon_may_use(tmp_path):
         root.mkdir()
         os.chmod(root, mode)
         check_session_root(root)
+    os.chmod(root, 0o1777)
     with pytest.raises(UnsafeRunFile, match="sticky bit, not enough here"):
-        os.chmod(root, 0o1777)
         check_session_root(root)
 
 

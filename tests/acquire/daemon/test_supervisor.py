@@ -146,7 +146,7 @@ def fake_run(tmp_path_factory):
         fake.close()
         notify.stop()
     session = out["sup"].writer.session_dir
-    yield {
+    return {
         **out,
         "tmp": tmp,
         "cfg": cfg,

@@ -15,7 +15,7 @@ from pathlib import Path
 
 from acquire.daemon.config import load_vessel_config
 from acquire.doctor.access import DaemonUser
-from drivers.pps import PPS_FETCH
+from drivers.ppsfetch import PPS_FETCH
 
 NS_PER_S = 1_000_000_000
 #: a user the mode bits judge (root may open anything): no file here belongs to it

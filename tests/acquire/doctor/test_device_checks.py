@@ -84,7 +84,7 @@ def kernel_pps(tmp_path, path=None):
 
 
 @pytest.mark.parametrize(
-    "intervals_s, status, text",
+    ("intervals_s", "status", "text"),
     [
         ([1.0], Status.OK, "pulsing (1.000 s apart)"),
         ([0.3], Status.WARN, "0.300 s apart"),

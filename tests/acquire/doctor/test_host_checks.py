@@ -38,7 +38,7 @@ UDP_PPS = "{type: udp, host: 127.0.0.1, port: 9}"
 
 
 @pytest.mark.parametrize(
-    "value, status",
+    ("value", "status"),
     [(33554432, Status.OK), (67108864, Status.OK), (4194304, Status.WARN), (212992, Status.FAIL)],
 )
 def test_udp_buffer_against_32_mib(tmp_path, value, status):
@@ -88,7 +88,7 @@ def test_parse_tracking():
 
 
 @pytest.mark.parametrize(
-    "offset, side, leap, status",
+    ("offset", "side", "leap", "status"),
     [
         ("0.000012000", "fast", "Normal", Status.OK),
         ("0.020000000", "slow", "Normal", Status.WARN),
@@ -106,7 +106,7 @@ def test_chronyd_not_running_is_a_warning():
     assert r.status == Status.WARN and "Cannot talk" in r.message and "chrony" in r.advice
 
 
-@pytest.mark.parametrize("synced, status", [("yes", Status.OK), ("no", Status.WARN)])
+@pytest.mark.parametrize(("synced", "status"), [("yes", Status.OK), ("no", Status.WARN)])
 def test_timedatectl_without_chrony(synced, status):
     run = runner({"timedatectl": (0, f"NTP=yes\nNTPSynchronized={synced}\n")})
     r = clock_check(run)
@@ -171,7 +171,7 @@ def test_log_rate_at_the_defaults_is_the_daemons_estimate(tmp_path):
 
 
 @pytest.mark.parametrize(
-    "free_gib, hours, status",
+    ("free_gib", "hours", "status"),
     [(400, 8, Status.OK), (190, 8, Status.WARN), (100, 8, Status.FAIL), (100, 0, Status.OK)],
 )
 def test_disk_free_against_the_hours_planned(tmp_path, free_gib, hours, status):

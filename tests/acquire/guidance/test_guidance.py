@@ -254,7 +254,7 @@ def test_prechecks_all_green_with_reasons():
 
 
 @pytest.mark.parametrize(
-    "nav_flags, over, name, detail",
+    ("nav_flags", "over", "name", "detail"),
     [
         ({"fine_alignment": False, "alignment": True}, {}, "ins_navigating", "aligning"),
         ({"navigation": False}, {}, "ins_navigating", "not navigating"),
@@ -380,7 +380,7 @@ def _during(t0, t1, inside: float, outside: float) -> np.ndarray:
 
 
 @pytest.mark.parametrize(
-    "over, reason",
+    ("over", "reason"),
     [
         ({"xte_m": np.full(250, 2.5)}, "cross-track error up to 2.50 m (tolerance 2 m)"),
         (

@@ -117,7 +117,7 @@ def test_mls_plan_options_change_the_capture_window(site_file, tmp_path):
 
 
 @pytest.mark.parametrize(
-    "args, message",
+    ("args", "message"),
     [
         (["--nmea"], "--nmea needs --position"),
         (["--position", "45.5,-73.5"], "--position and --follow go with --nmea"),

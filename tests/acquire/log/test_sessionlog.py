@@ -388,7 +388,7 @@ _OP = {"chunk": 0x06, "message_index": 0x07, "metadata": 0x0C, "data_end": 0x0F,
 
 
 @pytest.mark.parametrize(
-    "where, lost_in_segment",
+    ("where", "lost_in_segment"),
     [
         ("chunk", True),  # the last chunk itself fails: its 80 records are lost (and only those)
         ("message_index", False),  # the chunk is in the file, its index write fails

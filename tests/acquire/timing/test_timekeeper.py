@@ -105,7 +105,7 @@ def test_log_batcher_keeps_the_order_stamps_the_clock_and_hands_over_in_batches(
 
 
 @pytest.mark.parametrize(
-    "arb, data, ext",
+    ("arb", "data", "ext"),
     [
         (0x6E0, b"\xe1\x01\x03\x00\x01\x00\x00\x00", False),
         (0x1ABCDE, b"", True),
@@ -165,6 +165,16 @@ def test_a_late_time_message_raises_time_ambiguous_and_its_pulse_is_logged_ambig
     assert [e.action for e in alarms.drain() if e.alarm.name == "time_ambiguous"] == ["raise", "clear"]
 
 
+@pytest.fixture
+def builtin_leap_table():
+    """The built-in leap-second table in use for the test, whatever another test left."""
+    from calib.core import gpstime
+
+    with gpstime.leap_table_scope():
+        yield
+
+
+@pytest.mark.usefixtures("builtin_leap_table")
 def test_leap_table_stale_past_the_expiry_and_a_mismatching_announced_gps_minus_utc():
     from calib.core.frames import utc_fields_to_gps_ns
 
@@ -189,19 +199,20 @@ def test_a_step_of_the_host_clock_raises_host_clock_step_and_refreshes_the_seed(
     alarms = AlarmBook()
     now = time.monotonic_ns()
     path = tmp_path / "host_clock"
-    with fake_host_clock(path, []):
-        clock = ClockModel(coarse_offset_ns=coarse_gps_offset_ns())
-        tk = TimeKeeper(clock, alarms=alarms)
-        seed = clock.coarse_offset_ns
-        tk.tick(now)
-        assert not alarms.is_active("host_clock_step", "clock")
-        step_host_clock(path, time.monotonic_ns(), 5 * NS)  # the step, made now
-        tk.tick(now + 250_000_000)
-        a = alarms.get("host_clock_step", "clock")
-        assert a.active and "the host's realtime clock stepped by +5.000 s" in a.message
-        assert abs(clock.coarse_offset_ns - seed - 5 * NS) < 1_000_000
-        tk.tick(now + 11 * NS)
-        assert not alarms.is_active("host_clock_step", "clock")
+    fake = fake_host_clock(path, [])
+    clock = ClockModel(coarse_offset_ns=coarse_gps_offset_ns(fake))
+    tk = TimeKeeper(clock, alarms=alarms, host_clock=fake)
+    seed = clock.coarse_offset_ns
+    tk.tick(now)
+    assert not alarms.is_active("host_clock_step", "clock")
+    step_host_clock(path, time.monotonic_ns(), 5 * NS)  # the step, made now
+    tk.tick(now + 250_000_000)
+    a = alarms.get("host_clock_step", "clock")
+    assert a.active and "the host's realtime clock stepped by +5.000 s" in a.message
+    assert abs(clock.coarse_offset_ns - seed - 5 * NS) < 1_000_000
+    tk.tick(now + 11 * NS)
+    assert not alarms.is_active("host_clock_step", "clock")
+    assert tk.status()["host_clock_steps"] == fake.steps_seen.count == 1
 
 
 def test_a_few_milliseconds_step_is_counted_and_followed_without_an_alarm(tmp_path):
@@ -210,30 +221,31 @@ def test_a_few_milliseconds_step_is_counted_and_followed_without_an_alarm(tmp_pa
     alarms = AlarmBook()
     now = time.monotonic_ns()
     path = tmp_path / "host_clock"
-    with fake_host_clock(path, []):
-        clock = ClockModel(coarse_offset_ns=coarse_gps_offset_ns())
-        tk = TimeKeeper(clock, alarms=alarms)
-        seed, before = clock.coarse_offset_ns, tk.status()
-        tk.tick(now)
-        step_host_clock(path, time.monotonic_ns(), 3_000_000)  # each step made when the test says
-        tk.tick(now + 250_000_000)
-        assert not alarms.is_active("host_clock_step", "clock")
-        assert abs(clock.coarse_offset_ns - seed - 3_000_000) < 1_000_000
-        assert tk.status()["host_clock_steps"] == before["host_clock_steps"] + 1
-        assert tk.status()["host_clock_steps_alarmed"] == before["host_clock_steps_alarmed"]
-        step_host_clock(path, time.monotonic_ns(), 12_000_000)
-        tk.tick(now + 500_000_000)
-        a = alarms.get("host_clock_step", "clock")
-        after = tk.status()
-        assert after["host_clock_steps_alarmed"] == before["host_clock_steps_alarmed"] + 1
-        small = after["host_clock_steps"] - after["host_clock_steps_alarmed"]
-        assert a.active and "stepped by +0.012 s" in a.message and f"{small} smaller" in a.message
+    fake = fake_host_clock(path, [])
+    clock = ClockModel(coarse_offset_ns=coarse_gps_offset_ns(fake))
+    tk = TimeKeeper(clock, alarms=alarms, host_clock=fake)
+    seed, before = clock.coarse_offset_ns, tk.status()
+    tk.tick(now)
+    step_host_clock(path, time.monotonic_ns(), 3_000_000)  # each step made when the test says
+    tk.tick(now + 250_000_000)
+    assert not alarms.is_active("host_clock_step", "clock")
+    assert abs(clock.coarse_offset_ns - seed - 3_000_000) < 1_000_000
+    assert tk.status()["host_clock_steps"] == before["host_clock_steps"] + 1
+    assert tk.status()["host_clock_steps_alarmed"] == before["host_clock_steps_alarmed"]
+    step_host_clock(path, time.monotonic_ns(), 12_000_000)
+    tk.tick(now + 500_000_000)
+    a = alarms.get("host_clock_step", "clock")
+    after = tk.status()
+    assert after["host_clock_steps_alarmed"] == before["host_clock_steps_alarmed"] + 1
+    small = after["host_clock_steps"] - after["host_clock_steps_alarmed"]
+    assert a.active and "stepped by +0.012 s" in a.message and f"{small} smaller" in a.message
 
 
 def test_the_daemon_takes_a_newer_iers_list_from_tzdata_and_names_what_it_did(tmp_path):
     import datetime as dt
 
     from calib.core import gpstime
+    from drivers.hydrins.timeofday import resolve_gps_ns
 
     def ntp(d: dt.date) -> int:
         return (d - dt.date(1900, 1, 1)).days * 86_400
@@ -243,14 +255,19 @@ def test_the_daemon_takes_a_newer_iers_list_from_tzdata_and_names_what_it_did(tm
     newer.write_text(
         f"#$\t{ntp(dt.date(2027, 1, 7))}\n#@\t{ntp(dt.date(2027, 12, 28))}\n{rows}{ntp(dt.date(2027, 7, 1))}\t38\n"
     )
-    try:
+    july_2027_unix_ns = 1_814_400_000 * NS
+    noon_ns = 43_200 * NS
+    in_use = gpstime.leap_table()
+    with gpstime.leap_table_scope():  # from the built-in table; the table installed ends with the test
+        # an INS time of day on 2027-07-01, dated by the built-in table (18 s; the decoder's cache filled)
+        builtin_gps_ns = resolve_gps_ns(noon_ns, july_2027_unix_ns + noon_ns)
         tk = TimeKeeper(ClockModel(), leap_list=newer)
         assert tk.leap_note == f"{newer} in use"
         assert tk.status()["leap_table"]["expires"] == "2027-12-28"
-        july_2027_unix_ns = 1_814_400_000 * NS
         assert gpstime.leap_table().gps_minus_utc_at_unix_ns(july_2027_unix_ns) == 19
+        # the decoders follow the table installed (their cache is keyed on it)
+        assert resolve_gps_ns(noon_ns, july_2027_unix_ns + noon_ns) == builtin_gps_ns + NS
         assert TimeKeeper(ClockModel(), leap_list=newer).leap_note.endswith("not newer than the table in use")
         newer.write_text("#@ 1\n")
         assert "not used: " in TimeKeeper(ClockModel(), leap_list=newer).leap_note
-    finally:
-        gpstime.reset_leap_table()
+    assert gpstime.leap_table() is in_use

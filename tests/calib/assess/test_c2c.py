@@ -65,7 +65,7 @@ def test_offset_20mm_noisy_planes_median_within_1mm():
 
 
 @pytest.mark.parametrize(
-    "incl_deg,az_deg,offset_m", [(90, 270, 0.05), (30, 45, -0.03), (60, 200, 0.2), (0, 0, 0.011)]
+    ("incl_deg", "az_deg", "offset_m"), [(90, 270, 0.05), (30, 45, -0.03), (60, 200, 0.2), (0, 0, 0.011)]
 )
 def test_tilted_planes_exact_unsigned_and_signed(incl_deg, az_deg, offset_m):
     rng = np.random.default_rng(3)
@@ -311,7 +311,7 @@ def test_distance_stats_known_values():
 
 
 @pytest.mark.parametrize(
-    "args,kwargs,message",
+    ("args", "kwargs", "message"),
     [
         ((np.zeros((0, 3)), np.zeros((5, 3))), {}, "compared cloud is empty"),
         ((np.zeros((5, 3)), np.zeros((0, 3))), {}, "reference cloud is empty"),

@@ -88,7 +88,7 @@ def test_a_complete_result_validates_and_lists_are_accepted_for_angles():
 
 
 @pytest.mark.parametrize(
-    "edit,message",
+    ("edit", "message"),
     [
         (lambda r: r.pop("boresight_deg"), "required field 'boresight_deg' is missing"),
         (lambda r: r.pop("sigma_scaled_deg"), "required field 'sigma_scaled_deg' is missing"),

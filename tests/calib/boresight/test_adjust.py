@@ -138,7 +138,7 @@ def _spread_site():
 
 
 @pytest.mark.parametrize(
-    "name,mount_kw,value,spread",
+    ("name", "mount_kw", "value", "spread"),
     [
         ("range_offset", {"range_offset_m": 0.04}, 0.04, False),
         ("lever_arm_y", {"lever_arm_m": [0.0, 0.05, 0.0]}, 0.05, False),

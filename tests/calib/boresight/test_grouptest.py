@@ -130,7 +130,7 @@ def test_a_group_only_the_tie_patches_expose_is_taken_out_of_the_targets_too(sim
         labels=sim.target_index,
     )
     assert [(g["plane"], g["pass_id"]) for g in run.result.removed_groups if g["removed"]] == [("T1", 3)]
-    assert [(g["plane"], g["pass_id"]) for g in run.gls["targets_only"].removed_groups] == [("T1", 3)]
-    assert run.gls["patch_check"]["agree"] and run.observations.patch_planes
+    assert [(g["plane"], g["pass_id"]) for g in run.diagnostics.targets_only.removed_groups] == [("T1", 3)]
+    assert run.diagnostics.patch_check["agree"] and run.observations.patch_planes
     err = np.degrees(run.result.boresight_rad) - _truth_deg(sim)
     assert np.all(np.abs(err) <= 3.0 * np.degrees(run.result.sigma_realistic_rad)), err

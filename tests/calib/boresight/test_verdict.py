@@ -32,7 +32,7 @@ def test_a_clean_run_is_trusted():
 
 
 @pytest.mark.parametrize(
-    "change, status, words",
+    ("change", "status", "words"),
     [
         ({"converged": False}, "refused", "did not converge"),
         ({"sigma0_squared": REFUSE_SIGMA0_SQUARED + 0.1}, "refused", "do not fit the error model"),

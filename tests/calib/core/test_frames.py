@@ -172,7 +172,8 @@ def test_lgf_matches_ecef_difference():
 
 
 @pytest.mark.parametrize(
-    "lat, lon, epsg", [(45.5, -73.55, 32618), (-33.9, 151.2, 32756), (0.0, 0.0, 32631), (60.0, 179.99, 32660)]
+    ("lat", "lon", "epsg"),
+    [(45.5, -73.55, 32618), (-33.9, 151.2, 32756), (0.0, 0.0, 32631), (60.0, 179.99, 32660)],
 )
 def test_utm_epsg(lat, lon, epsg):
     assert frames.utm_epsg(lat, lon) == epsg

@@ -53,9 +53,8 @@ IERS_2026 = """\
 
 @pytest.fixture(autouse=True)
 def builtin_table():
-    gpstime.reset_leap_table()
-    yield
-    gpstime.reset_leap_table()
+    with gpstime.leap_table_scope():
+        yield
 
 
 def test_the_builtin_table_is_iers_leap_seconds_list_with_its_expiry():
@@ -75,7 +74,7 @@ def test_the_builtin_table_is_iers_leap_seconds_list_with_its_expiry():
 
 
 @pytest.mark.parametrize(
-    "edit, message",
+    ("edit", "message"),
     [
         (("3692217600\t37", "3692217600\t38"), r"the '#h' SHA-1 does not match"),
         (("#@\t4007404800\n", ""), r"no '#@' \(expiry\) line"),

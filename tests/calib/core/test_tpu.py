@@ -252,7 +252,7 @@ def test_monte_carlo_spread_matches_predicted_sigmas_per_bin():
 
 
 @pytest.mark.parametrize(
-    "kwargs, field",
+    ("kwargs", "field"),
     [
         ({"boresight_cov_rad2": np.zeros((2, 3))}, "boresight_cov_rad2"),
         ({"lever_arm_cov_m2": np.zeros(3)}, "lever_arm_cov_m2"),
@@ -274,7 +274,7 @@ def test_bad_mount_covariance_names_the_field(kwargs, field):
 
 
 @pytest.mark.parametrize(
-    "attr, value", [("sigma_range_m", -0.001), ("sigma_range_per_m", np.inf), ("sigma_angle_rad", "x")]
+    ("attr", "value"), [("sigma_range_m", -0.001), ("sigma_range_per_m", np.inf), ("sigma_angle_rad", "x")]
 )
 def test_bad_scanner_sigmas_name_the_field(attr, value):
     with pytest.raises(TpuError, match=f"ScannerSigmas.{attr}"):

@@ -104,7 +104,7 @@ def test_gaps_longer_than_max_gap_are_refused_but_their_end_samples_are_not():
 
 
 @pytest.mark.parametrize(
-    "t, p, rpy, match",
+    ("t", "p", "rpy", "match"),
     [
         ([0.0], [[0, 0, 0]], [[0, 0, 0]], "needs at least 2 epochs"),
         ([0.0, 0.0], [[0, 0, 0]] * 2, [[0, 0, 0]] * 2, r"increase strictly; epoch 1 \(t=0\.000000\)"),

@@ -344,7 +344,7 @@ def test_a_million_points_run():
 
 
 @pytest.mark.parametrize(
-    "change, words",
+    ("change", "words"),
     [
         ({"size_m": 0.0}, "size_m"),
         ({"min_points_per_pass": 2}, "min_points_per_pass"),

@@ -268,7 +268,7 @@ TRAJ_TEXT = TRAJ_HEADER + "".join(
 
 
 @pytest.mark.parametrize(
-    "name, line_no, new, message",
+    ("name", "line_no", "new", "message"),
     [("points.csv", *c) for c in POINTS_CASES] + [("trajectory.csv", *c) for c in TRAJ_CASES],
 )
 def test_csv_errors(tmp_path, name, line_no, new, message):
@@ -298,7 +298,7 @@ def test_trajectory_needs_two_epochs_and_text_files_must_be_text(tmp_path):
 
 
 @pytest.mark.parametrize(
-    "edit, message",
+    ("edit", "message"),
     [
         (("targets: []", "targets: []\ntargtes: []"), r"site\.yaml:4:10: targtes: unknown key"),
         (("targets: []\n", ""), r"site\.yaml:1:1: <top level>: missing required key 'targets'"),

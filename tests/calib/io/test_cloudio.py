@@ -63,7 +63,7 @@ def test_las_input_keeps_its_fields_and_overwrites_an_existing_dimension(tmp_pat
 
 
 @pytest.mark.parametrize(
-    "text,delimiter,columns",
+    ("text", "delimiter", "columns"),
     [
         ("1 2 3\n4 5 6\n", None, {}),
         ("1\t2\t3\t7\n4\t5\t6\t8\n", "\t", {"column_4": [7, 8]}),
@@ -104,7 +104,7 @@ def test_ascii_output_appends_columns_under_a_cloudcompare_header(tmp_path):
 
 
 @pytest.mark.parametrize(
-    "text,message",
+    ("text", "message"),
     [
         ("1 2 3\n4 5 x\n", "c.txt:2: column 3 is 'x', expected a number"),
         ("1 2 3\n4 5 6 7\n", "c.txt:2: 4 columns, expected 3 like line 1"),

@@ -35,7 +35,7 @@ def test_a_billion_laughs_site_yaml_fails_within_a_second_while_a_few_aliases_wo
 
 
 @pytest.mark.parametrize(
-    "text, message",
+    ("text", "message"),
     [
         (billion_laughs(levels=3, fan=40), r"cfg\.yaml:4:88: more than 100 aliases \(\*name\)"),
         ("[" * 100 + "]" * 100, r"cfg\.yaml:1:65: nested more than 64 levels deep"),

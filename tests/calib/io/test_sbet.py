@@ -52,7 +52,7 @@ def test_smrmsg_write_read_round_trip_is_exact_and_keeps_file_order(tmp_path):
 
 
 @pytest.mark.parametrize(
-    "reader, size, record", [(sbet.read_sbet, 136 * 3 + 7, 136), (sbet.read_smrmsg, 80 * 2 + 1, 80)]
+    ("reader", "size", "record"), [(sbet.read_sbet, 136 * 3 + 7, 136), (sbet.read_smrmsg, 80 * 2 + 1, 80)]
 )
 def test_size_not_a_multiple_of_the_record_is_an_error_naming_file_and_size(tmp_path, reader, size, record):
     path = tmp_path / "cut.out"
@@ -147,7 +147,7 @@ def test_crossing_the_end_of_the_week_keeps_time_continuous(tmp_path, wave_traje
 
 
 @pytest.mark.parametrize(
-    "first_sow, near, week",
+    ("first_sow", "near", "week"),
     [
         (345_600.0, WEEK * W_S + 345_700.0, WEEK),  # same week
         (604_000.0, (WEEK + 1) * W_S + 100.0, WEEK),  # file starts in the week before the points

@@ -88,7 +88,7 @@ def test_dump_load_round_trip(tmp_path):
 
 
 @pytest.mark.parametrize(
-    "edit, message",
+    ("edit", "message"),
     [
         (
             ("standoff_m: 15.0", "standof_m: 15.0"),

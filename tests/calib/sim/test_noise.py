@@ -44,7 +44,7 @@ def test_gauss_markov_is_exact_across_gaps_and_starts_stationary():
     assert corr_gap == pytest.approx(np.exp(-7.0 / 5.0), abs=0.015)
 
 
-@pytest.mark.parametrize("n, k", [(400, 2), (6, 50)])  # long runs filtered, short runs stepped
+@pytest.mark.parametrize(("n", "k"), [(400, 2), (6, 50)])  # long runs filtered, short runs stepped
 def test_gauss_markov_follows_the_exact_recursion(n, k):
     t = np.concatenate([np.arange(n // 2) * 0.1, 30.0 + np.arange(n - n // 2) * 0.1])
     sigma, tau = np.linspace(0.5, 2.0, k), np.linspace(1.0, 9.0, k)

@@ -260,7 +260,7 @@ def test_the_harbour_scenario_file_and_its_overrides():
 
 
 @pytest.mark.parametrize(
-    "override, where",
+    ("override", "where"),
     [
         ("production.mount_event.creep_s=-1", r"--set:1:\d+: production\.mount_event\.creep_s: got -1, expected a number ≥ 0"),
         ("production.mount_event.step_deg=[9,0,0]", r"production\.mount_event\.step_deg: got \[9, 0, 0\], expected 3 angles within ±5°"),

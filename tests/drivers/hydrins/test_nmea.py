@@ -95,7 +95,7 @@ def test_time_is_not_resolved_when_the_ins_is_not_on_utc():
 
 
 @pytest.mark.parametrize(
-    "zda_time, time_tag, expected_day",
+    ("zda_time", "time_tag", "expected_day"),
     [
         ("235959.50", "235959.900000", 31),
         ("000000.20", "235959.900000", 31),

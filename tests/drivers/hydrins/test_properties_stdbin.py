@@ -191,7 +191,7 @@ def test_truncated_frame_then_a_valid_frame_in_the_next_read_comes_out_of_that_r
         assert out[0].host_ns == 2, cut  # stamped with the read that brought its first byte
 
 
-@pytest.mark.parametrize("version, cut", [(3, 5), (4, 7), (5, 7), (3, 11), (5, 19)])
+@pytest.mark.parametrize(("version", "cut"), [(3, 5), (4, 7), (5, 7), (3, 11), (5, 19)])
 def test_the_audited_case_a_cut_header_does_not_hold_back_a_stream_of_frames(version, cut):
     """A frame cut inside its masks: the bogus header reads a plausible telegram size from the next
     frame's bytes. At 2 Hz the next frames used to come out only 2–4 frames (1–2 s) late."""

@@ -102,7 +102,7 @@ def test_a_stdbin_system_date_1024_weeks_back_is_moved_to_the_host_era():
     assert offline.gps_ns == g - 7168 * 86_400 * NS - 4 * NS  # dated 2007 (GPS − UTC 14 s then)
 
 
-@pytest.mark.parametrize("yymmdd, year", [("040426", 2026), ("170499", 1999), ("060180", 1980)])
+@pytest.mark.parametrize(("yymmdd", "year"), [("040426", 2026), ("170499", 1999), ("060180", 1980)])
 def test_rmc_two_digit_years_are_19yy_from_the_gps_epoch_on(yymmdd, year):
     body = f"GPRMC,120000.00,A,4530.0000,N,07330.0000,W,0.0,0.0,{yymmdd},,,A"
     (rmc,) = NmeaDecoder().feed(encode_sentence(body))

@@ -10,7 +10,9 @@ import time
 import pytest
 
 from drivers.transport import recvmmsg
+from drivers.transport.base import Chunk
 from drivers.transport.registry import create_transport
+from drivers.transport.udp_batch import BatchUdpTransport
 from tests.drivers.helpers import (
     fake_host_clock,
     queued_bytes,
@@ -48,23 +50,28 @@ def test_bursts_arrive_complete_in_order_with_kernel_stamps_and_a_lagging_reader
                 "use_recvmmsg": use_recvmmsg,
             }
         )
+        assert isinstance(t, BatchUdpTransport)
         await t.open()
         assert (t._mmsg is not None) == use_recvmmsg
-        assert t.kernel_stamps and "kernel receive stamps" in t.describe()
+        assert t.kernel_stamps
+        assert "kernel receive stamps" in t.describe()
         wait_for_kernel_rx_stamps()  # the kernel turns receive stamping on asynchronously
         payloads = [i.to_bytes(4, "little") * 300 for i in range(3000)]  # 1.2 kB each
         t0, t1 = await _send(t.port, payloads)
         await wait_until_async(lambda: t._paused, 10, "the reader to pause")
         assert len(t._chunks) == 64  # paused at 64 waiting datagrams
-        got = []
+        got: list[Chunk] = []
         while len(got) < len(payloads):
             got.append(await asyncio.wait_for(t.read(), 5))
         t2 = time.monotonic_ns()
         assert [d for d, _ in got] == payloads
         stamps = [h for _, h in got]
         assert stamps == sorted(stamps)
-        assert t0 - 1_000_000 <= stamps[0] and stamps[-1] <= t1 + 1_000_000 < t2  # at arrival, not at read
-        assert t.stats.events.get("dropped_datagrams", 0) == 0 and t.stats.records == 3000
+        # at arrival, not at read
+        assert t0 - 1_000_000 <= stamps[0]
+        assert stamps[-1] <= t1 + 1_000_000 < t2
+        assert t.stats.events.get("dropped_datagrams", 0) == 0
+        assert t.stats.records == 3000
         s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
         s.sendto(b"x" * 65000, ("127.0.0.1", t.port))
         s.sendto(b"after", ("127.0.0.1", t.port))
@@ -74,7 +81,8 @@ def test_bursts_arrive_complete_in_order_with_kernel_stamps_and_a_lagging_reader
         return data, t.stats.rejected
 
     data, rejected = asyncio.run(run())
-    assert data == b"x" * 65000 and rejected == {}  # 64 kB fits: nothing truncated
+    assert data == b"x" * 65000
+    assert rejected == {}  # 64 kB fits: nothing truncated
 
 
 def test_recvmmsg_counts_a_datagram_larger_than_its_slot_and_reads_on():
@@ -96,7 +104,10 @@ def test_recvmmsg_counts_a_datagram_larger_than_its_slot_and_reads_on():
     assert (first[0], first[2]) == ([b"a" * 10, b"c" * 1000, b"d"], 1)  # 4 slots: one truncated
     assert (second[0], second[2], third[0], third[2]) == ([b"e" * 7], 0, [b"f"], 0)
     stamps = first[1] + second[1] + third[1]
-    assert all(t0 - 1_000_000 <= t <= t1 + 1_000_000 for t in stamps) and stamps == sorted(stamps)
+    assert None not in stamps  # each stamped by the kernel
+    kernel_ns = [t for t in stamps if t is not None]
+    assert all(t0 - 1_000_000 <= t <= t1 + 1_000_000 for t in kernel_ns)
+    assert kernel_ns == sorted(kernel_ns)
     tx.close()
     rx.close()
 
@@ -113,14 +124,16 @@ def test_a_realtime_step_while_datagrams_wait_moves_no_stamp(tmp_path, step_s):
     arrival seen (or its read): never a step away."""
     path = tmp_path / "host_clock"
 
+    clock = fake_host_clock(path, [])
+
     async def run():
-        t = create_transport({"kind": "udp-batch", "host": "127.0.0.1", "port": 0, "coalesce_s": 0.005})
+        t = BatchUdpTransport(0, host="127.0.0.1", coalesce_s=0.005, host_clock=clock)
         await t.open()
         wait_for_kernel_rx_stamps()
         tx = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
         to = ("127.0.0.1", t.port)
         bounds: list[tuple[int, int]] = []
-        got = []
+        got: list[Chunk] = []
 
         async def one_read(k: int) -> None:  # the loop reads it: arrival before the read
             t0 = time.monotonic_ns()
@@ -131,13 +144,15 @@ def test_a_realtime_step_while_datagrams_wait_moves_no_stamp(tmp_path, step_s):
         for k in range(10):
             await one_read(k)
         # the loop held (no await) from here to the reads below: the socket's queue fills
+        sock = t._sock
+        assert sock is not None  # (open)
         held = [k.to_bytes(4, "little") for k in range(10, 20)]
-        bounds += send_each_arrived(tx, t._sock, held, to)
+        bounds += send_each_arrived(tx, sock, held, to)
         at = time.monotonic_ns() + 2_000_000  # the step, 2 ms after the last arrival ...
         step_host_clock(path, at, round(step_s * 1e9))
         wait_until(lambda: time.monotonic_ns() > at + 2_000_000, 5, "2 ms past the step")
-        bounds += send_each_arrived(tx, t._sock, [k.to_bytes(4, "little") for k in range(20, 25)], to)
-        assert queued_bytes(t._sock) > 0  # ... and 2 ms before the next arrival; all still unread
+        bounds += send_each_arrived(tx, sock, [k.to_bytes(4, "little") for k in range(20, 25)], to)
+        assert queued_bytes(sock) > 0  # ... and 2 ms before the next arrival; all still unread
         got += [await asyncio.wait_for(t.read(), 5) for _ in range(15)]
         for k in range(25, 30):
             await one_read(k)
@@ -145,12 +160,15 @@ def test_a_realtime_step_while_datagrams_wait_moves_no_stamp(tmp_path, step_s):
         await t.close()
         return bounds, got, t.stamps
 
-    with fake_host_clock(path, []):
-        bounds, got, stamps = asyncio.run(run())
+    bounds, got, stamps = asyncio.run(run())
     assert [int.from_bytes(d, "little") for d, _ in got] == list(range(30))
     # at arrival (1 ms: the offset's reads), none a step away
     off = [
-        (h - lo, hi - h) for (lo, hi), (_, h) in zip(bounds, got) if not lo - 1_000_000 <= h <= hi + 1_000_000
+        (h - lo, hi - h)
+        for (lo, hi), (_, h) in zip(bounds, got, strict=True)
+        if not lo - 1_000_000 <= h <= hi + 1_000_000
     ]
     assert not off, off
-    assert stamps.steps == 1 and stamps.repaired == 10 and stamps.unknown == 0
+    assert stamps.steps == 1
+    assert stamps.repaired == 10
+    assert stamps.unknown == 0

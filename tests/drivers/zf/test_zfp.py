@@ -135,7 +135,7 @@ def test_counter_wraps_and_resets():
 
 
 @pytest.mark.parametrize(
-    "mutate, reason",
+    ("mutate", "reason"),
     [
         (lambda d: d[:30], "short"),
         (lambda d: b"XFP1" + d[4:], "bad_magic"),

@@ -204,7 +204,7 @@ def test_a_tile_interrupted_while_written_leaves_no_file(bundle, tmp_path, monke
         return real(*a, **k)
 
     monkeypatch.setattr(tiles_mod.np, "load", failing_load)
-    with pytest.raises(OSError):
+    with pytest.raises(OSError, match="disk unplugged"):
         run_georef(bundle, tmp_path / "out", GeorefOptions(chunk_s=1.0))
     monkeypatch.setattr(tiles_mod.np, "load", real)
     assert not list((tmp_path / "out").glob("*.partial"))

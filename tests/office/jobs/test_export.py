@@ -19,7 +19,8 @@ from calib.io.sbet import read_sbet
 from calib.io.site import parse_site
 from calib.survey.passplan import plan_site
 from drivers.zf.zfp1 import encode_profile
-from office.jobs.export import ExportError, ExportOptions, _fill_sigmas, export_session, passes_from_events
+from office.jobs.export import ExportError, ExportOptions, export_session, passes_from_events
+from office.jobs.sessionread import fill_sigmas
 
 NS = 1_000_000_000
 G0 = 1_400_000_000 * NS  # GPS ns at the start of the session
@@ -260,9 +261,9 @@ def test_missing_sigmas_are_interpolated_unless_most_are_missing():
     sig = np.tile(np.arange(6.0)[:, None] + 1.0, (1, 6))  # 1 … 6, growing with time
     sig[2, 0] = np.nan  # a lost sentence
     sig[5] = np.nan  # the last epoch: held at its neighbour's
-    filled, n = _fill_sigmas(t_ns, sig)
+    filled, n = fill_sigmas(t_ns, sig)
     assert n == 2 and filled[2, 0] == 3.0 and np.all(filled[5] == 5.0)
     assert np.array_equal(filled[[0, 1, 3, 4]], sig[[0, 1, 3, 4]])
-    assert _fill_sigmas(t_ns, np.full((6, 6), 0.1)) == (pytest.approx(np.full((6, 6), 0.1)), 0)
+    assert fill_sigmas(t_ns, np.full((6, 6), 0.1)) == (pytest.approx(np.full((6, 6), 0.1)), 0)
     sig[:4] = np.nan  # two epochs of six carry sigmas: none is written
-    assert _fill_sigmas(t_ns, sig) == (None, 0)
+    assert fill_sigmas(t_ns, sig) == (None, 0)

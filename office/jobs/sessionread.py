@@ -1,0 +1,278 @@
+"""A session's navigation as every job that reads one reads it (``mls export``, ``mls georef``,
+the Foxglove export): the site with the session's mount, the INS epochs of ``/ins/nav`` (re-timed
+where the clock model could not time them), the ``/events``, the per-epoch sigmas and the
+trajectory (:func:`read_navigation`)."""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from dataclasses import dataclass, replace
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+from acquire.log.read import SessionReadError, iter_messages
+from calib.core import frames
+from office.jobs.exportbase import ExportError, ExportOptions
+
+if TYPE_CHECKING:
+    from calib.core.frames import LocalFrame
+    from calib.core.trajectory import Trajectory
+    from calib.io.site import Site
+
+NS_PER_S = 1_000_000_000
+
+
+@dataclass
+class InsEpochs:
+    t_ns: np.ndarray
+    lat: np.ndarray
+    lon: np.ndarray
+    h: np.ndarray
+    rpy_deg: np.ndarray
+    sig: np.ndarray  # (n, 6) north, east, down m, roll, pitch, heading deg (NaN when absent)
+    from_clock: int
+    retimed: int  # of those, logged while the clock was unlocked: timed by the INS tags around
+
+
+_SIGMAS = (
+    "sigma_north_m",
+    "sigma_east_m",
+    "sigma_down_m",
+    "sigma_roll_deg",
+    "sigma_pitch_deg",
+    "sigma_heading_deg",
+)
+
+
+#: an event of ``/events`` as timed: (GPS ns, how it was timed, its document)
+TimedEvent = tuple[int, str, dict[str, Any]]
+#: the progress of a read: (bytes done, bytes in all)
+ReadProgress = Callable[[float, float | None], None]
+
+
+def read_nav_and_events(session: Path, progress: ReadProgress | None) -> tuple[InsEpochs, list[TimedEvent]]:
+    """The INS epochs, and the events as ``(gps_ns, how, data)``: the event's log time when
+    the clock model was locked (or holding over), else its receipt mapped to GPS time through
+    the INS time tags around it (``how``: ``clock`` / ``ins`` / ``system``). An INS epoch timed
+    by the clock model while it was unlocked (the INS not synced for that epoch, e.g. one that
+    lost its STATUS sentence) is re-timed the same way, so it does not land where the
+    free-running clock put it."""
+    rows: list[list[Any]] = []  # GPS ns, position and attitude, sigmas, timed by the clock model
+    raw_events: list[tuple[int, int, str, dict[str, Any]]] = []
+    sync_host: list[int] = []
+    sync_t: list[int] = []
+    unlocked: list[tuple[int, int]] = []  # (row, receipt) of the epochs the unlocked clock timed
+    for env in iter_messages(session, {"/ins/nav", "/events"}, progress):
+        d = env.payload
+        assert isinstance(d, dict)  # /ins/nav and /events are JSON documents
+        if env.topic == "/events":
+            raw_events.append((env.log_time_ns, env.host_ns, env.clock, d))
+            continue
+        t = d.get("time_gps_ns")
+        vals = [d.get(k) for k in ("lat_deg", "lon_deg", "height_m", "roll_deg", "pitch_deg", "heading_deg")]
+        if t is None:
+            continue
+        from_clock = d.get("time_source") == "clock"
+        if not from_clock:
+            sync_host.append(env.host_ns)
+            sync_t.append(int(t))
+        if any(v is None for v in vals):
+            continue
+        if from_clock and env.clock == "UNLOCKED":
+            unlocked.append((len(rows), env.host_ns))
+        sig = [np.nan if d.get(k) is None else d[k] for k in _SIGMAS]
+        rows.append([int(t), *vals, *sig, from_clock])
+    if len(rows) < 2:
+        raise ExportError(
+            f"{session}: {len(rows)} INS epochs with position and attitude in "
+            f"/ins/nav; a trajectory needs at least 2"
+        )
+    ins_time = _InsTime(np.array(sync_host, np.int64), np.array(sync_t, np.int64))
+    retimed = _retime(rows, unlocked, ins_time)
+    return _epochs(rows, retimed), _time_events(raw_events, ins_time)
+
+
+def _retime(rows: list[list[Any]], unlocked: list[tuple[int, int]], ins_time: _InsTime) -> int:
+    """Re-time the epochs the unlocked clock model timed through the INS time tags around
+    their receipt (in place); how many could be."""
+    retimed = 0
+    for i, host_ns in unlocked:
+        t_ins = ins_time.gps_ns(host_ns)
+        if t_ins is not None:
+            rows[i][0] = t_ins
+            retimed += 1
+    return retimed
+
+
+def _epochs(rows: list[list[Any]], retimed: int) -> InsEpochs:
+    """The rows as epochs in time order, a repeated time kept once."""
+    t = np.array([r[0] for r in rows], dtype=np.int64)
+    a = np.array([r[1:13] for r in rows], dtype=np.float64)
+    clock = np.array([r[13] for r in rows], dtype=bool)
+    order = np.argsort(t, kind="stable")
+    t, a, clock = t[order], a[order], clock[order]
+    keep = np.concatenate([[True], np.diff(t) > 0])
+    t, a, clock = t[keep], a[keep], clock[keep]
+    return InsEpochs(t, a[:, 0], a[:, 1], a[:, 2], a[:, 3:6], a[:, 6:12], int(clock.sum()), retimed)
+
+
+def _time_events(
+    raw_events: list[tuple[int, int, str, dict[str, Any]]], ins_time: _InsTime
+) -> list[TimedEvent]:
+    """The events at their log time when the clock model was not unlocked, else through the INS
+    time tags around their receipt, else (no synced epoch near) at the system clock's."""
+    events: list[TimedEvent] = []
+    for log_ns, host_ns, state, d in raw_events:
+        if state != "UNLOCKED":
+            events.append((log_ns, "clock", d))
+        elif (t_ins := ins_time.gps_ns(host_ns)) is not None:
+            events.append((t_ins, "ins", d))
+        else:
+            events.append((log_ns, "system", d))
+    return events
+
+
+class _InsTime:
+    """Host receive time → GPS time through the synced INS epochs received around it (their
+    time tags against their receive stamps), for what the clock model could not time."""
+
+    def __init__(self, host_ns: np.ndarray, gps_ns: np.ndarray) -> None:
+        order = np.argsort(host_ns, kind="stable")
+        self.host, self.t = host_ns[order], gps_ns[order]
+
+    def gps_ns(self, host_ns: int) -> int | None:
+        """None when no synced epoch was received within 1 s of ``host_ns``."""
+        host, t = self.host, self.t
+        k = int(np.searchsorted(host, host_ns))
+        near = [j for j in (k - 1, k) if 0 <= j < host.size and abs(int(host[j]) - host_ns) < NS_PER_S]
+        if not near:
+            return None
+        if len(near) == 2 and host[near[1]] > host[near[0]]:
+            a, b = near
+            w = (host_ns - int(host[a])) / (int(host[b]) - int(host[a]))
+            return int(t[a]) + round(w * (int(t[b]) - int(t[a])))
+        j = near[0]
+        return int(t[j]) + host_ns - int(host[j])
+
+
+def fill_sigmas(t_ns: np.ndarray, sig: np.ndarray) -> tuple[np.ndarray | None, int]:
+    """The per-epoch sigmas with the epochs that lack some (a lost STDPOS/STDHRP sentence, the
+    first epoch after start-up) interpolated in time from the epochs that have all six; None
+    when fewer than half the epochs have them. Returns (sigmas, epochs filled)."""
+    good = np.all(np.isfinite(sig) & (sig > 0), axis=1)
+    if good.all():
+        return sig, 0
+    if good.sum() < max(2, 0.5 * good.size):
+        return None, 0
+    t = (t_ns - t_ns[0]).astype(np.float64)
+    filled = sig.copy()
+    for j in range(sig.shape[1]):
+        filled[~good, j] = np.interp(t[~good], t[good], sig[good, j])
+    return filled, int((~good).sum())
+
+
+def nav_trajectory(
+    nav: InsEpochs, sig: np.ndarray | None, frame: LocalFrame | None, max_gap_s: float
+) -> Trajectory:
+    """The trajectory of the INS epochs, with ``sig`` (:func:`fill_sigmas`) when not None."""
+    from calib.core.trajectory import Trajectory
+
+    return Trajectory.from_geodetic(
+        frames.gps_ns_to_seconds(nav.t_ns),
+        nav.lat,
+        nav.lon,
+        nav.h,
+        np.radians(nav.rpy_deg),
+        frame,
+        sigma_p_m=sig[:, :3] if sig is not None else None,
+        sigma_rpy_rad=np.radians(sig[:, 3:]) if sig is not None else None,
+        max_gap_s=max_gap_s,
+        name="/ins/nav",
+    )
+
+
+def session_site(session: Path, options: ExportOptions, summary: dict) -> tuple[Site, Path]:
+    from calib.core.georef import Mount
+    from calib.io.configfile import ConfigError
+    from calib.io.site import load_site
+
+    path = options.site_file or (session / "site.yaml")
+    if options.site_file is None and not path.exists():  # else load_site says what is wrong
+        raise ExportError(
+            f"{session}: no site file in the session (the vessel config had no "
+            f"site_file): give one with --site site.yaml"
+        )
+    try:
+        site = load_site(path)
+    except ConfigError as e:
+        raise ExportError(str(e)) from None
+    m = summary.get("mount")
+    if m is not None:  # the vessel config's mount is what was installed during the session
+        v = summary_mount(session / "session.json", m)
+        site = replace(
+            site,
+            mount=Mount(
+                lever_arm_m=v["lever_arm_m"],
+                nominal_rad=np.radians(v["nominal_deg"]),
+                boresight_rad=np.radians(v["boresight_apriori_deg"]),
+            ),
+        )
+    return site, path
+
+
+def summary_mount(path: Path, m: object) -> dict[str, np.ndarray]:
+    """session.json's ``mount``, checked: three finite numbers for each of its three keys."""
+    keys = ("lever_arm_m", "nominal_deg", "boresight_apriori_deg")
+    if not isinstance(m, dict):
+        raise ExportError(f"{path}: mount: got {m!r}, expected an object with {', '.join(keys)}")
+    out = {}
+    for key in keys:
+        v = m.get(key)
+        ok = (
+            isinstance(v, list)
+            and len(v) == 3
+            and all(isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x) for x in v)
+        )
+        if not ok:
+            raise ExportError(f"{path}: mount.{key}: got {v!r}, expected a list of 3 numbers")
+        out[key] = np.asarray(v, float)
+    return out
+
+
+@dataclass(frozen=True)
+class Navigation:
+    """A session's navigation as every job that reads one reads it (:func:`read_navigation`)."""
+
+    site: Site  # with the mount of the session's vessel config
+    site_path: Path
+    nav: InsEpochs
+    events: list[TimedEvent]
+    sigmas: np.ndarray | None  # per epoch (:func:`fill_sigmas`); None when too few epochs have them
+    filled: int  # epochs whose sigmas were interpolated
+    trajectory: Trajectory
+
+
+def read_navigation(
+    session: Path, options: ExportOptions, summary: dict, progress: ReadProgress | None
+) -> Navigation:
+    """The site (with the session's mount), the INS epochs and events, their sigmas (filled:
+    :func:`fill_sigmas`) and the trajectory, as every job that reads a session's navigation
+    reads them."""
+    from calib.core.trajectory import TrajectoryError
+
+    try:
+        site, site_path = session_site(session, options, summary)
+        nav, events = read_nav_and_events(session, progress)
+    except SessionReadError as e:
+        raise ExportError(str(e)) from None
+    sig, filled = fill_sigmas(nav.t_ns, nav.sig)
+    try:
+        traj = nav_trajectory(nav, sig, site.reference, options.max_gap_s)
+    except TrajectoryError as e:
+        raise ExportError(f"{session}: /ins/nav: {e}") from None
+    return Navigation(
+        site=site, site_path=site_path, nav=nav, events=events, sigmas=sig, filled=filled, trajectory=traj
+    )
