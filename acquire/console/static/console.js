@@ -300,6 +300,7 @@ function renderStatus() {
   const lg = st.log || {};
   $("disk").textContent = lg.state ? `log ${lg.state}: ${lg.segment || ""}, ${lg.messages || 0} messages, ${fmt((lg.free_mb || 0) / 1024, 1, " GiB")} free, dropped ${lg.dropped || 0}` : "";
   renderMount();
+  renderCalibration();
   drawLatency();
 }
 
@@ -324,6 +325,19 @@ function renderMount() {
   const per = Array.isArray(stat) ? ` (statistic roll ${fmt(stat[0], 2)}, pitch ${fmt(stat[1], 2)}, yaw ${fmt(stat[2], 2)} of the threshold)` : "";
   e.textContent = `mount watch: ${m.verdict}${per}`;
   e.dataset.verdict = m.verdict;
+}
+
+function renderCalibration() {
+  const c = S.topics.calibration || null;
+  const e = $("calibration");
+  if (!c) { e.textContent = ""; return; }
+  if (c.error) { e.textContent = `last calibration: history unreadable (${c.error})`; e.dataset.verdict = ""; return; }
+  if (!c.recorded) { e.textContent = `last calibration: none recorded for ${c.vessel}`; e.dataset.verdict = ""; return; }
+  const b = c.boresight_deg, s = c.sigma_deg;
+  const angle = (k) => `${k} ${fmt(b[k], 4)}° ± ${fmt(s[k], 4)}°`;
+  e.textContent = `last calibration #${c.id} (${c.date_utc.slice(0, 10)}, mount ${c.mount_id}): ${c.verdict || "no verdict"} — ` +
+    `${angle("roll")}, ${angle("pitch")}, ${angle("yaw")} (${c.sigma_kind} σ)`;
+  e.dataset.verdict = c.verdict || "";
 }
 
 function drawLatency() {
