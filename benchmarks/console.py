@@ -27,21 +27,11 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from benchmarks._procs import free_port, stop, wait_for  # noqa: E402
+from tests.acquire.console.chromium import CHROMIUM, CHROMIUM_ARGS  # noqa: E402
 
 MLS = [sys.executable, "-m", "cli.app"]
 TICK = os.sysconf("SC_CLK_TCK")
 GOAL_PERCENT = 5.0
-CHROMIUM = "/usr/bin/chromium"
-CHROMIUM_ARGS = [
-    "--headless",
-    "--no-sandbox",
-    "--disable-gpu",
-    "--disable-quic",
-    "--no-first-run",
-    "--disable-background-networking",
-    "--disable-component-update",
-    "--disable-sync",
-]
 
 
 def cpu_s(pid: int) -> float:

@@ -308,6 +308,8 @@ def _adjust_with_ties(
     """The default estimator, the thesis comparison and (GLS, ``tie_patches='auto'``) the
     scene's tie patches (:func:`calib.boresight.scene_ties.with_tie_patches`); with τ
     estimated, the boresight at τ/3, τ and 3τ (into ``gls``)."""
+    if progress is not None:
+        progress("adjusting", 0, 1)
     mount = search.mount
     adjust_opts = options.adjust_options(tau.model)
     is_gls = options.estimator == "gls"
@@ -380,25 +382,15 @@ def _checked_and_georeferenced(
     return _Georeferenced(mount=mount, rects=rects, p_lgf_m=p, origin=origin)
 
 
-def _adjusted(
-    options: CalibrationOptions,
-    search: TieSearch,
-    obs: Observations,
-    planes: list[tuple[np.ndarray, float]],
-    tau: TauChoice,
-    gls: GlsDiagnostics,
-    warnings: list[str],
-    notes: list[str],
-    progress: Progress | None,
+def _finished(
+    adj: _Adjusted, options: CalibrationOptions, warnings: list[str], progress: Progress | None
 ) -> _Adjusted:
-    """The adjustment stage (:func:`_adjust_with_ties`); the GLS result's σ widened by σ̂0² > 1."""
-    if progress is not None:
-        progress("adjusting", 0, 1)
-    adj = _adjust_with_ties(options, search, obs, planes, tau, gls, warnings, notes, progress)
-    if options.estimator == "gls":
-        adj = replace(adj, result=_scaled_by_variance_factor(adj.result))
+    """The adjustment's result as reported: the GLS σ widened by σ̂0² > 1, a warning when it
+    did not converge."""
     if progress is not None:
         progress("adjusting", 1, 1)
+    if options.estimator == "gls":
+        adj = replace(adj, result=_scaled_by_variance_factor(adj.result))
     if not adj.result.converged:
         warnings.append(
             f"the adjustment did not converge in {adj.result.iterations} iterations: do "
@@ -465,7 +457,8 @@ def calibrate(
         target_rows=ext.indices()[0],
         point_rows=point_rows,
     )
-    adj = _adjusted(options, search, obs, planes, tau, gls, run_warnings, notes, progress)
+    adj = _adjust_with_ties(options, search, obs, planes, tau, gls, run_warnings, notes, progress)
+    adj = _finished(adj, options, run_warnings, progress)
     laps.lap("adjust_s")
     verdict = judge(evidence(adj.result, ext.lost_passes(), gls.patch_check, gls.sensitivity))
     doc = calibration_doc(
