@@ -57,6 +57,7 @@ UNIT_RANK = {
         "watch": 5,
         "doctor": 5,
         "console": 5,
+        "foxglove": 5,
     },
     "office": {
         "simsession": 0,

@@ -19,7 +19,7 @@ from pathlib import Path
 from acquire.console.actions import ActionDesk
 from acquire.console.fanout import ConsoleSink
 from acquire.console.history import follow_history
-from acquire.console.server import ConsoleRefused, ConsoleServer, tls_context
+from acquire.console.server import ConsoleServer, tls_context
 from acquire.daemon.configschema import VesselConfig, WebConfig
 from acquire.daemon.consumers import ChecklistPublisher, Tap
 from acquire.daemon.supervisor import Supervisor
@@ -65,14 +65,9 @@ def console_consumer(
     cfg: VesselConfig, sup: Supervisor, history_db: Path | None = None
 ) -> ConsoleConsumer | None:
     """The daemon's console (None without a ``web`` section); :class:`ConsoleRefused` when it
-    could not be served (TLS missing off loopback; a ``foxglove_port``, not served yet).
+    could not be served (TLS missing off loopback).
     ``history_db``: the calibration history it shows the last result of (None: the default)."""
     if cfg.web is None:
         return None
-    if cfg.web.foxglove_port is not None:
-        raise ConsoleRefused(
-            "web.foxglove_port: the live Foxglove server is not part of this version (its channels "
-            "are built in office/jobs/foxglove*.py, which the daemon does not import): remove the key"
-        )
     tls_context(cfg.web)  # refused now, at start-up, rather than in the consumer's task
     return ConsoleConsumer(make_server(cfg.web, sup), sup, history_db=history_db)

@@ -513,7 +513,6 @@ def site_of(cfg: VesselConfig, error: type[Exception]):
     import numpy as np
 
     from calib.core import frames
-    from calib.core.georef import Mount
     from calib.io.site import load_site
 
     path = Path(str(cfg.site_file))
@@ -525,12 +524,21 @@ def site_of(cfg: VesselConfig, error: type[Exception]):
     if frame is None and site.targets:  # no reference point: the LGF at the targets' mean centre
         c = np.mean([(t.lat_deg, t.lon_deg, t.height_m) for t in site.targets], axis=0)
         frame = frames.LocalFrame(float(c[0]), float(c[1]), float(c[2]))
-    mount = None
-    if cfg.mount is not None:
-        m = cfg.mount
-        mount = Mount(
-            lever_arm_m=np.asarray(m.lever_arm_m, float),
-            nominal_rad=np.radians(m.nominal_deg),
-            boresight_rad=np.radians(m.boresight_apriori_deg),
-        )
-    return site, frame, mount
+    return site, frame, mount_of(cfg)
+
+
+def mount_of(cfg: VesselConfig):
+    """The mount installed (:class:`calib.core.georef.Mount` of the vessel config's ``mount``),
+    None without one."""
+    import numpy as np
+
+    from calib.core.georef import Mount
+
+    m = cfg.mount
+    if m is None:
+        return None
+    return Mount(
+        lever_arm_m=np.asarray(m.lever_arm_m, float),
+        nominal_rad=np.radians(m.nominal_deg),
+        boresight_rad=np.radians(m.boresight_apriori_deg),
+    )

@@ -79,6 +79,11 @@ def _web_tls(node: Node, errs: Errors, base: Path) -> tuple[Path | None, Path | 
     return cert, key
 
 
+def _pkcs8(key: Path) -> bool:
+    """Whether the PEM key is PKCS#8 (what the Foxglove SDK's TLS takes)."""
+    return b"-----BEGIN PRIVATE KEY-----" in key.read_bytes()
+
+
 def parse_web(node: Node, errs: Errors, base: Path) -> WebConfig:
     """The ``web`` section (module docstring): HTTPS required off loopback."""
     m = mapping_keys(node, errs, optional={"host", "port", "tls", "credentials_file", "foxglove_port"})
@@ -95,6 +100,12 @@ def parse_web(node: Node, errs: Errors, base: Path) -> WebConfig:
     foxglove_port = opt(m, "foxglove_port", errs, port, None)
     if foxglove_port is not None and foxglove_port == web_port:
         errs.add(f"{m['foxglove_port'].where()}: got {foxglove_port}, the console's own port")
+    if foxglove_port is not None and key is not None and not _pkcs8(key):
+        errs.add(
+            f"{m['tls'].where()}: key_file {key} is not PKCS#8 ('-----BEGIN PRIVATE KEY-----'), "
+            f"which the live Foxglove server needs: convert it with "
+            f"'openssl pkcs8 -topk8 -nocrypt -in OLD -out NEW' (docs/console.md)"
+        )
     return WebConfig(
         host=host,
         port=web_port,

@@ -127,6 +127,7 @@ def _build_daemon(cfg: VesselConfig, sim_host_clock: Path | None = None) -> _Dae
 
     from acquire.console.daemon import console_consumer
     from acquire.daemon.supervisor import Supervisor
+    from acquire.foxglove.daemon import foxglove_consumer
     from acquire.guidance.daemon import guidance_consumer
     from acquire.watch.daemon import mount_watch_consumer
     from calib.core.errors import MlsError
@@ -138,6 +139,7 @@ def _build_daemon(cfg: VesselConfig, sim_host_clock: Path | None = None) -> _Dae
         guidance = guidance_consumer(cfg, sup)
         watch = mount_watch_consumer(cfg, sup)
         console = console_consumer(cfg, sup)
+        foxglove = foxglove_consumer(cfg, sup)
     except MlsError as e:
         print(f"mls acquire: {e}", file=sys.stderr)
         raise typer.Exit(EXIT_CONFIG) from None
@@ -145,8 +147,7 @@ def _build_daemon(cfg: VesselConfig, sim_host_clock: Path | None = None) -> _Dae
         sup.consumers.append(guidance)
     if watch is not None:
         sup.consumers.append(watch)
-    if console is not None:
-        sup.consumers.append(console)
+    sup.consumers.extend(c for c in (console, foxglove) if c is not None)
     return _Daemon(supervisor=sup, guidance=guidance, watch=watch)
 
 
@@ -240,22 +241,36 @@ def _run(sup: Supervisor, log_level: str) -> int:
         raise typer.Exit(EXIT_FAILED) from None
 
 
-def _bind_failures(cfg: VesselConfig) -> list[str]:
-    """Test-bind every port the daemon will listen on (then release it): one line per port
-    another process holds (or the address is not this host's), naming the device."""
-    import socket
-
+def _listen_endpoints(cfg: VesselConfig) -> list[tuple[str, str, str, int]]:
+    """(what, protocol, host, port) of every port the daemon will listen on: the devices', the
+    console's and the live Foxglove server's."""
     from acquire.daemon.configdevices import listen_endpoints
 
+    out = [
+        (f"device {d.name!r}", proto, host, port) for d, proto, host, port in listen_endpoints(cfg.devices)
+    ]
+    web = cfg.web
+    if web is not None:
+        out.append(("web.port (the console)", "tcp", web.host, web.port))
+        if web.foxglove_port is not None:
+            out.append(("web.foxglove_port (Foxglove live)", "tcp", web.host, web.foxglove_port))
+    return out
+
+
+def _bind_failures(cfg: VesselConfig) -> list[str]:
+    """Test-bind every port the daemon will listen on (then release it): one line per port
+    another process holds (or the address is not this host's), naming its owner."""
+    import socket
+
     out = []
-    for d, proto, host, port in listen_endpoints(cfg.devices):
+    for what, proto, host, port in _listen_endpoints(cfg):
         kind = socket.SOCK_DGRAM if proto == "udp" else socket.SOCK_STREAM
         try:
             with socket.socket(socket.AF_INET, kind) as sock:
                 sock.bind((host, port))
         except OSError as e:
             out.append(
-                f"{cfg.source}: device {d.name!r}: cannot bind {proto} {host}:{port} "
+                f"{cfg.source}: {what}: cannot bind {proto} {host}:{port} "
                 f"({e.strerror or e}): another process listens there (a daemon already running?)"
             )
     return out

@@ -9,6 +9,6 @@
 - ``sessionread``: a session's navigation as every job reads it (site, INS epochs, events, trajectory).
 - ``sessionnav``: a session's site, trajectory and passes without a bundle (``mls georef``).
 - ``foxglove``: a session → an MCAP Foxglove opens as it is (``mls export --foxglove``).
-- ``foxglove_cloud``: its profiles, decoded again, georeferenced and gathered into clouds.
-- ``foxglove_frames``: its frames (z up), times (UTC), schemas and point packing.
+- ``foxglove_cloud``: its profiles, decoded again for the clouds (the channels, frames and clouds
+  themselves are :mod:`acquire.foxglove`'s, shared with the daemon's live server).
 """

@@ -1,36 +1,21 @@
 """Session → one MCAP file that Foxglove opens as it is (``mls export SESSION --foxglove OUT.mcap``).
 
 :func:`export_foxglove` reads a session written by the daemon and writes its well-known-schema
-copy (foxglove-sdk, protobuf encodings for the Foxglove schemas, JSON for the numbers):
+copy: the channels of :mod:`acquire.foxglove.channels` (the same as the daemon's live server,
+``web.foxglove_port``) — a fix and a pose on /vessel/fix and /tf at every INS epoch of /ins/nav,
+the mount on /tf once, a cloud per 1/cloud_rate_hz s window of at most ``max_points_per_cloud``
+points on /lidar/points, every /events, /clock and /latency record on /log, /clock, /latency.
 
-============== ======================== =========================================================
-topic          schema                   content
-============== ======================== =========================================================
-/vessel/fix    foxglove.LocationFix     every INS epoch of /ins/nav: latitude, longitude,
-                                        ellipsoidal height; position covariance (ENU, diagonal)
-                                        from its sigmas when it has them; frame ``vessel``
-/tf            foxglove.FrameTransform  ``lgf_enu`` → ``vessel`` at every epoch (the INS pose),
-                                        and ``vessel`` → ``scanner`` once (the mount)
-/lidar/points  foxglove.PointCloud      the profiler's returns georeferenced in ``lgf_enu``, one
-                                        cloud per 1/cloud_rate_hz s window, at most
-                                        ``max_points_per_cloud`` points (even decimation):
-                                        x, y, z, intensity float32
-/log           foxglove.Log             the /events records: alarms at their severity, clock
-                                        states, connections, gaps, pass marks, failures
-/clock         mls.ClockPlot (JSON)     the clock model's numbers, one per /clock record
-/latency       mls.LatencyPlot (JSON)   per device latency mean/σ/p99/max, drift, rate
-============== ======================== =========================================================
-
-Frames: :mod:`office.jobs.foxglove_frames` (z-up ENU and FLU for Foxglove's 3-D panel).
+Frames: :mod:`acquire.foxglove.frames` (z-up ENU and FLU for Foxglove's 3-D panel).
 
 Times: every ``log_time`` and every message's ``timestamp`` (the same number) is **UTC as Unix
 ns** — what Foxglove reads, so its timeline shows the real date and time — converted from the
-session's GPS time (:func:`~office.jobs.foxglove_frames.gps_to_unix_ns`: GPS − UTC from the
+session's GPS time (:func:`~acquire.foxglove.frames.gps_to_unix_ns`: GPS − UTC from the
 project's leap-second table at each instant, 18 s since 2017-01-01). The GPS times are the INS
 epoch's (:func:`office.jobs.sessionread.read_nav_and_events`) for the fix and the pose, the last
 return of its window for a cloud, the record's log time for the others — those logged while the
 clock model was UNLOCKED re-timed through the LOCKED ones around them
-(:class:`~office.jobs.foxglove_frames.HostToGps`). The ``mls.session`` metadata states the time
+(:class:`~acquire.foxglove.frames.HostToGps`). The ``mls.session`` metadata states the time
 base and the GPS − UTC used; :class:`FoxgloveResult` gives the span in both. Messages are
 written in time order; a channel without messages (a session without /clock records) is not in
 the file.
@@ -59,10 +44,12 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from acquire.foxglove import frames as ff
+from acquire.foxglove.channels import NS_PER_S, Channels
+from acquire.foxglove.clouds import LATE_NS, Clouds
 from acquire.log.read import SessionReadError, iter_messages, session_summary
-from office.jobs import foxglove_frames as ff
 from office.jobs.export import ExportError, ExportOptions
-from office.jobs.foxglove_cloud import LATE_NS, Clouds, decode_profiles
+from office.jobs.foxglove_cloud import decode_profiles
 from office.jobs.sessionread import (
     InsEpochs,
     ReadProgress,
@@ -76,21 +63,9 @@ if TYPE_CHECKING:
     from calib.core.georef import Mount
     from calib.core.trajectory import Trajectory
 
-NS_PER_S = 1_000_000_000
 CLOUD_RATE_HZ = 2.0
 MAX_POINTS_PER_CLOUD = 50_000
 
-TOPIC_FIX, TOPIC_TF, TOPIC_POINTS = "/vessel/fix", "/tf", "/lidar/points"
-TOPIC_LOG, TOPIC_CLOCK, TOPIC_LATENCY = "/log", "/clock", "/latency"
-TOPICS = (TOPIC_FIX, TOPIC_TF, TOPIC_POINTS, TOPIC_LOG, TOPIC_CLOCK, TOPIC_LATENCY)
-SCHEMAS = {
-    TOPIC_FIX: "foxglove.LocationFix",
-    TOPIC_TF: "foxglove.FrameTransform",
-    TOPIC_POINTS: "foxglove.PointCloud",
-    TOPIC_LOG: "foxglove.Log",
-    TOPIC_CLOCK: "mls.ClockPlot",
-    TOPIC_LATENCY: "mls.LatencyPlot",
-}
 #: every log_time and timestamp of the file (its ``mls.session`` metadata adds the GPS − UTC used)
 TIME_BASE = "UTC, Unix ns"
 
@@ -175,127 +150,15 @@ def _records(
 # -- clouds -------------------------------------------------------------------------------------
 
 
-class _Writer:
-    """The SDK's channels of one export (their own context) and the messages, in time order:
-    each method takes the message's GPS ns and writes it at its UTC Unix ns."""
+class _Writer(Channels):
+    """The channels of one export, in their own context, written to an MCAP file in time order."""
 
     def __init__(self, path: Path, devices: list[str]) -> None:
         import foxglove
-        from foxglove import channels as fc
 
         self.ctx = foxglove.Context()
         self.mcap = foxglove.open_mcap(path, allow_overwrite=True, context=self.ctx)
-        c = self.ctx
-        self.fix = fc.LocationFixChannel(TOPIC_FIX, context=c)
-        self.tf = fc.FrameTransformChannel(TOPIC_TF, context=c)
-        self.points = fc.PointCloudChannel(TOPIC_POINTS, context=c)
-        self.log = fc.LogChannel(TOPIC_LOG, context=c)
-        self.clock = foxglove.Channel(TOPIC_CLOCK, schema=ff.CLOCK_SCHEMA, context=c)
-        self.latency = foxglove.Channel(TOPIC_LATENCY, schema=ff.latency_schema(devices), context=c)
-        self.counts = dict.fromkeys(TOPICS, 0)
-        self.first_ns: int | None = None
-        self.last_ns: int | None = None
-        self.leaps: set[int] = set()  # the GPS − UTC seconds used
-
-    def _count(self, topic: str, t_ns: int) -> int:
-        """Count a message at GPS ``t_ns``; its UTC Unix ns."""
-        self.counts[topic] += 1
-        self.first_ns = t_ns if self.first_ns is None else min(self.first_ns, t_ns)
-        self.last_ns = t_ns if self.last_ns is None else max(self.last_ns, t_ns)
-        unix_ns, leap = ff.gps_to_unix_ns(t_ns)
-        self.leaps.add(leap)
-        return unix_ns
-
-    @staticmethod
-    def _stamp(t_ns: int):
-        from foxglove.messages import Timestamp
-
-        return Timestamp(t_ns // NS_PER_S, t_ns % NS_PER_S)
-
-    def transform(self, t_ns: int, parent: str, child: str, xyz, q) -> None:
-        from foxglove.messages import FrameTransform, Quaternion, Vector3
-
-        u = self._count(TOPIC_TF, t_ns)
-        msg = FrameTransform(
-            timestamp=self._stamp(u),
-            parent_frame_id=parent,
-            child_frame_id=child,
-            translation=Vector3(x=float(xyz[0]), y=float(xyz[1]), z=float(xyz[2])),
-            rotation=Quaternion(x=float(q[0]), y=float(q[1]), z=float(q[2]), w=float(q[3])),
-        )
-        self.tf.log(msg, log_time=u)
-
-    def fix_msg(self, t_ns: int, lat_deg: float, lon_deg: float, h_m: float, sig_ned_m) -> None:
-        from foxglove.messages import LocationFix, LocationFixPositionCovarianceType
-
-        known = bool(np.all(np.isfinite(sig_ned_m)) and np.all(sig_ned_m > 0))
-        cov = [0.0] * 9
-        if known:  # ENU, row-major, diagonal
-            cov[0], cov[4], cov[8] = (
-                float(sig_ned_m[1]) ** 2,
-                float(sig_ned_m[0]) ** 2,
-                float(sig_ned_m[2]) ** 2,
-            )
-        kind = LocationFixPositionCovarianceType
-        u = self._count(TOPIC_FIX, t_ns)
-        msg = LocationFix(
-            timestamp=self._stamp(u),
-            frame_id=ff.VESSEL_FRAME,
-            latitude=float(lat_deg),
-            longitude=float(lon_deg),
-            altitude=float(h_m),
-            position_covariance=cov,
-            position_covariance_type=kind.DiagonalKnown if known else kind.Unknown,
-        )
-        self.fix.log(msg, log_time=u)
-
-    def cloud(self, t_ns: int, origin, packed: bytes) -> None:
-        from foxglove.messages import (
-            PackedElementField,
-            PackedElementFieldNumericType,
-            PointCloud,
-            Pose,
-            Quaternion,
-            Vector3,
-        )
-
-        f32 = PackedElementFieldNumericType.Float32
-        dtype_fields, names = ff.POINT_DTYPE.fields, ff.POINT_DTYPE.names
-        assert dtype_fields is not None  # a structured dtype: its fields
-        assert names is not None  # and their order
-        fields = [PackedElementField(name=name, offset=dtype_fields[name][1], type=f32) for name in names]
-        u = self._count(TOPIC_POINTS, t_ns)
-        msg = PointCloud(
-            timestamp=self._stamp(u),
-            frame_id=ff.WORLD_FRAME,
-            pose=Pose(
-                position=Vector3(x=float(origin[0]), y=float(origin[1]), z=float(origin[2])),
-                orientation=Quaternion(x=0.0, y=0.0, z=0.0, w=1.0),
-            ),
-            point_stride=ff.POINT_DTYPE.itemsize,
-            fields=fields,
-            data=packed,
-        )
-        self.points.log(msg, log_time=u)
-
-    def record(self, t_ns: int, topic: str, data: dict, locked_offset_ns: int | None) -> None:
-        from acquire.log.schema import dumps
-
-        if topic == "/events":
-            from foxglove.messages import Log, LogLevel
-
-            level, name, text = ff.log_entry(data)
-            u = self._count(TOPIC_LOG, t_ns)
-            msg = Log(
-                timestamp=self._stamp(u), level=getattr(LogLevel, level.title()), message=text, name=name
-            )
-            self.log.log(msg, log_time=u)
-        elif topic == "/clock":
-            u = self._count(TOPIC_CLOCK, t_ns)
-            self.clock.log(dumps(ff.clock_values(data, locked_offset_ns)), log_time=u)
-        elif topic == "/latency":
-            u = self._count(TOPIC_LATENCY, t_ns)
-            self.latency.log(dumps(ff.latency_values(data)), log_time=u)
+        super().__init__(self.ctx, devices)
 
     def close(self) -> None:
         self.mcap.close()

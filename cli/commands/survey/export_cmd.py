@@ -293,8 +293,8 @@ def _foxglove_summary(
     from rich.markup import escape
     from rich.table import Table
 
+    from acquire.foxglove.channels import SCHEMAS
     from calib.core import frames
-    from office.jobs.foxglove import SCHEMAS
 
     t = Table(title=f"{session.name} → {fox.path} (Foxglove)", title_justify="left")
     for col in ("channel", "schema", "messages"):

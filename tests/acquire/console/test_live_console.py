@@ -11,12 +11,15 @@ take the screenshots (1920×1080, a bridge monitor; 1024×768, a tablet: kept in
 
 from __future__ import annotations
 
+import asyncio
 import json
 import os
 import signal
 import socket
 import textwrap
+import time
 import urllib.request
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from functools import partial
 from pathlib import Path
@@ -47,6 +50,7 @@ class Live:
     sessions: Path
     daemon: Proc
     page: Page  # the observer
+    foxglove_port: int
 
 
 def _devices(tmp: Path, run: Path, config: Path) -> Proc:
@@ -67,7 +71,7 @@ def _devices(tmp: Path, run: Path, config: Path) -> Proc:
     )
 
 
-def _add_web_section(config: Path, port: int) -> None:
+def _add_web_section(config: Path, port: int, foxglove_port: int) -> None:
     token = config.parent / "web-token.yaml"
     token.write_text(f"token: {TOKEN}\n")
     token.chmod(0o600)
@@ -77,6 +81,7 @@ def _add_web_section(config: Path, port: int) -> None:
             web:
               port: {port}
               credentials_file: {token.name}
+              foxglove_port: {foxglove_port}
             """)
         )
 
@@ -108,8 +113,8 @@ def live(tmp_path_factory, chromium):
         devices = _devices(tmp, run, config)
         procs.append(devices)
         wait_until(lambda: _complete(config), 120, "the simulated devices' vessel config", devices)
-        port = free_port(socket.SOCK_STREAM)
-        _add_web_section(config, port)
+        port, foxglove_port = free_port(socket.SOCK_STREAM), free_port(socket.SOCK_STREAM)
+        _add_web_section(config, port, foxglove_port)
         from acquire.daemon.config import load_vessel_config
 
         cfg = load_vessel_config(config)
@@ -120,7 +125,7 @@ def live(tmp_path_factory, chromium):
         page = chromium.new_page(viewport={"width": 1920, "height": 1080})
         page.goto(url)
         page.uncheck("#follow")  # a fixed plan: the vessel moves across it
-        yield Live(url, cfg.vessel, cfg.session_dir, daemon, page)
+        yield Live(url, cfg.vessel, cfg.session_dir, daemon, page, foxglove_port)
     finally:
         for p in reversed(procs):
             p.signal(signal.SIGTERM)
@@ -141,6 +146,31 @@ def test_the_page_loads_with_the_daemons_state(live):
     assert page.text_content("#link") == "live"
     assert page.text_content("#mode") == "read-only"
     assert page.locator("button.act").first.is_disabled()
+
+
+def test_foxglove_live_serves_every_channel_of_the_survey(live):
+    """A WebSocket client subscribed to every channel the daemon's Foxglove server advertises
+    receives each, the fixes where the survey is."""
+    from acquire.foxglove.channels import TOPICS
+    from tests.foxglove_client import FoxgloveClient
+
+    async def receive() -> FoxgloveClient:
+        client = await FoxgloveClient.connect(f"ws://127.0.0.1:{live.foxglove_port}")
+        try:
+            end = time.monotonic() + SURVEY_S
+            while client.topics() != set(TOPICS) and time.monotonic() < end:
+                await client.poll(0.5)
+        finally:
+            await client.close()
+        return client
+
+    with ThreadPoolExecutor(1) as pool:  # Playwright's sync API holds this thread's event loop
+        client = pool.submit(asyncio.run, receive()).result()
+    assert client.topics() == set(TOPICS), f"only {sorted(client.topics())}"
+    fix = client.messages["/vessel/fix"][-1][1]
+    assert abs(fix["latitude"] - 45.5) < 0.1 and abs(fix["longitude"] + 73.55) < 0.1  # montreal
+    assert all(len(m["data"]) // 16 <= 50_000 for _, m in client.messages["/lidar/points"])
+    assert any(c["state"] in ("LOCKED", "HOLDOVER", "UNLOCKED") for _, c in client.messages["/clock"])
 
 
 def test_the_vessel_moves_on_the_plan(live):

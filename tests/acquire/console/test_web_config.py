@@ -13,6 +13,7 @@ from acquire.console.server import ConsoleRefused
 from acquire.daemon.config import VesselConfigError, parse_vessel_config
 from acquire.daemon.configschema import WebConfig
 from acquire.daemon.supervisor import Supervisor
+from acquire.foxglove.daemon import foxglove_consumer
 from tests.mosquitto import make_test_pki
 
 BASE = textwrap.dedent("""\
@@ -109,7 +110,38 @@ def test_a_console_off_loopback_without_tls_is_refused_at_start_up():
         console_consumer(forced, Supervisor(forced))
 
 
-def test_a_foxglove_port_is_refused_at_start_up_until_the_live_server_exists():
+def test_a_foxglove_port_gives_the_daemon_its_live_server_beside_the_console():
     cfg = parse_vessel_config(BASE + "web: {foxglove_port: 8765}\n")
-    with pytest.raises(ConsoleRefused, match="foxglove_port"):
-        console_consumer(cfg, Supervisor(cfg))
+    sup = Supervisor(cfg)
+    assert console_consumer(cfg, sup) is not None
+    live = foxglove_consumer(cfg, sup)
+    assert live is not None and live.name == "foxglove"
+    assert (live.web.host, live.web.foxglove_port) == ("127.0.0.1", 8765)
+    assert live.options.frame is None and live.options.mount is None  # no site file, no mount
+    assert live.options.devices == ("ins",)
+    plain = parse_vessel_config(BASE + "web: {}\n")
+    assert foxglove_consumer(plain, Supervisor(plain)) is None
+
+
+def test_foxglove_live_over_tls_needs_a_pkcs8_key_and_says_how_to_convert_one(tmp_path):
+    import subprocess
+
+    pki = make_test_pki(tmp_path / "pki")
+    pki.server_key.chmod(0o600)
+    tls = f"tls: {{cert_file: {pki.server_cert}, key_file: KEY}}"
+    text = BASE + "web: {host: 0.0.0.0, foxglove_port: 8765, " + tls + "}\n"
+    with pytest.raises(VesselConfigError) as e:  # ecparam writes a traditional EC key
+        parse_vessel_config(text.replace("KEY", str(pki.server_key)))
+    assert any(
+        "web.tls" in err and f"key_file {pki.server_key} is not PKCS#8" in err and "openssl pkcs8" in err
+        for err in e.value.errors
+    ), e.value.errors
+    pkcs8 = tmp_path / "server-pkcs8.key"
+    subprocess.run(
+        ["openssl", "pkcs8", "-topk8", "-nocrypt", "-in", pki.server_key, "-out", pkcs8],
+        check=True,
+        timeout=60,
+    )
+    pkcs8.chmod(0o600)
+    web = parse_vessel_config(text.replace("KEY", str(pkcs8))).web
+    assert web is not None and web.key_file == pkcs8 and web.foxglove_port == 8765

@@ -11,6 +11,7 @@ from typer.testing import CliRunner
 
 from acquire.daemon.config import VesselConfigError, parse_vessel_config
 from cli.app import app
+from tests.acquire.daemon_util import free_port
 
 
 def _config(devices: str, vessel: str = "survey-1") -> str:
@@ -91,6 +92,20 @@ def test_check_fails_naming_the_device_whose_port_another_process_holds(tmp_path
         r = CliRunner().invoke(app, ["acquire", "--config", str(path), "--check"], env={"COLUMNS": "200"})
     assert r.exit_code == 1, r.output
     assert f"device 'pps': cannot bind udp 127.0.0.1:{port}" in r.output
+    assert "1 port(s) cannot be bound" in r.output
+
+
+def test_check_names_the_console_or_foxglove_port_another_process_holds(tmp_path):
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as holder:
+        holder.bind(("127.0.0.1", 0))
+        holder.listen()
+        port = holder.getsockname()[1]
+        web_port = free_port(socket.SOCK_STREAM)
+        text = _config(INS) + f"web: {{port: {web_port}, foxglove_port: {port}}}\n"
+        r = CliRunner().invoke(app, ["acquire", "--config", str(_write(tmp_path, text)), "--check"])
+    assert r.exit_code == 1, r.output
+    assert f"web.foxglove_port (Foxglove live): cannot bind tcp 127.0.0.1:{port}" in r.output
+    assert "web.port" not in r.output  # the console's port is free
     assert "1 port(s) cannot be bound" in r.output
 
 
