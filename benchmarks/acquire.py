@@ -21,7 +21,16 @@ printed as a ratio to it. The achieved datagram rate is printed too: above a few
 emulator itself (one Python process) may not keep the pace, and a multiple it cannot emit is
 reported as such, not as the daemon's.
 
-Run: ``.venv/bin/python benchmarks/acquire.py [--seconds 10] [--speeds 1,2,3,4,5,6,8]``
+With ``--pages N`` the vessel config gets a ``web`` section and N clients follow the bridge
+console's WebSocket (``/ws``, what a page receives: the snapshot, then every publication) for the
+whole run, from one separate process; each one's frame count is printed. They stand for the
+pages of the bridge's screens and tablets: on the ship the browsers run on those, not on the
+acquisition PC, so the benchmark charges the daemon with what the pages cost it (the fan-out and
+the WebSocket sends) and not with five Chromiums rendering on the PC's own cores (issue 28:
+0 loss at 5× with the pages connected; ``benchmarks/console.py`` measures the console's CPU with
+real Chromium pages).
+
+Run: ``.venv/bin/python benchmarks/acquire.py [--seconds 10] [--speeds 1,2,3,4,5,6,8] [--pages 5]``
 """
 
 from __future__ import annotations
@@ -29,6 +38,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import socket
 import subprocess
 import sys
 import tempfile
@@ -69,8 +79,9 @@ def cpu_s(pid: int) -> float:
     return (int(fields[11]) + int(fields[12])) / TICK
 
 
-def vessel_yaml(run: Path, prof_port: int, pps_port: int, speed: float) -> str:
-    return textwrap.dedent(f"""\
+def vessel_yaml(run: Path, prof_port: int, pps_port: int, speed: float, web_port: int | None = None) -> str:
+    web = "" if web_port is None else f"web: {{port: {web_port}}}\n"
+    return web + textwrap.dedent(f"""\
         vessel: bench
         devices:
           - name: ins
@@ -143,12 +154,58 @@ def run_sim(
     return stats, c1 - c0, end_s - start_s, drain_s
 
 
-def daemon_run(tmp: Path, speed: float, seconds: float) -> dict:
+PAGES = r"""
+import asyncio, json, signal, sys
+import aiohttp
+
+async def follow(url, counts, i):
+    async with aiohttp.ClientSession() as s, s.ws_connect(url) as ws:
+        async for msg in ws:
+            counts[i] += 1
+
+async def main(url, n, out):
+    counts = [0] * n
+    tasks = [asyncio.ensure_future(follow(url, counts, i)) for i in range(n)]
+    stop = asyncio.Event()
+    asyncio.get_running_loop().add_signal_handler(signal.SIGTERM, stop.set)
+    print("ready", flush=True)
+    await stop.wait()
+    for t in tasks:
+        t.cancel()
+    await asyncio.gather(*tasks, return_exceptions=True)
+    with open(out, "w") as f:
+        json.dump(counts, f)
+
+asyncio.run(main(sys.argv[1], int(sys.argv[2]), sys.argv[3]))
+"""
+
+
+def start_pages(run: Path, web_port: int, n: int) -> subprocess.Popen:
+    """``n`` console WebSocket clients in one process (their frame counts to ``pages.json`` at
+    SIGTERM)."""
+    url = f"http://127.0.0.1:{web_port}/ws"
+    wait_for(lambda: console_serving(web_port), 30, "the console")
+    pages = subprocess.Popen(
+        [sys.executable, "-c", PAGES, url, str(n), str(run / "pages.json")],
+        stdout=subprocess.PIPE,
+        start_new_session=True,
+    )
+    pages.stdout.readline()
+    return pages
+
+
+def console_serving(port: int) -> bool:
+    with socket.socket() as s:
+        return s.connect_ex(("127.0.0.1", port)) == 0
+
+
+def daemon_run(tmp: Path, speed: float, seconds: float, n_pages: int = 0) -> dict:
     run = tmp / f"x{speed:g}"
     run.mkdir()
     prof_port, pps_port = free_port(), free_port()
+    web_port = free_port(socket.SOCK_STREAM) if n_pages else None
     cfg = run / "vessel.yaml"
-    cfg.write_text(vessel_yaml(run, prof_port, pps_port, speed))
+    cfg.write_text(vessel_yaml(run, prof_port, pps_port, speed, web_port))
     daemon = subprocess.Popen(
         [*MLS, "acquire", "--config", str(cfg), "--log-level", "error"],
         cwd=run,
@@ -156,10 +213,13 @@ def daemon_run(tmp: Path, speed: float, seconds: float) -> dict:
         stderr=subprocess.PIPE,
         start_new_session=True,
     )
+    pages = None
     try:
         wait_for(lambda: (run / "status.sock").exists() or daemon.poll() is not None, 30, "the daemon")
         if daemon.poll() is not None:
             raise RuntimeError(f"mls acquire failed: {daemon.stderr.read().decode()[-2000:]}")
+        if web_port is not None:
+            pages = start_pages(run, web_port, n_pages)
         stats, cpu, window, drain_s = run_sim(
             run, speed, seconds, prof_port, pps_port, "ins,profiler,pps", daemon.pid
         )
@@ -172,7 +232,10 @@ def daemon_run(tmp: Path, speed: float, seconds: float) -> dict:
                 last, stable_since = n, time.monotonic()
         kernel_drops = udp_drops(prof_port)
     finally:
+        if pages is not None:
+            stop(pages)
         stop(daemon)
+    page_frames = json.loads((run / "pages.json").read_text()) if pages is not None else []
     prof = stats["profiler"]
     sent = prof["stats"]["datagrams_sent"]
     received = snap["metrics"]["devices"]["profiler"]["chunks"]
@@ -196,6 +259,7 @@ def daemon_run(tmp: Path, speed: float, seconds: float) -> dict:
         "emulators_cpu_pct": 100
         * sum(st.get("timing", {}).get("cpu_fraction", 0.0) for st in stats.values()),
         "emitter_p99_ms": prof.get("timing", {}).get("error_p99_us", float("nan")) / 1e3,
+        "page_frames": page_frames,
     }
 
 
@@ -258,6 +322,7 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--seconds", type=float, default=10.0, help="host seconds of data per run")
     ap.add_argument("--speeds", default="1,2,3,4,5,6,8", help="rate multiples to try, ascending")
+    ap.add_argument("--pages", type=int, default=0, help="console WebSocket clients during each run")
     args = ap.parse_args()
     speeds = [float(s) for s in args.speeds.split(",")]
     with tempfile.TemporaryDirectory(prefix="mls-bench-acquire-") as d:
@@ -269,14 +334,15 @@ def main() -> None:
         )
         results = []
         for s in speeds:
-            r = daemon_run(tmp, s, args.seconds)
+            r = daemon_run(tmp, s, args.seconds, args.pages)
             results.append(r)
             print(
                 f"daemon ×{s:<4g} {r['rate']:>8,.0f} datagrams/s (emulators' CPU "
                 f"{r['emulators_cpu_pct']:.0f} %, p99 late {r['emitter_p99_ms']:.1f} ms): lost "
                 f"{r['lost']:,} of {r['sent']:,} (socket overflows {r['kernel_drops']}), INS epochs lost "
                 f"{r['ins_lost']:,} of {r['ins_sent']:,} ({r['ins_overrun_bytes']:,} bytes overrun), backlog read "
-                f"{r['drain_s']:.2f} s after the end, daemon CPU {r['cpu_pct']:.1f} % of one core",
+                f"{r['drain_s']:.2f} s after the end, daemon CPU {r['cpu_pct']:.1f} % of one core"
+                + (f"; {args.pages} console pages received {r['page_frames']} frames" if args.pages else ""),
                 flush=True,
             )
             if not r["sustained"] and s > 1:
@@ -297,6 +363,7 @@ def main() -> None:
     print(
         f"highest rate multiple with zero loss: {best:g}×   goal ≥ 5× ({'met' if best >= 5 else 'NOT met'})"
         + ("" if len(ok) < len(speeds) or best < max(speeds) else " (every multiple tried)")
+        + (f", {args.pages} console pages connected throughout" if args.pages else "")
     )
 
 
