@@ -22,13 +22,16 @@ import numpy as np
 from scipy import stats
 
 from calib.boresight.checks.grouptest import group_tests, target_groups, worst_gross_error
-from calib.boresight.covariance import information, propagated_covariance, reported_rows
+from calib.boresight.covariance import propagated_covariance, reported_rows
 from calib.boresight.errormodel import ErrorModel
 from calib.boresight.gausshelmert import (
+    Layout,
     Solution,
     initial_state,
     leverage,
+    linearize_at_state,
     observations_at,
+    offset_prior_sigma,
     plane_centers,
     singular_message,
     solve,
@@ -37,6 +40,7 @@ from calib.boresight.ghmodel import State, linearize
 from calib.boresight.gls import solve_gls
 from calib.boresight.observability import ObservabilityError, check_observability
 from calib.boresight.observations import AdjustmentError, AdjustOptions, Observations, validate_input
+from calib.boresight.work.normals import normal_matrix
 from calib.core import frames
 
 
@@ -136,15 +140,40 @@ def _snooping_threshold(n: int, alpha: float) -> float:
     return max(float(stats.norm.isf(per_test / 2.0)), 3.29)
 
 
-def _check_observable_apriori(obs: Observations, state0, r_nom, options: AdjustOptions) -> None:
+def _check_observable_apriori(obs: Observations, lin0, options: AdjustOptions) -> None:
     """Raise :class:`ObservabilityError` when an unknown is not observed. Judged on the geometry
-    at the a-priori values: an unobservable angle would otherwise wander during the iterations
-    and make the verdict arbitrary (a boresight prior makes every angle determined: a weak one
-    stays near its prior, so the caller skips this then)."""
-    prior_info = information(obs, state0, r_nom, options.estimate)
-    if np.linalg.matrix_rank(prior_info.N) < prior_info.N.shape[0]:
-        raise ObservabilityError(singular_message(prior_info.N, obs, prior_info.layout))
-    check_observability(prior_info.Ninv[0:3, 0:3], obs, options.max_sigma_rad, options.estimate)
+    at the a-priori values (``lin0``: the linearization there): an unobservable angle would
+    otherwise wander during the iterations and make the verdict arbitrary (a boresight prior
+    makes every angle determined: a weak one stays near its prior, so the caller skips this
+    then). The normal matrix is :func:`calib.boresight.covariance.information`'s (white
+    weights, the offset prior from the trajectory's σ), formed by x-group."""
+    layout = Layout(len(obs.plane_names), len(obs.pass_ids), options.estimate)
+    N = normal_matrix(lin0, layout, obs, _white_variances(lin0, obs))
+    if layout.offsets:
+        prior = offset_prior_sigma(obs, AdjustOptions(estimate=tuple(options.estimate)))
+        idx = np.arange(layout.i_offset, layout.n)
+        N[idx, idx] += 1.0 / prior.reshape(-1) ** 2
+    if np.linalg.matrix_rank(N) < N.shape[0]:
+        raise ObservabilityError(singular_message(N, obs, layout))
+    try:
+        Ninv = np.linalg.inv(N)
+    except np.linalg.LinAlgError:
+        Ninv = np.linalg.pinv(N)
+    check_observability(Ninv[0:3, 0:3], obs, options.max_sigma_rad, options.estimate)
+
+
+def _white_variances(lin, obs: Observations) -> np.ndarray:
+    """``M_i = Σ_c B_ic² σ_ic²`` (as :func:`calib.boresight.covariance.information` forms it),
+    in blocks of points (no full-size temporaries)."""
+    out = np.empty(len(obs))
+    for lo in range(0, len(obs), _BLOCK):
+        sl = slice(lo, lo + _BLOCK)
+        out[sl] = np.einsum("ij,ij->i", lin.B[sl] ** 2, obs.sigma_l[sl] ** 2)
+    return out
+
+
+#: points per block of :func:`_white_variances`
+_BLOCK = 1 << 15
 
 
 def _realistic_covariance(sol: Solution, used: Observations, options: AdjustOptions) -> np.ndarray:
@@ -214,10 +243,15 @@ def adjust(
     r_nom = frames.rotation_zyx(*mount.nominal_rad)
     state0 = initial_state(mount, planes_init, len(obs.pass_ids), plane_centers(obs, mount, r_nom))
     active = np.ones(len(obs), bool)
+    first_lin = None
     if options.boresight_prior_rad is None:
-        _check_observable_apriori(obs, state0, r_nom, options)
+        layout0 = Layout(len(obs.plane_names), len(obs.pass_ids), options.estimate)
+        lin0 = linearize_at_state(obs, state0, r_nom, layout0)
+        _check_observable_apriori(obs, lin0, options)
+        # the GLS's first iteration linearizes at the same place (no latency: no pose shift)
+        first_lin = None if "latency" in layout0.extras else lin0
     gls = options.estimator == "gls"
-    sol = _solve(obs, state0, r_nom, options)
+    sol = _solve(obs, state0, r_nom, options, first_lin)
     if not np.all(np.isfinite(sol.state.boresight_rad)):
         raise AdjustmentError("the adjustment diverged (non-finite estimates)")
     used, sol = _snoop_points(obs, sol, active, r_nom, options)
@@ -327,8 +361,9 @@ def _group_reason(t) -> str:
     )
 
 
-def _solve(obs: Observations, state: State, r_nom, options: AdjustOptions) -> Solution:
-    """One solution with the chosen estimator (GLS: with the planes' roughness estimated)."""
+def _solve(obs: Observations, state: State, r_nom, options: AdjustOptions, first_lin=None) -> Solution:
+    """One solution with the chosen estimator (GLS: with the planes' roughness estimated;
+    ``first_lin``: the linearization at ``state`` when already made)."""
     if options.estimator == "thesis":
         return solve(obs, state, r_nom, options)
     if options.error_model.kind != "gauss_markov":
@@ -341,7 +376,9 @@ def _solve(obs: Observations, state: State, r_nom, options: AdjustOptions) -> So
         "all": np.arange(len(obs.plane_names)),
         "none": np.zeros(0, int),
     }[options.roughness]
-    return solve_gls(obs, state, r_nom, options, options.error_model, rough_planes=planes)
+    return solve_gls(
+        obs, state, r_nom, options, options.error_model, rough_planes=planes, first_lin=first_lin
+    )
 
 
 def _jackknife(obs: Observations, full: Solution, r_nom, options: AdjustOptions):

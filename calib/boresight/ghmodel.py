@@ -171,7 +171,7 @@ def _fill_extra_columns(out: Linearization, att: _Attitude, v_b, rates, n: int) 
         )
 
 
-def _linearize_block(
+def linearize_block(
     state: State,
     r_nom: np.ndarray,
     plane_index: np.ndarray,
@@ -219,7 +219,7 @@ def _linearize_block(
 
 
 #: Points per block: the temporaries of a block stay in the CPU cache.
-_BLOCK = 1 << 15
+LINEARIZE_BLOCK = 1 << 15
 
 
 def linearize(
@@ -249,8 +249,8 @@ def linearize(
         A_offset=np.empty((n, 3)),
         B=np.empty((n, 8)),
     )
-    for lo in range(0, n, _BLOCK):
-        sl = slice(lo, min(lo + _BLOCK, n))
+    for lo in range(0, n, LINEARIZE_BLOCK):
+        sl = slice(lo, min(lo + LINEARIZE_BLOCK, n))
         r = None if rates is None else (rates[0][sl], rates[1][sl])
         view = Linearization(
             res.F[sl],
@@ -261,5 +261,5 @@ def linearize(
             res.A_offset[sl],
             res.B[sl],
         )
-        _linearize_block(state, r_nom, plane_index[sl], pass_index[sl], l[sl], r, bases, view)
+        linearize_block(state, r_nom, plane_index[sl], pass_index[sl], l[sl], r, bases, view)
     return res

@@ -63,11 +63,12 @@ says.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 import scipy.sparse as sp
-from scipy.linalg import cholesky_banded
-from scipy.linalg.lapack import dtbtrs
+from scipy.linalg.blas import dsyrk
+from scipy.linalg.lapack import dpbtrf, dtbtrs
 
 from calib.boresight.errormodel import ErrorModel
 from calib.boresight.gausshelmert import (
@@ -82,9 +83,23 @@ from calib.boresight.gausshelmert import (
     solve_normal,
     step_converged,
 )
-from calib.boresight.ghmodel import State, linearize, tangent_bases
+from calib.boresight.ghmodel import Linearization, State, linearize, tangent_bases
 from calib.boresight.observability import ObservabilityError
 from calib.boresight.observations import AdjustOptions, Observations
+from calib.boresight.work.banded import BlockLayout, block_layout, solve_lower
+from calib.boresight.work.linearization import LinearizationBuffers
+from calib.boresight.work.normals import (
+    POINT_BLOCK,
+    WRITE_BLOCK,
+    GramPlan,
+    KnotWeights,
+    gls_row_values,
+    knot_weights,
+    layout_columns,
+    white_misclosure,
+    x_groups,
+)
+from calib.boresight.work.sparse import design_matrix, knot_matrix
 
 CHANNELS = 6
 #: the knot normal equations have this lower bandwidth: two knots × six channels, minus one
@@ -161,13 +176,15 @@ def bridge(grid: KnotGrid, t_s: np.ndarray, tau_s: np.ndarray) -> Bridge:
     if grid.exact:
         w = np.broadcast_to(d1 / (d1 + d2), (t_s.size, CHANNELS))
         return Bridge(k, 1.0 - w, w.copy(), np.zeros((t_s.size, CHANNELS)))
-    tau = np.asarray(tau_s, float)[None, :]
+    # once per distinct τ (channels that share one share their columns)
+    taus, column = np.unique(np.asarray(tau_s, float), return_inverse=True)
+    tau = taus[None, :]
     p1, p2 = np.exp(-d1 / tau), np.exp(-d2 / tau)
     den = -np.expm1(-2.0 * (d1 + d2) / tau)  # 1 − φ², accurate for short intervals
     a = p1 * -np.expm1(-2.0 * d2 / tau) / den
     b = p2 * -np.expm1(-2.0 * d1 / tau) / den
     var = np.clip(1.0 - a * p1 - b * p2, 0.0, None)
-    return Bridge(k, a, b, var)
+    return Bridge(k, a[:, column], b[:, column], var[:, column])
 
 
 def prior_banded(grid: KnotGrid, tau_s: np.ndarray) -> np.ndarray:
@@ -226,40 +243,6 @@ def frame_for(obs: Observations, model: ErrorModel, knots_per_tau: float) -> _Fr
     return _Frame(grid, bridge(grid, obs.t_gps_s, tau), prior_banded(grid, tau), log_det_prior(grid, tau))
 
 
-def design_matrix(lin, layout: Layout, obs: Observations) -> sp.csr_matrix:
-    """A (n × p) as a sparse matrix: the dense boresight/extras columns, three plane columns and
-    (with pass offsets) three offset columns per row."""
-    n = len(obs)
-    cols = [
-        np.broadcast_to(np.arange(3), (n, 3)),
-        *(np.full((n, 1), layout.i_extra + i) for i in range(len(layout.extras))),
-    ]
-    vals = [lin.A_boresight, *(lin.A_extra[name][:, None] for name in layout.extras)]
-    cols.append(layout.i_plane + 3 * obs.plane_index[:, None] + np.arange(3))
-    vals.append(lin.A_plane)
-    if layout.offsets:
-        cols.append(layout.i_offset + 3 * obs.pass_index[:, None] + np.arange(3))
-        vals.append(lin.A_offset)
-    c = np.concatenate(cols, axis=1)
-    v = np.concatenate(vals, axis=1)
-    per_row = c.shape[1]
-    return sp.csr_matrix(
-        (v.reshape(-1), c.reshape(-1), np.arange(0, n * per_row + 1, per_row)), shape=(n, layout.n)
-    )
-
-
-def knot_matrix(lin, obs: Observations, fr: _Frame) -> sp.csr_matrix:
-    """J (n × 6K): ``B_ic σ_ic`` times the bridge weights of the point's two knots."""
-    n = len(obs)
-    g = lin.B[:, :CHANNELS] * obs.sigma_l[:, :CHANNELS]
-    v = np.concatenate([g * fr.br.a, g * fr.br.b], axis=1)
-    c = CHANNELS * fr.br.k[:, None] + np.arange(2 * CHANNELS)
-    return sp.csr_matrix(
-        (v.reshape(-1), c.reshape(-1), np.arange(0, n * 2 * CHANNELS + 1, 2 * CHANNELS)),
-        shape=(n, CHANNELS * fr.grid.n),
-    )
-
-
 #: a scanner residual of the Gauss–Helmert linearization is clipped to this many σ
 MAX_RESIDUAL_SIGMA = 5.0
 
@@ -271,23 +254,55 @@ def range_sigma_m(lin, obs: Observations) -> np.ndarray:
     """Each point's range σ: the observations' (constant and range-proportional parts) plus the
     beam footprint on a surface at incidence θ, ρ·(divergence/2)·tan θ (``|B_range|`` is cos θ:
     the plane normal against the unit beam direction); θ is capped at 89°."""
-    sig = obs.sigma_l[:, 6]
-    if obs.beam_half_divergence_rad == 0.0:
-        return sig
-    c = np.clip(np.abs(lin.B[:, 6]), COS_GRAZING, 1.0)
-    return sig + obs.l[:, 6] * obs.beam_half_divergence_rad * np.sqrt(1.0 - c * c) / c
+    return _range_sigma_rows(lin.B[:, 6], obs.sigma_l[:, 6], obs.l[:, 6], obs.beam_half_divergence_rad)
 
 
-def white_variance(lin, obs: Observations, fr: _Frame, plane_var_m2: np.ndarray) -> np.ndarray:
-    """m_i: range and scan-angle noise, the POS bridge variance and the plane's roughness."""
-    bs = (lin.B[:, :CHANNELS] * obs.sigma_l[:, :CHANNELS]) ** 2
-    scanner = (lin.B[:, 6] * range_sigma_m(lin, obs)) ** 2 + (lin.B[:, 7] * obs.sigma_l[:, 7]) ** 2
-    return scanner + np.einsum("ij,ij->i", bs, fr.br.var) + plane_var_m2[obs.plane_index]
+def _range_sigma_rows(b_range, sigma_range_m, range_m, beam_half_divergence_rad: float) -> np.ndarray:
+    if beam_half_divergence_rad == 0.0:
+        return sigma_range_m
+    c = np.clip(np.abs(b_range), COS_GRAZING, 1.0)
+    return sigma_range_m + range_m * beam_half_divergence_rad * np.sqrt(1.0 - c * c) / c
+
+
+def white_variance(
+    lin, obs: Observations, fr: _Frame, plane_var_m2: np.ndarray, out: np.ndarray | None = None
+) -> np.ndarray:
+    """m_i: range and scan-angle noise, the POS bridge variance and the plane's roughness
+    (in blocks of points, into ``out`` when given)."""
+    n = len(obs)
+    out = np.empty(n) if out is None else out
+    has_bridge = bool(np.any(fr.br.var))
+    for lo in range(0, n, POINT_BLOCK):
+        sl = slice(lo, min(lo + POINT_BLOCK, n))
+        out[sl] = _white_variance_rows(lin, obs, fr, plane_var_m2, sl, has_bridge)
+    return out
+
+
+def _white_variance_rows(lin, obs: Observations, fr: _Frame, plane_var_m2, sl: slice, has_bridge: bool):
+    """:func:`white_variance` of the points in ``sl`` (``has_bridge``: any bridge variance)."""
+    B, sig = lin.B[sl], obs.sigma_l[sl]
+    rs = _range_sigma_rows(B[:, 6], sig[:, 6], obs.l[sl, 6], obs.beam_half_divergence_rad)
+    m = (B[:, 6] * rs) ** 2 + (B[:, 7] * sig[:, 7]) ** 2
+    if has_bridge:
+        m += np.einsum("ij,ij->i", (B[:, :CHANNELS] * sig[:, :CHANNELS]) ** 2, fr.br.var[sl])
+    return m + plane_var_m2[obs.plane_index[sl]]
+
+
+def _write_rows(work: _Work, lin, layout: Layout, obs: Observations, fr: _Frame, plane_var_m2) -> np.ndarray:
+    """Each point's white variance (into ``work.m``, returned) and its weighted row into the
+    plan's buffer (the rows in smaller blocks: a block of rows stays in L2)."""
+    n = len(obs)
+    m = white_variance(lin, obs, fr, plane_var_m2, out=work.m)
+    for lo in range(0, n, WRITE_BLOCK):
+        sl = slice(lo, min(lo + WRITE_BLOCK, n))
+        work.plan.write_rows(lo, sl.stop, gls_row_values(lin, layout, work.knots, sl), 1.0 / np.sqrt(m[sl]))
+    return m
 
 
 def scanner_residuals(lin, obs: Observations, k: np.ndarray, plane_var_m2: np.ndarray) -> np.ndarray:
     """v (n, 2): the range and scan-angle residuals of the Gauss–Helmert adjustment for the
-    correlates ``k`` (``C⁻¹`` times the misclosures after the fit: ``ε/m`` here), ``−Q Bᵀ k``.
+    correlates ``k`` (``C⁻¹`` times the misclosures after the fit: ``ε/m`` here), ``−Q Bᵀ k``
+    (in blocks of points).
 
     The range's ``Q`` holds the plane's roughness as well, at ``σ²/cos²θ`` (incidence θ): a
     surface standing off its plane by s moves the return along the beam by s/cos θ, exactly as
@@ -295,30 +310,66 @@ def scanner_residuals(lin, obs: Observations, k: np.ndarray, plane_var_m2: np.nd
     0.25° → 0.08° on a 45° line). Each residual is kept within ±:data:`MAX_RESIDUAL_SIGMA` of
     its σ: far from the solution, or at an outlier, a misclosure is not noise and must not move
     the linearization far."""
-    cos_incidence = np.clip(np.abs(lin.B[:, 6]), COS_GRAZING, 1.0)
-    q_range = range_sigma_m(lin, obs) ** 2 + plane_var_m2[obs.plane_index] / cos_incidence**2
-    sigma = np.stack([np.sqrt(q_range), obs.sigma_l[:, 7]], axis=1)
-    v = -(sigma**2) * lin.B[:, 6:8] * k[:, None]
-    return np.clip(v, -MAX_RESIDUAL_SIGMA * sigma, MAX_RESIDUAL_SIGMA * sigma)
+    n = len(obs)
+    out = np.empty((n, 2))
+    for lo in range(0, n, POINT_BLOCK):
+        sl = slice(lo, min(lo + POINT_BLOCK, n))
+        B = lin.B[sl]
+        cos_incidence = np.clip(np.abs(B[:, 6]), COS_GRAZING, 1.0)
+        rs = _range_sigma_rows(B[:, 6], obs.sigma_l[sl, 6], obs.l[sl, 6], obs.beam_half_divergence_rad)
+        q_range = rs**2 + plane_var_m2[obs.plane_index[sl]] / cos_incidence**2
+        sigma = np.stack([np.sqrt(q_range), obs.sigma_l[sl, 7]], axis=1)
+        v = -(sigma**2) * B[:, 6:8] * k[sl, None]
+        np.clip(v, -MAX_RESIDUAL_SIGMA * sigma, MAX_RESIDUAL_SIGMA * sigma, out=out[sl])
+    return out
 
 
-def linearize_adjusted(obs: Observations, state: State, r_nom, v: np.ndarray, latency: bool, bases):
+def linearize_adjusted(
+    obs: Observations,
+    state: State,
+    r_nom,
+    v: np.ndarray,
+    latency: bool,
+    bases,
+    buffers: LinearizationBuffers | None = None,
+):
     """The linearization at the observations with the scanner residuals ``v`` (n, 2) added,
-    its misclosure ``F(l + v) − B v`` (module docstring)."""
-    l_obs = observations_at(obs, state, latency).copy()
-    l_obs[:, 6:8] += v
+    its misclosure ``F(l + v) − B v`` (module docstring); into ``buffers`` when given."""
+    l_at = observations_at(obs, state, latency)
+    if buffers is None:
+        l_obs = l_at.copy()
+        l_obs[:, 6:8] += v
+    else:
+        l_obs = buffers.observations(l_at, v)
     rates = pose_rates(obs.latency_trajectory(), obs.t_gps_s + state.latency_s) if latency else None
-    lin = linearize(state, r_nom, obs.plane_index, obs.pass_index, l_obs, rates, bases)
-    lin.F -= np.einsum("ij,ij->i", lin.B[:, 6:8], v)
+    if buffers is None:
+        lin = linearize(state, r_nom, obs.plane_index, obs.pass_index, l_obs, rates, bases)
+    else:
+        lin = buffers.linearize(state, r_nom, obs.plane_index, obs.pass_index, l_obs, rates, bases)
+    lin.F -= lin.B[:, 6] * v[:, 0] + lin.B[:, 7] * v[:, 1]
     return lin
 
 
-def _to_banded(M: sp.spmatrix, size: int) -> np.ndarray:
-    coo = sp.coo_matrix(M)
-    keep = coo.row >= coo.col
-    ab = np.zeros((BANDWIDTH + 1, size))
-    np.add.at(ab, (coo.row[keep] - coo.col[keep], coo.col[keep]), coo.data[keep])
-    return ab
+@dataclass
+class _Work:
+    """What one solution reuses across its iterations: the sorted, chunked layout of the
+    points and its buffers (:class:`GramPlan`), the knot weights ``σ·a`` and ``σ·b``, the block
+    layout of the banded solve and the white variances' buffer."""
+
+    plan: GramPlan
+    knots: KnotWeights
+    blocks: BlockLayout
+    m: np.ndarray  # (n,) white variance, rewritten every iteration
+    e: np.ndarray  # (n,) the white misclosures after the step
+    k: np.ndarray  # (n,) their correlates e / m
+
+
+def work_for(obs: Observations, layout: Layout, fr: _Frame) -> _Work:
+    columns, n_groups = layout_columns(layout, len(obs.pass_ids))
+    plan = GramPlan(x_groups(obs, layout), fr.br.k, fr.grid.n, columns, n_groups)
+    blocks = block_layout(CHANNELS * fr.grid.n, BANDWIDTH)
+    n = len(obs)
+    return _Work(plan, knot_weights(obs.sigma_l, fr.br), blocks, np.empty(n), np.empty(n), np.empty(n))
 
 
 @dataclass
@@ -329,33 +380,50 @@ class _System:
     v: np.ndarray  # L⁻¹ g_a
     chol: np.ndarray  # L in lower banded form
     m: np.ndarray
-    A: sp.csr_matrix
-    J: sp.csr_matrix
+    _lin: Linearization
+    _layout: Layout
+    _obs: Observations
+    _fr: _Frame
+
+    @cached_property
+    def A(self) -> sp.csr_matrix:
+        """The design matrix (n × p), built when asked (the group tests)."""
+        return design_matrix(self._lin, self._layout, self._obs)
+
+    @cached_property
+    def J(self) -> sp.csr_matrix:
+        """The knot matrix (n × 6K), built when asked (the group tests)."""
+        return knot_matrix(self._lin, self._obs, self._fr)
 
 
 def assemble(
-    lin, layout, obs, fr: _Frame, plane_var_m2, state: State, prior_sigma, boresight_prior=None
+    lin,
+    layout,
+    obs,
+    fr: _Frame,
+    plane_var_m2,
+    state: State,
+    prior_sigma,
+    boresight_prior=None,
+    work: _Work | None = None,
 ) -> _System:
-    m = white_variance(lin, obs, fr, plane_var_m2)
-    A, J = design_matrix(lin, layout, obs), knot_matrix(lin, obs, fr)
-    w = 1.0 / m
-    Aw, Jw = sp.diags(w) @ A, sp.diags(w) @ J
-    N_xx = (A.T @ Aw).toarray()
-    N_xa = (A.T @ Jw).toarray()
-    g_x, g_a = Aw.T @ lin.F, Jw.T @ lin.F
-    ab = _to_banded(J.T @ Jw, CHANNELS * fr.grid.n) + fr.prior
-    try:
-        chol = cholesky_banded(ab, lower=True)
-    except np.linalg.LinAlgError:
-        raise ObservabilityError(
-            "the POS error processes are not determined (knot normal matrix singular)"
-        ) from None
+    """The normal equations of one iteration reduced to the unknowns (the Schur complement over
+    the knots), in the work arrays of ``work`` (made here when not given)."""
+    work = work if work is not None else work_for(obs, layout, fr)
+    m = _write_rows(work, lin, layout, obs, fr, plane_var_m2)
+    nb = work.plan.normals()
+    nb.ab += fr.prior
+    if not np.all(np.isfinite(nb.ab)):  # as cholesky_banded checks
+        raise ValueError("array must not contain infs or NaNs")
+    chol, info = dpbtrf(nb.ab, lower=1, overwrite_ab=1)  # what cholesky_banded calls
+    if info != 0:
+        raise ObservabilityError("the POS error processes are not determined (knot normal matrix singular)")
     # one triangular banded solve (half of N_aa⁻¹): S = N_xx − (L⁻¹N_ax)ᵀ(L⁻¹N_ax)
-    W = _tb_solve(chol, N_xa.T)
-    v = _tb_solve(chol, g_a)
-    S = N_xx - W.T @ W
+    W = solve_lower(chol, nb.N_ax, work.blocks, overwrite=True)
+    v = _tb_solve(chol, nb.g_a)
+    S = nb.N_xx - _gram(W)
     S = 0.5 * (S + S.T)
-    r = g_x - W.T @ v
+    r = nb.g_x - W.T @ v
     if prior_sigma is not None:
         wt = 1.0 / prior_sigma.reshape(-1) ** 2
         idx = np.arange(layout.i_offset, layout.n)
@@ -365,7 +433,13 @@ def assemble(
         wt = 1.0 / boresight_prior[1] ** 2
         S[0:3, 0:3] += np.diag(wt)
         r[0:3] += wt * (state.boresight_rad - boresight_prior[0])
-    return _System(S, r, W, v, chol, m, A, J)
+    return _System(S, r, W, v, chol, m, lin, layout, obs, fr)
+
+
+def _gram(W: np.ndarray) -> np.ndarray:
+    """Wᵀ W (symmetric, from one ``dsyrk`` on the row-major W)."""
+    upper = dsyrk(1.0, W.T, trans=0, lower=0)
+    return np.triu(upper) + np.triu(upper, 1).T
 
 
 def _tb_solve(chol: np.ndarray, b: np.ndarray, transpose: bool = False) -> np.ndarray:
@@ -390,11 +464,14 @@ def solve_gls(
     plane_var_m2: np.ndarray | None = None,
     fr: _Frame | None = None,
     rough_planes: np.ndarray | None = None,
+    first_lin: Linearization | None = None,
 ) -> GlsSolution:
     """The iterated GLS solution from ``state`` (linearized at the observations each time).
 
     ``rough_planes``: planes whose roughness variance is re-estimated from the residuals at
-    every iteration (:func:`roughness_update`) until the steps and the variances settle."""
+    every iteration (:func:`roughness_update`) until the steps and the variances settle.
+    ``first_lin``: the linearization at ``state`` and the observations, when the caller has
+    made it already (the first iteration's; without latency estimated)."""
     layout = Layout(len(obs.plane_names), len(obs.pass_ids), options.estimate)
     est_latency = "latency" in layout.extras
     fr = fr if fr is not None else frame_for(obs, model, options.knots_per_tau)
@@ -404,15 +481,22 @@ def solve_gls(
     bs_prior = None if options.boresight_prior_rad is None else np.asarray(options.boresight_prior_rad, float)
     converged, it = False, 0
     v = np.zeros((len(obs), 2))  # the scanner residuals (range, scan angle)
+    work = work_for(obs, layout, fr)
+    # the caller's first linearization becomes the buffers of the next ones (it is not kept)
+    buffers = LinearizationBuffers(len(obs), est_latency, first_lin)
     for it in range(1, options.max_iterations + 1):
         bases = tangent_bases(state.normals)
-        lin = linearize_adjusted(obs, state, r_nom, v, est_latency, bases)
-        sys = assemble(lin, layout, obs, fr, pv, state, prior_sigma, bs_prior)
+        if it == 1 and first_lin is not None:
+            lin = first_lin
+        else:
+            lin = linearize_adjusted(obs, state, r_nom, v, est_latency, bases, buffers)
+        sys = assemble(lin, layout, obs, fr, pv, state, prior_sigma, bs_prior, work)
         dx = solve_normal(sys.S, -sys.r, obs, layout)
         z = knots_from_step(sys, dx)
-        e = lin.F + sys.A @ dx + sys.J @ z  # the white part of each misclosure after the fit
+        # the white part of each misclosure after the fit: F + A dx + J z
+        e = white_misclosure(work.plan, sys.m, dx, z, out=work.e)
         state = _apply(state, dx, layout, bases)
-        v = scanner_residuals(lin, obs, e / sys.m, pv)
+        v = scanner_residuals(lin, obs, np.divide(e, sys.m, out=work.k), pv)
         settled = True
         new = pv
         if rough.size and it < options.max_iterations:
@@ -464,11 +548,11 @@ def roughness_update(e, m, pv, plane_index, planes) -> np.ndarray:
     degrees of freedom (a simplified Helmert variance-component estimate)."""
     out = pv.copy()
     n = np.bincount(plane_index, minlength=pv.size)
-    e2 = np.bincount(plane_index, e**2, minlength=pv.size)
+    e2 = np.bincount(plane_index, e * e, minlength=pv.size)
     base = np.bincount(plane_index, m, minlength=pv.size) - n * pv
-    for j in planes:
-        if n[j] > 3:
-            out[j] = max(0.0, float(e2[j] / (n[j] - 3) - base[j] / n[j]))
+    j = np.asarray(planes, int)
+    j = j[n[j] > 3]  # every plane at once
+    out[j] = np.maximum(0.0, e2[j] / (n[j] - 3) - base[j] / n[j])
     return out
 
 

@@ -1,0 +1,8 @@
+"""Work arrays of the GLS estimator (:mod:`calib.boresight.gls`), reused across its iterations.
+
+- :mod:`.normals`: the normal equations assembled as segment Gram matrices (points grouped by
+  their unknowns and their knot interval; one batched matrix product per iteration into
+  buffers allocated once per solution), never a sparse design matrix;
+- :mod:`.banded`: a blocked triangular solve with a banded factor and many right-hand sides
+  (level-3 BLAS instead of one level-2 sweep per column).
+"""
