@@ -395,6 +395,31 @@ def _block_variances(g, w, theta, rho_meas, rho, alpha, scanner, k: _Constants, 
     return var_h, var_v
 
 
+def _interval_index(tt: np.ndarray, tb: np.ndarray) -> np.ndarray:
+    """The trajectory interval of each time ``tb``: ``searchsorted(tt, tb, "right") − 1`` clipped
+    to [0, m − 2]. For time-sorted ``tb`` longer than ``tt`` (a profiler's block), counted from
+    where each epoch falls among them — tt[j] ≤ tb[i] exactly when i ≥ searchsorted(tb, tt[j]) —
+    instead of a search per point: the same integers."""
+    if tt.size < tb.size and bool(np.all(tb[1:] >= tb[:-1])):  # (False with a NaN: searched then)
+        first = np.searchsorted(tb, tt, side="left")
+        kb = np.bincount(first, minlength=tb.size + 1)[: tb.size].cumsum()
+    else:
+        kb = np.searchsorted(tt, tb, side="right")
+    kb -= 1
+    return np.clip(kb, 0, tt.size - 2, out=kb)
+
+
+def _outputs(n: int, dtype, out: tuple[np.ndarray, np.ndarray] | None) -> tuple[np.ndarray, np.ndarray]:
+    """The arrays :func:`point_sigmas` writes into: ``out`` (checked), else new ones of ``dtype``."""
+    if out is None:
+        return np.empty(n, dtype), np.empty(n, dtype)
+    if len(out) != 2 or any(o.shape != (n,) or o.dtype.kind != "f" for o in out):
+        raise TpuError(
+            f"out must be two float arrays of {n} elements, got {[(o.shape, o.dtype) for o in out]}"
+        )
+    return out[0], out[1]
+
+
 def point_sigmas(
     t_gps_s,
     range_m,
@@ -405,11 +430,14 @@ def point_sigmas(
     mount_cov: MountCovariance,
     block: int = 65536,
     dtype=np.float64,
+    out: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Horizontal radial and vertical 1σ (m) of each georeferenced point: ``sigma_h_m =
     sqrt(Σ_NN + Σ_EE)``, ``sigma_v_m = sqrt(Σ_DD)`` of :func:`point_covariance`, computed
     ``block`` points at a time (memory: a few dozen floats per point of a block, plus the
-    outputs, of ``dtype`` float64 or float32).
+    outputs, of ``dtype`` float64 or float32). ``out``: two arrays of n floats (views too, e.g.
+    the fields of a structured array) to write σ_h and σ_v into, instead of new arrays of
+    ``dtype``; the values are those of new arrays of their own dtype.
 
     Raises :class:`TrajectoryError` if the trajectory does not cover the point times (+ Δt).
     """
@@ -421,7 +449,7 @@ def point_sigmas(
         raise TpuError(f"dtype must be float32 or float64, got {dtype!r}")
     block = int(block)
     n = t.size
-    sigma_h_m, sigma_v_m = np.empty(n, dtype), np.empty(n, dtype)
+    sigma_h_m, sigma_v_m = _outputs(n, dtype, out)
     if n == 0:
         return sigma_h_m, sigma_v_m
     tab, theta, inv_dt = _interval_table(traj)
@@ -440,9 +468,7 @@ def point_sigmas(
             if len(bad_times) < 16:
                 bad_times.append(tb[bad])
             continue
-        kb = np.searchsorted(tt, tb, side="right")
-        kb -= 1
-        np.clip(kb, 0, tt.size - 2, out=kb)
+        kb = _interval_index(tt, tb)
         w = tb - tt.take(kb)
         w *= inv_dt.take(kb)
         g = tab.take(kb, axis=1) if pos_sig else tab[:9].take(kb, axis=1)

@@ -95,7 +95,10 @@ def _quantiles(v: np.ndarray) -> dict[str, float]:
     return {"median": round(float(q[0]), 5), "p95": round(float(q[1]), 5), "max": round(float(v.max()), 5)}
 
 
-def _header(crs: OutputCrs, source_id: int, software: str, provenance: dict, date: _dt.date):
+def tile_header(crs: OutputCrs, source_id: int, software: str, provenance: dict, date: _dt.date):
+    """The LAS 1.4 header of a tile (point format 6, the WKT and provenance VLRs, the extra
+    bytes ``pass_id``, ``sigma_h_m``, ``sigma_v_m``): every writer of a tile starts from it
+    (:func:`write_tile`, :mod:`office.deliver.lasrecords`)."""
     import laspy
     from laspy.vlrs.known import WktCoordinateSystemVlr
 
@@ -216,7 +219,7 @@ def write_tile(
             if writer is None:
                 # one source id per file: the line's (LAS's u16, else 0); square tiles mix lines
                 source_id = las_source_id(int(ids[0])) if ids.size == 1 else 0
-                header = _header(crs, source_id, software, provenance, _survey_date(first_t_gps_s))
+                header = tile_header(crs, source_id, software, provenance, _survey_date(first_t_gps_s))
                 writer = laspy.open(
                     partial,
                     mode="w",

@@ -30,6 +30,7 @@ from office.deliver.chunkjob import (
     ChunkContext,
     ChunkDone,
     ChunkTask,
+    chunk_complete,
     chunk_record_path,
     process_chunk,
     slice_trajectory,
@@ -209,7 +210,15 @@ def _georef(
     )
     _write_summary(result, options)
     shutil.rmtree(state_dir(out) / "parts", ignore_errors=True)
+    _remove_orphans(out)
     return result
+
+
+def _remove_orphans(out: Path) -> None:
+    """Remove the temporaries of the job's state that a worker killed while writing them left
+    (``.<name>.<pid>.tmp``: every task is done, none of them is written any more)."""
+    for tmp in state_dir(out).rglob(".*.tmp"):
+        tmp.unlink(missing_ok=True)
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -357,7 +366,9 @@ class _JobRun:
             np.array(source.lines, np.int64).reshape(-1, 3),
         )
         self.line_chunks = _line_chunks(source, options)
-        self.todo = [c for c in source.chunks if not chunk_record_path(out, c.index).exists()]
+        self.todo = [c for c in source.chunks if not chunk_complete(out, c.index)]
+        for c in self.todo:  # a record whose parts were lost: the chunk runs again
+            chunk_record_path(out, c.index).unlink(missing_ok=True)
         self.records = read_chunk_records(out)
         self.submitted: dict[str, tuple[int, ...]] = {}  # file → its chunks, as submitted (or found done)
         self.rss: dict[int, float] = {}

@@ -17,7 +17,7 @@ from __future__ import annotations
 from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, cast
 
 import numpy as np
 
@@ -75,11 +75,10 @@ def _windows(t0_ns: int, t1_ns: int, chunk_ns: int) -> list[tuple[int, int]]:
 def _segment_span(path: Path) -> tuple[int, int] | None:
     """(first, last) log time of the /lidar/raw messages of a segment: from its summary, else by
     scanning it."""
-    from mcap.reader import make_reader
+    from acquire.log.indexed import segment_summary
 
     try:
-        with open(path, "rb") as f:
-            summary = make_reader(f).get_summary()
+        summary = segment_summary(path)
         if summary is not None and summary.statistics is not None:
             ids = [c.id for c in summary.channels.values() if c.topic == LIDAR_TOPIC]
             if not any(summary.statistics.channel_message_counts.get(i, 0) for i in ids):
@@ -110,78 +109,128 @@ def _scan_lidar(path: Path, t0_ns: int | None, t1_ns: int | None) -> Iterator[tu
                 yield rec.log_time, rec.data
 
 
-def _lidar_messages(path: Path, t0_ns: int, t1_ns: int):
-    from acquire.log.indexed import indexed_messages
-
-    try:
-        fast = indexed_messages(path, [LIDAR_TOPIC], t0_ns, t1_ns)
-    except OSError as e:
-        raise GeorefError(f"{path}: cannot read the segment ({e.strerror or e})") from None
-    if fast is None:  # not closed normally: scanned up to its torn tail
-        yield from _scan_lidar(path, t0_ns, t1_ns)
-        return
-    for m in fast:
-        yield m.log_time, m.data
-
-
-def read_session_chunk(spec: ChunkSpec) -> Returns:
-    """Decode the profiler datagrams of one session chunk into returns (module docstring)."""
-    from drivers.base import DriverError
-    from drivers.zf.codec import FLAG_PPS_LOCKED, FLAG_TIME_VALID
-    from drivers.zf.zfp1 import CRC_SIZE, HEADER_SIZE, POINT_DTYPE, RANGE_UNIT_M, decode_packet, scan_packets
-
-    assert spec.segment is not None
-    log_t, grams = [], []
-    for t, raw in _lidar_messages(Path(spec.segment), spec.t0_ns, spec.t1_ns):
+def _scanned_datagrams(path: Path, t0_ns: int, t1_ns: int) -> tuple[np.ndarray, list[memoryview]]:
+    """:func:`_datagrams` of a segment without an index (scanned up to its torn tail)."""
+    log_t: list[int] = []
+    grams: list[memoryview] = []
+    for t, raw in _scan_lidar(path, t0_ns, t1_ns):
         hs = int.from_bytes(raw[2:4], "little")
         log_t.append(t)
-        grams.append(bytes(raw[hs:]))
-    counters = {"datagrams": len(grams), "bad_datagrams": 0, "duplicates": 0, "unsynced_packets": 0}
-    empty = Returns(np.zeros(0, np.int64), np.zeros(0), np.zeros(0), np.zeros(0, np.uint16), None, counters)
+        grams.append(memoryview(raw)[hs:])
+    return np.asarray(log_t, np.int64), grams
+
+
+def _datagrams(spec: ChunkSpec) -> tuple[np.ndarray, list[memoryview]]:
+    """(log times, datagrams) of the chunk's profiler messages; the datagrams are views of the
+    decompressed MCAP chunks (their bytes are copied once, into the chunk's points), located a
+    chunk at a time (:func:`acquire.log.indexed.indexed_blocks`), not parsed one by one."""
+    from acquire.log.indexed import indexed_blocks
+
+    assert spec.segment is not None
+    path = Path(spec.segment)
+    try:
+        found = indexed_blocks(path, [LIDAR_TOPIC], spec.t0_ns, spec.t1_ns)
+    except OSError as e:
+        raise GeorefError(f"{path}: cannot read the segment ({e.strerror or e})") from None
+    if found is None:  # not closed normally: scanned up to its torn tail
+        return _scanned_datagrams(path, spec.t0_ns, spec.t1_ns)
+    times: list[np.ndarray] = []
+    grams: list[memoryview] = []
+    for block in found[1]:
+        buf = np.frombuffer(block.records, np.uint8)
+        # each message: the daemon's envelope (its size, u16 at byte 2), then the datagram
+        envelope = buf[block.data_start + 2].astype(np.int64) | (
+            buf[block.data_start + 3].astype(np.int64) << 8
+        )
+        view = memoryview(block.records)
+        grams += [
+            view[a:b]
+            for a, b in zip((block.data_start + envelope).tolist(), block.data_end.tolist(), strict=True)
+        ]
+        times.append(block.log_time)
+    return (np.concatenate(times) if times else np.zeros(0, np.int64)), grams
+
+
+def _packet_headers(
+    log_t: np.ndarray, grams: list[memoryview], counters: dict[str, int]
+) -> tuple[np.ndarray, np.ndarray, list[memoryview]] | None:
+    """(headers, log times, datagrams) of the valid packets (the others counted as bad); None
+    when there is none."""
+    from drivers.base import DriverError
+    from drivers.zf.zfp1 import decode_packet, scan_packets
+
     if not grams:
-        return empty
-    head = scan_packets(grams)
-    if head is None:  # one at least is not a valid packet: keep the good ones, count the rest
-        good = []
-        for j, g in enumerate(grams):
-            try:
-                decode_packet(g)
-                good.append(j)
-            except DriverError:
-                counters["bad_datagrams"] += 1
-        grams = [grams[i] for i in good]
-        log_t = [log_t[i] for i in good]
-        head = scan_packets(grams) if grams else None
-        if head is None:
-            return empty
-    log_ns = np.asarray(log_t, np.int64)
+        return None
+    # (the decoder reads any buffer: views, not copies)
+    head = scan_packets(cast("list[bytes]", grams))
+    if head is not None:
+        return head, log_t, grams
+    good = []  # one at least is not a valid packet: keep the good ones, count the rest
+    for j, g in enumerate(grams):
+        try:
+            decode_packet(cast(bytes, g))
+            good.append(j)
+        except DriverError:
+            counters["bad_datagrams"] += 1
+    grams = [grams[i] for i in good]
+    log_t = log_t[np.asarray(good, np.intp)]
+    head = scan_packets(cast("list[bytes]", grams)) if grams else None
+    return None if head is None else (head, log_t, grams)
+
+
+def _first_copies(head: np.ndarray, counters: dict[str, int]) -> np.ndarray:
+    """Which packets are the first of their kind (profile, index, time): duplicates counted."""
     key = np.stack(
         [head["profile_counter"].astype(np.int64), head["packet_index"].astype(np.int64), head["t0_ns"]]
     )
     _, first = np.unique(key, axis=1, return_index=True)
-    keep = np.zeros(len(grams), bool)
+    keep = np.zeros(head.size, bool)
     keep[first] = True
     counters["duplicates"] = int((~keep).sum())
+    return keep
+
+
+def read_session_chunk(spec: ChunkSpec) -> Returns:
+    """Decode the profiler datagrams of one session chunk into returns (module docstring): every
+    quantity for the hits only (range > 0), taken from their packets once, sorted once."""
+    from drivers.zf.codec import FLAG_PPS_LOCKED, FLAG_TIME_VALID
+    from drivers.zf.zfp1 import CRC_SIZE, HEADER_SIZE, POINT_DTYPE, RANGE_UNIT_M
+
+    log_t, grams = _datagrams(spec)
+    counters = {"datagrams": len(grams), "bad_datagrams": 0, "duplicates": 0, "unsynced_packets": 0}
+    valid = _packet_headers(log_t, grams, counters)
+    if valid is None:
+        return Returns(
+            np.zeros(0, np.int64), np.zeros(0), np.zeros(0), np.zeros(0, np.uint16), None, counters
+        )
+    head, log_t, grams = valid
+    keep = _first_copies(head, counters)
     n = head["n_points"].astype(np.int64)
     n[~keep] = 0
-    pts = np.frombuffer(
-        b"".join(g[HEADER_SIZE : len(g) - CRC_SIZE] for g, k in zip(grams, keep, strict=True) if k),
-        POINT_DTYPE,
-    )
-    pk = np.repeat(np.arange(len(grams)), n)
-    i = np.arange(pts.size, dtype=np.int64) - np.repeat(np.cumsum(n) - n, n)
+    kept = grams if keep.all() else [g for g, k in zip(grams, keep.tolist(), strict=True) if k]
+    pts = np.frombuffer(b"".join([g[HEADER_SIZE:-CRC_SIZE] for g in kept]), POINT_DTYPE)
+    hit = np.flatnonzero(pts["range_01mm"] > 0)
+    pk = np.repeat(np.arange(len(grams)), n)[hit]
+    i = hit - (np.cumsum(n) - n)[pk]
     dt = head["dt_ns"].astype(np.int64)[pk]
     synced = (head["flags"] & FLAG_PPS_LOCKED).astype(bool) & (head["flags"] & FLAG_TIME_VALID).astype(bool)
     counters["unsynced_packets"] = int((~synced & keep).sum())
-    t = np.where(synced[pk], head["t0_ns"][pk] + i * dt, log_ns[pk] - (n[pk] - 1 - i) * dt)
+    t = head["t0_ns"][pk] + i * dt
+    if not synced.all():  # the others from their receipt
+        late = ~synced[pk]
+        t[late] = log_t[pk[late]] - (n[pk[late]] - 1 - i[late]) * dt[late]
+    if t.size > 1 and not bool(np.all(t[1:] >= t[:-1])):  # time order (a stable sort) when not already
+        order = np.argsort(t, kind="stable")
+        hit, pk, i, t = hit[order], pk[order], i[order], t[order]
     ang_udeg = head["angle0_udeg"].astype(np.int64)[pk] + i * head["dangle_udeg"].astype(np.int64)[pk]
-    hit = pts["range_01mm"] > 0
-    order = np.argsort(t[hit], kind="stable")
+    ang_deg = ang_udeg * 1e-6
+    if ang_udeg.size and not (ang_udeg.min() >= 0 and ang_udeg.max() < 360_000_000):
+        np.mod(ang_deg, 360.0, out=ang_deg)  # (within [0°, 360°) already it would change nothing)
     return Returns(
-        t[hit][order],
-        (pts["range_01mm"][hit].astype(np.float64) * RANGE_UNIT_M)[order],
-        np.radians(np.mod(ang_udeg[hit] * 1e-6, 360.0))[order],
-        pts["intensity"][hit][order],
+        t,
+        pts["range_01mm"][hit].astype(np.float64) * RANGE_UNIT_M,
+        np.radians(ang_deg, out=ang_deg),
+        pts["intensity"][hit],
         None,
         counters,
     )

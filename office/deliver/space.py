@@ -1,9 +1,10 @@
 """The disk space ``mls georef`` needs, checked before it starts; running out of it, an error.
 
-A job holds on disk, at its peak, every chunk's parts (``.georef/parts``: 54 bytes a point,
-:data:`calib.io.lastile.TILE_POINT_DTYPE`) and every tile (LAZ about 7–9 bytes a point, LAS 46),
+A job holds on disk, at its peak, every chunk's parts (``.georef/parts``: 46 bytes a point, the
+tiles' own LAS records, :mod:`office.deliver.lasrecords`) and every tile (LAZ about 7–9 bytes a point, LAS 46),
 the parts being removed only once every tile is written: several times the size of the tiles
-(measured on the simulated bundle and session of the tests: peak 64 bytes a return with LAZ,
+(measured on the simulated bundle and session of the tests, with parts of 54 bytes a point:
+peak 64 bytes a return with LAZ,
 102 with LAS; a session gave 0.17 returns a byte of MCAP segment). :func:`space_needed` adds a
 quarter to that; :func:`check_space` refuses a job whose need the file system of ``--out`` does
 not have free. Running out all the same (a disk shared with a recording daemon) is
@@ -20,7 +21,7 @@ from pathlib import Path
 from office.deliver.options import GeorefError
 
 #: bytes a return costs at the job's peak: its part, its share of a tile (LAZ, LAS)
-PART_BYTES = 54
+PART_BYTES = 46
 TILE_BYTES = {True: 16, False: 47}
 #: returns a byte of session segment holds (measured: 223,121 returns in 1,316,764 bytes)
 RETURNS_PER_SESSION_BYTE = 0.17

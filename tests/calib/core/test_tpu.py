@@ -86,7 +86,8 @@ def test_sigmas_equal_covariance_diagonal_across_blocks(wave_trajectory, sigmas)
     np.testing.assert_allclose(cov, cov.transpose(0, 2, 1), rtol=0, atol=1e-18)
     assert np.linalg.eigvalsh(cov).min() > 0
     sh, sv = point_sigmas(t, rho, alpha, traj, FULL_MOUNT, SCANNER, MOUNT_COV, block=777)
-    assert sh.dtype == np.float64 and sh.shape == sv.shape == (3000,)
+    assert sh.dtype == np.float64
+    assert sh.shape == sv.shape == (3000,)
     np.testing.assert_allclose(sh, np.sqrt(cov[:, 0, 0] + cov[:, 1, 1]), rtol=1e-12)
     np.testing.assert_allclose(sv, np.sqrt(cov[:, 2, 2]), rtol=1e-12)
     sh32, sv32 = point_sigmas(
@@ -97,14 +98,43 @@ def test_sigmas_equal_covariance_diagonal_across_blocks(wave_trajectory, sigmas)
     np.testing.assert_allclose(sv32, sv, rtol=1e-6)
 
 
+def test_sigmas_into_given_arrays_are_those_of_new_arrays(wave_trajectory):
+    traj = wave_trajectory(duration_s=3.0, sigmas=True)
+    t, rho, alpha = returns(traj, 2000, np.random.default_rng(5))
+    sh32, sv32 = point_sigmas(
+        t, rho, alpha, traj, FULL_MOUNT, SCANNER, MOUNT_COV, block=300, dtype=np.float32
+    )
+    rec = np.zeros(2000, [("a", "<i4"), ("sigma_h_m", "<f4"), ("b", "u1"), ("sigma_v_m", "<f4")])
+    got = point_sigmas(
+        t,
+        rho,
+        alpha,
+        traj,
+        FULL_MOUNT,
+        SCANNER,
+        MOUNT_COV,
+        block=300,
+        out=(rec["sigma_h_m"], rec["sigma_v_m"]),
+    )
+    assert got[0].base is rec or got[0].base is rec.base
+    assert rec["sigma_h_m"].tobytes() == sh32.tobytes()
+    assert rec["sigma_v_m"].tobytes() == sv32.tobytes()
+    assert not rec["a"].any()
+    assert not rec["b"].any()
+    with pytest.raises(TpuError, match="out must be two float arrays of 2000"):
+        point_sigmas(t, rho, alpha, traj, FULL_MOUNT, SCANNER, MOUNT_COV, out=(np.zeros(2000), np.zeros(3)))
+
+
 def test_trajectory_without_sigmas_contributes_nothing(wave_trajectory):
     with_s, without = wave_trajectory(sigmas=True), wave_trajectory(sigmas=False)
     t, rho, alpha = returns(with_s, 500, np.random.default_rng(3))
     zero = MountCovariance.zero()
     sh, sv = point_sigmas(t, rho, alpha, without, FULL_MOUNT, ScannerSigmas(), zero)
-    assert np.all(sh == 0) and np.all(sv == 0)
+    assert np.all(sh == 0)
+    assert np.all(sv == 0)
     sh, sv = point_sigmas(t, rho, alpha, with_s, FULL_MOUNT, ScannerSigmas(), zero)
-    assert np.all(sh > 0.028) and np.all(sv > 0.03)  # at least the position σ (2–3 cm and up)
+    assert np.all(sh > 0.028)
+    assert np.all(sv > 0.03)
 
 
 def test_hand_computed_sigmas_on_a_level_vessel():
@@ -183,7 +213,8 @@ def test_monte_carlo_spread_matches_predicted_sigmas_per_bin():
     t = sim.points.t_gps_s[keep]
     rho, alpha = sim.points.range_m[keep], sim.points.scan_angle_rad[keep]
     mount = replace(sim.mount_true, time_offset_s=0.0004, range_offset_m=0.003)
-    assert rho.min() < 15.0 and rho.max() > 45.0
+    assert rho.min() < 15.0
+    assert rho.max() > 45.0
 
     sigma_h, sigma_v = point_sigmas(t, rho, alpha, traj, mount, SCANNER, MOUNT_COV, block=4096)
 
@@ -208,6 +239,8 @@ def test_monte_carlo_spread_matches_predicted_sigmas_per_bin():
         np.cov(np.hstack([d_bs, d_la]), rowvar=False)[:3, :3], BORESIGHT_COV, rtol=1e-9
     )
     s1, s2 = np.zeros((n, 3)), np.zeros((n, 3))
+    assert poses.sigma_p_m is not None  # the trajectory carries its σ
+    assert poses.sigma_rpy_rad is not None
     for k in range(K):
         # POS errors per point with the trajectory's σ at that instant (drawn here: the
         # simulator's white_noise takes one σ per channel, not one per point)
@@ -270,7 +303,8 @@ def test_bad_mount_covariance_names_the_field(kwargs, field):
     args = {"boresight_cov_rad2": BORESIGHT_COV, "lever_arm_cov_m2": LEVER_COV} | kwargs
     with pytest.raises(TpuError, match=f"MountCovariance.{field}") as exc:
         MountCovariance(**args)
-    assert isinstance(exc.value, CalibError) and isinstance(exc.value, ValueError)
+    assert isinstance(exc.value, CalibError)
+    assert isinstance(exc.value, ValueError)
 
 
 @pytest.mark.parametrize(
@@ -293,6 +327,6 @@ def test_bad_observation_shapes_name_the_array(wave_trajectory):
         with pytest.raises(TpuError, match="t_gps_s has shape \\(\\)"):
             fn(t[0], np.ones(3), np.zeros(3), *rest)
         with pytest.raises(TpuError, match="mount_cov must be a MountCovariance"):
-            fn(t, np.ones(3), np.zeros(3), traj, Mount(), SCANNER, BORESIGHT_COV)
+            fn(t, np.ones(3), np.zeros(3), traj, Mount(), SCANNER, BORESIGHT_COV)  # type: ignore[arg-type]  # the wrong type on purpose
     with pytest.raises(TpuError, match="block"):
         point_sigmas(t, np.ones(3), np.zeros(3), *rest, block=0)

@@ -58,12 +58,19 @@ def test_line_tiles_hold_every_return_where_georeference_puts_it(bundle, tmp_pat
         got = np.stack([las.x, las.y, las.z], axis=1)
         assert np.abs(got - want).max() < 1.5e-4  # LAS resolution 0.1 mm
         assert np.allclose(frames.las_to_gps_seconds(las.gps_time), t[order], atol=1e-6)
-        assert np.all(las["pass_id"] == pid) and np.all(las.point_source_id == pid)
-        assert las.header.point_format.id == 6 and str(las.header.version) == "1.4"
+        assert np.all(las["pass_id"] == pid)
+        assert np.all(las.point_source_id == pid)
+        assert las.header.point_format.id == 6
+        assert str(las.header.version) == "1.4"
         sh, sv = np.asarray(las["sigma_h_m"]), np.asarray(las["sigma_v_m"])
-        assert np.all(sh > 0.005) and np.all(sv > 0.005) and np.all(sh < 1) and np.all(sv < 1)
+        assert np.all(sh > 0.005)
+        assert np.all(sv > 0.005)
+        assert np.all(sh < 1)
+        assert np.all(sv < 1)
     prov = read_provenance(tmp_path / "out" / "line-1.laz")
-    assert prov["calibration"] is None and prov["mount_id"] and prov["software"].startswith("marine-mls")
+    assert prov["calibration"] is None
+    assert prov["mount_id"]
+    assert prov["software"].startswith("marine-mls")
     summary = json.loads((tmp_path / "out" / "summary.json").read_text())
     assert summary["n_points"] == res.n_points == sum(len(t.points) for t in tiles.values())
     assert not (tmp_path / "out" / ".georef" / "parts").exists()  # parts gone after success
@@ -87,7 +94,8 @@ def test_a_calibration_sets_the_boresight_and_its_covariance_widens_sigma(bundle
     base = run_georef(bundle, tmp_path / "a", GeorefOptions())
     cal = run_georef(bundle, tmp_path / "b", GeorefOptions(), str(tmp_path / "result.json"))
     prov = read_provenance(tmp_path / "b" / "line-1.laz")
-    assert prov["boresight_deg"] == [0.2, 1.2, 0.15] and len(prov["result_fingerprint"]) == 64
+    assert prov["boresight_deg"] == [0.2, 1.2, 0.15]
+    assert len(prov["result_fingerprint"]) == 64
     assert prov["boresight_sigma_deg"] == pytest.approx([0.02, 0.02, 0.05])
     a, b = laspy.read(tmp_path / "a" / "line-1.laz"), laspy.read(tmp_path / "b" / "line-1.laz")
     assert np.all(np.asarray(b["sigma_h_m"]) >= np.asarray(a["sigma_h_m"]) - 1e-7)
@@ -118,7 +126,8 @@ def test_filters_leave_out_exactly_what_they_name(bundle, tmp_path):
     assert res.counters["returns"] == pts.t_gps_s.size
     dropped = sum(v for k, v in res.counters.items() if k.startswith(("outside", "below")))
     assert dropped == pts.t_gps_s.size - keep.sum()
-    assert "below_intensity_floor" in res.counters and "outside_scan_angle_window" in res.counters
+    assert "below_intensity_floor" in res.counters
+    assert "outside_scan_angle_window" in res.counters
 
 
 def test_the_vessel_box_leaves_out_the_returns_inside_it(bundle, tmp_path):
@@ -185,7 +194,9 @@ def test_a_killed_job_resumes_and_writes_the_same_bytes(bundle, tmp_path, stage)
     if stage == "process_chunk":
         assert res.chunks_run == res.chunks - 3
     else:
-        assert res.chunks_run == 0 and res.files_run == len(res.files) - len(done) and len(done) == 3
+        assert res.chunks_run == 0
+        assert res.files_run == len(res.files) - len(done)
+        assert len(done) == 3
     ref = {p.name: p.read_bytes() for p in (tmp_path / "ref").glob("*.laz")}
     got = {p.name: p.read_bytes() for p in (tmp_path / "out").glob("*.laz")}
     assert got == ref
@@ -240,9 +251,12 @@ def test_the_command_line(bundle, tmp_path):
         env={"COLUMNS": "200"},
     )
     assert r.exit_code == 0, r.output
-    assert "points in" in r.output and "summary.md" in r.output
+    assert "points in" in r.output
+    assert "summary.md" in r.output
     assert (tmp_path / "o" / "summary.md").read_text().startswith("# Survey deliverable")
     r = runner.invoke(app, ["georef", str(bundle), "--out", str(tmp_path / "o")])
-    assert r.exit_code == 1 and "--force" in r.output
+    assert r.exit_code == 1
+    assert "--force" in r.output
     r = runner.invoke(app, ["georef", str(bundle), "--out", str(tmp_path / "o"), "--resume", "--force"])
-    assert r.exit_code == 1 and "choose one" in r.output
+    assert r.exit_code == 1
+    assert "choose one" in r.output

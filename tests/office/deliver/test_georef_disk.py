@@ -17,9 +17,9 @@ from pathlib import Path
 import pytest
 from typer.testing import CliRunner
 
-import calib.io.lastile as lastile
 import office.deliver.chunkjob as chunkjob
 import office.deliver.engine as engine
+import office.deliver.lasrecords as lasrecords
 import office.deliver.space as space
 import office.deliver.tiles as tiles
 from calib.io.dirlock import LOCK_NAME
@@ -59,6 +59,7 @@ def leftovers(out: Path) -> list[str]:
 def wait_readable(fd: int, timeout_s: float, what: str, proc: subprocess.Popen) -> None:
     """Block until the pipe ``fd`` has a byte (the writer's signal), at most ``timeout_s``."""
     if not select.select([fd], [], [], timeout_s)[0]:
+        assert proc.stderr is not None  # the writer is started with its stderr piped
         state = "running" if proc.poll() is None else f"ended ({proc.returncode}): {proc.stderr.read()}"
         raise AssertionError(f"no signal within {timeout_s} s for {what}; the writer is {state}")
 
@@ -95,10 +96,14 @@ def test_a_second_writer_into_the_same_out_is_refused_naming_the_first(bundle, r
             second = mls("georef", str(bundle), "--out", str(out), "--chunk-s", "1", mode)
             assert second.returncode == 1, (mode, second.stdout, second.stderr)
             lines = second.stderr.strip().splitlines()
-            assert len(lines) == 1 and "Traceback" not in second.stderr, second.stderr
+            assert len(lines) == 1, second.stderr
+            assert "Traceback" not in second.stderr, second.stderr
             assert f"pid {first.pid} on {socket.gethostname()}" in lines[0]
-            assert "heldwriter" in lines[0] and "started 20" in lines[0] and str(out) in lines[0]
+            assert "heldwriter" in lines[0]
+            assert "started 20" in lines[0]
+            assert str(out) in lines[0]
         os.write(go_w, b"g")
+        assert first.stderr is not None  # started with its stderr piped
         assert first.wait(120) == 0, first.stderr.read()
     finally:
         if first.poll() is None:
@@ -124,7 +129,8 @@ def test_a_lock_left_by_a_dead_writer_is_no_obstacle(bundle, reference, tmp_path
     record = {"pid": dead.pid, "host": socket.gethostname(), "command": "mls georef", "started_utc": "x"}
     (out / LOCK_NAME).write_text(json.dumps(record))
     run_georef(bundle, out, OPTS)  # the stale lock is not content either: no --force needed
-    assert tiles_of(out) == reference and not (out / LOCK_NAME).exists()
+    assert tiles_of(out) == reference
+    assert not (out / LOCK_NAME).exists()
 
 
 def test_a_symlink_at_the_lock_path_is_refused_and_not_followed(bundle, tmp_path):
@@ -143,8 +149,11 @@ def test_a_job_the_disk_cannot_hold_is_refused_up_front(bundle, tmp_path, monkey
     with pytest.raises(GeorefError) as e:
         run_georef(bundle, tmp_path / "out", OPTS)
     msg = str(e.value)
-    assert "\n" not in msg and str(tmp_path / "out") in msg
-    assert "not enough free space" in msg and "MB free" in msg and "needs about" in msg
+    assert "\n" not in msg
+    assert str(tmp_path / "out") in msg
+    assert "not enough free space" in msg
+    assert "MB free" in msg
+    assert "needs about" in msg
     assert not (tmp_path / "out").exists()  # made for the job, left as it was: nothing
 
 
@@ -212,19 +221,22 @@ def test_a_disk_full_mid_job_is_one_line_leaves_no_temporary_and_resumes(
     with pytest.raises(GeorefError) as e:
         run_georef(bundle, out, OPTS)
     msg = str(e.value)
-    assert (
-        "\n" not in msg and str(out) in msg and "no space left" in msg and "MB" in msg and "--resume" in msg
-    )
+    assert "\n" not in msg
+    assert str(out) in msg
+    assert "no space left" in msg
+    assert "MB" in msg
+    assert "--resume" in msg
     assert leftovers(out) == []
     monkeypatch.undo()
     run_georef(bundle, out, OPTS, resume=True)
     assert tiles_of(out) == reference
-    assert leftovers(out) == [] and not (out / ".georef" / "parts").exists()
+    assert leftovers(out) == []
+    assert not (out / ".georef" / "parts").exists()
 
 
 def test_a_disk_full_while_a_tile_is_written_leaves_no_partial_file(bundle, reference, tmp_path, monkeypatch):
     out = tmp_path / "out"
-    real = lastile.write_tile
+    real = lasrecords.write_tile
     calls = {"n": 0}
 
     def fills_up(path, *args, **kwargs):
@@ -234,14 +246,37 @@ def test_a_disk_full_while_a_tile_is_written_leaves_no_partial_file(bundle, refe
             raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), str(path))
         return real(path, *args, **kwargs)
 
-    monkeypatch.setattr(lastile, "write_tile", fills_up)
+    monkeypatch.setattr(lasrecords, "write_tile", fills_up)
     r = CliRunner().invoke(app, ["georef", str(bundle), "--out", str(out), "--chunk-s", "1"])
-    assert r.exit_code == 1 and "no space left" in r.output, r.output
+    assert r.exit_code == 1, r.output
+    assert "no space left" in r.output, r.output
     assert isinstance(r.exception, SystemExit)  # MlsGroup's one line, no traceback
     assert leftovers(out) == []
     monkeypatch.undo()
     run_georef(bundle, out, OPTS, resume=True)
     assert tiles_of(out) == reference
+
+
+def test_parts_lost_with_the_power_run_their_chunks_again(bundle, reference, tmp_path, monkeypatch):
+    """The parts are not synced: a part the machine's power took (empty, or gone) is not taken
+    for a whole one; its chunk runs again on --resume, and the tiles are those of a clean run."""
+    out = tmp_path / "out"
+
+    def power_lost(*args, **kwargs):
+        raise OSError("power lost")
+
+    monkeypatch.setattr(lasrecords, "write_tile", power_lost)  # every chunk done, no tile yet
+    with pytest.raises(OSError, match="power lost"):
+        run_georef(bundle, out, OPTS)
+    monkeypatch.undo()
+    parts = sorted((out / ".georef" / "parts").rglob("*.npy"))
+    parts[0].write_bytes(b"")
+    parts[-1].write_bytes(b"\0" * parts[-1].stat().st_size)
+    lost = {int(parts[0].stem[1:]), int(parts[-1].stem[1:])}
+    res = run_georef(bundle, out, OPTS, resume=True)
+    assert res.chunks_run == len(lost)
+    assert tiles_of(out) == reference
+    assert leftovers(out) == []
 
 
 @pytest.fixture
@@ -267,9 +302,11 @@ def test_a_real_full_disk_is_refused_up_front_then_met_mid_job_and_resumed(
     monkeypatch.setattr(engine, "check_space", lambda out, need: None)  # as if the estimate were wrong
     with pytest.raises(GeorefError) as e:
         run_georef(bundle, out, OPTS)
-    assert "no space left on the device" in str(e.value) and "\n" not in str(e.value)
+    assert "no space left on the device" in str(e.value)
+    assert "\n" not in str(e.value)
     assert leftovers(out) == []
     subprocess.run(["mount", "-o", "remount,size=8m", str(small_disk)], check=True)
     monkeypatch.undo()
     run_georef(bundle, out, OPTS, resume=True)
-    assert tiles_of(out) == reference and leftovers(out) == []
+    assert tiles_of(out) == reference
+    assert leftovers(out) == []

@@ -50,14 +50,18 @@ def test_a_session_gives_what_its_exported_bundle_gives(session, bundle, tmp_pat
     for name in names:
         ps, ts = xyz(tmp_path / "s" / name)
         pb, tb = xyz(tmp_path / "b" / name)
-        assert ps.shape == pb.shape and ps.shape[0] > 10_000
+        assert ps.shape == pb.shape
+        assert ps.shape[0] > 10_000
         assert np.abs(ts - tb).max() < 2e-6, np.abs(ts - tb).max()  # the same returns (points.csv: µs)
         # the bundle's CSV holds ranges to 0.1 mm and angles to 1e-6°: the same points within that
         assert np.abs(ps - pb).max() < 2e-3
-    assert s.counters["datagrams"] > 0 and s.counters["bad_datagrams"] == 0
-    assert s.counters["outside_lines"] > 0 and s.n_points == b.n_points
+    assert s.counters["datagrams"] > 0
+    assert s.counters["bad_datagrams"] == 0
+    assert s.counters["outside_lines"] > 0
+    assert s.n_points == b.n_points
     las = laspy.read(tmp_path / "s" / "line-1.laz")
-    assert np.all(np.asarray(las["sigma_h_m"]) > 0) and np.all(las["pass_id"] == 1)
+    assert np.all(np.asarray(las["sigma_h_m"]) > 0)
+    assert np.all(las["pass_id"] == 1)
 
 
 def test_transits_and_an_sbet_trajectory(session, bundle, tmp_path):
@@ -75,7 +79,8 @@ def test_transits_and_an_sbet_trajectory(session, bundle, tmp_path):
     assert sbet.provenance["trajectory"].endswith("traj.sbet")
     a, _ = xyz(tmp_path / "l" / "line-1.laz")
     c, _ = xyz(tmp_path / "sb" / "line-1.laz")
-    assert a.shape == c.shape and np.abs(a - c).max() < 0.01  # SBET holds lat/lon as doubles, heights etc.
+    assert a.shape == c.shape
+    assert np.abs(a - c).max() < 0.01
 
 
 def test_a_torn_segment_is_read_up_to_its_tear_with_a_warning(session, tmp_path):
