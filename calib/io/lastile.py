@@ -1,10 +1,11 @@
 """Survey tiles: LAS 1.4 / LAZ (point format 6) with per-point uncertainty and provenance.
 
 What ``mls georef`` writes for each tile (a line, or a square of the projected CRS). The points
-arrive as :data:`TILE_POINT_DTYPE` records (coordinates already in the output CRS), part by
-part, and a tile is written whole or not at all: :func:`write_tile` writes ``<name>.laz.partial``
-and renames it when the last point is in (the rename is atomic: a reader, or a resumed job,
-sees either no tile or a complete one).
+arrive as the file's own point records (:func:`record_dtype`: coordinates already on the output
+CRS's LAS grid; :mod:`office.deliver.lasrecords` encodes them), part by part, and a tile is
+written whole or not at all: :func:`write_tile` writes ``<name>.laz.partial`` and renames it when
+the last point is in (the rename is atomic: a reader, or a resumed job, sees either no tile or a
+complete one).
 
 Every tile carries, beside what :class:`calib.io.laz.LasPassWriter` writes (CRS as WKT, adjusted
 standard GPS time, intensity, scan angle, the pass id in ``point_source_id`` and as the int64
@@ -29,27 +30,14 @@ import json
 import os
 from collections.abc import Iterable
 from dataclasses import dataclass
+from functools import cache
 from pathlib import Path
 
 import numpy as np
 
 from calib.core import frames
-from calib.io.laz import PASS_ID_DIMENSION, SCAN_ANGLE_UNIT_DEG, LasOutputError, OutputCrs, las_source_id
+from calib.io.laz import PASS_ID_DIMENSION, LasOutputError, OutputCrs, las_source_id
 
-#: One point of a tile, as the chunks hand it over: coordinates in the output CRS.
-TILE_POINT_DTYPE = np.dtype(
-    [
-        ("x", "<f8"),
-        ("y", "<f8"),
-        ("z", "<f8"),
-        ("t_gps_s", "<f8"),
-        ("intensity", "<u2"),
-        ("scan_angle_rad", "<f4"),
-        ("pass_id", "<i8"),
-        ("sigma_h_m", "<f4"),
-        ("sigma_v_m", "<f4"),
-    ]
-)
 PROVENANCE_USER_ID = "marine-mls"
 PROVENANCE_RECORD_ID = 1
 SIGMA_DIMENSIONS = ("sigma_h_m", "sigma_v_m")
@@ -97,8 +85,7 @@ def _quantiles(v: np.ndarray) -> dict[str, float]:
 
 def tile_header(crs: OutputCrs, source_id: int, software: str, provenance: dict, date: _dt.date):
     """The LAS 1.4 header of a tile (point format 6, the WKT and provenance VLRs, the extra
-    bytes ``pass_id``, ``sigma_h_m``, ``sigma_v_m``): every writer of a tile starts from it
-    (:func:`write_tile`, :mod:`office.deliver.lasrecords`)."""
+    bytes ``pass_id``, ``sigma_h_m``, ``sigma_v_m``)."""
     import laspy
     from laspy.vlrs.known import WktCoordinateSystemVlr
 
@@ -130,64 +117,55 @@ def tile_header(crs: OutputCrs, source_id: int, software: str, provenance: dict,
     return header
 
 
+@cache
+def record_dtype() -> np.dtype:
+    """The dtype of one point record of a tile (point format 6 and its extra bytes)."""
+    from calib.io.laz import SCALE_M
+
+    crs = OutputCrs("LGF", "", (SCALE_M,) * 3, (0.0, 0.0, 0.0), frames.LocalFrame(0.0, 0.0), None)
+    return tile_header(crs, 0, "", {}, _survey_date(1e9)).point_format.dtype()
+
+
+def _pass_ids(pass_id: np.ndarray) -> np.ndarray:
+    """The sorted distinct pass ids of a part (one line's part: no sort)."""
+    if pass_id.min() == pass_id.max():
+        return np.asarray(pass_id[:1])
+    return np.unique(pass_id)
+
+
 class _Tally:
-    """What a tile holds, counted part by part as it is written."""
+    """What a tile holds, counted part by part as it is written. The bounds and the time span are those laspy's writer keeps in the header while it writes
+    (the least and greatest X, Y, Z and GPS time, scaled and offset: a monotonic map of the
+    least and greatest record gives the least and greatest coordinate, the same bits), not
+    counted again here."""
 
     def __init__(self) -> None:
         self.pass_ids: set[int] = set()
         self.n = 0
-        self.t_lo, self.t_hi = np.inf, -np.inf
-        self.lo, self.hi = np.full(3, np.inf), np.full(3, -np.inf)
         self.sh: list[np.ndarray] = []
         self.sv: list[np.ndarray] = []
 
-    def add(self, part: np.ndarray) -> None:
+    def add(self, part: np.ndarray, ids: np.ndarray) -> None:
         self.n += part.size
-        self.t_lo = min(self.t_lo, float(part["t_gps_s"].min()))
-        self.t_hi = max(self.t_hi, float(part["t_gps_s"].max()))
-        xyz = np.stack([part["x"], part["y"], part["z"]])
-        self.lo, self.hi = np.minimum(self.lo, xyz.min(axis=1)), np.maximum(self.hi, xyz.max(axis=1))
+        self.pass_ids.update(int(i) for i in ids)
         # the σ summary from a thinned copy (every 16th point: a tile may hold 10⁸)
         self.sh.append(part["sigma_h_m"][::16].copy())
         self.sv.append(part["sigma_v_m"][::16].copy())
 
-    def summary(self, path: Path) -> TileSummary:
+    def summary(self, path: Path, header) -> TileSummary:
+        """The tile's summary; ``header`` is the writer's, after its last points."""
+        lo, hi = np.asarray(header.mins, float), np.asarray(header.maxs, float)
         return TileSummary(
             name=path.stem,
             path=path.name,
             n_points=int(self.n),
-            t_first_gps_s=float(self.t_lo),
-            t_last_gps_s=float(self.t_hi),
-            bbox=(*(round(float(v), 4) for v in self.lo), *(round(float(v), 4) for v in self.hi)),  # type: ignore[arg-type]
+            t_first_gps_s=float(frames.las_to_gps_seconds(header.min_gps_time)),
+            t_last_gps_s=float(frames.las_to_gps_seconds(header.max_gps_time)),
+            bbox=tuple(round(float(v), 4) for v in (*lo, *hi)),  # type: ignore[arg-type]
             sigma_h_m=_quantiles(np.concatenate(self.sh)),
             sigma_v_m=_quantiles(np.concatenate(self.sv)),
             passes=sorted(self.pass_ids),
         )
-
-
-def _point_record(laspy, header, part: np.ndarray, ids: np.ndarray, crs: OutputCrs, path: Path):
-    """The LAS points of ``part`` (its pass ids ``ids``, sorted)."""
-    rec = laspy.ScaleAwarePointRecord.zeros(part.size, header=header)
-    try:
-        rec.x, rec.y, rec.z = part["x"], part["y"], part["z"]
-    except OverflowError:
-        raise LasOutputError(
-            f"{path}: coordinates do not fit the LAS integer range around offsets "
-            f"{crs.offsets} at scales {crs.scales}"
-        ) from None
-    rec.gps_time = frames.gps_seconds_to_las(part["t_gps_s"])
-    rec.intensity = part["intensity"]
-    rec.return_number = np.ones(part.size, np.uint8)
-    rec.number_of_returns = np.ones(part.size, np.uint8)
-    rec.point_source_id = np.array([las_source_id(int(i)) for i in ids], np.uint16)[
-        np.searchsorted(ids, part["pass_id"])
-    ]
-    rec[PASS_ID_DIMENSION] = part["pass_id"]
-    rec["sigma_h_m"] = part["sigma_h_m"]
-    rec["sigma_v_m"] = part["sigma_v_m"]
-    nadir_deg = np.degrees(frames.wrap_pi(np.pi / 2 - part["scan_angle_rad"].astype(float)))
-    rec.scan_angle = np.round(nadir_deg / SCAN_ANGLE_UNIT_DEG).astype(np.int16)
-    return rec
 
 
 def write_tile(
@@ -199,9 +177,9 @@ def write_tile(
     first_t_gps_s: float,
 ) -> TileSummary:
     """Write the tile ``path`` (``.laz`` compressed, ``.las`` not) from ``parts`` (arrays of
-    :data:`TILE_POINT_DTYPE`, in the order they are to appear) and return its summary. The file
-    appears only complete (module docstring); ``first_t_gps_s`` (the survey's first point) dates
-    the header."""
+    :func:`record_dtype`, in the order they are to appear: the records go to the compressor as
+    they are) and return its summary. The file appears only complete (module docstring);
+    ``first_t_gps_s`` (the survey's first point) dates the header."""
     import laspy
 
     path = Path(path)
@@ -210,12 +188,11 @@ def write_tile(
     writer = None
     try:
         for part in parts:
-            if part.dtype != TILE_POINT_DTYPE:
-                raise LasOutputError(f"{path}: a part of dtype {part.dtype}, expected TILE_POINT_DTYPE")
+            if part.dtype != record_dtype():
+                raise LasOutputError(f"{path}: a part of dtype {part.dtype}, expected the tile's records")
             if part.size == 0:
                 continue
-            ids = np.unique(part["pass_id"])
-            tally.pass_ids.update(int(i) for i in ids)
+            ids = _pass_ids(part["pass_id"])
             if writer is None:
                 # one source id per file: the line's (LAS's u16, else 0); square tiles mix lines
                 source_id = las_source_id(int(ids[0])) if ids.size == 1 else 0
@@ -227,10 +204,11 @@ def write_tile(
                     do_compress=path.suffix == ".laz",
                     laz_backend=laspy.LazBackend.Lazrs,  # one thread: one task is one core
                 )
-            writer.write_points(_point_record(laspy, writer.header, part, ids, crs, path))
-            tally.add(part)
+            writer.write_points(laspy.PackedPointRecord(part, writer.header.point_format))
+            tally.add(part, ids)
         if writer is None:
             raise LasOutputError(f"{path}: a tile without points (nothing to write)")
+        summary = tally.summary(path, writer.header)
         writer.close()
         writer = None
         with open(partial, "rb") as f:
@@ -241,7 +219,7 @@ def write_tile(
             writer.close()
         if partial.exists():
             partial.unlink()
-    return tally.summary(path)
+    return summary
 
 
 def read_provenance(path: str | Path) -> dict:

@@ -5,7 +5,8 @@ reads the chunk's returns (:func:`office.deliver.sources.read_chunk`), drops wha
 say (counted per reason), georeferences the rest on the chunk's slice of the trajectory,
 computes σ_h and σ_v (:func:`calib.core.tpu.point_sigmas`), converts to the output CRS, and
 writes one part per tile it touches, ``<out>/.georef/parts/<tile>/c<chunk>.npy``: the tile
-file's own LAS records (:mod:`office.deliver.lasrecords`), time order. A projected output CRS
+file's own LAS records (:func:`calib.io.lastile.record_dtype`, encoded by
+:mod:`office.deliver.lasrecords`), time order. A projected output CRS
 is reached through a local model fitted per chunk (:mod:`office.deliver.projection`), checked
 against pyproj to ≤ 0.01 mm: the tolerance of the tiles' coordinates is 0.1 mm — each stored
 coordinate is pyproj's on the 0.1-mm LAS grid or, for the rare point within 0.01 mm of the middle
@@ -382,13 +383,14 @@ def _encode_points(ctx: ChunkContext, traj: Trajectory, r: Returns, sel: _Select
     georeferenced, projected on the output CRS's LAS grid (:mod:`office.deliver.projection`),
     with their σ_h and σ_v, in time order."""
     from calib.core import frames
+    from calib.io import lastile
     from office.deliver import lasrecords
     from office.deliver.projection import project_on_grid
 
     idx = sel.idx
     crs = crs_for(ctx.crs, ctx.frame)
     # zeroed: the classification, its flags and the user data stay 0
-    rec = np.zeros(idx.size, lasrecords.record_dtype())
+    rec = np.zeros(idx.size, lastile.record_dtype())
     grid = project_on_grid(crs, _lgf_and_sigmas(ctx, traj, r, sel, rec))
     lasrecords.check_grid(grid, crs, ctx.out_dir)
     rec["X"], rec["Y"], rec["Z"] = grid

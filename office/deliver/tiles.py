@@ -5,8 +5,8 @@ files: the tile's parts in chunk (= time) order, cut into consecutive runs of at
 ``max_tile_points`` (a part is never split), named ``<tile>.laz`` or ``<tile>-p01.laz``,
 ``-p02``… when there are several. The plan depends only on the records, so a resumed or
 distributed job plans the same files. :func:`write_file` writes one through
-:func:`office.deliver.lasrecords.write_tile` (the parts are the file's own LAS records; the
-bytes of :func:`calib.io.lastile.write_tile`; whole or not at all) and then its record
+:func:`calib.io.lastile.write_tile` (the parts are the file's own LAS records; whole or not at
+all) and then its record
 ``<out>/.georef/tiles/<file>.json`` (its summary and the chunks it was made of) — a file with
 its record, made of the chunks the plan names, is done.
 """
@@ -93,7 +93,7 @@ def file_done(out_dir: str | Path, name: str, suffix: str, chunks: tuple[int, ..
 
 def write_file(task: FileTask) -> FileDone:
     """Write one tile file from its parts, then its record (module docstring)."""
-    from office.deliver import lasrecords
+    from calib.io import lastile
     from office.deliver.chunkjob import crs_for
 
     def parts():
@@ -102,7 +102,7 @@ def write_file(task: FileTask) -> FileDone:
 
     path = Path(task.out_dir) / f"{task.name}{task.suffix}"
     try:
-        summary = lasrecords.write_tile(
+        summary = lastile.write_tile(
             path, parts(), crs_for(task.crs, task.frame), task.software, task.provenance, task.first_t_gps_s
         ).as_dict()
     except BaseException:

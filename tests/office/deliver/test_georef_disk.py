@@ -17,9 +17,9 @@ from pathlib import Path
 import pytest
 from typer.testing import CliRunner
 
+import calib.io.lastile as lastile
 import office.deliver.chunkjob as chunkjob
 import office.deliver.engine as engine
-import office.deliver.lasrecords as lasrecords
 import office.deliver.space as space
 import office.deliver.tiles as tiles
 from calib.io.dirlock import LOCK_NAME
@@ -236,7 +236,7 @@ def test_a_disk_full_mid_job_is_one_line_leaves_no_temporary_and_resumes(
 
 def test_a_disk_full_while_a_tile_is_written_leaves_no_partial_file(bundle, reference, tmp_path, monkeypatch):
     out = tmp_path / "out"
-    real = lasrecords.write_tile
+    real = lastile.write_tile
     calls = {"n": 0}
 
     def fills_up(path, *args, **kwargs):
@@ -246,7 +246,7 @@ def test_a_disk_full_while_a_tile_is_written_leaves_no_partial_file(bundle, refe
             raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), str(path))
         return real(path, *args, **kwargs)
 
-    monkeypatch.setattr(lasrecords, "write_tile", fills_up)
+    monkeypatch.setattr(lastile, "write_tile", fills_up)
     r = CliRunner().invoke(app, ["georef", str(bundle), "--out", str(out), "--chunk-s", "1"])
     assert r.exit_code == 1, r.output
     assert "no space left" in r.output, r.output
@@ -265,7 +265,7 @@ def test_parts_lost_with_the_power_run_their_chunks_again(bundle, reference, tmp
     def power_lost(*args, **kwargs):
         raise OSError("power lost")
 
-    monkeypatch.setattr(lasrecords, "write_tile", power_lost)  # every chunk done, no tile yet
+    monkeypatch.setattr(lastile, "write_tile", power_lost)  # every chunk done, no tile yet
     with pytest.raises(OSError, match="power lost"):
         run_georef(bundle, out, OPTS)
     monkeypatch.undo()
