@@ -21,16 +21,18 @@ printed as a ratio to it. The achieved datagram rate is printed too: above a few
 emulator itself (one Python process) may not keep the pace, and a multiple it cannot emit is
 reported as such, not as the daemon's.
 
-With ``--pages N`` the vessel config gets a ``web`` section and N clients follow the bridge
-console's WebSocket (``/ws``, what a page receives: the snapshot, then every publication) for the
-whole run, from one separate process; each one's frame count is printed. They stand for the
-pages of the bridge's screens and tablets: on the ship the browsers run on those, not on the
-acquisition PC, so the benchmark charges the daemon with what the pages cost it (the fan-out and
-the WebSocket sends) and not with five Chromiums rendering on the PC's own cores (issue 28:
-0 loss at 5× with the pages connected; ``benchmarks/console.py`` measures the console's CPU with
-real Chromium pages).
+With ``--pages N`` the vessel config gets a ``web`` section and N followers of the bridge
+console stay connected for the whole run, from one separate process; each one's message count is
+printed. By default they are bare WebSocket clients of ``/ws`` (what a page receives: the
+snapshot, then every publication): on the ship the browsers run on the bridge's screens and
+tablets, not on the acquisition PC, so this charges the daemon with what the pages cost it (the
+fan-out and the sends) and not with Chromium rendering on the PC's own cores. ``--browsers``
+makes them real Chromium pages (Debian's, headless, under Playwright) on this machine — the
+harder case, their rendering competing with the daemon and the emulators for the same cores
+(issue 28: 0 loss at 5× with the pages connected; ``benchmarks/console.py`` measures the
+console's CPU with Chromium pages).
 
-Run: ``.venv/bin/python benchmarks/acquire.py [--seconds 10] [--speeds 1,2,3,4,5,6,8] [--pages 5]``
+Run: ``.venv/bin/python benchmarks/acquire.py [--seconds 10] [--speeds 1,2,3,4,5,6,8] [--pages 5 [--browsers]]``
 """
 
 from __future__ import annotations
@@ -165,7 +167,7 @@ async def follow(url, counts, i):
 
 async def main(url, n, out):
     counts = [0] * n
-    tasks = [asyncio.ensure_future(follow(url, counts, i)) for i in range(n)]
+    tasks = [asyncio.ensure_future(follow(url + "ws", counts, i)) for i in range(n)]
     stop = asyncio.Event()
     asyncio.get_running_loop().add_signal_handler(signal.SIGTERM, stop.set)
     print("ready", flush=True)
@@ -179,15 +181,38 @@ async def main(url, n, out):
 asyncio.run(main(sys.argv[1], int(sys.argv[2]), sys.argv[3]))
 """
 
+BROWSERS = r"""
+import json, signal, sys, threading
+from playwright.sync_api import sync_playwright
+from tests.acquire.console.chromium import CHROMIUM, CHROMIUM_ARGS
 
-def start_pages(run: Path, web_port: int, n: int) -> subprocess.Popen:
-    """``n`` console WebSocket clients in one process (their frame counts to ``pages.json`` at
-    SIGTERM)."""
-    url = f"http://127.0.0.1:{web_port}/ws"
+url, n, out = sys.argv[1], int(sys.argv[2]), sys.argv[3]
+stop = threading.Event()
+signal.signal(signal.SIGTERM, lambda *_: stop.set())
+with sync_playwright() as p:
+    browser = p.chromium.launch(executable_path=CHROMIUM, args=CHROMIUM_ARGS)
+    pages = [browser.new_page(viewport={"width": 1920, "height": 1080}) for _ in range(n)]
+    for page in pages:
+        page.goto(url)
+    print("ready", flush=True)
+    while not stop.is_set():
+        pages[0].wait_for_timeout(200)  # Playwright's own loop runs meanwhile
+    counts = [int(page.evaluate("window.mlsConsole.state.messages")) for page in pages]
+    browser.close()
+with open(out, "w") as f:
+    json.dump(counts, f)
+"""
+
+
+def start_pages(run: Path, web_port: int, n: int, browsers: bool) -> subprocess.Popen:
+    """``n`` followers of the console in one process — Chromium pages (``browsers``) or bare
+    WebSocket clients — their message counts to ``pages.json`` at SIGTERM."""
+    url = f"http://127.0.0.1:{web_port}/"
     wait_for(lambda: console_serving(web_port), 30, "the console")
     pages = subprocess.Popen(
-        [sys.executable, "-c", PAGES, url, str(n), str(run / "pages.json")],
+        [sys.executable, "-c", BROWSERS if browsers else PAGES, url, str(n), str(run / "pages.json")],
         stdout=subprocess.PIPE,
+        cwd=ROOT,
         start_new_session=True,
     )
     pages.stdout.readline()
@@ -199,7 +224,7 @@ def console_serving(port: int) -> bool:
         return s.connect_ex(("127.0.0.1", port)) == 0
 
 
-def daemon_run(tmp: Path, speed: float, seconds: float, n_pages: int = 0) -> dict:
+def daemon_run(tmp: Path, speed: float, seconds: float, n_pages: int = 0, browsers: bool = False) -> dict:
     run = tmp / f"x{speed:g}"
     run.mkdir()
     prof_port, pps_port = free_port(), free_port()
@@ -219,7 +244,7 @@ def daemon_run(tmp: Path, speed: float, seconds: float, n_pages: int = 0) -> dic
         if daemon.poll() is not None:
             raise RuntimeError(f"mls acquire failed: {daemon.stderr.read().decode()[-2000:]}")
         if web_port is not None:
-            pages = start_pages(run, web_port, n_pages)
+            pages = start_pages(run, web_port, n_pages, browsers)
         stats, cpu, window, drain_s = run_sim(
             run, speed, seconds, prof_port, pps_port, "ins,profiler,pps", daemon.pid
         )
@@ -232,8 +257,12 @@ def daemon_run(tmp: Path, speed: float, seconds: float, n_pages: int = 0) -> dic
                 last, stable_since = n, time.monotonic()
         kernel_drops = udp_drops(prof_port)
     finally:
-        if pages is not None:
-            stop(pages)
+        if pages is not None:  # SIGTERM to the follower alone: it closes its Chromium itself
+            pages.terminate()
+            try:
+                pages.wait(60)
+            finally:
+                stop(pages)
         stop(daemon)
     page_frames = json.loads((run / "pages.json").read_text()) if pages is not None else []
     prof = stats["profiler"]
@@ -322,9 +351,15 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--seconds", type=float, default=10.0, help="host seconds of data per run")
     ap.add_argument("--speeds", default="1,2,3,4,5,6,8", help="rate multiples to try, ascending")
-    ap.add_argument("--pages", type=int, default=0, help="console WebSocket clients during each run")
+    ap.add_argument("--pages", type=int, default=0, help="console followers during each run")
+    ap.add_argument(
+        "--browsers",
+        action="store_true",
+        help="the followers are Chromium pages (default: WebSocket clients)",
+    )
     args = ap.parse_args()
     speeds = [float(s) for s in args.speeds.split(",")]
+    kind = "Chromium pages" if args.browsers else "WebSocket clients"
     with tempfile.TemporaryDirectory(prefix="mls-bench-acquire-") as d:
         tmp = Path(d)
         peer = peer_run(tmp, args.seconds)
@@ -334,7 +369,7 @@ def main() -> None:
         )
         results = []
         for s in speeds:
-            r = daemon_run(tmp, s, args.seconds, args.pages)
+            r = daemon_run(tmp, s, args.seconds, args.pages, args.browsers)
             results.append(r)
             print(
                 f"daemon ×{s:<4g} {r['rate']:>8,.0f} datagrams/s (emulators' CPU "
@@ -342,7 +377,11 @@ def main() -> None:
                 f"{r['lost']:,} of {r['sent']:,} (socket overflows {r['kernel_drops']}), INS epochs lost "
                 f"{r['ins_lost']:,} of {r['ins_sent']:,} ({r['ins_overrun_bytes']:,} bytes overrun), backlog read "
                 f"{r['drain_s']:.2f} s after the end, daemon CPU {r['cpu_pct']:.1f} % of one core"
-                + (f"; {args.pages} console pages received {r['page_frames']} frames" if args.pages else ""),
+                + (
+                    f"; {args.pages} console {kind} received {r['page_frames']} messages"
+                    if args.pages
+                    else ""
+                ),
                 flush=True,
             )
             if not r["sustained"] and s > 1:
@@ -363,7 +402,7 @@ def main() -> None:
     print(
         f"highest rate multiple with zero loss: {best:g}×   goal ≥ 5× ({'met' if best >= 5 else 'NOT met'})"
         + ("" if len(ok) < len(speeds) or best < max(speeds) else " (every multiple tried)")
-        + (f", {args.pages} console pages connected throughout" if args.pages else "")
+        + (f", {args.pages} console {kind} connected throughout" if args.pages else "")
     )
 
 
