@@ -36,7 +36,7 @@ from calib.boresight.gausshelmert import (
     singular_message,
     solve,
 )
-from calib.boresight.ghmodel import State, linearize
+from calib.boresight.ghmodel import State, georeferenced
 from calib.boresight.gls import solve_gls
 from calib.boresight.observability import ObservabilityError, check_observability
 from calib.boresight.observations import AdjustmentError, AdjustOptions, Observations, validate_input
@@ -259,14 +259,13 @@ def adjust(
     if gls and options.outliers == "snooping":
         used, sol = _remove_gross_groups(obs, sol, active, r_nom, options, removed)
     # signed distances of the points georeferenced from the raw observations
-    lin_raw = linearize(
+    residual, _ = georeferenced(
         sol.state,
         r_nom,
         used.plane_index,
         used.pass_index,
         observations_at(used, sol.state, "latency" in sol.layout.extras),
     )
-    residual = lin_raw.F
     cov_formal_all = sol.Ninv
     cov_real_rows = _realistic_covariance(sol, used, options)
     cov_real = cov_real_rows[0:3, 0:3].copy()

@@ -13,12 +13,12 @@ with a prior from the trajectory's σ.
 
 from __future__ import annotations
 
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 
 import numpy as np
 
-from calib.boresight.ghmodel import EXTRA_NAMES, Linearization, State, linearize, tangent_bases
+from calib.boresight.ghmodel import EXTRA_NAMES, Linearization, State, georeferenced, linearize, tangent_bases
 from calib.boresight.observability import ANGLE_NAMES, ObservabilityError
 from calib.boresight.observations import AdjustOptions, Observations
 from calib.core import frames
@@ -152,7 +152,7 @@ def initial_state(mount, planes_init, n_passes, centers=None) -> State:
 
 def plane_centers(obs: Observations, mount, r_nom) -> np.ndarray:
     """Centroid of each plane's points georeferenced with the a-priori mount."""
-    lin = linearize(
+    _, x_lgf_m = georeferenced(
         initial_state(mount, [(np.array([0.0, 0.0, 1.0]), 0.0)] * len(obs.plane_names), len(obs.pass_ids)),
         r_nom,
         obs.plane_index,
@@ -161,7 +161,7 @@ def plane_centers(obs: Observations, mount, r_nom) -> np.ndarray:
     )
     cnt = np.bincount(obs.plane_index, minlength=len(obs.plane_names))[:, None]
     sums = np.stack(
-        [np.bincount(obs.plane_index, lin.x_lgf_m[:, c], minlength=len(obs.plane_names)) for c in range(3)], 1
+        [np.bincount(obs.plane_index, x_lgf_m[:, c], minlength=len(obs.plane_names)) for c in range(3)], 1
     )
     return sums / np.maximum(cnt, 1)
 
@@ -285,9 +285,17 @@ def solve(obs: Observations, state: State, r_nom: np.ndarray, options: AdjustOpt
     return Solution(state, N, Ninv, lin, M, e, vtpv, df, it, converged, layout)
 
 
-def step_converged(dx: np.ndarray, layout: Layout, options: AdjustOptions, N: np.ndarray, it: int) -> bool:
+def step_converged(
+    dx: np.ndarray,
+    layout: Layout,
+    options: AdjustOptions,
+    N: np.ndarray,
+    it: int,
+    inverse: Callable[[], np.ndarray] | None = None,
+) -> bool:
     """Every step below the absolute tolerances, or (after the first iteration) below
-    ``options.rel_tol`` of its formal σ from the normal matrix ``N``."""
+    ``options.rel_tol`` of its formal σ from the normal matrix ``N`` (``inverse``: gives
+    ``N⁻¹`` when the caller has a cheaper way than inverting ``N``)."""
     plane_steps = dx[layout.i_plane : layout.i_offset].reshape(-1, 3)
     metric_step = float(np.max(np.abs(plane_steps[:, 2])))
     angle_step = max(float(np.max(np.abs(dx[0:3]))), float(np.max(np.abs(plane_steps[:, 0:2]))))
@@ -306,7 +314,7 @@ def step_converged(dx: np.ndarray, layout: Layout, options: AdjustOptions, N: np
     if options.rel_tol > 0 and it > 1:
         # steps that no longer matter against the unknowns' own σ (noisy data converge only
         # linearly in the last digits: see the iteration scheme above)
-        sd = np.sqrt(np.diag(np.linalg.inv(N)))
+        sd = np.sqrt(np.diag(np.linalg.inv(N) if inverse is None else inverse()))
         return bool(np.all(np.abs(dx) <= options.rel_tol * sd))
     return False
 

@@ -97,9 +97,35 @@ def _mat_rows(M: np.ndarray, v):
     return tuple(M[i, 0] * v[0] + M[i, 1] * v[1] + M[i, 2] * v[2] for i in range(3))
 
 
-def _cross_rows(a, v):
-    """Constant vector a (3,) × component rows v."""
-    return (a[1] * v[2] - a[2] * v[1], a[2] * v[0] - a[0] * v[2], a[0] * v[1] - a[1] * v[0])
+def _cross_axis(axis: int, v):
+    """The unit vector along ``axis`` (x, y, z) × component rows v, without the products by 0
+    and 1 of the general cross product (the same numbers; a zero component as a scalar 0)."""
+    if axis == 0:
+        return (0.0, -v[2], v[1])
+    if axis == 1:
+        return (v[2], 0.0, -v[0])
+    return (-v[1], v[0], 0.0)
+
+
+def _boresight_rotations(state: State) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The boresight's elementary rotations Rx(roll), Ry(pitch), Rz(yaw)."""
+    br, bp, by = state.boresight_rad
+    return frames.rot_x(br), frames.rot_y(bp), frames.rot_z(by)
+
+
+def _lever_plus(state: State, m2: np.ndarray, m3: np.ndarray, e1: np.ndarray, e2: np.ndarray):
+    """``v_b``: the lever arm plus the scanner's vector ``m2·e1 + m3·e2`` (component rows)."""
+    return tuple(m2[i] * e1 + m3[i] * e2 + state.lever_arm_m[i] for i in range(3))
+
+
+def _body_vector(state: State, r_nom: np.ndarray, lt: np.ndarray):
+    """``v_b`` of :func:`_scanner_vectors` alone (the same operations, the same numbers)."""
+    rho_t = lt[6] + state.range_offset_m
+    a = lt[7] + state.scan_angle_offset_rad
+    ca, sa = np.cos(a), np.sin(a)
+    Rx, Ry, Rz = _boresight_rotations(state)
+    M = Rz @ Ry @ Rx @ r_nom
+    return _lever_plus(state, M[:, 1], M[:, 2], rho_t * ca, rho_t * sa)
 
 
 def _scanner_vectors(state: State, r_nom: np.ndarray, lt: np.ndarray):
@@ -109,8 +135,7 @@ def _scanner_vectors(state: State, r_nom: np.ndarray, lt: np.ndarray):
     a = lt[7] + state.scan_angle_offset_rad
     ca, sa = np.cos(a), np.sin(a)
 
-    br, bp, by = state.boresight_rad
-    Rx, Ry, Rz = frames.rot_x(br), frames.rot_y(bp), frames.rot_z(by)
+    Rx, Ry, Rz = _boresight_rotations(state)
     R_bs = Rz @ Ry @ Rx
     M = R_bs @ r_nom  # R_S^b
     # r_S = ρ[0, cos α, sin α]; with the two scan-plane columns of the mounts:
@@ -118,24 +143,33 @@ def _scanner_vectors(state: State, r_nom: np.ndarray, lt: np.ndarray):
     q2, q3 = r_nom[:, 1], r_nom[:, 2]
     e1, e2 = rho_t * ca, rho_t * sa
     q = tuple(q2[i] * e1 + q3[i] * e2 for i in range(3))  # R_nom r_S
-    v_b = tuple(m2[i] * e1 + m3[i] * e2 + state.lever_arm_m[i] for i in range(3))
+    v_b = _lever_plus(state, m2, m3, e1, e2)
     drho = tuple(m2[i] * ca + m3[i] * sa for i in range(3))  # ∂(M r_S)/∂ρ
     dalpha = tuple(rho_t * (m3[i] * ca - m2[i] * sa) for i in range(3))  # ∂(M r_S)/∂α
     # ∂v_b/∂(boresight roll, pitch, yaw)
-    dv_br = _mat_rows(R_bs, _cross_rows(_EX, q))
-    dv_bp = _mat_rows(Rz @ Ry, _cross_rows(_EY, _mat_rows(Rx, q)))
-    dv_by = _cross_rows(_EZ, _mat_rows(R_bs, q))
+    dv_br = _mat_rows(R_bs, _cross_axis(0, q))
+    dv_bp = _mat_rows(Rz @ Ry, _cross_axis(1, _mat_rows(Rx, q)))
+    dv_by = _cross_axis(2, _mat_rows(R_bs, q))
     return v_b, drho, dalpha, (dv_br, dv_bp, dv_by)
+
+
+def attitude_trig(l: np.ndarray) -> np.ndarray:
+    """(6, n): cos and sin of the roll, pitch and heading of observations ``l`` (n, 8)."""
+    angles = np.ascontiguousarray(l[:, 3:6].T)  # contiguous, as the linearization evaluates them
+    out = np.empty((6, l.shape[0]))
+    for i in range(3):
+        np.cos(angles[i], out=out[2 * i])
+        np.sin(angles[i], out=out[2 * i + 1])
+    return out
 
 
 class _Attitude:
     """Each point's attitude R = Rz(ψ) Ry(θ) Rx(φ), applied to component rows, and the plane
     normals' dot product with them."""
 
-    def __init__(self, lt: np.ndarray, nrm: np.ndarray):
-        self.cr, self.sr = np.cos(lt[3]), np.sin(lt[3])
-        self.cp, self.sp = np.cos(lt[4]), np.sin(lt[4])
-        self.ch, self.sh = np.cos(lt[5]), np.sin(lt[5])
+    def __init__(self, trig: np.ndarray, nrm: np.ndarray):
+        """``trig`` (6, n): cos and sin of roll, pitch and heading (:func:`attitude_trig`)."""
+        self.cr, self.sr, self.cp, self.sp, self.ch, self.sh = trig
         self.nrm = nrm  # (3, n)
 
     def rx(self, v):
@@ -155,15 +189,20 @@ class _Attitude:
 
 
 def _fill_extra_columns(out: Linearization, att: _Attitude, v_b, rates, n: int) -> None:
-    """The Jacobian columns of the extra unknowns (range and scan-angle offsets: the range's
-    and the scan angle's own; the lever arm; the latency with the trajectory's rates)."""
-    ones, zeros = np.ones(n), np.zeros(n)
+    """The Jacobian columns of the extra unknowns that ``out.A_extra`` holds (range and
+    scan-angle offsets: the range's and the scan angle's own; the lever arm; the latency with
+    the trajectory's rates)."""
     extra = out.A_extra
-    extra["range_offset"][:] = out.B[:, 6]
-    extra["scan_angle_offset"][:] = out.B[:, 7]
-    extra["lever_arm_x"][:] = att.n_dot_R((ones, zeros, zeros))
-    extra["lever_arm_y"][:] = att.n_dot_R((zeros, ones, zeros))
-    if rates is not None:
+    ones, zeros = (np.ones(n), np.zeros(n)) if "lever_arm_x" in extra or "lever_arm_y" in extra else (0, 0)
+    if "range_offset" in extra:
+        extra["range_offset"][:] = out.B[:, 6]
+    if "scan_angle_offset" in extra:
+        extra["scan_angle_offset"][:] = out.B[:, 7]
+    if "lever_arm_x" in extra:
+        extra["lever_arm_x"][:] = att.n_dot_R((ones, zeros, zeros))
+    if "lever_arm_y" in extra:
+        extra["lever_arm_y"][:] = att.n_dot_R((zeros, ones, zeros))
+    if rates is not None and "latency" in extra:
         vel, omega_b = rates
         w_x_v = _cross(omega_b, np.stack(v_b, axis=1))
         extra["latency"][:] = att.n_dot(tuple(vel[:, i] for i in range(3))) + att.n_dot_R(
@@ -180,33 +219,35 @@ def linearize_block(
     rates: tuple[np.ndarray, np.ndarray] | None,
     bases: np.ndarray,
     out: Linearization,
+    trig: np.ndarray | None = None,
 ) -> None:
     """Evaluate the condition and its Jacobians at observations ``l`` (n, 8) into ``out``
-    (views of the caller's arrays). Vectors are kept as three contiguous component arrays."""
+    (views of the caller's arrays). Vectors are kept as three contiguous component arrays.
+
+    Only the extra columns ``out.A_extra`` holds are filled, and the georeferenced points and
+    the pass offsets' column only when ``out.x_lgf_m`` and ``out.A_offset`` have rows; ``trig``: :func:`attitude_trig` of ``l`` when the caller
+    keeps it (the poses do not change between the iterations)."""
     n = l.shape[0]
     lt = np.ascontiguousarray(l.T)
     nrm = np.ascontiguousarray(state.normals[plane_index].T)  # (3, n)
     v_b, drho, dalpha, dv_boresight = _scanner_vectors(state, r_nom, lt)
-    att = _Attitude(lt, nrm)
+    att = _Attitude(attitude_trig(l) if trig is None else trig, nrm)
 
     # nᵀR for the constant-direction derivatives: uᵀ = nᵀ R = (Rᵀ n)ᵀ
     rx_v = att.rx(v_b)
-    ryx_v = att.ry(rx_v)
-    Rv = att.rz(ryx_v)
-    off = state.pass_offsets_m[pass_index]
-    ctr = state.centers_m[plane_index]
-    x_rel = np.empty((n, 3))
-    for i in range(3):
-        x_rel[:, i] = lt[i] + off[:, i] + Rv[i] - ctr[:, i]
+    Rv = att.rz(att.ry(rx_v))
+    x_rel = _relative_points(state, plane_index, pass_index, lt, Rv)
     out.F[:] = att.n_dot((x_rel[:, 0], x_rel[:, 1], x_rel[:, 2])) + state.d_m[plane_index]
-    out.x_lgf_m[:] = x_rel + ctr
-    out.A_offset[:] = nrm.T
+    if out.x_lgf_m.shape[0]:
+        out.x_lgf_m[:] = x_rel + state.centers_m[plane_index]
+    if out.A_offset.shape[0]:
+        out.A_offset[:] = nrm.T
 
     B = out.B
     B[:, 0:3] = nrm.T
-    B[:, 3] = att.n_dot_R(_cross_rows(_EX, v_b))
-    B[:, 4] = att.n_dot(att.rz(att.ry(_cross_rows(_EY, rx_v))))
-    B[:, 5] = att.n_dot(_cross_rows(_EZ, Rv))
+    B[:, 3] = att.n_dot_R(_cross_axis(0, v_b))
+    B[:, 4] = att.n_dot(att.rz(att.ry(_cross_axis(1, rx_v))))
+    B[:, 5] = att.n_dot(_cross_axis(2, Rv))
     B[:, 6] = att.n_dot_R(drho)
     B[:, 7] = att.n_dot_R(dalpha)
 
@@ -216,6 +257,40 @@ def linearize_block(
     E = bases[plane_index]  # (n, 3, 2)
     out.A_plane[:, 0:2] = np.einsum("ni,nij->nj", x_rel, E)
     out.A_plane[:, 2] = 1.0
+
+
+def _relative_points(state: State, plane_index, pass_index, lt: np.ndarray, Rv) -> np.ndarray:
+    """(n, 3): the georeferenced points (position + pass offset + ``Rv``, the rotated body
+    vector) relative to their plane's center."""
+    ctr = state.centers_m[plane_index]
+    x_rel = np.empty((lt.shape[1], 3))
+    if not np.any(state.pass_offsets_m):  # p + 0 is p: the same numbers without the gather
+        for i in range(3):
+            x_rel[:, i] = lt[i] + Rv[i] - ctr[:, i]
+        return x_rel
+    off = state.pass_offsets_m[pass_index]
+    for i in range(3):
+        x_rel[:, i] = lt[i] + off[:, i] + Rv[i] - ctr[:, i]
+    return x_rel
+
+
+def georeferenced(
+    state: State, r_nom: np.ndarray, plane_index: np.ndarray, pass_index: np.ndarray, l: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """The condition values F (n,) and the georeferenced points (n, 3) at observations ``l``
+    (n, 8) without the Jacobians: the numbers of :func:`linearize`'s ``F`` and ``x_lgf_m``."""
+    n = l.shape[0]
+    F, x = np.empty(n), np.empty((n, 3))
+    for lo in range(0, n, LINEARIZE_BLOCK):
+        sl = slice(lo, min(lo + LINEARIZE_BLOCK, n))
+        lt = np.ascontiguousarray(l[sl].T)
+        j = plane_index[sl]
+        att = _Attitude(attitude_trig(l[sl]), np.ascontiguousarray(state.normals[j].T))
+        Rv = att.rz(att.ry(att.rx(_body_vector(state, r_nom, lt))))
+        x_rel = _relative_points(state, j, pass_index[sl], lt, Rv)
+        F[sl] = att.n_dot((x_rel[:, 0], x_rel[:, 1], x_rel[:, 2])) + state.d_m[j]
+        x[sl] = x_rel + state.centers_m[j]
+    return F, x
 
 
 #: Points per block: the temporaries of a block stay in the CPU cache.

@@ -80,13 +80,13 @@ from calib.boresight.gausshelmert import (
     offset_prior_sigma,
     pose_rates,
     singular_message,
-    solve_normal,
     step_converged,
 )
 from calib.boresight.ghmodel import Linearization, State, linearize, tangent_bases
 from calib.boresight.observability import ObservabilityError
 from calib.boresight.observations import AdjustOptions, Observations
-from calib.boresight.work.banded import BlockLayout, block_layout, solve_lower
+from calib.boresight.work.banded import BlockSolver, block_layout
+from calib.boresight.work.dense import CholeskyFactor
 from calib.boresight.work.linearization import LinearizationBuffers
 from calib.boresight.work.normals import (
     POINT_BLOCK,
@@ -336,29 +336,29 @@ def linearize_adjusted(
     """The linearization at the observations with the scanner residuals ``v`` (n, 2) added,
     its misclosure ``F(l + v) − B v`` (module docstring); into ``buffers`` when given."""
     l_at = observations_at(obs, state, latency)
+    rates = pose_rates(obs.latency_trajectory(), obs.t_gps_s + state.latency_s) if latency else None
     if buffers is None:
         l_obs = l_at.copy()
         l_obs[:, 6:8] += v
-    else:
-        l_obs = buffers.observations(l_at, v)
-    rates = pose_rates(obs.latency_trajectory(), obs.t_gps_s + state.latency_s) if latency else None
-    if buffers is None:
         lin = linearize(state, r_nom, obs.plane_index, obs.pass_index, l_obs, rates, bases)
     else:
-        lin = buffers.linearize(state, r_nom, obs.plane_index, obs.pass_index, l_obs, rates, bases)
-    lin.F -= lin.B[:, 6] * v[:, 0] + lin.B[:, 7] * v[:, 1]
+        buffers.observations(l_at, v)
+        lin = buffers.linearize(state, r_nom, obs.plane_index, obs.pass_index, rates, bases)
+    for lo in range(0, len(obs), POINT_BLOCK):  # in blocks: no full-size temporaries
+        sl = slice(lo, min(lo + POINT_BLOCK, len(obs)))
+        lin.F[sl] -= lin.B[sl, 6] * v[sl, 0] + lin.B[sl, 7] * v[sl, 1]
     return lin
 
 
 @dataclass
 class _Work:
     """What one solution reuses across its iterations: the sorted, chunked layout of the
-    points and its buffers (:class:`GramPlan`), the knot weights ``σ·a`` and ``σ·b``, the block
-    layout of the banded solve and the white variances' buffer."""
+    points and its buffers (:class:`GramPlan`), the knot weights ``σ·a`` and ``σ·b``, the
+    banded solve's buffers and the buffers of the white variances and the misclosures."""
 
     plan: GramPlan
     knots: KnotWeights
-    blocks: BlockLayout
+    solver: BlockSolver
     m: np.ndarray  # (n,) white variance, rewritten every iteration
     e: np.ndarray  # (n,) the white misclosures after the step
     k: np.ndarray  # (n,) their correlates e / m
@@ -367,9 +367,9 @@ class _Work:
 def work_for(obs: Observations, layout: Layout, fr: _Frame) -> _Work:
     columns, n_groups = layout_columns(layout, len(obs.pass_ids))
     plan = GramPlan(x_groups(obs, layout), fr.br.k, fr.grid.n, columns, n_groups)
-    blocks = block_layout(CHANNELS * fr.grid.n, BANDWIDTH)
+    solver = BlockSolver(block_layout(CHANNELS * fr.grid.n, BANDWIDTH), layout.n)
     n = len(obs)
-    return _Work(plan, knot_weights(obs.sigma_l, fr.br), blocks, np.empty(n), np.empty(n), np.empty(n))
+    return _Work(plan, knot_weights(obs.sigma_l, fr.br), solver, np.empty(n), np.empty(n), np.empty(n))
 
 
 @dataclass
@@ -411,7 +411,7 @@ def assemble(
     the knots), in the work arrays of ``work`` (made here when not given)."""
     work = work if work is not None else work_for(obs, layout, fr)
     m = _write_rows(work, lin, layout, obs, fr, plane_var_m2)
-    nb = work.plan.normals()
+    nb = work.plan.normals(N_ax_out=work.solver.W)  # the solve works on N_ax in place
     nb.ab += fr.prior
     if not np.all(np.isfinite(nb.ab)):  # as cholesky_banded checks
         raise ValueError("array must not contain infs or NaNs")
@@ -419,7 +419,7 @@ def assemble(
     if info != 0:
         raise ObservabilityError("the POS error processes are not determined (knot normal matrix singular)")
     # one triangular banded solve (half of N_aa⁻¹): S = N_xx − (L⁻¹N_ax)ᵀ(L⁻¹N_ax)
-    W = solve_lower(chol, nb.N_ax, work.blocks, overwrite=True)
+    W = work.solver.solve(chol, nb.N_ax)
     v = _tb_solve(chol, nb.g_a)
     S = nb.N_xx - _gram(W)
     S = 0.5 * (S + S.T)
@@ -483,7 +483,7 @@ def solve_gls(
     v = np.zeros((len(obs), 2))  # the scanner residuals (range, scan angle)
     work = work_for(obs, layout, fr)
     # the caller's first linearization becomes the buffers of the next ones (it is not kept)
-    buffers = LinearizationBuffers(len(obs), est_latency, first_lin)
+    buffers = LinearizationBuffers(len(obs), layout.extras, layout.offsets, first_lin)
     for it in range(1, options.max_iterations + 1):
         bases = tangent_bases(state.normals)
         if it == 1 and first_lin is not None:
@@ -491,7 +491,8 @@ def solve_gls(
         else:
             lin = linearize_adjusted(obs, state, r_nom, v, est_latency, bases, buffers)
         sys = assemble(lin, layout, obs, fr, pv, state, prior_sigma, bs_prior, work)
-        dx = solve_normal(sys.S, -sys.r, obs, layout)
+        fac = _factor(sys.S, obs, layout)
+        dx = fac.solve(-sys.r)
         z = knots_from_step(sys, dx)
         # the white part of each misclosure after the fit: F + A dx + J z
         e = white_misclosure(work.plan, sys.m, dx, z, out=work.e)
@@ -502,7 +503,7 @@ def solve_gls(
         if rough.size and it < options.max_iterations:
             new = roughness_update(e, sys.m, pv, obs.plane_index, rough)
             settled = bool(np.all(np.abs(new - pv) <= VC_TOL * (np.maximum(new, pv) + 1e-12)))
-        if step_converged(dx, layout, options, sys.S, it) and settled and it > 1:
+        if step_converged(dx, layout, options, sys.S, it, fac.inverse) and settled and it > 1:
             converged = True
             break
         pv = new
@@ -517,16 +518,20 @@ def solve_gls(
     if bs_prior is not None:
         vtpv += float(np.sum(((state.boresight_rad - bs_prior[0]) / bs_prior[1]) ** 2))
         df += 3
-    try:
-        Sinv = np.linalg.inv(sys.S)
-    except np.linalg.LinAlgError:
-        raise ObservabilityError(singular_message(sys.S, obs, layout)) from None
     log_det_naa = 2.0 * float(np.sum(np.log(sys.chol[0])))
-    _, log_det_s = np.linalg.slogdet(sys.S)
-    neg2 = vtpv + log_det_naa - fr.log_det_prior + float(np.sum(np.log(sys.m))) + float(log_det_s)
+    neg2 = vtpv + log_det_naa - fr.log_det_prior + float(np.sum(np.log(sys.m))) + fac.log_det
     return GlsSolution(
-        state, sys.S, Sinv, lin, sys.m, e, vtpv, df, it, converged, layout, z, fr.grid, pv, neg2, sys
+        state, sys.S, fac.inverse(), lin, sys.m, e, vtpv, df, it, converged, layout, z, fr.grid, pv, neg2, sys
     )
+
+
+def _factor(S: np.ndarray, obs: Observations, layout: Layout) -> CholeskyFactor:
+    """The Cholesky factor of the reduced normal matrix; a singular one is an observability
+    error naming the cause (as :func:`calib.boresight.gausshelmert.solve_normal` says it)."""
+    try:
+        return CholeskyFactor(S)
+    except np.linalg.LinAlgError:
+        raise ObservabilityError(singular_message(S, obs, layout)) from None
 
 
 def _quad_banded(ab: np.ndarray, z: np.ndarray) -> float:

@@ -4,5 +4,10 @@
   their unknowns and their knot interval; one batched matrix product per iteration into
   buffers allocated once per solution), never a sparse design matrix;
 - :mod:`.banded`: a blocked triangular solve with a banded factor and many right-hand sides
-  (level-3 BLAS instead of one level-2 sweep per column).
+  (level-3 BLAS instead of one level-2 sweep per column), its blocks and views made once per
+  solution (:class:`.banded.BlockSolver`);
+- :mod:`.linearization`: the linearization of every iteration into buffers (only the columns
+  the solution estimates, the poses' cos and sin kept);
+- :mod:`.dense`: the reduced normal matrix's Cholesky factor, for the step, the convergence
+  test's σ, the covariance and the log-determinant.
 """

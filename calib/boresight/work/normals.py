@@ -113,6 +113,7 @@ class GramPlan:
         self.rows = np.empty((min(WRITE_BLOCK, ks.size), self.width))
         self.sums = np.empty((starts.size, self.width**2))  # Σ uuᵀ per segment
         self._dot: np.ndarray | None = None  # (chunks, c, 1) for :meth:`row_dot`
+        self._pick_buffers: dict[str, np.ndarray] = {}  # for :meth:`_picked`
         self.chunk_blocks = [self._chunk_block(lo) for lo in range(0, self.buf.shape[0], CHUNK_BLOCK)]
         self._group_tables()
         if knot_cols:
@@ -156,7 +157,13 @@ class GramPlan:
         p, size, intervals = self.columns.p, CHANNELS * self.n_knots, max(self.n_knots - 1, 1)
         self.knot_sum = _indicator(self.seg_knot, intervals)
         rows = CHANNELS * self.seg_knot[:, None, None] + np.arange(kc)[None, None, :]
-        self.cross_index = (rows * p + self.group_cols[self.seg_group][:, :, None]).reshape(-1)
+        cross_index = (rows * p + self.group_cols[self.seg_group][:, :, None]).reshape(-1)
+        # the distinct places of N_ax the segments add to, and where each addition goes
+        rank = np.zeros(size * p, np.int64)
+        rank[cross_index] = 1
+        self.cross_at = np.flatnonzero(rank)
+        np.cumsum(rank, out=rank)
+        self.cross_into = rank[cross_index] - 1
         # ab[r − c, 6k + c] for r ≥ c
         r, c = np.tril_indices(kc)
         k = np.arange(intervals)[:, None]
@@ -212,23 +219,37 @@ class GramPlan:
     def group_normals(self, G: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """``N_xx`` and ``g_x`` from the segments' sums ``G``."""
         p, q = self.columns.p, self.q
-        gx = (self.group_sum @ G[:, self.x_pick]).reshape(-1, q + 1, q + 1)
+        gx = (self.group_sum @ self._picked(G, "x_pick")).reshape(-1, q + 1, q + 1)
         N_xx = np.bincount(self.xx_index, gx[:, :q, :q].reshape(-1), minlength=p * p).reshape(p, p)
         g_x = np.bincount(self.group_cols.reshape(-1), gx[:, :q, q].reshape(-1), minlength=p)
         return N_xx, g_x
 
-    def normals(self) -> NormalBlocks:
-        """The normal equations from the rows written (:meth:`write_rows`)."""
+    def _picked(self, G: np.ndarray, name: str) -> np.ndarray:
+        """``G[:, self.<name>]`` (a pick of columns) into a buffer kept per pick (no fresh
+        pages per iteration)."""
+        pick = getattr(self, name)
+        buf = self._pick_buffers.get(name)
+        if buf is None:
+            buf = self._pick_buffers[name] = np.empty((G.shape[0], pick.size))
+        return np.take(G, pick, axis=1, out=buf, mode="clip")  # the indices are in range
+
+    def normals(self, N_ax_out: np.ndarray | None = None) -> NormalBlocks:
+        """The normal equations from the rows written (:meth:`write_rows`); ``N_ax`` into
+        ``N_ax_out`` (6K, p) when given."""
         G = self.segment_sums()
         N_xx, g_x = self.group_normals(G)
         p, size, kc = self.columns.p, CHANNELS * self.n_knots, self.knot_cols
-        gk = self.knot_sum @ G[:, self.j_pick]  # (intervals, (kc + 1)²)
+        gk = self.knot_sum @ self._picked(G, "j_pick")  # (intervals, (kc + 1)²)
         ab = np.bincount(self.ab_index, gk[:, self.ab_pick].reshape(-1), minlength=kc * size)
         g_a = np.bincount(
             self.ga_index, gk.reshape(-1, kc + 1, kc + 1)[:, :kc, kc].reshape(-1), minlength=size
         )
-        N_ax = np.bincount(self.cross_index, G[:, self.cross_pick].reshape(-1), minlength=size * p)
-        return NormalBlocks(N_xx, N_ax.reshape(size, p), ab.reshape(kc, size), g_x, g_a)
+        N_ax = np.empty((size, p)) if N_ax_out is None else N_ax_out
+        N_ax.fill(0.0)
+        N_ax.reshape(-1)[self.cross_at] = np.bincount(
+            self.cross_into, self._picked(G, "cross_pick").reshape(-1), minlength=self.cross_at.size
+        )
+        return NormalBlocks(N_xx, N_ax, ab.reshape(kc, size), g_x, g_a)
 
 
 def _indicator(rows: np.ndarray, n_rows: int) -> sp.csr_matrix:
