@@ -42,6 +42,7 @@ from calib.boresight.observability import ObservabilityError, check_observabilit
 from calib.boresight.observations import AdjustmentError, AdjustOptions, Observations, validate_input
 from calib.boresight.work.normals import normal_matrix
 from calib.core import frames
+from calib.core.allocator import tune_allocator
 
 
 @dataclass
@@ -240,6 +241,7 @@ def adjust(
     """
     t_start = time.perf_counter()
     validate_input(obs)
+    tune_allocator()  # the iterations' large arrays from the heap, not fresh pages each time
     r_nom = frames.rotation_zyx(*mount.nominal_rad)
     state0 = initial_state(mount, planes_init, len(obs.pass_ids), plane_centers(obs, mount, r_nom))
     active = np.ones(len(obs), bool)

@@ -18,14 +18,13 @@ synced, with the size of each part. A chunk is therefore idempotent: run twice (
 a job resumed) it writes the same bytes, and a chunk without its record, or whose parts are not
 all whole (:func:`chunk_complete`), is simply run again.
 
-The work arrays of a chunk are large (tens of MB): :func:`tune_allocator` keeps glibc from
+The work arrays of a chunk are large (tens of MB): :func:`calib.core.allocator.tune_allocator` keeps glibc from
 mapping and unmapping them afresh for every chunk (page faults and kernel time), in this process
 and in a Dask worker alike.
 """
 
 from __future__ import annotations
 
-import functools
 import json
 import math
 import os
@@ -85,28 +84,6 @@ class ChunkDone:
     counters: dict[str, int]
     peak_rss_mb: float
     pid: int
-
-
-#: glibc's mallopt parameters, and what :func:`tune_allocator` sets them to
-M_TRIM_THRESHOLD, M_MMAP_THRESHOLD = -1, -3
-MMAP_THRESHOLD_BYTES = 32 << 20  # glibc's largest: arrays up to 32 MB come from the heap
-TRIM_THRESHOLD_BYTES = 512 << 20  # freed heap kept for the next chunk, up to 512 MB
-
-
-@functools.cache
-def tune_allocator() -> bool:
-    """Once per process: glibc serves a chunk's work arrays from its heap and keeps the freed
-    heap for the next chunk, instead of mapping every array afresh and unmapping it when freed
-    (its default beyond 128 KB, and Dask's setting) — page faults and kernel time halved,
-    the bytes the same. False where the C library is not glibc (nothing changed)."""
-    import ctypes
-
-    try:
-        libc = ctypes.CDLL("libc.so.6")
-        ok = bool(libc.mallopt(M_MMAP_THRESHOLD, MMAP_THRESHOLD_BYTES))
-        return bool(libc.mallopt(M_TRIM_THRESHOLD, TRIM_THRESHOLD_BYTES)) and ok
-    except (OSError, AttributeError):
-        return False
 
 
 def slice_trajectory(traj, t0_s: float, t1_s: float):
@@ -433,6 +410,8 @@ def _write_parts(ctx: ChunkContext, index: int, rec: np.ndarray, t_s: np.ndarray
 
 def process_chunk(task: ChunkTask) -> ChunkDone:
     """Run one chunk (module docstring) and return what it wrote."""
+    from calib.core.allocator import tune_allocator
+
     tune_allocator()
     ctx, spec, traj = task.context, task.spec, task.trajectory
     r = read_chunk(spec)
