@@ -46,10 +46,17 @@ class Clouds:
         if t_ns.size:
             self.newest_ns = max(self.newest_ns, int(t_ns.max()))
 
+    def _complete(self, k: int) -> bool:
+        return (k + 1) * self.period_ns + LATE_NS <= self.newest_ns
+
+    def due(self) -> bool:
+        """Whether a window is complete (:meth:`ready` would give a cloud or drop a window)."""
+        return bool(self.pending) and self._complete(min(self.pending))
+
     def ready(self, final: bool = False):
         """The clouds of the complete windows, in time order: ``(gps_ns, origin, packed, n)``."""
         for k in sorted(self.pending):
-            if not final and (k + 1) * self.period_ns + LATE_NS > self.newest_ns:
+            if not final and not self._complete(k):
                 break
             self.written_upto = k
             cloud = self._cloud(self.pending.pop(k))

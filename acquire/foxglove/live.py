@@ -45,7 +45,6 @@ log = logging.getLogger("mls.acquire")
 NS_PER_S = 1_000_000_000
 NAV_KEEP_S = 10.0  # the trajectory the clouds are georeferenced with: the last seconds of epochs
 MOUNT_EVERY_NS = NS_PER_S  # the mount's transform, again for clients that connect later
-RANGE_WINDOW_M = (0.3, 119.0)  # the Z+F's returns drawn (as the export's)
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -68,6 +67,8 @@ class LiveFeed:
         self.ch = channels
         self.options = options
         self.frame = options.frame
+        m = options.mount  # the scanner in the vessel frame: the mount's transform, fixed
+        self.scanner_pose = None if m is None else ff.scanner_pose_flu(m.lever_arm_m, m.r_s_b)
         self.nav: deque[tuple[float, ...]] = deque()  # (GPS s, lat, lon, h, roll, pitch, heading)
         period_ns = round(NS_PER_S / options.cloud_rate_hz)
         self.clouds = Clouds(period_ns, options.max_points_per_cloud, None, options.mount)
@@ -100,6 +101,8 @@ class LiveFeed:
         if self.nav and t_ns / 1e9 <= self.nav[-1][0]:
             return  # not after the last epoch
         self.nav.append((t_ns / 1e9, *row))
+        while self.nav[-1][0] - self.nav[0][0] > NAV_KEEP_S:  # bounded whatever is subscribed
+            self.nav.popleft()
         if self.frame is None:
             from calib.core import frames
 
@@ -112,11 +115,9 @@ class LiveFeed:
         from calib.core import frames
 
         ch = self.ch
-        if self.options.mount is not None and t_ns - self.last_mount_ns >= MOUNT_EVERY_NS:
+        if self.scanner_pose is not None and t_ns - self.last_mount_ns >= MOUNT_EVERY_NS:
             self.last_mount_ns = t_ns
-            m = self.options.mount
-            s_xyz, s_q = ff.scanner_pose_flu(m.lever_arm_m, m.r_s_b)
-            ch.transform(t_ns, ff.VESSEL_FRAME, ff.SCANNER_FRAME, s_xyz, s_q)
+            ch.transform(t_ns, ff.VESSEL_FRAME, ff.SCANNER_FRAME, *self.scanner_pose)
         if ch.tf.has_sinks():
             p = self.frame.to_lgf([rec.lat_deg], [rec.lon_deg], [rec.height_m])
             r = frames.rotation_zyx(rec.roll_rad, rec.pitch_rad, rec.heading_rad)
@@ -151,6 +152,8 @@ class LiveFeed:
         self._window = (window, seen + int(t_ns.size))
 
     def _flush_clouds(self) -> None:
+        if not self.clouds.due():
+            return  # no trajectory built for a profile that completes no window
         traj = self._trajectory()
         if traj is None:
             return
@@ -162,8 +165,6 @@ class LiveFeed:
         """The last :data:`NAV_KEEP_S` s of epochs as a trajectory (None: fewer than two)."""
         from calib.core.trajectory import Trajectory
 
-        while self.nav and self.nav[-1][0] - self.nav[0][0] > NAV_KEEP_S:
-            self.nav.popleft()
         if len(self.nav) < 2:
             return None
         a = np.array(self.nav)
@@ -199,7 +200,9 @@ class LiveFeed:
 def _returns(prof) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """A profile's returns inside the range window: GPS ns, range m, scan angle rad, intensity."""
     r = np.asarray(prof.range_m, float)
-    lo, hi = RANGE_WINDOW_M
+    from calib.io.bundle import SCANNER_RANGE_M
+
+    lo, hi = SCANNER_RANGE_M
     keep = np.isfinite(r) & (r >= lo) & (r <= hi)
     return (
         np.asarray(prof.gps_ns, np.int64)[keep],
