@@ -9,6 +9,10 @@ its normal's horizontal part points to (toward the water). In NED:
     v = u × n                                            (height axis, up the slope)
 
 Negative inclinations (the thesis's terrestrial sweep, −90°…90°) tilt the plane the other way.
+
+A vertical cylinder (a pile, a post, a dolphin) is given by the point of its axis at mid-height,
+its radius and its height; its surface is ``|(x − c)_h| = r`` for ``|x_D − c_D| ≤ h/2`` (the
+subscript h: the north and east components; NED, so "up" is −D).
 """
 
 from __future__ import annotations
@@ -88,6 +92,41 @@ class Rectangle:
             self.width_m,
             self.height_m,
             self.reflectivity,
+        )
+
+
+@dataclass(frozen=True, kw_only=True)
+class VerticalCylinder:
+    """A vertical cylinder in the LGF (module docstring)."""
+
+    name: str
+    center_m: np.ndarray  # (3,) the axis at mid-height, LGF
+    radius_m: float
+    height_m: float
+    reflectivity: float = 0.3
+
+    def radial_distance_m(self, p_m) -> np.ndarray:
+        """(n,) horizontal distance of points from the axis."""
+        q = np.atleast_2d(np.asarray(p_m, float))[:, :2] - self.center_m[:2]
+        return np.hypot(q[:, 0], q[:, 1])
+
+    def signed_distance(self, p_m) -> np.ndarray:
+        """(n,) distance of points from the surface, positive outside."""
+        return self.radial_distance_m(p_m) - self.radius_m
+
+    def outward_normals(self, p_m) -> np.ndarray:
+        """(n, 3) the horizontal unit vectors from the axis through the points."""
+        q = np.atleast_2d(np.asarray(p_m, float))[:, :2] - self.center_m[:2]
+        r = np.hypot(q[:, 0], q[:, 1])[:, None]
+        return np.column_stack([q / r, np.zeros(q.shape[0])])
+
+    def translated(self, offset_m) -> VerticalCylinder:
+        return VerticalCylinder(
+            name=self.name,
+            center_m=self.center_m + np.asarray(offset_m, float),
+            radius_m=self.radius_m,
+            height_m=self.height_m,
+            reflectivity=self.reflectivity,
         )
 
 

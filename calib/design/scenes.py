@@ -110,6 +110,7 @@ def design_scenario(
     return replace(
         base,
         surfaces=tuple(targets),
+        piles=(),
         scanner_noise=ScannerNoise(),
         pos_noise=PosNoise("none"),
         motion=motion,
@@ -122,4 +123,6 @@ def design_scenario(
 def site_scenario(base: Scenario, targets: Sequence[Surface]) -> Scenario:
     """``base`` (its noise, motion, passes) with only ``targets`` in the scene and every scan
     angle recorded: a planned site to simulate with noise."""
-    return replace(base, surfaces=tuple(targets), scanner=replace(base.scanner, angular_windows_rad=()))
+    return replace(
+        base, surfaces=tuple(targets), piles=(), scanner=replace(base.scanner, angular_windows_rad=())
+    )

@@ -4,14 +4,17 @@ Modules, each importing only modules above it:
 
 - ``surfaceshape``: a surface's waviness and roughness, a fixed displacement field along its
   normal, and where a ray meets the displaced surface;
-- ``scene``: planar rectangles (optionally shaped) and exact, vectorized ray casting against them;
+- ``cylinders``: vertical cylinders (piles): where a ray enters one, and the scan-angle sector
+  one occupies in a profiler's scan plane;
+- ``scene``: planar rectangles (optionally shaped) and vertical cylinders, and exact, vectorized
+  ray casting against them;
 - ``motion``: vessel motion along a pass plan → the true trajectory;
 - ``noise``: random errors of the scanner's observations and of the POS;
-- ``scenario``: a scenario (surfaces in the site frame, injected errors, scanner, motion and
+- ``scenario``: a scenario (surfaces and piles in the site frame, injected errors, scanner, motion and
   noise models, optionally a production survey and its mount event) and the scene and site
   config that follow from it;
-- ``harbour``: the harbour front a production survey sails along, and the swell that moves its
-  moored hulls;
+- ``harbour``: the harbour front a production survey sails along (walls, piles, fenders, hulls),
+  and the swell that moves its moored hulls;
 - ``scenariofile``: scenario YAML files (shipped ones by name, or any path), validated, with
   ``key=value`` overrides on dotted keys;
 - ``randomdraw``: the randomized calibration scenario (``random``): a geometry drawn from a

@@ -1,7 +1,8 @@
 """The harbour front a production survey sails along (:mod:`calib.sim.production`): scenario
-:class:`~calib.sim.scenario.Surface` s in the site frame (``along_m`` along the wall, ``out_m``
-from its face toward the water, ``up_m`` above the scanner, which rides
-:data:`SCANNER_ABOVE_WATER_M` above the water), and the swell that moves the moored hulls.
+:class:`~calib.sim.scenario.Surface` s (rectangles) and :class:`~calib.sim.scenario.Pile` s
+(vertical cylinders) in the site frame (``along_m`` along the wall, ``out_m`` from its face toward
+the water, ``up_m`` above the scanner, which rides :data:`SCANNER_ABOVE_WATER_M` above the water),
+and the swell that moves the moored hulls.
 
 The profiler scans a plane across the track, so a face whose normal points along the track
 lies parallel to the scan plane and is never seen; what makes pitch and heading observable are
@@ -16,18 +17,22 @@ faces turned part way (normals with along-track *and* across-track components). 
   fronts of three warehouses set back on it;
 - a low jetty in front of the first section, narrower at its head (deck, head, sides facing
   ±63°);
-- a row of piles in front of the second section, each three narrow facets facing −60°, 0°,
-  +60° (half a hexagonal pile);
-- rubber fenders proud of the first section, every third turned ±30°, and bollards on the deck
-  edge (small boxes turned 45°: two faces seen);
+- round piles (true cylinders) from the water to the deck: a row of 8 in front of the second
+  section from 2 m past its wing wall on, 0.5 m clear of the wall, their diameters cycling
+  through :data:`PILE_DIAMETERS_M` (0.3–1.2 m) and their spacings through
+  :data:`PILE_SPACINGS_M` (5–8 m), and a dolphin standing free in front of the middle of the
+  revetment: 4 piles of 0.6 m on a 1.5 m square, its centre 4 m out;
+- rubber fenders proud of the first section, boxes 0.45 m proud (front and two side faces), every
+  third turned ±30° (set into the wall so that its outermost edge stays 0.45 m proud), and
+  bollards on the deck edge (small boxes turned 45°: two faces seen);
 - two moored hulls (non-planar clutter): a work boat against the fenders and a barge across the
   basin, each side 5 stations long and 3 strakes high (flare, topsides, bulwark) so that it is
   curved in plan and in section, with a deckhouse (side and raked front);
 - optionally (``water``) the water surface, dark (reflectivity 0.02); the simulator has no
   detection threshold, so every downward ray then returns.
 
-About 105 surfaces. Feature positions scale with the line length so that short lines (tests)
-still pass every kind of feature.
+117 surfaces: 105 rectangles (106 with ``water``) and 12 cylinders. Feature positions scale with
+the line length so that short lines (tests) still pass every kind of feature.
 """
 
 from __future__ import annotations
@@ -38,7 +43,7 @@ import numpy as np
 
 from calib.core.geometry import Rectangle
 from calib.io.bundle import SCANNER_RANGE_M
-from calib.sim.scenario import ProductionSpec, Scenario, Surface
+from calib.sim.scenario import Pile, ProductionSpec, Scenario, Surface
 from calib.sim.scene import Scene
 from calib.sim.surfaceshape import SurfaceShape
 
@@ -54,6 +59,14 @@ QUAY_WALL_SHAPE = SurfaceShape(0.01, (3.0, 8.0), 0.001)
 WAVY_WALL_SHAPE = SurfaceShape(0.045, (1.5, 6.0), 0.001)
 #: Surfaces of a hull are named ``hull_<hull>_<part>``.
 HULL_PREFIX = "hull_"
+#: The pile row's diameters and the spacings between consecutive piles, each taken in turn (m).
+PILE_DIAMETERS_M = (0.4, 0.6, 0.9, 1.2, 0.3, 0.8)
+PILE_SPACINGS_M = (6.0, 7.5, 5.0, 8.0, 6.5)
+PILE_CLEARANCE_M = 0.5  # between the wall face and a pile of the row
+DOLPHIN_PILE_DIAMETER_M = 0.6
+DOLPHIN_SPACING_M = 1.5  # the side of the dolphin's square of piles
+DOLPHIN_OUT_M = 4.0  # its centre from the wall line (the revetment's toe)
+FENDER_PROUD_M = 0.45
 
 _DEG = float(np.pi / 180.0)
 
@@ -88,6 +101,23 @@ def _horizontal(name, kind, along0, along1, out0, out1, up, refl=0.3) -> Surface
         0.0,
         refl,
     )
+
+
+def _fender(name, along, bottom, top, width, turn_deg, refl) -> list[Surface]:
+    """A fender: a box ``width`` wide and :data:`FENDER_PROUD_M` deep, turned ``turn_deg`` (its
+    front's facing) and set into the wall so that its outermost edge is that far proud; its
+    front (named ``name``) and its two side faces (``name_side_a``, ``name_side_b``)."""
+    t = turn_deg * _DEG
+    hd, hw = 0.5 * FENDER_PROUD_M, 0.5 * width
+    out = FENDER_PROUD_M - (hd * np.cos(t) + hw * abs(np.sin(t)))  # the box's centre
+    return [
+        _vertical(name, "other", along + hd * np.sin(t), out + hd * np.cos(t), bottom, top, width, turn_deg,
+                  refl),
+        _vertical(f"{name}_side_a", "other", along + hw * np.cos(t), out - hw * np.sin(t), bottom, top,
+                  FENDER_PROUD_M, turn_deg + 90.0, refl),
+        _vertical(f"{name}_side_b", "other", along - hw * np.cos(t), out + hw * np.sin(t), bottom, top,
+                  FENDER_PROUD_M, turn_deg - 90.0, refl),
+    ]  # fmt: skip
 
 
 def _turned_box(name, along, out, size, bottom, top, refl) -> list[Surface]:
@@ -198,8 +228,7 @@ def harbour_surfaces(
     E = 0.5 * L + QUAY_REACH_M  # the quay's ends
     w, d = WATER_UP_M, DECK_UP_M
     wall = WAVY_WALL_SHAPE if wavy_wall else QUAY_WALL_SHAPE
-    rev0 = 0.2 * L  # the revetment stretch [rev0, rev1] at the wall line
-    rev1 = rev0 + float(np.clip(0.2 * L, 20.0, 60.0))
+    rev0, rev1 = _revetment(L)
     run = (d - w) / np.tan(REVETMENT_INCLINATION_RAD)  # its horizontal run: the deck edge set back
     wing = run * np.sqrt(2.0)  # the wing walls run back at 45° from the wall's ends to the deck edge
     s: list[Surface] = [
@@ -233,18 +262,10 @@ def harbour_surfaces(
         _vertical("jetty_side_a", "other", xj + 3.5, 3.0, w, jd, side, side_deg, 0.3),
         _vertical("jetty_side_b", "other", xj - 3.5, 3.0, w, jd, side, -side_deg, 0.3),
     ]
-    # piles in front of the second wall section: half-hexagons of 0.4 m across the flats
-    apothem, face = 0.2, 0.4 * np.tan(np.radians(30.0))
-    for k, x in enumerate(rev1 + 8.0 + 8.0 * np.arange(8)):
-        for f in (-60.0, 0.0, 60.0):
-            s.append(
-                _vertical(f"pile_{k}_{f:+.0f}", "other", x + apothem * np.sin(f * _DEG), 0.8 + apothem * np.cos(f * _DEG),
-                          w, d, face, f, 0.3)
-            )  # fmt: skip
     # fenders on the first wall section (the work boat lies against some), every third turned
     for k, x in enumerate(np.linspace(-0.45 * L, rev0 - 6.0, 12)):
         turn = (30.0, -30.0)[(k // 3) % 2] if k % 3 == 0 else 0.0
-        s.append(_vertical(f"fender_{k}", "other", x, 0.25, w + 1.0, w + 2.8, 0.4, turn, 0.08))
+        s += _fender(f"fender_{k}", x, w + 1.0, w + 2.8, 0.4, turn, 0.08)
     # bollards on the deck edge
     for k, x in enumerate(np.linspace(-0.5 * L, 0.5 * L, 10)):
         s += _turned_box(f"bollard_{k}", x, -0.7, 0.35, d, d + 0.5, 0.4)
@@ -255,11 +276,39 @@ def harbour_surfaces(
     return tuple(s)
 
 
+def _revetment(L: float) -> tuple[float, float]:
+    """The revetment stretch [rev0, rev1] along the wall line for lines ``L`` m long."""
+    rev0 = 0.2 * L
+    return rev0, rev0 + float(np.clip(0.2 * L, 20.0, 60.0))
+
+
+def harbour_piles(line_length_m: float) -> tuple[Pile, ...]:
+    """The harbour's piles around lines ``line_length_m`` long (module docstring): the row
+    ``pile_<k>`` in front of the second wall section, then the dolphin's ``dolphin_<k>`` in front
+    of the revetment, all from the water to the deck."""
+    rev0, rev1 = _revetment(float(line_length_m))
+    w, d = WATER_UP_M, DECK_UP_M
+    out: list[Pile] = []
+    x = rev1 + 2.0
+    for k in range(8):
+        if k:
+            x += PILE_SPACINGS_M[(k - 1) % len(PILE_SPACINGS_M)]
+        dia = PILE_DIAMETERS_M[k % len(PILE_DIAMETERS_M)]
+        out.append(Pile(name=f"pile_{k}", along_m=x, out_m=PILE_CLEARANCE_M + 0.5 * dia, bottom_up_m=w,
+                        top_up_m=d, diameter_m=dia, reflectivity=0.3))  # fmt: skip
+    xd, h = 0.5 * (rev0 + rev1), 0.5 * DOLPHIN_SPACING_M  # the dolphin's centre
+    for k, (da, do) in enumerate(((-h, -h), (h, -h), (h, h), (-h, h))):
+        out.append(Pile(name=f"dolphin_{k}", along_m=xd + da, out_m=DOLPHIN_OUT_M + do, bottom_up_m=w,
+                        top_up_m=d, diameter_m=DOLPHIN_PILE_DIAMETER_M, reflectivity=0.3))  # fmt: skip
+    return tuple(out)
+
+
 def harbour_scenario(base: Scenario, spec: ProductionSpec) -> Scenario:
-    """``base`` as a production survey ``spec`` of the harbour front: its surfaces replaced by the
-    harbour's, the profiler recording its full circle up to 119 m at ``spec.rate_scale``, turns
-    between lines; mount, truth, noise and the rest of the motion kept. (Its passes become the
-    lines when they are laid out: :func:`calib.sim.production.sail_production`.)"""
+    """``base`` as a production survey ``spec`` of the harbour front: its surfaces and piles
+    replaced by the harbour's, the profiler recording its full circle up to 119 m at
+    ``spec.rate_scale``, turns between lines; mount, truth, noise and the rest of the motion
+    kept. (Its passes become the lines when they are laid out:
+    :func:`calib.sim.production.sail_production`.)"""
     scanner = replace(
         base.scanner,
         angular_windows_rad=(),
@@ -269,6 +318,7 @@ def harbour_scenario(base: Scenario, spec: ProductionSpec) -> Scenario:
     return replace(
         base,
         surfaces=harbour_surfaces(spec.line_length_m, wavy_wall=spec.wavy_wall, water=spec.water),
+        piles=harbour_piles(spec.line_length_m),
         scanner=scanner,
         motion=replace(base.motion, turns=True),
         capture_validation_planes=False,

@@ -376,9 +376,7 @@ def _moving_hulls(sc: Scenario, scene: Scene, spec: ProductionSpec, n_lines: int
     swell = HullSwell()
     return _Hulls(
         groups=groups,
-        scene=Scene(tuple(scene.rectangles[j] for j in idx), tuple(scene.kinds[j] for j in idx))
-        if idx
-        else None,
+        scene=scene.subset(idx) if idx else None,
         swell=swell,
         phases_rad=rng_hulls.uniform(0.0, 2.0 * np.pi, (len(groups), 3)),
         drift=rng_hulls.standard_normal((n_lines, len(groups), 3)) * np.asarray(swell.drift_sigma),

@@ -40,13 +40,13 @@ class SimResult:
     scenario: Scenario
     seed: int
     site: Site  # a-priori mount, LGF reference, approximate target centres
-    scene: Scene  # the true surfaces in the LGF (rectangles = mean planes, and their shapes)
+    scene: Scene  # the true surfaces in the LGF (rectangles = mean planes, their shapes; cylinders)
     plan: PassPlan
     mount_true: Mount
     trajectory_true: Trajectory
     trajectory_observed: Trajectory  # with POS errors and sigmas
     points: ScanPoints
-    surface_index: np.ndarray  # (n,) index into scene.rectangles of the surface each return hit
+    surface_index: np.ndarray  # (n,) scene index of the surface each return hit (rectangles, cylinders)
     target_index: np.ndarray  # (n,) index into site.targets; −1 for any other surface
     p_true_lgf_m: np.ndarray  # (n, 3) the true hit points
     pose_errors: np.ndarray | None  # (n, 6) per-point POS errors (``per_point`` model only)
@@ -74,8 +74,8 @@ class SimResult:
         """Returns per pass and per named surface (targets, validation planes); every other
         surface is counted as ``background``."""
         names = [
-            "background" if k in BACKGROUND_KINDS else r.name
-            for r, k in zip(self.scene.rectangles, self.scene.kinds, strict=False)
+            "background" if k in BACKGROUND_KINDS else name
+            for name, k in zip(self.scene.names, self.scene.kinds, strict=True)
         ]
         keys = list(dict.fromkeys(names + ["background"]))
         out = {}
@@ -131,6 +131,19 @@ def _plane(rect, kind: str, shape) -> dict:
     return out
 
 
+def _cylinder(c, kind: str) -> dict:
+    """A vertical cylinder as truth.json gives it (its axis at mid-height, LGF)."""
+    return {
+        "name": c.name,
+        "kind": kind,
+        "center_lgf_m": [float(x) for x in c.center_m],
+        "radius_m": float(c.radius_m),
+        "diameter_m": 2.0 * float(c.radius_m),
+        "height_m": float(c.height_m),
+        "reflectivity": float(c.reflectivity),
+    }
+
+
 def _truth(
     sc: Scenario,
     seed: int,
@@ -150,7 +163,7 @@ def _truth(
             if k in kinds
         ]
 
-    return {
+    out = {
         "format": "marine-mls simulation truth v1",
         "scenario": sc.name,
         "seed": int(seed),
@@ -189,6 +202,10 @@ def _truth(
         "wave_phases_deg": {k: float(np.degrees(v)) for k, v in run.phases_rad.items()},
         "settings": sc.to_dict(),
     }
+    if scene.cylinders:  # piles, posts, dolphins (vertical; always background)
+        kinds = [scene.kinds[j] for j in scene.cylinder_indices]
+        out["cylinders"] = [_cylinder(c, k) for c, k in zip(scene.cylinders, kinds, strict=True)]
+    return out
 
 
 # -- observations -----------------------------------------------------------------------------

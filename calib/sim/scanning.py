@@ -3,10 +3,10 @@ trajectory, each ray cast exactly against the scene with the TRUE mount.
 
 The rays' origins and directions are computed by :func:`calib.core.georef.georeference` itself (at
 range 0 and 1), so simulator and georeferencing share one model of the trajectory's
-interpolation. Per profile batch the scene first gives the sector of scan angles each rectangle
-can occupy (:meth:`calib.sim.scene.Scene.scan_sectors`); only those rays are cast exactly.
-The reported observations follow the :class:`calib.core.georef.Mount` sign conventions (see
-:mod:`calib.sim.simulate`).
+interpolation. Per profile batch the scene first gives the sector of scan angles each surface
+(rectangle or cylinder) can occupy (:meth:`calib.sim.scene.Scene.scan_sectors`); only those rays
+are cast exactly. The reported observations follow the :class:`calib.core.georef.Mount` sign
+conventions (see :mod:`calib.sim.simulate`).
 """
 
 from __future__ import annotations

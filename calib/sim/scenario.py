@@ -10,6 +10,9 @@ scanner's mean height. The site frame's origin is the scenario's ``reference`` p
 also the origin of the LGF (NED) the simulation and the bundle use. A surface faces the water
 unless ``facing_deg`` turns it (clockwise seen from above). A surface may have a shape
 (waviness and roughness, :mod:`calib.sim.surfaceshape`); its rectangle is then its mean plane.
+A :class:`Pile` (a pile, a post, a dolphin's pile) is a vertical cylinder standing on the
+site-frame point (``along_m``, ``out_m``) from ``bottom_up_m`` to ``top_up_m``; the scene holds
+it as a :class:`~calib.core.geometry.VerticalCylinder` after the rectangles.
 
 A scenario with a :class:`ProductionSpec` is a *production survey* (:mod:`calib.sim.production`):
 lines along the harbour front of :mod:`calib.sim.harbour` instead of calibration passes, with an
@@ -23,13 +26,13 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from calib.core import frames
-from calib.core.geometry import Rectangle
+from calib.core.geometry import Rectangle, VerticalCylinder
 from calib.core.georef import Mount
 from calib.io.bundle import SCANNER_RANGE_M
 from calib.io.site import PassSpec, Site, Target
 from calib.sim.motion import MotionModel
 from calib.sim.noise import PosNoise, ScannerNoise
-from calib.sim.scene import Scene
+from calib.sim.scene import BACKGROUND_KINDS, Scene
 from calib.sim.surfaceshape import SurfaceShape
 from calib.survey.passplan import PassPlan, plan_passes
 
@@ -54,6 +57,46 @@ class Surface:
     facing_rad: float = 0.0  # relative to the water-facing direction
     reflectivity: float = 0.9
     shape: SurfaceShape | None = None  # waviness and roughness; None = flat
+
+
+@dataclass(frozen=True, kw_only=True)
+class Pile:
+    """A vertical cylinder in site-frame coordinates (see the module docstring): its axis at
+    (``along_m``, ``out_m``), from ``bottom_up_m`` to ``top_up_m``; always background."""
+
+    name: str
+    kind: str = "other"  # "wall", "ground" or "other"
+    along_m: float
+    out_m: float
+    bottom_up_m: float
+    top_up_m: float
+    diameter_m: float
+    reflectivity: float = 0.3
+
+    def __post_init__(self):
+        if self.kind not in BACKGROUND_KINDS:
+            raise ValueError(
+                f"Pile {self.name!r}: kind {self.kind!r}, expected one of {', '.join(BACKGROUND_KINDS)}"
+            )
+        if not (np.isfinite(self.diameter_m) and self.diameter_m > 0):
+            raise ValueError(f"Pile {self.name!r}: diameter_m must be > 0, got {self.diameter_m!r}")
+        if not self.top_up_m > self.bottom_up_m:
+            raise ValueError(
+                f"Pile {self.name!r}: top_up_m ({self.top_up_m!r}) must lie above "
+                f"bottom_up_m ({self.bottom_up_m!r})"
+            )
+
+    def to_dict(self) -> dict:
+        return {
+            "name": self.name,
+            "kind": self.kind,
+            "along_m": float(self.along_m),
+            "out_m": float(self.out_m),
+            "bottom_up_m": float(self.bottom_up_m),
+            "top_up_m": float(self.top_up_m),
+            "diameter_m": float(self.diameter_m),
+            "reflectivity": float(self.reflectivity),
+        }
 
 
 @dataclass(frozen=True)
@@ -269,6 +312,7 @@ class Scenario:
     #: what a randomized scenario drew (:mod:`calib.sim.randomdraw`, JSON-ready, degrees at the
     #: edge), written to truth.json's ``settings.random_draw``; None for a scenario file
     draw: dict | None = None
+    piles: tuple[Pile, ...] = ()  # vertical cylinders, after the surfaces in the scene
 
     # -- geometry ---------------------------------------------------------------------------
 
@@ -296,11 +340,22 @@ class Scenario:
             s.reflectivity,
         )
 
+    def cylinder(self, p: Pile) -> VerticalCylinder:
+        return VerticalCylinder(
+            name=p.name,
+            center_m=self.site_to_lgf(p.along_m, p.out_m, 0.5 * (p.bottom_up_m + p.top_up_m))[0],
+            radius_m=0.5 * float(p.diameter_m),
+            height_m=float(p.top_up_m - p.bottom_up_m),
+            reflectivity=float(p.reflectivity),
+        )
+
     def scene(self) -> Scene:
+        """The surfaces (rectangles) and then the piles (cylinders) in the LGF."""
         return Scene(
             tuple(self.rectangle(s) for s in self.surfaces),
-            tuple(s.kind for s in self.surfaces),
+            tuple(s.kind for s in self.surfaces) + tuple(p.kind for p in self.piles),
             tuple(s.shape for s in self.surfaces),
+            tuple(self.cylinder(p) for p in self.piles),
         )
 
     def pass_plan(self) -> PassPlan:

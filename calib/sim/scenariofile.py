@@ -7,7 +7,8 @@ coordinates are given in).
 
 The shipped scenarios (``calib/sim/scenarios/*.yaml``) document every key; ``harbour.yaml``
 the ``production`` section (a production survey of :mod:`calib.sim.harbour`'s harbour front,
-with an optional mount event).
+with an optional mount event), ``montreal_piles.yaml`` the scene's ``piles`` (vertical
+cylinders).
 """
 
 from __future__ import annotations
@@ -39,6 +40,7 @@ from calib.sim.scenario import (
     MAX_MOUNT_STEP_RAD,
     InjectedErrors,
     MountEvent,
+    Pile,
     ProductionSpec,
     ScannerModel,
     Scenario,
@@ -217,16 +219,10 @@ def _start_gps_s(n: Node) -> float:
 
 
 _SURFACE_KEYS = {
-    "along_m",
-    "out_m",
-    "up_m",
-    "size_m",
-    "inclination_deg",
-    "facing_deg",
-    "reflectivity",
-    "waviness",
+    "along_m", "out_m", "up_m", "size_m", "inclination_deg", "facing_deg", "reflectivity", "waviness",
     "roughness_m",
-}
+}  # fmt: skip
+_PILE_KEYS = {"along_m", "out_m", "kind", "reflectivity"}
 
 
 def _shape(m: dict[str, Node]) -> SurfaceShape | None:
@@ -272,20 +268,41 @@ def _surface(n: Node, kind: str | None, default_reflectivity: float) -> Surface:
     )
 
 
-def _scene(n: Node) -> tuple[Surface, ...]:
-    m = n.mapping(required={"targets"}, optional={"validation_planes", "surfaces", "flat_surfaces"})
+def _pile(n: Node) -> Pile:
+    """A pile: ``{name, along_m, out_m, diameter_m, bottom_up_m, top_up_m[, kind, reflectivity]}``."""
+    m = n.mapping(required={"name", "diameter_m", "bottom_up_m", "top_up_m"}, optional=_PILE_KEYS)
+    bottom = m["bottom_up_m"].number()
+    top = m["top_up_m"].number()
+    if top <= bottom:
+        raise m["top_up_m"].fail(f"a height above bottom_up_m ({bottom:g})")
+    return Pile(
+        name=m["name"].string(),
+        kind=_opt(m, "kind", lambda x: x.string(BACKGROUND_KINDS), "other"),
+        along_m=_opt(m, "along_m", Node.number, 0.0),
+        out_m=_opt(m, "out_m", Node.number, 0.0),
+        bottom_up_m=bottom,
+        top_up_m=top,
+        diameter_m=m["diameter_m"].number(0.0, 20.0, exclusive_minimum=True),
+        reflectivity=_opt(m, "reflectivity", _number(0.0, 1.0), 0.3),
+    )
+
+
+def _scene(n: Node) -> tuple[tuple[Surface, ...], tuple[Pile, ...]]:
+    """The scene's surfaces (targets, validation planes, the rest) and piles."""
+    m = n.mapping(required={"targets"}, optional={"validation_planes", "surfaces", "piles", "flat_surfaces"})
     out = [_surface(t, "target", 0.9) for t in m["targets"].sequence(min_len=1)]
     if "validation_planes" in m:
         out += [_surface(t, "validation", 0.6) for t in m["validation_planes"].sequence()]
     if "surfaces" in m:
         out += [_surface(t, None, 0.3) for t in m["surfaces"].sequence()]
-    names = [s.name for s in out]
+    piles = tuple(_pile(t) for t in m["piles"].sequence()) if "piles" in m else ()
+    names = [s.name for s in out] + [p.name for p in piles]
     for i, name in enumerate(names):
         if name in names[:i]:
             raise n.fail(f"unique surface names ({name!r} appears twice)")
     if _opt(m, "flat_surfaces", Node.boolean, False):  # every surface planar, whatever it says
         out = [replace(s, shape=None) for s in out]
-    return tuple(out)
+    return tuple(out), piles
 
 
 def _passes(m: dict[str, Node]) -> tuple[PassSpec, ...]:
@@ -479,19 +496,9 @@ def _production(n: Node, scanner: Node | None) -> ProductionSpec:
     scanner's ``point_rate_scale`` when the file gives one, else 0.02; an override of
     ``scanner.point_rate_scale`` (``--point-rate-scale``) wins over it."""
     m = n.mapping(
-        optional={
-            "duration_s",
-            "n_lines",
-            "offsets_m",
-            "line_length_m",
-            "speeds_mps",
-            "wavy_wall",
-            "moving_hulls",
-            "water",
-            "rate_scale",
-            "mount_event",
-        }
-    )
+        optional={"duration_s", "n_lines", "offsets_m", "line_length_m", "speeds_mps", "wavy_wall",
+                  "moving_hulls", "water", "rate_scale", "mount_event"}
+    )  # fmt: skip
     d = ProductionSpec()
     duration = _opt(m, "duration_s", _positive, d.duration_s)
     offsets = d.offsets_m
@@ -528,20 +535,9 @@ def _production(n: Node, scanner: Node | None) -> ProductionSpec:
 
 
 _TOP_KEYS = {
-    "name",
-    "description",
-    "reference",
-    "start_utc",
-    "vessel",
-    "site",
-    "scene",
-    "mount",
-    "truth",
-    "scanner",
-    "motion",
-    "noise",
-    "production",
-}
+    "name", "description", "reference", "start_utc", "vessel", "site", "scene", "mount", "truth", "scanner",
+    "motion", "noise", "production",
+}  # fmt: skip
 
 
 def _scenario(root: Node, default_name: str) -> Scenario:
@@ -559,18 +555,11 @@ def _scenario(root: Node, default_name: str) -> Scenario:
         _opt(ref, "height_m", Node.number, 0.0),
     )
     sm = top["site"].mapping(
-        optional={
-            "wall_azimuth_deg",
-            "standoff_m",
-            "passes",
-            "pass_length_m",
-            "speed_mps",
-            "safe_wall_distance_m",
-            "capture_margin_m",
-            "capture_validation_planes",
-        }
-    )
+        optional={"wall_azimuth_deg", "standoff_m", "passes", "pass_length_m", "speed_mps",
+                  "safe_wall_distance_m", "capture_margin_m", "capture_validation_planes"}
+    )  # fmt: skip
     scanner_noise, pos_noise = _noise(top["noise"]) if "noise" in top else (ScannerNoise(), PosNoise())
+    surfaces, piles = _scene(top["scene"]) if "scene" in top else ((), ())
     scenario = Scenario(
         name=_opt(top, "name", Node.string, default_name),
         description=_opt(top, "description", Node.string, ""),
@@ -583,13 +572,14 @@ def _scenario(root: Node, default_name: str) -> Scenario:
         safe_wall_distance_m=_opt(sm, "safe_wall_distance_m", _nonneg, 5.0),
         capture_margin_m=_opt(sm, "capture_margin_m", _nonneg, 3.0),
         capture_validation_planes=_opt(sm, "capture_validation_planes", Node.boolean, False),
-        surfaces=_scene(top["scene"]) if "scene" in top else (),
+        surfaces=surfaces,
         mount=_opt(top, "mount", _mount, Mount()),
         truth=_opt(top, "truth", _truth, InjectedErrors()),
         scanner=_opt(top, "scanner", _scanner, ScannerModel()),
         motion=_opt(top, "motion", _motion, MotionModel()),
         scanner_noise=scanner_noise,
         pos_noise=pos_noise,
+        piles=piles,
     )
     if production:
         scenario = harbour_scenario(scenario, _production(top["production"], top.get("scanner")))

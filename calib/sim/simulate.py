@@ -1,7 +1,7 @@
 """The MLS simulator (the thesis's simulator, Chapter 3, generalised): a scenario and a seed in,
 a calibration bundle's content and its truth out.
 
-    scenario ──► site (a-priori mount), scene of rectangles, pass plan
+    scenario ──► site (a-priori mount), scene of rectangles and cylinders, pass plan
              ──► vessel motion along the plan ──► true trajectory
              ──► profiles at the profiler's rates, exact ray casting with the TRUE mount
                  (against the walls' waviness and roughness where the scenario gives them)
@@ -13,7 +13,7 @@ scanner along the true mount (a-priori mount with the true boresight and the lev
 at the true time, and the reported observations follow the :class:`calib.core.georef.Mount` sign
 conventions, so that georeferencing them with the true mount and the true trajectory puts every
 noise-free return exactly on the surface it hit (:meth:`calib.sim.scene.Scene.distance_m` = 0:
-on its rectangle, or on the displaced surface of a wavy or rough one):
+on its rectangle, on the displaced surface of a wavy or rough one, or on its cylinder):
 
     ρ_reported = ρ_true − δρ,    α_beam = α_reported + δα,    pose sampled at t_reported + Δt.
 

@@ -41,7 +41,9 @@ def _passes(text: str | None) -> tuple[int, ...] | None:
 def design(
     scenario: Annotated[
         str | None,
-        scenario_option("Study a shipped scenario (montreal, terrestrial, tower) or a scenario YAML file."),
+        scenario_option(
+            "Study a shipped scenario (montreal, montreal_piles, terrestrial, tower) or a scenario YAML file."
+        ),
     ] = None,
     site: Annotated[
         Path | None,

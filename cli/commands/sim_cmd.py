@@ -44,7 +44,7 @@ def dataset(
     scenario: Annotated[
         str,
         scenario_option(
-            "A shipped scenario (montreal, terrestrial, tower), random (a geometry "
+            "A shipped scenario (montreal, montreal_piles, terrestrial, tower), random (a geometry "
             "drawn from --seed; the draw lands in truth.json) or a scenario YAML file."
         ),
     ],
@@ -137,7 +137,10 @@ def session(
         Path, out_option("Directory the session directory is created in (the daemon's session directory).")
     ],
     scenario: Annotated[
-        str, scenario_option("A shipped scenario (montreal, terrestrial, tower) or a scenario YAML file.")
+        str,
+        scenario_option(
+            "A shipped scenario (montreal, montreal_piles, terrestrial, tower) or a scenario YAML file."
+        ),
     ] = "montreal",
     minutes: Annotated[
         float, typer.Option("--minutes", "-m", min=0.01, help="Length of the session (minutes).")

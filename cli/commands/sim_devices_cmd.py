@@ -188,7 +188,10 @@ def _check_config(path: Path, console) -> None:
 @app.command("devices")
 def devices(
     scenario: Annotated[
-        str, scenario_option("A shipped scenario (montreal, terrestrial, tower) or a scenario YAML file.")
+        str,
+        scenario_option(
+            "A shipped scenario (montreal, montreal_piles, terrestrial, tower) or a scenario YAML file."
+        ),
     ],
     seed: Annotated[int, seed_option("Random seed of the simulation, the jitters and the faults.")] = 0,
     speed: Annotated[

@@ -118,14 +118,17 @@ class SessionResult:
 def quay_surroundings(sc, line_length_m: float) -> tuple:
     """A quay for the survey to see beyond the calibration scene (site frame, flat): its wall face
     5 cm behind the scene's wall plane from the water (``SCANNER_ABOVE_WATER_M`` below the
-    scanner) to the deck (the top of the scenario's highest surface), a warehouse facade set
+    scanner) to the deck (the top of the scenario's highest surface or pile), a warehouse facade set
     back on the deck, and the water surface from the wall to three standoffs out (a stand-in for
     what a survey sees below the horizon near the vessel; a NIR scanner gets few returns from open
     water), all running ``SURROUNDINGS_REACH_M`` beyond the lines' ends."""
     from calib.sim.scenario import Surface
 
     water_up = -SCANNER_ABOVE_WATER_M
-    deck_up = max(s.up_m + 0.5 * s.height_m * math.sin(s.inclination_rad) for s in sc.surfaces)
+    deck_up = max(
+        [s.up_m + 0.5 * s.height_m * math.sin(s.inclination_rad) for s in sc.surfaces]
+        + [p.top_up_m for p in sc.piles]
+    )
     width = line_length_m + 2 * SURROUNDINGS_REACH_M
     far_out = 3.0 * sc.standoff_m
     return (
@@ -465,8 +468,8 @@ def _truth(plan: SessionPlan) -> dict:
     sim, survey, spec, lidar, windows = plan.sim, plan.survey, plan.spec, plan.lidar, plan.windows
     truth = dict(sim.truth)
     names = [
-        "background" if k in BACKGROUND_KINDS else r.name
-        for r, k in zip(sim.scene.rectangles, sim.scene.kinds, strict=True)
+        "background" if k in BACKGROUND_KINDS else name
+        for name, k in zip(sim.scene.names, sim.scene.kinds, strict=True)
     ]
     keys = list(dict.fromkeys(names + ["background"]))
     passes = []
@@ -484,9 +487,8 @@ def _truth(plan: SessionPlan) -> dict:
         "tool": "mls sim session",
         "lines": "back and forth along the quay (relative headings 0° and 180°)",
         "surroundings": [s.name for s in survey.surfaces if s.name.startswith("survey_")],
-        "returns_by_surface": {
-            r.name: int(n)
-            for r, n in zip(sim.scene.rectangles, lidar.counts.per_surface.tolist(), strict=True)
+        "returns_by_surface": {  # rectangles, then cylinders (their geometry: truth["cylinders"])
+            name: int(n) for name, n in zip(sim.scene.names, lidar.counts.per_surface.tolist(), strict=True)
         },
     }
     return truth
