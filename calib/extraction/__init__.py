@@ -5,5 +5,6 @@ tie patches.
 - ``segmentation``: point-cloud building blocks (RANSAC plane, intensity split, incidence
   correction, clusters, extents);
 - ``extract``: target planes extracted from each pass's points;
-- ``patches``: candidate tie patches: planar cells of the scene seen from several headings.
+- ``patches``: candidate tie patches: planar cells of the scene seen from several headings;
+- ``cylinders``: candidate tie cylinders: vertical piles and posts seen from several headings.
 """

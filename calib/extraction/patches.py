@@ -152,7 +152,7 @@ def extract_candidates(
         )
     diff = np.abs(np.angle(np.exp(1j * (heading_rad[:, None] - heading_rad[None, :]))))
     pair_ok = np.degrees(diff) >= options.min_heading_spread_deg - 1e-9
-    excluded = _exclusion(p, exclude_b, options.exclusion_margin_m)
+    excluded = near_excluded(p, exclude_b, options.exclusion_margin_m)
     sizes = AUTO_SIZES_M if options.size_m is None else (float(options.size_m),)
     best: _Found | None = None
     scores: dict[float, int] = {}
@@ -217,7 +217,7 @@ def _validated(p_lgf_m, origin_lgf_m, pass_id, exclude):
     return p, origin, pass_index.astype(np.int64), pass_ids, ex.astype(bool)
 
 
-def _exclusion(p: np.ndarray, exclude: np.ndarray, margin_m: float) -> np.ndarray:
+def near_excluded(p: np.ndarray, exclude: np.ndarray, margin_m: float) -> np.ndarray:
     """The target points and every point within ``margin_m`` of one."""
     out = exclude.copy()
     if not exclude.any() or margin_m <= 0:
@@ -493,14 +493,14 @@ def _subsample(found: _Found, p, pass_index, cap: int) -> np.ndarray:
     tie = np.random.default_rng(SUBSAMPLE_SEED).permutation(sel.size)
     pi = pass_index[pt]
     k_pass = k * found.counted.shape[1] + pi
-    r_sub = _rank_in_group(k_pass * (int(sub.max()) + 1) + sub, tie)  # rank within its sub-cell
-    r_pass = _rank_in_group(k_pass, r_sub, tie)  # round-robin over the sub-cells of its pass
-    r_patch = _rank_in_group(k, r_pass, tie)  # round-robin over the passes of its patch
+    r_sub = rank_in_group(k_pass * (int(sub.max()) + 1) + sub, tie)  # rank within its sub-cell
+    r_pass = rank_in_group(k_pass, r_sub, tie)  # round-robin over the sub-cells of its pass
+    r_patch = rank_in_group(k, r_pass, tie)  # round-robin over the passes of its patch
     keep[sel] = r_patch < cap
     return keep
 
 
-def _rank_in_group(group: np.ndarray, *keys: np.ndarray) -> np.ndarray:
+def rank_in_group(group: np.ndarray, *keys: np.ndarray) -> np.ndarray:
     """Rank (0, 1, …) of each element within its group, ordered by the non-negative integer
     ``keys`` (the first first); the last key must be unique within a group (a tie-break)."""
     combined = group.astype(np.int64)
@@ -545,7 +545,7 @@ def gather_members(
     (deterministic order). Passes with fewer than ``min_points_per_pass`` points drop out."""
     p = np.asarray(p_lgf_m, float)
     pid = np.asarray(pass_id)
-    free = ~_exclusion(p, np.asarray(exclude, bool), options.exclusion_margin_m)
+    free = ~near_excluded(p, np.asarray(exclude, bool), options.exclusion_margin_m)
     idx_free = np.flatnonzero(free)
     tree = cKDTree(p[idx_free])
     r = 0.5 * cands.size_m
