@@ -103,6 +103,18 @@ class AdjustmentResult:
 # ---------------------------------------------------------------------------------------------
 
 
+def _feature_geometry(state: State, j: int) -> dict:
+    """A plane's normal and d (LGF), or a cylinder's axis direction, axis point and radius."""
+    if state.is_cylinder[j]:
+        return {
+            "shape": "cylinder",
+            "axis": [float(x) for x in state.normals[j]],
+            "axis_center_lgf_m": [float(x) for x in state.centers_m[j]],
+            "radius_m": -float(state.d_m[j]),
+        }
+    return {"shape": "plane", "normal": [float(x) for x in state.normals[j]], "d": float(state.d_lgf_m[j])}
+
+
 def _plane_pass_stats(obs: Observations, residual: np.ndarray, state: State, roughness_m2):
     planes, passes = [], []
     for j, name in enumerate(obs.plane_names):
@@ -112,8 +124,7 @@ def _plane_pass_stats(obs: Observations, residual: np.ndarray, state: State, rou
                 "name": name,
                 "kind": "tie patch" if j in obs.patch_planes else "target",
                 "roughness_m": None if roughness_m2 is None else float(np.sqrt(roughness_m2[j])),
-                "normal": [float(x) for x in state.normals[j]],
-                "d": float(state.d_lgf_m[j]),
+                **_feature_geometry(state, j),
                 "n_points": int(r.size),
                 "rms_m": float(np.sqrt(np.mean(r**2))) if r.size else float("nan"),
             }

@@ -22,6 +22,7 @@ from calib.boresight.ghmodel import EXTRA_NAMES, Linearization, State, georefere
 from calib.boresight.observability import ANGLE_NAMES, ObservabilityError
 from calib.boresight.observations import AdjustOptions, Observations
 from calib.core import frames
+from calib.core.geometry import VerticalCylinder
 from calib.core.trajectory import Trajectory
 
 #: Boresight steps above this linearize at the observations (see solve).
@@ -129,14 +130,23 @@ def pose_rates(traj: Trajectory, t: np.ndarray, h: float = 0.005) -> tuple[np.nd
 
 
 def initial_state(mount, planes_init, n_passes, centers=None) -> State:
-    """``planes_init``: (normal, d) in the LGF per plane; ``centers`` the planes' reference
-    points (default: the foot of the perpendicular from the LGF origin)."""
-    normals = np.array([np.asarray(n, float) / np.linalg.norm(n) for n, _ in planes_init])
-    d_lgf = np.array([float(dd) / np.linalg.norm(n) for n, dd in planes_init])
+    """``planes_init``: per feature a plane (normal, d) in the LGF or a
+    :class:`~calib.core.geometry.VerticalCylinder`; ``centers`` the features' reference points
+    near their points (default: a plane's foot of the perpendicular from the LGF origin, a
+    cylinder's own centre; a cylinder's is moved along its axis to the given point's height)."""
+    cylinders = np.array([isinstance(f, VerticalCylinder) for f in planes_init], bool)
+    normals = np.array([_feature_normal(f) for f in planes_init]).reshape(-1, 3)
+    d_lgf = np.array(
+        [0.0 if isinstance(f, VerticalCylinder) else float(f[1]) / np.linalg.norm(f[0]) for f in planes_init]
+    )
     if centers is None:
         centers = -d_lgf[:, None] * normals
-    centers = np.asarray(centers, float)
+    centers = np.asarray(centers, float).copy()
     d_rel = d_lgf + np.einsum("ij,ij->i", normals, centers)
+    for j in np.flatnonzero(cylinders):
+        cyl = planes_init[j]
+        centers[j, :2] = cyl.center_m[:2]
+        d_rel[j] = -float(cyl.radius_m)
     return State(
         boresight_rad=np.asarray(mount.boresight_rad, float).copy(),
         normals=normals,
@@ -147,7 +157,16 @@ def initial_state(mount, planes_init, n_passes, centers=None) -> State:
         range_offset_m=float(mount.range_offset_m),
         scan_angle_offset_rad=float(mount.scan_angle_offset_rad),
         latency_s=float(mount.time_offset_s),
+        cylinders=cylinders if cylinders.any() else None,
     )
+
+
+def _feature_normal(feature) -> np.ndarray:
+    """A plane's unit normal, a vertical cylinder's axis (down: the LGF's z)."""
+    if isinstance(feature, VerticalCylinder):
+        return np.array([0.0, 0.0, 1.0])
+    n = np.asarray(feature[0], float)
+    return n / np.linalg.norm(n)
 
 
 def plane_centers(obs: Observations, mount, r_nom) -> np.ndarray:
@@ -182,7 +201,11 @@ def _apply(state: State, dx: np.ndarray, layout: Layout, bases) -> State:
         elif name == "latency":
             s.latency_s += v
     dp = dx[layout.i_plane : layout.i_offset].reshape(-1, 3)
-    n_new = s.normals + np.einsum("mij,mj->mi", bases, dp[:, 0:2])
+    tangent_step = np.einsum("mij,mj->mi", bases, dp[:, 0:2])
+    if s.cylinders is not None:  # a cylinder's axis moves, its direction stays
+        s.centers_m = s.centers_m + np.where(s.cylinders[:, None], tangent_step, 0.0)
+        tangent_step[s.cylinders] = 0.0
+    n_new = s.normals + tangent_step
     s.normals = n_new / np.linalg.norm(n_new, axis=1, keepdims=True)
     s.d_m = s.d_m + dp[:, 2]
     if layout.offsets:

@@ -11,6 +11,19 @@ arm x and y, latency Δt), per plane a unit normal (2 tangent-space increments) 
 the plane's points, so that tilting the normal pivots the plane about its own points), optional
 per-pass translations o_k. This module evaluates F, ``A = ∂F/∂unknowns`` (as named columns) and
 ``B = ∂F/∂observations`` (n × 8).
+
+**Cylinders.** A feature may instead be a cylinder with a fixed axis direction a (a pile, a
+post: vertical), its axis through c_j and its radius r_j = −d_j:
+
+    F_i = |(x_i − c_j) − ((x_i − c_j)·a) a| + d_j = u_iᵀ (x_i − c_j) + d_j,
+
+u_i the unit vector from the axis to the point, perpendicular to it. Everything that is ``n_jᵀ``
+of a derivative of x for a plane is ``u_iᵀ`` of the same derivative for a cylinder (``∂F/∂x =
+u_iᵀ``), so the two share every column but the feature's own: a cylinder's three unknowns are
+the axis's shift along the two tangent vectors of a (``−u_iᵀ e_1``, ``−u_iᵀ e_2``) and d (1),
+where a plane's are its normal's tilt and d. A yaw moves a point along the track; on a
+cylinder that changes its distance from the axis wherever the beam is not head-on, which is
+what gives yaw to piles when a flat wall gives it almost nothing.
 """
 
 from __future__ import annotations
@@ -61,11 +74,29 @@ class State:
     range_offset_m: float = 0.0
     scan_angle_offset_rad: float = 0.0
     latency_s: float = 0.0
+    #: (m,) bool: the features that are cylinders (``normals`` their axes, ``centers_m`` points
+    #: of their axes, ``d_m`` minus their radii); None: every feature is a plane
+    cylinders: np.ndarray | None = None
 
     @property
     def d_lgf_m(self) -> np.ndarray:
-        """Plane offsets in the LGF: nᵀx + d = 0."""
+        """Plane offsets in the LGF: nᵀx + d = 0 (a cylinder's entry has no meaning)."""
         return self.d_m - np.einsum("ij,ij->i", self.normals, self.centers_m)
+
+    @property
+    def is_cylinder(self) -> np.ndarray:
+        """(m,) bool: which features are cylinders."""
+        if self.cylinders is None:
+            return np.zeros(self.normals.shape[0], bool)
+        return self.cylinders
+
+    def cylinder_rows(self, feature_index: np.ndarray) -> np.ndarray | None:
+        """The rows of points (``feature_index``: each point's feature) that lie on cylinders;
+        None when none does."""
+        if self.cylinders is None or not self.cylinders.any():
+            return None
+        rows = np.flatnonzero(self.cylinders[feature_index])
+        return rows if rows.size else None
 
     def copy(self) -> State:
         return State(
@@ -78,6 +109,7 @@ class State:
             self.range_offset_m,
             self.scan_angle_offset_rad,
             self.latency_s,
+            None if self.cylinders is None else self.cylinders.copy(),
         )
 
 
@@ -237,6 +269,9 @@ def linearize_block(
     rx_v = att.rx(v_b)
     Rv = att.rz(att.ry(rx_v))
     x_rel = _relative_points(state, plane_index, pass_index, lt, Rv)
+    cyl = state.cylinder_rows(plane_index)
+    if cyl is not None:  # the gradient of a cylinder's condition: the radial unit vector
+        nrm[:, cyl] = _radial_units(x_rel[cyl], nrm[:, cyl])
     out.F[:] = att.n_dot((x_rel[:, 0], x_rel[:, 1], x_rel[:, 2])) + state.d_m[plane_index]
     if out.x_lgf_m.shape[0]:
         out.x_lgf_m[:] = x_rel + state.centers_m[plane_index]
@@ -256,7 +291,17 @@ def linearize_block(
     _fill_extra_columns(out, att, v_b, rates, n)
     E = bases[plane_index]  # (n, 3, 2)
     out.A_plane[:, 0:2] = np.einsum("ni,nij->nj", x_rel, E)
+    if cyl is not None:  # a cylinder's axis shifts along its tangent vectors
+        out.A_plane[cyl, 0:2] = -np.einsum("in,nij->nj", nrm[:, cyl], E[cyl])
     out.A_plane[:, 2] = 1.0
+
+
+def _radial_units(x_rel: np.ndarray, axes: np.ndarray) -> np.ndarray:
+    """(3, k): the unit vectors perpendicular to the ``axes`` (3, k) from the axis to the points
+    ``x_rel`` (k, 3), which are relative to a point of their axis."""
+    along = np.einsum("ki,ik->k", x_rel, axes)
+    radial = x_rel.T - along * axes
+    return radial / np.sqrt(np.einsum("ik,ik->k", radial, radial))
 
 
 def _relative_points(state: State, plane_index, pass_index, lt: np.ndarray, Rv) -> np.ndarray:
@@ -288,6 +333,9 @@ def georeferenced(
         att = _Attitude(attitude_trig(l[sl]), np.ascontiguousarray(state.normals[j].T))
         Rv = att.rz(att.ry(att.rx(_body_vector(state, r_nom, lt))))
         x_rel = _relative_points(state, j, pass_index[sl], lt, Rv)
+        cyl = state.cylinder_rows(j)
+        if cyl is not None:
+            att.nrm[:, cyl] = _radial_units(x_rel[cyl], att.nrm[:, cyl])
         F[sl] = att.n_dot((x_rel[:, 0], x_rel[:, 1], x_rel[:, 2])) + state.d_m[j]
         x[sl] = x_rel + state.centers_m[j]
     return F, x

@@ -332,10 +332,16 @@ def linearize_adjusted(
     latency: bool,
     bases,
     buffers: LinearizationBuffers | None = None,
+    pos_correction: np.ndarray | None = None,
 ):
     """The linearization at the observations with the scanner residuals ``v`` (n, 2) added,
-    its misclosure ``F(l + v) − B v`` (module docstring); into ``buffers`` when given."""
+    its misclosure ``F(l + v) − B v`` (module docstring); into ``buffers`` when given.
+    ``pos_correction`` (n, 6): the POS errors' estimate to add to the poses as well (cylinders:
+    below)."""
     l_at = observations_at(obs, state, latency)
+    if pos_correction is not None:
+        l_at = l_at.copy()
+        l_at[:, :CHANNELS] += pos_correction
     rates = pose_rates(obs.latency_trajectory(), obs.t_gps_s + state.latency_s) if latency else None
     if buffers is None:
         l_obs = l_at.copy()
@@ -347,7 +353,18 @@ def linearize_adjusted(
     for lo in range(0, len(obs), POINT_BLOCK):  # in blocks: no full-size temporaries
         sl = slice(lo, min(lo + POINT_BLOCK, len(obs)))
         lin.F[sl] -= lin.B[sl, 6] * v[sl, 0] + lin.B[sl, 7] * v[sl, 1]
+        if pos_correction is not None:
+            lin.F[sl] -= np.einsum("ij,ij->i", lin.B[sl, :CHANNELS], pos_correction[sl])
     return lin
+
+
+def pos_errors(knots: KnotWeights, z: np.ndarray) -> np.ndarray:
+    """(n, 6): each point's POS correction ``c = σ_c (a_c z_k,c + b_c z_k+1,c)`` from the knot
+    values ``z`` (``J z = B c``: ``F(l) + J z ≈ F(l + c)``). With cylinders the iterations
+    linearize at the poses corrected by it: a cylinder's gradient is the radial unit vector at
+    the point, which a POS position error moves (docs/architecture.md §7.4b)."""
+    zk = z.reshape(-1, CHANNELS)
+    return knots.sa * zk[knots.k] + knots.sb * zk[knots.k + 1]
 
 
 @dataclass
@@ -481,6 +498,7 @@ def solve_gls(
     bs_prior = None if options.boresight_prior_rad is None else np.asarray(options.boresight_prior_rad, float)
     converged, it = False, 0
     v = np.zeros((len(obs), 2))  # the scanner residuals (range, scan angle)
+    pos_c = None  # the POS errors' estimate, with cylinders (:func:`pos_errors`)
     work = work_for(obs, layout, fr)
     # the caller's first linearization becomes the buffers of the next ones (it is not kept)
     buffers = LinearizationBuffers(len(obs), layout.extras, layout.offsets, first_lin)
@@ -489,7 +507,7 @@ def solve_gls(
         if it == 1 and first_lin is not None:
             lin = first_lin
         else:
-            lin = linearize_adjusted(obs, state, r_nom, v, est_latency, bases, buffers)
+            lin = linearize_adjusted(obs, state, r_nom, v, est_latency, bases, buffers, pos_c)
         sys = assemble(lin, layout, obs, fr, pv, state, prior_sigma, bs_prior, work)
         fac = _factor(sys.S, obs, layout)
         dx = fac.solve(-sys.r)
@@ -498,6 +516,8 @@ def solve_gls(
         e = white_misclosure(work.plan, sys.m, dx, z, out=work.e)
         state = _apply(state, dx, layout, bases)
         v = scanner_residuals(lin, obs, np.divide(e, sys.m, out=work.k), pv)
+        if state.cylinders is not None:
+            pos_c = pos_errors(work.knots, z)
         settled = True
         new = pv
         if rough.size and it < options.max_iterations:

@@ -55,10 +55,10 @@ class OracleResult:
         return np.sqrt(np.diag(self.cov[0:3, 0:3]))
 
 
-def misclosure_covariance(lin, obs: Observations, model: ErrorModel) -> np.ndarray:
+def _knot_interpolation(obs: Observations) -> tuple[np.ndarray, np.ndarray]:
+    """``W`` (n, K): the points' interpolation weights of the POS errors at K knots (the
+    trajectory's epochs, or the points themselves without one), and the knots' |Δt| (K, K)."""
     t = obs.t_gps_s
-    g = lin.B * obs.sigma_l
-    C = np.diag((lin.B[:, 6] * range_sigma_m(lin, obs)) ** 2 + g[:, 7] ** 2)
     if obs.trajectory is None:
         W, tk = np.eye(t.size), t
     else:
@@ -70,11 +70,28 @@ def misclosure_covariance(lin, obs: Observations, model: ErrorModel) -> np.ndarr
         W[np.arange(t.size), inv[: t.size]] = 1.0 - w
         W[np.arange(t.size), inv[t.size :]] += w
         tk = ep[used]
-    dt = np.abs(tk[:, None] - tk[None, :])
+    return W, np.abs(tk[:, None] - tk[None, :])
+
+
+def misclosure_covariance(lin, obs: Observations, model: ErrorModel) -> np.ndarray:
+    g = lin.B * obs.sigma_l
+    C = np.diag((lin.B[:, 6] * range_sigma_m(lin, obs)) ** 2 + g[:, 7] ** 2)
+    W, dt = _knot_interpolation(obs)
     for c, tau in enumerate(channel_taus(model)):
         R = W @ np.exp(-dt / tau) @ W.T
         C += np.outer(g[:, c], g[:, c]) * R
     return C
+
+
+def pos_errors(lin, obs: Observations, model: ErrorModel, k: np.ndarray) -> np.ndarray:
+    """(n, 6): the POS corrections' conditional mean given the correlates ``k = C⁻¹ e``:
+    ``c_c = −σ_c ∘ R_c (B_c σ_c ∘ k)`` (the dense form of :func:`calib.boresight.gls.pos_errors`)."""
+    g = lin.B * obs.sigma_l
+    W, dt = _knot_interpolation(obs)
+    out = np.empty((len(obs), 6))
+    for c, tau in enumerate(channel_taus(model)):
+        out[:, c] = -obs.sigma_l[:, c] * (W @ (np.exp(-dt / tau) @ (W.T @ (g[:, c] * k))))
+    return out
 
 
 def dense_gls(
@@ -99,16 +116,20 @@ def dense_gls(
     est_latency = "latency" in layout.extras
     it = 0
     v = np.zeros((len(obs), 2))
+    pos_c = None  # with cylinders, the POS errors' estimate (as the GLS does)
     for it in range(1, max_iterations + 1):
         bases = tangent_bases(state.normals)
-        lin = linearize_adjusted(obs, state, r_nom, v, est_latency, bases)
+        lin = linearize_adjusted(obs, state, r_nom, v, est_latency, bases, pos_correction=pos_c)
         A = design_matrix(lin, layout, obs).toarray()
         cf = cho_factor(misclosure_covariance(lin, obs, model))
         CiA = cho_solve(cf, A)
         N = A.T @ CiA
         dx = -np.linalg.solve(N, CiA.T @ lin.F)
+        k = cho_solve(cf, lin.F + A @ dx)
+        if state.cylinders is not None:
+            pos_c = pos_errors(lin, obs, model, k)
         state = _apply(state, dx, layout, bases)
-        v = scanner_residuals(lin, obs, cho_solve(cf, lin.F + A @ dx), np.zeros(len(obs.plane_names)))
+        v = scanner_residuals(lin, obs, k, np.zeros(len(obs.plane_names)))
         if step_converged(dx, layout, options, N, it) and it > 1:
             break
     return OracleResult(

@@ -58,7 +58,7 @@ from calib.boresight.observations import (
     validate_input,
 )
 from calib.boresight.result import GlsDiagnostics, calibration_doc, write_result
-from calib.boresight.scene_ties import TieSearch, with_tie_patches
+from calib.boresight.scene_ties import TieSearch, crlb_by_features, with_tie_patches
 from calib.boresight.tau import (
     TauChoice,
     choose_tau,
@@ -324,6 +324,8 @@ def _adjust_with_ties(
         tied = with_tie_patches(search, obs, planes, res, adjust_opts, warnings, notes)
         obs, planes, res = tied.obs, tied.planes, tied.result
         gls.patch_check, gls.targets_only, gls.ties = tied.check, tied.targets_only, tied.ties
+        if tied.ties is not None:
+            gls.crlb_by_features_deg = crlb_by_features(obs, res.state, mount, adjust_opts)
     if tau.estimated:
         gls.sensitivity = tau_sensitivity(
             obs, mount.with_boresight(res.boresight_rad), planes, adjust_opts, float(tau.model.tau_s(0))

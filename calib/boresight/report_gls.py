@@ -113,6 +113,7 @@ def estimator_section(run) -> list[str]:
             L.append(_row(f"{r['tau_s']:.1f}", r["boresight_deg"], r["sigma_deg"]))
         L.append("")
     L.extend(_patch_lines(run))
+    L.extend(_crlb_lines(run.doc))
     check = doc.get("tie_patch_check")
     if check is not None:
         L.append("")
@@ -126,13 +127,33 @@ def estimator_section(run) -> list[str]:
     return L
 
 
+def _crlb_lines(doc: dict) -> list[str]:
+    """What each kind of scene feature adds to each angle, against the Cramér–Rao bound."""
+    rows = doc.get("crlb_by_features_deg")
+    if not rows:
+        return []
+    L = [
+        "",
+        "Cramér–Rao σ of each angle with the features added one kind at a time (the bound at the "
+        "solution, flat features; yaw is the angle the scene's piles and corners carry):",
+        "",
+        "| features | roll (mdeg) | pitch (mdeg) | yaw (mdeg) |",
+        "|---|---:|---:|---:|",
+    ]
+    for label, sig in rows.items():
+        L.append(f"| {label} | " + " | ".join(f"{x * 1e3:.1f}" for x in sig) + " |")
+    return L
+
+
 def _patch_lines(run) -> list[str]:
     doc = run.doc
     if doc.get("tie_patches_mode") == "off":
         return ["Tie patches: off (`--tie-patches off`)."]
     patches = doc.get("tie_patches")
     if not patches:
-        return ["Tie patches: none found (no planar surface seen from two headings besides the targets)."]
+        return [
+            "Tie patches: none chosen (no planar surface seen from two headings besides the targets)."
+        ] + _cylinder_lines(doc, {p["name"]: p.get("roughness_m") for p in run.result.plane_stats})
     cand = doc.get("tie_patch_candidates", {})
     rough = {p["name"]: p.get("roughness_m") for p in run.result.plane_stats}
     L = [
@@ -154,6 +175,31 @@ def _patch_lines(run) -> list[str]:
             + " | "
             + ", ".join(f"{x:+.3f}" for x in p["normal"])
             + f" | {'—' if r is None else f'{r * 1e3:.1f}'} | {p['info_gain']:.3f} |"
+        )
+    return L + _cylinder_lines(doc, rough)
+
+
+def _cylinder_lines(doc: dict, rough: dict) -> list[str]:
+    """The chosen tie cylinders (piles, posts): a yaw moves a point along the track, and on a
+    cylinder that changes its distance from the axis, so they carry what a flat wall does not."""
+    cyls = doc.get("tie_cylinders") or []
+    found = doc.get("tie_cylinder_candidates", {}).get("found", 0)
+    if not cyls:
+        return ["", f"Tie cylinders: none chosen ({found} vertical cylinders found near the targets)."]
+    L = [
+        "",
+        f"Tie cylinders: {len(cyls)} of {found} vertical cylinders (piles, posts) found near the "
+        "targets; each has its own axis and radius and a roughness σ like a patch.",
+        "",
+        "| cylinder | points | passes | axis N, E (m) | radius (m) | roughness (mm) | info gain |",
+        "|---|---:|---|---|---:|---:|---:|",
+    ]
+    for c in cyls:
+        r = rough.get(c["name"])
+        L.append(
+            f"| {c['name']} | {c['n_points']} | {', '.join(map(str, c['passes']))} | "
+            + ", ".join(f"{x:.2f}" for x in c["axis_center_lgf_m"][:2])
+            + f" | {c['radius_m']:.3f} | {'—' if r is None else f'{r * 1e3:.1f}'} | {c['info_gain']:.3f} |"
         )
     return L
 

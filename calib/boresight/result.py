@@ -141,6 +141,8 @@ class GlsDiagnostics:
     patch_check: dict | None = None  # calib.boresight.scene_ties.patches_agree
     targets_only: AdjustmentResult | None = None  # the solution before the (accepted) patches
     ties: TiePatches | None = None  # the accepted tie patches
+    #: Cramér–Rao σ (deg) of roll, pitch, yaw by feature set (calib.boresight.scene_ties.crlb_by_features)
+    crlb_by_features_deg: dict[str, list[float]] | None = None
 
 
 def _brief(r: AdjustmentResult) -> dict:
@@ -151,26 +153,48 @@ def _brief(r: AdjustmentResult) -> dict:
 
 
 def _tie_patch_docs(t: TiePatches) -> dict:
-    """The chosen tie patches and what the search found."""
+    """The chosen tie features (patches, cylinders) and what the search found."""
+    out: dict = {"tie_patches": [], "tie_cylinders": []}
+    n_p = t.n_patch_candidates
+    for j, g in zip(t.chosen, t.gain, strict=True):
+        if j < n_p:
+            out["tie_patches"].append(_patch_doc(t.candidates, j, g))
+        else:
+            out["tie_cylinders"].append(_cylinder_doc(t.cylinders, j - n_p, g))
     c = t.candidates
-    return {
-        "tie_patches": [
-            {
-                "name": c.names[j],
-                "n_points": int(c.n_points[j]),
-                "passes": [int(x) for x in c.passes[j]],
-                "normal": [float(x) for x in c.normals[j]],
-                "center_lgf_m": [float(x) for x in c.centers_m[j]],
-                "rms_m": float(c.rms_m[j]),
-                "info_gain": g,
-            }
-            for j, g in zip(t.chosen, t.gain, strict=False)
-        ],
-        "tie_patch_candidates": {
+    if c is not None:
+        out["tie_patch_candidates"] = {
             "found": len(c.names),
             "size_m": float(c.size_m),
             "rejected_cells": dict(c.rejected),
-        },
+        }
+    if t.cylinders is not None:
+        out["tie_cylinder_candidates"] = {"found": len(t.cylinders), "rejected": dict(t.cylinders.rejected)}
+    return out
+
+
+def _patch_doc(c, j: int, gain: float) -> dict:
+    return {
+        "name": c.names[j],
+        "n_points": int(c.n_points[j]),
+        "passes": [int(x) for x in c.passes[j]],
+        "normal": [float(x) for x in c.normals[j]],
+        "center_lgf_m": [float(x) for x in c.centers_m[j]],
+        "rms_m": float(c.rms_m[j]),
+        "info_gain": gain,
+    }
+
+
+def _cylinder_doc(c, k: int, gain: float) -> dict:
+    return {
+        "name": c.names[k],
+        "n_points": int(c.n_points[k]),
+        "passes": [int(x) for x in c.passes[k]],
+        "axis_center_lgf_m": [float(x) for x in c.centers_m[k]],
+        "radius_m": float(c.radius_m[k]),
+        "height_m": float(c.height_m[k]),
+        "rms_m": float(c.rms_m[k]),
+        "info_gain": gain,
     }
 
 
@@ -187,6 +211,8 @@ def estimator_doc(
         out.update(_tie_patch_docs(gls.ties))
     if gls.patch_check is not None:
         out["tie_patch_check"] = gls.patch_check
+    if gls.crlb_by_features_deg is not None:
+        out["crlb_by_features_deg"] = gls.crlb_by_features_deg
     if gls.estimate is not None:
         out["tau_estimate"] = gls.estimate.as_dict()
     if gls.sensitivity is not None:

@@ -11,8 +11,9 @@ from __future__ import annotations
 import numpy as np
 
 from calib.boresight.observations import Observations
+from calib.boresight.scene_ties import facing_cylinder
 from calib.core import frames
-from calib.core.geometry import Rectangle  # noqa: F401  (re-exported for tests)
+from calib.core.geometry import Rectangle, VerticalCylinder  # noqa: F401  (re-exported for tests)
 from calib.core.georef import Mount, inverse_georeference
 from calib.core.trajectory import Trajectory
 
@@ -108,13 +109,15 @@ def observations(
     for k, hdg in enumerate(headings_deg):
         traj = pass_trajectory(hdg, t0=t_base_s + 200.0 * k)
         trajs.append(traj)
-        for j, rect in enumerate(planes):
-            uv = rng.uniform(-0.5, 0.5, (points_per_plane_per_pass, 2)) * [rect.width_m, rect.height_m]
-            p = rect.center_m + uv[:, :1] * rect.u_axis + uv[:, 1:] * rect.v_axis
+        for j, feature in enumerate(planes):
+            p = _surface_samples(feature, points_per_plane_per_pass, rng)
             t = _sweep_time(traj, mount_true, p)
             keep = np.isfinite(t)
             p, t = p[keep], t[keep]
             poses = traj.interpolate(t + mount_true.time_offset_s)
+            if isinstance(feature, VerticalCylinder):  # the side facing the scanner
+                seen = _facing(feature, p, poses.p_lgf_m)
+                p, t, poses = p[seen], t[seen], traj.interpolate(t[seen] + mount_true.time_offset_s)
             obs = inverse_georeference(p, t, traj, mount_true)
             keep = obs.range_m < max_range_m
             l = np.column_stack([poses.p_lgf_m, poses.rpy_rad, obs.range_m, obs.scan_angle_rad])
@@ -139,5 +142,40 @@ def observations(
         point_ids=np.arange(n),
         pass_headings_rad={k + 1: np.radians(h) for k, h in enumerate(headings_deg)},
     )
-    truth_planes = [(r.normal.copy(), r.d) for r in planes]
+    truth_planes = [f if isinstance(f, VerticalCylinder) else (f.normal.copy(), f.d) for f in planes]
     return obs, truth_planes, trajs
+
+
+def _surface_samples(feature, n: int, rng) -> np.ndarray:
+    """(n, 3) points uniform over a rectangle or a vertical cylinder's mantle."""
+    if isinstance(feature, VerticalCylinder):
+        phi = rng.uniform(0.0, 2.0 * np.pi, n)
+        dz = rng.uniform(-0.5, 0.5, n) * feature.height_m
+        ring = feature.radius_m * np.column_stack([np.cos(phi), np.sin(phi), np.zeros(n)])
+        return feature.center_m + ring + dz[:, None] * np.array([0.0, 0.0, 1.0])
+    uv = rng.uniform(-0.5, 0.5, (n, 2)) * [feature.width_m, feature.height_m]
+    return feature.center_m + uv[:, :1] * feature.u_axis + uv[:, 1:] * feature.v_axis
+
+
+def _facing(cylinder: VerticalCylinder, p: np.ndarray, vessel_m: np.ndarray) -> np.ndarray:
+    """Whether each point of the cylinder faces the vessel (the beam reaches it from outside)
+    within the incidence the calibration uses (:func:`calib.boresight.scene_ties.facing_cylinder`)."""
+    outward = cylinder.outward_normals(p)
+    front = np.einsum("ij,ij->i", outward[:, :2], (vessel_m - p)[:, :2]) > 0.0
+    axis = np.broadcast_to(cylinder.center_m, p.shape)
+    return front & facing_cylinder(p, vessel_m, axis)
+
+
+def pile_row(n_piles: int = 4, first_along_m: float = 6.0, spacing_m: float = 5.0) -> list[VerticalCylinder]:
+    """Piles of 0.3–1.2 m diameter 1.5 m in front of :func:`montreal_planes`'s wall (east = 13.5 m),
+    from the water to the wall's top (D from −1 to −8), along north from ``first_along_m``."""
+    diameters = (0.3, 0.6, 0.9, 1.2)
+    return [
+        VerticalCylinder(
+            name=f"pile_{k}",
+            center_m=np.array([first_along_m + k * spacing_m, 13.5, -4.5]),
+            radius_m=0.5 * diameters[k % len(diameters)],
+            height_m=7.0,
+        )
+        for k in range(n_piles)
+    ]
