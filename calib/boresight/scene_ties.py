@@ -15,7 +15,8 @@ instead of bending the boresight.
 Vertical cylinders (piles, posts: :func:`calib.extraction.cylinders.extract_cylinders`) are
 candidates beside the patches, chosen by the same gain: a yaw moves a point along the track,
 which a wall parallel to it barely sees and a cylinder sees as a change of its distance from
-the axis (:mod:`calib.boresight.ghmodel`). A point a patch holds is not a cylinder's.
+the axis (:mod:`calib.boresight.ghmodel`). The cylinders are found first and no patch is cut
+on one (a large pile's face is flat to 1–2 cm over a patch's width).
 """
 
 from __future__ import annotations
@@ -35,7 +36,7 @@ from calib.boresight.observations import AdjustOptions, Observations, build_obse
 from calib.core import frames
 from calib.core.georef import Mount
 from calib.core.trajectory import Poses, Trajectory
-from calib.extraction.cylinders import CylinderCandidates, extract_cylinders
+from calib.extraction.cylinders import CylinderCandidates, CylinderOptions, extract_cylinders
 from calib.extraction.patches import PatchCandidates, PatchOptions, extract_candidates, gather_members
 from calib.extraction.points import georeference_passes, pass_headings
 from calib.io.bundle import ScanPoints
@@ -164,8 +165,9 @@ def choose(
     return chosen, gains
 
 
-#: the patch search's options when the caller gives none (frozen, shared)
+#: the patch and cylinder searches' options when the caller gives none (frozen, shared)
 _DEFAULT_PATCH_OPTIONS = PatchOptions()
+_DEFAULT_CYLINDER_OPTIONS = CylinderOptions()
 
 
 def add_tie_patches(
@@ -245,16 +247,40 @@ class TieCandidates:
     features: list  # (normal, d) per patch, a VerticalCylinder per cylinder
     names: list[str]
 
+    @property
+    def n_patches(self) -> int:
+        return 0 if self.patches is None else len(self.patches.names)
+
+    @property
+    def centers_m(self) -> np.ndarray:
+        """(m, 3): the patches' centres, then the cylinders' axis points at mid height."""
+        parts = [c.centers_m for c in (self.patches, self.cylinders) if c is not None]
+        return np.concatenate(parts) if parts else np.empty((0, 3))
+
 
 def tie_candidates(
-    p_lgf_m, origin_lgf_m, pass_id, headings, on_target, options: PatchOptions, max_distance_m: float
+    p_lgf_m,
+    origin_lgf_m,
+    pass_id,
+    headings,
+    on_target,
+    options: PatchOptions,
+    max_distance_m: float,
+    cylinder_options: CylinderOptions = _DEFAULT_CYLINDER_OPTIONS,
 ) -> TieCandidates | None:
-    """The planar patches and the vertical cylinders (piles, posts) seen from two headings within
-    ``max_distance_m`` of the targets; a point a patch holds is not a cylinder's (None: neither
-    was found)."""
-    patches = _patch_candidates(p_lgf_m, origin_lgf_m, pass_id, headings, on_target, options, max_distance_m)
-    cyl = extract_cylinders(p_lgf_m, pass_id, headings, on_target)
+    """The vertical cylinders (piles, posts) and the planar patches seen from two headings within
+    ``max_distance_m`` of the targets (none: every one); no patch is cut on a cylinder found
+    (None: neither was found).
+
+    The cylinders come first: a 1.2 m pile's face is flat to 1–2 cm over a patch's width, and
+    such patches passed the planarity rule and biased yaw by 1.5 σ on average on montreal_piles
+    (each pass samples a curved face differently)."""
+    cyl = extract_cylinders(p_lgf_m, pass_id, headings, on_target, cylinder_options)
     cyl = _cylinders_near_targets(cyl, p_lgf_m[on_target], max_distance_m)
+    not_patch = on_target | on_cylinders(p_lgf_m, cyl)
+    patches = _patch_candidates(
+        p_lgf_m, origin_lgf_m, pass_id, headings, on_target, not_patch, options, max_distance_m
+    )
     n_patches = 0 if patches is None else len(patches.names)
     if n_patches == 0 and len(cyl) == 0:
         return None
@@ -272,6 +298,25 @@ def tie_candidates(
         features=planes + cyl.cylinders(),
         names=([] if patches is None else list(patches.names)) + list(cyl.names),
     )
+
+
+#: a point within this of a cylinder's surface (and within its height) belongs to the cylinder
+CYLINDER_SHELL_M = 0.05
+
+
+def on_cylinders(p_lgf_m: np.ndarray, cyl: CylinderCandidates) -> np.ndarray:
+    """(n,) bool: the points on the surface of a found cylinder (within :data:`CYLINDER_SHELL_M`
+    and its height), whether or not the cylinder's subsample holds them."""
+    out = np.zeros(p_lgf_m.shape[0], bool)
+    for c, r, h in zip(cyl.centers_m, cyl.radius_m, cyl.height_m, strict=True):
+        near = np.flatnonzero(
+            (np.abs(p_lgf_m[:, 0] - c[0]) <= r + CYLINDER_SHELL_M)
+            & (np.abs(p_lgf_m[:, 1] - c[1]) <= r + CYLINDER_SHELL_M)
+            & (np.abs(p_lgf_m[:, 2] - c[2]) <= 0.5 * h + CYLINDER_SHELL_M)
+        )
+        radial = np.hypot(p_lgf_m[near, 0] - c[0], p_lgf_m[near, 1] - c[1])
+        out[near[np.abs(radial - r) <= CYLINDER_SHELL_M]] = True
+    return out
 
 
 #: a cylinder's points are used where the beam meets the surface within 60° of head-on. Near
@@ -293,16 +338,18 @@ def facing_cylinder(p_lgf_m: np.ndarray, origin_lgf_m: np.ndarray, axis_m: np.nd
 
 
 def _patch_candidates(
-    p_lgf_m, origin_lgf_m, pass_id, headings, on_target, options: PatchOptions, max_distance_m: float
+    p_lgf_m, origin_lgf_m, pass_id, headings, on_target, exclude, options: PatchOptions, max_distance_m: float
 ) -> PatchCandidates | None:
-    """The planar tie patches near the targets with their members (None: none found)."""
-    cands = extract_candidates(p_lgf_m, origin_lgf_m, pass_id, headings, on_target, options)
+    """The planar tie patches within ``max_distance_m`` of the targets (``on_target``) with
+    their members, none of the points ``exclude`` (the targets' and the cylinders'); None: none
+    found."""
+    cands = extract_candidates(p_lgf_m, origin_lgf_m, pass_id, headings, exclude, options)
     if len(cands.names) == 0:
         return None
     cands = _near_targets(cands, p_lgf_m[on_target], max_distance_m)
     if len(cands.names) == 0:
         return None
-    return gather_members(cands, p_lgf_m, pass_id, on_target, options)
+    return gather_members(cands, p_lgf_m, pass_id, exclude, options)
 
 
 def tie_patches_from_points(
@@ -382,7 +429,7 @@ def _features_subset(obs: Observations, state: State, keep: np.ndarray) -> tuple
     sub.patch_planes = tuple(int(new_index[j]) for j in obs.patch_planes if keep[j])
     st = state.copy()
     st.normals, st.d_m, st.centers_m = st.normals[keep], st.d_m[keep], st.centers_m[keep]
-    st.cylinders = None if st.cylinders is None else st.cylinders[keep]
+    st.cylinders = None if st.cylinders is None or not st.cylinders[keep].any() else st.cylinders[keep]
     return sub, st
 
 

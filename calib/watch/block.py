@@ -7,7 +7,8 @@ wall one way from a line sailed north and the other way from the line sailed bac
 two or more consecutive lines whose headings differ (:func:`block_ready`); its points,
 georeferenced with the **calibrated** mount, are cut into tie patches
 (:func:`calib.extraction.patches.extract_candidates`: planar cells seen by lines of different
-headings), the most informative are chosen (:func:`calib.boresight.scene_ties.choose`) and the
+headings) and vertical cylinders (piles, posts: :func:`calib.boresight.scene_ties.tie_candidates`),
+the most informative are chosen (:func:`calib.boresight.scene_ties.choose`) and the
 boresight alone is adjusted against them with the GLS estimator
 (:func:`calib.boresight.adjust.adjust`, ``estimator="gls"``): the POS errors are Gauss–Markov
 processes estimated jointly, so a drift of the INS between two lines is not read as a mount
@@ -40,17 +41,12 @@ from calib.boresight.adjust import AdjustmentResult, adjust
 from calib.boresight.errormodel import ErrorModel
 from calib.boresight.observability import ObservabilityError
 from calib.boresight.observations import AdjustmentError, AdjustOptions, Observations, build_observations
-from calib.boresight.scene_ties import boresight_information, choose
+from calib.boresight.scene_ties import TieCandidates, boresight_information, choose, tie_candidates
 from calib.core import frames
 from calib.core.georef import Mount
 from calib.core.trajectory import Trajectory
-from calib.extraction.patches import (
-    PatchCandidates,
-    PatchError,
-    PatchOptions,
-    extract_candidates,
-    gather_members,
-)
+from calib.extraction.cylinders import CylinderOptions
+from calib.extraction.patches import PatchError, PatchOptions
 from calib.extraction.points import georeference_passes, pass_headings
 from calib.io.bundle import ScanPoints
 from calib.watch.patchtests import (
@@ -270,28 +266,30 @@ class _Stop:
     extra: dict[str, Any] = field(default_factory=dict)
 
 
-def _planar_candidates(
+def _tie_candidates(
     pts: ScanPoints,
     trajectory: Trajectory,
     mount: Mount,
     headings,
     sigma_range_m: float,
     options: WatchOptions,
-) -> PatchCandidates | _Stop:
-    """The tie patch candidates seen from two headings, the points of those that some line
-    sees curved unlabelled (label −1)."""
+) -> TieCandidates | _Stop:
+    """The tie patches and cylinders seen from two headings, the points of the patches that
+    some line sees curved unlabelled (label −1)."""
     p_lgf, origin = georeference_passes(pts, trajectory, mount, None)
     opt = replace(options.patch, min_heading_spread_deg=options.min_heading_spread_deg)
+    cyl_opt = CylinderOptions(min_heading_spread_deg=options.min_heading_spread_deg)
+    none = np.zeros(len(pts), bool)
     try:
-        cands = extract_candidates(p_lgf, origin, pts.pass_id, headings, np.zeros(len(pts), bool), opt)
+        found = tie_candidates(p_lgf, origin, pts.pass_id, headings, none, opt, np.inf, cyl_opt)
     except PatchError as e:
         return _Stop(f"no tie patch ({e})")
-    if len(cands.names) == 0:
+    if found is None:
         return _Stop("no tie patch seen from two headings")
-    cands = gather_members(cands, p_lgf, pts.pass_id, np.zeros(len(pts), bool), opt)
-    curved = curved_patches(cands.labels, p_lgf, pts.pass_id, options.planar_noise_factor * sigma_range_m)
-    cands.labels[np.isin(cands.labels, curved)] = -1
-    return cands
+    on_patch = np.where(found.labels < found.n_patches, found.labels, -1)
+    curved = curved_patches(on_patch, p_lgf, pts.pass_id, options.planar_noise_factor * sigma_range_m)
+    found.labels[np.isin(found.labels, curved)] = -1
+    return found
 
 
 def _patch_observations(
@@ -461,7 +459,7 @@ def estimate_block(
     base["headings_deg"] = tuple(float(np.degrees(headings[int(p)]) % 360.0) for p in pts.pass_ids())
     if not block_ready(headings.values(), options):
         return BlockEstimate(**base, status="lines of one heading")
-    cands = _planar_candidates(pts, trajectory, mount, headings, float(sigmas["sigma_range_m"]), options)
+    cands = _tie_candidates(pts, trajectory, mount, headings, float(sigmas["sigma_range_m"]), options)
     if isinstance(cands, _Stop):
         return BlockEstimate(**base, status=cands.status, **cands.extra)
     idx = np.flatnonzero(cands.labels >= 0)
@@ -469,7 +467,7 @@ def estimate_block(
     if idx.size == 0:
         return BlockEstimate(**base, status="no tie patch planar from every line", n_candidates=n_candidates)
     obs = _patch_observations(pts, idx, trajectory, mount, cands, headings, sigmas)
-    planes = [(n, d) for n, d in zip(cands.normals, cands.d_m, strict=False)]
+    planes = cands.features
     info = boresight_information(obs, mount, planes)
     chosen, _ = choose(info, np.eye(3) / SELECTION_PRIOR_RAD**2, options.max_patches)
     if not chosen:

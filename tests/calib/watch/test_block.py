@@ -57,6 +57,18 @@ def test_a_steady_mount_gives_a_correction_within_its_sigma(steady):
     assert b.as_dict()["status"] == "ok"
 
 
+def test_the_harbour_piles_are_tie_cylinders_of_the_block(steady):
+    """The piles are not dropped as curved patches: the block chooses several as cylinders, each
+    where the simulator put a pile (axis within 3 cm)."""
+    b = block_of(steady, [1, 2])
+    assert b.ok, b.status
+    cyls = [u for u in b.patches if u.name.startswith("cyl_")]
+    assert len(cyls) >= 3, [u.name for u in b.patches]
+    piles = np.array([c.center_m[:2] for c in steady.scene.cylinders])
+    for u in cyls:
+        assert np.min(np.hypot(*(piles - np.array(u.center_lgf_m[:2])).T)) < 0.03, u
+
+
 def test_an_angle_the_block_does_not_resolve_is_held_and_carries_no_correlation(steady):
     # lines 1 and 2 are sailed at one offset: yaw is not resolved (only ranges that differ tell
     # it from the scene); it is held at the calibrated value while roll and pitch are solved
