@@ -63,6 +63,7 @@ def geometry_of(draw: dict) -> dict:
         "sigma_att_mdeg": round(1e3 * draw["sigma_attitude_deg"], 1),
         "tau_s": [round(draw["tau_position_s"], 0), round(draw["tau_attitude_s"], 0)],
         "capture_margin_m": round(draw["placement"]["capture_margin_m"], 1),
+        "piles": len(draw.get("piles", [])),
     }
 
 
@@ -108,6 +109,7 @@ def run_draw(seed: int) -> dict:
                     sigma_targets_only=angles_rad(only["sigma_realistic_deg"]).tolist(),
                     n_points=int(doc["n_points"]),
                     n_patches=len(doc.get("tie_patches") or []),
+                    n_cylinders=len(doc.get("tie_cylinders") or []),
                     crlb=_crlb_rad(bundle, truth),
                 )
     except Exception as e:  # noqa: BLE001  (a crash is reported, not fatal)
@@ -280,6 +282,14 @@ def main() -> None:
     lines += honesty_lines("trusted (default: GLS + tie patches)", trusted, goals=True)
     lines += honesty_lines(
         "trusted, targets-only GLS (result.json targets_only)", trusted, True, "_targets_only"
+    )
+    piled = [r for r in trusted if r["geometry"]["piles"]]
+    chosen = sum(1 for r in piled if r.get("n_cylinders"))
+    lines += honesty_lines(
+        f"trusted with piles in the scene ({chosen} chose tie cylinders)", piled, goals=False
+    )
+    lines += honesty_lines(
+        "trusted without piles", [r for r in trusted if not r["geometry"]["piles"]], goals=False
     )
     lines += honesty_lines(
         "questionable (for reference)", [r for r in rows if r["verdict"] == "questionable"], goals=False

@@ -67,6 +67,14 @@ HEADING_JITTER_RAD = float(np.radians(5.0))
 FLAT_INTENSITY_PROBABILITY = 0.5
 #: site.yaml silent on the POS correlation time (the calibration estimates it)
 TAU_UNSTATED_PROBABILITY = 0.5
+#: piles before the wall beside the targets (tie cylinders), drawn from a stream of their own so
+#: that a seed's other values are what they were before piles were drawn
+PILES_PROBABILITY = 0.5
+PILE_STREAM_KEY = 0x50494C45
+PILE_COUNT_RANGE = (1, 4)
+PILE_DIAMETER_RANGE_M = (0.3, 1.2)
+PILE_OUT_RANGE_M = (1.0, 4.0)  # the axis from the wall's face
+PILE_BEYOND_RANGE_M = (0.5, 4.0)  # along, the pile's edge beyond the outer targets' edges
 
 # -- pass placement ---------------------------------------------------------------------------
 
@@ -126,6 +134,24 @@ class TargetDraw:
 
 
 @dataclass(frozen=True)
+class PileDraw:
+    """One pile in the site frame: its axis ``along_m`` along the wall and ``out_m`` from it."""
+
+    name: str
+    along_m: float
+    out_m: float
+    diameter_m: float
+
+    def to_dict(self) -> dict:
+        return {
+            "name": self.name,
+            "along_m": self.along_m,
+            "out_m": self.out_m,
+            "diameter_m": self.diameter_m,
+        }
+
+
+@dataclass(frozen=True)
 class GeometryDraw:
     """One draw of the randomized scenario (SI units, radians)."""
 
@@ -147,6 +173,7 @@ class GeometryDraw:
     relative_headings_rad: tuple[float, ...]  # the six passes', relative to the wall
     intensity_follows_incidence: bool = True
     tau_in_site: bool = True
+    piles: tuple[PileDraw, ...] = ()
 
     @property
     def contrast(self) -> float:
@@ -175,6 +202,7 @@ class GeometryDraw:
             "relative_headings_deg": [float(np.degrees(h)) for h in self.relative_headings_rad],
             "intensity_follows_incidence": self.intensity_follows_incidence,
             "tau_in_site": self.tau_in_site,
+            "piles": [p.to_dict() for p in self.piles],
         }
 
 
@@ -279,7 +307,41 @@ def draw_geometry(seed: int) -> GeometryDraw:
         relative_headings_rad=tuple(float(h) for h in headings),
         intensity_follows_incidence=not bool(flat_intensity),
         tau_in_site=not bool(tau_unstated),
+        piles=draw_piles(seed, targets),
     )
+
+
+def draw_piles(seed: int, targets: tuple[TargetDraw, ...]) -> tuple[PileDraw, ...]:
+    """None, or one to four piles of 0.3–1.2 m 1–4 m before the wall, each beside the target
+    group (beyond its outer edges, either side: they do not hide the targets from a
+    perpendicular pass) and :data:`PILE_CLEARANCE_M` clear of the others."""
+    rng = np.random.default_rng([int(seed), DRAW_STREAM_KEY, PILE_STREAM_KEY])
+    if rng.uniform() >= PILES_PROBABILITY:
+        return ()
+    lo, hi = targets_along_m(targets)
+    piles: list[PileDraw] = []
+    for _ in range(int(rng.integers(PILE_COUNT_RANGE[0], PILE_COUNT_RANGE[1] + 1))):
+        diameter = _uniform(rng, PILE_DIAMETER_RANGE_M)
+        beyond = _uniform(rng, PILE_BEYOND_RANGE_M) + diameter / 2
+        along = hi + beyond if rng.uniform() < 0.5 else lo - beyond
+        pile = PileDraw(f"P{len(piles) + 1}", float(along), _uniform(rng, PILE_OUT_RANGE_M), diameter)
+        if all(_clear(pile, other) for other in piles):
+            piles.append(pile)
+    return tuple(piles)
+
+
+def targets_along_m(targets: tuple[TargetDraw, ...]) -> tuple[float, float]:
+    """The target group's extent along the wall: its outer edges."""
+    return min(t.along_m - t.width_m / 2 for t in targets), max(t.along_m + t.width_m / 2 for t in targets)
+
+
+#: the least gap between two piles' surfaces (a drawn pile closer to an earlier one is dropped)
+PILE_CLEARANCE_M = 0.5
+
+
+def _clear(a: PileDraw, b: PileDraw) -> bool:
+    gap = float(np.hypot(a.along_m - b.along_m, a.out_m - b.out_m)) - (a.diameter_m + b.diameter_m) / 2
+    return gap >= PILE_CLEARANCE_M
 
 
 # -- the scenario document --------------------------------------------------------------------
@@ -314,9 +376,15 @@ def target_out_m(t: TargetDraw, clearance_m: float) -> float:
 
 def wanted_capture_margin_m(g: GeometryDraw) -> float:
     """Montreal's margin, plus how far a scan plane tilted by the mount's pitch meets the
-    targets ahead of or behind the scanner: the height above it times tan |pitch|."""
+    targets ahead of or behind the scanner: the height above it times tan |pitch|; with piles,
+    at least what reaches the farthest one's far side."""
     reach_up = max(abs(t.up_m) + t.height_m / 2 for t in g.targets)
-    return BASE_CAPTURE_MARGIN_M + reach_up * float(np.tan(abs(g.nominal_rad[1])))
+    margin = BASE_CAPTURE_MARGIN_M + reach_up * float(np.tan(abs(g.nominal_rad[1])))
+    if not g.piles:
+        return margin
+    lo, hi = targets_along_m(g.targets)
+    beyond = max(max(p.along_m - hi, lo - p.along_m) + p.diameter_m / 2 for p in g.piles)
+    return max(margin, beyond + 1.0)
 
 
 def safe_wall_distance_m(standoff_m: float) -> float:
@@ -350,6 +418,20 @@ def _wall_entry(g: GeometryDraw) -> dict:
         "waviness": {"amplitude_m": g.wall_waviness_m, "wavelength_m": list(WALL_WAVELENGTH_M)},
         "roughness_m": WALL_ROUGHNESS_M,
     }
+
+
+def _pile_entries(g: GeometryDraw) -> list[dict]:
+    """The piles, from the wall's foot to its top."""
+    _, up, _, height = wall_extent_m(g)
+    return [
+        {
+            **p.to_dict(),
+            "bottom_up_m": up - height / 2,
+            "top_up_m": up + height / 2,
+            "reflectivity": g.wall_reflectivity,
+        }
+        for p in g.piles
+    ]
 
 
 def _noise_entry(g: GeometryDraw) -> dict:
@@ -395,6 +477,7 @@ def scenario_document(g: GeometryDraw) -> dict:
         "scene": {
             "targets": [_target_entry(t, clearance, g.target_reflectivity) for t in g.targets],
             "surfaces": [_wall_entry(g)],
+            **({"piles": _pile_entries(g)} if g.piles else {}),
         },
         "mount": {
             "lever_arm_m": [float(x) for x in g.lever_arm_m],

@@ -15,6 +15,7 @@ from calib.sim.randomdraw import (
     draw_geometry,
     random_scenario,
     scenario_document,
+    targets_along_m,
     wall_clearance_m,
     wall_shape,
 )
@@ -123,3 +124,31 @@ def test_mls_sim_dataset_writes_a_bundle_that_reads_back_with_the_draw(tmp_path)
     )
     assert drawn["scenario_document"] == scenario_document(g)
     assert drawn["placement"]["capture_margin_m"] == pytest.approx(truth["settings"]["capture_margin_m"])
+
+
+def test_about_half_of_the_draws_have_piles_beside_the_targets_and_clear_of_each_other():
+    """Over 400 seeds: piles in 40–60 % of the draws, each 0.3–1.2 m across, 1–4 m before the
+    wall, beyond the targets' outer edges by 0.5–4 m, 0.5 m clear of the others; the scenario
+    casts them as cylinders and the capture margin it asks for reaches the farthest."""
+    with_piles = 0
+    for seed in range(400):
+        g = draw_geometry(seed)
+        if not g.piles:
+            continue
+        with_piles += 1
+        lo, hi = targets_along_m(g.targets)
+        for k, p in enumerate(g.piles):
+            assert 0.3 <= p.diameter_m <= 1.2 and 1.0 <= p.out_m <= 4.0
+            edge = max(p.along_m - p.diameter_m / 2 - hi, lo - p.along_m - p.diameter_m / 2)
+            assert 0.5 - 1e-9 <= edge <= 4.0 + 1e-9, (seed, p)
+            for q in g.piles[:k]:
+                gap = np.hypot(p.along_m - q.along_m, p.out_m - q.out_m) - (p.diameter_m + q.diameter_m) / 2
+                assert gap >= 0.5, (seed, p, q)
+        if seed < 40:
+            sc = random_scenario(seed)
+            assert [c.name for c in sc.scene().cylinders] == [p.name for p in g.piles]
+            reach = max(max(p.along_m - hi, lo - p.along_m) + p.diameter_m / 2 for p in g.piles)
+            assert (
+                scenario_document(g)["site"]["capture_margin_m"] >= reach
+            )  # as wanted (fitting may shrink it)
+    assert 0.4 <= with_piles / 400 <= 0.6, with_piles
