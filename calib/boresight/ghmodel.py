@@ -269,9 +269,7 @@ def linearize_block(
     rx_v = att.rx(v_b)
     Rv = att.rz(att.ry(rx_v))
     x_rel = _relative_points(state, plane_index, pass_index, lt, Rv)
-    cyl = state.cylinder_rows(plane_index)
-    if cyl is not None:  # the gradient of a cylinder's condition: the radial unit vector
-        nrm[:, cyl] = _radial_units(x_rel[cyl], nrm[:, cyl])
+    cyl = _cylinder_gradients(state, plane_index, x_rel, nrm)
     out.F[:] = att.n_dot((x_rel[:, 0], x_rel[:, 1], x_rel[:, 2])) + state.d_m[plane_index]
     if out.x_lgf_m.shape[0]:
         out.x_lgf_m[:] = x_rel + state.centers_m[plane_index]
@@ -294,6 +292,15 @@ def linearize_block(
     if cyl is not None:  # a cylinder's axis shifts along its tangent vectors
         out.A_plane[cyl, 0:2] = -np.einsum("in,nij->nj", nrm[:, cyl], E[cyl])
     out.A_plane[:, 2] = 1.0
+
+
+def _cylinder_gradients(state: State, plane_index, x_rel: np.ndarray, nrm: np.ndarray) -> np.ndarray | None:
+    """Put each cylinder point's condition gradient, the radial unit vector, in place of its
+    axis in ``nrm`` (3, n); the rows on cylinders (None: none)."""
+    cyl = state.cylinder_rows(plane_index)
+    if cyl is not None:
+        nrm[:, cyl] = _radial_units(x_rel[cyl], nrm[:, cyl])
+    return cyl
 
 
 def _radial_units(x_rel: np.ndarray, axes: np.ndarray) -> np.ndarray:
@@ -333,9 +340,7 @@ def georeferenced(
         att = _Attitude(attitude_trig(l[sl]), np.ascontiguousarray(state.normals[j].T))
         Rv = att.rz(att.ry(att.rx(_body_vector(state, r_nom, lt))))
         x_rel = _relative_points(state, j, pass_index[sl], lt, Rv)
-        cyl = state.cylinder_rows(j)
-        if cyl is not None:
-            att.nrm[:, cyl] = _radial_units(x_rel[cyl], att.nrm[:, cyl])
+        _cylinder_gradients(state, j, x_rel, att.nrm)
         F[sl] = att.n_dot((x_rel[:, 0], x_rel[:, 1], x_rel[:, 2])) + state.d_m[j]
         x[sl] = x_rel + state.centers_m[j]
     return F, x

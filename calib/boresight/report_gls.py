@@ -150,12 +150,12 @@ def _patch_lines(run) -> list[str]:
     if doc.get("tie_patches_mode") == "off":
         return ["Tie patches: off (`--tie-patches off`)."]
     patches = doc.get("tie_patches")
+    rough = {p["name"]: p.get("roughness_m") for p in run.result.plane_stats}
     if not patches:
         return [
             "Tie patches: none chosen (no planar surface seen from two headings besides the targets)."
-        ] + _cylinder_lines(doc, {p["name"]: p.get("roughness_m") for p in run.result.plane_stats})
+        ] + _cylinder_lines(doc, rough)
     cand = doc.get("tie_patch_candidates", {})
-    rough = {p["name"]: p.get("roughness_m") for p in run.result.plane_stats}
     L = [
         f"Tie patches: {len(patches)} of {cand.get('found', '?')} candidate cells of "
         f"{cand.get('size_m', float('nan')):g} m (rejected cells: "
