@@ -26,7 +26,8 @@ with the correlation time misspecified (×3 and ×1/3 of the true τ, the CLI's
 ``--correlation-time-s``), and ``montreal_piles`` (montreal with five piles of 0.3–1.2 m before
 the wall: the default against the Cramér–Rao bound of the features it used, result.json's
 ``crlb_by_features_deg``, and issue 27's yaw goal of 10 mdeg, said out of reach where that bound
-is above it).
+is above it), and ``montreal_piles_far`` (the same with a pair of lines parallel to the wall at
+75 m, as ``mls design``'s lines for yaw recommend).
 
 Goals: RMS ≤ 1.2 × CRLB without tie patches; with tie patches < CRLB on flat walls and ≤ 1.2 ×
 CRLB on wavy walls; coverage at 2σ in [90 %, 98 %]; misspecified τ: RMS ≤ 1.5 × CRLB, coverage
@@ -93,6 +94,17 @@ def recommended_overrides(jobs: int) -> tuple[list[str] | None, str]:
         return None, f"design study failed ({type(e).__name__}: {e})"
 
 
+#: montreal_piles's six-fold passes and a pair of lines parallel to the wall at 75 m (the best pair
+#: of `mls design --scenario montreal_piles --group yaw_lines`: a pile moves along the track by
+#: range × δψ, so two standoffs disagree by 60 m × δψ)
+_FAR_PAIR = "site.passes=[{}]".format(
+    ", ".join(
+        [f"{{id: {i + 1}, relative_heading_deg: {h}}}" for i, h in enumerate((0, 180, 45, 225, 315, 135))]
+        + [f"{{id: {7 + j}, relative_heading_deg: {h}, standoff_m: 75}}" for j, h in enumerate((0, 180))]
+    )
+)
+
+
 def build_cases(names, jobs, no_design):
     cases = {
         "montreal_flat": dict(scenario="montreal", overrides=["scene.flat_surfaces=true"], flat=True),
@@ -103,6 +115,9 @@ def build_cases(names, jobs, no_design):
         "montreal_tau_x3": dict(scenario="montreal", overrides=[], flat=False, tau_factor=3.0),
         "montreal_tau_x1/3": dict(scenario="montreal", overrides=[], flat=False, tau_factor=1 / 3),
         "montreal_piles": dict(scenario="montreal_piles", overrides=[], flat=False, features=True),
+        "montreal_piles_far": dict(
+            scenario="montreal_piles", overrides=[_FAR_PAIR], flat=False, features=True
+        ),
     }
     notes = []
     if "recommended" in names:

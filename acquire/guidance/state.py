@@ -45,6 +45,7 @@ from calib.design.passpredict import (
     predict_pass,
     predict_sigma,
     rank_candidates,
+    weakest_angle,
 )
 from calib.io.site import Site
 from calib.sim.scenario import ScannerModel
@@ -370,6 +371,8 @@ class Guidance(PassTracker):
         return {
             "current": self.sigma.current_dict(),
             "next_best": rank[0] if rank else None,
+            # the angle determined worst and the pass that helps it most
+            "weakest": weakest_angle(self.sigma.current, self.sigma.ranking),
             "ranking": rank,
             "history": list(self.sigma_history),
         }

@@ -328,7 +328,23 @@ def render_sigma(st: ChecklistState, width: int = 38) -> Text:
         )
     elif st.checklist.get("calibration_ready"):
         second = Text("ready: press c to calibrate", "bold green")
-    return _lines([first, second])
+    weak = _weakest_line(sig.get("weakest"), width)
+    return _lines([first, second, weak] if weak.plain else [first, second])
+
+
+def _weakest_line(w: dict | None, width: int) -> Text:
+    """The angle determined worst and the pass that sharpens it most (only while one is left)."""
+    if not w or w.get("best_pass") is None:
+        return Text()
+    now, then = w.get("realistic_deg"), w.get("best_deg")
+    return fit_parts(
+        [
+            (f"weakest {w['angle']} ", "dim"),
+            (_fmt(now, ".3f", "°", "n/o"), ""),
+            (f": pass {w['best_pass']} → {_fmt(then, '.3f', '°', 'n/o')}", ""),
+        ],
+        width,
+    )
 
 
 def render_live(st: ChecklistState, width: int = 38, rows: int = LIVE_ROWS) -> Text:

@@ -6,7 +6,8 @@ targets (``site_passes``), single-plane inclination (``inclination``), plane siz
 two- and three-plane combinations (``planes``), standoff (``standoff``), target height
 (``height``), and the recommendation search over layouts (``layout``: inclinations, spread
 along the wall, height stagger, setback) under a constraint (number of targets, maximum size,
-passes allowed).
+passes allowed); and the lines that make the yaw observable from the scene's piles
+(``yaw_lines``, :mod:`calib.design.yawlines`).
 """
 
 from __future__ import annotations
@@ -21,9 +22,20 @@ import numpy as np
 from calib.design.criteria import SYSTEMATIC_ERRORS, THESIS_MAGNITUDES
 from calib.design.prediction import DesignError
 from calib.design.scenes import ground_based, scenario_targets, square_target
+from calib.design.yawlines import DEFAULT_OFFSETS_M
 from calib.sim.scenario import Scenario, Surface
 
-GROUPS = ("passes", "site_passes", "inclination", "size", "planes", "standoff", "height", "layout")
+GROUPS = (
+    "passes",
+    "site_passes",
+    "inclination",
+    "size",
+    "planes",
+    "standoff",
+    "height",
+    "layout",
+    "yaw_lines",
+)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -72,6 +84,7 @@ class StudySpec:
     layout_spreads_m: tuple[float, ...] = (0.0, 3.5)  # 0: one above the other
     layout_staggers_m: tuple[float, ...] = (0.0, 4.0)
     layout_setbacks_m: tuple[float, ...] = (0.0, 6.0)
+    yaw_line_offsets_m: tuple[float, ...] = DEFAULT_OFFSETS_M  # beyond the standoff
 
     def __post_init__(self):
         bad = [g for g in self.groups if g not in GROUPS]

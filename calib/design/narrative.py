@@ -13,6 +13,7 @@ from calib.design.criteria import best_inclinations, is_angular
 from calib.design.prediction import ANGLES, ESTIMATOR_MODEL, MODELS
 from calib.design.scenes import ground_based, surface_inclination_deg
 from calib.design.study import Recommendation, StudyResult
+from calib.design.yawlines import yaw_lines_markdown
 from calib.sim.scenario import Scenario
 
 
@@ -468,6 +469,8 @@ def summary_markdown(result: StudyResult, empirical: dict | None) -> str:
     L += _visibility_section(result)
     L += _sigma_section(result)
     L += _recommendation_section(result)
+    if "yaw_lines" in result.spec.groups:
+        L += yaw_lines_markdown(result.yaw_lines, result.yaw_lines_note)
     if empirical:
         L += ["", "## Monte Carlo check", "", empirical.get("text", "")]
     L += [
@@ -480,6 +483,7 @@ def summary_markdown(result: StudyResult, empirical: dict | None) -> str:
         "adjustments (GLS, thesis, pass offsets) only, the recommended one under all; "
         "`estimator` names the calibration estimator of `realistic_total_deg`), "
         "`recommendation.json`, "
-        "`criteria_<error>.png`, `sigma_<group>.png`.",
+        "`criteria_<error>.png`, `sigma_<group>.png`; `yaw_lines.csv` (per line set and "
+        "feature set, σ in degrees).",
     ]
     return "\n".join(L) + "\n"

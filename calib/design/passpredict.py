@@ -36,6 +36,7 @@ from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, replace
+from typing import Any
 
 import numpy as np
 
@@ -428,3 +429,35 @@ def rank_candidates(
         )
     out.sort(key=lambda item: (item[1].rank_key(), item[0]))
     return out
+
+
+def weakest_angle(
+    current: SigmaPrediction, ranking: Sequence[tuple[int, SigmaPrediction]]
+) -> dict[str, Any] | None:
+    """The angle the accepted passes determine worst — one not determined yet, else the largest
+    realistic σ (in practice the yaw: a wall seen from one standoff barely observes it) — and the
+    remaining pass that sharpens it most (making it determined first, then the smallest σ of
+    it); None before any pass. JSON-ready, degrees (``null``: not determined)."""
+    if not current.pass_ids:
+        return None
+    ok = current.observable
+    k = int(np.argmin(ok)) if not ok.all() else int(np.argmax(current.realistic_rad))
+
+    def deg(pred: SigmaPrediction) -> float | None:
+        return float(np.degrees(pred.realistic_rad[k])) if pred.observable[k] else None
+
+    best = min(
+        ranking,
+        key=lambda item: (not item[1].observable[k], _nan_inf(item[1].realistic_rad[k]), item[0]),
+        default=None,
+    )
+    return {
+        "angle": ANGLES[k],
+        "realistic_deg": deg(current),
+        "best_pass": None if best is None else int(best[0]),
+        "best_deg": None if best is None else deg(best[1]),
+    }
+
+
+def _nan_inf(x: float) -> float:
+    return float(x) if np.isfinite(x) else np.inf

@@ -142,14 +142,51 @@ def observations(sim: SimResult, sigmas: Sigmas, noisy: bool = True) -> Observat
     sel = np.flatnonzero(sim.target_index >= 0)
     if sel.size == 0:
         raise DesignError(f"scenario {sim.scenario.name!r}: no return on any target")
-    p = sim.points
     names = [t.name for t in sim.site.targets]
+    return _observations_of(sim, sigmas, sel, sim.target_index[sel], names, noisy)
+
+
+def feature_observations(sim: SimResult, sigmas: Sigmas, shape_sigma_m: float) -> tuple[Observations, list]:
+    """Noise-free observations of the targets and of the scene's vertical cylinders (piles),
+    and the true features (target planes, then :class:`~calib.core.geometry.VerticalCylinder` each):
+    what the calibration's adjustment uses of a scene with piles. A cylinder's points are those
+    the calibration keeps (within :data:`~calib.boresight.scene_ties.MIN_COS_INCIDENCE_CYLINDER`
+    of head-on), their range σ grown by ``shape_sigma_m`` (a real pile is no perfect cylinder:
+    the adjustment estimates that variance; the prediction assumes it)."""
+    from calib.boresight.scene_ties import MIN_COS_INCIDENCE_CYLINDER
+
+    scene, p = sim.scene, sim.points
+    n_targets = len(sim.site.targets)
+    feature_of_surface = np.full(len(scene.names), -1)
+    feature_of_surface[scene.cylinder_indices] = n_targets + np.arange(len(scene.cylinders))
+    cos_incidence = p.intensity / scene.reflectivity[sim.surface_index]
+    on_cylinder = (feature_of_surface[sim.surface_index] >= 0) & (cos_incidence >= MIN_COS_INCIDENCE_CYLINDER)
+    feature = np.where(
+        sim.target_index >= 0,
+        sim.target_index,
+        np.where(on_cylinder, feature_of_surface[sim.surface_index], -1),
+    )
+    sel = np.flatnonzero(feature >= 0)
+    if sel.size == 0:
+        raise DesignError(f"scenario {sim.scenario.name!r}: no return on any target or pile")
+    names = [t.name for t in sim.site.targets] + [scene.names[j] for j in scene.cylinder_indices]
+    obs = _observations_of(sim, sigmas, sel, feature[sel], names, noisy=False)
+    piles = feature[sel] >= n_targets
+    obs.sigma_l[piles, 6] = np.hypot(obs.sigma_l[piles, 6], shape_sigma_m)
+    return obs, target_planes(sim) + list(scene.cylinders)
+
+
+def _observations_of(
+    sim: SimResult, sigmas: Sigmas, sel: np.ndarray, feature_index: np.ndarray, names: list[str], noisy: bool
+) -> Observations:
+    """The observations of the returns ``sel`` on the features ``feature_index`` (named ``names``)."""
+    p = sim.points
     obs = build_observations(
         sim.trajectory_observed if noisy else sim.trajectory_true,
         p.t_gps_s[sel],
         p.range_m[sel],
         p.scan_angle_rad[sel],
-        sim.target_index[sel],
+        feature_index,
         p.pass_id[sel],
         names,
         sigmas.scanner.sigma_range_m,

@@ -42,6 +42,7 @@ from calib.design.prediction import (
     select_passes,
 )
 from calib.design.scenes import design_scenario, scenario_targets, square_target, surface_inclination_deg
+from calib.design.yawlines import yaw_lines_or_why
 from calib.sim.scenario import Scenario
 from calib.sim.scenariofile import load_scenario
 from calib.sim.simulate import SimulationError, simulate
@@ -257,6 +258,8 @@ class StudyResult:
     roll_scan_correlation: float  # |ρ| at the scenario's own site
     recommendation: Recommendation | None
     runtime_s: float
+    yaw_lines: list[dict]  # per line set × feature set (calib.design.yawlines)
+    yaw_lines_note: str = ""  # why there are none
 
     def rows(self, group: str) -> list[dict]:
         return [r for r in self.sigma if r["group"] == group]
@@ -307,6 +310,23 @@ def run_study(
         full = _sigma_task(base, rec.layout, sigmas, spec.seed)[0]
         sigma[next(i for i, r in enumerate(sigma) if r is rec.row)] = full
         rec = replace(rec, row=full)
+    yaw, yaw_note = (
+        yaw_lines_or_why(base, sigmas, spec.yaw_line_offsets_m, spec.seed)
+        if "yaw_lines" in spec.groups
+        else ([], "")
+    )
     return StudyResult(
-        base, spec, sigmas, criteria, visibility, sigma, lays, owner, rho, rec, time.perf_counter() - t0
+        scenario=base,
+        spec=spec,
+        sigmas=sigmas,
+        criteria=criteria,
+        visibility=visibility,
+        sigma=sigma,
+        layouts=lays,
+        layout_of_row=owner,
+        roll_scan_correlation=rho,
+        recommendation=rec,
+        runtime_s=time.perf_counter() - t0,
+        yaw_lines=yaw,
+        yaw_lines_note=yaw_note,
     )

@@ -27,6 +27,7 @@ from calib.design.narrative import (  # findings: what `mls design` checks, from
 from calib.design.prediction import ANGLES, ESTIMATOR_MODEL
 from calib.design.scenes import surface_inclination_deg
 from calib.design.study import SIGMA_COLUMNS, StudyResult, run_tasks
+from calib.design.yawlines import YAW_LINE_COLUMNS, plot_yaw_lines
 
 #: Colours of the six passes in the thesis's order (0°, 180°, 45°, 225°, 315°, 135°).
 _MAX_LAYOUT_BARS = 25
@@ -148,6 +149,8 @@ def write_study(
         write_csv(out / "visibility.csv", result.visibility, VISIBILITY_COLUMNS),
         write_csv(out / "sigma.csv", result.sigma, SIGMA_COLUMNS),
     ]
+    if result.yaw_lines:
+        files.append(write_csv(out / "yaw_lines.csv", result.yaw_lines, YAW_LINE_COLUMNS))
     if result.recommendation is not None:
         p = out / "recommendation.json"
         p.write_text(json.dumps(recommendation_json(result), indent=2, default=float) + "\n")
@@ -166,6 +169,8 @@ def write_study(
             for g in result.spec.groups
             if any(r["observable"] for r in result.rows(g))
         ]
+        if result.yaw_lines:
+            tasks.append((plot_yaw_lines, (result.yaw_lines, out / "sigma_yaw_lines.png", title)))
         files += run_tasks(tasks, jobs, None)
     p = out / "summary.md"
     p.write_text(summary_markdown(result, empirical), encoding="utf-8")

@@ -1,11 +1,12 @@
 """Site what-if (``mls design --site``): the predicted σ of a planned site config after each pass
 in its sailing order, and the pass that would help most next (by the realistic σ: the GLS
-estimator's, the calibration's default).
+estimator's, the calibration's default); with piles in the site config, the lines for yaw
+(:mod:`calib.design.yawlines`).
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -23,9 +24,10 @@ from calib.design.prediction import (
 from calib.design.scenes import design_scenario
 from calib.design.study import SIGMA_COLUMNS, headings_deg, sigma_row
 from calib.design.summary import write_csv
+from calib.design.yawlines import YAW_LINE_COLUMNS, yaw_lines_or_why
 from calib.io.site import Site
 from calib.sim.noise import PosNoise, ScannerNoise
-from calib.sim.scenario import Scenario, Surface
+from calib.sim.scenario import Pile, Scenario, Surface
 from calib.sim.scenariofile import load_scenario
 
 
@@ -52,6 +54,26 @@ def _target_surfaces(site: Site, frame: frames.LocalFrame) -> tuple[Surface, ...
             )
         )
     return tuple(surfaces)
+
+
+def _site_piles(site: Site, frame: frames.LocalFrame) -> tuple[Pile, ...]:
+    """The site's piles as scenario piles (along the wall, out from it, their foot and top up)."""
+    wall = site.wall_azimuth_rad
+    water = wall - np.pi / 2
+    out = []
+    for p in site.piles:
+        c = p.cylinder(frame)
+        out.append(
+            Pile(
+                name=p.name,
+                along_m=float(c.center_m[0] * np.cos(wall) + c.center_m[1] * np.sin(wall)),
+                out_m=float(c.center_m[0] * np.cos(water) + c.center_m[1] * np.sin(water)),
+                bottom_up_m=float(-c.center_m[2] - 0.5 * c.height_m),
+                top_up_m=float(-c.center_m[2] + 0.5 * c.height_m),
+                diameter_m=p.diameter_m,
+            )
+        )
+    return tuple(out)
 
 
 def _site_pos_noise(site: Site) -> PosNoise:
@@ -94,6 +116,7 @@ def site_as_scenario(
         standoff_m=float(site.standoff_m),
         passes=site.passes,
         surfaces=_target_surfaces(site, frame),
+        piles=_site_piles(site, frame),
         mount=site.mount,
         truth=replace(
             tpl.truth,
@@ -121,6 +144,8 @@ class WhatIf:
     scenario: Scenario
     rows: list  # one per step: sigma_row(...) + "next_best_pass"
     roll_scan_correlation: float
+    yaw_lines: list = field(default_factory=list)  # with piles in the site (calib.design.yawlines)
+    yaw_lines_note: str = ""
 
 
 def what_if(
@@ -145,11 +170,15 @@ def what_if(
         r["next_best_pass"] = min(nxt, key=lambda q: nxt[q]) if nxt else ""
         rows.append(r)
     rho = scan_angle_roll_correlation(obs, sim.mount_true, planes)
-    return WhatIf(sc, rows, rho)
+    yaw, why = yaw_lines_or_why(sc, sigmas, seed=seed) if sc.piles else ([], "the site config lists no piles")
+    return WhatIf(scenario=sc, rows=rows, roll_scan_correlation=rho, yaw_lines=yaw, yaw_lines_note=why)
 
 
 def write_what_if(w: WhatIf, out_dir: str | Path) -> list[Path]:
     from calib.io.outputs import make_output_dir
 
     out = make_output_dir(out_dir)
-    return [write_csv(out / "whatif.csv", w.rows, list(SIGMA_COLUMNS) + ["next_best_pass"])]
+    files = [write_csv(out / "whatif.csv", w.rows, list(SIGMA_COLUMNS) + ["next_best_pass"])]
+    if w.yaw_lines:
+        files.append(write_csv(out / "yaw_lines.csv", w.yaw_lines, YAW_LINE_COLUMNS))
+    return files

@@ -4,8 +4,9 @@ Readers accept exactly the documented keys; an unknown key, a missing key or a b
 :class:`calib.io.configfile.ConfigError` naming the file, line, key and value. In memory everything
 is SI and radians; degrees exist only in the YAML.
 
-Beyond docs/architecture.md §4 a pass entry may carry ``length_m`` and ``speed_mps`` (the pass-plan generator
-and ``mls plan`` use them; defaults below), and ``pos_sigmas`` may carry ``correlation_time_s``,
+Beyond docs/architecture.md §4 a pass entry may carry ``length_m``, ``speed_mps`` and its own
+``standoff_m`` (the pass-plan generator and ``mls plan`` use them; defaults below), ``piles``
+lists vertical cylinders for the design's lines for yaw, and ``pos_sigmas`` may carry ``correlation_time_s``,
 the correlation time of the POS errors that ``sigma_realistic`` assumes (first-order
 Gauss–Markov; one number, ``[position, attitude]`` or six values for north, east, down, roll,
 pitch, heading; when absent the calibration assumes 60 s and says so).
@@ -20,7 +21,7 @@ import numpy as np
 import yaml
 
 from calib.core import frames
-from calib.core.geometry import Rectangle
+from calib.core.geometry import Rectangle, VerticalCylinder
 from calib.core.georef import Mount
 from calib.io.configfile import ConfigError, Node, load_yaml
 
@@ -73,19 +74,58 @@ class Target:
 
 
 @dataclass(frozen=True)
+class SitePile:
+    """A pile, post or dolphin's pile as configured: a vertical cylinder, its axis at a geodetic
+    position from ``bottom_height_m`` to ``top_height_m`` (ellipsoidal). Optional in site.yaml:
+    the calibration finds piles by itself; the design's what-if (``mls design --site``) needs
+    them to predict what lines at several standoffs buy the boresight yaw."""
+
+    name: str
+    lat_deg: float
+    lon_deg: float
+    bottom_height_m: float
+    top_height_m: float
+    diameter_m: float
+
+    def cylinder(self, frame: frames.LocalFrame) -> VerticalCylinder:
+        mid = 0.5 * (self.bottom_height_m + self.top_height_m)
+        return VerticalCylinder(
+            name=self.name,
+            center_m=frame.to_lgf([self.lat_deg], [self.lon_deg], [mid])[0],
+            radius_m=0.5 * self.diameter_m,
+            height_m=self.top_height_m - self.bottom_height_m,
+        )
+
+    def to_yaml(self) -> dict:
+        return {
+            "name": self.name,
+            "center": {"lat_deg": float(self.lat_deg), "lon_deg": float(self.lon_deg)},
+            "diameter_m": float(self.diameter_m),
+            "bottom_height_m": float(self.bottom_height_m),
+            "top_height_m": float(self.top_height_m),
+        }
+
+
+@dataclass(frozen=True)
 class PassSpec:
     id: int
     relative_heading_rad: float
     length_m: float = DEFAULT_PASS_LENGTH_M
     speed_mps: float = DEFAULT_PASS_SPEED_MPS
+    #: this line's closest approach to the targets; None: the site's ``standoff_m`` (lines at
+    #: several offsets from the scene's features make the boresight yaw observable)
+    standoff_m: float | None = None
 
     def to_yaml(self) -> dict:
-        return {
+        out = {
             "id": int(self.id),
             "relative_heading_deg": float(np.degrees(self.relative_heading_rad)),
             "length_m": float(self.length_m),
             "speed_mps": float(self.speed_mps),
         }
+        if self.standoff_m is not None:
+            out["standoff_m"] = float(self.standoff_m)
+        return out
 
 
 def six_fold_passes(
@@ -118,6 +158,7 @@ class Site:
     standoff_m: float = 15.0
     passes: tuple[PassSpec, ...] = field(default_factory=six_fold_passes)
     validation_planes: tuple[Target, ...] = ()
+    piles: tuple[SitePile, ...] = ()
     #: False when site.yaml lists no passes and the default six-fold plan stands in (warnings
     #: about planned passes say so)
     passes_listed: bool = field(default=True, compare=False)
@@ -165,6 +206,8 @@ class Site:
         d["targets"] = [t.to_yaml() for t in self.targets]
         d["passes"] = [p.to_yaml() for p in self.passes]
         d["validation_planes"] = [t.to_yaml() for t in self.validation_planes]
+        if self.piles:
+            d["piles"] = [p.to_yaml() for p in self.piles]
         return d
 
     def dump(self, path: str | Path) -> None:
@@ -215,12 +258,31 @@ def _target(node: Node) -> Target:
 
 
 def _targets(node: Node, what: str) -> tuple[Target, ...]:
-    out = tuple(_target(n) for n in node.sequence())
-    names = [t.name for t in out]
+    return _named(node, _target, what)
+
+
+def _named(node: Node, read, what: str) -> tuple:
+    """A sequence of entries read by ``read``, their names unique."""
+    out = tuple(read(n) for n in node.sequence())
+    names = [x.name for x in out]
     for i, name in enumerate(names):
         if name in names[:i]:
             raise node.value[i].fail(f"a unique {what} name ({name!r} appears twice)")
     return out
+
+
+def _pile(node: Node) -> SitePile:
+    m = node.mapping(required={"name", "center", "diameter_m", "bottom_height_m", "top_height_m"})
+    cm = m["center"].mapping(required={"lat_deg", "lon_deg"})
+    bottom = m["bottom_height_m"].number()
+    return SitePile(
+        name=m["name"].string(),
+        lat_deg=cm["lat_deg"].number(-90.0, 90.0),
+        lon_deg=cm["lon_deg"].number(-180.0, 360.0),
+        bottom_height_m=bottom,
+        top_height_m=m["top_height_m"].number(bottom, exclusive_minimum=True),
+        diameter_m=m["diameter_m"].number(0.0, 10.0, exclusive_minimum=True),
+    )
 
 
 def _mount(node: Node) -> Mount:
@@ -276,7 +338,9 @@ def _pos_sigmas(node: Node) -> dict:
 
 
 def _pass(node: Node) -> PassSpec:
-    pm = node.mapping(required={"id", "relative_heading_deg"}, optional={"length_m", "speed_mps"})
+    pm = node.mapping(
+        required={"id", "relative_heading_deg"}, optional={"length_m", "speed_mps", "standoff_m"}
+    )
     return PassSpec(
         id=pm["id"].integer(minimum=0, maximum=2**63 - 1),  # int64, as points.csv
         relative_heading_rad=float(np.radians(pm["relative_heading_deg"].number())),
@@ -286,6 +350,7 @@ def _pass(node: Node) -> PassSpec:
         speed_mps=pm["speed_mps"].number(0.0, exclusive_minimum=True)
         if "speed_mps" in pm
         else DEFAULT_PASS_SPEED_MPS,
+        standoff_m=pm["standoff_m"].number(0.0, exclusive_minimum=True) if "standoff_m" in pm else None,
     )
 
 
@@ -310,6 +375,7 @@ def site_from_node(root: Node) -> Site:
             "standoff_m",
             "passes",
             "validation_planes",
+            "piles",
         },
     )
     mount = _mount(top["mount"])
@@ -332,6 +398,8 @@ def site_from_node(root: Node) -> Site:
         kw["passes_listed"] = False
     if "validation_planes" in top:
         kw["validation_planes"] = _targets(top["validation_planes"], "validation plane")
+    if "piles" in top:
+        kw["piles"] = _named(top["piles"], _pile, "pile")
     return Site(mount=mount, targets=_targets(top["targets"], "target"), **kw)
 
 

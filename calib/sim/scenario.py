@@ -29,7 +29,7 @@ from calib.core import frames
 from calib.core.geometry import Rectangle, VerticalCylinder
 from calib.core.georef import Mount
 from calib.io.bundle import SCANNER_RANGE_M
-from calib.io.site import PassSpec, Site, Target
+from calib.io.site import PassSpec, Site, SitePile, Target
 from calib.sim.motion import MotionModel
 from calib.sim.noise import PosNoise, ScannerNoise
 from calib.sim.scene import BACKGROUND_KINDS, Scene
@@ -424,8 +424,22 @@ class Scenario:
             standoff_m=self.standoff_m,
             passes=self.passes,
             validation_planes=self._targets("validation"),
+            piles=self._site_piles(),
             **kw,
         )
+
+    def _site_piles(self) -> tuple[SitePile, ...]:
+        out = []
+        for p in self.piles:
+            c = self.cylinder(p)
+            lat, lon, h = self.reference.to_geodetic(c.center_m[None])
+            half = 0.5 * c.height_m
+            out.append(
+                SitePile(
+                    p.name, float(lat[0]), float(lon[0]), float(h[0]) - half, float(h[0]) + half, p.diameter_m
+                )
+            )
+        return tuple(out)
 
     def to_dict(self) -> dict:
         """The resolved settings (for truth.json)."""

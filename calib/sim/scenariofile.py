@@ -312,16 +312,19 @@ def _passes(m: dict[str, Node]) -> tuple[PassSpec, ...]:
         return six_fold_passes(length, speed)
     node = m["passes"]
     if not isinstance(node.value, list):
-        raise node.fail("six_fold or a list of {id, relative_heading_deg[, length_m, speed_mps]}")
+        raise node.fail("six_fold or a list of {id, relative_heading_deg[, length_m, speed_mps, standoff_m]}")
     out = []
     for pn in node.sequence(min_len=1):
-        pm = pn.mapping(required={"id", "relative_heading_deg"}, optional={"length_m", "speed_mps"})
+        pm = pn.mapping(
+            required={"id", "relative_heading_deg"}, optional={"length_m", "speed_mps", "standoff_m"}
+        )
         out.append(
             PassSpec(
                 pm["id"].integer(minimum=0),
                 float(np.radians(pm["relative_heading_deg"].number(-360.0, 360.0))),
                 _opt(pm, "length_m", _positive, length),
                 _opt(pm, "speed_mps", _positive, speed),
+                _opt(pm, "standoff_m", _positive, None),
             )
         )
     ids = [p.id for p in out]

@@ -49,6 +49,7 @@ class PlannedPass:
     capture_end_m: float
     targets_side: str  # "starboard" or "port": where the targets are seen from the vessel
     end_wall_distance_m: float  # horizontal distance from the wall at the end nearest to it
+    standoff_m: float | None = None  # horizontal distance of the closest approach from the aim
 
     @property
     def direction(self) -> np.ndarray:
@@ -162,8 +163,8 @@ def _capture_window(spec: PassSpec, lay: _Layout, cpa, h, s_a: float, s_b: float
 
 
 def _planned_pass(order: int, spec: PassSpec, lay: _Layout) -> PlannedPass:
-    """One line: at its heading, its closest approach ``standoff_m`` from the aim on the water
-    side, as long as asked and clear of the wall."""
+    """One line: at its heading, its closest approach ``standoff_m`` (the line's own, else the
+    plan's) from the aim on the water side, as long as asked and clear of the wall."""
     heading = float(frames.wrap_2pi(lay.wall_azimuth_rad + spec.relative_heading_rad))
     h = _unit(heading)
     perp = np.array([-h[1], h[0], 0.0])
@@ -175,7 +176,8 @@ def _planned_pass(order: int, spec: PassSpec, lay: _Layout) -> PlannedPass:
         )
     if toward_water < 0:
         perp = -perp
-    cpa = lay.aim + lay.standoff_m * perp
+    standoff = lay.standoff_m if spec.standoff_m is None else spec.standoff_m
+    cpa = lay.aim + standoff * perp
     approach = float(h @ lay.water)  # change of the wall distance per metre along the line
     d0 = float((cpa - lay.aim) @ lay.water) - lay.wall_offset_m  # wall distance at the CPA
     if d0 < lay.safe_wall_distance_m:
@@ -201,6 +203,7 @@ def _planned_pass(order: int, spec: PassSpec, lay: _Layout) -> PlannedPass:
         capture_end_m=cap_b - s_a,
         targets_side=side,
         end_wall_distance_m=float(end_wall),
+        standoff_m=float(standoff),
     )
 
 

@@ -54,7 +54,7 @@ def _pass_properties(p: PlannedPass) -> dict:
         "capture_window_s": [round(cw[0], 3), round(cw[1], 3)],
         "targets_side": p.targets_side,
         "end_wall_distance_m": round(p.end_wall_distance_m, 3),
-    }
+    } | ({} if p.standoff_m is None else {"standoff_m": round(p.standoff_m, 3)})
 
 
 def plan_geojson(

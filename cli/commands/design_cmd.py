@@ -18,9 +18,11 @@ HELP = (
     "inclination, size, 2- and 3-plane combinations, standoff and target height, under white "
     "noise and under time-correlated POS errors; then it recommends the best layout under a "
     "constraint (--targets, --max-size, --passes) and writes CSV tables, PNG figures and "
-    "summary.md to --out.\n\n"
+    "summary.md to --out. Its yaw_lines group predicts, for a scene with piles, how much lines "
+    "parallel to the wall farther out (--yaw-line-offsets) sharpen the boresight yaw.\n\n"
     "--site site.yaml predicts σ for a planned site and its pass pattern: after each pass in "
-    "the sailing order, and which pass would help most next."
+    "the sailing order, and which pass would help most next; with piles in the site config "
+    "(piles: name, center, diameter_m, bottom_height_m, top_height_m) also the lines for yaw."
 )
 
 
@@ -36,6 +38,21 @@ def _passes(text: str | None) -> tuple[int, ...] | None:
     if not ids:
         raise typer.BadParameter("at least one pass id", param_hint="--passes")
     return ids
+
+
+def _offsets(text: str | None) -> tuple[float, ...] | None:
+    if text is None:
+        return None
+    try:
+        out = tuple(float(x) for x in text.replace(" ", "").split(",") if x)
+    except ValueError:
+        out = ()
+    if not out or not all(0 < x < 120 for x in out):
+        raise typer.BadParameter(
+            f"{text!r}: expected metres beyond the standoff, each in (0, 120), separated by commas, e.g. 20,40,60",
+            param_hint="--yaw-line-offsets",
+        )
+    return out
 
 
 def design(
@@ -94,7 +111,7 @@ def design(
             "--group",
             metavar="GROUP",
             help="Only these σ sweeps (repeatable): passes, site_passes, inclination, size, planes, "
-            "standoff, height, layout (the recommendation's search).",
+            "standoff, height, layout (the recommendation's search), yaw_lines (lines for yaw).",
         ),
     ] = None,
     error: Annotated[
@@ -105,6 +122,15 @@ def design(
             help="Only these systematic errors in the visibility criteria (repeatable): "
             "boresight_roll, boresight_pitch, boresight_yaw, lever_arm_x, lever_arm_y, "
             "lever_arm_z, range_offset, scan_angle_offset; 'none' skips the criteria.",
+        ),
+    ] = None,
+    yaw_line_offsets: Annotated[
+        str | None,
+        typer.Option(
+            "--yaw-line-offsets",
+            metavar="METRES",
+            help="yaw_lines: pairs of lines parallel to the wall this far beyond the standoff, "
+            "comma-separated (default 20,40,60).",
         ),
     ] = None,
     seeds: Annotated[
@@ -165,6 +191,7 @@ def design(
                 targets,
                 max_size,
                 _passes(passes),
+                _offsets(yaw_line_offsets),
                 group or [],
                 error or [],
                 seeds,
@@ -199,6 +226,7 @@ def _study(
     targets,
     max_size,
     passes,
+    yaw_offsets_m,
     group,
     error,
     seeds,
@@ -217,6 +245,8 @@ def _study(
     changes: dict = {"seed": seed, "n_targets": targets, "max_size_m": max_size, "passes": passes}
     if group:
         changes["groups"] = tuple(group)
+    if yaw_offsets_m is not None:
+        changes["yaw_line_offsets_m"] = yaw_offsets_m
     if error:
         changes["errors"] = () if list(error) == ["none"] else tuple(error)
     spec = default_spec(base, **changes)
@@ -236,6 +266,7 @@ def _study(
         bar.update(task, description="writing tables and figures", completed=0, total=None)
         files = write_study(result, out, empirical, figures=figures, jobs=jobs)
     _study_table(console, result, empirical)
+    _yaw_table(console, result)
     console.print(
         f"wrote {len(files)} files to {out} in {result.runtime_s:.1f} s of study "
         f"(summary: {Path(out) / 'summary.md'})",
@@ -297,6 +328,33 @@ def _study_table(console, result, empirical) -> None:
             )
 
 
+def _yaw_table(console, result) -> None:
+    from rich import box
+    from rich.table import Table
+
+    from calib.design.yawlines import best_for_yaw
+
+    if not result.yaw_lines:
+        if result.yaw_lines_note:
+            console.print(f"lines for yaw: not predicted ({result.yaw_lines_note})", highlight=False)
+        return
+    t = Table(title="lines for yaw: GLS σ (mdeg)", title_justify="left", box=box.SIMPLE_HEAD, pad_edge=False)
+    for col in ("lines", "features", "roll", "pitch", "yaw"):
+        t.add_column(col, justify="left" if col in ("lines", "features") else "right", no_wrap=True)
+    for r in result.yaw_lines:
+        t.add_row(
+            r["lines"],
+            r["features"],
+            *(f"{1000 * r[f'sigma_{a}_deg']:.1f}" for a in ("roll", "pitch", "yaw")),
+        )
+    console.print(t)
+    best = best_for_yaw(result.yaw_lines)
+    console.print(
+        f"for yaw: sail {best['lines']} with the {best['features']} (σ yaw {1000 * best['sigma_yaw_deg']:.1f} mdeg)",
+        highlight=False,
+    )
+
+
 def _what_if(console, site_path, out, force, template, scanner_height_m, seed) -> None:
     from rich import box
     from rich.table import Table
@@ -347,6 +405,7 @@ def _what_if(console, site_path, out, force, template, scanner_height_m, seed) -
         f"absorbs a scan-angle offset",
         highlight=False,
     )
+    _yaw_table(console, w)
     if out is not None:
         files = write_what_if(w, out)
         console.print(f"wrote {', '.join(str(f) for f in files)}", highlight=False)

@@ -202,7 +202,9 @@ function renderLine() {
   $("speed").textContent = v ? `${fmt(v.speed_mps, 2, " m/s")}${a && a.planned_speed_mps ? " (plan " + fmt(a.planned_speed_mps, 1, ")") : ""}` : "—";
   $("to-go").textContent = a && a.length_m !== undefined ? toGo(a) : "—";
   const nb = g && g.sigma && g.sigma.next_best;
-  $("next-line").textContent = nb ? `line ${nb.pass_id}` : nextPending(g);
+  const wk = g && g.sigma && g.sigma.weakest;
+  const weak = wk && wk.best_pass !== null ? ` · weakest ${wk.angle} ${fmt(wk.realistic_deg, 3, "°")}: line ${wk.best_pass} → ${fmt(wk.best_deg, 3, "°")}` : "";
+  $("next-line").textContent = (nb ? `line ${nb.pass_id}` : nextPending(g)) + weak;
   if (a && !$("pass-id").matches(":focus")) $("pass-id").value = a.pass_id;
   drawXte(a, g ? g.tolerances : null);
 }

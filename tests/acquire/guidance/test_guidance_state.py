@@ -15,7 +15,7 @@ from acquire.daemon.consumers import ChecklistPublisher, Tap
 from acquire.guidance.acceptance import AcceptanceTolerances
 from acquire.guidance.consumer import GuidanceConsumer
 from acquire.guidance.state import SCHEMA, Guidance, sigma_rises
-from calib.design.passpredict import ObservationModel, SigmaPrediction, predict_sigma
+from calib.design.passpredict import ObservationModel, SigmaPrediction, predict_sigma, weakest_angle
 from calib.sim.scenariofile import load_scenario
 from calib.survey.passplan import PlannedPass, plan_site
 from drivers.hydrins.nav import NavRecord, status_words
@@ -239,6 +239,8 @@ def test_predicted_sigma_never_rises_pass_by_pass_and_matches_the_adjustment(sur
             assert (nb is None) == (len(done) == 6)
             if nb is not None:
                 assert nb["pass_id"] not in done
+                weak = msg["sigma"]["weakest"]
+                assert weak["angle"] in ("roll", "pitch", "yaw") and weak["best_pass"] not in done
             assert msg["sigma"]["current"]["rose"] == []
     # the prediction from the live hits agrees with the GLS adjustment of the labelled returns
     # under the same model (the site's sigmas)
@@ -287,6 +289,38 @@ def test_a_realistic_sigma_that_rose_with_the_last_pass_is_named():
     assert sigma_rises(hist, pred([1, 2, 3], [0.07, 0.05, 0.04])) == ("roll",)  # vs passes 1, 2
     assert sigma_rises(hist, pred([1, 2, 3, 4], [0.056, 0.041, 0.03])) == ("pitch",)
     assert sigma_rises(hist, pred([1, 2, 3, 4], [0.05, 0.03, 0.02])) == ()
+
+
+def test_the_weakest_angle_names_the_pass_that_sharpens_it_most():
+    def pred(passes, realistic_deg, formal_deg=(0.002, 0.004, 0.003)):
+        return SigmaPrediction(
+            tuple(passes), np.radians(formal_deg), np.radians(realistic_deg), np.eye(3), 10
+        )
+
+    assert weakest_angle(pred([], [np.nan] * 3, [np.nan] * 3), []) is None
+    now = pred([1, 2], [0.01, 0.02, 0.04])
+    ranking = [(3, pred([1, 2, 3], [0.005, 0.01, 0.035])), (7, pred([1, 2, 7], [0.009, 0.019, 0.02]))]
+    # the best pass overall (3) is not the one that helps the weakest angle (yaw) most
+    w = weakest_angle(now, ranking)
+    assert w == {
+        "angle": "yaw",
+        "realistic_deg": pytest.approx(0.04),
+        "best_pass": 7,
+        "best_deg": pytest.approx(0.02),
+    }
+    # an angle not determined yet is the weakest, and a pass that determines it beats a sharper one that does not
+    undetermined = pred([1], [0.01, 0.02, 1.0], [0.002, 0.004, 1.0])
+    ranking = [
+        (4, pred([1, 4], [0.01, 0.02, 1.0], [0.002, 0.004, 0.5])),
+        (5, pred([1, 5], [0.01, 0.02, 0.045])),
+    ]
+    assert weakest_angle(undetermined, ranking) == {
+        "angle": "yaw",
+        "realistic_deg": None,
+        "best_pass": 5,
+        "best_deg": pytest.approx(0.045),
+    }
+    assert weakest_angle(now, [])["best_pass"] is None
 
 
 def test_guidance_consumer_publishes_the_guidance_section(survey):

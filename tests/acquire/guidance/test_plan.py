@@ -76,6 +76,7 @@ def test_geojson_structure_and_properties(site):
         )
         assert pr["length_m"] == pytest.approx(p.length_m, abs=1e-4)
         assert pr["targets_side"] == p.targets_side
+        assert pr["standoff_m"] == pytest.approx(site.standoff_m, abs=1e-3)
     assert [t["properties"]["name"] for t in tgts] == ["T1", "T2"]
     assert all(t["geometry"]["type"] == "Point" for t in tgts)
     assert all(c["properties"]["pass_id"] == lf["properties"]["pass_id"] for c, lf in zip(caps, lines))

@@ -343,6 +343,16 @@ def test_a_sigma_that_rose_with_the_last_pass_is_marked():
     assert render_sigma(st).plain.splitlines()[0] == "σ(3) r 0.062°↑ p 0.040° y n/o"
 
 
+def test_the_weakest_angle_and_the_pass_that_helps_it_are_shown():
+    st = ChecklistState()
+    weakest = {"angle": "yaw", "realistic_deg": 0.0312, "best_pass": 7, "best_deg": 0.0145}
+    sigma = {"current": {"passes": [1, 2], "realistic_deg": {"roll": 0.01, "pitch": 0.02, "yaw": 0.0312}}}
+    st.apply("checklist", {"guidance": {"sigma": {**sigma, "weakest": weakest}}})
+    assert render_sigma(st, width=60).plain.splitlines()[-1] == "weakest yaw 0.031°: pass 7 → 0.015°"
+    st.apply("checklist", {"guidance": {"sigma": {**sigma, "weakest": {**weakest, "best_pass": None}}}})
+    assert "weakest" not in render_sigma(st, width=60).plain  # nothing left to sail
+
+
 def test_prechecks_overflow_is_summed_up():
     st = ChecklistState()
     st.apply("checklist", {"presurvey": {f"c{i}": {"ok": i != 4, "detail": f"d{i}"} for i in range(10)}})

@@ -36,8 +36,11 @@ targets:
     facing_azimuth_deg: 270.0
 passes:
   - {id: 1, relative_heading_deg: 0.0}
-  - {id: 2, relative_heading_deg: 180.0, length_m: 60.0, speed_mps: 1.5}
+  - {id: 2, relative_heading_deg: 180.0, length_m: 60.0, speed_mps: 1.5, standoff_m: 25.0}
 validation_planes: []
+piles:
+  - {name: P1, center: {lat_deg: 45.5001, lon_deg: -73.5502}, diameter_m: 0.6, bottom_height_m: -2.0,
+     top_height_m: 5.5}
 """
 
 
@@ -56,7 +59,13 @@ def test_design_example_values_are_si_and_radians():
     assert t2.inclination_rad == pytest.approx(np.radians(45.0)) and t2.reflectivity == 0.9
     assert [p.id for p in site.passes] == [1, 2]
     assert (site.passes[1].length_m, site.passes[1].speed_mps) == (60.0, 1.5)
+    # a line may keep its own standoff; the others the site's
+    assert (site.passes[0].standoff_m, site.passes[1].standoff_m) == (None, 25.0)
     assert site.validation_planes == ()
+    (pile,) = site.piles
+    assert (pile.name, pile.diameter_m, pile.bottom_height_m, pile.top_height_m) == ("P1", 0.6, -2.0, 5.5)
+    cyl = pile.cylinder(site.reference)
+    assert (cyl.radius_m, cyl.height_m) == (0.3, 7.5) and cyl.center_m[2] == pytest.approx(-1.75, abs=1e-3)
     # the vertical target faces west: normal (0, −1, 0) in NED
     rect = t1.rectangle(site.reference)
     np.testing.assert_allclose(rect.normal, [0.0, -1.0, 0.0], atol=1e-15)
@@ -78,7 +87,7 @@ def test_dump_load_round_trip(tmp_path):
     site = parse_site(SITE_EXAMPLE)
     site.dump(tmp_path / "site.yaml")
     again = load_site(tmp_path / "site.yaml")
-    assert again.targets == site.targets and again.passes == site.passes
+    assert again.targets == site.targets and again.passes == site.passes and again.piles == site.piles
     assert again.reference == site.reference and again.vessel == site.vessel
     for attr in ("lever_arm_m", "nominal_rad", "boresight_rad"):
         np.testing.assert_allclose(
@@ -121,7 +130,13 @@ def test_dump_load_round_trip(tmp_path):
             r"site\.yaml:20:5: targets\[1\]: .* expected a unique target name \('T1' appears twice\)",
         ),
         (("{id: 2, relative", "{id: 1, relative"), r"passes: .* expected unique pass ids"),
+        (
+            ("top_height_m: 5.5", "top_height_m: -2.0"),
+            r"piles\[0\]\.top_height_m: got -2\.0, expected a number > -2",
+        ),
+        (("diameter_m: 0.6", "diameter_m: 0"), r"piles\[0\]\.diameter_m: got 0, expected a number > 0"),
         (("{id: 1, relative", "{id: 1.5, relative"), r"passes\[0\]\.id: got 1\.5, expected an integer"),
+        (("standoff_m: 25.0}", "standoff_m: 0}"), r"passes\[1\]\.standoff_m: got 0, expected a number > 0"),
         (("vessel: survey-1", "vessel: [a, b]"), r"vessel: got \['a', 'b'\], expected a non-empty"),
         (("mount:\n", "mount: 3\nmount_:\n"), r"unknown key 'mount_'"),
         (

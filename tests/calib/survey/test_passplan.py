@@ -68,6 +68,23 @@ def test_six_fold_headings_order_and_standoff():
         assert (p.closest_approach_lgf_m - aim) @ w > 10.0
 
 
+def test_a_line_with_its_own_standoff_keeps_it_and_the_others_the_plans():
+    """Lines at several offsets from the scene's features (what makes yaw observable): a pass's
+    own standoff_m moves its closest approach; the plan's standoff holds for the rest."""
+    passes = (
+        PassSpec(1, 0.0, 80.0),
+        PassSpec(2, np.pi, 80.0, standoff_m=27.5),
+        PassSpec(3, 0.0, 80.0, standoff_m=9.0),
+    )
+    plan = plan_passes(_targets(), WALL_AZ, 15.0, passes, safe_wall_distance_m=5.0, capture_margin_m=2.0)
+    aim = np.mean([t.center_m for t in _targets()], axis=0)
+    got = [_line_distance(aim, p.start_lgf_m, p.end_lgf_m) for p in plan.passes]
+    np.testing.assert_allclose(got, [15.0, 27.5, 9.0], atol=1e-9)
+    assert [p.standoff_m for p in plan.passes] == pytest.approx([15.0, 27.5, 9.0])
+    with pytest.raises(PassPlanError, match="pass 4: its closest approach is only"):
+        plan_passes(_targets(), WALL_AZ, 15.0, (PassSpec(4, 0.0, standoff_m=3.0),), safe_wall_distance_m=5.0)
+
+
 def test_oblique_passes_keep_the_safe_distance_and_parallel_passes_are_centred():
     plan = plan_passes(
         _targets(), WALL_AZ, 15.0, six_fold_passes(60.0, 2.0), safe_wall_distance_m=5.0, capture_margin_m=2.0
