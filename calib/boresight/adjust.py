@@ -33,7 +33,7 @@ from calib.boresight.gausshelmert import (
     observations_at,
     offset_prior_sigma,
     plane_centers,
-    singular_message,
+    singular_error,
     solve,
 )
 from calib.boresight.ghmodel import State, georeferenced
@@ -166,7 +166,7 @@ def _check_observable_apriori(obs: Observations, lin0, options: AdjustOptions) -
         idx = np.arange(layout.i_offset, layout.n)
         N[idx, idx] += 1.0 / prior.reshape(-1) ** 2
     if np.linalg.matrix_rank(N) < N.shape[0]:
-        raise ObservabilityError(singular_message(N, obs, layout))
+        raise singular_error(N, obs, layout)
     try:
         Ninv = np.linalg.inv(N)
     except np.linalg.LinAlgError:

@@ -19,7 +19,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from calib.boresight.ghmodel import EXTRA_NAMES, Linearization, State, georeferenced, linearize, tangent_bases
-from calib.boresight.observability import ANGLE_NAMES, ObservabilityError
+from calib.boresight.observability import ANGLE_NAMES, SingularError
 from calib.boresight.observations import AdjustOptions, Observations
 from calib.core import frames
 from calib.core.geometry import VerticalCylinder
@@ -347,19 +347,21 @@ def solve_normal(N, rhs, obs, layout):
     try:
         c = np.linalg.cholesky(N)
     except np.linalg.LinAlgError:
-        raise ObservabilityError(singular_message(N, obs, layout)) from None
+        raise singular_error(N, obs, layout) from None
     y = np.linalg.solve(c, rhs)
     return np.linalg.solve(c.T, y)
 
 
-def singular_message(N, obs, layout) -> str:
+def singular_error(N, obs, layout) -> SingularError:
+    """The error of a singular normal matrix, naming its null direction's largest unknowns."""
     names = layout.names(obs.plane_names, obs.pass_ids)
     vals, vecs = np.linalg.eigh(N)
     v = vecs[:, 0]
-    top = np.argsort(-np.abs(v))[:3]
-    combo = " + ".join(f"{v[i]:.2f}·{names[i]}" for i in top if abs(v[i]) > 0.1)
-    return (
+    top = [int(i) for i in np.argsort(-np.abs(v))[:3] if abs(v[i]) > 0.1]
+    combo = " + ".join(f"{v[i]:.2f}·{names[i]}" for i in top)
+    return SingularError(
         f"the normal equations are singular: the data do not determine {combo}. "
         f"Check that every plane has points from several passes and that extra unknowns "
-        f"({', '.join(layout.extras) or 'none'}) are observable with this geometry."
+        f"({', '.join(layout.extras) or 'none'}) are observable with this geometry.",
+        tuple(names[i] for i in top),
     )

@@ -79,7 +79,7 @@ from calib.boresight.gausshelmert import (
     observations_at,
     offset_prior_sigma,
     pose_rates,
-    singular_message,
+    singular_error,
     step_converged,
 )
 from calib.boresight.ghmodel import Linearization, State, linearize, tangent_bases
@@ -551,7 +551,7 @@ def _factor(S: np.ndarray, obs: Observations, layout: Layout) -> CholeskyFactor:
     try:
         return CholeskyFactor(S)
     except np.linalg.LinAlgError:
-        raise ObservabilityError(singular_message(S, obs, layout)) from None
+        raise singular_error(S, obs, layout) from None
 
 
 def _quad_banded(ab: np.ndarray, z: np.ndarray) -> float:

@@ -19,6 +19,15 @@ class ObservabilityError(AdjustmentError):
     """The boresight (or a combination of angles) is not determined by the passes and targets."""
 
 
+class SingularError(ObservabilityError):
+    """The normal equations are singular; ``unknowns`` names those of their null direction,
+    largest share first (e.g. ``cyl_008.d``: a feature whose own parameters the data leave free)."""
+
+    def __init__(self, message: str, unknowns: tuple[str, ...] = ()):
+        super().__init__(message)
+        self.unknowns = tuple(unknowns)
+
+
 #: Which reciprocal/crossing pass pairs (headings relative to the wall, degrees) observe which
 #: boresight angle on a vertical target (thesis §4.4.1.1).
 OBSERVING_PAIRS = {

@@ -39,7 +39,7 @@ import numpy as np
 
 from calib.boresight.adjust import AdjustmentResult, adjust
 from calib.boresight.errormodel import ErrorModel
-from calib.boresight.observability import ObservabilityError
+from calib.boresight.observability import ObservabilityError, SingularError
 from calib.boresight.observations import AdjustmentError, AdjustOptions, Observations, build_observations
 from calib.boresight.scene_ties import TieCandidates, boresight_information, choose, tie_candidates
 from calib.core import frames
@@ -63,6 +63,8 @@ from calib.watch.patchtests import (
 )
 
 MOVED_ROUNDS = 2
+#: features dropped as not determined by their own points before the block gives up
+MAX_UNDETERMINED = 10
 #: the selection's starting information: a (1°)⁻² prior per angle (a ranking device only)
 SELECTION_PRIOR_RAD = np.radians(1.0)
 
@@ -140,6 +142,7 @@ class BlockEstimate:
     n_candidates: int = 0
     patches: tuple[PatchUse, ...] = ()
     moved_patches: tuple[str, ...] = ()  # dropped as moving between lines
+    undetermined_features: tuple[str, ...] = ()  # dropped: their own parameters left free
     runtime_s: float = 0.0
     #: the group test (:func:`group_test`): χ² of the patch groups' estimates about the block's
     #: and its degrees of freedom (nan / 0: not run)
@@ -150,6 +153,9 @@ class BlockEstimate:
     link_df: int = 0
     #: the angles held at the calibrated value (not resolved to ``max_sigma_rad`` there)
     held: tuple[bool, ...] = (False, False, False)
+    #: the adjustment behind the estimate, when asked for (``keep_result``; per-point arrays: the
+    #: watch, which keeps its blocks, does not), not in :meth:`as_dict`
+    result: AdjustmentResult | None = field(default=None, repr=False, compare=False)
 
     @property
     def ok(self) -> bool:
@@ -187,6 +193,7 @@ class BlockEstimate:
                 for p in self.patches
             ],
             "moved_patches": list(self.moved_patches),
+            "undetermined_features": list(self.undetermined_features),
             "group_chi2": None if not np.isfinite(self.group_chi2) else float(self.group_chi2),
             "group_df": self.group_df,
             "link_chi2": None if not np.isfinite(self.link_chi2) else float(self.link_chi2),
@@ -337,6 +344,7 @@ class _Fit:
     sub: Observations  # their observations, the planes renumbered in ``order``
     res: AdjustmentResult
     moved: tuple[str, ...]  # the patches dropped as moving
+    undetermined: tuple[str, ...] = ()  # the features dropped as not determined by their points
 
 
 _NOT_SOLVED = (ObservabilityError, AdjustmentError, np.linalg.LinAlgError)
@@ -347,23 +355,45 @@ def _fit_without_moved(
 ) -> _Fit | _Stop:
     """Solve on the chosen patches; drop those with a line whose mean residual stands out
     (:func:`~calib.watch.patchtests.moved_planes`) and solve again, at most
-    :data:`MOVED_ROUNDS` times."""
+    :data:`MOVED_ROUNDS` times. A feature whose own parameters the data leave free (a pile seen
+    on too narrow an arc: the normal equations singular along it) is dropped and the rest solved,
+    at most :data:`MAX_UNDETERMINED` of them."""
     moved: list[str] = []
-    for _ in range(MOVED_ROUNDS + 1):
+    undetermined: list[str] = []
+    rounds = 0
+    while True:
         order = sorted(chosen)
         sub = planes_subset(obs, order, names)
         try:
             res = adjust(sub, mount, [planes[j] for j in order], adj)
+        except SingularError as e:
+            free = _free_feature(e, [names[j] for j in order])
+            if free is None or len(undetermined) == MAX_UNDETERMINED or len(chosen) == 1:
+                return _Stop(f"not observable ({e})", {"n_candidates": len(names)})
+            undetermined.append(free)
+            chosen = [j for j in chosen if names[j] != free]
+            continue
         except _NOT_SOLVED as e:
             return _Stop(f"not observable ({e})", {"n_candidates": len(names)})
         bad = moved_planes(sub, res)
-        if not bad.size:
+        if not bad.size or rounds == MOVED_ROUNDS:
             break
+        rounds += 1
         moved += [sub.plane_names[j] for j in bad]
         chosen = [j for j in chosen if names[j] not in moved]
         if not chosen:
             return _Stop("every tie patch moved", {"moved_patches": tuple(moved)})
-    return _Fit(order=order, sub=sub, res=res, moved=tuple(moved))
+    return _Fit(order=order, sub=sub, res=res, moved=tuple(moved), undetermined=tuple(undetermined))
+
+
+def _free_feature(e: SingularError, features: list[str]) -> str | None:
+    """The feature a singular system leaves free: the first of its null direction's unknowns
+    that is a feature's own (``NAME.d``, ``NAME.normal_t1``, …)."""
+    for unknown in e.unknowns:
+        name = unknown.rsplit(".", 1)[0]
+        if "." in unknown and name in features:
+            return name
+    return None
 
 
 @dataclass(frozen=True)
@@ -384,6 +414,8 @@ def _judged(
     plane_init = [planes[j] for j in fit.order]
     try:
         sigma_cal_rad = sigma_at_calibrated(fit.sub, mount, plane_init, adj)
+    except SingularError as e:  # a feature determined at the solution but free at the calibrated mount
+        return _Stop(f"not observable ({e})", {"free_feature": _free_feature(e, fit.sub.plane_names)})
     except _NOT_SOLVED as e:
         return _Stop(f"not observable ({e})")
     held = sigma_cal_rad > options.max_sigma_rad
@@ -400,6 +432,8 @@ def _judged(
     )
     try:
         res = adjust(fit.sub, mount, plane_init, pinned) if held.any() else fit.res
+    except SingularError as e:
+        return _Stop(f"not observable ({e})", {"free_feature": _free_feature(e, fit.sub.plane_names)})
     except _NOT_SOLVED as e:
         return _Stop(f"not observable ({e})")
     test = group_test(
@@ -416,6 +450,25 @@ def _judged(
             },
         )
     return _Judged(res=res, held=held, sigma_cal_rad=sigma_cal_rad, test=test)
+
+
+def _fit_and_judge(obs, mount, planes, chosen, cands, adj, options) -> tuple[_Fit, _Judged] | _Stop:
+    """:func:`_fit_without_moved` and :func:`_judged`; a feature the judgement at the calibrated
+    mount finds free is dropped and the block solved again (at most :data:`MAX_UNDETERMINED`)."""
+    dropped: list[str] = []
+    while True:
+        fit = _fit_without_moved(obs, mount, planes, chosen, cands.names, adj)
+        if isinstance(fit, _Stop):
+            return fit
+        fit = replace(fit, undetermined=(*dropped, *fit.undetermined))
+        judged = _judged(fit, mount, cands.centers_m[fit.order], planes, adj, options)
+        if not isinstance(judged, _Stop):
+            return fit, judged
+        free = judged.extra.pop("free_feature", None)
+        if free is None or len(fit.undetermined) >= MAX_UNDETERMINED:
+            return _Stop(judged.status, {"moved_patches": fit.moved, **judged.extra})
+        dropped = [*fit.undetermined, free]
+        chosen = [j for j in chosen if cands.names[j] not in dropped]
 
 
 def _patch_uses(fit: _Fit, res: AdjustmentResult, cands, info) -> tuple[PatchUse, ...]:
@@ -445,11 +498,12 @@ def estimate_block(
     model: ErrorModel,
     wall_azimuth_rad: float,
     options: WatchOptions = WatchOptions(),
+    keep_result: bool = False,
 ) -> BlockEstimate:
     """The boresight correction of one block (module docstring). ``points``: the block's lines
     (``pass_id`` = line id); ``trajectory``: the POS solution with its σ; ``mount``: the
     calibrated mount; ``sigmas``: :func:`site_sigmas`; ``model``: the POS error model (its
-    correlation times)."""
+    correlation times); ``keep_result``: the estimate keeps the adjustment behind it."""
     clock = time.perf_counter()
     pts = _thin(points, options)
     base = _block_span(points)
@@ -473,14 +527,10 @@ def estimate_block(
     if not chosen:
         return BlockEstimate(**base, status="no tie patch adds information", n_candidates=n_candidates)
     adj = _adjust_options(mount, model, options)
-    fit = _fit_without_moved(obs, mount, planes, chosen, cands.names, adj)
-    if isinstance(fit, _Stop):
-        return BlockEstimate(**base, status=fit.status, **fit.extra)
-    judged = _judged(fit, mount, cands.centers_m[fit.order], planes, adj, options)
-    if isinstance(judged, _Stop):
-        return BlockEstimate(
-            **base, status=judged.status, n_candidates=n_candidates, moved_patches=fit.moved, **judged.extra
-        )
+    solved = _fit_and_judge(obs, mount, planes, chosen, cands, adj, options)
+    if isinstance(solved, _Stop):
+        return BlockEstimate(**base, status=solved.status, n_candidates=n_candidates, **solved.extra)
+    fit, judged = solved
     delta, cov = pinned_correction(judged.res, mount, judged.held, judged.sigma_cal_rad, judged.test.factor)
     return BlockEstimate(
         **base,
@@ -492,10 +542,12 @@ def estimate_block(
         n_candidates=n_candidates,
         patches=_patch_uses(fit, judged.res, cands, info),
         moved_patches=fit.moved,
+        undetermined_features=fit.undetermined,
         runtime_s=time.perf_counter() - clock,
         group_chi2=judged.test.chi2,
         group_df=judged.test.df,
         link_chi2=judged.test.link_chi2,
         link_df=judged.test.link_df,
         held=tuple(bool(h) for h in judged.held),
+        result=judged.res if keep_result else None,
     )

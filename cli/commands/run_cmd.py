@@ -16,6 +16,7 @@ if TYPE_CHECKING:
     from rich.progress import ProgressColumn
 
     from calib.boresight.pipeline import CalibrationOptions, CalibrationRun
+    from calib.watch.targetless import TargetlessRun
 
 RUN_HELP = (
     "Calibrate the boresight from a calibration bundle (or a recorded session).\n\n"
@@ -35,6 +36,10 @@ RUN_HELP = (
     "and scene disagreeing, τ-sensitivity, jackknife, a poorly observed angle); refused (no "
     "convergence, σ̂0² > 2, a gross error that could not be removed). A refused result exits with "
     "status 4 and is not recorded in the history unless --accept-refused.\n\n"
+    "Without targets (site.yaml lists none, or --targetless) the boresight comes from the scene "
+    "alone: tie patches and piles seen from lines of different headings and offsets, the mount "
+    "watch's estimator over the whole survey from the a-priori mount, repeated until it settles; "
+    "the report compares it with the last calibration with targets in the history.\n\n"
     "Example: mls sim dataset --scenario montreal --out sim-mtl && mls calib run sim-mtl "
     "--mount lidar-2024"
 )
@@ -280,6 +285,15 @@ def run(
     no_plots: Annotated[
         bool, typer.Option("--no-plots", help="Write result.json and report.md only (faster).")
     ] = False,
+    targetless: Annotated[
+        bool,
+        typer.Option(
+            "--targetless",
+            help="Calibrate from the scene alone (tie patches and piles seen from lines of different "
+            "headings and offsets), not from targets; what happens when site.yaml lists no targets. "
+            "Compared in the report with the last calibration with targets in the history.",
+        ),
+    ] = False,
     accept_refused: Annotated[
         bool,
         typer.Option(
@@ -322,9 +336,14 @@ def run(
     columns = (TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn())
     if _is_session(bundle):
         bundle = _export(bundle, out_dir / "bundle", console, columns)
-    cal = _calibrate(
-        bundle, out_dir, options, console, columns, plots=not no_plots, skip_uncovered=skip_uncovered
-    )
+    cal: CalibrationRun | TargetlessRun
+    if targetless or not _site_targets(bundle):
+        history = None if no_history else (vessel, mount, db)
+        cal = _calibrate_targetless(bundle, out_dir, options, console, columns, skip_uncovered, history)
+    else:
+        cal = _calibrate(
+            bundle, out_dir, options, console, columns, plots=not no_plots, skip_uncovered=skip_uncovered
+        )
     _judge(cal, out_dir, console, accept_refused)
     if not no_history:
         _record(cal, bundle, out_dir, console, vessel, mount, db)
@@ -412,7 +431,64 @@ def _calibrate(
     return cal
 
 
-def _judge(cal: CalibrationRun, out_dir: Path, console: Console, accept_refused: bool) -> None:
+def _site_targets(bundle: Path) -> bool:
+    """Whether the bundle's site.yaml lists targets (an unreadable one: the calibration says why)."""
+    from calib.core.errors import MlsError
+    from calib.io.site import load_site
+
+    try:
+        return bool(load_site(bundle / "site.yaml").targets)
+    except (MlsError, OSError):
+        return True
+
+
+def _calibrate_targetless(
+    bundle: Path,
+    out_dir: Path,
+    options: CalibrationOptions,
+    console: Console,
+    columns: tuple[ProgressColumn, ...],
+    skip_uncovered: bool,
+    history: tuple | None,
+) -> TargetlessRun:
+    """The targetless calibration of the bundle into ``out_dir``, compared with the last
+    calibration with targets of ``history`` (vessel, mount, db; None: not looked up)."""
+    from rich.markup import escape
+    from rich.progress import Progress
+
+    from calib.core.errors import MlsError
+    from calib.io.site import load_site
+    from calib.watch.targetless import last_target_calibration, targetless_bundle
+    from calib.watch.targetlessreport import compare_with, sigma_text, write_targetless
+
+    console.print("targetless: no target used, the boresight from the scene's tie patches and piles")
+    try:
+        with Progress(*columns, console=console, transient=True) as progress:
+            run = targetless_bundle(
+                bundle,
+                apriori_rad=options.apriori_rad,
+                progress=_progress_callback(progress),
+                skip_uncovered=skip_uncovered,
+            )
+        previous = None
+        if history is not None:
+            vessel, mount, db = history
+            previous = last_target_calibration(vessel or load_site(bundle / "site.yaml").vessel, mount, db)
+        comparison = compare_with(run, previous)
+        write_targetless(run, out_dir, comparison)
+    except (MlsError, OSError) as e:
+        _fail(str(e))
+    console.print(escape(sigma_text(run)), highlight=False)
+    if comparison is not None:
+        console.print(f"against {comparison['with']}: {escape(comparison['message'])}", highlight=False)
+    _warn(run.warnings)
+    console.print(f"wrote result.json and report.md to {out_dir}", highlight=False)
+    return run
+
+
+def _judge(
+    cal: CalibrationRun | TargetlessRun, out_dir: Path, console: Console, accept_refused: bool
+) -> None:
     """Say the verdict; a refused result ends the command (its own exit status) unless
     ``--accept-refused``."""
     from calib.boresight.checks.verdict import REFUSED_EXIT_STATUS
@@ -428,7 +504,7 @@ def _judge(cal: CalibrationRun, out_dir: Path, console: Console, accept_refused:
 
 
 def _record(
-    cal: CalibrationRun,
+    cal: CalibrationRun | TargetlessRun,
     bundle: Path,
     out_dir: Path,
     console: Console,
