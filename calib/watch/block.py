@@ -369,12 +369,12 @@ def _fit_without_moved(
         except SingularError as e:
             free = _free_feature(e, [names[j] for j in order])
             if free is None or len(undetermined) == MAX_UNDETERMINED or len(chosen) == 1:
-                return _Stop(f"not observable ({e})", {"n_candidates": len(names)})
+                return _Stop(f"not observable ({e})")
             undetermined.append(free)
             chosen = [j for j in chosen if names[j] != free]
             continue
         except _NOT_SOLVED as e:
-            return _Stop(f"not observable ({e})", {"n_candidates": len(names)})
+            return _Stop(f"not observable ({e})")
         bad = moved_planes(sub, res)
         if not bad.size or rounds == MOVED_ROUNDS:
             break
