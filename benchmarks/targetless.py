@@ -84,7 +84,7 @@ def summarize(rows: list[dict]) -> None:
         goal = "ok" if 0.92 <= cover <= 0.98 or (cover > 0.98 and rms <= mean_s) else "MISSED"
         print(
             f"  {a:<5} RMS {1e3 * np.degrees(rms):6.1f} mdeg  mean σ {1e3 * np.degrees(mean_s):6.1f} mdeg  "
-            f"RMS/σ {rms / mean_s:4.2f}  2σ coverage {100 * cover:3.0f} % [{goal}]  held {int((~free).sum())}"
+            f"RMS/σ {rms / mean_s:4.2f}  2σ coverage {100 * cover:5.1f} % [{goal}]  held {int((~free).sum())}"
         )
     verdicts = {v: sum(r["verdict"] == v for r in good) for v in ("trusted", "questionable", "refused")}
     print(f"  verdicts {verdicts}; rounds {np.mean([r['rounds'] for r in good]):.1f} (mean)")
