@@ -36,6 +36,7 @@ from acquire.guidance.lines import (
 from acquire.guidance.prechecks import Check
 from acquire.guidance.tracking import PassTracker
 from calib.core import frames
+from calib.core.geometry import Rectangle, VerticalCylinder
 from calib.core.georef import Mount
 from calib.design.passpredict import (
     ANGLES,
@@ -45,6 +46,7 @@ from calib.design.passpredict import (
     predict_pass,
     predict_sigma,
     rank_candidates,
+    scanned,
     weakest_angle,
 )
 from calib.io.site import Site
@@ -131,6 +133,9 @@ class Guidance(PassTracker):
         self.scanner = scanner
         self._centers = np.array([r.center_m for r in rects]).reshape(-1, 3)
         self.obs_model = ObservationModel.from_site(site, estimator)
+        #: the site's piles (site.yaml ``piles``): features of the prediction beside the targets
+        self.piles = tuple(p.cylinder(frame) for p in site.piles)
+        self._pile_returns: dict[int, PassGeometry] = {}
         self._lock = threading.Lock()
         self._candidates: dict[int, tuple[float, PassGeometry]] = {}  # id → (down, geometry)
         self.sigma: SigmaReport | None = None
@@ -185,19 +190,34 @@ class Guidance(PassTracker):
             scanner,
             self.frame,
             track_down_m=track_down_m,
+            piles=self.piles,
         )
         self._candidates[pid] = (track_down_m, g)
         return g
+
+    def _with_piles(self, g: PassGeometry) -> PassGeometry:
+        """An accepted pass with the returns its own trajectory puts on the site's piles (the
+        live hits are the targets': the piles' are predicted, as a candidate's), cached."""
+        if not self.piles or len(g) == 0:
+            return g
+        if g.pass_id not in self._pile_returns:
+            scanner = replace(self.scanner, point_rate_scale=self.scanner.point_rate_scale / self.thin_step)
+            window = (float(g.t_gps_s[0]), float(g.t_gps_s[-1]))
+            on = scanned(
+                g.pass_id, g.relative_heading_rad, g.trajectory, (), self.piles, self.mount, scanner, window
+            )
+            self._pile_returns[g.pass_id] = on
+        return g.with_returns(self._pile_returns[g.pass_id], len(self.scene.rectangles))
 
     def refresh_prediction(self) -> SigmaReport:
         """Predicted σ of the accepted passes and of each remaining pass added to them
         (blocking; safe to run in a worker thread)."""
         with self._lock:
             order = [p.id for p in self.plan.passes]
-            accepted = [self._accepted[i] for i in order if i in self._accepted]
+            accepted = [self._with_piles(self._accepted[i]) for i in order if i in self._accepted]
             remaining = [i for i in order if i not in self._accepted]
             down = self._track_down_m()
-            rects = self.scene.rectangles
+            rects: list[Rectangle | VerticalCylinder] = [*self.scene.rectangles, *self.piles]
             current = predict_sigma(accepted, rects, self.mount, self.obs_model, thin_step=self.thin_step)
             cands = {i: self._candidate(i, down) for i in remaining}
             ranking = rank_candidates(

@@ -44,7 +44,7 @@ from calib.boresight.covariance import PREDICTION_ESTIMATORS, predict_covariance
 from calib.boresight.errormodel import DEFAULT_POS_CORRELATION_S, ErrorModel
 from calib.boresight.observations import AdjustmentError, Observations, build_observations
 from calib.core import frames
-from calib.core.geometry import Rectangle
+from calib.core.geometry import Rectangle, VerticalCylinder
 from calib.core.georef import Mount
 from calib.core.trajectory import Trajectory
 from calib.io.site import Site
@@ -108,6 +108,20 @@ class PassGeometry:
 
     def counts(self, n_targets: int) -> np.ndarray:
         return np.bincount(self.target_index, minlength=n_targets)
+
+    def with_returns(self, other: PassGeometry, index_offset: int = 0) -> PassGeometry:
+        """This pass with ``other``'s returns added (their feature indices + ``index_offset``),
+        in time order."""
+        t = np.concatenate([self.t_gps_s, other.t_gps_s])
+        order = np.argsort(t, kind="stable")
+        cat = lambda a, b: np.concatenate([a, b])[order]  # noqa: E731
+        return replace(
+            self,
+            t_gps_s=t[order],
+            range_m=cat(self.range_m, other.range_m),
+            scan_angle_rad=cat(self.scan_angle_rad, other.scan_angle_rad),
+            target_index=cat(self.target_index, other.target_index + index_offset),
+        )
 
 
 @dataclass(frozen=True)
@@ -245,25 +259,46 @@ def predict_pass(
     *,
     t_start_gps_s: float = 0.0,
     track_down_m: float | None = None,
+    piles: Sequence[VerticalCylinder] = (),
 ) -> PassGeometry:
-    """The noise-free target returns of the planned line ``pp`` (capture window only), with the
-    scanner mounted as ``mount`` (the a-priori mount: what the survey will see)."""
+    """The noise-free target (and pile) returns of the planned line ``pp`` (capture window
+    only), with the scanner mounted as ``mount`` (the a-priori mount: what the survey will see);
+    a pile's returns are indexed after the targets' (``len(targets) + k``)."""
     down = float(pp.start_lgf_m[2]) if track_down_m is None else float(track_down_m)
     traj = line_trajectory(pp, frame, t_start_gps_s, down)
     cw0, cw1 = pp.capture_window_s
     guard = abs(mount.time_offset_s) + 1e-3
     t0 = t_start_gps_s + max(cw0, guard)
     t1 = t_start_gps_s + min(cw1, pp.duration_s - guard)
-    scene = Scene(tuple(targets), ("target",) * len(targets))
-    ret = scan(scanner, scene, traj, mount, t0, t1)
+    return scanned(pp.id, pp.relative_heading_rad, traj, targets, piles, mount, scanner, (t0, t1))
+
+
+def scanned(
+    pass_id: int,
+    relative_heading_rad: float,
+    traj: Trajectory,
+    targets: Sequence[Rectangle],
+    piles: Sequence[VerticalCylinder],
+    mount: Mount,
+    scanner: ScannerModel,
+    window_gps_s: tuple[float, float],
+) -> PassGeometry:
+    """The noise-free returns on the targets and piles of a pass sailed along ``traj`` within
+    ``window_gps_s``; a pile's as the calibration keeps them (within
+    :data:`~calib.boresight.scene_ties.MIN_COS_INCIDENCE_CYLINDER` of head-on)."""
+    from calib.boresight.scene_ties import MIN_COS_INCIDENCE_CYLINDER
+
+    kinds = ("target",) * len(targets) + ("other",) * len(piles)
+    ret = scan(scanner, Scene(tuple(targets), kinds, (), tuple(piles)), traj, mount, *window_gps_s)
+    keep = (ret.surface < len(targets)) | (ret.cos_incidence >= MIN_COS_INCIDENCE_CYLINDER)
     return PassGeometry(
-        pp.id,
-        pp.relative_heading_rad,
+        pass_id,
+        relative_heading_rad,
         traj,
-        ret.t_gps_s,
-        ret.range_true_m - mount.range_offset_m,
-        frames.wrap_2pi(ret.alpha_rad),
-        ret.surface.astype(np.int64),
+        ret.t_gps_s[keep],
+        ret.range_true_m[keep] - mount.range_offset_m,
+        frames.wrap_2pi(ret.alpha_rad[keep]),
+        ret.surface[keep].astype(np.int64),
     )
 
 
@@ -351,7 +386,7 @@ def joint_trajectory(trajectories: Sequence[Trajectory]) -> Trajectory | None:
 
 def predict_sigma(
     passes: Sequence[PassGeometry],
-    targets: Sequence[Rectangle],
+    targets: Sequence[Rectangle | VerticalCylinder],
     mount: Mount,
     model: ObservationModel,
     *,
@@ -359,7 +394,8 @@ def predict_sigma(
     limit_rad: float = DEFAULT_LIMIT_RAD,
 ) -> SigmaPrediction:
     """Boresight σ that ``passes`` would give (points thinned by ``thin_step``, corrected to the
-    full density as the module docstring says)."""
+    full density as the module docstring says); ``targets``: the features their returns index,
+    planar targets and piles."""
     ids = tuple(sorted({p.pass_id for p in passes}))
     n = sum(len(p) for p in passes)
     names = [t.name for t in targets]
@@ -369,7 +405,7 @@ def predict_sigma(
     obs, used = build_pass_observations(with_points, names, model)
     if len(used) < 2:
         return _unknown(ids, n, limit_rad, "points on fewer than two targets")
-    planes = [(targets[j].normal, targets[j].d) for j in used]
+    planes = [_feature(targets[j]) for j in used]
     k = max(int(thin_step), 1)
     try:
         with np.errstate(all="ignore"):
@@ -401,10 +437,15 @@ def predict_sigma(
     return SigmaPrediction(ids, sf, sr, cov["correlation"], n, limit_rad)
 
 
+def _feature(f: Rectangle | VerticalCylinder):
+    """A feature as the adjustment takes it: a plane's (normal, d), a cylinder itself."""
+    return f if isinstance(f, VerticalCylinder) else (f.normal, f.d)
+
+
 def rank_candidates(
     accepted: Sequence[PassGeometry],
     candidates: Mapping[int, PassGeometry],
-    targets: Sequence[Rectangle],
+    targets: Sequence[Rectangle | VerticalCylinder],
     mount: Mount,
     model: ObservationModel,
     *,

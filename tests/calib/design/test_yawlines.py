@@ -4,6 +4,7 @@ predicted as the GLS σ (the Cramér–Rao bound of the model) from one noise-fr
 from __future__ import annotations
 
 import csv
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -13,13 +14,21 @@ from calib.boresight.covariance import predict_covariance
 from calib.boresight.errormodel import ErrorModel
 from calib.boresight.oracle import MAX_POINTS, dense_gls
 from calib.design.layouts import default_spec
+from calib.design.passpredict import (
+    ObservationModel,
+    predict_pass,
+    predict_sigma,
+    rank_candidates,
+    weakest_angle,
+)
 from calib.design.prediction import DesignError, Sigmas, feature_observations, select_passes
 from calib.design.study import run_study
 from calib.design.whatif import site_as_scenario, what_if
 from calib.design.yawlines import best_for_yaw, predict_yaw_lines, yaw_lines_markdown, yaw_scenario
-from calib.io.site import load_site
+from calib.io.site import PassSpec, load_site
 from calib.sim.scenariofile import load_scenario
 from calib.sim.simulate import simulate
+from calib.survey.passplan import plan_site
 from cli.app import app
 
 
@@ -142,3 +151,47 @@ def test_a_site_configs_piles_give_the_what_if_its_lines_for_yaw(piles, rows, tm
     )
     no_piles = what_if(load_scenario("montreal").site(), "montreal")
     assert no_piles.yaw_lines == [] and "no piles" in no_piles.yaw_lines_note
+
+
+def test_the_live_prediction_counts_the_sites_piles_and_names_the_far_line_for_yaw(piles):
+    """The guidance's σ prediction (calib.design.passpredict) with the piles of site.yaml: they
+    sharpen yaw, and once the six-fold is sailed the line that helps the weakest angle (yaw) most
+    is the far one, not another line at the standoff."""
+    extra = (
+        PassSpec(7, 0.0, 60.0, 2.0, 75.0),
+        PassSpec(8, np.pi, 60.0, 2.0, 75.0),
+        PassSpec(9, 0.0, 60.0, 2.0),
+    )
+    site = replace(piles.site(), passes=piles.site().passes + extra)
+    frame = site.reference
+    plan = plan_site(site, track_down_m=1.65, capture_margin_m=6.0)
+    rects = site.target_rectangles(frame)
+    cyls = [p.cylinder(frame) for p in site.piles]
+    model = ObservationModel.from_site(site)
+    geo = {
+        pp.id: predict_pass(
+            pp, rects, site.mount, piles.scanner, frame, t_start_gps_s=200.0 * pp.order, piles=cyls
+        )
+        for pp in plan.passes
+    }
+    sailed = [geo[i] for i in range(1, 7)]
+    assert any(np.any(g.target_index >= len(rects)) for g in sailed)  # the piles' returns
+    targets_only = [replace(g, **_only_targets(g, len(rects))) for g in sailed]
+    with_piles = predict_sigma(sailed, [*rects, *cyls], site.mount, model)
+    without = predict_sigma(targets_only, rects, site.mount, model)
+    assert with_piles.observable.all() and without.observable.all()
+    assert with_piles.realistic_rad[2] < 0.85 * without.realistic_rad[2]
+    assert np.all(with_piles.realistic_rad <= without.realistic_rad * (1 + 1e-9))
+    ranking = rank_candidates(sailed, {i: geo[i] for i in (7, 8, 9)}, [*rects, *cyls], site.mount, model)
+    weak = weakest_angle(with_piles, ranking)
+    assert weak["angle"] == "yaw" and weak["best_pass"] in (7, 8), (weak, ranking)
+
+
+def _only_targets(g, n_targets: int) -> dict:
+    keep = g.target_index < n_targets
+    return {
+        "t_gps_s": g.t_gps_s[keep],
+        "range_m": g.range_m[keep],
+        "scan_angle_rad": g.scan_angle_rad[keep],
+        "target_index": g.target_index[keep],
+    }
