@@ -16,6 +16,7 @@ from typer.testing import CliRunner
 
 from calib.assess.history import record_result, validate_result
 from calib.sim.production import ProductionSpec, simulate_production
+from calib.sim.simulate import simulate
 from calib.watch.targetless import TARGETLESS_OPTIONS, TargetlessError, calibrate_targetless
 from cli.app import app
 
@@ -116,3 +117,18 @@ def test_mls_calib_run_without_targets_says_so_and_compares_with_the_last_target
     assert doc["comparison_with_targets"]["n_sigma"]["roll"] > 3  # 0.05° apart: the history's entry differs
     report = (out / "report.md").read_text()
     assert "**No target**" in report and "Against the last calibration with targets (#1" in report
+
+
+def test_a_calibration_bundle_gives_a_boresight_without_its_targets():
+    """montreal_piles's six passes with their targets ignored (the site's a-priori mount is 1.2°
+    off in pitch): the wall, the targets' planes and the piles as tie features give every angle
+    within 4σ of the truth, σ a few mdeg in roll and pitch."""
+    sim = simulate("montreal_piles", 1)
+    run = calibrate_targetless(sim.site, sim.trajectory_observed, sim.points)
+    truth = np.asarray(sim.mount_true.boresight_rad)
+    assert np.degrees(np.max(np.abs(np.asarray(sim.site.mount.boresight_rad) - truth))) > 1.0
+    err = angles_rad(run.doc, "boresight_deg") - truth
+    sigma = angles_rad(run.doc, "sigma_realistic_deg")
+    assert np.all(np.abs(err) < 4 * sigma), (np.degrees(err), np.degrees(sigma))
+    assert np.all(np.degrees(sigma[:2]) < 0.012) and not any(run.doc["held_deg"].values())
+    assert any(f["name"].startswith("cyl_") for f in run.doc["tie_features"])
