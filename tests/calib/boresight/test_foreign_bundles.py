@@ -69,3 +69,20 @@ def test_at_most_two_of_six_are_refused_and_wrong_clusters_are_rejected(runs):
     assert {("T1", 4), ("T1", 6)} <= rejected
     # a target lost in two passes or more is a reason, never silence
     assert docs[2]["verdict"] != "trusted" and any("T1 lost in" in r for r in docs[2]["verdict_reasons"])
+
+
+@pytest.mark.parametrize("n", [2, 3, 6])
+def test_a_foreign_bundle_without_its_targets_is_within_three_sigma(tmp_path, n):
+    """The targetless calibration (calib.watch.targetless) on the independent simulator's tilted
+    mounts (pitch −20°), the targets ignored: the wall's patches (the targets' planes among them)
+    from the site's a-priori mount give every angle within 3σ of the truth, trusted."""
+    from calib.watch.targetless import targetless_bundle
+
+    bundle = unpack(n, tmp_path)
+    run = targetless_bundle(bundle)
+    truth = read_truth(bundle)["boresight_deg"]
+    err = np.array([run.doc["boresight_deg"][a] - truth[a] for a in ANGLES])
+    sigma = np.array([run.doc["sigma_realistic_deg"][a] for a in ANGLES])
+    assert run.doc["mode"] == "targetless" and run.verdict.status == "trusted", run.verdict.reasons
+    assert np.all(np.abs(err) <= 3.0 * sigma), (n, err, sigma)
+    assert np.all(sigma < 0.05)
