@@ -17,7 +17,7 @@ from typer.testing import CliRunner
 from calib.assess.history import record_result, validate_result
 from calib.sim.production import ProductionSpec, simulate_production
 from calib.sim.simulate import simulate
-from calib.watch.targetless import TARGETLESS_OPTIONS, TargetlessError, calibrate_targetless
+from calib.watch.targetless import SETTLED_SIGMA, TARGETLESS_OPTIONS, TargetlessError, calibrate_targetless
 from cli.app import app
 
 ANGLES = ("roll", "pitch", "yaw")
@@ -58,7 +58,7 @@ def test_the_rounds_settle_on_the_truth_within_the_reported_sigma(two_offsets, f
     assert np.all(np.degrees(sigma[:2]) < 0.015) and np.degrees(sigma[2]) < 0.1
     rounds = doc["rounds"]
     assert 2 <= len(rounds) <= 4 and rounds[0]["largest_step_sigma"] > 10
-    assert rounds[-1]["largest_step_sigma"] <= 0.5  # settled
+    assert rounds[-1]["largest_step_sigma"] <= SETTLED_SIGMA  # settled
     assert any(f["name"].startswith("cyl_") for f in doc["tie_features"])  # the piles carried it
     assert full.verdict.status in ("trusted", "questionable") and validate_result(doc)
     assert "targetless" in " ".join(full.verdict.notes)
