@@ -250,7 +250,7 @@ class ChecklistApp(App):
         sig.update(
             Text("calibrating…", "bold yellow")
             if self._calibrating
-            else render_sigma(st, sig.size.width or 38)
+            else render_sigma(st, sig.size.width or 38, sig.size.height or 3)
         )
         live = self.query_one("#live", Static)
         live.update(render_live(st, live.size.width or 38, live.size.height or LIVE_ROWS))

@@ -301,7 +301,9 @@ def _sigma_line(d: dict | None) -> str:
     return " ".join(parts)
 
 
-def render_sigma(st: ChecklistState, width: int = 38) -> Text:
+def render_sigma(st: ChecklistState, width: int = 38, rows: int = 3) -> Text:
+    """The predicted σ, the next best pass and, when ``rows`` leave room for a third line, the
+    weakest angle with the pass that helps it most."""
     sig = st.checklist.get("sigma")
     if not sig:
         return Text("σ after the first accepted pass", "dim")
@@ -328,7 +330,7 @@ def render_sigma(st: ChecklistState, width: int = 38) -> Text:
         )
     elif st.checklist.get("calibration_ready"):
         second = Text("ready: press c to calibrate", "bold green")
-    weak = _weakest_line(sig.get("weakest"), width)
+    weak = _weakest_line(sig.get("weakest"), width) if rows >= 3 else Text()
     return _lines([first, second, weak] if weak.plain else [first, second])
 
 

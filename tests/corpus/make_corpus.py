@@ -132,7 +132,8 @@ def _site_empty_value(case: Path) -> None:
 
 @defect("site-no-targets")
 def _site_no_targets(case: Path) -> None:
-    """``targets: []``: nothing to calibrate on (georeferencing needs no target)."""
+    """``targets: []``: a targetless calibration (architecture §7.9), which this small bundle's few
+    tie patches cannot carry: refused, yaw not determined (georeferencing needs no target)."""
     site = valid_bundle(case) / "site.yaml"
     text = site.read_text()
     start, end = text.index("targets:\n"), text.index("passes:\n")

@@ -349,6 +349,7 @@ def test_the_weakest_angle_and_the_pass_that_helps_it_are_shown():
     sigma = {"current": {"passes": [1, 2], "realistic_deg": {"roll": 0.01, "pitch": 0.02, "yaw": 0.0312}}}
     st.apply("checklist", {"guidance": {"sigma": {**sigma, "weakest": weakest}}})
     assert render_sigma(st, width=60).plain.splitlines()[-1] == "weakest yaw 0.031°: pass 7 → 0.015°"
+    assert "weakest" not in render_sigma(st, width=60, rows=2).plain  # a panel of two rows: not cut, left out
     st.apply("checklist", {"guidance": {"sigma": {**sigma, "weakest": {**weakest, "best_pass": None}}}})
     assert "weakest" not in render_sigma(st, width=60).plain  # nothing left to sail
 
