@@ -7,7 +7,9 @@ uniformly within ±``--apriori-deg`` of the truth on each angle, then
 :func:`calib.watch.targetless.calibrate_targetless` (what ``mls calib run BUNDLE`` does when
 site.yaml lists no target). Figures per angle over the seeds: RMS error, mean reported σ,
 RMS / mean σ (≈ 1 when the σ is honest), coverage at 2σ (goal 92–98 %; the issue's honesty
-rule), how often an angle was held (not determined), the verdicts; and the CPU per survey hour
+rule), the Cramér–Rao bound of the features each run used (result.json's
+``crlb_by_features_deg``: planar patches alone, then with the piles; RMS / CRLB, goal ≤ 1.2),
+how often an angle was held (not determined), the verdicts; and the CPU per survey hour
 against the issue's ceiling of 5 minutes for a 1-h survey (one core).
 
     .venv/bin/python benchmarks/targetless.py [--seeds 10] [--lines 6] [--quick]
@@ -57,6 +59,8 @@ def one_seed(seed: int, args) -> dict:
         "ok": True,
         "err": est - truth,
         "sigma": np.radians([doc["sigma_realistic_deg"][a] for a in ANGLES]),
+        "crlb": np.radians(list(doc["crlb_by_features_deg"].values())[-1]),
+        "crlb_planar": np.radians(doc["crlb_by_features_deg"].get("planar patches", [np.nan] * 3)),
         "held": np.array([doc["held_deg"][a] for a in ANGLES]),
         "verdict": run.verdict.status,
         "rounds": len(run.rounds),
@@ -72,7 +76,9 @@ def summarize(rows: list[dict]) -> None:
     )
     if not good:
         return
-    err, sig, held = (np.array([r[k] for r in good]) for k in ("err", "sigma", "held"))
+    err, sig, held, crlb, planar = (
+        np.array([r[k] for r in good]) for k in ("err", "sigma", "held", "crlb", "crlb_planar")
+    )
     for i, a in enumerate(ANGLES):
         free = ~held[:, i]
         if not free.any():
@@ -80,11 +86,18 @@ def summarize(rows: list[dict]) -> None:
             continue
         e, s = err[free, i], sig[free, i]
         rms, mean_s = float(np.sqrt(np.mean(e**2))), float(np.mean(s))
+        bound = float(np.sqrt(np.mean(crlb[free, i] ** 2)))
         cover = float(np.mean(np.abs(e) <= 2 * s))
         goal = "ok" if 0.92 <= cover <= 0.98 or (cover > 0.98 and rms <= mean_s) else "MISSED"
         print(
             f"  {a:<5} RMS {1e3 * np.degrees(rms):6.1f} mdeg  mean σ {1e3 * np.degrees(mean_s):6.1f} mdeg  "
             f"RMS/σ {rms / mean_s:4.2f}  2σ coverage {100 * cover:5.1f} % [{goal}]  held {int((~free).sum())}"
+        )
+        planar_bound = float(np.sqrt(np.nanmean(planar[free, i] ** 2)))
+        print(
+            f"        CRLB of the features used {1e3 * np.degrees(bound):6.1f} mdeg (planar patches alone "
+            f"{1e3 * np.degrees(planar_bound):6.1f}); RMS / CRLB {rms / bound:4.2f} "
+            f"[{'ok' if rms <= 1.2 * bound else 'MISSED'}: goal ≤ 1.2]"
         )
     verdicts = {v: sum(r["verdict"] == v for r in good) for v in ("trusted", "questionable", "refused")}
     print(f"  verdicts {verdicts}; rounds {np.mean([r['rounds'] for r in good]):.1f} (mean)")

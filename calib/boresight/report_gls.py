@@ -113,7 +113,7 @@ def estimator_section(run) -> list[str]:
             L.append(_row(f"{r['tau_s']:.1f}", r["boresight_deg"], r["sigma_deg"]))
         L.append("")
     L.extend(_patch_lines(run))
-    L.extend(_crlb_lines(run.doc))
+    L.extend(crlb_lines(run.doc))
     check = doc.get("tie_patch_check")
     if check is not None:
         L.append("")
@@ -127,7 +127,7 @@ def estimator_section(run) -> list[str]:
     return L
 
 
-def _crlb_lines(doc: dict) -> list[str]:
+def crlb_lines(doc: dict) -> list[str]:
     """What each kind of scene feature adds to each angle, against the Cramér–Rao bound."""
     rows = doc.get("crlb_by_features_deg")
     if not rows:

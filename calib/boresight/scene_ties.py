@@ -393,30 +393,31 @@ def tie_patches_from_points(
     )
 
 
-#: the feature sets whose Cramér–Rao σ :func:`crlb_by_features` compares, each adding to the last
-FEATURE_SETS = ("targets", "+ planar patches", "+ cylinders")
+#: the kinds of feature :func:`crlb_by_features` adds one at a time, in this order
+FEATURE_KINDS = ("targets", "planar patches", "cylinders")
 
 
 def crlb_by_features(
     obs: Observations, state: State, mount: Mount, options: AdjustOptions
 ) -> dict[str, list[float]]:
-    """The Cramér–Rao σ (deg) of roll, pitch and yaw at the solution ``state`` with the targets
-    alone, then with the planar tie patches, then with the cylinders too (each set present):
-    what each kind of feature adds, against the limit (the GLS information, equal to the dense
-    oracle's; flat features: the roughness variances are left out)."""
+    """The Cramér–Rao σ (deg) of roll, pitch and yaw at the solution ``state`` with the first
+    kind of feature present (:data:`FEATURE_KINDS`: the targets, or without targets the planar
+    tie patches), then with each further kind added (``"+ cylinders"``): what each kind adds,
+    against the limit (the GLS information, equal to the dense oracle's; flat features: the
+    roughness variances are left out)."""
     r_nom = frames.rotation_zyx(*mount.nominal_rad)
     is_tie = np.isin(np.arange(len(obs.plane_names)), obs.patch_planes)
     cylinder = state.is_cylinder
-    sets = (~is_tie, ~is_tie | ~cylinder, np.ones_like(is_tie))
+    kinds = (~is_tie & ~cylinder, is_tie & ~cylinder, cylinder)
     out: dict[str, list[float]] = {}
-    previous = None
-    for label, keep in zip(FEATURE_SETS, sets, strict=True):
-        if previous is not None and np.array_equal(keep, previous):
+    keep = np.zeros_like(is_tie)
+    for kind, members in zip(FEATURE_KINDS, kinds, strict=True):
+        if not members.any():
             continue
-        previous = keep
+        keep = keep | members
         sub_obs, sub_state = _features_subset(obs, state, keep)
         _, cov, _ = gls_information(sub_obs, sub_state, r_nom, options.estimate, options.error_model)
-        out[label] = [float(x) for x in np.degrees(np.sqrt(np.diag(cov)[:3]))]
+        out[f"+ {kind}" if out else kind] = [float(x) for x in np.degrees(np.sqrt(np.diag(cov)[:3]))]
     return out
 
 

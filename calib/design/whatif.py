@@ -31,45 +31,44 @@ from calib.sim.scenario import Pile, Scenario, Surface
 from calib.sim.scenariofile import load_scenario
 
 
-def _target_surfaces(site: Site, frame: frames.LocalFrame) -> tuple[Surface, ...]:
-    """The site's targets as scenario surfaces: along the wall, out from it (toward the water),
-    up, their sizes, inclinations and facings relative to the water."""
-    wall = site.wall_azimuth_rad
-    water = wall - np.pi / 2
+def _target_surfaces(site: Site, sc: Scenario) -> tuple[Surface, ...]:
+    """The site's targets as surfaces of ``sc`` (its frame and wall): their sizes, inclinations
+    and facings relative to the water."""
     surfaces = []
     for t in site.targets:
-        c = t.rectangle(frame).center_m
+        along, out, up = sc.lgf_to_site(t.rectangle(sc.reference).center_m)
+        facing = float(frames.wrap_pi(t.facing_azimuth_rad - sc.water_azimuth_rad))
         surfaces.append(
             Surface(
                 t.name,
                 "target",
-                float(c[0] * np.cos(wall) + c[1] * np.sin(wall)),
-                float(c[0] * np.cos(water) + c[1] * np.sin(water)),
-                float(-c[2]),
+                along,
+                out,
+                up,
                 t.width_m,
                 t.height_along_slope_m,
                 t.inclination_rad,
-                float(frames.wrap_pi(t.facing_azimuth_rad - water)),
+                facing,
                 t.reflectivity,
             )
         )
     return tuple(surfaces)
 
 
-def _site_piles(site: Site, frame: frames.LocalFrame) -> tuple[Pile, ...]:
-    """The site's piles as scenario piles (along the wall, out from it, their foot and top up)."""
-    wall = site.wall_azimuth_rad
-    water = wall - np.pi / 2
+def _site_piles(site: Site, sc: Scenario) -> tuple[Pile, ...]:
+    """The site's piles as piles of ``sc`` (its frame and wall)."""
     out = []
     for p in site.piles:
-        c = p.cylinder(frame)
+        c = p.cylinder(sc.reference)
+        along, off, up = sc.lgf_to_site(c.center_m)
+        half_m = 0.5 * c.height_m
         out.append(
             Pile(
                 name=p.name,
-                along_m=float(c.center_m[0] * np.cos(wall) + c.center_m[1] * np.sin(wall)),
-                out_m=float(c.center_m[0] * np.cos(water) + c.center_m[1] * np.sin(water)),
-                bottom_up_m=float(-c.center_m[2] - 0.5 * c.height_m),
-                top_up_m=float(-c.center_m[2] + 0.5 * c.height_m),
+                along_m=along,
+                out_m=off,
+                bottom_up_m=up - half_m,
+                top_up_m=up + half_m,
                 diameter_m=p.diameter_m,
             )
         )
@@ -105,18 +104,19 @@ def site_as_scenario(
         raise DesignError("the site config has no targets")
     ref = site.reference
     h = ref.height_m if scanner_height_m is None else float(scanner_height_m)
-    frame = frames.LocalFrame(ref.lat_deg, ref.lon_deg, h)
-    wall = site.wall_azimuth_rad
-    return replace(
+    placed = replace(
         tpl,
+        reference=frames.LocalFrame(ref.lat_deg, ref.lon_deg, h),
+        wall_azimuth_rad=float(site.wall_azimuth_rad),
+    )
+    return replace(
+        placed,
         name="site",
         description="site config what-if",
-        reference=frame,
-        wall_azimuth_rad=float(wall),
         standoff_m=float(site.standoff_m),
         passes=site.passes,
-        surfaces=_target_surfaces(site, frame),
-        piles=_site_piles(site, frame),
+        surfaces=_target_surfaces(site, placed),
+        piles=_site_piles(site, placed),
         mount=site.mount,
         truth=replace(
             tpl.truth,

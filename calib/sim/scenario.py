@@ -328,6 +328,13 @@ class Scenario:
             [along * np.cos(a) + out * np.cos(w), along * np.sin(a) + out * np.sin(w), -up]
         )
 
+    def lgf_to_site(self, p_lgf) -> tuple[float, float, float]:
+        """One LGF (NED) point → site frame (along the wall, out toward the water, up), metres:
+        the inverse of :meth:`site_to_lgf`."""
+        a, w = self.wall_azimuth_rad, self.water_azimuth_rad
+        n, e, d = (float(x) for x in p_lgf)
+        return n * np.cos(a) + e * np.sin(a), n * np.cos(w) + e * np.sin(w), -d
+
     def rectangle(self, s: Surface) -> Rectangle:
         c = self.site_to_lgf(s.along_m, s.out_m, s.up_m)[0]
         return Rectangle.from_orientation(

@@ -156,6 +156,9 @@ class BlockEstimate:
     #: the adjustment behind the estimate, when asked for (``keep_result``; per-point arrays: the
     #: watch, which keeps its blocks, does not), not in :meth:`as_dict`
     result: AdjustmentResult | None = field(default=None, repr=False, compare=False)
+    #: with ``result``: its observations and adjustment options
+    observations: Observations | None = field(default=None, repr=False, compare=False)
+    adjust_options: AdjustOptions | None = field(default=None, repr=False, compare=False)
 
     @property
     def ok(self) -> bool:
@@ -355,26 +358,16 @@ def _fit_without_moved(
 ) -> _Fit | _Stop:
     """Solve on the chosen patches; drop those with a line whose mean residual stands out
     (:func:`~calib.watch.patchtests.moved_planes`) and solve again, at most
-    :data:`MOVED_ROUNDS` times. A feature whose own parameters the data leave free (a pile seen
-    on too narrow an arc: the normal equations singular along it) is dropped and the rest solved,
-    at most :data:`MAX_UNDETERMINED` of them."""
+    :data:`MOVED_ROUNDS` times."""
     moved: list[str] = []
-    undetermined: list[str] = []
     rounds = 0
     while True:
         order = sorted(chosen)
         sub = planes_subset(obs, order, names)
         try:
             res = adjust(sub, mount, [planes[j] for j in order], adj)
-        except SingularError as e:
-            free = _free_feature(e, [names[j] for j in order])
-            if free is None or len(undetermined) == MAX_UNDETERMINED or len(chosen) == 1:
-                return _Stop(f"not observable ({e})")
-            undetermined.append(free)
-            chosen = [j for j in chosen if names[j] != free]
-            continue
         except _NOT_SOLVED as e:
-            return _Stop(f"not observable ({e})")
+            return _not_solved(e, sub.plane_names)
         bad = moved_planes(sub, res)
         if not bad.size or rounds == MOVED_ROUNDS:
             break
@@ -383,7 +376,14 @@ def _fit_without_moved(
         chosen = [j for j in chosen if names[j] not in moved]
         if not chosen:
             return _Stop("every tie patch moved", {"moved_patches": tuple(moved)})
-    return _Fit(order=order, sub=sub, res=res, moved=tuple(moved), undetermined=tuple(undetermined))
+    return _Fit(order=order, sub=sub, res=res, moved=tuple(moved))
+
+
+def _not_solved(e: Exception, features: list[str]) -> _Stop:
+    """A block the adjustment could not solve; a singular system names the feature it leaves
+    free (``free_feature``), for the caller to drop."""
+    extra = {"free_feature": _free_feature(e, features)} if isinstance(e, SingularError) else {}
+    return _Stop(f"not observable ({e})", extra)
 
 
 def _free_feature(e: SingularError, features: list[str]) -> str | None:
@@ -414,10 +414,8 @@ def _judged(
     plane_init = [planes[j] for j in fit.order]
     try:
         sigma_cal_rad = sigma_at_calibrated(fit.sub, mount, plane_init, adj)
-    except SingularError as e:  # a feature determined at the solution but free at the calibrated mount
-        return _Stop(f"not observable ({e})", {"free_feature": _free_feature(e, fit.sub.plane_names)})
-    except _NOT_SOLVED as e:
-        return _Stop(f"not observable ({e})")
+    except _NOT_SOLVED as e:  # e.g. a feature determined at the solution but free at the calibrated mount
+        return _not_solved(e, fit.sub.plane_names)
     held = sigma_cal_rad > options.max_sigma_rad
     if held.all():
         return _Stop(f"no verdict: {unresolved(sigma_cal_rad, options.max_sigma_rad)}")
@@ -432,10 +430,8 @@ def _judged(
     )
     try:
         res = adjust(fit.sub, mount, plane_init, pinned) if held.any() else fit.res
-    except SingularError as e:
-        return _Stop(f"not observable ({e})", {"free_feature": _free_feature(e, fit.sub.plane_names)})
     except _NOT_SOLVED as e:
-        return _Stop(f"not observable ({e})")
+        return _not_solved(e, fit.sub.plane_names)
     test = group_test(
         fit.sub, mount, plane_init, pinned, groups, ~held, res, options.group_alpha, options.max_group_factor
     )
@@ -453,22 +449,26 @@ def _judged(
 
 
 def _fit_and_judge(obs, mount, planes, chosen, cands, adj, options) -> tuple[_Fit, _Judged] | _Stop:
-    """:func:`_fit_without_moved` and :func:`_judged`; a feature the judgement at the calibrated
-    mount finds free is dropped and the block solved again (at most :data:`MAX_UNDETERMINED`)."""
+    """:func:`_fit_without_moved` and :func:`_judged`. A feature whose own parameters the data
+    leave free (a pile seen on too narrow an arc: the normal equations singular along it, at the
+    solution or at the calibrated mount) is dropped and the block solved again, at most
+    :data:`MAX_UNDETERMINED` of them."""
     dropped: list[str] = []
     while True:
         fit = _fit_without_moved(obs, mount, planes, chosen, cands.names, adj)
         if isinstance(fit, _Stop):
-            return fit
-        fit = replace(fit, undetermined=(*dropped, *fit.undetermined))
-        judged = _judged(fit, mount, cands.centers_m[fit.order], planes, adj, options)
-        if not isinstance(judged, _Stop):
-            return fit, judged
-        free = judged.extra.pop("free_feature", None)
-        if free is None or len(fit.undetermined) >= MAX_UNDETERMINED:
-            return _Stop(judged.status, {"moved_patches": fit.moved, **judged.extra})
-        dropped = [*fit.undetermined, free]
-        chosen = [j for j in chosen if cands.names[j] not in dropped]
+            stop = fit
+        else:
+            fit = replace(fit, undetermined=tuple(dropped))
+            judged = _judged(fit, mount, cands.centers_m[fit.order], planes, adj, options)
+            if not isinstance(judged, _Stop):
+                return fit, judged
+            stop = _Stop(judged.status, {"moved_patches": fit.moved, **judged.extra})
+        free = stop.extra.pop("free_feature", None)
+        if free is None or len(dropped) >= MAX_UNDETERMINED or len(chosen) <= 1:
+            return stop
+        dropped.append(free)
+        chosen = [j for j in chosen if cands.names[j] != free]
 
 
 def _patch_uses(fit: _Fit, res: AdjustmentResult, cands, info) -> tuple[PatchUse, ...]:
@@ -550,4 +550,6 @@ def estimate_block(
         link_df=judged.test.link_df,
         held=tuple(bool(h) for h in judged.held),
         result=judged.res if keep_result else None,
+        observations=fit.sub if keep_result else None,
+        adjust_options=adj if keep_result else None,
     )

@@ -28,6 +28,7 @@ import numpy as np
 
 from calib.boresight.checks.verdict import REFUSE_SIGMA_RAD, Verdict, evidence, judge
 from calib.boresight.result import result_to_dict
+from calib.boresight.scene_ties import crlb_by_features
 from calib.core.errors import CalibError
 from calib.core.georef import Mount
 from calib.core.trajectory import Trajectory
@@ -67,6 +68,7 @@ class TargetlessRun:
     """A targetless calibration: result.json's document, the verdict, the last round's estimate."""
 
     source: str
+    site: Site
     doc: dict
     verdict: Verdict
     estimate: BlockEstimate
@@ -106,6 +108,7 @@ def calibrate_targetless(
     warnings = [] if settled else [f"the estimate still moved in round {len(rounds)} (see rounds)"]
     return TargetlessRun(
         source=source,
+        site=site,
         doc=doc,
         verdict=verdict,
         estimate=est,
@@ -188,11 +191,19 @@ def _doc(est: BlockEstimate, apriori: Mount, mount: Mount, verdict: Verdict, rou
         "tie_features": est.as_dict()["patches"],
         "moved_features": list(est.moved_patches),
         "undetermined_features": list(est.undetermined_features),
+        "crlb_by_features_deg": _crlb_by_features(est, mount),
         "group_test": {"chi2": est.group_chi2, "df": est.group_df},
         "link_test": {"chi2": est.link_chi2, "df": est.link_df},
     }
     doc.update(extra)
     return doc
+
+
+def _crlb_by_features(est: BlockEstimate, mount: Mount) -> dict[str, list[float]]:
+    """The Cramér–Rao σ (deg) of each angle with the planar patches, then with the piles too
+    (:func:`calib.boresight.scene_ties.crlb_by_features`), at the last round's solution."""
+    assert est.result is not None and est.observations is not None and est.adjust_options is not None
+    return crlb_by_features(est.observations, est.result.state, mount, est.adjust_options)
 
 
 def targetless_bundle(

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from calib.boresight.report_gls import crlb_lines
 from calib.boresight.result import write_result
 from calib.watch.targetless import TargetlessRun
 
@@ -58,7 +59,7 @@ def report_lines(run: TargetlessRun, comparison: dict | None) -> list[str]:
             f"| {a} | {d['boresight_deg'][a]:.4f}° | {d['sigma_realistic_deg'][a]:.4f}° "
             f"| {d['apriori_deg'][a]:.4f}° | {'yes' if d['held_deg'][a] else 'no'} |"
         )
-    L += _rounds(d["rounds"]) + _features(d) + _comparison(comparison)
+    L += _rounds(d["rounds"]) + _features(d) + crlb_lines(d) + _comparison(comparison)
     if run.warnings:
         L += ["", "## Warnings", "", *[f"- {w}" for w in run.warnings]]
     return L

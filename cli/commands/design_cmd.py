@@ -26,40 +26,39 @@ HELP = (
 )
 
 
-def _passes(text: str | None) -> tuple[int, ...] | None:
+def _number_list(text: str | None, kind, ok, expected: str, hint: str) -> tuple | None:
+    """A comma-separated list of ``kind`` values, each ``ok``; else a refusal naming ``hint``
+    and what was ``expected``."""
     if text is None:
         return None
     try:
-        ids = tuple(int(x) for x in text.replace(" ", "").split(",") if x)
+        values = tuple(kind(x) for x in text.replace(" ", "").split(",") if x)
     except ValueError:
-        raise typer.BadParameter(
-            f"{text!r}: expected pass ids separated by commas, e.g. 1,2,3,4", param_hint="--passes"
-        ) from None
-    if not ids:
-        raise typer.BadParameter("at least one pass id", param_hint="--passes")
-    return ids
+        values = ()
+    if not values or not all(ok(v) for v in values):
+        raise typer.BadParameter(f"{text!r}: expected {expected}", param_hint=hint)
+    return values
+
+
+def _passes(text: str | None) -> tuple[int, ...] | None:
+    return _number_list(text, int, lambda _: True, "pass ids separated by commas, e.g. 1,2,3,4", "--passes")
 
 
 def _offsets(text: str | None) -> tuple[float, ...] | None:
-    if text is None:
-        return None
-    try:
-        out = tuple(float(x) for x in text.replace(" ", "").split(",") if x)
-    except ValueError:
-        out = ()
-    if not out or not all(0 < x < 120 for x in out):
-        raise typer.BadParameter(
-            f"{text!r}: expected metres beyond the standoff, each in (0, 120), separated by commas, e.g. 20,40,60",
-            param_hint="--yaw-line-offsets",
-        )
-    return out
+    return _number_list(
+        text,
+        float,
+        lambda x: 0 < x < 120,
+        "metres beyond the standoff, each in (0, 120), separated by commas, e.g. 20,40,60",
+        "--yaw-line-offsets",
+    )
 
 
 def design(
     scenario: Annotated[
         str | None,
         scenario_option(
-            "Study a shipped scenario (montreal, montreal_piles, terrestrial, tower) or a scenario YAML file."
+            "Study a shipped scenario (montreal, montreal_piles, harbour_cal, terrestrial, tower) or a scenario YAML file."
         ),
     ] = None,
     site: Annotated[

@@ -457,7 +457,6 @@ def _calibrate_targetless(
     from rich.progress import Progress
 
     from calib.core.errors import MlsError
-    from calib.io.site import load_site
     from calib.watch.targetless import last_target_calibration, targetless_bundle
     from calib.watch.targetlessreport import compare_with, sigma_text, write_targetless
 
@@ -473,7 +472,7 @@ def _calibrate_targetless(
         previous = None
         if history is not None:
             vessel, mount, db = history
-            previous = last_target_calibration(vessel or load_site(bundle / "site.yaml").vessel, mount, db)
+            previous = last_target_calibration(vessel or run.site.vessel, mount, db)
         comparison = compare_with(run, previous)
         write_targetless(run, out_dir, comparison)
     except (MlsError, OSError) as e:
@@ -519,7 +518,7 @@ def _record(
     from calib.core.errors import MlsError
 
     try:
-        row = record_result(cal.doc, bundle, vessel, mount, db=db)
+        row = record_result(cal.doc, bundle, vessel or cal.site.vessel, mount, db=db)
     except (MlsError, OSError, sqlite3.Error) as e:
         _fail(f"the result is in {out_dir} but was not recorded in the history: {e}")
     console.print(f"recorded in the calibration history as #{row} (mount {mount})", highlight=False)

@@ -60,6 +60,11 @@ def test_the_rounds_settle_on_the_truth_within_the_reported_sigma(two_offsets, f
     assert 2 <= len(rounds) <= 4 and rounds[0]["largest_step_sigma"] > 10
     assert rounds[-1]["largest_step_sigma"] <= SETTLED_SIGMA  # settled
     assert any(f["name"].startswith("cyl_") for f in doc["tie_features"])  # the piles carried it
+    # the bound of the features used: the piles sharpen every angle; the σ reported is not below it
+    crlb = doc["crlb_by_features_deg"]
+    assert list(crlb) == ["planar patches", "+ cylinders"]
+    assert np.all(np.array(crlb["+ cylinders"]) < np.array(crlb["planar patches"]))
+    assert np.all(sigma >= 0.95 * np.radians(crlb["+ cylinders"])), (np.degrees(sigma), crlb)
     assert full.verdict.status in ("trusted", "questionable") and validate_result(doc)
     assert "targetless" in " ".join(full.verdict.notes)
 
@@ -132,3 +137,4 @@ def test_a_calibration_bundle_gives_a_boresight_without_its_targets():
     assert np.all(np.abs(err) < 4 * sigma), (np.degrees(err), np.degrees(sigma))
     assert np.all(np.degrees(sigma[:2]) < 0.012) and not any(run.doc["held_deg"].values())
     assert any(f["name"].startswith("cyl_") for f in run.doc["tie_features"])
+
