@@ -27,7 +27,10 @@ with the correlation time misspecified (×3 and ×1/3 of the true τ, the CLI's
 the wall: the default against the Cramér–Rao bound of the features it used, result.json's
 ``crlb_by_features_deg``, and issue 27's yaw goal of 10 mdeg, said out of reach where that bound
 is above it), and ``montreal_piles_far`` (the same with a pair of lines parallel to the wall at
-75 m, as ``mls design``'s lines for yaw recommend).
+75 m, as ``mls design``'s lines for yaw recommend), and ``harbour_cal`` / ``harbour_cal_far``
+(issue 27's harbour calibration case: the same targets, passes and piles before a longer quay wall
+that ends in a 45° wing wall, with four fenders whose fronts and sides — two turned ±30° — are the
+harbour's turned faces and edges; without and with the pair at 75 m).
 
 Goals: RMS ≤ 1.2 × CRLB without tie patches; with tie patches < CRLB on flat walls and ≤ 1.2 ×
 CRLB on wavy walls; coverage at 2σ in [90 %, 98 %]; misspecified τ: RMS ≤ 1.5 × CRLB, coverage
@@ -118,6 +121,8 @@ def build_cases(names, jobs, no_design):
         "montreal_piles_far": dict(
             scenario="montreal_piles", overrides=[_FAR_PAIR], flat=False, features=True
         ),
+        "harbour_cal": dict(scenario="harbour_cal", overrides=[], flat=False, features=True),
+        "harbour_cal_far": dict(scenario="harbour_cal", overrides=[_FAR_PAIR], flat=False, features=True),
     }
     notes = []
     if "recommended" in names:

@@ -42,7 +42,7 @@ force_option = _option("--force")
 seed_option = _option("--seed")
 #: scenario overrides by dotted key (repeatable)
 set_option = _option("--set", metavar="KEY=VALUE")
-#: a scenario by name (montreal, montreal_piles, terrestrial, tower) or YAML file
+#: a scenario by name (montreal, montreal_piles, harbour_cal, terrestrial, tower) or YAML file
 scenario_option = _option("--scenario", "-s", metavar="NAME|PATH")
 #: print JSON instead of tables
 json_option = _option("--json")

@@ -44,7 +44,7 @@ def dataset(
     scenario: Annotated[
         str,
         scenario_option(
-            "A shipped scenario (montreal, montreal_piles, terrestrial, tower), random (a geometry "
+            "A shipped scenario (montreal, montreal_piles, harbour_cal, terrestrial, tower), random (a geometry "
             "drawn from --seed; the draw lands in truth.json) or a scenario YAML file."
         ),
     ],
@@ -139,7 +139,7 @@ def session(
     scenario: Annotated[
         str,
         scenario_option(
-            "A shipped scenario (montreal, montreal_piles, terrestrial, tower) or a scenario YAML file."
+            "A shipped scenario (montreal, montreal_piles, harbour_cal, terrestrial, tower) or a scenario YAML file."
         ),
     ] = "montreal",
     minutes: Annotated[

@@ -190,7 +190,7 @@ def devices(
     scenario: Annotated[
         str,
         scenario_option(
-            "A shipped scenario (montreal, montreal_piles, terrestrial, tower) or a scenario YAML file."
+            "A shipped scenario (montreal, montreal_piles, harbour_cal, terrestrial, tower) or a scenario YAML file."
         ),
     ],
     seed: Annotated[int, seed_option("Random seed of the simulation, the jitters and the faults.")] = 0,

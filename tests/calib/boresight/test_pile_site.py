@@ -57,3 +57,37 @@ def test_the_report_tables_the_cylinders_and_the_bounds(piles):
         assert f"| {name} |" in md
     assert "| features | roll (mdeg) | pitch (mdeg) | yaw (mdeg) |" in md
     assert "| + cylinders |" in md
+
+
+def test_a_harbour_site_keeps_its_piles_beside_a_hundred_wall_patches():
+    """harbour_cal: a long wall with fenders and a wing wall gives over a hundred patch
+    candidates, which under white weights look as if they fixed yaw; the piles keep a budget of
+    their own and take the yaw bound well below the patches' (the GLS with the POS errors'
+    correlation), and the estimate covers the truth."""
+    sim = simulate("harbour_cal", 2)
+    run = calibrate(sim.site, sim.trajectory_observed, sim.points, CalibrationOptions(jackknife=False))
+    doc = run.doc
+    assert doc["tie_patch_candidates"]["found"] > 100 and len(doc["tie_patches"]) == 30
+    assert len(doc["tie_cylinders"]) >= 3, doc.get("tie_cylinder_candidates")
+    crlb = doc["crlb_by_features_deg"]
+    assert crlb["+ cylinders"][2] < 0.75 * crlb["+ planar patches"][2], crlb
+    err = np.abs(run.result.boresight_rad - sim.mount_true.boresight_rad)
+    assert np.all(err <= 3 * run.result.sigma_realistic_rad), (err, run.result.sigma_realistic_rad)
+
+
+def test_the_cylinders_have_a_budget_of_their_own_and_no_least_gain():
+    from calib.boresight.scene_ties import MIN_GAIN, choose
+
+    rng = np.random.default_rng(3)
+    eye = np.eye(3)
+    patches = [np.diag(rng.uniform(1.0, 10.0, 3)) for _ in range(8)]  # each fixes every angle a bit
+    piles = [1e-3 * eye, 2e-3 * eye, 5e-4 * eye]  # small gains: below MIN_GAIN
+    info = np.stack(patches + piles)
+    is_cyl = np.arange(len(info)) >= len(patches)
+    chosen, gains = choose(info, eye, max_patches=4, is_cylinder=is_cyl, max_cylinders=2)
+    assert sum(not is_cyl[j] for j in chosen) == 4  # the patches' budget
+    assert sorted(j for j in chosen if is_cyl[j]) == [8, 9]  # the two best piles, below MIN_GAIN
+    assert all(g < MIN_GAIN for j, g in zip(chosen, gains, strict=True) if is_cyl[j])
+    # without kinds: one budget, the least gain for all (the piles are not worth their planes)
+    plain, _ = choose(info, eye, max_patches=20)
+    assert len(plain) == 8 and not any(is_cyl[j] for j in plain)

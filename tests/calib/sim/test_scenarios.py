@@ -143,7 +143,7 @@ def test_errors_name_the_place_and_what_was_expected(tmp_path):
     with pytest.raises(
         ConfigError,
         match="'atlantis': neither a shipped scenario "
-        r"\(harbour, montreal, montreal_piles, terrestrial, tower\) nor an existing file",
+        r"\(harbour, harbour_cal, montreal, montreal_piles, terrestrial, tower\) nor an existing file",
     ):
         load_scenario("atlantis")
     with pytest.raises(
