@@ -39,7 +39,10 @@ RUN_HELP = (
     "Without targets (site.yaml lists none, or --targetless) the boresight comes from the scene "
     "alone: tie patches and piles seen from lines of different headings and offsets, the mount "
     "watch's estimator over the whole survey from the a-priori mount, repeated until it settles; "
-    "the report compares it with the last calibration with targets in the history.\n\n"
+    "the report compares it with the last calibration with targets in the history. A session is "
+    "then not exported whole: its lines (the marked passes, else the straight runs of the heading, "
+    "as mls watch cuts them) are read chunk by chunk and thinned evenly in time to the returns the "
+    "calibration uses (1 M), written to OUT/bundle.\n\n"
     "Example: mls sim dataset --scenario montreal --out sim-mtl && mls calib run sim-mtl "
     "--mount lidar-2024"
 )
@@ -142,6 +145,31 @@ def _export(session: Path, bundle_dir: Path, console, columns) -> Path:
     )
     _warn(res.warnings)
     return Path(res.bundle)
+
+
+def _export_thinned(session: Path, bundle_dir: Path, console, columns) -> Path:
+    """A targetless calibration's bundle of a recorded session: its lines (marked passes, else
+    the straight runs of the heading) thinned evenly to the returns the calibration uses."""
+    from rich.progress import Progress
+
+    from calib.core.errors import MlsError
+    from calib.watch.targetless import TARGETLESS_OPTIONS
+    from office.deliver.surveylines import thinned_bundle
+
+    try:
+        with Progress(*columns, console=console, transient=True) as progress:
+            res = thinned_bundle(
+                session, bundle_dir, TARGETLESS_OPTIONS.max_points, progress=_progress_callback(progress)
+            )
+    except (MlsError, OSError) as e:
+        _fail(f"{session}: its lines could not be read for a targetless calibration: {e}")
+    console.print(
+        f"read {res.n_lines} lines ({res.line_seconds / 60:.1f} min) of the session: {res.n_points:,} returns "
+        f"kept evenly in time, in {res.bundle}",
+        highlight=False,
+    )
+    _warn(res.warnings)
+    return res.bundle
 
 
 def _warn(warnings) -> None:
@@ -334,10 +362,12 @@ def run(
 
     console = Console()
     columns = (TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn())
+    targetless = targetless or not _site_targets(bundle)  # a session keeps a copy of its site file
     if _is_session(bundle):
-        bundle = _export(bundle, out_dir / "bundle", console, columns)
+        export = _export_thinned if targetless else _export
+        bundle = export(bundle, out_dir / "bundle", console, columns)
     cal: CalibrationRun | TargetlessRun
-    if targetless or not _site_targets(bundle):
+    if targetless:
         history = None if no_history else (vessel, mount, db)
         cal = _calibrate_targetless(bundle, out_dir, options, console, columns, skip_uncovered, history)
     else:

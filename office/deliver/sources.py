@@ -190,13 +190,19 @@ def _first_copies(head: np.ndarray, counters: dict[str, int]) -> np.ndarray:
     return keep
 
 
-def read_session_chunk(spec: ChunkSpec) -> Returns:
+def read_session_chunk(spec: ChunkSpec, packet_share: float = 1.0) -> Returns:
     """Decode the profiler datagrams of one session chunk into returns (module docstring): every
-    quantity for the hits only (range > 0), taken from their packets once, sorted once."""
+    quantity for the hits only (range > 0), taken from their packets once, sorted once.
+    ``packet_share`` < 1: only that share of the datagrams, drawn at random (seeded by the
+    chunk: the same every read; at random, not every k-th, which could keep the same sector of
+    every profile)."""
     from drivers.zf.codec import FLAG_PPS_LOCKED, FLAG_TIME_VALID
     from drivers.zf.zfp1 import CRC_SIZE, HEADER_SIZE, POINT_DTYPE, RANGE_UNIT_M
 
     log_t, grams = _datagrams(spec)
+    if packet_share < 1.0:
+        drawn = np.flatnonzero(np.random.default_rng(spec.index).random(len(grams)) < packet_share)
+        log_t, grams = log_t[drawn], [grams[j] for j in drawn.tolist()]
     counters = {"datagrams": len(grams), "bad_datagrams": 0, "duplicates": 0, "unsynced_packets": 0}
     valid = _packet_headers(log_t, grams, counters)
     if valid is None:
@@ -236,8 +242,10 @@ def read_session_chunk(spec: ChunkSpec) -> Returns:
     )
 
 
-def read_chunk(spec: ChunkSpec) -> Returns:
-    return spec.returns if spec.returns is not None else read_session_chunk(spec)
+def read_chunk(spec: ChunkSpec, packet_share: float = 1.0) -> Returns:
+    """The chunk's returns; a session's from ``packet_share`` of its datagrams
+    (:func:`read_session_chunk`; a bundle's chunk: all of them)."""
+    return spec.returns if spec.returns is not None else read_session_chunk(spec, packet_share)
 
 
 def _session_source(path: Path, chunk_s: float, max_gap_s: float) -> Source:

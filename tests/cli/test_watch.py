@@ -17,7 +17,7 @@ from calib.core.frames import LocalFrame
 from calib.core.trajectory import Trajectory
 from calib.sim.production import MountEvent, ProductionSpec, simulate_production
 from cli.app import app
-from office.deliver.watchjob import lines_from_heading
+from office.deliver.surveylines import lines_from_heading
 
 ENV = {"COLUMNS": "250"}
 

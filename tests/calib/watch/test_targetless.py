@@ -138,3 +138,83 @@ def test_a_calibration_bundle_gives_a_boresight_without_its_targets():
     assert np.all(np.degrees(sigma[:2]) < 0.012) and not any(run.doc["held_deg"].values())
     assert any(f["name"].startswith("cyl_") for f in run.doc["tie_features"])
 
+
+@pytest.fixture(scope="module")
+def session_without_targets(tmp_path_factory):
+    """A recorded session (mls sim session: montreal_piles's passes, the quay around) whose
+    site file lists no target."""
+    import yaml
+
+    root = tmp_path_factory.mktemp("session")
+    args = [
+        "sim",
+        "session",
+        "-s",
+        "montreal_piles",
+        "-o",
+        str(root),
+        "--minutes",
+        "3",
+        "--rate-scale",
+        "0.01",
+    ]
+    res = CliRunner().invoke(app, args)
+    assert res.exit_code == 0, res.output
+    (session,) = root.iterdir()
+    site = yaml.safe_load((session / "site.yaml").read_text())
+    site["targets"] = []
+    (session / "site.yaml").write_text(yaml.safe_dump(site))
+    return session
+
+
+def test_a_session_is_read_line_by_line_and_thinned_evenly_to_the_budget(session_without_targets, tmp_path):
+    from calib.io.bundle import read_bundle
+    from office.deliver.surveylines import thinned_bundle
+
+    res = thinned_bundle(session_without_targets, tmp_path / "bundle", max_points=40_000)
+    pts = read_bundle(res.bundle).points
+    assert res.n_points == len(pts) == 40_000 and res.n_lines == 3  # the passes marked in 3 minutes
+    # every line keeps its share of the line time (even in time: one stride over the survey)
+    ids, counts = np.unique(pts.pass_id, return_counts=True)
+    assert len(ids) == 3
+    per_s = counts / np.array([np.ptp(pts.t_gps_s[pts.pass_id == i]) for i in ids])
+    assert np.ptp(per_s) / np.mean(per_s) < 0.2, per_s
+
+
+def test_mls_calib_run_on_a_session_without_targets_is_targetless(session_without_targets, tmp_path):
+    out = tmp_path / "calib"
+    args = [
+        "calib",
+        "run",
+        str(session_without_targets),
+        "--out",
+        str(out),
+        "--no-history",
+        "--accept-refused",
+    ]
+    res = CliRunner().invoke(app, args, env={"COLUMNS": "200"})
+    assert res.exit_code == 0, res.output
+    assert "read 3 lines" in res.output and "targetless: no target used" in res.output
+    assert "exported the session" not in res.output  # not every return: the lines, thinned
+    doc = json.loads((out / "result.json").read_text())
+    truth = json.loads((session_without_targets / "truth.json").read_text())["boresight_deg"]
+    assert doc["mode"] == "targetless" and doc["source"] == str(out / "bundle")
+    for a in ANGLES:
+        if not doc["held_deg"][a]:
+            z = (doc["boresight_deg"][a] - truth[a]) / doc["sigma_realistic_deg"][a]
+            assert abs(z) < 4, (a, z)
+    assert not doc["held_deg"]["roll"] and not doc["held_deg"]["pitch"]
+
+
+def test_a_share_of_a_chunks_datagrams_is_decoded_the_same_on_every_read(session_without_targets):
+    from office.deliver.sources import open_source, read_chunk
+
+    spec = open_source(session_without_targets, chunk_s=10.0).chunks[3]
+    full, part = read_chunk(spec), read_chunk(spec, 0.1)
+    assert np.array_equal(part.t_gps_ns, read_chunk(spec, 0.1).t_gps_ns)  # seeded by the chunk
+    assert 0.05 < part.size / full.size < 0.15 and np.isin(part.t_gps_ns, full.t_gps_ns).all()
+    # drawn at random, not every k-th datagram: the kept returns still span the whole profile
+    bins = np.linspace(0, 2 * np.pi, 13)
+    assert np.all(
+        np.histogram(part.scan_angle_rad, bins)[0] >= 0.5 * np.histogram(full.scan_angle_rad, bins)[0] / 10
+    )
