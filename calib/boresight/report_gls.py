@@ -184,8 +184,10 @@ def _cylinder_lines(doc: dict, rough: dict) -> list[str]:
     cylinder that changes its distance from the axis, so they carry what a flat wall does not."""
     cyls = doc.get("tie_cylinders") or []
     found = doc.get("tie_cylinder_candidates", {}).get("found", 0)
+    leaning = doc.get("tie_cylinder_candidates", {}).get("rejected", {}).get("leaning", 0)
+    why = f"; {leaning} rejected as leaning: the adjustment models upright piles" if leaning else ""
     if not cyls:
-        return ["", f"Tie cylinders: none chosen ({found} vertical cylinders found near the targets)."]
+        return ["", f"Tie cylinders: none chosen ({found} vertical cylinders found near the targets{why})."]
     L = [
         "",
         f"Tie cylinders: {len(cyls)} of {found} vertical cylinders (piles, posts) found near the "

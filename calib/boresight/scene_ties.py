@@ -296,7 +296,7 @@ def tie_candidates(
     (each pass samples a curved face differently)."""
     cyl = extract_cylinders(p_lgf_m, pass_id, headings, on_target, cylinder_options)
     cyl = _cylinders_near_targets(cyl, p_lgf_m[on_target], max_distance_m)
-    not_patch = on_target | on_cylinders(p_lgf_m, cyl)
+    not_patch = on_target | on_cylinders(p_lgf_m, cyl) | cyl.leaning_points
     patches = _patch_candidates(
         p_lgf_m, origin_lgf_m, pass_id, headings, on_target, not_patch, options, max_distance_m
     )
@@ -312,7 +312,7 @@ def tie_candidates(
     planes = [] if patches is None else [(n, d) for n, d in zip(patches.normals, patches.d_m, strict=True)]
     return TieCandidates(
         patches=patches,
-        cylinders=cyl if len(cyl) else None,
+        cylinders=cyl if cyl.n_components else None,  # none kept: what was rejected, and why
         labels=labels,
         features=planes + cyl.cylinders(),
         names=([] if patches is None else list(patches.names)) + list(cyl.names),

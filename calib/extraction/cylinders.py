@@ -31,7 +31,12 @@ current best mount; "up" is −z):
    refit: ``radius`` again, ``short`` — the members span less than ``min_height_m`` of height,
    ``narrow arc`` — the largest gap between the members' bearings about the axis leaves less
    than ``min_arc_deg`` seen, ``not circular`` — the RMS distance to the circle, about each
-   pass's own centre, exceeds ``max_rms_m`` (a box, a corner).
+   pass's own centre, exceeds ``max_rms_m`` (a box, a corner), ``leaning`` — the axis's lean
+   fitted to the members' heights (the circle residuals against the radial direction × height,
+   linearized about the upright fit) exceeds ``max_lean_deg`` and the members show it clearly
+   (:data:`LEAN_Z`; a lean across a narrow arc's line of sight shows as nothing, and does no
+   harm): the adjustment models upright cylinders, and piles leaning 0.3–1° (installation
+   tolerances) biased roll by 1σ.
 5. A cylinder's axis is the mean of its passes' centres (each pass weighs the same: the mean
    offset of its passes is the datum), at the members' mid height; its height is the span of
    the members. Above ``max_points_per_cylinder`` the members are subsampled round-robin over
@@ -57,17 +62,20 @@ from scipy.sparse.csgraph import connected_components
 
 from calib.core.errors import CalibError
 from calib.core.geometry import VerticalCylinder
+from calib.extraction.circlefit import Circles, fit_circles, lean, sums
 from calib.extraction.patches import near_excluded, rank_in_group
 
 REASONS: tuple[str, ...] = ("too wide", "few points", "few passes", "same heading")  # pass rule
-REASONS += ("radius", "short", "narrow arc", "not circular")  # the shape
-GAUSS_NEWTON_STEPS = 10  # from the algebraic fit: converged to far below the noise
+REASONS += ("radius", "short", "narrow arc", "not circular", "leaning")  # the shape
 OUTLIER_FACTOR = 3.0  # the refit drops points beyond this × the robust RMS of the first fit
 ROBUST_SCALE = 1.4826  # RMS of Gaussian noise / its median absolute deviation
 HEIGHT_BINS = 8  # height bins per cylinder that the subsample spreads over
 SUBSAMPLE_SEED = 0
 _MIN_THRESHOLD_M = 1e-9  # the outlier threshold on a noise-free circle
 _TINY_M = 1e-12
+#: a lean counts when its points show it this clearly (√(sᵀNs)/σ, a χ with 2 degrees of freedom
+#: for an upright pile: beyond 4 once in 3,000)
+LEAN_Z = 4.0
 _NEIGHBOURS = ((0, 1), (1, -1), (1, 0), (1, 1))  # half of the 8: each pair of columns once
 
 
@@ -87,6 +95,9 @@ class CylinderOptions:
     max_radius_m: float = 0.8  # piles of 0.2–1.6 m diameter by default
     min_height_m: float = 1.0  # height span of the visible part
     max_rms_m: float = 0.02  # RMS distance to the circle, about each pass's own centre
+    #: the axis's lean from vertical the adjustment's upright model tolerates (the lean fitted
+    #: to the members' heights); piles leaning 0.3–1° biased roll by 1σ on montreal_piles
+    max_lean_deg: float = 0.1
     min_arc_deg: float = 60.0  # arc seen around the axis, all passes together
     min_passes: int = 2
     min_points_per_pass: int = 15  # a pass counts for a cylinder only with this many points on it
@@ -104,6 +115,7 @@ class CylinderOptions:
             ("max_radius_m", _at_least(self.max_radius_m, r0, strict=True), f"> min_radius_m = {r0!r}"),
             ("min_height_m", _at_least(self.min_height_m, 0.0), "≥ 0"),
             ("max_rms_m", _at_least(self.max_rms_m, 0.0, strict=True), "a positive number"),
+            ("max_lean_deg", 0.0 < self.max_lean_deg <= 90.0, "an angle in (0, 90]"),
             ("min_arc_deg", 0.0 <= self.min_arc_deg <= 360.0, "an angle in [0, 360]"),
             ("min_passes", self.min_passes >= 1, "≥ 1"),
             ("min_points_per_pass", self.min_points_per_pass >= 3, "≥ 3 (a circle)"),
@@ -129,6 +141,9 @@ class CylinderCandidates:
     names: list[str]  # "cyl_001", ...
     rejected: dict[str, int]  # reason (REASONS) -> number of components
     n_components: int  # components of vertical columns: len(names) + sum(rejected.values())
+    #: (n,) bool: the points of piles rejected as ``leaning`` only: round, not planar (no tie
+    #: patch may be cut on them)
+    leaning_points: np.ndarray
 
     def __len__(self) -> int:
         return len(self.names)
@@ -162,7 +177,7 @@ def extract_cylinders(
     kept = np.flatnonzero(~near_excluded(p, exclude_b, options.exclusion_margin_m))
     rejected = dict.fromkeys(REASONS, 0)
     members, n_components = _candidate_members(p, kept, options, rejected)
-    members, summary = _fit_and_judge(p, pass_index, members, pair_ok, options, rejected)
+    members, summary, leaning_pts = _fit_and_judge(p, pass_index, members, pair_ok, options, rejected)
     keep = _subsample(members, p[members.pts, 2], pass_index[members.pts], summary, options)
     labels = np.full(p.shape[0], -1, np.int64)
     labels[members.pts[keep]] = members.cand[keep]
@@ -179,7 +194,14 @@ def extract_cylinders(
         names=[f"cyl_{k + 1:03d}" for k in range(m)],
         rejected=rejected,
         n_components=n_components,
+        leaning_points=_mask(p.shape[0], leaning_pts),
     )
+
+
+def _mask(n: int, idx: np.ndarray) -> np.ndarray:
+    out = np.zeros(n, bool)
+    out[idx] = True
+    return out
 
 
 # -- input -------------------------------------------------------------------------------------
@@ -353,83 +375,6 @@ def _apply_pass_rule(members: _Members, pass_index, pair_ok, opt: CylinderOption
 # -- circles -----------------------------------------------------------------------------------
 
 
-@dataclass(frozen=True, kw_only=True)
-class _Circles:
-    """One circle per candidate: a centre per (candidate, pass) group, one radius."""
-
-    group: np.ndarray  # (k,) each member's group
-    group_cand: np.ndarray  # (G,)
-    center_m: np.ndarray  # (G, 2) north, east
-    radius_m: np.ndarray  # (m,)
-    residual_m: np.ndarray  # (k,) horizontal distance to its pass's axis − the radius
-
-
-def _sums(group: np.ndarray, n: int, *weights: np.ndarray) -> list[np.ndarray]:
-    return [np.bincount(group, w, minlength=n) for w in weights]
-
-
-def _kasa(xy: np.ndarray, cand: np.ndarray, m: int) -> tuple[np.ndarray, np.ndarray]:
-    """The algebraic circle fit of each candidate: centres (m, 2) and radii (m,); x² + y² =
-    2a·x + 2b·y + c solved in least squares about the candidate's centroid."""
-    n = np.maximum(np.bincount(cand, minlength=m), 1)
-    mean = np.column_stack(_sums(cand, m, xy[:, 0], xy[:, 1])) / n[:, None]
-    q = xy - mean[cand]
-    w = (2.0 * q[:, 0], 2.0 * q[:, 1], np.ones(q.shape[0]))
-    t = q[:, 0] ** 2 + q[:, 1] ** 2
-    normal = np.empty((m, 3, 3))
-    for a in range(3):
-        for b in range(a, 3):
-            normal[:, a, b] = normal[:, b, a] = np.bincount(cand, w[a] * w[b], minlength=m)
-    rhs = np.column_stack(_sums(cand, m, w[0] * t, w[1] * t, t))
-    ridge = 1e-12 * np.trace(normal, axis1=1, axis2=2)  # collinear points: a huge circle, not an error
-    sol = np.linalg.solve(normal + ridge[:, None, None] * np.eye(3), rhs[:, :, None])[:, :, 0]
-    r2 = sol[:, 2] + sol[:, 0] ** 2 + sol[:, 1] ** 2
-    return mean + sol[:, :2], np.sqrt(np.maximum(r2, 0.0))
-
-
-def _gauss_newton(xy, group, group_cand, center_g, radius, steps: int):
-    """Gauss–Newton steps of the geometric fit: a centre per group, one radius per candidate
-    (the radius eliminated first: each group's 2 × 2 block solved in closed form)."""
-    n_g, m = center_g.shape[0], radius.size
-    cand = group_cand[group]
-    n_pts = np.bincount(cand, minlength=m).astype(float)
-    damp = 1e-9 * np.bincount(group, minlength=n_g) + _TINY_M  # a point-like arc: no division by 0
-    center_g, radius = center_g.copy(), radius.copy()
-    for _ in range(steps):
-        d = xy - center_g[group]
-        rho = np.hypot(d[:, 0], d[:, 1])
-        u0, u1 = (d / np.maximum(rho, _TINY_M)[:, None]).T
-        e = rho - radius[cand]
-        a11, a12, a22, b1, b2, f1, f2 = _sums(group, n_g, u0 * u0, u0 * u1, u1 * u1, u0, u1, u0 * e, u1 * e)
-        a11, a22 = a11 + damp, a22 + damp
-        det = a11 * a22 - a12 * a12
-        ab1, ab2 = (a22 * b1 - a12 * b2) / det, (a11 * b2 - a12 * b1) / det  # A⁻¹ b
-        af1, af2 = (a22 * f1 - a12 * f2) / det, (a11 * f2 - a12 * f1) / det  # A⁻¹ f
-        q = np.bincount(group_cand, b1 * ab1 + b2 * ab2, minlength=m)
-        g = np.bincount(group_cand, b1 * af1 + b2 * af2, minlength=m)
-        dr = (np.bincount(cand, e, minlength=m) - g) / np.maximum(n_pts - q, 1e-9 * n_pts + _TINY_M)
-        center_g[:, 0] += af1 - ab1 * dr[group_cand]
-        center_g[:, 1] += af2 - ab2 * dr[group_cand]
-        radius += dr
-    return center_g, radius
-
-
-def _fit_circles(xy: np.ndarray, cand: np.ndarray, pass_index: np.ndarray, m: int, n_pass: int) -> _Circles:
-    """Kåsa, then GAUSS_NEWTON_STEPS of the geometric fit with a centre per pass."""
-    uniq, group = np.unique(cand * n_pass + pass_index, return_inverse=True)
-    group_cand = uniq // n_pass
-    center, radius = _kasa(xy, cand, m)
-    with np.errstate(all="ignore"):  # a degenerate candidate ends non-finite: rejected by its radius
-        center_g, radius = _gauss_newton(
-            xy, group, group_cand, center[group_cand], radius, GAUSS_NEWTON_STEPS
-        )
-        d = xy - center_g[group]
-        residual = np.hypot(d[:, 0], d[:, 1]) - radius[cand]
-    return _Circles(
-        group=group, group_cand=group_cand, center_m=center_g, radius_m=radius, residual_m=residual
-    )
-
-
 def _group_median(v: np.ndarray, grp: np.ndarray, m: int) -> np.ndarray:
     """The (lower) median of ``v`` in each of ``m`` groups; 0 for an empty group."""
     out = np.zeros(m)
@@ -465,6 +410,8 @@ class _Summary:
     top_m: np.ndarray  # the smallest z (NED: the top) of the members
     rms_m: np.ndarray
     arc_deg: np.ndarray
+    lean_deg: np.ndarray  # the axis's lean fitted to the members' heights
+    lean_z: np.ndarray  # how clearly the members show it (circlefit.lean)
     seen: np.ndarray  # (m, P) bool: the passes with members
 
     def take(self, k: np.ndarray) -> _Summary:
@@ -486,12 +433,12 @@ def _arc_deg(angle: np.ndarray, cand: np.ndarray, m: int) -> np.ndarray:
     return out
 
 
-def _summarize(p, members: _Members, circles: _Circles, pass_index, n_pass: int) -> _Summary:
+def _summarize(p, members: _Members, circles: Circles, pass_index, n_pass: int) -> _Summary:
     """Axis (the mean of the passes' centres at the members' mid height), radius, height, RMS
     about each pass's own centre, arc seen and passes of each candidate."""
     m, cand = members.m, members.cand
     n_groups = np.maximum(np.bincount(circles.group_cand, minlength=m), 1)
-    axis = np.column_stack(_sums(circles.group_cand, m, *circles.center_m.T)) / n_groups[:, None]
+    axis = np.column_stack(sums(circles.group_cand, m, *circles.center_m.T)) / n_groups[:, None]
     z = p[members.pts, 2]
     top = np.full(m, np.inf)
     bottom = np.full(m, -np.inf)
@@ -501,6 +448,7 @@ def _summarize(p, members: _Members, circles: _Circles, pass_index, n_pass: int)
     d = p[members.pts, :2] - circles.center_m[circles.group]
     seen = np.zeros((m, n_pass), bool)
     seen[cand, pass_index[members.pts]] = True
+    lean_deg, lean_z = lean(d, z, circles, m)
     return _Summary(
         center_m=np.column_stack([axis, 0.5 * (top + bottom)]),
         radius_m=circles.radius_m,
@@ -508,13 +456,15 @@ def _summarize(p, members: _Members, circles: _Circles, pass_index, n_pass: int)
         top_m=top,
         rms_m=np.sqrt(np.bincount(cand, circles.residual_m**2, minlength=m) / n),
         arc_deg=_arc_deg(np.arctan2(d[:, 1], d[:, 0]), cand, m),
+        lean_deg=lean_deg,
+        lean_z=lean_z,
         seen=seen,
     )
 
 
-def _judge(s: _Summary, opt: CylinderOptions, rejected: dict[str, int]) -> np.ndarray:
-    """(m,) bool: the refitted candidates that pass the shape rules; the others counted by their
-    first failed rule."""
+def _judge(s: _Summary, opt: CylinderOptions, rejected: dict[str, int]) -> tuple[np.ndarray, np.ndarray]:
+    """(m,) bool each: the refitted candidates that pass the shape rules, and those that fail
+    only the last, ``leaning``; the others counted by their first failed rule."""
     ok = np.ones(s.radius_m.size, bool)
     with np.errstate(invalid="ignore"):
         rules = (
@@ -522,27 +472,36 @@ def _judge(s: _Summary, opt: CylinderOptions, rejected: dict[str, int]) -> np.nd
             ("short", s.height_m >= opt.min_height_m),
             ("narrow arc", s.arc_deg >= opt.min_arc_deg),
             ("not circular", s.rms_m <= opt.max_rms_m),
+            ("leaning", ~((s.lean_deg > opt.max_lean_deg) & (s.lean_z > LEAN_Z))),  # NaN: upright
         )
+    failed = ok
     for reason, passed in rules:
-        rejected[reason] += int(np.count_nonzero(ok & ~passed))
+        failed = ok & ~passed
+        rejected[reason] += int(np.count_nonzero(failed))
         ok &= passed
-    return ok
+    return ok, failed
 
 
 def _fit_and_judge(p, pass_index, members: _Members, pair_ok, opt: CylinderOptions, rejected):
     """Pass rule, fit, radius, outlier drop, pass rule, refit, shape rules: the accepted
-    candidates' members and their summary."""
+    candidates' members and their summary, and the member points of those rejected only as
+    leaning."""
     n_pass = pair_ok.shape[0]
     members = _apply_pass_rule(members, pass_index, pair_ok, opt, rejected)
-    first = _fit_circles(p[members.pts, :2], members.cand, pass_index[members.pts], members.m, n_pass)
+    first = fit_circles(p[members.pts, :2], members.cand, pass_index[members.pts], members.m, n_pass)
     fits = _radius_ok(first.radius_m, opt)
     rejected["radius"] += int(np.count_nonzero(~fits))
     members = members.restricted(_inliers(first.residual_m, members.cand, members.m), fits)
     members = _apply_pass_rule(members, pass_index, pair_ok, opt, rejected)
-    circles = _fit_circles(p[members.pts, :2], members.cand, pass_index[members.pts], members.m, n_pass)
+    circles = fit_circles(p[members.pts, :2], members.cand, pass_index[members.pts], members.m, n_pass)
     summary = _summarize(p, members, circles, pass_index, n_pass)
-    ok = _judge(summary, opt, rejected)
-    return members.restricted(np.ones(members.pts.size, bool), ok), summary.take(np.flatnonzero(ok))
+    ok, leaning = _judge(summary, opt, rejected)
+    leaning_pts = members.pts[leaning[members.cand]]
+    return (
+        members.restricted(np.ones(members.pts.size, bool), ok),
+        summary.take(np.flatnonzero(ok)),
+        leaning_pts,
+    )
 
 
 # -- subsampling -------------------------------------------------------------------------------

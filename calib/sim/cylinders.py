@@ -34,21 +34,63 @@ _PRISM_SIDES = 8
 _SECTOR_MARGIN_M = 1e-6
 
 
+@dataclass(frozen=True, kw_only=True)
+class LeaningCylinder(VerticalCylinder):
+    """A pile whose axis leans (the simulator's only: the calibration models vertical
+    cylinders): its axis rises through ``center_m`` along (``slope_ne``, −1) in NED, the top
+    displaced ``slope_ne`` (north, east) per metre of height; ``height_m`` is the vertical extent
+    of its axis (its ends square to the axis)."""
+
+    slope_ne: tuple[float, float] = (0.0, 0.0)
+
+    @property
+    def axis_up(self) -> np.ndarray:
+        """The axis's unit vector pointing up (NED)."""
+        a = np.array([self.slope_ne[0], self.slope_ne[1], -1.0])
+        return a / np.linalg.norm(a)
+
+    def radial_distance_m(self, p_m) -> np.ndarray:
+        """(n,) distance of points from the (leaning) axis."""
+        q = np.atleast_2d(np.asarray(p_m, float)) - self.center_m
+        a = self.axis_up
+        return np.linalg.norm(q - (q @ a)[:, None] * a, axis=1)
+
+    @property
+    def slack_m(self) -> float:
+        """How far the axis strays horizontally from the vertical through the centre."""
+        return 0.5 * float(self.height_m) * float(np.hypot(*self.slope_ne))
+
+    @property
+    def rim_rise_m(self) -> float:
+        """How far an end's rim rises above (or sinks below) the axis's end: r·sin(lean)."""
+        return float(self.radius_m) * float(np.sqrt(1.0 - self.axis_up[2] ** 2))
+
+
 @dataclass(frozen=True)
 class PackedCylinders:
     """C cylinders as arrays (LGF, metres)."""
 
     center_m: np.ndarray  # (C, 3) the axis at mid-height
-    radius_m: np.ndarray  # (C,)
-    half_height_m: np.ndarray  # (C,)
+    radius_m: np.ndarray  # (C,) for the sectors: a leaning one's grown by its slack
+    half_height_m: np.ndarray  # (C,) a leaning one's grown by its rim's rise
     reflectivity: np.ndarray  # (C,)
 
     @staticmethod
     def of(cylinders: tuple[VerticalCylinder, ...]) -> PackedCylinders:
         return PackedCylinders(
             center_m=np.array([np.asarray(c.center_m, float) for c in cylinders]).reshape(-1, 3),
-            radius_m=np.array([float(c.radius_m) for c in cylinders]),
-            half_height_m=np.array([0.5 * float(c.height_m) for c in cylinders]),
+            radius_m=np.array(
+                [
+                    float(c.radius_m) + (c.slack_m if isinstance(c, LeaningCylinder) else 0.0)
+                    for c in cylinders
+                ]
+            ),
+            half_height_m=np.array(
+                [
+                    0.5 * float(c.height_m) + (c.rim_rise_m if isinstance(c, LeaningCylinder) else 0.0)
+                    for c in cylinders
+                ]
+            ),
             reflectivity=np.array([float(c.reflectivity) for c in cylinders]),
         )
 
@@ -58,19 +100,44 @@ def hit_range(cyl: VerticalCylinder, ox, oy, oz, dx, dy, dz) -> tuple[np.ndarray
     from outside, and whether that entry lies within its height (module docstring). Where a ray
     has no entry (it passes beside the cylinder, or runs parallel to its axis) the range is
     infinite; a ray starting inside gets a negative range (the caller's range limits drop it)."""
+    if isinstance(cyl, LeaningCylinder):
+        return _leaning_hit_range(cyl, ox, oy, oz, dx, dy, dz)
     c = np.asarray(cyl.center_m, float)
     qx, qy = ox - c[0], oy - c[1]
     a = dx * dx + dy * dy
     b = qx * dx + qy * dy
     k = qx * qx + qy * qy - float(cyl.radius_m) ** 2
+    rho, real = _entry(a, b, k)
+    up = -(oz + np.where(real, rho, 0.0) * dz - c[2])  # above the mid-height, at the entry
+    inside = real & (np.abs(up) <= 0.5 * float(cyl.height_m))
+    return rho, inside
+
+
+def _entry(a, b, k) -> tuple[np.ndarray, np.ndarray]:
+    """The smaller root of ``a ρ² + 2 b ρ + k = 0`` (module docstring; infinite where there is
+    none) and where there is one."""
     disc = b * b - a * k
     real = (disc >= 0.0) & (a > 0.0)
     root = np.sqrt(np.where(real, disc, 0.0))
     with np.errstate(divide="ignore", invalid="ignore"):
         rho = np.where(b < 0.0, k / (root - b), -(b + root) / a)
-    rho = np.where(real, rho, np.inf)
-    up = -(oz + np.where(real, rho, 0.0) * dz - c[2])  # above the mid-height, at the entry
-    inside = real & (np.abs(up) <= 0.5 * float(cyl.height_m))
+    return np.where(real, rho, np.inf), real
+
+
+def _leaning_hit_range(cyl: LeaningCylinder, ox, oy, oz, dx, dy, dz) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`hit_range` about a leaning axis ``a``: the components across it, ``q⊥`` and
+    ``d⊥``, take the horizontal ones' place, the height is measured along it."""
+    c, a = np.asarray(cyl.center_m, float), cyl.axis_up
+    q = np.stack([ox - c[0], oy - c[1], oz - c[2]], axis=-1)
+    d = np.stack([dx, dy, dz], axis=-1)
+    qa, da = q @ a, d @ a
+    qp, dp = q - qa[..., None] * a, d - da[..., None] * a
+    a2 = np.sum(dp * dp, axis=-1)
+    b = np.sum(qp * dp, axis=-1)
+    k = np.sum(qp * qp, axis=-1) - float(cyl.radius_m) ** 2
+    rho, real = _entry(a2, b, k)
+    up = qa + np.where(real, rho, 0.0) * da  # along the axis above the centre, at the entry
+    inside = real & (np.abs(up * a[2]) <= 0.5 * float(cyl.height_m))  # the vertical part
     return rho, inside
 
 

@@ -30,6 +30,7 @@ from calib.core.geometry import Rectangle, VerticalCylinder
 from calib.core.georef import Mount
 from calib.io.bundle import SCANNER_RANGE_M
 from calib.io.site import PassSpec, Site, SitePile, Target
+from calib.sim.cylinders import LeaningCylinder
 from calib.sim.motion import MotionModel
 from calib.sim.noise import PosNoise, ScannerNoise
 from calib.sim.scene import BACKGROUND_KINDS, Scene
@@ -72,6 +73,9 @@ class Pile:
     top_up_m: float
     diameter_m: float
     reflectivity: float = 0.3
+    #: the axis's lean from vertical toward along and toward out (deg): its top displaced by
+    #: height × tan; the calibration models vertical cylinders (a misspecification to test)
+    lean_deg: tuple[float, float] = (0.0, 0.0)
 
     def __post_init__(self):
         if self.kind not in BACKGROUND_KINDS:
@@ -96,6 +100,7 @@ class Pile:
             "top_up_m": float(self.top_up_m),
             "diameter_m": float(self.diameter_m),
             "reflectivity": float(self.reflectivity),
+            **({"lean_deg": [float(x) for x in self.lean_deg]} if any(self.lean_deg) else {}),
         }
 
 
@@ -348,13 +353,18 @@ class Scenario:
         )
 
     def cylinder(self, p: Pile) -> VerticalCylinder:
-        return VerticalCylinder(
+        shape = dict(
             name=p.name,
             center_m=self.site_to_lgf(p.along_m, p.out_m, 0.5 * (p.bottom_up_m + p.top_up_m))[0],
             radius_m=0.5 * float(p.diameter_m),
             height_m=float(p.top_up_m - p.bottom_up_m),
             reflectivity=float(p.reflectivity),
         )
+        if not any(p.lean_deg):
+            return VerticalCylinder(**shape)
+        along, out = np.tan(np.radians(p.lean_deg))
+        slope_ne = (self.site_to_lgf(along, out, 0.0)[0, :2]).tolist()
+        return LeaningCylinder(**shape, slope_ne=(slope_ne[0], slope_ne[1]))
 
     def scene(self) -> Scene:
         """The surfaces (rectangles) and then the piles (cylinders) in the LGF."""

@@ -222,7 +222,7 @@ _SURFACE_KEYS = {
     "along_m", "out_m", "up_m", "size_m", "inclination_deg", "facing_deg", "reflectivity", "waviness",
     "roughness_m",
 }  # fmt: skip
-_PILE_KEYS = {"along_m", "out_m", "kind", "reflectivity"}
+_PILE_KEYS = {"along_m", "out_m", "kind", "reflectivity", "lean_deg"}
 
 
 def _shape(m: dict[str, Node]) -> SurfaceShape | None:
@@ -269,7 +269,8 @@ def _surface(n: Node, kind: str | None, default_reflectivity: float) -> Surface:
 
 
 def _pile(n: Node) -> Pile:
-    """A pile: ``{name, along_m, out_m, diameter_m, bottom_up_m, top_up_m[, kind, reflectivity]}``."""
+    """A pile: ``{name, along_m, out_m, diameter_m, bottom_up_m, top_up_m[, kind, reflectivity,
+    lean_deg]}`` (``lean_deg``: [toward along, toward out], each within ±20°)."""
     m = n.mapping(required={"name", "diameter_m", "bottom_up_m", "top_up_m"}, optional=_PILE_KEYS)
     bottom = m["bottom_up_m"].number()
     top = m["top_up_m"].number()
@@ -284,7 +285,16 @@ def _pile(n: Node) -> Pile:
         top_up_m=top,
         diameter_m=m["diameter_m"].number(0.0, 20.0, exclusive_minimum=True),
         reflectivity=_opt(m, "reflectivity", _number(0.0, 1.0), 0.3),
+        lean_deg=_opt(m, "lean_deg", _lean_deg, (0.0, 0.0)),
     )
+
+
+def _lean_deg(n: Node) -> tuple[float, float]:
+    items = n.value
+    if not isinstance(items, list) or len(items) != 2:
+        raise n.fail("a list of 2 numbers [toward along, toward out] (deg)")
+    along, out = (it.number(-20.0, 20.0) for it in items)
+    return along, out
 
 
 def _scene(n: Node) -> tuple[tuple[Surface, ...], tuple[Pile, ...]]:

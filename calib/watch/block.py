@@ -86,6 +86,9 @@ class WatchOptions:
     min_range_m: float = 2.0  # returns nearer are the vessel's own rails
     max_range_m: float = 60.0  # farther returns are sparse and their footprint is wide
     max_points: int = 3_000_000  # a block's points are thinned evenly beyond this
+    #: a pile leaning more than this (as georeferenced at the block's mount) is not a tie
+    #: cylinder (calib.extraction.cylinders: the model is upright)
+    max_lean_deg: float = CylinderOptions().max_lean_deg
     #: GLS knot spacing min(τ)/knots_per_tau (the trajectory's epochs when fewer). Between knots
     #: the POS error is the OU bridge, whose variance is added to each point as if white; but it
     #: is shared by every point of a patch seen within a fraction of a second, so a coarse grid
@@ -288,7 +291,9 @@ def _tie_candidates(
     some line sees curved unlabelled (label −1)."""
     p_lgf, origin = georeference_passes(pts, trajectory, mount, None)
     opt = replace(options.patch, min_heading_spread_deg=options.min_heading_spread_deg)
-    cyl_opt = CylinderOptions(min_heading_spread_deg=options.min_heading_spread_deg)
+    cyl_opt = CylinderOptions(
+        min_heading_spread_deg=options.min_heading_spread_deg, max_lean_deg=options.max_lean_deg
+    )
     none = np.zeros(len(pts), bool)
     try:
         found = tie_candidates(p_lgf, origin, pts.pass_id, headings, none, opt, np.inf, cyl_opt)

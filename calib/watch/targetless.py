@@ -96,7 +96,7 @@ def calibrate_targetless(
     for k in range(1, MAX_ROUNDS + 1):
         if progress is not None:
             progress(f"targetless round {k}", k - 1, MAX_ROUNDS)
-        est = _round(site, trajectory, points, mount, options, source)
+        est = _round(site, trajectory, points, mount, options if k > 1 else _first_round(options), source)
         mount = mount.with_boresight(mount.boresight_rad + est.delta_rad)
         rounds.append(_round_doc(k, est, mount))
         if k > 1 and rounds[-1]["largest_step_sigma"] <= SETTLED_SIGMA:
@@ -116,6 +116,14 @@ def calibrate_targetless(
         warnings=warnings,
         runtime_s=time.perf_counter() - clock,
     )
+
+
+def _first_round(options: WatchOptions) -> WatchOptions:
+    """The first round's options: no lean rule. At the a-priori mount, tenths of a degree off,
+    every upright pile looks leaning by about as much (0.3–0.5° from a mount 1.2° off in pitch)
+    and the rule would throw the piles out; from the second round on the mount is within a few
+    σ and the rule tells a leaning pile from an upright one."""
+    return replace(options, max_lean_deg=90.0)
 
 
 def _round(site, trajectory, points, mount: Mount, options: WatchOptions, source: str) -> BlockEstimate:

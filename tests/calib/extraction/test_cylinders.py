@@ -67,8 +67,19 @@ class Scene:
         self.pass_id.append(np.full(p.shape[0], pass_id, np.int64))
         self.tag.append(np.full(p.shape[0], tag, np.int64))
 
-    def pile(self, center, radius_m, passes, tag, per_m2=1500.0, top_m=TOP_Z_M, bottom_m=GROUND_Z_M):
-        """The half of a vertical cylinder that faces each pass, ``per_m2`` points per m² seen."""
+    def pile(
+        self,
+        center,
+        radius_m,
+        passes,
+        tag,
+        per_m2=1500.0,
+        top_m=TOP_Z_M,
+        bottom_m=GROUND_Z_M,
+        lean_ne=(0.0, 0.0),
+    ):
+        """The half of a vertical cylinder that faces each pass, ``per_m2`` points per m² seen;
+        ``lean_ne``: its axis displaced that much (north, east) per metre up."""
         for pid in passes:
             view = _view(pid)
             side = np.cross([0.0, 0.0, 1.0], view)
@@ -76,7 +87,8 @@ class Scene:
             s = self.rng.uniform(-1.0, 1.0, (k, 1))  # uniform across the beam, as a scanner sees it
             radial = np.sqrt(1.0 - s * s) * view + s * side
             z = self.rng.uniform(top_m, bottom_m, (k, 1)) * np.array([0.0, 0.0, 1.0])
-            self._add(np.r_[center, 0.0] + radius_m * radial + z, pid, tag, view)
+            lean = -z[:, 2:] * np.array([lean_ne[0], lean_ne[1], 0.0])
+            self._add(np.r_[center, 0.0] + radius_m * radial + z + lean, pid, tag, view)
 
     def face(self, corner, u, half_u_m, top_m, bottom_m, passes, tag, per_m2=800.0):
         """A vertical rectangle from ``corner`` along ``u`` (2 × ``half_u_m``) between the heights
@@ -123,7 +135,7 @@ def _check_invariants(res: CylinderCandidates, n: int) -> None:
     m = len(res)
     assert set(res.rejected) == set(REASONS)
     assert m + sum(res.rejected.values()) == res.n_components
-    assert res.labels.shape == (n,)
+    assert res.labels.shape == res.leaning_points.shape == (n,)
     assert res.labels.min(initial=-1) >= -1
     assert res.labels.max(initial=-1) < m
     assert np.array_equal(res.n_points, np.bincount(res.labels[res.labels >= 0], minlength=m))
@@ -283,6 +295,26 @@ def test_a_thin_post_a_stub_and_a_glimpse_are_rejected_by_their_shape():
     assert len(scene.run(min_radius_m=0.05, min_height_m=0.5, min_arc_deg=30.0)) == 3
 
 
+def test_a_leaning_pile_is_rejected_and_an_upright_one_kept():
+    """The adjustment models upright cylinders: a pile leaning 0.5° (its axis 2.6 cm off over its
+    3 m) is rejected as ``leaning`` (0.3–1° biased roll by 1σ on montreal_piles), one leaning
+    0.03° is kept."""
+    scene = Scene(7)
+    slope = np.tan(np.radians(0.5))
+    scene.pile((2.0, 0.0), 0.3, (1, 2, 3), TAG_PILE, lean_ne=(0.6 * slope, 0.8 * slope))
+    small = np.tan(np.radians(0.03))
+    scene.pile((8.0, 0.0), 0.3, (1, 2, 3), TAG_PILE + 1, lean_ne=(small, 0.0))
+    res = scene.run()
+    assert len(res) == 1 and res.centers_m[0, 0] > 5.0, res.centers_m
+    assert res.rejected == {r: {"leaning": 1}.get(r, 0) for r in REASONS}
+    # the leaning pile's points are marked (no patch may be cut on them), the upright one's are not
+    tags = scene.tags
+    assert (
+        res.leaning_points[tags == TAG_PILE].mean() > 0.9 and not res.leaning_points[tags != TAG_PILE].any()
+    )
+    assert len(scene.run(max_lean_deg=1.0)) == 2
+
+
 def test_points_on_and_near_a_target_never_enter():
     scene = Scene(7)
     _quay(scene)
@@ -393,6 +425,7 @@ def test_a_million_points_run():
         ({"max_radius_m": 0.05}, "max_radius_m"),
         ({"min_height_m": -0.5}, "min_height_m"),
         ({"max_rms_m": 0.0}, "max_rms_m"),
+        ({"max_lean_deg": 0.0}, "max_lean_deg"),
         ({"min_arc_deg": 400.0}, "min_arc_deg"),
         ({"min_passes": 0}, "min_passes"),
         ({"min_points_per_pass": 2}, "min_points_per_pass"),

@@ -10,6 +10,7 @@ import pytest
 from calib.core.geometry import Rectangle, VerticalCylinder
 from calib.core.georef import georeference
 from calib.io.configfile import ConfigError
+from calib.sim.cylinders import LeaningCylinder
 from calib.sim.harbour import harbour_piles, harbour_surfaces
 from calib.sim.production import ProductionSpec, simulate_production
 from calib.sim.scanning import scan
@@ -97,6 +98,36 @@ def test_ray_cylinder_hits_equal_an_independent_solution():
     assert not out.hit.any()
 
 
+def _leaning(name, center, radius, height, slope_ne) -> LeaningCylinder:
+    return LeaningCylinder(
+        name=name, center_m=np.asarray(center, float), radius_m=radius, height_m=height, slope_ne=slope_ne
+    )
+
+
+def test_a_leaning_pile_is_hit_on_its_leaning_side_and_an_upright_one_as_before():
+    rng = np.random.default_rng(12)
+    n = 20000
+    o = np.column_stack([rng.uniform(-40, 40, n), rng.uniform(5, 40, n), rng.uniform(-6, 6, n)])
+    aim = np.column_stack([rng.uniform(-1, 1, n), rng.uniform(-1, 1, n), rng.uniform(-4, 4, n)])
+    d = aim - o
+    d /= np.linalg.norm(d, axis=1)[:, None]
+    upright = _cylinder("P", [0.0, 0.0, 0.0], 0.45, 6.0)
+    rho_v, in_v = Scene((), ("other",), cylinders=(upright,)).hit_range(0, *o.T, *d.T)
+    rho_0, in_0 = Scene(
+        (), ("other",), cylinders=(_leaning("P", [0, 0, 0], 0.45, 6.0, (0.0, 0.0)),)
+    ).hit_range(0, *o.T, *d.T)
+    assert np.array_equal(in_0, in_v) and np.allclose(rho_0[in_v], rho_v[in_v], rtol=0, atol=1e-9)
+    lean = _leaning("P", [0, 0, 0], 0.45, 6.0, (np.tan(np.radians(3.0)), np.tan(np.radians(-2.0))))
+    rho, inside = Scene((), ("other",), cylinders=(lean,)).hit_range(0, *o.T, *d.T)
+    x = o[inside] + rho[inside, None] * d[inside]
+    assert inside.sum() > 5000 and np.abs(lean.radial_distance_m(x) - 0.45).max() < 1e-9
+    # within its height: the ends are square to the axis, so a rim point lies up to r·sin(lean) beyond
+    assert np.abs(x[:, 2]).max() <= 3.0 + 0.45 * np.sin(np.arccos(-lean.axis_up[2])) + 1e-9
+    # the top leans north by tan 3° per metre up, the foot south: the hits follow the axis
+    top, foot = x[:, 2] < -2.0, x[:, 2] > 2.0
+    assert x[top, 0].mean() - x[foot, 0].mean() > 4.0 * np.tan(np.radians(3.0)) * 0.8
+
+
 def test_the_nearest_of_rectangles_and_cylinders_wins():
     wall = Rectangle.from_orientation(
         "wall", [0.0, 15.0, -3.0], 20.0, 6.0, np.pi / 2, np.radians(270.0), 0.25
@@ -164,6 +195,10 @@ def _sectored_hits(scene: Scene, sec, p, o, d, alpha):
 def test_sectors_hold_every_ray_that_hits_a_cylinder(seed):
     rng = np.random.default_rng(seed)
     cyls = _random_cylinders(rng, 10)
+    cyls[:3] = [  # three leaning up to 8°: their sectors grown by how far the axis strays
+        LeaningCylinder(**{**c.__dict__, "slope_ne": tuple(np.tan(np.radians(rng.uniform(-8, 8, 2))))})
+        for c in cyls[:3]
+    ]
     rects = _random_scene(rng, 6).rectangles
     scene = Scene(rects, ("other",) * 16, cylinders=tuple(cyls))
     n_poses, K = 40, 36000  # 0.01° between rays
@@ -294,6 +329,9 @@ def test_piles_in_a_scenario_file_become_cylinders():
     np.testing.assert_allclose(c.center_m, sc.site_to_lgf(6.0, 2.0, 2.25)[0])
     assert (c.radius_m, c.height_m, c.reflectivity) == (0.4, 7.5, 0.3)
     assert scene.cylinders[1].reflectivity == 0.5
+    leaning = parse_scenario(PILES_SCENE, overrides=["scene.piles.P1.lean_deg=[0, 2]"]).scene().cylinders[0]
+    assert isinstance(leaning, LeaningCylinder)  # 2° toward the water: its top moves out, to the west here
+    np.testing.assert_allclose(leaning.slope_ne, sc.site_to_lgf(0.0, np.tan(np.radians(2.0)), 0.0)[0, :2])
     shipped = load_scenario("montreal_piles")
     dia = [p.diameter_m for p in shipped.piles]
     assert 4 <= len(dia) <= 6
@@ -317,6 +355,11 @@ def test_piles_in_a_scenario_file_become_cylinders():
         ("scene.piles.P2.kind=target", r"scene\.piles\[1\]\.kind: got 'target', expected one of"),
         ("scene.piles.P2.along_m=x", r"scene\.piles\[1\]\.along_m: got 'x', expected a finite number"),
         ("scene.piles.P2.name=T", r"unique surface names \('T' appears twice\)"),
+        (
+            "scene.piles.P1.lean_deg=[25, 0]",
+            r"scene\.piles\[0\]\.lean_deg\[0\]: got 25, expected a number ≤ 20",
+        ),
+        ("scene.piles.P1.lean_deg=[1]", r"scene\.piles\[0\]\.lean_deg: .*expected a list of 2 numbers"),
     ],
 )
 def test_bad_pile_values_name_the_field(override, where):
