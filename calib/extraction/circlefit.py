@@ -103,7 +103,7 @@ def lean(d: np.ndarray, z: np.ndarray, circles: Circles, m: int) -> tuple[np.nda
     a = u * up[:, None]  # (n, 2) the residual's derivative by s
     e = circles.residual_m
     cand = circles.group_cand[g]
-    n11, n12, n22, b1, b2, ee, n = sums(
+    n11, n12, n22, b1, b2, ee = sums(
         cand,
         m,
         a[:, 0] ** 2,
@@ -112,8 +112,8 @@ def lean(d: np.ndarray, z: np.ndarray, circles: Circles, m: int) -> tuple[np.nda
         a[:, 0] * e,
         a[:, 1] * e,
         e * e,
-        np.ones(e.size),
     )
+    n = np.bincount(cand, minlength=m)
     det = n11 * n22 - n12**2
     with np.errstate(divide="ignore", invalid="ignore"):
         s1 = np.where(det > 0, (n22 * b1 - n12 * b2) / det, np.nan)

@@ -77,22 +77,18 @@ class PackedCylinders:
 
     @staticmethod
     def of(cylinders: tuple[VerticalCylinder, ...]) -> PackedCylinders:
+        grow = np.array([_lean_growth_m(c) for c in cylinders]).reshape(-1, 2)
         return PackedCylinders(
             center_m=np.array([np.asarray(c.center_m, float) for c in cylinders]).reshape(-1, 3),
-            radius_m=np.array(
-                [
-                    float(c.radius_m) + (c.slack_m if isinstance(c, LeaningCylinder) else 0.0)
-                    for c in cylinders
-                ]
-            ),
-            half_height_m=np.array(
-                [
-                    0.5 * float(c.height_m) + (c.rim_rise_m if isinstance(c, LeaningCylinder) else 0.0)
-                    for c in cylinders
-                ]
-            ),
+            radius_m=np.array([float(c.radius_m) for c in cylinders]) + grow[:, 0],
+            half_height_m=np.array([0.5 * float(c.height_m) for c in cylinders]) + grow[:, 1],
             reflectivity=np.array([float(c.reflectivity) for c in cylinders]),
         )
+
+
+def _lean_growth_m(c: VerticalCylinder) -> tuple[float, float]:
+    """How much a cylinder's sector prism grows in radius and half height for its lean."""
+    return (c.slack_m, c.rim_rise_m) if isinstance(c, LeaningCylinder) else (0.0, 0.0)
 
 
 def hit_range(cyl: VerticalCylinder, ox, oy, oz, dx, dy, dz) -> tuple[np.ndarray, np.ndarray]:
