@@ -15,8 +15,8 @@ with the in-process run's. The shorter session runs on 2 workers again, to show 
 memory per worker does not grow with the survey's length.
 
 Figures: returns read/s and points written/s (wall time of the whole job: plan, chunks, LAZ
-compression), speed-up 2 workers / 1 worker (goal ≥ 1.7 on the 2-core machine), peak resident
-memory per worker process (goal ≤ 1.5 GB at both lengths).
+compression), speed-up 2 workers / 1 worker (goal ≥ 1.8 on the 2-core machine, issue 29),
+peak resident memory per worker process (goal ≤ 1.5 GB at both lengths).
 
 Against the format and the sensor, from the in-process run (one core; CPU time of this process,
 steadier than wall time on a loaded machine): the LAZ ceiling — laspy + lazrs (one thread)
@@ -44,7 +44,7 @@ import _onecore  # noqa: F401  (first: BLAS on one thread)
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-GOAL_SPEEDUP = 1.7
+GOAL_SPEEDUP = 1.8
 GOAL_PEAK_MB = 1536.0
 GOAL_CEILING_RATIO = 0.75
 GOAL_CORE_S_PER_SURVEY_S = 0.25

@@ -32,7 +32,12 @@ from calib.boresight.adjust import AdjustmentResult, adjust
 from calib.boresight.gausshelmert import initial_state, plane_centers
 from calib.boresight.ghmodel import State, linearize
 from calib.boresight.gls import gls_information
-from calib.boresight.observations import AdjustOptions, Observations, build_observations
+from calib.boresight.observations import (
+    MIN_POINTS_PER_PLANE,
+    AdjustOptions,
+    Observations,
+    build_observations,
+)
 from calib.core import frames
 from calib.core.georef import Mount
 from calib.core.trajectory import Poses, Trajectory
@@ -149,13 +154,17 @@ def choose(
     max_patches: int = MAX_PATCHES,
     is_cylinder: np.ndarray | None = None,
     max_cylinders: int = MAX_CYLINDERS,
+    n_points: np.ndarray | None = None,
 ) -> tuple[list[int], list[float]]:
     """Greedy log-det selection over the candidates' ``info`` starting from ``base``, each
     adding at least :data:`MIN_GAIN`: at most ``max_patches`` of them. With ``is_cylinder``
     (per candidate) the cylinders have a budget of their own, ``max_cylinders``, and no least
     gain: the white weights of ``info`` let a hundred wall patches look as if they fixed yaw,
     which the GLS with the POS errors' correlation says they do not — on a harbour calibration
-    site three piles valued at a gain of 0.01 took the yaw bound from 44 to 28 mdeg."""
+    site three piles valued at a gain of 0.01 took the yaw bound from 44 to 28 mdeg.
+    ``n_points`` (per candidate): one with fewer than the adjustment takes
+    (:data:`~calib.boresight.observations.MIN_POINTS_PER_PLANE`) is never chosen — without a
+    least gain, a pile whose points a block's range window or thinning left out would be."""
     cyl = np.zeros(len(info), bool) if is_cylinder is None else np.asarray(is_cylinder, bool)
     budget = {False: max_patches, True: max_cylinders if is_cylinder is not None else 0}
     least = np.where(cyl, 0.0, MIN_GAIN)
@@ -164,6 +173,8 @@ def choose(
     current = base.copy()
     _, ld = np.linalg.slogdet(current)
     left = np.array([budget[bool(c)] > 0 for c in cyl], bool)
+    if n_points is not None:
+        left &= np.asarray(n_points) >= MIN_POINTS_PER_PLANE
     while left.any():
         scores = np.linalg.slogdet(current[None] + info)[1] - ld  # every candidate at once
         left &= scores >= least
@@ -236,7 +247,8 @@ def add_tie_patches(
         obs.l[:, 0:6] = np.column_stack([poses.p_lgf_m[idx], poses.rpy_rad[idx]])
     info = boresight_information(obs, mount_est, found.features)
     is_cylinder = np.arange(len(found.names)) >= found.n_patches
-    chosen, gains = choose(info, np.linalg.inv(cov_boresight), is_cylinder=is_cylinder)
+    counts = np.bincount(obs.plane_index, minlength=len(found.names))
+    chosen, gains = choose(info, np.linalg.inv(cov_boresight), is_cylinder=is_cylinder, n_points=counts)
     if not chosen:
         return None
     keep = np.isin(obs.plane_index, chosen)

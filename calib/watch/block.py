@@ -8,7 +8,8 @@ two or more consecutive lines whose headings differ (:func:`block_ready`); its p
 georeferenced with the **calibrated** mount, are cut into tie patches
 (:func:`calib.extraction.patches.extract_candidates`: planar cells seen by lines of different
 headings) and vertical cylinders (piles, posts: :func:`calib.boresight.scene_ties.tie_candidates`),
-the most informative are chosen (:func:`calib.boresight.scene_ties.choose`) and the
+the most informative patches and every pile up to a budget of their own are chosen
+(:func:`calib.boresight.scene_ties.choose`) and the
 boresight alone is adjusted against them with the GLS estimator
 (:func:`calib.boresight.adjust.adjust`, ``estimator="gls"``): the POS errors are Gauss–Markov
 processes estimated jointly, so a drift of the INS between two lines is not read as a mount
@@ -41,9 +42,16 @@ from calib.boresight.adjust import AdjustmentResult, adjust
 from calib.boresight.errormodel import ErrorModel
 from calib.boresight.observability import ObservabilityError, SingularError
 from calib.boresight.observations import AdjustmentError, AdjustOptions, Observations, build_observations
-from calib.boresight.scene_ties import TieCandidates, boresight_information, choose, tie_candidates
+from calib.boresight.scene_ties import (
+    MAX_CYLINDERS,
+    TieCandidates,
+    boresight_information,
+    choose,
+    tie_candidates,
+)
 from calib.core import frames
 from calib.core.georef import Mount
+from calib.core.sampling import random_subset
 from calib.core.trajectory import Trajectory
 from calib.extraction.cylinders import CylinderOptions
 from calib.extraction.patches import PatchError, PatchOptions
@@ -81,11 +89,15 @@ class WatchOptions:
     #: together, as the only planarity test)
     planar_noise_factor: float = 3.5
     max_patches: int = 60
+    #: tie cylinders (piles) beside the patches: a budget of their own and no least gain, as in a
+    #: calibration (:func:`calib.boresight.scene_ties.choose`): the white weights of the
+    #: selection let a wall's patches look as if they fixed yaw, which only the piles do
+    max_cylinders: int = MAX_CYLINDERS
     min_heading_spread_deg: float = 90.0  # a block needs two lines this far apart in heading
     max_lines_per_block: int = 3  # … among at most this many consecutive lines
     min_range_m: float = 2.0  # returns nearer are the vessel's own rails
     max_range_m: float = 60.0  # farther returns are sparse and their footprint is wide
-    max_points: int = 3_000_000  # a block's points are thinned evenly beyond this
+    max_points: int = 3_000_000  # a block's points are thinned at random beyond this
     #: a pile leaning more than this (as georeferenced at the block's mount) is not a tie
     #: cylinder (calib.extraction.cylinders: the model is upright)
     max_lean_deg: float = CylinderOptions().max_lean_deg
@@ -109,14 +121,25 @@ class WatchOptions:
     max_group_factor: float = 9.0
     #: the link test's false-rejection rate under the model (:func:`group_test`)
     group_alpha: float = 1e-3
+    #: a provisional estimate (a targetless round that is not the last: its features were cut at
+    #: a mount still tenths of a degree off): a failed group test is recorded
+    #: (:attr:`BlockEstimate.group_failed`) and the estimate kept, not a stop
+    provisional: bool = False
 
     def __post_init__(self):
         if not 0 < self.min_range_m < self.max_range_m:
             raise ValueError(
                 f"watch range window [{self.min_range_m}, {self.max_range_m}] m: expected 0 < min < max"
             )
-        if self.max_patches < 1 or self.max_points < 1000 or self.max_lines_per_block < 2:
-            raise ValueError("watch: max_patches ≥ 1, max_points ≥ 1000 and max_lines_per_block ≥ 2 expected")
+        if (
+            self.max_patches < 1
+            or self.max_cylinders < 0
+            or self.max_points < 1000
+            or self.max_lines_per_block < 2
+        ):
+            raise ValueError(
+                "watch: max_patches ≥ 1, max_cylinders ≥ 0, max_points ≥ 1000 and max_lines_per_block ≥ 2 expected"
+            )
 
 
 @dataclass(frozen=True)
@@ -154,6 +177,8 @@ class BlockEstimate:
     #: the link test (:func:`group_test`): the block's estimate against its groups' combination
     link_chi2: float = float("nan")
     link_df: int = 0
+    #: why the group test failed, for a provisional block that kept its estimate; None otherwise
+    group_failed: str | None = None
     #: the angles held at the calibrated value (not resolved to ``max_sigma_rad`` there)
     held: tuple[bool, ...] = (False, False, False)
     #: the adjustment behind the estimate, when asked for (``keep_result``; per-point arrays: the
@@ -204,6 +229,7 @@ class BlockEstimate:
             "group_df": self.group_df,
             "link_chi2": None if not np.isfinite(self.link_chi2) else float(self.link_chi2),
             "link_df": self.link_df,
+            "group_failed": self.group_failed,
             "held": list(self.held),
             "runtime_s": self.runtime_s,
         }
@@ -251,8 +277,7 @@ def site_error_model(site) -> ErrorModel:
 def _thin(points: ScanPoints, options: WatchOptions) -> ScanPoints:
     keep = (points.range_m >= options.min_range_m) & (points.range_m <= options.max_range_m)
     idx = np.flatnonzero(keep)
-    if idx.size > options.max_points:  # evenly in time: every k-th return
-        idx = idx[:: int(np.ceil(idx.size / options.max_points))]
+    idx = random_subset(idx, options.max_points, seed=0)
     return points.select(idx) if idx.size < len(points) else points
 
 
@@ -440,7 +465,7 @@ def _judged(
     test = group_test(
         fit.sub, mount, plane_init, pinned, groups, ~held, res, options.group_alpha, options.max_group_factor
     )
-    if test.failed is not None:
+    if test.failed is not None and not options.provisional:
         return _Stop(
             f"no verdict: {test.failed}",
             {
@@ -528,7 +553,10 @@ def estimate_block(
     obs = _patch_observations(pts, idx, trajectory, mount, cands, headings, sigmas)
     planes = cands.features
     info = boresight_information(obs, mount, planes)
-    chosen, _ = choose(info, np.eye(3) / SELECTION_PRIOR_RAD**2, options.max_patches)
+    is_cylinder = np.arange(len(cands.names)) >= cands.n_patches
+    counts = np.bincount(obs.plane_index, minlength=len(cands.names))
+    prior = np.eye(3) / SELECTION_PRIOR_RAD**2
+    chosen, _ = choose(info, prior, options.max_patches, is_cylinder, options.max_cylinders, counts)
     if not chosen:
         return BlockEstimate(**base, status="no tie patch adds information", n_candidates=n_candidates)
     adj = _adjust_options(mount, model, options)
@@ -553,6 +581,7 @@ def estimate_block(
         group_df=judged.test.df,
         link_chi2=judged.test.link_chi2,
         link_df=judged.test.link_df,
+        group_failed=judged.test.failed,
         held=tuple(bool(h) for h in judged.held),
         result=judged.res if keep_result else None,
         observations=fit.sub if keep_result else None,

@@ -80,6 +80,13 @@ def _rounds(rounds: list[dict]) -> list[str]:
         L.append(
             f"| {r['round']} | {step} | {r['largest_step_sigma']:.2f} | {r['n_features']} | {r['runtime_s']:.0f} s |"
         )
+    failed = [r for r in rounds if r.get("group_failed")]
+    if failed:
+        L += [""] + [
+            f"Round {r['round']} failed its group test ({r['group_failed']}): its features were cut at a "
+            "mount still far off, so its estimate only started the next round."
+            for r in failed
+        ]
     return L
 
 

@@ -5,13 +5,13 @@ SESSION`` without targets: :func:`thinned_bundle`).
 The lines are the passes marked in /events (a bundle: its pass ids) or, in a session without
 marks, the straight runs of the vessel's heading, cut by the daemon's own
 :class:`acquire.watch.lines.LineCutter` fed the trajectory. The returns are read chunk by chunk
-(:func:`office.deliver.sources.read_chunk`) and thinned evenly in time per chunk, so an hour of
-survey at the profiler's full rate is never in memory at once.
+(:func:`office.deliver.sources.read_chunk`) and thinned to the budget per chunk by a seeded
+random draw (:func:`calib.core.sampling.random_subset`), so an hour of survey at the profiler's
+full rate is never in memory at once.
 """
 
 from __future__ import annotations
 
-import math
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -19,6 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from acquire.watch.lines import MIN_LINE_S, LineCutter
+from calib.core.sampling import random_subset
 from calib.io.bundle import ScanPoints
 from office.deliver.options import GeorefError
 from office.deliver.sources import Source, open_source, read_chunk
@@ -65,7 +66,7 @@ def survey_lines(src: Source, min_line_s: float, warnings: list[str]) -> list[tu
 def collect_points(
     src: Source, lines, max_points_per_s: float, progress=None, skip_packets: bool = False
 ) -> ScanPoints:
-    """The returns on the lines, thinned evenly to ``max_points_per_s`` per chunk (chunks off
+    """The returns on the lines, thinned to ``max_points_per_s`` per chunk (chunks off
     the lines are not read). ``skip_packets``: the next chunk decodes only the share of its
     datagrams that yields about twice its budget (:func:`_next_share`,
     :func:`~office.deliver.sources.read_session_chunk`): at the profiler's full rate most of
@@ -84,8 +85,7 @@ def collect_points(
             budget = max(1, int(max_points_per_s * span_s))
             if skip_packets:
                 share = _next_share(share, idx.size, budget, on_lines_s / span_s)
-            if idx.size > budget:
-                idx = idx[:: int(math.ceil(idx.size / budget))]
+            idx = random_subset(idx, budget, spec.index)
             if idx.size:
                 parts.append(
                     ScanPoints(
@@ -151,7 +151,7 @@ def thinned_bundle(
     progress: Callable[[str, float, float | None], None] | None = None,
 ) -> ThinnedSurvey:
     """A session's (or a bundle's) lines as a calibration bundle of at most ``max_points``
-    returns, thinned evenly over the line time: what a targetless calibration of a whole survey
+    returns, thinned at random over the line time: what a targetless calibration of a whole survey
     reads (it uses no more), without exporting every return of it."""
     from calib.io.bundle import write_bundle
 
@@ -159,11 +159,10 @@ def thinned_bundle(
     warnings = list(src.warnings)
     lines = survey_lines(src, min_line_s, warnings)
     line_s = sum((b - a) / NS_PER_S for _, a, b in lines)
-    # twice the share: a chunk keeps every k-th return (between half and all of its share), and
-    # chunks partly off the lines take their whole span's; then evenly down to max_points
+    # twice the share: chunks partly off the lines take their whole span's budget and may have
+    # fewer returns on the lines than that; then down to max_points by one more draw
     points = collect_points(src, lines, 2 * max_points / max(line_s, 1e-3), progress, skip_packets=True)
-    if len(points) > max_points:
-        points = points.select(np.linspace(0, len(points) - 1, max_points).astype(np.int64))
+    points = points.select(random_subset(np.arange(len(points)), max_points, seed=len(src.chunks)))
     if progress is not None:
         progress("writing the thinned bundle", 0, None)
     bundle = write_bundle(bundle_dir, src.site, src.trajectory, points)

@@ -3,8 +3,9 @@ daemon runs it live (:mod:`calib.watch`), with its report (:mod:`calib.watch.rep
 
 The survey is read as ``mls georef`` reads it (:func:`office.deliver.sources.open_source`), its
 lines and their returns as :mod:`office.deliver.surveylines` reads them: the marked passes or
-the straight runs of the heading; returns thinned evenly to ``max_points_per_s`` as the daemon
-thins them, so the offline verdict is the live one."""
+the straight runs of the heading; returns thinned to ``max_points_per_s`` (a seeded random draw per
+chunk; the daemon combs each profile at a shifting phase: both sample every sector of the profile
+alike), so the offline verdict is the live one."""
 
 from __future__ import annotations
 

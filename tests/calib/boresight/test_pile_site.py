@@ -91,6 +91,10 @@ def test_the_cylinders_have_a_budget_of_their_own_and_no_least_gain():
     # without kinds: one budget, the least gain for all (the piles are not worth their planes)
     plain, _ = choose(info, eye, max_patches=20)
     assert len(plain) == 8 and not any(is_cyl[j] for j in plain)
+    # a pile with fewer points than the adjustment takes is never chosen, however few compete
+    counts = np.array([50] * 8 + [9, 40, 0])
+    few, _ = choose(info, eye, max_patches=4, is_cylinder=is_cyl, max_cylinders=3, n_points=counts)
+    assert sorted(j for j in few if is_cyl[j]) == [9]
 
 
 def test_piles_leaning_like_driven_piles_are_left_out_not_fitted_upright():

@@ -17,7 +17,9 @@ from typer.testing import CliRunner
 from calib.assess.history import record_result, validate_result
 from calib.sim.production import ProductionSpec, simulate_production
 from calib.sim.simulate import simulate
+from calib.watch import targetless
 from calib.watch.targetless import SETTLED_SIGMA, TARGETLESS_OPTIONS, TargetlessError, calibrate_targetless
+from calib.watch.targetlessreport import report_lines
 from cli.app import app
 
 ANGLES = ("roll", "pitch", "yaw")
@@ -85,6 +87,35 @@ def test_an_angle_the_scene_cannot_determine_keeps_its_a_priori_value(two_offset
         assert doc["sigma_realistic_deg"]["yaw"] > 0.1
     err = angles_rad(doc, "boresight_deg")[:2] - np.asarray(two_offsets.mount_true.boresight_rad)[:2]
     assert np.all(np.abs(err) < 4 * angles_rad(doc, "sigma_realistic_deg")[:2])
+
+
+#: an a-priori boresight 1.5° off on every angle: the first round's features, cut at it, disagree
+#: between groups (χ² ≈ 500 over 15 degrees of freedom, limit 135)
+FAR_OFF_DEG = np.array([1.5, 1.5, 1.5])
+
+
+def far_off_run(sim):
+    apriori = np.asarray(sim.mount_true.boresight_rad) + np.radians(FAR_OFF_DEG)
+    return calibrate_targetless(
+        sim.site, sim.trajectory_observed, sim.points, apriori_rad=apriori, options=OPTIONS
+    )
+
+
+def test_a_first_round_whose_groups_disagree_carries_its_estimate_to_the_next(two_offsets):
+    run = far_off_run(two_offsets)
+    rounds = run.doc["rounds"]
+    assert rounds[0]["group_failed"].startswith("its tie patch groups disagree"), rounds[0]
+    assert rounds[-1]["group_failed"] is None and len(rounds) >= 3
+    err = angles_rad(run.doc, "boresight_deg") - np.asarray(two_offsets.mount_true.boresight_rad)
+    assert np.all(np.abs(err) < 4 * angles_rad(run.doc, "sigma_realistic_deg")), np.degrees(err)
+    assert run.verdict.status == "trusted"
+    assert "Round 1 failed its group test" in "\n".join(report_lines(run, None))
+
+
+def test_the_last_rounds_failed_group_test_is_no_calibration(two_offsets, monkeypatch):
+    monkeypatch.setattr(targetless, "MAX_ROUNDS", 1)  # the first round is the last
+    with pytest.raises(TargetlessError, match="no verdict: its tie patch groups disagree"):
+        far_off_run(two_offsets)
 
 
 def test_lines_of_one_heading_are_no_calibration(two_offsets):
