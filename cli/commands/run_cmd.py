@@ -165,7 +165,7 @@ def _export_thinned(session: Path, bundle_dir: Path, console, columns) -> Path:
         _fail(f"{session}: its lines could not be read for a targetless calibration: {e}")
     console.print(
         f"read {res.n_lines} lines ({res.line_seconds / 60:.1f} min) of the session: {res.n_points:,} returns "
-        f"kept evenly in time, in {res.bundle}",
+        f"drawn at random over the lines, in {res.bundle}",
         highlight=False,
     )
     _warn(res.warnings)
