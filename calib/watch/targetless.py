@@ -49,7 +49,7 @@ MAX_ROUNDS = 4
 SETTLED_SIGMA = 3.0
 #: the estimator's options for a whole survey: more features than a block, a prior that only
 #: keeps the system regular (5°), an angle held only when the scene cannot determine it, and the
-#: returns thinned evenly to 1 M a round — the σ is the POS errors' and the features' roughness,
+#: returns thinned at random to 1 M a round — the σ is the POS errors' and the features' roughness,
 #: not the point count's (a 15-min survey: roll σ 3.3 mdeg from 0.44 M points, 3.1 from 0.88 M),
 #: and a round's CPU grows with the points (issue 27's ceiling: 5 min for a 1-h survey)
 TARGETLESS_OPTIONS = WatchOptions(

@@ -41,8 +41,8 @@ RUN_HELP = (
     "watch's estimator over the whole survey from the a-priori mount, repeated until it settles; "
     "the report compares it with the last calibration with targets in the history. A session is "
     "then not exported whole: its lines (the marked passes, else the straight runs of the heading, "
-    "as mls watch cuts them) are read chunk by chunk and thinned evenly in time to the returns the "
-    "calibration uses (1 M), written to OUT/bundle.\n\n"
+    "as mls watch cuts them) are read chunk by chunk and thinned at random (seeded) to the returns "
+    "the calibration uses (1 M), written to OUT/bundle.\n\n"
     "Example: mls sim dataset --scenario montreal --out sim-mtl && mls calib run sim-mtl "
     "--mount lidar-2024"
 )
@@ -149,7 +149,7 @@ def _export(session: Path, bundle_dir: Path, console, columns) -> Path:
 
 def _export_thinned(session: Path, bundle_dir: Path, console, columns) -> Path:
     """A targetless calibration's bundle of a recorded session: its lines (marked passes, else
-    the straight runs of the heading) thinned evenly to the returns the calibration uses."""
+    the straight runs of the heading) thinned at random to the returns the calibration uses."""
     from rich.progress import Progress
 
     from calib.core.errors import MlsError

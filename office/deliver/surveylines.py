@@ -1,4 +1,4 @@
-"""A finished survey's lines and their returns, thinned evenly, as the mount watch reads them
+"""A finished survey's lines and their returns, thinned at random, as the mount watch reads them
 (``mls watch``) and as a targetless calibration of a session reads them (``mls calib run
 SESSION`` without targets: :func:`thinned_bundle`).
 
