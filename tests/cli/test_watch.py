@@ -19,6 +19,9 @@ from calib.sim.production import MountEvent, ProductionSpec, simulate_production
 from cli.app import app
 from office.deliver.surveylines import lines_from_heading
 
+#: one worker computes the module's costly fixtures once (spread over two, each computed them)
+pytestmark = pytest.mark.xdist_group("cli-watch")
+
 ENV = {"COLUMNS": "250"}
 
 

@@ -41,6 +41,9 @@ from calib.sim.scenariofile import load_scenario
 from calib.sim.simulate import simulate
 from cli.app import app
 
+#: one worker computes the module's costly fixtures once (spread over two, each computed them)
+pytestmark = pytest.mark.xdist_group("design-study")
+
 SEEDS = range(20)
 #: Gauss–Markov POS errors of a montreal-like survey: 1 cm, 0.005°, 20 s on every channel.
 GM = PosNoise(

@@ -21,6 +21,9 @@ from calib.watch.block import site_error_model, site_sigmas
 from calib.watch.runner import WatchRun, run_watch
 from calib.watch.sequential import MountTest
 
+#: one worker computes the module's costly fixtures once (spread over two, each computed them)
+pytestmark = pytest.mark.xdist_group("watch-honesty")
+
 FOREIGN = Path(__file__).resolve().parents[2] / "data" / "foreign"
 MAX_Z = 4.0  # |Δ − truth| / σ of an angle with a verdict
 
