@@ -269,8 +269,9 @@ def main() -> None:
 def budget_solve_fraction(budget_per_s: float = 20_000.0) -> float:
     """CPU seconds per survey second of the first block's solve with the returns thinned to the
     daemon's budget, on a survey dense enough to fill it."""
+    from calib.extraction.points import line_headings
     from calib.watch.block import estimate_block, site_error_model, site_sigmas
-    from calib.watch.runner import BlockCutter, line_headings
+    from calib.watch.runner import BlockCutter
     from calib.watch.sequential import FAMILIES
 
     sim = survey(300, 0.0, 0.3, n_lines=3)

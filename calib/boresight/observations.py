@@ -72,6 +72,15 @@ class Observations:
             self.beam_half_divergence_rad,
         )
 
+    def of_planes(self, order: list[int]) -> Observations:
+        """The observations of the planes ``order`` (sorted indices into ``plane_names``),
+        renumbered, every one of them a tie patch."""
+        sub = self.select(np.isin(self.plane_index, order))
+        sub.plane_index = np.searchsorted(order, sub.plane_index)
+        sub.plane_names = [self.plane_names[j] for j in order]
+        sub.patch_planes = tuple(range(len(order)))
+        return sub
+
 
 def build_observations(
     trajectory: Trajectory,

@@ -246,17 +246,12 @@ def add_tie_patches(
     if poses is not None:
         obs.l[:, 0:6] = np.column_stack([poses.p_lgf_m[idx], poses.rpy_rad[idx]])
     info = boresight_information(obs, mount_est, found.features)
-    is_cylinder = np.arange(len(found.names)) >= found.n_patches
     counts = np.bincount(obs.plane_index, minlength=len(found.names))
-    chosen, gains = choose(info, np.linalg.inv(cov_boresight), is_cylinder=is_cylinder, n_points=counts)
+    chosen, gains = choose(info, np.linalg.inv(cov_boresight), is_cylinder=found.is_cylinder, n_points=counts)
     if not chosen:
         return None
-    keep = np.isin(obs.plane_index, chosen)
-    sub = obs.select(keep)
     order = sorted(chosen)
-    sub.plane_index = np.searchsorted(order, sub.plane_index)
-    sub.plane_names = [found.names[j] for j in order]
-    sub.patch_planes = tuple(range(len(order)))
+    sub = obs.of_planes(order)
     gain = [gains[chosen.index(j)] for j in order]
     return TiePatches(
         concat(targets, sub),
@@ -281,6 +276,11 @@ class TieCandidates:
     @property
     def n_patches(self) -> int:
         return 0 if self.patches is None else len(self.patches.names)
+
+    @property
+    def is_cylinder(self) -> np.ndarray:
+        """(m,) bool: which features are cylinders (they follow the patches)."""
+        return np.arange(len(self.names)) >= self.n_patches
 
     @property
     def centers_m(self) -> np.ndarray:

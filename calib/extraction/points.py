@@ -9,8 +9,12 @@ import numpy as np
 
 from calib.core import frames
 from calib.core.georef import Mount, georeference, georeference_poses
+from calib.core.sampling import random_subset
 from calib.core.trajectory import Poses, Trajectory
 from calib.io.bundle import ScanPoints
+
+#: returns per line whose trajectory heading is averaged into the line's heading
+HEADING_SAMPLES = 5000
 
 
 def georeference_passes(
@@ -51,3 +55,17 @@ def pass_headings(
         mean = np.arctan2(np.mean(np.sin(h)), np.mean(np.cos(h)))
         out[int(p)] = float(frames.wrap_2pi(mean - wall_azimuth_rad))
     return out
+
+
+def line_headings(
+    points: ScanPoints, trajectory: Trajectory, wall_azimuth_rad: float, time_offset_s: float = 0.0
+) -> dict[int, float]:
+    """:func:`pass_headings` of each line from at most :data:`HEADING_SAMPLES` of its returns
+    drawn at random (seeded): a line's heading varies slowly, and interpolating the trajectory
+    at every return took a fifth of a watch block's CPU."""
+    pid = points.pass_id
+    pick = np.concatenate(
+        [random_subset(np.flatnonzero(pid == p), HEADING_SAMPLES, seed=int(p)) for p in points.pass_ids()]
+    )
+    yaw = trajectory.interpolate(points.t_gps_s[pick] + time_offset_s).rpy_rad[:, 2]
+    return pass_headings(yaw, pid[pick], wall_azimuth_rad)

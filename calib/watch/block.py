@@ -55,7 +55,7 @@ from calib.core.sampling import random_subset
 from calib.core.trajectory import Trajectory
 from calib.extraction.cylinders import CylinderOptions
 from calib.extraction.patches import PatchError, PatchOptions
-from calib.extraction.points import georeference_passes, pass_headings
+from calib.extraction.points import georeference_passes, line_headings
 from calib.io.bundle import ScanPoints
 from calib.watch.patchtests import (
     HOLD_SIGMA_RAD,
@@ -65,7 +65,6 @@ from calib.watch.patchtests import (
     moved_planes,
     patch_groups,
     pinned_correction,
-    planes_subset,
     sigma_at_calibrated,
     unresolved,
 )
@@ -290,12 +289,6 @@ def _block_span(points: ScanPoints) -> dict[str, Any]:
     }
 
 
-def _line_headings(pts: ScanPoints, trajectory: Trajectory, mount: Mount, wall_azimuth_rad: float):
-    """Each line's heading relative to the wall (radians, by line id)."""
-    yaw = trajectory.interpolate(pts.t_gps_s + mount.time_offset_s).rpy_rad[:, 2]
-    return pass_headings(yaw, pts.pass_id, wall_azimuth_rad)
-
-
 @dataclass(frozen=True)
 class _Stop:
     """A block that carries no estimate: why (its ``status``) and what it found that far."""
@@ -393,7 +386,7 @@ def _fit_without_moved(
     rounds = 0
     while True:
         order = sorted(chosen)
-        sub = planes_subset(obs, order, names)
+        sub = obs.of_planes(order)
         try:
             res = adjust(sub, mount, [planes[j] for j in order], adj)
         except _NOT_SOLVED as e:
@@ -539,7 +532,7 @@ def estimate_block(
     base = _block_span(points)
     if len(pts) == 0:
         return BlockEstimate(**base, headings_deg=(), status="no returns in the range window")
-    headings = _line_headings(pts, trajectory, mount, wall_azimuth_rad)
+    headings = line_headings(pts, trajectory, wall_azimuth_rad, mount.time_offset_s)
     base["headings_deg"] = tuple(float(np.degrees(headings[int(p)]) % 360.0) for p in pts.pass_ids())
     if not block_ready(headings.values(), options):
         return BlockEstimate(**base, status="lines of one heading")
@@ -553,10 +546,9 @@ def estimate_block(
     obs = _patch_observations(pts, idx, trajectory, mount, cands, headings, sigmas)
     planes = cands.features
     info = boresight_information(obs, mount, planes)
-    is_cylinder = np.arange(len(cands.names)) >= cands.n_patches
     counts = np.bincount(obs.plane_index, minlength=len(cands.names))
     prior = np.eye(3) / SELECTION_PRIOR_RAD**2
-    chosen, _ = choose(info, prior, options.max_patches, is_cylinder, options.max_cylinders, counts)
+    chosen, _ = choose(info, prior, options.max_patches, cands.is_cylinder, options.max_cylinders, counts)
     if not chosen:
         return BlockEstimate(**base, status="no tie patch adds information", n_candidates=n_candidates)
     adj = _adjust_options(mount, model, options)

@@ -7,7 +7,6 @@ link tests of the patches split along the scene (:func:`patch_groups`, :func:`gr
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
-from typing import Any
 
 import numpy as np
 
@@ -36,7 +35,8 @@ def curved_patches(
         return np.zeros(0, np.int64)
     pid = pass_id[on].astype(np.int64)
     pid -= pid.min()
-    key = labels[on].astype(np.int64) * (int(pid.max()) + 1) + pid
+    n_lines = int(pid.max()) + 1
+    key = labels[on].astype(np.int64) * n_lines + pid
     keys, group = np.unique(key, return_inverse=True)
     n = np.bincount(group, minlength=keys.size).astype(float)
     q = p_lgf_m[on]
@@ -48,17 +48,8 @@ def curved_patches(
             cov[:, a, b] = cov[:, b, a] = np.bincount(group, d[:, a] * d[:, b], keys.size)
     judged = n >= 3
     smallest = np.linalg.eigvalsh(cov[judged] / (n[judged] - 1.0)[:, None, None])[:, 0]
-    curved = keys[judged][np.sqrt(np.maximum(smallest, 0.0)) > max_rms_m] // (int(pid.max()) + 1)
+    curved = keys[judged][np.sqrt(np.maximum(smallest, 0.0)) > max_rms_m] // n_lines
     return np.unique(curved)
-
-
-def planes_subset(obs, order: list[int], names) -> Any:
-    """The observations of the planes ``order`` (indices into ``names``), renumbered."""
-    sub = obs.select(np.isin(obs.plane_index, order))
-    sub.plane_index = np.searchsorted(order, sub.plane_index)
-    sub.plane_names = [names[j] for j in order]
-    sub.patch_planes = tuple(range(len(order)))
-    return sub
 
 
 def patch_groups(centers_m: np.ndarray, max_groups: int) -> list[np.ndarray] | None:
@@ -143,7 +134,7 @@ def group_test(
     deltas, infos = [], []
     for g in groups:
         order = sorted(int(j) for j in g)
-        part = planes_subset(sub, order, sub.plane_names)
+        part = sub.of_planes(order)
         try:
             r = adjust(part, mount, [planes[j] for j in order], adj)
         except (ObservabilityError, AdjustmentError, np.linalg.LinAlgError):

@@ -20,9 +20,9 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from calib.boresight.errormodel import ErrorModel
-from calib.core import frames
 from calib.core.georef import Mount
 from calib.core.trajectory import Trajectory
+from calib.extraction.points import line_headings
 from calib.io.bundle import ScanPoints
 from calib.watch.block import BlockEstimate, WatchOptions, block_ready, estimate_block
 from calib.watch.sequential import FAMILIES, MountAlarm, MountTest, WatchDesign
@@ -89,18 +89,6 @@ class BlockCutter:
     def kept(self) -> list[int]:
         """The ids of the lines a later block may still take."""
         return [i for _, i, _ in self.recent]
-
-
-def line_headings(points: ScanPoints, trajectory: Trajectory, wall_azimuth_rad: float) -> dict[int, float]:
-    """Each line's mean heading relative to the wall (radians), from the trajectory at its
-    returns (every 50th suffices)."""
-    out = {}
-    for pid in points.pass_ids():
-        t = points.t_gps_s[points.pass_id == pid][::50]
-        yaw = trajectory.interpolate(t).rpy_rad[:, 2]
-        mean = np.arctan2(np.mean(np.sin(yaw)), np.mean(np.cos(yaw)))
-        out[int(pid)] = float(frames.wrap_2pi(mean - wall_azimuth_rad))
-    return out
 
 
 @dataclass
