@@ -16,7 +16,12 @@ Misspecified scenes (the estimator's model assumes neither): ``--wavy-wall`` (th
 4.5 cm RMS wavy over 1.5–6 m instead of 1 cm over 3–8 m) and ``--moving-hulls`` (the moored hulls
 heave, sway, roll and drift between lines): the coverage must hold.
 
-    .venv/bin/python benchmarks/targetless.py [--seeds 10] [--lines 6] [--wavy-wall] [--moving-hulls] [--quick]
+    .venv/bin/python benchmarks/targetless.py [--seeds 10] [--first-seed 0] [--jobs 1] [--lines 6]
+        [--wavy-wall] [--moving-hulls] [--quick]
+
+The 2σ coverage carries its 95 % (Wilson) interval: over 20 surveys a coverage of 90 % is
+anywhere in 70–97 %; 100 surveys (``--seeds 100 --jobs 2``, ~20 min on 2 cores) tell 92 % from
+85 %.
 """
 
 from __future__ import annotations
@@ -24,6 +29,7 @@ from __future__ import annotations
 import argparse
 import sys
 import time
+from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
 import _onecore  # noqa: F401  (first: BLAS on one thread)
@@ -75,6 +81,14 @@ def one_seed(seed: int, args) -> dict:
     }
 
 
+def wilson_interval(hits: int, n: int, z: float = 1.96) -> tuple[float, float]:
+    """The Wilson score interval of a proportion ``hits / n`` (95 % at z = 1.96): over 20
+    surveys a 2σ coverage of 90 % is anywhere in 70–97 %, over 100 in 83–95 %."""
+    p, d = hits / n, 1.0 + z * z / n
+    mid, half = (p + z * z / (2 * n)) / d, z * np.sqrt(p * (1 - p) / n + z * z / (4 * n * n)) / d
+    return float(mid - half), float(mid + half)
+
+
 def summarize(rows: list[dict]) -> None:
     good = [r for r in rows if r["ok"]]
     print(
@@ -93,11 +107,13 @@ def summarize(rows: list[dict]) -> None:
         e, s = err[free, i], sig[free, i]
         rms, mean_s = float(np.sqrt(np.mean(e**2))), float(np.mean(s))
         bound = float(np.sqrt(np.mean(crlb[free, i] ** 2)))
-        cover = float(np.mean(np.abs(e) <= 2 * s))
+        hits = int(np.count_nonzero(np.abs(e) <= 2 * s))
+        cover, (lo, hi) = hits / e.size, wilson_interval(hits, e.size)
         goal = "ok" if 0.92 <= cover <= 0.98 or (cover > 0.98 and rms <= mean_s) else "MISSED"
         print(
             f"  {a:<5} RMS {1e3 * np.degrees(rms):6.1f} mdeg  mean σ {1e3 * np.degrees(mean_s):6.1f} mdeg  "
-            f"RMS/σ {rms / mean_s:4.2f}  2σ coverage {100 * cover:5.1f} % [{goal}]  held {int((~free).sum())}"
+            f"RMS/σ {rms / mean_s:4.2f}  2σ coverage {100 * cover:5.1f} % (95 % interval "
+            f"{100 * lo:.0f}–{100 * hi:.0f} %) [{goal}]  held {int((~free).sum())}"
         )
         planar_bound = float(np.sqrt(np.nanmean(planar[free, i] ** 2)))
         print(
@@ -117,6 +133,8 @@ def summarize(rows: list[dict]) -> None:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--seeds", type=int, default=10)
+    ap.add_argument("--first-seed", type=int, default=0)
+    ap.add_argument("--jobs", type=int, default=1, help="surveys calibrated at once (one core each)")
     ap.add_argument("--lines", type=int, default=6)
     ap.add_argument("--line-length-m", type=float, default=250.0)
     ap.add_argument("--offsets", type=float, nargs="+", default=[12.0, 20.0, 30.0])
@@ -139,17 +157,22 @@ def main() -> None:
         f"a priori within ±{args.apriori_deg}° of the truth"
     )
     rows = []
-    for seed in range(args.seeds):
-        rows.append(one_seed(seed, args))
-        r = rows[-1]
-        text = (
-            f"err {np.round(1e3 * np.degrees(r['err']), 1)} mdeg, σ {np.round(1e3 * np.degrees(r['sigma']), 1)}, "
-            f"{r['verdict']}, {r['rounds']} rounds, {r['cpu_s']:.0f} s"
-            if r["ok"]
-            else r["why"][:100]
-        )
-        print(f"  seed {seed}: {text}", flush=True)
+    seeds = range(args.first_seed, args.first_seed + args.seeds)
+    with ProcessPoolExecutor(args.jobs) as pool:
+        for r in pool.map(one_seed, seeds, [args] * len(seeds)):
+            rows.append(r)
+            print_seed(r)
     summarize(rows)
+
+
+def print_seed(r: dict) -> None:
+    text = (
+        f"err {np.round(1e3 * np.degrees(r['err']), 1)} mdeg, σ {np.round(1e3 * np.degrees(r['sigma']), 1)}, "
+        f"{r['verdict']}, {r['rounds']} rounds, {r['cpu_s']:.0f} s"
+        if r["ok"]
+        else r["why"][:100]
+    )
+    print(f"  seed {r['seed']}: {text}", flush=True)
 
 
 if __name__ == "__main__":
