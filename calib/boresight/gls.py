@@ -299,17 +299,16 @@ def _write_rows(work: _Work, lin, layout: Layout, obs: Observations, fr: _Frame,
     return m
 
 
-def scanner_residuals(lin, obs: Observations, k: np.ndarray, plane_var_m2: np.ndarray) -> np.ndarray:
+def scanner_residuals(lin, obs: Observations, k: np.ndarray, plane_var_m2: np.ndarray, cylinder_rows=None):
     """v (n, 2): the range and scan-angle residuals of the Gauss–Helmert adjustment for the
-    correlates ``k`` (``C⁻¹`` times the misclosures after the fit: ``ε/m`` here), ``−Q Bᵀ k``
-    (in blocks of points).
-
+    correlates ``k`` (``C⁻¹`` times the misclosures after the fit: ``ε/m`` here), ``−Q Bᵀ k``.
     The range's ``Q`` holds the plane's roughness as well, at ``σ²/cos²θ`` (incidence θ): a
     surface standing off its plane by s moves the return along the beam by s/cos θ, exactly as
     range noise does, and biases the angles the same way (the foreign bundles' wavy walls: yaw
     0.25° → 0.08° on a 45° line). Each residual is kept within ±:data:`MAX_RESIDUAL_SIGMA` of
     its σ: far from the solution, or at an outlier, a misclosure is not noise and must not move
-    the linearization far."""
+    the linearization far. The points of ``cylinder_rows`` (on piles) keep v = 0: linearized
+    at the adjusted points the iteration could cycle (docs/architecture.md §7.3)."""
     n = len(obs)
     out = np.empty((n, 2))
     for lo in range(0, n, POINT_BLOCK):
@@ -321,6 +320,8 @@ def scanner_residuals(lin, obs: Observations, k: np.ndarray, plane_var_m2: np.nd
         sigma = np.stack([np.sqrt(q_range), obs.sigma_l[sl, 7]], axis=1)
         v = -(sigma**2) * B[:, 6:8] * k[sl, None]
         np.clip(v, -MAX_RESIDUAL_SIGMA * sigma, MAX_RESIDUAL_SIGMA * sigma, out=out[sl])
+    if cylinder_rows is not None:
+        out[cylinder_rows] = 0.0
     return out
 
 
@@ -515,7 +516,8 @@ def solve_gls(
         # the white part of each misclosure after the fit: F + A dx + J z
         e = white_misclosure(work.plan, sys.m, dx, z, out=work.e)
         state = _apply(state, dx, layout, bases)
-        v = scanner_residuals(lin, obs, np.divide(e, sys.m, out=work.k), pv)
+        k = np.divide(e, sys.m, out=work.k)
+        v = scanner_residuals(lin, obs, k, pv, state.cylinder_rows(obs.plane_index))
         if state.cylinders is not None:
             pos_c = pos_errors(work.knots, z)
         settled = True

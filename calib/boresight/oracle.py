@@ -129,7 +129,9 @@ def dense_gls(
         if state.cylinders is not None:
             pos_c = pos_errors(lin, obs, model, k)
         state = _apply(state, dx, layout, bases)
-        v = scanner_residuals(lin, obs, k, np.zeros(len(obs.plane_names)))
+        v = scanner_residuals(
+            lin, obs, k, np.zeros(len(obs.plane_names)), state.cylinder_rows(obs.plane_index)
+        )
         if step_converged(dx, layout, options, N, it) and it > 1:
             break
     return OracleResult(

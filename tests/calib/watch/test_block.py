@@ -160,7 +160,7 @@ def test_a_feature_its_own_points_leave_free_is_dropped_not_the_block():
     radius and centre free (the normal equations singular along them); the block drops it, names
     it, and solves on the rest instead of giving up."""
     sim = simulate_production(
-        "montreal", ProductionSpec(n_lines=2, line_length_m=150.0, rate_scale=0.005), seed=22
+        "montreal", ProductionSpec(n_lines=2, line_length_m=150.0, rate_scale=0.005), seed=23
     )
     off = sim.mount_true.with_boresight(
         np.asarray(sim.mount_true.boresight_rad) + np.radians([0.3, -0.25, 0.35])
