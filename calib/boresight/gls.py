@@ -67,7 +67,6 @@ from functools import cached_property
 
 import numpy as np
 import scipy.sparse as sp
-from scipy.linalg.blas import dsyrk
 from scipy.linalg.lapack import dpbtrf, dtbtrs
 
 from calib.boresight.errormodel import ErrorModel
@@ -85,7 +84,6 @@ from calib.boresight.gausshelmert import (
 from calib.boresight.ghmodel import Linearization, State, linearize, tangent_bases
 from calib.boresight.observability import ObservabilityError
 from calib.boresight.observations import AdjustOptions, Observations
-from calib.boresight.work.banded import BlockSolver, block_layout
 from calib.boresight.work.dense import CholeskyFactor
 from calib.boresight.work.linearization import LinearizationBuffers
 from calib.boresight.work.normals import (
@@ -99,6 +97,7 @@ from calib.boresight.work.normals import (
     white_misclosure,
     x_groups,
 )
+from calib.boresight.work.schur import KnotSchur
 from calib.boresight.work.sparse import design_matrix, knot_matrix
 
 CHANNELS = 6
@@ -372,11 +371,12 @@ def pos_errors(knots: KnotWeights, z: np.ndarray) -> np.ndarray:
 class _Work:
     """What one solution reuses across its iterations: the sorted, chunked layout of the
     points and its buffers (:class:`GramPlan`), the knot weights ``σ·a`` and ``σ·b``, the
-    banded solve's buffers and the buffers of the white variances and the misclosures."""
+    knots' Schur complement by blocks (:class:`KnotSchur`) and the buffers of the white
+    variances and the misclosures."""
 
     plan: GramPlan
     knots: KnotWeights
-    solver: BlockSolver
+    schur: KnotSchur
     m: np.ndarray  # (n,) white variance, rewritten every iteration
     e: np.ndarray  # (n,) the white misclosures after the step
     k: np.ndarray  # (n,) their correlates e / m
@@ -385,23 +385,27 @@ class _Work:
 def work_for(obs: Observations, layout: Layout, fr: _Frame) -> _Work:
     columns, n_groups = layout_columns(layout, len(obs.pass_ids))
     plan = GramPlan(x_groups(obs, layout), fr.br.k, fr.grid.n, columns, n_groups)
-    solver = BlockSolver(block_layout(CHANNELS * fr.grid.n, BANDWIDTH), layout.n)
+    schur = KnotSchur(plan.cross_at, CHANNELS * fr.grid.n, layout.n, BANDWIDTH)
     n = len(obs)
-    return _Work(plan, knot_weights(obs.sigma_l, fr.br), solver, np.empty(n), np.empty(n), np.empty(n))
+    return _Work(plan, knot_weights(obs.sigma_l, fr.br), schur, np.empty(n), np.empty(n), np.empty(n))
 
 
 @dataclass
 class _System:
     S: np.ndarray  # Schur complement (p × p), offset prior included
     r: np.ndarray  # its right-hand side (S dx = −r)
-    W: np.ndarray  # L⁻¹ N_ax (6K × p), N_aa = L Lᵀ
-    v: np.ndarray  # L⁻¹ g_a
-    chol: np.ndarray  # L in lower banded form
+    chol: np.ndarray  # L in lower banded form, N_aa = L Lᵀ
     m: np.ndarray
+    schur: KnotSchur  # N_ax by blocks (the work's: overwritten by the next iteration's)
     _lin: Linearization
     _layout: Layout
     _obs: Observations
     _fr: _Frame
+
+    @cached_property
+    def W(self) -> np.ndarray:
+        """L⁻¹ N_ax (6K × p), made when asked (the group tests)."""
+        return self.schur.W(self.chol)
 
     @cached_property
     def A(self) -> sp.csr_matrix:
@@ -429,19 +433,18 @@ def assemble(
     the knots), in the work arrays of ``work`` (made here when not given)."""
     work = work if work is not None else work_for(obs, layout, fr)
     m = _write_rows(work, lin, layout, obs, fr, plane_var_m2)
-    nb = work.plan.normals(N_ax_out=work.solver.W)  # the solve works on N_ax in place
+    nb = work.plan.normals(dense_cross=False)  # N_ax by blocks only (work.schur)
     nb.ab += fr.prior
     if not np.all(np.isfinite(nb.ab)):  # as cholesky_banded checks
         raise ValueError("array must not contain infs or NaNs")
     chol, info = dpbtrf(nb.ab, lower=1, overwrite_ab=1)  # what cholesky_banded calls
     if info != 0:
         raise ObservabilityError("the POS error processes are not determined (knot normal matrix singular)")
-    # one triangular banded solve (half of N_aa⁻¹): S = N_xx − (L⁻¹N_ax)ᵀ(L⁻¹N_ax)
-    W = work.solver.solve(chol, nb.N_ax)
-    v = _tb_solve(chol, nb.g_a)
-    S = nb.N_xx - _gram(W)
+    # S = N_xx − N_xa N_aa⁻¹ N_ax, r = g_x − N_xa N_aa⁻¹ g_a (by blocks of knot rows)
+    gram, wv = work.schur.reduce(chol, nb.cross, nb.g_a)
+    S = nb.N_xx - gram
     S = 0.5 * (S + S.T)
-    r = nb.g_x - W.T @ v
+    r = nb.g_x - wv
     if prior_sigma is not None:
         wt = 1.0 / prior_sigma.reshape(-1) ** 2
         idx = np.arange(layout.i_offset, layout.n)
@@ -451,13 +454,7 @@ def assemble(
         wt = 1.0 / boresight_prior[1] ** 2
         S[0:3, 0:3] += np.diag(wt)
         r[0:3] += wt * (state.boresight_rad - boresight_prior[0])
-    return _System(S, r, W, v, chol, m, lin, layout, obs, fr)
-
-
-def _gram(W: np.ndarray) -> np.ndarray:
-    """Wᵀ W (symmetric, from one ``dsyrk`` on the row-major W)."""
-    upper = dsyrk(1.0, W.T, trans=0, lower=0)
-    return np.triu(upper) + np.triu(upper, 1).T
+    return _System(S, r, chol, m, work.schur, lin, layout, obs, fr)
 
 
 def _tb_solve(chol: np.ndarray, b: np.ndarray, transpose: bool = False) -> np.ndarray:
@@ -469,8 +466,8 @@ def _tb_solve(chol: np.ndarray, b: np.ndarray, transpose: bool = False) -> np.nd
 
 
 def knots_from_step(sys: _System, dx: np.ndarray) -> np.ndarray:
-    """The knot values after the step dx: z = −N_aa⁻¹ (g_a + N_ax dx) = −L⁻ᵀ (v + W dx)."""
-    return -_tb_solve(sys.chol, sys.v + sys.W @ dx, transpose=True)
+    """The knot values after the step dx: z = −N_aa⁻¹ (g_a + N_ax dx) = −L⁻ᵀ L⁻¹ (g_a + N_ax dx)."""
+    return -_tb_solve(sys.chol, _tb_solve(sys.chol, sys.schur.cross_times(dx)), transpose=True)
 
 
 def solve_gls(

@@ -67,10 +67,11 @@ def layout_columns(layout, n_passes: int) -> tuple[Columns, int]:
 @dataclass
 class NormalBlocks:
     N_xx: np.ndarray  # (p, p)
-    N_ax: np.ndarray  # (6K, p) row-major
+    N_ax: np.ndarray | None  # (6K, p) row-major (None: not made, ``cross`` holds its entries)
     ab: np.ndarray  # (12, 6K) N_aa in lower banded form (without the prior)
     g_x: np.ndarray  # (p,)
     g_a: np.ndarray  # (6K,)
+    cross: np.ndarray  # N_ax's entries at :attr:`GramPlan.cross_at`
 
 
 class GramPlan:
@@ -233,9 +234,10 @@ class GramPlan:
             buf = self._pick_buffers[name] = np.empty((G.shape[0], pick.size))
         return np.take(G, pick, axis=1, out=buf, mode="clip")  # the indices are in range
 
-    def normals(self, N_ax_out: np.ndarray | None = None) -> NormalBlocks:
+    def normals(self, N_ax_out: np.ndarray | None = None, dense_cross: bool = True) -> NormalBlocks:
         """The normal equations from the rows written (:meth:`write_rows`); ``N_ax`` into
-        ``N_ax_out`` (6K, p) when given."""
+        ``N_ax_out`` (6K, p) when given, not made without ``dense_cross`` (its entries at
+        :attr:`cross_at` are in ``cross`` either way)."""
         G = self.segment_sums()
         N_xx, g_x = self.group_normals(G)
         p, size, kc = self.columns.p, CHANNELS * self.n_knots, self.knot_cols
@@ -244,12 +246,15 @@ class GramPlan:
         g_a = np.bincount(
             self.ga_index, gk.reshape(-1, kc + 1, kc + 1)[:, :kc, kc].reshape(-1), minlength=size
         )
-        N_ax = np.empty((size, p)) if N_ax_out is None else N_ax_out
-        N_ax.fill(0.0)
-        N_ax.reshape(-1)[self.cross_at] = np.bincount(
+        cross = np.bincount(
             self.cross_into, self._picked(G, "cross_pick").reshape(-1), minlength=self.cross_at.size
         )
-        return NormalBlocks(N_xx, N_ax, ab.reshape(kc, size), g_x, g_a)
+        N_ax = None
+        if dense_cross:
+            N_ax = np.empty((size, p)) if N_ax_out is None else N_ax_out
+            N_ax.fill(0.0)
+            N_ax.reshape(-1)[self.cross_at] = cross
+        return NormalBlocks(N_xx, N_ax, ab.reshape(kc, size), g_x, g_a, cross)
 
 
 def _indicator(rows: np.ndarray, n_rows: int) -> sp.csr_matrix:

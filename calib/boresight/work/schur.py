@@ -1,0 +1,154 @@
+"""The knots' share of the GLS normal equations, ``[N_ax | g_a]ᵀ N_aa⁻¹ [N_ax | g_a]``, by
+blocks of knot rows from the few columns each block touches.
+
+``W = L⁻¹ N_ax`` (``N_aa = L Lᵀ`` banded, bandwidth ``bw``) is dense below each column's first
+entry, so ``Wᵀ W`` costs ``6K·p²``: with 32 planes (p = 99) it and the solve for W were half of a
+small adjustment. By blocks of ``b`` rows the forward substitution is
+``W_i = X_i − M_i T_{i−1}`` with ``X_i = D_i⁻¹ N_i`` and ``M_i = D_i⁻¹ E_i`` (``D_i`` the block's
+triangle of L, ``E_i`` its coupling to the previous block's last ``bw`` rows, ``T_{i−1}`` those
+rows of W). ``N_i`` has only the columns of the points around the block's knots (boresight,
+extras and the few planes seen then: ``P`` of the ``p``), so ``X_i`` is ``b × P``; only the
+``bw × p`` tails ``T`` carry the fill, and
+
+    Σ W_iᵀ W_i = Σ X_iᵀX_i − (X_iᵀM_i) T_{i−1} − T_{i−1}ᵀ (M_iᵀX_i) + T_{i−1}ᵀ (M_iᵀM_i) T_{i−1}
+
+costs ``b·P² + bw·p²`` a block instead of ``b·p²``: each block's work is batched over the blocks,
+only the tails' recurrence ``T_i = X_i,tail − M_i,tail T_{i−1}`` (one small ``dgemm``) and the
+blocks' triangular solves (one ``dtrsm``) go block by block. The right-hand side ``g_a`` is one
+more column of every block (the Gram's column of it is ``Wᵀv``, ``v = L⁻¹ g_a``). Columns are
+indexed ``0 … p−1`` (the unknowns), ``p`` (``g_a``) and ``p + 1`` (a zero column: the padding of
+blocks with fewer than ``P`` columns).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import scipy.sparse as sp
+from scipy.linalg.blas import dgemm, dtrsm
+
+from calib.boresight.work.banded import block_layout, solve_lower
+
+#: knot rows per block (bandwidth 11, 32 planes: 48 … 64 measured fastest of 24 … 128)
+BLOCK_ROWS = 64
+
+
+class KnotSchur:
+    """The layout of one solution's ``N_ax`` by blocks (built once) and its buffers.
+
+    ``cross_at``: the flat indices ``row·p + column`` of the entries of ``N_ax`` (6K × p) that
+    can be nonzero (:attr:`calib.boresight.work.normals.GramPlan.cross_at`)."""
+
+    def __init__(self, cross_at: np.ndarray, size: int, p: int, bandwidth: int, block: int = BLOCK_ROWS):
+        self.size, self.p, self.bw = size, p, bandwidth
+        self.b = b = max(block, bandwidth + 1)
+        self.nb = nb = -(-size // b)
+        self.ext = ext = p + 2  # the unknowns, g_a, the zero column
+        self.cross_at = cross_at
+        rows, cols = np.divmod(cross_at, p)
+        key = np.unique(np.r_[(rows // b) * ext + cols, np.arange(nb) * ext + p])
+        start = np.searchsorted(key // ext, np.arange(nb))
+        self.P = P = int(np.max(np.diff(np.r_[start, key.size])))
+        self.cols = np.full((nb, P), p + 1)  # each block's columns, padded with the zero column
+        self.cols[key // ext, np.arange(key.size) - start[key // ext]] = key % ext
+
+        def slot(r: np.ndarray, c: np.ndarray) -> np.ndarray:  # in the (nb, P, b) block of N
+            blk = r // b
+            return (blk * P + np.searchsorted(key, blk * ext + c) - start[blk]) * b + r - blk * b
+
+        self.cross_slot = slot(rows, cols)
+        self.rhs_slot = slot(np.arange(size), np.full(size, p))
+        self.N = np.zeros((nb, P, b))  # each block's [N_i | g_a,i] by its columns and rows
+        self.XM = np.empty((nb, P + bandwidth, b))  # [X_i | M_i] transposed, block by block
+        self.D = np.empty((nb, b, b))  # D_iᵀ: ``D[i].T`` is D_i, column-major
+        self._tables(size, bandwidth)
+        self.T = np.zeros((nb + 1, bandwidth, ext))  # T[i + 1]: the last bw rows of W_i; T[0] = 0
+        self.M_tail = np.empty((nb, bandwidth, bandwidth))  # M_i's last bw rows, row-major
+        self.gram = np.empty((nb, P + bandwidth, P + bandwidth))
+        self.H = np.empty((nb, P, ext))
+        self.U = np.empty((nb, bandwidth, ext))
+        self._solves = [(self.D[i].T, self.XM[i].T) for i in range(nb)]
+        self._tails = [(self.T[i].T, self.M_tail[i].T, self.T[i + 1].T) for i in range(1, nb - 1)]
+        # the block's columns summed into the (ext, ext) result: Σ_i Sel_iᵀ H_i
+        self.select = sp.csr_matrix(
+            (np.ones(nb * P), (self.cols.reshape(-1), np.arange(nb * P))), shape=(ext, nb * P)
+        )
+
+    def _tables(self, size: int, bandwidth: int) -> None:
+        """Where the band's entries go in the blocks ``D_i`` and ``E_i`` (``*_from`` indices
+        into the banded factor, ``*_to`` into the buffers: every other entry stays zero), and
+        the scatters of the tails and of ``X_iᵀ X_i``."""
+        b, nb, P, ext = self.b, self.nb, self.P, self.ext
+        lay = block_layout(size, bandwidth, b)
+        self.flat = np.empty((bandwidth + 1) * size)  # the factor, row-major
+        self.D[...] = 0.0
+        pad = np.arange(nb)[:, None] * b + np.arange(b)[None, :] >= size  # rows past the end
+        blk, r = np.nonzero(pad)
+        self.D[blk, r, r] = 1.0  # a unit diagonal: the padding rows solve to zero
+        d = lay.diag_index_t.reshape(-1)
+        self.d_to = np.flatnonzero(d >= 0)
+        self.d_from = d[self.d_to]
+        e = lay.coupling_index.transpose(0, 2, 1)  # (nb, bw, b) as the M part of XM
+        blk, t, r = np.nonzero(e >= 0)
+        self.e_to = (blk * (P + bandwidth) + P + t) * b + r
+        self.e_from = e[blk, t, r]
+        t = np.arange(bandwidth)[None, None, :]
+        i = np.arange(nb - 1)[:, None, None]
+        self.tail_index = ((i + 1) * bandwidth + t) * ext + self.cols[: nb - 1, :, None]
+        self.ga_index = (np.arange(nb)[:, None, None] * P + np.arange(P)[None, :, None]) * ext + self.cols[
+            :, None, :
+        ]
+
+    def reduce(self, chol: np.ndarray, cross: np.ndarray, g_a: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """``(N_xa N_aa⁻¹ N_ax, N_xa N_aa⁻¹ g_a)`` for the factor ``chol`` (lower banded),
+        the values ``cross`` of ``N_ax`` at :attr:`cross_at` and ``g_a``."""
+        P, flat, N = self.P, self.flat, self.N.reshape(-1)
+        flat.reshape(chol.shape)[...] = chol
+        N[self.cross_slot] = cross
+        N[self.rhs_slot] = g_a
+        np.copyto(self.XM[:, :P], self.N)
+        self.XM[:, P:] = 0.0
+        self.XM.reshape(-1)[self.e_to] = flat[self.e_from]
+        self.D.reshape(-1)[self.d_to] = flat[self.d_from]
+        for D, XM in self._solves:
+            out = dtrsm(1.0, D, XM, lower=1, overwrite_b=1)
+            if not np.shares_memory(out, XM):  # not column-major after all: never here
+                XM[...] = out
+        self._tails_of_W()
+        T = self.T[: self.nb]  # T_{i−1} of block i
+        G = np.matmul(self.XM, self.XM.transpose(0, 2, 1), out=self.gram)
+        H = np.matmul(G[:, :P, P:], T, out=self.H)
+        U = np.matmul(G[:, P:, P:], T, out=self.U)
+        np.negative(H, out=H)
+        H.reshape(-1)[self.ga_index] += 0.5 * G[:, :P, :P]  # ½ X_iᵀX_i into its columns
+        K = self.select @ H.reshape(-1, self.ext)
+        gram = K + K.T + T.reshape(-1, self.ext).T @ U.reshape(-1, self.ext)
+        return gram[: self.p, : self.p], gram[: self.p, self.p]
+
+    def _tails_of_W(self) -> None:
+        """``T_i = X_i,tail − M_i,tail T_{i−1}`` for every block but the last (its tail is not
+        used), from the solved blocks in :attr:`XM`."""
+        P, b, bw = self.P, self.b, self.bw
+        self.T.fill(0.0)
+        self.T.reshape(-1)[self.tail_index] = self.XM[: self.nb - 1, :P, b - bw :]
+        np.copyto(self.M_tail, self.XM[:, P:, b - bw :].transpose(0, 2, 1))
+        for T_prev, M_t, T_i in self._tails:
+            out = dgemm(-1.0, T_prev, M_t, beta=1.0, c=T_i, overwrite_c=1)
+            if not np.shares_memory(out, T_i):  # not column-major after all: never here
+                T_i[...] = out
+
+    def cross_times(self, dx: np.ndarray) -> np.ndarray:
+        """``g_a + N_ax dx`` (6K,), from the blocks of N as last reduced."""
+        x = np.zeros(self.ext)
+        x[: self.p], x[self.p] = dx, 1.0
+        u = np.matmul(x[self.cols][:, None, :], self.N)  # (nb, 1, b)
+        return u.reshape(-1)[: self.size]
+
+    def dense_cross(self) -> np.ndarray:
+        """``N_ax`` (6K × p) as last reduced."""
+        out = np.zeros(self.size * self.p)
+        out[self.cross_at] = self.N.reshape(-1)[self.cross_slot]
+        return out.reshape(self.size, self.p)
+
+    def W(self, chol: np.ndarray) -> np.ndarray:
+        """``L⁻¹ N_ax`` (6K × p) for the factor ``chol`` of the last reduction, densely."""
+        return solve_lower(chol, self.dense_cross(), block_layout(self.size, self.bw))
