@@ -13,9 +13,10 @@ scanner observations (Gauss–Helmert, below)::
 scan-angle noise, the bridge variance of the POS channels and the roughness of the point's
 plane (a variance component estimated from the residuals at every iteration). The knots are
 eliminated with a banded Cholesky factor (bandwidth 11) and the unknowns solved from the
-Schur complement ``S = N_xx − N_xa N_aa⁻¹ N_ax``: time and memory O(n) in the points
-(O(K·p) in the K knots and p unknowns), never an n × n matrix. ``S⁻¹`` is the covariance of the
-estimate under the model (the Cramér–Rao bound at the solution): its formal σ is its realistic σ.
+Schur complement ``S = N_xx − N_xa N_aa⁻¹ N_ax`` (by blocks of knot rows: :mod:`.work.schur`):
+time and memory O(n) in the points (O(K·p) in the K knots and p unknowns), never an n × n
+matrix. ``S⁻¹`` is the covariance of the estimate under the model (the Cramér–Rao bound at the
+solution): its formal σ is its realistic σ.
 
 **Linearized at the adjusted range and scan angle, not the measured ones.** ``A_i`` depends on
 the range: a yaw moves a point by its horizontal range times the angle. Evaluated at the

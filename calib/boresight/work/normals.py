@@ -11,8 +11,8 @@ pass with pass offsets), the knot block ``N_aa`` and ``g_a`` over the points of 
 So the points are sorted once per solution by segment and laid out in a zero-padded buffer of
 chunks of ``c`` rows (a segment fills whole chunks); each iteration writes the rows into it, one
 batched matrix product gives every chunk's ``uᵀu``, the chunks of a segment are summed and the
-segment sums scattered into the dense ``N_xx``, the row-major ``N_ax`` and the banded ``N_aa``
-by indices built once (:class:`GramPlan`). No sparse matrix, no full-size temporary per
+segment sums scattered into the dense ``N_xx``, the entries of ``N_ax`` (row-major, or as they
+are for :mod:`.schur`) and the banded ``N_aa`` by indices built once (:class:`GramPlan`). No sparse matrix, no full-size temporary per
 iteration: the rows are written in blocks of :data:`WRITE_BLOCK` points. Memory: the buffer
 (``width`` doubles a point, plus the padding of each segment's last chunk) and the segment sums
 (``width²`` doubles a segment), allocated once per solution.
@@ -152,24 +152,23 @@ class GramPlan:
     def _knot_tables(self) -> None:
         """From the segments' sums to the banded ``N_aa``, ``g_a`` and the row-major ``N_ax``."""
         q, w, kc = self.q, self.width, self.knot_cols
-        ji = np.r_[np.arange(q, q + kc), w - 1]
-        self.j_pick = (ji[:, None] * w + ji[None, :]).reshape(-1)
         self.cross_pick = (np.arange(q)[:, None] * w + np.arange(q, q + kc)[None, :]).reshape(-1)
-        p, size, intervals = self.columns.p, CHANNELS * self.n_knots, max(self.n_knots - 1, 1)
-        self.knot_sum = _indicator(self.seg_knot, intervals)
+        p, size = self.columns.p, CHANNELS * self.n_knots
         rows = CHANNELS * self.seg_knot[:, None, None] + np.arange(kc)[None, None, :]
         cross_index = (rows * p + self.group_cols[self.seg_group][:, :, None]).reshape(-1)
         # the distinct places of N_ax the segments add to, and where each addition goes
-        rank = np.zeros(size * p, np.int64)
-        rank[cross_index] = 1
-        self.cross_at = np.flatnonzero(rank)
-        np.cumsum(rank, out=rank)
-        self.cross_into = rank[cross_index] - 1
-        # ab[r − c, 6k + c] for r ≥ c
+        mark = np.zeros(size * p, bool)
+        mark[cross_index] = True
+        self.cross_at = np.flatnonzero(mark)
+        rank = np.empty(size * p, np.int64)  # read only where written: at the places
+        rank[self.cross_at] = np.arange(self.cross_at.size)
+        self.cross_into = rank[cross_index]
+        # each segment's knot entries straight into ab[r − c, 6k + c] (r ≥ c) and g_a[6k + r]
         r, c = np.tril_indices(kc)
-        k = np.arange(intervals)[:, None]
+        k = self.seg_knot[:, None]
+        self.ab_pick = (q + r) * w + q + c
         self.ab_index = ((r - c)[None, :] * size + CHANNELS * k + c[None, :]).reshape(-1)
-        self.ab_pick = r * (kc + 1) + c
+        self.ga_pick = (q + np.arange(kc)) * w + w - 1
         self.ga_index = (CHANNELS * k + np.arange(kc)[None, :]).reshape(-1)
 
     def write_rows(self, lo: int, hi: int, values: list[np.ndarray], sw: np.ndarray) -> None:
@@ -241,11 +240,8 @@ class GramPlan:
         G = self.segment_sums()
         N_xx, g_x = self.group_normals(G)
         p, size, kc = self.columns.p, CHANNELS * self.n_knots, self.knot_cols
-        gk = self.knot_sum @ self._picked(G, "j_pick")  # (intervals, (kc + 1)²)
-        ab = np.bincount(self.ab_index, gk[:, self.ab_pick].reshape(-1), minlength=kc * size)
-        g_a = np.bincount(
-            self.ga_index, gk.reshape(-1, kc + 1, kc + 1)[:, :kc, kc].reshape(-1), minlength=size
-        )
+        ab = np.bincount(self.ab_index, self._picked(G, "ab_pick").reshape(-1), minlength=kc * size)
+        g_a = np.bincount(self.ga_index, self._picked(G, "ga_pick").reshape(-1), minlength=size)
         cross = np.bincount(
             self.cross_into, self._picked(G, "cross_pick").reshape(-1), minlength=self.cross_at.size
         )

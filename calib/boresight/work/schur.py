@@ -2,8 +2,8 @@
 blocks of knot rows from the few columns each block touches.
 
 ``W = L⁻¹ N_ax`` (``N_aa = L Lᵀ`` banded, bandwidth ``bw``) is dense below each column's first
-entry, so ``Wᵀ W`` costs ``6K·p²``: with 32 planes (p = 99) it and the solve for W were half of a
-small adjustment. By blocks of ``b`` rows the forward substitution is
+entry, so ``Wᵀ W`` costs ``6K·p²``: with 32 planes (p = 99) it and the solve for W took over 40 % of
+a small adjustment. By blocks of ``b`` rows the forward substitution is
 ``W_i = X_i − M_i T_{i−1}`` with ``X_i = D_i⁻¹ N_i`` and ``M_i = D_i⁻¹ E_i`` (``D_i`` the block's
 triangle of L, ``E_i`` its coupling to the previous block's last ``bw`` rows, ``T_{i−1}`` those
 rows of W). ``N_i`` has only the columns of the points around the block's knots (boresight,
@@ -28,7 +28,7 @@ from scipy.linalg.blas import dgemm, dtrsm
 
 from calib.boresight.work.banded import block_layout, solve_lower
 
-#: knot rows per block (bandwidth 11, 32 planes: 48 … 64 measured fastest of 24 … 128)
+#: knot rows per block (bandwidth 11, 32 planes: 64 measured fastest of 32 … 96, whole solves)
 BLOCK_ROWS = 64
 
 
@@ -45,15 +45,18 @@ class KnotSchur:
         self.ext = ext = p + 2  # the unknowns, g_a, the zero column
         self.cross_at = cross_at
         rows, cols = np.divmod(cross_at, p)
-        key = np.unique(np.r_[(rows // b) * ext + cols, np.arange(nb) * ext + p])
-        start = np.searchsorted(key // ext, np.arange(nb))
-        self.P = P = int(np.max(np.diff(np.r_[start, key.size])))
+        used = np.zeros((nb, ext), bool)  # the columns each block touches; g_a's in every one
+        used[rows // b, cols] = True
+        used[:, p] = True
+        rank = np.cumsum(used, axis=1) - 1  # a used column's place among its block's
+        self.P = P = int(rank[:, -1].max()) + 1
         self.cols = np.full((nb, P), p + 1)  # each block's columns, padded with the zero column
-        self.cols[key // ext, np.arange(key.size) - start[key // ext]] = key % ext
+        blk, c = np.nonzero(used)
+        self.cols[blk, rank[blk, c]] = c
 
         def slot(r: np.ndarray, c: np.ndarray) -> np.ndarray:  # in the (nb, P, b) block of N
             blk = r // b
-            return (blk * P + np.searchsorted(key, blk * ext + c) - start[blk]) * b + r - blk * b
+            return (blk * P + rank[blk, c]) * b + r - blk * b
 
         self.cross_slot = slot(rows, cols)
         self.rhs_slot = slot(np.arange(size), np.full(size, p))
@@ -77,26 +80,26 @@ class KnotSchur:
         """Where the band's entries go in the blocks ``D_i`` and ``E_i`` (``*_from`` indices
         into the banded factor, ``*_to`` into the buffers: every other entry stays zero), and
         the scatters of the tails and of ``X_iᵀ X_i``."""
-        b, nb, P, ext = self.b, self.nb, self.P, self.ext
-        lay = block_layout(size, bandwidth, b)
-        self.flat = np.empty((bandwidth + 1) * size)  # the factor, row-major
+        b, nb, P, ext, bw = self.b, self.nb, self.P, self.ext, bandwidth
+        self.flat = np.empty((bw + 1) * size)  # the factor, row-major: L[j + d, j] at d·size + j
         self.D[...] = 0.0
         pad = np.arange(nb)[:, None] * b + np.arange(b)[None, :] >= size  # rows past the end
-        blk, r = np.nonzero(pad)
-        self.D[blk, r, r] = 1.0  # a unit diagonal: the padding rows solve to zero
-        d = lay.diag_index_t.reshape(-1)
-        self.d_to = np.flatnonzero(d >= 0)
-        self.d_from = d[self.d_to]
-        e = lay.coupling_index.transpose(0, 2, 1)  # (nb, bw, b) as the M part of XM
-        blk, t, r = np.nonzero(e >= 0)
-        self.e_to = (blk * (P + bandwidth) + P + t) * b + r
-        self.e_from = e[blk, t, r]
-        t = np.arange(bandwidth)[None, None, :]
-        i = np.arange(nb - 1)[:, None, None]
-        self.tail_index = ((i + 1) * bandwidth + t) * ext + self.cols[: nb - 1, :, None]
-        self.ga_index = (np.arange(nb)[:, None, None] * P + np.arange(P)[None, :, None]) * ext + self.cols[
-            :, None, :
-        ]
+        blk, row = np.nonzero(pad)
+        self.D[blk, row, row] = 1.0  # a unit diagonal: the padding rows solve to zero
+        # D[i, c, r] = L[s + r, s + c] for 0 ≤ r − c ≤ bw (s = i·b)
+        i, c, d = np.meshgrid(np.arange(nb), np.arange(b), np.arange(bw + 1), indexing="ij", sparse=True)
+        ok = np.broadcast_to((c + d < b) & (i * b + c + d < size), (nb, b, bw + 1))
+        self.d_to = np.broadcast_to((i * b + c) * b + c + d, ok.shape)[ok]
+        self.d_from = np.broadcast_to(d * size + i * b + c, ok.shape)[ok]
+        # the M part of XM[i, P + t, r] = E_i[r, t] = L[s + r, s − bw + t] for r ≤ t (i ≥ 1)
+        i, t, r = np.meshgrid(np.arange(1, nb), np.arange(bw), np.arange(bw), indexing="ij", sparse=True)
+        ok = np.broadcast_to((r <= t) & (i * b + r < size), (nb - 1, bw, bw))
+        self.e_to = np.broadcast_to((i * (P + bw) + P + t) * b + r, ok.shape)[ok]
+        self.e_from = np.broadcast_to((r + bw - t) * size + i * b - bw + t, ok.shape)[ok]
+        # T[i + 1, t, cols[i, a]] = X_i[b − bw + t, a]; H[i, a, cols[i, a']] += ½ (X_iᵀX_i)[a, a']
+        tail, block, place = np.arange(bw), np.arange(nb)[:, None, None], np.arange(P)[None, :, None]
+        self.tail_index = ((block[:-1] + 1) * bw + tail) * ext + self.cols[: nb - 1, :, None]
+        self.ga_index = (block * P + place) * ext + self.cols[:, None, :]
 
     def reduce(self, chol: np.ndarray, cross: np.ndarray, g_a: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """``(N_xa N_aa⁻¹ N_ax, N_xa N_aa⁻¹ g_a)`` for the factor ``chol`` (lower banded),
