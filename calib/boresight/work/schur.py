@@ -77,41 +77,44 @@ class KnotSchur:
         )
 
     def _tables(self, size: int, bandwidth: int) -> None:
-        """Where the band's entries go in the blocks ``D_i`` and ``E_i`` (``*_from`` indices
-        into the banded factor, ``*_to`` into the buffers: every other entry stays zero), and
-        the scatters of the tails and of ``X_iᵀ X_i``."""
+        """The factor's band padded to whole blocks and the views that copy its diagonals into
+        the blocks ``D_i`` (every other entry stays zero), where ``E_i``'s entries go, and the
+        scatters of the tails and of ``X_iᵀ X_i``."""
         b, nb, P, ext, bw = self.b, self.nb, self.P, self.ext, bandwidth
-        self.flat = np.empty((bw + 1) * size)  # the factor, row-major: L[j + d, j] at d·size + j
-        self.D[...] = 0.0
-        pad = np.arange(nb)[:, None] * b + np.arange(b)[None, :] >= size  # rows past the end
-        blk, row = np.nonzero(pad)
-        self.D[blk, row, row] = 1.0  # a unit diagonal: the padding rows solve to zero
-        # D[i, c, r] = L[s + r, s + c] for 0 ≤ r − c ≤ bw (s = i·b)
-        i, c, d = np.meshgrid(np.arange(nb), np.arange(b), np.arange(bw + 1), indexing="ij", sparse=True)
-        ok = np.broadcast_to((c + d < b) & (i * b + c + d < size), (nb, b, bw + 1))
-        self.d_to = np.broadcast_to((i * b + c) * b + c + d, ok.shape)[ok]
-        self.d_from = np.broadcast_to(d * size + i * b + c, ok.shape)[ok]
+        # L[j + d, j] at band[d, j]; past the end zero, but a unit diagonal (the padding rows
+        # solve to zero)
+        self.band = np.zeros((bw + 1, nb * b))
+        self.band[0, size:] = 1.0
+        self._band_rows = [(self.band[d, : size - d], d) for d in range(min(bw + 1, size))]
+        # D[i, c, c + d] = L[s + c + d, s + c] = band[d, s + c] for c + d < b (s = i·b)
+        D = self.D.reshape(nb, b * b)
+        D[...] = 0.0
+        self._diagonals = [
+            (D[:, d :: b + 1][:, : b - d], self.band[d].reshape(nb, b)[:, : b - d]) for d in range(bw + 1)
+        ]
         # the M part of XM[i, P + t, r] = E_i[r, t] = L[s + r, s − bw + t] for r ≤ t (i ≥ 1)
         i, t, r = np.meshgrid(np.arange(1, nb), np.arange(bw), np.arange(bw), indexing="ij", sparse=True)
         ok = np.broadcast_to((r <= t) & (i * b + r < size), (nb - 1, bw, bw))
         self.e_to = np.broadcast_to((i * (P + bw) + P + t) * b + r, ok.shape)[ok]
-        self.e_from = np.broadcast_to((r + bw - t) * size + i * b - bw + t, ok.shape)[ok]
-        # T[i + 1, t, cols[i, a]] = X_i[b − bw + t, a]; H[i, a, cols[i, a']] += ½ (X_iᵀX_i)[a, a']
-        tail, block, place = np.arange(bw), np.arange(nb)[:, None, None], np.arange(P)[None, :, None]
+        self.e_from = np.broadcast_to((r + bw - t) * nb * b + i * b - bw + t, ok.shape)[ok]
+        # T[i + 1, t, cols[i, a]] = X_i[b − bw + t, a]; (X_iᵀX_i)[a, a'] adds to (cols[i, a], cols[i, a'])
+        tail, block = np.arange(bw), np.arange(nb)[:, None, None]
         self.tail_index = ((block[:-1] + 1) * bw + tail) * ext + self.cols[: nb - 1, :, None]
-        self.ga_index = (block * P + place) * ext + self.cols[:, None, :]
+        self.gram_index = self.cols[:, :, None] * ext + self.cols[:, None, :]
 
     def reduce(self, chol: np.ndarray, cross: np.ndarray, g_a: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """``(N_xa N_aa⁻¹ N_ax, N_xa N_aa⁻¹ g_a)`` for the factor ``chol`` (lower banded),
         the values ``cross`` of ``N_ax`` at :attr:`cross_at` and ``g_a``."""
-        P, flat, N = self.P, self.flat, self.N.reshape(-1)
-        flat.reshape(chol.shape)[...] = chol
+        P, N, ext = self.P, self.N.reshape(-1), self.ext
+        for row, d in self._band_rows:  # the entries past the end stay zero
+            row[...] = chol[d, : row.size]
+        for diagonal, row in self._diagonals:
+            diagonal[...] = row
         N[self.cross_slot] = cross
         N[self.rhs_slot] = g_a
         np.copyto(self.XM[:, :P], self.N)
         self.XM[:, P:] = 0.0
-        self.XM.reshape(-1)[self.e_to] = flat[self.e_from]
-        self.D.reshape(-1)[self.d_to] = flat[self.d_from]
+        self.XM.reshape(-1)[self.e_to] = self.band.reshape(-1)[self.e_from]
         for D, XM in self._solves:
             out = dtrsm(1.0, D, XM, lower=1, overwrite_b=1)
             if not np.shares_memory(out, XM):  # not column-major after all: never here
@@ -121,10 +124,9 @@ class KnotSchur:
         G = np.matmul(self.XM, self.XM.transpose(0, 2, 1), out=self.gram)
         H = np.matmul(G[:, :P, P:], T, out=self.H)
         U = np.matmul(G[:, P:, P:], T, out=self.U)
-        np.negative(H, out=H)
-        H.reshape(-1)[self.ga_index] += 0.5 * G[:, :P, :P]  # ½ X_iᵀX_i into its columns
-        K = self.select @ H.reshape(-1, self.ext)
-        gram = K + K.T + T.reshape(-1, self.ext).T @ U.reshape(-1, self.ext)
+        K = self.select @ H.reshape(-1, ext)  # Σ (X_iᵀM_i) T_{i−1} into the block's columns
+        gram = np.bincount(self.gram_index.reshape(-1), G[:, :P, :P].reshape(-1), minlength=ext * ext)
+        gram = gram.reshape(ext, ext) - K - K.T + T.reshape(-1, ext).T @ U.reshape(-1, ext)
         return gram[: self.p, : self.p], gram[: self.p, self.p]
 
     def _tails_of_W(self) -> None:
