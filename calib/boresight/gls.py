@@ -458,9 +458,9 @@ def assemble(
     return _System(S, r, chol, m, work.schur, lin, layout, obs, fr)
 
 
-def _tb_solve(chol: np.ndarray, b: np.ndarray, transpose: bool = False) -> np.ndarray:
-    """L⁻¹ b (or L⁻ᵀ b) for L in lower banded form (LAPACK dtbtrs)."""
-    x, info = dtbtrs(chol, b, uplo="L", trans="T" if transpose else "N")
+def _tb_solve(chol: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """L⁻¹ b for L in lower banded form (LAPACK dtbtrs)."""
+    x, info = dtbtrs(chol, b, uplo="L")
     if info != 0:
         raise ObservabilityError("the POS error processes are not determined (singular knot factor)")
     return x
@@ -468,7 +468,7 @@ def _tb_solve(chol: np.ndarray, b: np.ndarray, transpose: bool = False) -> np.nd
 
 def knots_from_step(sys: _System, dx: np.ndarray) -> np.ndarray:
     """The knot values after the step dx: z = −N_aa⁻¹ (g_a + N_ax dx) = −L⁻ᵀ L⁻¹ (g_a + N_ax dx)."""
-    return -_tb_solve(sys.chol, _tb_solve(sys.chol, sys.schur.cross_times(dx)), transpose=True)
+    return sys.schur.knots(sys.chol, dx)
 
 
 def solve_gls(

@@ -25,6 +25,7 @@ from __future__ import annotations
 import numpy as np
 import scipy.sparse as sp
 from scipy.linalg.blas import dgemm, dtrsm
+from scipy.linalg.lapack import dpbtrs
 
 from calib.boresight.work.banded import block_layout, solve_lower
 
@@ -71,9 +72,9 @@ class KnotSchur:
         self.U = np.empty((nb, bandwidth, ext))
         self._solves = [(self.D[i].T, self.XM[i].T) for i in range(nb)]
         self._tails = [(self.T[i].T, self.M_tail[i].T, self.T[i + 1].T) for i in range(1, nb - 1)]
-        # the block's columns summed into the (ext, ext) result: Σ_i Sel_iᵀ H_i
-        self.select = sp.csr_matrix(
-            (np.ones(nb * P), (self.cols.reshape(-1), np.arange(nb * P))), shape=(ext, nb * P)
+        # the blocks' columns summed into the (ext, ext) result, Σ_i Sel_iᵀ H_i: one entry a column
+        self.select = sp.csc_matrix(
+            (np.ones(nb * P), self.cols.reshape(-1), np.arange(nb * P + 1)), shape=(ext, nb * P)
         )
 
     def _tables(self, size: int, bandwidth: int) -> None:
@@ -147,6 +148,14 @@ class KnotSchur:
         x[: self.p], x[self.p] = dx, 1.0
         u = np.matmul(x[self.cols][:, None, :], self.N)  # (nb, 1, b)
         return u.reshape(-1)[: self.size]
+
+    def knots(self, chol: np.ndarray, dx: np.ndarray) -> np.ndarray:
+        """``−N_aa⁻¹ (g_a + N_ax dx)`` for the factor ``chol`` of the last reduction (LAPACK
+        ``dpbtrs``: both triangular sweeps in one call)."""
+        z, info = dpbtrs(chol, self.cross_times(dx)[:, None], lower=1)
+        if info != 0:
+            raise ValueError(f"dpbtrs: illegal argument {-info}")
+        return -z[:, 0]
 
     def dense_cross(self) -> np.ndarray:
         """``N_ax`` (6K × p) as last reduced."""

@@ -1,6 +1,7 @@
 """The knots' Schur complement by blocks (:class:`calib.boresight.work.schur.KnotSchur`) equals
 the dense ``[N_ax | g_a]ᵀ N_aa⁻¹ [N_ax | g_a]``: for blocks that end past the last row, a single
-block, and repeated reductions in the same buffers; ``g_a + N_ax dx`` and ``L⁻¹ N_ax`` as well."""
+block, and repeated reductions in the same buffers; ``g_a + N_ax dx``, the knots after a step
+``−N_aa⁻¹ (g_a + N_ax dx)`` and ``L⁻¹ N_ax`` as well."""
 
 from __future__ import annotations
 
@@ -49,6 +50,8 @@ def test_the_blocked_schur_complement_equals_the_dense_one(size, block):
         np.testing.assert_allclose(wv, ref[:, p], rtol=0, atol=1e-12 * scale)
         dx = np.random.default_rng(seed).normal(size=p)
         np.testing.assert_allclose(ks.cross_times(dx), g_a + N_ax @ dx, rtol=1e-14, atol=1e-14)
+        z = -np.linalg.solve(N_aa, g_a + N_ax @ dx)
+        np.testing.assert_allclose(ks.knots(chol, dx), z, rtol=0, atol=1e-12 * np.max(np.abs(z)))
         np.testing.assert_array_equal(ks.dense_cross(), N_ax)
         L = np.linalg.cholesky(N_aa)
         np.testing.assert_allclose(ks.W(chol), np.linalg.solve(L, N_ax), rtol=1e-10, atol=1e-12)
