@@ -98,7 +98,7 @@ from calib.boresight.work.normals import (
     white_misclosure,
     x_groups,
 )
-from calib.boresight.work.schur import KnotSchur
+from calib.boresight.work.schur import DenseSchur, KnotSchur, knot_schur
 from calib.boresight.work.sparse import design_matrix, knot_matrix
 
 CHANNELS = 6
@@ -372,12 +372,12 @@ def pos_errors(knots: KnotWeights, z: np.ndarray) -> np.ndarray:
 class _Work:
     """What one solution reuses across its iterations: the sorted, chunked layout of the
     points and its buffers (:class:`GramPlan`), the knot weights ``σ·a`` and ``σ·b``, the
-    knots' Schur complement by blocks (:class:`KnotSchur`) and the buffers of the white
+    knots' Schur complement (by blocks: :class:`KnotSchur`) and the buffers of the white
     variances and the misclosures."""
 
     plan: GramPlan
     knots: KnotWeights
-    schur: KnotSchur
+    schur: KnotSchur | DenseSchur
     m: np.ndarray  # (n,) white variance, rewritten every iteration
     e: np.ndarray  # (n,) the white misclosures after the step
     k: np.ndarray  # (n,) their correlates e / m
@@ -386,7 +386,7 @@ class _Work:
 def work_for(obs: Observations, layout: Layout, fr: _Frame) -> _Work:
     columns, n_groups = layout_columns(layout, len(obs.pass_ids))
     plan = GramPlan(x_groups(obs, layout), fr.br.k, fr.grid.n, columns, n_groups)
-    schur = KnotSchur(plan.cross_at, CHANNELS * fr.grid.n, layout.n, BANDWIDTH)
+    schur = knot_schur(plan.cross_at, CHANNELS * fr.grid.n, layout.n, BANDWIDTH)
     n = len(obs)
     return _Work(plan, knot_weights(obs.sigma_l, fr.br), schur, np.empty(n), np.empty(n), np.empty(n))
 
@@ -397,7 +397,7 @@ class _System:
     r: np.ndarray  # its right-hand side (S dx = −r)
     chol: np.ndarray  # L in lower banded form, N_aa = L Lᵀ
     m: np.ndarray
-    schur: KnotSchur  # N_ax by blocks (the work's: overwritten by the next iteration's)
+    schur: KnotSchur | DenseSchur  # N_ax reduced (the work's: overwritten by the next iteration)
     _lin: Linearization
     _layout: Layout
     _obs: Observations

@@ -18,6 +18,10 @@ blocks' triangular solves (one ``dtrsm``) go block by block. The right-hand side
 more column of every block (the Gram's column of it is ``Wᵀv``, ``v = L⁻¹ g_a``). Columns are
 indexed ``0 … p−1`` (the unknowns), ``p`` (``g_a``) and ``p + 1`` (a zero column: the padding of
 blocks with fewer than ``P`` columns).
+
+When the blocks touch most of the unknowns (every plane seen in every second of the survey) the
+blocks gain nothing and their smaller products run slower: :func:`knot_schur` then takes
+:class:`DenseSchur`, the dense ``L⁻¹ [N_ax | g_a]`` and its Gram.
 """
 
 from __future__ import annotations
@@ -25,12 +29,49 @@ from __future__ import annotations
 import numpy as np
 import scipy.sparse as sp
 from scipy.linalg.blas import dgemm, dtrsm
-from scipy.linalg.lapack import dpbtrs
+from scipy.linalg.lapack import dpbtrs, dtbtrs
 
-from calib.boresight.work.banded import block_layout, solve_lower
+from calib.boresight.work.banded import BlockSolver, block_layout, solve_lower
 
 #: knot rows per block (bandwidth 11, 32 planes: 64 measured fastest of 32 … 96, whole solves)
 BLOCK_ROWS = 64
+#: the blocked reduction's flops run about this much slower than the dense one's (6K = 3972,
+#: p = 99: blocks of P = 24 columns 2.4 ms against 3.1 ms dense, P = 43 3.6 against 3.1 ms,
+#: P = 100 9.7 against 3.4 ms)
+BLOCKED_SLOWDOWN = 2.0
+#: rows per block of the dense solve (:class:`calib.boresight.work.banded.BlockSolver`)
+DENSE_BLOCK_ROWS = 32
+
+
+def knot_schur(cross_at: np.ndarray, size: int, p: int, bandwidth: int) -> KnotSchur | DenseSchur:
+    """The reduction for ``N_ax``'s places ``cross_at`` (:class:`KnotSchur`): by blocks when
+    their flops, :data:`BLOCKED_SLOWDOWN` times, are fewer than the dense ones', else dense."""
+    b = max(BLOCK_ROWS, bandwidth + 1)
+    nb = -(-size // b)
+    P = int(_block_columns(cross_at, p, nb, b)[1][:, -1].max()) + 1
+    blocked = size * (b / 2 * (P + bandwidth) + (P + bandwidth) ** 2) + nb * bandwidth * (p + 2) * (p + 2 + P)
+    dense = size * ((DENSE_BLOCK_ROWS / 2 + bandwidth) * (p + 1) + (p + 1) ** 2)
+    if BLOCKED_SLOWDOWN * blocked < dense:
+        return KnotSchur(cross_at, size, p, bandwidth)
+    return DenseSchur(cross_at, size, p, bandwidth)
+
+
+def _block_columns(cross_at: np.ndarray, p: int, nb: int, b: int) -> tuple[np.ndarray, np.ndarray]:
+    """(nb, p + 2): which columns each block of ``b`` rows touches (``g_a``'s in every one) and
+    each used column's place among its block's."""
+    rows, cols = np.divmod(cross_at, p)
+    used = np.zeros((nb, p + 2), bool)
+    used[rows // b, cols] = True
+    used[:, p] = True
+    return used, np.cumsum(used, axis=1) - 1
+
+
+def _knots(chol: np.ndarray, u: np.ndarray) -> np.ndarray:
+    """``−N_aa⁻¹ u`` for the factor ``chol`` (LAPACK ``dpbtrs``: both sweeps in one call)."""
+    z, info = dpbtrs(chol, u[:, None], lower=1)
+    if info != 0:
+        raise ValueError(f"dpbtrs: illegal argument {-info}")
+    return -z[:, 0]
 
 
 class KnotSchur:
@@ -46,10 +87,7 @@ class KnotSchur:
         self.ext = ext = p + 2  # the unknowns, g_a, the zero column
         self.cross_at = cross_at
         rows, cols = np.divmod(cross_at, p)
-        used = np.zeros((nb, ext), bool)  # the columns each block touches; g_a's in every one
-        used[rows // b, cols] = True
-        used[:, p] = True
-        rank = np.cumsum(used, axis=1) - 1  # a used column's place among its block's
+        used, rank = _block_columns(cross_at, p, nb, b)
         self.P = P = int(rank[:, -1].max()) + 1
         self.cols = np.full((nb, P), p + 1)  # each block's columns, padded with the zero column
         blk, c = np.nonzero(used)
@@ -150,12 +188,8 @@ class KnotSchur:
         return u.reshape(-1)[: self.size]
 
     def knots(self, chol: np.ndarray, dx: np.ndarray) -> np.ndarray:
-        """``−N_aa⁻¹ (g_a + N_ax dx)`` for the factor ``chol`` of the last reduction (LAPACK
-        ``dpbtrs``: both triangular sweeps in one call)."""
-        z, info = dpbtrs(chol, self.cross_times(dx)[:, None], lower=1)
-        if info != 0:
-            raise ValueError(f"dpbtrs: illegal argument {-info}")
-        return -z[:, 0]
+        """``−N_aa⁻¹ (g_a + N_ax dx)`` for the factor ``chol`` of the last reduction."""
+        return _knots(chol, self.cross_times(dx))
 
     def dense_cross(self) -> np.ndarray:
         """``N_ax`` (6K × p) as last reduced."""
@@ -166,3 +200,37 @@ class KnotSchur:
     def W(self, chol: np.ndarray) -> np.ndarray:
         """``L⁻¹ N_ax`` (6K × p) for the factor ``chol`` of the last reduction, densely."""
         return solve_lower(chol, self.dense_cross(), block_layout(self.size, self.bw))
+
+
+class DenseSchur:
+    """:class:`KnotSchur`'s reduction through the dense ``W = L⁻¹ [N_ax | g_a]`` (the blocked
+    triangular solve of :class:`calib.boresight.work.banded.BlockSolver`, in place) and its
+    Gram, for blocks that would touch most of the unknowns."""
+
+    def __init__(self, cross_at: np.ndarray, size: int, p: int, bandwidth: int):
+        self.size, self.p = size, p
+        self.solver = BlockSolver(block_layout(size, bandwidth, DENSE_BLOCK_ROWS), p + 1)
+        rows, cols = np.divmod(cross_at, p)
+        self._at = rows * (p + 1) + cols  # N_ax's places in the solver's (6K, p + 1) buffer
+
+    def reduce(self, chol: np.ndarray, cross: np.ndarray, g_a: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """As :meth:`KnotSchur.reduce`."""
+        W = self.solver.W
+        W.fill(0.0)
+        W.reshape(-1)[self._at] = cross
+        W[:, self.p] = g_a
+        W = self.solver.solve(chol, W)
+        gram = W.T @ W
+        return gram[: self.p, : self.p], gram[: self.p, self.p]
+
+    def knots(self, chol: np.ndarray, dx: np.ndarray) -> np.ndarray:
+        """As :meth:`KnotSchur.knots`: ``−L⁻ᵀ (W [dx, 1])``."""
+        W = self.solver.W
+        z, info = dtbtrs(chol, W[:, : self.p] @ dx + W[:, self.p], uplo="L", trans="T")
+        if info != 0:
+            raise ValueError(f"dtbtrs: singular factor ({info})")
+        return -z
+
+    def W(self, chol: np.ndarray) -> np.ndarray:
+        """``L⁻¹ N_ax`` (6K × p) of the last reduction (a view of the solver's buffer)."""
+        return self.solver.W[:, : self.p]

@@ -1,7 +1,8 @@
 """The knots' Schur complement by blocks (:class:`calib.boresight.work.schur.KnotSchur`) equals
 the dense ``[N_ax | g_a]ᵀ N_aa⁻¹ [N_ax | g_a]``: for blocks that end past the last row, a single
 block, and repeated reductions in the same buffers; ``g_a + N_ax dx``, the knots after a step
-``−N_aa⁻¹ (g_a + N_ax dx)`` and ``L⁻¹ N_ax`` as well."""
+``−N_aa⁻¹ (g_a + N_ax dx)`` and ``L⁻¹ N_ax`` as well; so does the dense :class:`DenseSchur`,
+which :func:`knot_schur` takes when every block would touch most of the unknowns."""
 
 from __future__ import annotations
 
@@ -9,7 +10,7 @@ import numpy as np
 import pytest
 from scipy.linalg.lapack import dpbtrf
 
-from calib.boresight.work.schur import KnotSchur
+from calib.boresight.work.schur import DenseSchur, KnotSchur, knot_schur
 
 BW = 11
 
@@ -35,12 +36,13 @@ def _problem(size: int, p: int, seed: int):
     return chol, dense, N_ax, rng.normal(size=size)
 
 
-@pytest.mark.parametrize(("size", "block"), [(30, 64), (97, 16), (200, 32), (257, 64)])
+@pytest.mark.parametrize(("size", "block"), [(30, 64), (97, 16), (200, 32), (257, 64), (200, None)])
 def test_the_blocked_schur_complement_equals_the_dense_one(size, block):
+    """(``block`` None: :class:`DenseSchur`, the same through the dense ``L⁻¹ N_ax``.)"""
     p = 15
     chol, N_aa, N_ax, g_a = _problem(size, p, size)
     cross_at = np.flatnonzero(N_ax.reshape(-1))
-    ks = KnotSchur(cross_at, size, p, BW, block)
+    ks = KnotSchur(cross_at, size, p, BW, block) if block else DenseSchur(cross_at, size, p, BW)
     for seed in (size, size + 1):  # a second problem of the same pattern in the same buffers
         chol, N_aa, N_ax, g_a = _problem(size, p, seed)
         gram, wv = ks.reduce(chol, N_ax.reshape(-1)[cross_at], g_a)
@@ -49,9 +51,18 @@ def test_the_blocked_schur_complement_equals_the_dense_one(size, block):
         np.testing.assert_allclose(gram, ref[:, :p], rtol=0, atol=1e-12 * scale)
         np.testing.assert_allclose(wv, ref[:, p], rtol=0, atol=1e-12 * scale)
         dx = np.random.default_rng(seed).normal(size=p)
-        np.testing.assert_allclose(ks.cross_times(dx), g_a + N_ax @ dx, rtol=1e-14, atol=1e-14)
         z = -np.linalg.solve(N_aa, g_a + N_ax @ dx)
         np.testing.assert_allclose(ks.knots(chol, dx), z, rtol=0, atol=1e-12 * np.max(np.abs(z)))
-        np.testing.assert_array_equal(ks.dense_cross(), N_ax)
+        if block:
+            np.testing.assert_allclose(ks.cross_times(dx), g_a + N_ax @ dx, rtol=1e-14, atol=1e-14)
+            np.testing.assert_array_equal(ks.dense_cross(), N_ax)
         L = np.linalg.cholesky(N_aa)
         np.testing.assert_allclose(ks.W(chol), np.linalg.solve(L, N_ax), rtol=1e-10, atol=1e-12)
+
+
+def test_the_blocks_are_taken_where_they_touch_few_of_the_unknowns():
+    size, p = 3972, 99
+    chol, N_aa, N_ax, g_a = _problem(size, p, 1)  # three planes a stretch of the survey
+    assert isinstance(knot_schur(np.flatnonzero(N_ax.reshape(-1)), size, p, BW), KnotSchur)
+    everywhere = np.arange(size * p)  # every plane seen in every block of knots
+    assert isinstance(knot_schur(everywhere, size, p, BW), DenseSchur)
