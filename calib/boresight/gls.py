@@ -372,7 +372,7 @@ def pos_errors(knots: KnotWeights, z: np.ndarray) -> np.ndarray:
 class _Work:
     """What one solution reuses across its iterations: the sorted, chunked layout of the
     points and its buffers (:class:`GramPlan`), the knot weights ``σ·a`` and ``σ·b``, the
-    knots' Schur complement (by blocks: :class:`KnotSchur`) and the buffers of the white
+    knots' Schur complement (:func:`knot_schur`: by blocks, or dense) and the buffers of the white
     variances and the misclosures."""
 
     plan: GramPlan
@@ -434,14 +434,14 @@ def assemble(
     the knots), in the work arrays of ``work`` (made here when not given)."""
     work = work if work is not None else work_for(obs, layout, fr)
     m = _write_rows(work, lin, layout, obs, fr, plane_var_m2)
-    nb = work.plan.normals(dense_cross=False)  # N_ax by blocks only (work.schur)
+    nb = work.plan.normals(dense_cross=False)  # N_ax's entries only: work.schur places them
     nb.ab += fr.prior
     if not np.all(np.isfinite(nb.ab)):  # as cholesky_banded checks
         raise ValueError("array must not contain infs or NaNs")
     chol, info = dpbtrf(nb.ab, lower=1, overwrite_ab=1)  # what cholesky_banded calls
     if info != 0:
         raise ObservabilityError("the POS error processes are not determined (knot normal matrix singular)")
-    # S = N_xx − N_xa N_aa⁻¹ N_ax, r = g_x − N_xa N_aa⁻¹ g_a (by blocks of knot rows)
+    # S = N_xx − N_xa N_aa⁻¹ N_ax, r = g_x − N_xa N_aa⁻¹ g_a (work.schur: by blocks of knot rows)
     gram, wv = work.schur.reduce(chol, nb.cross, nb.g_a)
     S = nb.N_xx - gram
     S = 0.5 * (S + S.T)
