@@ -7,24 +7,17 @@ from __future__ import annotations
 import numpy as np
 
 from calib.assess.results import AssessError
+from calib.extraction.points import line_headings
 
 #: Passes are reciprocal when their sailed headings differ by 180° within this tolerance.
 RECIPROCAL_TOLERANCE_DEG = 20.0
 
 
 def pass_headings_deg(bundle) -> dict[int, float]:
-    """Sailed heading of each pass (circular mean of the trajectory at its returns' times)."""
+    """Sailed heading of each pass (circular mean of the trajectory at its covered returns)."""
     pts, traj = bundle.points, bundle.trajectory
-    out = {}
-    for pid in pts.pass_ids():
-        t = pts.t_gps_s[pts.pass_id == pid]
-        t = t[~traj.uncovered(t)]
-        if t.size == 0:
-            continue
-        t = t[:: max(1, t.size // 2000)]
-        h = traj.interpolate(t).rpy_rad[:, 2]
-        out[pid] = float(np.degrees(np.arctan2(np.sin(h).mean(), np.cos(h).mean())) % 360.0)
-    return out
+    covered = pts.select(~traj.uncovered(pts.t_gps_s))
+    return {p: float(np.degrees(h)) for p, h in line_headings(covered, traj, 0.0).items()}
 
 
 def _heading_gap_deg(a: float, b: float) -> float:
