@@ -1,11 +1,13 @@
 """Survey tiles: LAS 1.4 / LAZ (point format 6) with per-point uncertainty and provenance.
 
 What ``mls georef`` writes for each tile (a line, or a square of the projected CRS). The points
-arrive as the file's own point records (:func:`record_dtype`: coordinates already on the output
-CRS's LAS grid; :mod:`office.deliver.lasrecords` encodes them), part by part, and a tile is
-written whole or not at all: :func:`write_tile` writes ``<name>.laz.partial`` and renames it when
-the last point is in (the rename is atomic: a reader, or a resumed job, sees either no tile or a
-complete one).
+arrive in parts (:mod:`calib.io.tileparts`: the file's own point records — coordinates already on
+the output CRS's LAS grid, :mod:`office.deliver.lasrecords` encodes them — compressed into LAZ
+chunks by the chunk that found them, or raw for a ``.las``), and
+:func:`calib.io.tileparts.write_tile` joins them under the tile's header (:func:`tile_header`)
+without decoding them. A tile is written whole or not at all:
+``<name>.laz.partial`` first, renamed when the last point is in (the rename is atomic: a reader,
+or a resumed job, sees either no tile or a complete one).
 
 Every tile carries, beside what :class:`calib.io.laz.LasPassWriter` writes (CRS as WKT, adjusted
 standard GPS time, intensity, scan angle, the pass id in ``point_source_id`` and as the int64
@@ -17,8 +19,9 @@ extra-bytes dimension ``pass_id``):
 - a provenance VLR (user id :data:`PROVENANCE_USER_ID`, record id :data:`PROVENANCE_RECORD_ID`):
   UTF-8 JSON with the mount id, the calibration's fingerprint and boresight, the software
   version and the source of the trajectory;
-- LAZ compressed on the calling thread only (lazrs, not its parallel variant): a task of
-  ``mls georef`` uses one core, so N workers use N;
+- LAZ with variable-size chunks of at most 50,000 points (a part's points end its last chunk),
+  each compressed on one thread (lazrs, not its parallel variant): a task of ``mls georef``
+  uses one core, so N workers use N;
 - a creation date that is the survey's (the first point's GPS day), not the day the file was
   written, so that the same inputs give the same bytes on any machine and any day.
 """
@@ -27,8 +30,6 @@ from __future__ import annotations
 
 import datetime as _dt
 import json
-import os
-from collections.abc import Iterable
 from dataclasses import dataclass
 from functools import cache
 from pathlib import Path
@@ -36,7 +37,7 @@ from pathlib import Path
 import numpy as np
 
 from calib.core import frames
-from calib.io.laz import PASS_ID_DIMENSION, LasOutputError, OutputCrs, las_source_id
+from calib.io.laz import PASS_ID_DIMENSION, LasOutputError, OutputCrs
 
 PROVENANCE_USER_ID = "marine-mls"
 PROVENANCE_RECORD_ID = 1
@@ -72,11 +73,11 @@ class TileSummary:
         }
 
 
-def _survey_date(t_gps_s: float) -> _dt.date:
+def survey_date(t_gps_s: float) -> _dt.date:
     return _GPS_EPOCH + _dt.timedelta(days=int(t_gps_s // 86400))
 
 
-def _quantiles(v: np.ndarray) -> dict[str, float]:
+def quantiles(v: np.ndarray) -> dict[str, float]:
     if v.size == 0:
         return {"median": float("nan"), "p95": float("nan"), "max": float("nan")}
     q = np.quantile(v, [0.5, 0.95])
@@ -123,107 +124,11 @@ def record_dtype() -> np.dtype:
     from calib.io.laz import SCALE_M
 
     crs = OutputCrs("LGF", "", (SCALE_M,) * 3, (0.0, 0.0, 0.0), frames.LocalFrame(0.0, 0.0), None)
-    return tile_header(crs, 0, "", {}, _survey_date(1e9)).point_format.dtype()
-
-
-def _pass_ids(pass_id: np.ndarray) -> np.ndarray:
-    """The sorted distinct pass ids of a part (one line's part: no sort)."""
-    if pass_id.min() == pass_id.max():
-        return np.asarray(pass_id[:1])
-    return np.unique(pass_id)
-
-
-class _Tally:
-    """What a tile holds, counted part by part as it is written. The bounds and the time span are those laspy's writer keeps in the header while it writes
-    (the least and greatest X, Y, Z and GPS time, scaled and offset: a monotonic map of the
-    least and greatest record gives the least and greatest coordinate, the same bits), not
-    counted again here."""
-
-    def __init__(self) -> None:
-        self.pass_ids: set[int] = set()
-        self.n = 0
-        self.sh: list[np.ndarray] = []
-        self.sv: list[np.ndarray] = []
-
-    def add(self, part: np.ndarray, ids: np.ndarray) -> None:
-        self.n += part.size
-        self.pass_ids.update(int(i) for i in ids)
-        # the σ summary from a thinned copy (every 16th point: a tile may hold 10⁸)
-        self.sh.append(part["sigma_h_m"][::16].copy())
-        self.sv.append(part["sigma_v_m"][::16].copy())
-
-    def summary(self, path: Path, header) -> TileSummary:
-        """The tile's summary; ``header`` is the writer's, after its last points."""
-        lo, hi = np.asarray(header.mins, float), np.asarray(header.maxs, float)
-        return TileSummary(
-            name=path.stem,
-            path=path.name,
-            n_points=int(self.n),
-            t_first_gps_s=float(frames.las_to_gps_seconds(header.min_gps_time)),
-            t_last_gps_s=float(frames.las_to_gps_seconds(header.max_gps_time)),
-            bbox=tuple(round(float(v), 4) for v in (*lo, *hi)),  # type: ignore[arg-type]
-            sigma_h_m=_quantiles(np.concatenate(self.sh)),
-            sigma_v_m=_quantiles(np.concatenate(self.sv)),
-            passes=sorted(self.pass_ids),
-        )
-
-
-def write_tile(
-    path: str | Path,
-    parts: Iterable[np.ndarray],
-    crs: OutputCrs,
-    software: str,
-    provenance: dict,
-    first_t_gps_s: float,
-) -> TileSummary:
-    """Write the tile ``path`` (``.laz`` compressed, ``.las`` not) from ``parts`` (arrays of
-    :func:`record_dtype`, in the order they are to appear: the records go to the compressor as
-    they are) and return its summary. The file appears only complete (module docstring);
-    ``first_t_gps_s`` (the survey's first point) dates the header."""
-    import laspy
-
-    path = Path(path)
-    partial = path.with_name(path.name + ".partial")
-    tally = _Tally()
-    writer = None
-    try:
-        for part in parts:
-            if part.dtype != record_dtype():
-                raise LasOutputError(f"{path}: a part of dtype {part.dtype}, expected the tile's records")
-            if part.size == 0:
-                continue
-            ids = _pass_ids(part["pass_id"])
-            if writer is None:
-                # one source id per file: the line's (LAS's u16, else 0); square tiles mix lines
-                source_id = las_source_id(int(ids[0])) if ids.size == 1 else 0
-                header = tile_header(crs, source_id, software, provenance, _survey_date(first_t_gps_s))
-                writer = laspy.open(
-                    partial,
-                    mode="w",
-                    header=header,
-                    do_compress=path.suffix == ".laz",
-                    laz_backend=laspy.LazBackend.Lazrs,  # one thread: one task is one core
-                )
-            writer.write_points(laspy.PackedPointRecord(part, writer.header.point_format))
-            tally.add(part, ids)
-        if writer is None:
-            raise LasOutputError(f"{path}: a tile without points (nothing to write)")
-        summary = tally.summary(path, writer.header)
-        writer.close()
-        writer = None
-        with open(partial, "rb") as f:
-            os.fsync(f.fileno())
-        os.replace(partial, path)
-    finally:
-        if writer is not None:
-            writer.close()
-        if partial.exists():
-            partial.unlink()
-    return summary
+    return tile_header(crs, 0, "", {}, survey_date(1e9)).point_format.dtype()
 
 
 def read_provenance(path: str | Path) -> dict:
-    """The provenance VLR of a tile (what :func:`write_tile` stored)."""
+    """The provenance VLR of a tile (what :func:`calib.io.tileparts.write_tile` stored)."""
     import laspy
 
     with laspy.open(path) as f:

@@ -4,10 +4,11 @@
 reads the chunk's returns (:func:`office.deliver.sources.read_chunk`), drops what the filters
 say (counted per reason), georeferences the rest on the chunk's slice of the trajectory,
 computes σ_h and σ_v (:func:`calib.core.tpu.point_sigmas`), converts to the output CRS, and
-writes one part per tile it touches, ``<out>/.georef/parts/<tile>/c<chunk>.npy``: the tile
+writes one part per tile it touches, ``<out>/.georef/parts/<tile>/c<chunk>.part``: the tile
 file's own LAS records (:func:`calib.io.lastile.record_dtype`, encoded by
-:mod:`office.deliver.lasrecords`), time order. A projected output CRS
-is reached through a local model fitted per chunk (:mod:`office.deliver.projection`), checked
+:mod:`office.deliver.lasrecords`), time order, compressed into LAZ chunks for a ``.laz`` tile
+(:mod:`calib.io.tileparts`: the compression runs here, in parallel, not in the tile's task). A
+projected output CRS is reached through a local model fitted per chunk (:mod:`office.deliver.projection`), checked
 against pyproj to ≤ 0.01 mm: the tolerance of the tiles' coordinates is 0.1 mm — each stored
 coordinate is pyproj's on the 0.1-mm LAS grid or, for the rare point within 0.01 mm of the middle
 between two grid values, the neighbouring one (measured: 1 coordinate in 10⁵); every other field
@@ -67,6 +68,7 @@ class ChunkContext:
     tiling: str
     tile_m: float | None
     keep_transits: bool
+    compress: bool  # LAZ tiles (their parts LAZ chunks), else LAS
     lines: np.ndarray  # (n, 3) int64: pass id, start GPS ns, end GPS ns; sorted by start
 
 
@@ -129,14 +131,16 @@ def chunk_record_path(out_dir: str | Path, index: int) -> Path:
 
 
 def part_path(out_dir: str | Path, tile: str, index: int) -> Path:
-    return state_dir(out_dir) / "parts" / tile / f"c{index:06d}.npy"
+    return state_dir(out_dir) / "parts" / tile / f"c{index:06d}.part"
 
 
 def _part_whole(path: Path, size: int | None) -> bool:
-    """The part is there, of its recorded size, and begins as a ``.npy`` file does."""
+    """The part is there, of its recorded size, and begins as a part does."""
+    from calib.io.tileparts import MAGIC
+
     try:
         with open(path, "rb") as f:
-            return os.fstat(f.fileno()).st_size == size and f.read(6) == b"\x93NUMPY"
+            return os.fstat(f.fileno()).st_size == size and f.read(len(MAGIC)) == MAGIC
     except FileNotFoundError:
         return False
 
@@ -166,25 +170,6 @@ def write_atomic(path: Path, data: bytes) -> None:
             f.flush()
             os.fsync(f.fileno())
         os.replace(tmp, path)
-    except BaseException:
-        tmp.unlink(missing_ok=True)
-        raise
-
-
-def _save_part(path: Path, part: np.ndarray) -> int:
-    """``part`` as ``.npy`` straight into ``path`` (temporary name, rename), not synced: a part
-    is an intermediate file; the chunk's record (synced) names its size, and a chunk whose
-    parts are not all there at that size is run again (:func:`chunk_complete`)."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    try:
-        with open(tmp, "wb") as f:
-            data = np.ascontiguousarray(part)
-            np.lib.format.write_array_header_1_0(f, np.lib.format.header_data_from_array_1_0(data))
-            f.write(data.view(np.uint8).data)  # (ndarray.tofile loses the errno of a full disk)
-        size = tmp.stat().st_size
-        os.replace(tmp, path)
-        return size
     except BaseException:
         tmp.unlink(missing_ok=True)
         raise
@@ -395,16 +380,18 @@ def _tile_xy(ctx: ChunkContext, rec: np.ndarray) -> tuple[np.ndarray, np.ndarray
 def _write_parts(ctx: ChunkContext, index: int, rec: np.ndarray, t_s: np.ndarray) -> dict[str, dict]:
     """Write one part per tile the records touch (time order within each: ``t_s``, the records'
     GPS times); what each holds."""
+    from calib.io.tileparts import make_part, save_part
+
     tiles: dict[str, dict] = {}
     inv, names = tile_names(ctx, *_tile_xy(ctx, rec), rec["pass_id"])
     order = tile_order(inv, len(names))  # None: in tile order already, no gather
     bounds = np.searchsorted(inv if order is None else inv[order], np.arange(len(names) + 1))
     for j, name in enumerate(names):
         a, b = int(bounds[j]), int(bounds[j + 1])
-        part = rec[a:b] if order is None else rec[order[a:b]]
-        size = _save_part(part_path(ctx.out_dir, name, index), part)
+        part = make_part(rec[a:b] if order is None else rec[order[a:b]], ctx.compress)
+        size = save_part(part_path(ctx.out_dir, name, index), part)
         first = a if order is None else int(order[a])
-        tiles[name] = {"n": int(part.size), "t_first_gps_s": float(t_s[first]), "bytes": size}
+        tiles[name] = {"n": part.n_points, "t_first_gps_s": float(t_s[first]), "bytes": size}
     return tiles
 
 

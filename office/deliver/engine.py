@@ -9,7 +9,7 @@ every chunk (:func:`office.deliver.chunkjob.process_chunk`) and then every tile 
 Resuming (``resume=True``): the plan must be the same (same source, calibration, options:
 its fingerprint); chunks with a record and files with a record are not run again. A job killed
 at any point therefore loses no finished tile, and a tile file is never half written
-(:func:`calib.io.lastile.write_tile`). Without ``resume`` a non-empty ``out`` is refused unless
+(:func:`calib.io.tileparts.write_tile`). Without ``resume`` a non-empty ``out`` is refused unless
 ``force`` (then the old job state is cleared and files of the same names are replaced).
 """
 
@@ -363,6 +363,7 @@ class _JobRun:
             options.tiling,
             options.tile_m,
             options.keep_transits,
+            options.compress,
             np.array(source.lines, np.int64).reshape(-1, 3),
         )
         self.line_chunks = _line_chunks(source, options)

@@ -1,6 +1,6 @@
 """Chunk points as the tile file's own LAS records (:func:`calib.io.lastile.record_dtype`: LAS 1.4
 point format 6 with the extra bytes ``pass_id``, ``sigma_h_m``, ``sigma_v_m``): a chunk encodes
-its points straight into them, and :func:`calib.io.lastile.write_tile` hands them to the LAZ
+its points straight into them, and :func:`calib.io.tileparts.make_part` hands them to the LAZ
 compressor as they are. The GPS time of a record, adjusted standard time, gives back the point's
 GPS seconds exactly (t − 10⁹ is exact for t within [5·10⁸, 2·10⁹] s, i.e. 1995–2043).
 """

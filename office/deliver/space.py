@@ -1,15 +1,14 @@
 """The disk space ``mls georef`` needs, checked before it starts; running out of it, an error.
 
-A job holds on disk, at its peak, every chunk's parts (``.georef/parts``: 46 bytes a point, the
-tiles' own LAS records, :mod:`office.deliver.lasrecords`) and every tile (LAZ about 7–9 bytes a point, LAS 46),
-the parts being removed only once every tile is written: several times the size of the tiles
-(measured on the simulated bundle and session of the tests, with parts of 54 bytes a point:
-peak 64 bytes a return with LAZ,
-102 with LAS; a session gave 0.17 returns a byte of MCAP segment). :func:`space_needed` adds a
-quarter to that; :func:`check_space` refuses a job whose need the file system of ``--out`` does
-not have free. Running out all the same (a disk shared with a recording daemon) is
-:func:`out_of_space`: one line naming the directory and the space needed; the job keeps its
-finished chunks and tiles for ``--resume``.
+A job holds on disk, at its peak, every chunk's parts (``.georef/parts``, :mod:`calib.io.tileparts`:
+the tiles' own LAS records, 46 bytes a point, compressed into LAZ chunks for LAZ tiles) and every
+tile (LAZ about 7–10 bytes a point, LAS 46), the parts being removed only once every tile is
+written (measured on the simulated bundle of the tests: peak 20 bytes a return with LAZ, 94 with
+LAS; a session gave 0.17 returns a byte of MCAP segment). :func:`space_needed` adds a quarter to
+that; :func:`check_space` refuses a job whose need the file system of ``--out`` does not have
+free. Running out all the same (a disk shared with a recording daemon) is :func:`out_of_space`:
+one line naming the directory and the space needed; the job keeps its finished chunks and tiles
+for ``--resume``.
 """
 
 from __future__ import annotations
@@ -21,8 +20,8 @@ from pathlib import Path
 from office.deliver.options import GeorefError
 
 #: bytes a return costs at the job's peak: its part, its share of a tile (LAZ, LAS)
-PART_BYTES = 46
-TILE_BYTES = {True: 16, False: 47}
+PART_BYTES = {True: 12, False: 47}
+TILE_BYTES = {True: 12, False: 47}
 #: returns a byte of session segment holds (measured: 223,121 returns in 1,316,764 bytes)
 RETURNS_PER_SESSION_BYTE = 0.17
 MARGIN = 1.25
@@ -47,7 +46,7 @@ def source_returns(source) -> int:
 def space_needed(n_returns: int, compress: bool, share_to_run: float = 1.0) -> int:
     """Bytes a job of ``n_returns`` needs on disk; ``share_to_run``: the share of its chunks
     still to run (a resumed job has the others' parts already)."""
-    per_return = PART_BYTES * share_to_run + TILE_BYTES[compress]
+    per_return = PART_BYTES[compress] * share_to_run + TILE_BYTES[compress]
     return int(n_returns * per_return * MARGIN) + FIXED_BYTES
 
 

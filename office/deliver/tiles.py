@@ -5,8 +5,8 @@ files: the tile's parts in chunk (= time) order, cut into consecutive runs of at
 ``max_tile_points`` (a part is never split), named ``<tile>.laz`` or ``<tile>-p01.laz``,
 ``-p02``… when there are several. The plan depends only on the records, so a resumed or
 distributed job plans the same files. :func:`write_file` writes one through
-:func:`calib.io.lastile.write_tile` (the parts are the file's own LAS records; whole or not at
-all) and then its record
+:func:`calib.io.tileparts.write_tile` (the parts are the file's own LAS records, LAZ chunks for a
+``.laz``; whole or not at all) and then its record
 ``<out>/.georef/tiles/<file>.json`` (its summary and the chunks it was made of) — a file with
 its record, made of the chunks the plan names, is done.
 """
@@ -18,8 +18,6 @@ import os
 import resource
 from dataclasses import dataclass
 from pathlib import Path
-
-import numpy as np
 
 from office.deliver.chunkjob import part_path, state_dir, write_atomic
 
@@ -93,16 +91,16 @@ def file_done(out_dir: str | Path, name: str, suffix: str, chunks: tuple[int, ..
 
 def write_file(task: FileTask) -> FileDone:
     """Write one tile file from its parts, then its record (module docstring)."""
-    from calib.io import lastile
+    from calib.io import lastile, tileparts
     from office.deliver.chunkjob import crs_for
 
     def parts():
         for index in task.chunks:
-            yield np.load(part_path(task.out_dir, task.tile, index), mmap_mode="r", allow_pickle=False)
+            yield tileparts.load_part(part_path(task.out_dir, task.tile, index), lastile.record_dtype())
 
     path = Path(task.out_dir) / f"{task.name}{task.suffix}"
     try:
-        summary = lastile.write_tile(
+        summary = tileparts.write_tile(
             path, parts(), crs_for(task.crs, task.frame), task.software, task.provenance, task.first_t_gps_s
         ).as_dict()
     except BaseException:

@@ -203,21 +203,23 @@ def test_a_killed_job_resumes_and_writes_the_same_bytes(bundle, tmp_path, stage)
 
 
 def test_a_tile_interrupted_while_written_leaves_no_file(bundle, tmp_path, monkeypatch):
-    import office.deliver.tiles as tiles_mod
+    from calib.io import tileparts
 
-    real = np.load
+    real = tileparts._write_points
     calls = {"n": 0}
 
-    def failing_load(*a, **k):
+    def unplugged(f, parts):
         calls["n"] += 1
-        if calls["n"] == 3:
+        if calls["n"] == 3:  # the third file: its first part written, then the disk is gone
+            real(f, parts[:1])
             raise OSError("disk unplugged")
-        return real(*a, **k)
+        real(f, parts)
 
-    monkeypatch.setattr(tiles_mod.np, "load", failing_load)
+    monkeypatch.setattr(tileparts, "_write_points", unplugged)
     with pytest.raises(OSError, match="disk unplugged"):
         run_georef(bundle, tmp_path / "out", GeorefOptions(chunk_s=1.0))
-    monkeypatch.setattr(tiles_mod.np, "load", real)
+    monkeypatch.undo()
+    assert calls["n"] == 3
     assert not list((tmp_path / "out").glob("*.partial"))
     names = {p.stem for p in (tmp_path / "out").glob("*.laz")}
     res = run_georef(bundle, tmp_path / "out", GeorefOptions(chunk_s=1.0), resume=True)

@@ -17,7 +17,7 @@ from pathlib import Path
 import pytest
 from typer.testing import CliRunner
 
-import calib.io.lastile as lastile
+import calib.io.tileparts as tileparts
 import office.deliver.chunkjob as chunkjob
 import office.deliver.engine as engine
 import office.deliver.space as space
@@ -172,7 +172,8 @@ def test_the_estimate_covers_what_a_job_takes(bundle, tmp_path, monkeypatch):
     monkeypatch.setattr(tiles, "write_atomic", measuring)
     run_georef(bundle, tmp_path / "out", OPTS)
     need = space.space_needed(space.source_returns(open_source(bundle, 1.0)), True)
-    assert peak["bytes"] < need < 3 * peak["bytes"]
+    assert peak["bytes"] < need  # (a small job's need is mostly the fixed allowance)
+    assert need - space.FIXED_BYTES < 3 * peak["bytes"]
 
 
 class FullDisk:
@@ -217,7 +218,7 @@ def test_a_disk_full_mid_job_is_one_line_leaves_no_temporary_and_resumes(
     bundle, reference, tmp_path, monkeypatch
 ):
     out = tmp_path / "out"
-    monkeypatch.setattr(chunkjob, "open", FullDisk(300_000).open, raising=False)
+    monkeypatch.setattr(tileparts, "open", FullDisk(60_000).open, raising=False)
     with pytest.raises(GeorefError) as e:
         run_georef(bundle, out, OPTS)
     msg = str(e.value)
@@ -236,7 +237,7 @@ def test_a_disk_full_mid_job_is_one_line_leaves_no_temporary_and_resumes(
 
 def test_a_disk_full_while_a_tile_is_written_leaves_no_partial_file(bundle, reference, tmp_path, monkeypatch):
     out = tmp_path / "out"
-    real = lastile.write_tile
+    real = tileparts.write_tile
     calls = {"n": 0}
 
     def fills_up(path, *args, **kwargs):
@@ -246,7 +247,7 @@ def test_a_disk_full_while_a_tile_is_written_leaves_no_partial_file(bundle, refe
             raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), str(path))
         return real(path, *args, **kwargs)
 
-    monkeypatch.setattr(lastile, "write_tile", fills_up)
+    monkeypatch.setattr(tileparts, "write_tile", fills_up)
     r = CliRunner().invoke(app, ["georef", str(bundle), "--out", str(out), "--chunk-s", "1"])
     assert r.exit_code == 1, r.output
     assert "no space left" in r.output, r.output
@@ -265,11 +266,11 @@ def test_parts_lost_with_the_power_run_their_chunks_again(bundle, reference, tmp
     def power_lost(*args, **kwargs):
         raise OSError("power lost")
 
-    monkeypatch.setattr(lastile, "write_tile", power_lost)  # every chunk done, no tile yet
+    monkeypatch.setattr(tileparts, "write_tile", power_lost)  # every chunk done, no tile yet
     with pytest.raises(OSError, match="power lost"):
         run_georef(bundle, out, OPTS)
     monkeypatch.undo()
-    parts = sorted((out / ".georef" / "parts").rglob("*.npy"))
+    parts = sorted((out / ".georef" / "parts").rglob("*.part"))
     parts[0].write_bytes(b"")
     parts[-1].write_bytes(b"\0" * parts[-1].stat().st_size)
     lost = {int(parts[0].stem[1:]), int(parts[-1].stem[1:])}
@@ -281,10 +282,10 @@ def test_parts_lost_with_the_power_run_their_chunks_again(bundle, reference, tmp
 
 @pytest.fixture
 def small_disk(tmp_path):
-    """A tmpfs of 640 KB (root only: skipped where mounting is not allowed)."""
+    """A tmpfs of 192 KB (root only: skipped where mounting is not allowed)."""
     mnt = tmp_path / "disk"
     mnt.mkdir()
-    r = subprocess.run(["mount", "-t", "tmpfs", "-o", "size=640k", "tmpfs", str(mnt)], capture_output=True)
+    r = subprocess.run(["mount", "-t", "tmpfs", "-o", "size=192k", "tmpfs", str(mnt)], capture_output=True)
     if r.returncode != 0:
         pytest.skip(f"cannot mount a tmpfs here: {r.stderr.decode().strip()}")
     try:
