@@ -160,26 +160,15 @@ def _block(path, ci, records: bytes, offsets: np.ndarray, channel_id: np.ndarray
     )
 
 
-def indexed_blocks(
-    path: str | Path, topics: Iterable[str], t0_ns: int | None = None, t1_ns: int | None = None
-) -> tuple[dict[int, tuple[str, str]], Iterator[MessageBlock]] | None:
-    """(channel id → (topic, message encoding), the blocks of messages of ``topics`` with log
-    time in [t0, t1), one per MCAP chunk, in file order) through the segment's index; None when
-    the segment has no summary (module docstring)."""
-    f = open(path, "rb")
-    try:
-        summary = segment_summary(path)
-    except BaseException:
-        f.close()
-        raise
-    if summary is None or not summary.chunk_indexes:
-        f.close()
-        return None
+def _channels(summary, topics: Iterable[str]) -> dict[int, tuple[str, str]]:
     topic_set = set(topics)
-    wanted = {c.id: (c.topic, c.message_encoding) for c in summary.channels.values() if c.topic in topic_set}
-    lo = -1 if t0_ns is None else t0_ns
-    hi = 1 << 64 if t1_ns is None else t1_ns
-    chunks = sorted(
+    return {c.id: (c.topic, c.message_encoding) for c in summary.channels.values() if c.topic in topic_set}
+
+
+def _chunks_with(summary, wanted: dict[int, tuple[str, str]], lo: int, hi: int) -> list:
+    """The chunk indexes of the chunks holding messages of ``wanted`` channels with log time in
+    [lo, hi), in file order."""
+    return sorted(
         (
             ci
             for ci in summary.chunk_indexes
@@ -189,6 +178,44 @@ def indexed_blocks(
         ),
         key=lambda ci: ci.chunk_start_offset,
     )
+
+
+def topic_chunks(path: str | Path, topics: Iterable[str]) -> int | None:
+    """How many MCAP chunks of the segment hold messages of ``topics``; None when the segment has
+    no summary."""
+    summary = segment_summary(path)
+    if summary is None or not summary.chunk_indexes:
+        return None
+    return len(_chunks_with(summary, _channels(summary, topics), -1, 1 << 64))
+
+
+def indexed_blocks(
+    path: str | Path,
+    topics: Iterable[str],
+    t0_ns: int | None = None,
+    t1_ns: int | None = None,
+    chunks_of: slice | None = None,
+) -> tuple[dict[int, tuple[str, str]], Iterator[MessageBlock]] | None:
+    """(channel id → (topic, message encoding), the blocks of messages of ``topics`` with log
+    time in [t0, t1), one per MCAP chunk, in file order) through the segment's index; None when
+    the segment has no summary (module docstring). ``chunks_of``: only those of the MCAP chunks
+    holding such messages (in file order), e.g. ``slice(0, 10)`` the first ten — for readers that
+    share a segment's chunks out (:func:`topic_chunks` counts them)."""
+    f = open(path, "rb")
+    try:
+        summary = segment_summary(path)
+    except BaseException:
+        f.close()
+        raise
+    if summary is None or not summary.chunk_indexes:
+        f.close()
+        return None
+    wanted = _channels(summary, topics)
+    lo = -1 if t0_ns is None else t0_ns
+    hi = 1 << 64 if t1_ns is None else t1_ns
+    chunks = _chunks_with(summary, wanted, lo, hi)
+    if chunks_of is not None:
+        chunks = chunks[chunks_of]
 
     def generate() -> Iterator[MessageBlock]:
         with f:

@@ -15,6 +15,7 @@ at any point therefore loses no finished tile, and a tile file is never half wri
 
 from __future__ import annotations
 
+import functools
 import hashlib
 import json
 import shutil
@@ -38,7 +39,7 @@ from office.deliver.chunkjob import (
     with_site_sigmas,
     write_atomic,
 )
-from office.deliver.executors import Executor, InProcess
+from office.deliver.executors import Executor, InProcess, ordered_map
 from office.deliver.options import GeorefError, GeorefOptions
 from office.deliver.space import check_space, is_out_of_space, out_of_space, source_returns, space_needed
 from office.deliver.tiles import (
@@ -55,6 +56,7 @@ if TYPE_CHECKING:
     from calib.core.trajectory import Trajectory
     from office.deliver.calibration import Calibration
     from office.deliver.sources import Source
+    from office.jobs.sessionread import Mapper
 
 NS_PER_S = 1_000_000_000
 Progress = Callable[[str, int, int, int], None]  # stage, done, total, points so far
@@ -180,7 +182,16 @@ def _georef(
     """:func:`run_georef` with ``out`` held."""
     t_start = time.monotonic()
     executor = executor or InProcess()
-    job = _plan_job(source_path, options, calibration, sbet=sbet, smrmsg=smrmsg, db=db, max_gap_s=max_gap_s)
+    job = _plan_job(
+        source_path,
+        options,
+        calibration,
+        sbet=sbet,
+        smrmsg=smrmsg,
+        db=db,
+        max_gap_s=max_gap_s,
+        mapper=_mapper(executor),
+    )
     _start_job(out, job, options, resume, space)
     t_plan = time.monotonic()
     run = _JobRun(out, job, options, executor, progress)
@@ -236,6 +247,14 @@ class _JobPlan:
     fingerprint: str
 
 
+def _mapper(executor: Executor) -> Mapper | None:
+    """How the plan shares out the reading of a session's navigation: over the executor's workers
+    when it has several (the plan is the job's serial part), else not at all."""
+    if executor.workers < 2:
+        return None
+    return functools.partial(ordered_map, executor)
+
+
 def _plan_job(
     source_path: str | Path,
     options: GeorefOptions,
@@ -245,15 +264,16 @@ def _plan_job(
     smrmsg: str | Path | None,
     db: str | Path | None,
     max_gap_s: float,
+    mapper: Mapper | None,
 ) -> _JobPlan:
-    """Open the source, take its trajectory (or the SBET's), load the calibration, name the
-    output CRS, and fingerprint the plan."""
+    """Open the source (``mapper``: :func:`office.deliver.sources.open_source`), take its
+    trajectory (or the SBET's), load the calibration, name the output CRS, and fingerprint the plan."""
     from calib.core.version import software_version
     from calib.io.laz import LasOutputError, output_crs
     from office.deliver.calibration import load_calibration
     from office.deliver.sources import open_source
 
-    source = open_source(source_path, options.chunk_s, max_gap_s)
+    source = open_source(source_path, options.chunk_s, max_gap_s, mapper)
     warnings = list(source.warnings)
     traj, traj_name = _trajectory(source, sbet, smrmsg, max_gap_s)
     if not traj.has_sigmas:

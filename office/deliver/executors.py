@@ -29,6 +29,7 @@ class Executor(Protocol):
     """What the engine asks of an executor (module docstring)."""
 
     name: str
+    workers: int
 
     def submit(self, fn: Callable[[Any], Any], item: Any) -> None: ...
 
@@ -54,6 +55,20 @@ class InProcess:
 
     def close(self) -> None:
         pass
+
+
+def _numbered(task: tuple[Callable, int, Any]) -> tuple[int, Any]:
+    fn, k, item = task
+    return k, fn(item)
+
+
+def ordered_map(executor: Executor, fn: Callable[[Any], Any], items: list) -> list:
+    """``[fn(x) for x in items]``, the calls run as ``executor``'s tasks (at once on a cluster);
+    for an executor with no other task pending (the plan's, before the chunks)."""
+    for k, item in enumerate(items):
+        executor.submit(_numbered, (fn, k, item))
+    done = dict(executor.results())
+    return [done[k] for k in range(len(items))]
 
 
 class DaskExecutor:

@@ -26,6 +26,7 @@ from office.deliver.options import GeorefError
 if TYPE_CHECKING:
     from calib.core.trajectory import Trajectory
     from calib.io.site import Site
+    from office.jobs.sessionread import Mapper
 
 NS_PER_S = 1_000_000_000
 LIDAR_TOPIC = "/lidar/raw"
@@ -248,13 +249,13 @@ def read_chunk(spec: ChunkSpec, packet_share: float = 1.0) -> Returns:
     return spec.returns if spec.returns is not None else read_session_chunk(spec, packet_share)
 
 
-def _session_source(path: Path, chunk_s: float, max_gap_s: float) -> Source:
+def _session_source(path: Path, chunk_s: float, max_gap_s: float, mapper: Mapper | None) -> Source:
     from acquire.log.recover import segment_paths
     from office.jobs.export import ExportError, ExportOptions
     from office.jobs.sessionnav import session_navigation
 
     try:
-        nav = session_navigation(path, ExportOptions(max_gap_s=max_gap_s))
+        nav = session_navigation(path, ExportOptions(max_gap_s=max_gap_s), mapper)
     except ExportError as e:
         raise GeorefError(str(e)) from None
     chunk_ns = round(chunk_s * NS_PER_S)
@@ -310,13 +311,16 @@ def _bundle_source(path: Path, chunk_s: float, max_gap_s: float) -> Source:
     return Source("bundle", path, bundle.site, bundle.trajectory, sorted(lines, key=lambda x: x[1]), chunks)
 
 
-def open_source(path: str | Path, chunk_s: float, max_gap_s: float = 1.0) -> Source:
-    """A session directory (``seg-*.mcap``) or a bundle directory (``points.csv``)."""
+def open_source(
+    path: str | Path, chunk_s: float, max_gap_s: float = 1.0, mapper: Mapper | None = None
+) -> Source:
+    """A session directory (``seg-*.mcap``) or a bundle directory (``points.csv``); ``mapper``: a
+    session's navigation decoded in pieces by it (:func:`office.deliver.executors.ordered_map`)."""
     p = Path(path)
     if not p.is_dir():
         raise GeorefError(f"{p}: not a directory (expected a session or a calibration bundle)")
     if any(p.glob("seg-*.mcap")):
-        return _session_source(p, chunk_s, max_gap_s)
+        return _session_source(p, chunk_s, max_gap_s, mapper)
     if (p / "points.csv").exists() or (p / "points.csv.gz").exists():
         return _bundle_source(p, chunk_s, max_gap_s)
     raise GeorefError(f"{p}: neither a session (seg-*.mcap) nor a calibration bundle (points.csv)")

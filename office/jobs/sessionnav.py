@@ -10,7 +10,7 @@ from typing import TYPE_CHECKING
 
 from acquire.log.read import SessionReadError, session_summary
 from office.jobs.export import ExportError, ExportOptions, PassWindow, passes_from_events
-from office.jobs.sessionread import read_navigation
+from office.jobs.sessionread import Mapper, read_navigation
 
 if TYPE_CHECKING:
     from calib.core.trajectory import Trajectory
@@ -34,10 +34,11 @@ DEFAULT_OPTIONS = ExportOptions()
 
 
 def session_navigation(
-    session_dir: str | Path, options: ExportOptions = DEFAULT_OPTIONS
+    session_dir: str | Path, options: ExportOptions = DEFAULT_OPTIONS, mapper: Mapper | None = None
 ) -> SessionNavigation:
     """The site, the /ins/nav trajectory (with its sigmas when at least half the epochs carry
-    them) and the passes marked in /events of a session, read as :func:`export_session` does."""
+    them) and the passes marked in /events of a session, read as :func:`export_session` does
+    (``mapper``: the messages decoded in pieces by it, :func:`office.jobs.sessionread.read_nav_and_events`)."""
     from acquire.log.read import session_losses
 
     session = Path(session_dir)
@@ -46,7 +47,7 @@ def session_navigation(
         warnings = [loss.describe() for loss in session_losses(session)]
     except SessionReadError as e:
         raise ExportError(str(e)) from None
-    nv = read_navigation(session, options, summary, None)
+    nv = read_navigation(session, options, summary, None, mapper)
     if nv.filled:
         warnings.append(f"{nv.filled} of {nv.nav.t_ns.size} INS epochs had no sigmas: interpolated")
     windows, w = passes_from_events(nv.events, int(nv.nav.t_ns[-1]))

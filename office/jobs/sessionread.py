@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import json
 import math
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -66,11 +66,8 @@ def nav_messages(session: Path, progress: ReadProgress | None) -> Iterator[NavMe
     decodes them (the same values, the same errors): when every segment closed normally, the
     JSON envelopes of each MCAP chunk parsed together (:func:`_chunk_messages`, a third of the
     time of one parse per message); else through ``iter_messages``."""
-    from acquire.log.indexed import segment_summary
-    from acquire.log.recover import segment_paths
-
-    paths = segment_paths(session) if Path(session).is_dir() else []
-    if not paths or not all(p.is_file() and _indexed(segment_summary(p)) for p in paths):
+    paths = _indexed_segments(session)
+    if not paths:
         for env in iter_messages(session, set(NAV_TOPICS), progress):
             yield env.topic, env.log_time_ns, env.host_ns, env.clock, env.payload
         return
@@ -81,6 +78,15 @@ def nav_messages(session: Path, progress: ReadProgress | None) -> Iterator[NavMe
         done += path.stat().st_size
         if progress is not None:
             progress(done, total)
+
+
+def _indexed_segments(session: Path) -> list[Path]:
+    """The session's segments when every one closed normally (has its index); else none."""
+    from acquire.log.indexed import segment_summary
+    from acquire.log.recover import segment_paths
+
+    paths = segment_paths(session) if Path(session).is_dir() else []
+    return paths if all(p.is_file() and _indexed(segment_summary(p)) for p in paths) else []
 
 
 def _indexed(summary) -> bool:
@@ -139,19 +145,40 @@ def _envelope(topic: str, log_time_ns: int, doc: Any) -> NavMessage:
     return topic, log_time_ns, host_ns, clock, data
 
 
-def read_nav_and_events(session: Path, progress: ReadProgress | None) -> tuple[InsEpochs, list[TimedEvent]]:
-    """The INS epochs, and the events as ``(gps_ns, how, data)``: the event's log time when
-    the clock model was locked (or holding over), else its receipt mapped to GPS time through
-    the INS time tags around it (``how``: ``clock`` / ``ins`` / ``system``). An INS epoch timed
-    by the clock model while it was unlocked (the INS not synced for that epoch, e.g. one that
-    lost its STATUS sentence) is re-timed the same way, so it does not land where the
-    free-running clock put it."""
-    rows: list[list[Any]] = []  # GPS ns, position and attitude, sigmas, timed by the clock model
+#: an ordered map, ``mapper(fn, items) == [fn(x) for x in items]``, that may run the calls in
+#: parallel (``mls georef`` on a cluster: :func:`office.deliver.executors.ordered_map`)
+Mapper = Callable[[Callable[[Any], Any], list], list]
+#: a segment's navigation is read in this many pieces at most when a mapper shares them out
+PIECES_PER_SEGMENT = 8
+
+
+@dataclass
+class NavPiece:
+    """What a run of :data:`NAV_TOPICS` messages (in file order) gives: the INS epochs with a
+    GPS time, position and attitude (``values``: the pose, then the six sigmas, NaN when absent;
+    ``from_clock``: timed by the clock model), the rows the unlocked clock model timed (with
+    their receipt), the synced epochs' receipt and time tags, and the raw events."""
+
+    t_ns: np.ndarray
+    values: np.ndarray  # (k, 12)
+    from_clock: np.ndarray
+    unlocked_rows: np.ndarray
+    unlocked_host_ns: np.ndarray
+    sync_host_ns: np.ndarray
+    sync_t_ns: np.ndarray
+    raw_events: list[tuple[int, int, str, dict[str, Any]]]
+
+
+def _collect(messages: Iterable[NavMessage]) -> NavPiece:
+    """The :class:`NavPiece` of ``messages``."""
+    t_ns: list[int] = []
+    values: list[list[Any]] = []
+    from_clock: list[bool] = []
     raw_events: list[tuple[int, int, str, dict[str, Any]]] = []
     sync_host: list[int] = []
     sync_t: list[int] = []
     unlocked: list[tuple[int, int]] = []  # (row, receipt) of the epochs the unlocked clock timed
-    for topic, log_time_ns, host_ns, clock, d in nav_messages(session, progress):
+    for topic, log_time_ns, host_ns, clock, d in messages:
         assert isinstance(d, dict)  # /ins/nav and /events are JSON documents
         if topic == "/events":
             raw_events.append((log_time_ns, host_ns, clock, d))
@@ -159,46 +186,114 @@ def read_nav_and_events(session: Path, progress: ReadProgress | None) -> tuple[I
         t = d.get("time_gps_ns")
         if t is None:
             continue
-        from_clock = d.get("time_source") == "clock"
-        if not from_clock:
+        by_clock = d.get("time_source") == "clock"
+        if not by_clock:
             sync_host.append(host_ns)
             sync_t.append(int(t))
         vals = list(map(d.get, _POSE))
         if None in vals:  # (JSON values: only None equals None)
             continue
-        if from_clock and clock == "UNLOCKED":
-            unlocked.append((len(rows), host_ns))
-        sig = [np.nan if v is None else v for v in map(d.get, _SIGMAS)]
-        rows.append([int(t), *vals, *sig, from_clock])
-    if len(rows) < 2:
+        if by_clock and clock == "UNLOCKED":
+            unlocked.append((len(t_ns), host_ns))
+        t_ns.append(int(t))
+        values.append([*vals, *(np.nan if v is None else v for v in map(d.get, _SIGMAS))])
+        from_clock.append(by_clock)
+    return NavPiece(
+        np.array(t_ns, np.int64),
+        np.array(values, np.float64).reshape(-1, 12),
+        np.array(from_clock, bool),
+        np.array([row for row, _ in unlocked], np.int64),
+        np.array([host for _, host in unlocked], np.int64),
+        np.array(sync_host, np.int64),
+        np.array(sync_t, np.int64),
+        raw_events,
+    )
+
+
+def _join(pieces: list[NavPiece]) -> NavPiece:
+    """The pieces of consecutive runs of messages as the piece of the whole run."""
+    if len(pieces) == 1:
+        return pieces[0]
+    starts = np.cumsum([0] + [p.t_ns.size for p in pieces[:-1]])
+    return NavPiece(
+        np.concatenate([p.t_ns for p in pieces]),
+        np.concatenate([p.values for p in pieces]),
+        np.concatenate([p.from_clock for p in pieces]),
+        np.concatenate([p.unlocked_rows + k for p, k in zip(pieces, starts.tolist(), strict=True)]),
+        np.concatenate([p.unlocked_host_ns for p in pieces]),
+        np.concatenate([p.sync_host_ns for p in pieces]),
+        np.concatenate([p.sync_t_ns for p in pieces]),
+        [e for p in pieces for e in p.raw_events],
+    )
+
+
+def nav_piece(task: tuple[str, int, int]) -> NavPiece:
+    """The :class:`NavPiece` of the MCAP chunks [lo, hi) of those holding :data:`NAV_TOPICS`
+    of the segment ``task`` = (path, lo, hi), which closed normally (a task a mapper runs)."""
+    from acquire.log.indexed import indexed_blocks
+
+    path, lo, hi = task
+    found = indexed_blocks(path, NAV_TOPICS, chunks_of=slice(lo, hi))
+    if found is None:  # (checked before: the segment has its index)
+        raise SessionReadError(f"{path}: the segment's index could not be read")
+    channels, blocks = found
+    return _collect(m for block in blocks for m in _chunk_messages(channels, block))
+
+
+def _pieces(session: Path, progress: ReadProgress | None, mapper: Mapper | None) -> list[NavPiece]:
+    """The session's navigation in pieces: one, read here; or, with a ``mapper`` and every
+    segment closed normally, up to :data:`PIECES_PER_SEGMENT` per segment, run by it."""
+    from acquire.log.indexed import topic_chunks
+
+    paths = _indexed_segments(session) if mapper is not None else None
+    if not paths:
+        return [_collect(nav_messages(session, progress))]
+    tasks = []
+    for path in paths:
+        n = topic_chunks(path, NAV_TOPICS) or 0
+        step = max(1, -(-n // PIECES_PER_SEGMENT))
+        tasks += [(str(path), lo, min(lo + step, n)) for lo in range(0, n, step)]
+    assert mapper is not None
+    return mapper(nav_piece, tasks)
+
+
+def read_nav_and_events(
+    session: Path, progress: ReadProgress | None, mapper: Mapper | None = None
+) -> tuple[InsEpochs, list[TimedEvent]]:
+    """The INS epochs, and the events as ``(gps_ns, how, data)``: the event's log time when
+    the clock model was locked (or holding over), else its receipt mapped to GPS time through
+    the INS time tags around it (``how``: ``clock`` / ``ins`` / ``system``). An INS epoch timed
+    by the clock model while it was unlocked (the INS not synced for that epoch, e.g. one that
+    lost its STATUS sentence) is re-timed the same way, so it does not land where the
+    free-running clock put it. ``mapper``: the messages decoded in pieces by it (:func:`_pieces`;
+    the same result)."""
+    piece = _join(_pieces(session, progress, mapper))
+    if piece.t_ns.size < 2:
         raise ExportError(
-            f"{session}: {len(rows)} INS epochs with position and attitude in "
+            f"{session}: {piece.t_ns.size} INS epochs with position and attitude in "
             f"/ins/nav; a trajectory needs at least 2"
         )
-    ins_time = _InsTime(np.array(sync_host, np.int64), np.array(sync_t, np.int64))
-    retimed = _retime(rows, unlocked, ins_time)
-    return _epochs(rows, retimed), _time_events(raw_events, ins_time)
+    ins_time = _InsTime(piece.sync_host_ns, piece.sync_t_ns)
+    retimed = _retime(piece, ins_time)
+    return _epochs(piece, retimed), _time_events(piece.raw_events, ins_time)
 
 
-def _retime(rows: list[list[Any]], unlocked: list[tuple[int, int]], ins_time: _InsTime) -> int:
+def _retime(piece: NavPiece, ins_time: _InsTime) -> int:
     """Re-time the epochs the unlocked clock model timed through the INS time tags around
     their receipt (in place); how many could be."""
     retimed = 0
-    for i, host_ns in unlocked:
+    for i, host_ns in zip(piece.unlocked_rows.tolist(), piece.unlocked_host_ns.tolist(), strict=True):
         t_ins = ins_time.gps_ns(host_ns)
         if t_ins is not None:
-            rows[i][0] = t_ins
+            piece.t_ns[i] = t_ins
             retimed += 1
     return retimed
 
 
-def _epochs(rows: list[list[Any]], retimed: int) -> InsEpochs:
+def _epochs(piece: NavPiece, retimed: int) -> InsEpochs:
     """The rows as epochs in time order, a repeated time kept once."""
-    t = np.array([r[0] for r in rows], dtype=np.int64)
-    a = np.array([r[1:13] for r in rows], dtype=np.float64)
-    clock = np.array([r[13] for r in rows], dtype=bool)
-    order = np.argsort(t, kind="stable")
-    t, a, clock = t[order], a[order], clock[order]
+    order = np.argsort(piece.t_ns, kind="stable")
+    t, a, clock = piece.t_ns[order], piece.values[order], piece.from_clock[order]
     keep = np.concatenate([[True], np.diff(t) > 0])
     t, a, clock = t[keep], a[keep], clock[keep]
     return InsEpochs(t, a[:, 0], a[:, 1], a[:, 2], a[:, 3:6], a[:, 6:12], int(clock.sum()), retimed)
@@ -341,16 +436,20 @@ class Navigation:
 
 
 def read_navigation(
-    session: Path, options: ExportOptions, summary: dict, progress: ReadProgress | None
+    session: Path,
+    options: ExportOptions,
+    summary: dict,
+    progress: ReadProgress | None,
+    mapper: Mapper | None = None,
 ) -> Navigation:
     """The site (with the session's mount), the INS epochs and events, their sigmas (filled:
     :func:`fill_sigmas`) and the trajectory, as every job that reads a session's navigation
-    reads them."""
+    reads them (``mapper``: :func:`read_nav_and_events`)."""
     from calib.core.trajectory import TrajectoryError
 
     try:
         site, site_path = session_site(session, options, summary)
-        nav, events = read_nav_and_events(session, progress)
+        nav, events = read_nav_and_events(session, progress, mapper)
     except SessionReadError as e:
         raise ExportError(str(e)) from None
     sig, filled = fill_sigmas(nav.t_ns, nav.sig)

@@ -88,3 +88,45 @@ def test_mls_georef_on_a_running_cluster_named_by_its_address(bundle, tmp_path):
     want = {p.name: p.read_bytes() for p in (tmp_path / "ref").glob("*.laz")}
     assert {p.name: p.read_bytes() for p in (tmp_path / "out").glob("*.laz")} == want
     assert want
+
+
+class CountsTasks(DaskExecutor):
+    """The names of the functions of the tasks submitted."""
+
+    def __init__(self, **kw):
+        super().__init__(**kw)
+        self.submitted: list[str] = []
+
+    def submit(self, fn, item):
+        self.submitted.append(item[0].__name__ if fn.__name__ == "_numbered" else fn.__name__)
+        super().submit(fn, item)
+
+
+def test_a_session_s_navigation_is_read_on_the_workers_and_the_tiles_do_not_change(tmp_path):
+    """On two workers the plan shares the reading of the navigation out to them (the plan is the
+    job's serial part); the tiles are byte for byte those of an in-process run."""
+    from typer.testing import CliRunner
+
+    from cli.app import app
+
+    args = ["--minutes", str(1 / 6), "--rate-scale", "0.01", "--rotate-s", "10"]
+    args += ["--set", "site.pass_length_m=10", "--set", "motion.pass_gap_s=2"]
+    r = CliRunner().invoke(
+        app, ["sim", "session", "--out", str(tmp_path / "s"), *args], env={"COLUMNS": "250"}
+    )
+    assert r.exit_code == 0, r.output
+    (session,) = (tmp_path / "s").iterdir()
+    opts = GeorefOptions(chunk_s=2.0)
+    ref = run_georef(session, tmp_path / "ref", opts)
+    ex = CountsTasks(workers=2)
+    try:
+        res = run_georef(session, tmp_path / "out", opts, executor=ex)
+    finally:
+        ex.close()
+    assert ex.submitted.count("nav_piece") >= 2 * len(list(session.glob("seg-*.mcap")))
+    assert ex.submitted.index("process_chunk") > max(
+        i for i, n in enumerate(ex.submitted) if n == "nav_piece"
+    )
+    assert res.n_points == ref.n_points > 0
+    want = {p.name: p.read_bytes() for p in (tmp_path / "ref").glob("*.laz")}
+    assert {p.name: p.read_bytes() for p in (tmp_path / "out").glob("*.laz")} == want

@@ -178,3 +178,67 @@ def test_unsynced_packets_are_timed_from_their_receipt(monkeypatch):
     r = sources.read_session_chunk(ChunkSpec(0, 0, 1, segment="unused"))
     assert r.counters["unsynced_packets"] == 2
     assert np.array_equal(r.t_gps_ns, np.sort(np.concatenate(want), kind="stable"))
+
+
+def _nav_message(rng, k: int):
+    """A random /ins/nav or /events message: synced or timed by the (sometimes unlocked) clock,
+    now and then without a pose or a sigma."""
+    if rng.random() < 0.1:
+        return (
+            "/events",
+            1000 + k,
+            2000 + k,
+            str(rng.choice(["LOCKED", "UNLOCKED"])),
+            {"kind": "mark", "k": k},
+        )
+    d = {"time_gps_ns": 10_000 + 7 * k, "time_source": str(rng.choice(["ins", "clock"]))}
+    d.update(
+        {name: float(rng.normal()) for name in ("lat_deg", "lon_deg", "height_m", "roll_deg", "pitch_deg")}
+    )
+    d["heading_deg"] = None if rng.random() < 0.05 else float(rng.normal())
+    d.update({f"sigma_{n}": float(rng.random()) for n in ("north_m", "east_m", "down_m", "roll_deg")})
+    d["sigma_pitch_deg"] = None if rng.random() < 0.2 else 0.01
+    return ("/ins/nav", 1000 + k, 2000 + 5 * k, str(rng.choice(["LOCKED", "UNLOCKED"])), d)
+
+
+@pytest.mark.parametrize("seed", range(5))
+def test_navigation_read_in_pieces_is_the_navigation_read_at_once(seed):
+    """Cut anywhere, the pieces of a run of messages joined are the piece of the whole run (the
+    unlocked epochs' rows renumbered), so the plan may read them on several workers."""
+    from office.jobs.sessionread import _collect, _join
+
+    rng = np.random.default_rng(seed)
+    messages = [_nav_message(rng, k) for k in range(300)]
+    whole = _collect(messages)
+    assert whole.unlocked_rows.size > 10 and whole.raw_events and whole.t_ns.size > 200
+    cuts = sorted(rng.choice(np.arange(1, len(messages)), 4, replace=False).tolist())
+    bounds = [0, *cuts, len(messages)]
+    joined = _join([_collect(messages[a:b]) for a, b in zip(bounds[:-1], bounds[1:], strict=True)])
+    for name in (
+        "t_ns",
+        "values",
+        "from_clock",
+        "unlocked_rows",
+        "unlocked_host_ns",
+        "sync_host_ns",
+        "sync_t_ns",
+    ):
+        assert np.array_equal(getattr(joined, name), getattr(whole, name), equal_nan=name == "values"), name
+    assert joined.raw_events == whole.raw_events
+
+
+def test_a_session_s_navigation_read_by_a_mapper_is_the_same(session):
+    from office.jobs.sessionread import read_nav_and_events
+
+    calls = []
+
+    def mapper(fn, items):
+        calls.append(len(items))
+        return [fn(x) for x in items]
+
+    nav, events = read_nav_and_events(session, None)
+    nav_m, events_m = read_nav_and_events(session, None, mapper)
+    assert calls and calls[0] > len(list(session.glob("seg-*.mcap")))  # in pieces
+    assert events_m == events
+    for name, value in vars(nav).items():
+        assert np.array_equal(getattr(nav_m, name), value, equal_nan=True), name
