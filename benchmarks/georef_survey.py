@@ -15,7 +15,8 @@ with the in-process run's. The shorter session runs on 2 workers again, to show 
 memory per worker does not grow with the survey's length.
 
 Figures: returns read/s and points written/s (wall time of the whole job: plan, chunks, LAZ
-compression), speed-up 2 workers / 1 worker (goal ≥ 1.8 on the 2-core machine, issue 29),
+compression), speed-up 2 workers / 1 worker (goal ≥ 1.8 on the 2-core machine in three
+consecutive runs, issue 29: ``--speedup-runs 3`` measures it three times in a row),
 peak resident memory per worker process (goal ≤ 1.5 GB at both lengths).
 
 Against the format and the sensor, from the in-process run (one core; CPU time of this process,
@@ -130,6 +131,13 @@ def laz_ceiling(tiles: Path, scratch: Path) -> tuple[int, float, float]:
     return n, cpu, wall
 
 
+def speedup_again(session: Path, tmp: Path, chunk_s: float, repeat: int) -> float:
+    """The 2-worker speed-up measured once more (1 worker, then 2)."""
+    _, w1, _ = run(session, tmp / "o-1", 1, chunk_s, repeat)
+    _, w2, _ = run(session, tmp / "o-2", 2, chunk_s, repeat)
+    return w1 / w2
+
+
 def row(label: str, res, wall: float) -> str:
     returns = res.counters.get("returns", 0)
     peak = max(res.peak_rss_mb.values())
@@ -180,6 +188,12 @@ def main() -> int:
     ap.add_argument("--rate-scale", type=float, default=0.1)
     ap.add_argument("--quick", action="store_true", help="4- and 2-minute sessions")
     ap.add_argument("--repeat", type=int, default=2, help="runs of each timed case (the fastest counts)")
+    ap.add_argument(
+        "--speedup-runs",
+        type=int,
+        default=1,
+        help="measure the 2-worker speed-up this many times in a row (the goal: in three consecutive runs)",
+    )
     a = ap.parse_args()
     long_min, short_min = (4.0, 2.0) if a.quick else a.minutes
     with tempfile.TemporaryDirectory(prefix="georef-bench-") as tmp_name:
@@ -201,10 +215,15 @@ def main() -> int:
         short, ws, _ = run(short_s, tmp / "o-s", 2, chunk_s, 1)
         print(row(f"{short_min:g} min 2 workers", short, ws))
         identical = same_bytes(tmp / "o-in", tmp / "o-1") and same_bytes(tmp / "o-in", tmp / "o-2")
-        speedup = w1 / w2
+        speedups = [
+            w1 / w2,
+            *(speedup_again(long_s, tmp, chunk_s, a.repeat) for _ in range(a.speedup_runs - 1)),
+        ]
         peak_long, peak_short = max(two.peak_rss_mb.values()), max(short.peak_rss_mb.values())
+        met = sum(s >= GOAL_SPEEDUP for s in speedups)
         print(
-            f"  speed-up 2 workers / 1 worker: {speedup:.2f}× (goal ≥ {GOAL_SPEEDUP}: ratio {speedup / GOAL_SPEEDUP:.2f})"
+            f"  speed-up 2 workers / 1 worker: {', '.join(f'{s:.3f}×' for s in speedups)} (goal ≥ {GOAL_SPEEDUP}: "
+            f"met in {met} of {len(speedups)} consecutive runs; ratio of the least {min(speedups) / GOAL_SPEEDUP:.3f})"
         )
         print(f"  1 worker / in-process time: {w1 / w0:.2f}")
         print(
@@ -214,7 +233,7 @@ def main() -> int:
         print(f"  tiles byte-identical across in-process, 1 and 2 workers: {'yes' if identical else 'NO'}")
         shutil.rmtree(tmp, ignore_errors=True)
     ok = (
-        speedup >= GOAL_SPEEDUP
+        min(speedups) >= GOAL_SPEEDUP
         and max(peak_long, peak_short) <= GOAL_PEAK_MB
         and identical
         and ratio >= GOAL_CEILING_RATIO
