@@ -40,7 +40,7 @@ LAZ_CHUNK_POINTS = 50_000
 SIGMA_STRIDE = 16
 #: the first bytes of a part file
 MAGIC = b"\x93MLSPRT1"
-_EXTREME_FIELDS = ("X", "Y", "Z", "gps_time", "pass_id", "sigma_h_m", "sigma_v_m")
+_EXTREME_FIELDS = ("X", "Y", "Z", "gps_time", "sigma_h_m", "sigma_v_m")  # and the pass id
 _HEAD = struct.Struct("<I")  # the JSON head's length
 
 
@@ -79,10 +79,13 @@ def laz_vlr():
     return lazrs.LazVlr.new_for_compression(6, lastile.record_dtype().itemsize - 30, True)
 
 
-def _extremes(records: np.ndarray) -> np.ndarray:
+def _extremes(records: np.ndarray, pass_ids: np.ndarray) -> np.ndarray:
+    """The two records holding the least and the greatest of each field the header bounds
+    (``pass_ids``: the records' distinct pass ids, sorted)."""
     ext = np.zeros(2, records.dtype)
     for name in _EXTREME_FIELDS:
-        ext[name] = records[name].min(), records[name].max()
+        ext[name] = records[name].min(), records[name].max()  # (strided: 25 ms a million points)
+    ext["pass_id"] = pass_ids[0], pass_ids[-1]
     return ext
 
 
@@ -94,8 +97,8 @@ def _compress(records: np.ndarray) -> tuple[bytes, tuple[tuple[int, int], ...]]:
     out = io.BytesIO()
     compressor = lazrs.LasZipCompressor(out, laz_vlr())
     compressor.reserve_offset_to_chunk_table()  # 8 bytes the file has once, not each part
-    table, start = [], out.tell()
-    first = start
+    first = start = out.tell()
+    table = []
     raw = records.view(np.uint8).reshape(-1)
     size = records.dtype.itemsize
     for a in range(0, records.size, LAZ_CHUNK_POINTS):
@@ -121,7 +124,7 @@ def make_part(records: np.ndarray, compress: bool) -> TilePart:
         n_points=int(records.size),
         payload=payload,
         laz_chunks=table,
-        extremes=_extremes(records),
+        extremes=_extremes(records, ids),
         by_return=tuple(int(c) for c in returns),
         pass_ids=tuple(int(i) for i in ids),
         sigma_sample=np.stack([records["sigma_h_m"][::SIGMA_STRIDE], records["sigma_v_m"][::SIGMA_STRIDE]]),
