@@ -192,7 +192,9 @@ def load_part(path: Path, record_dtype: np.dtype) -> TilePart:
     )
 
 
-def _header(parts: list[TilePart], crs: OutputCrs, software: str, provenance: dict, first_t_gps_s: float):
+def _header(
+    parts: list[TilePart], source_id: int, crs: OutputCrs, software: str, provenance: dict, first_t: float
+):
     """The tile's header for its ``parts``: grown by laspy from each part's extremes (two records
     holding the least and the greatest of every bounded field: the same bounds, to the bit, as
     a writer that saw every point), one record at a time — laspy 2.7 takes an extra-bytes
@@ -202,10 +204,7 @@ def _header(parts: list[TilePart], crs: OutputCrs, software: str, provenance: di
     import laspy
     from laspy.vlrs.known import LasZipVlr
 
-    ids = sorted({i for p in parts for i in p.pass_ids})
-    # one source id per file: the line's (LAS's u16, else 0); square tiles mix lines
-    source_id = las_source_id(ids[0]) if len(ids) == 1 else 0
-    header = lastile.tile_header(crs, source_id, software, provenance, lastile.survey_date(first_t_gps_s))
+    header = lastile.tile_header(crs, source_id, software, provenance, lastile.survey_date(first_t))
     header.partial_reset()
     if parts[0].compressed:
         header.vlrs.append(LasZipVlr(laz_vlr().record_data()))
@@ -239,7 +238,7 @@ def _write_points(f, parts: list[TilePart]) -> None:
     f.write(struct.pack("<q", table_at))
 
 
-def _summary(path: Path, parts: list[TilePart], header) -> lastile.TileSummary:
+def _summary(path: Path, parts: list[TilePart], passes: list[int], header) -> lastile.TileSummary:
     lo, hi = np.asarray(header.mins, float), np.asarray(header.maxs, float)
     sigma = np.concatenate([p.sigma_sample for p in parts], axis=1)
     return lastile.TileSummary(
@@ -251,7 +250,7 @@ def _summary(path: Path, parts: list[TilePart], header) -> lastile.TileSummary:
         bbox=tuple(round(float(v), 4) for v in (*lo, *hi)),  # type: ignore[arg-type]
         sigma_h_m=lastile.quantiles(sigma[0]),
         sigma_v_m=lastile.quantiles(sigma[1]),
-        passes=sorted({i for p in parts for i in p.pass_ids}),
+        passes=passes,
     )
 
 
@@ -275,7 +274,10 @@ def write_tile(
         raise LasOutputError(
             f"{path}: its parts must be {'LAZ chunks' if path.suffix == '.laz' else 'raw records'}"
         )
-    header = _header(parts, crs, software, provenance, first_t_gps_s)
+    passes = sorted({i for p in parts for i in p.pass_ids})
+    # one source id per file: the line's (LAS's u16, else 0); square tiles mix lines
+    source_id = las_source_id(passes[0]) if len(passes) == 1 else 0
+    header = _header(parts, source_id, crs, software, provenance, first_t_gps_s)
     partial = path.with_name(path.name + ".partial")
     try:
         with open(partial, "wb") as f:
@@ -286,4 +288,4 @@ def write_tile(
         os.replace(partial, path)
     finally:
         partial.unlink(missing_ok=True)
-    return _summary(path, parts, header)
+    return _summary(path, parts, passes, header)

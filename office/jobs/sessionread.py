@@ -94,11 +94,12 @@ def _indexed(summary) -> bool:
     return summary is not None and bool(summary.chunk_indexes)
 
 
-def _segment_messages(path: Path) -> Iterator[NavMessage]:
-    """:func:`nav_messages` of one segment that closed normally."""
+def _segment_messages(path: str | Path, chunks_of: slice | None = None) -> Iterator[NavMessage]:
+    """:func:`nav_messages` of one segment that closed normally (``chunks_of``: of those of its
+    MCAP chunks that hold them, :func:`acquire.log.indexed.indexed_blocks`)."""
     from acquire.log.indexed import indexed_blocks
 
-    found = indexed_blocks(path, NAV_TOPICS)
+    found = indexed_blocks(path, NAV_TOPICS, chunks_of=chunks_of)
     if found is None:  # (checked before: the segment has its index)
         raise SessionReadError(f"{path}: the segment's index could not be read")
     channels, blocks = found
@@ -230,14 +231,8 @@ def _join(pieces: list[NavPiece]) -> NavPiece:
 def nav_piece(task: tuple[str, int, int]) -> NavPiece:
     """The :class:`NavPiece` of the MCAP chunks [lo, hi) of those holding :data:`NAV_TOPICS`
     of the segment ``task`` = (path, lo, hi), which closed normally (a task a mapper runs)."""
-    from acquire.log.indexed import indexed_blocks
-
     path, lo, hi = task
-    found = indexed_blocks(path, NAV_TOPICS, chunks_of=slice(lo, hi))
-    if found is None:  # (checked before: the segment has its index)
-        raise SessionReadError(f"{path}: the segment's index could not be read")
-    channels, blocks = found
-    return _collect(m for block in blocks for m in _chunk_messages(channels, block))
+    return _collect(_segment_messages(path, slice(lo, hi)))
 
 
 def _pieces(session: Path, progress: ReadProgress | None, mapper: Mapper | None) -> list[NavPiece]:
